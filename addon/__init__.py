@@ -1,0 +1,1 @@
+"""ProCam engine: everything that is not Blender UI (rig, capture, render, stages, lab, gap)."""

@@ -1,0 +1,43 @@
+"""Exceptions for failures the user can fix; each message says what to do.
+
+The CLI prints the message and exits non-zero; operators pass it to ``self.report``.
+Anything that is not a ``ProCamError`` is a bug in ProCam.
+"""
+
+
+class ProCamError(Exception):
+    """Base of all errors whose message is meant for the user."""
+
+    exit_code = 2
+
+
+class RigError(ProCamError):
+    """Bad camera/projector specification or pose."""
+
+
+class SurfaceError(ProCamError):
+    """A surface object or mesh that cannot be used."""
+
+
+class ImageError(ProCamError):
+    """A missing, unreadable or ill-shaped image."""
+
+
+class RenderError(ProCamError):
+    """The renderer cannot run (backend, LLVM, GPU) or produced invalid values."""
+
+
+class CaptureError(ProCamError):
+    """A capture set that is missing, incomplete or inconsistent."""
+
+
+class CalibrationError(ProCamError):
+    """A calibration stage cannot proceed from the given captures."""
+
+
+class NotImplementedStageError(ProCamError):
+    """A stage of the pipeline that is not built yet."""
+
+    def __init__(self, what: str, issue: str = "") -> None:
+        extra = f" (tracked in {issue})" if issue else ""
+        super().__init__(f"{what} is not implemented yet in this version of ProCam{extra}.")

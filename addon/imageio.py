@@ -1,0 +1,114 @@
+"""The one image I/O module: 16-bit PNG for captures and projector inputs, EXR/.npy for float data.
+
+Images in memory are float32, linear, H×W×3 (or H×W), values in [0, 1].
+Nothing here applies an sRGB transfer or a tone map. Writes go to a temporary
+name in the target folder and are renamed into place, so a crash never leaves
+a half-written file under the real name.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .errors import ImageError  # noqa: E402
+
+
+def atomic_path(path: Path) -> tuple[Path, Path]:
+    """A temporary sibling for ``path`` (same suffix, same folder, so rename is atomic)."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise ImageError(f"cannot write {path}: folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    return Path(tmp), path
+
+
+def write_atomic_bytes(path: Path, data: bytes) -> None:
+    tmp, final = atomic_path(path)
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, final)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _to_bgr(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 3 and img.shape[2] == 3:
+        return img[..., ::-1]
+    if img.ndim == 3 and img.shape[2] == 4:
+        return img[..., [2, 1, 0, 3]]
+    return img
+
+
+def write_image(path: str | Path, image: np.ndarray) -> Path:
+    """Write float [0,1] data as 16-bit PNG (``.png``), float EXR (``.exr``) or ``.npy``."""
+    path = Path(path)
+    img = np.asarray(image, dtype=np.float32)
+    if not np.all(np.isfinite(img)):
+        raise ImageError(f"refusing to write {path.name}: the image holds NaN or infinite values")
+    suffix = path.suffix.lower()
+    tmp, final = atomic_path(path)
+    try:
+        if suffix == ".png":
+            data = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
+            ok = cv2.imwrite(str(tmp), _to_bgr(data))
+        elif suffix == ".exr":
+            ok = cv2.imwrite(str(tmp), _to_bgr(img), [cv2.IMWRITE_EXR_TYPE, cv2.IMWRITE_EXR_TYPE_FLOAT])
+        elif suffix == ".npy":
+            with open(tmp, "wb") as fh:
+                np.save(fh, img)
+            ok = True
+        else:
+            raise ImageError(f"unsupported image type {suffix!r} for {path}; use .png, .exr or .npy")
+        if not ok:
+            raise ImageError(f"OpenCV could not write {path}")
+        os.replace(tmp, final)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return final
+
+
+def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
+    """Read an image as float32 linear values; 8/16-bit files are scaled to [0, 1].
+
+    ``channels=3`` returns H×W×3 (grey is repeated), ``1`` returns H×W,
+    ``None`` returns what the file holds.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"image not found: {path}")
+    if path.suffix.lower() == ".npy":
+        try:
+            img = np.load(path, allow_pickle=False).astype(np.float32)
+        except (ValueError, OSError) as exc:
+            raise ImageError(f"cannot read {path}: {exc}") from None
+    else:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise ImageError(f"cannot read {path}: not an image or the file is damaged")
+        if raw.dtype == np.uint8:
+            img = raw.astype(np.float32) / 255.0
+        elif raw.dtype == np.uint16:
+            img = raw.astype(np.float32) / 65535.0
+        else:
+            img = raw.astype(np.float32)
+        img = _to_bgr(img)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if channels == 3:
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        elif img.shape[2] == 1:
+            img = np.repeat(img, 3, axis=2)
+    elif channels == 1 and img.ndim == 3:
+        img = img[..., :3].mean(axis=2) if img.shape[2] >= 3 else img[..., 0]
+    if not np.all(np.isfinite(img)):
+        raise ImageError(f"{path} holds NaN or infinite values")
+    return np.ascontiguousarray(img, dtype=np.float32)

@@ -1,0 +1,1 @@
+"""Camera and projector models, and the one place that converts between OpenCV, Blender and Mitsuba frames."""

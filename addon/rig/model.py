@@ -1,0 +1,290 @@
+"""Pinhole models of the camera and the projector, and the rig that holds both.
+
+Conventions (see DESIGN.md §3):
+
+* The rig frame is the camera's OpenCV frame: x right, y down, z forward,
+  metres, camera at the origin.
+* Intrinsics use *continuous* pixel coordinates: pixel ``(i, j)`` covers
+  ``[i, i+1) × [j, j+1)``, so the top-left corner of the image is ``(0, 0)``
+  and a centred principal point is ``(W/2, H/2)``. OpenCV puts pixel centres
+  on integers; :meth:`Intrinsics.opencv_matrix` converts (``cx_cv = cx - 0.5``).
+  We keep the corner convention because Blender, Mitsuba and texture lookups
+  all use it, so only OpenCV calls need the half-pixel shift.
+* A projector's lens shift is nothing but its principal point off centre.
+  :func:`projector_intrinsics_from_throw` is the one place that converts the
+  spec-sheet form (throw ratio, shift in % of the image) into ``K``.
+* Poses are 4×4 matrices ``camera_from_X`` mapping points of device X's
+  OpenCV frame into the rig frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from ..errors import RigError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels of the native resolution (corner convention)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value <= 0:
+                raise RigError(f"resolution {name} must be a positive whole number of pixels, got {value!r}")
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if not math.isfinite(float(value)):
+                raise RigError(f"intrinsic {name} must be a finite number, got {value!r}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise RigError(f"focal lengths must be positive (fx={self.fx}, fy={self.fy}); check the throw ratio or K")
+        if not (0.0 <= self.cx <= self.width and 0.0 <= self.cy <= self.height):
+            raise RigError(
+                f"principal point ({self.cx:.1f}, {self.cy:.1f}) lies outside the {self.width}×{self.height} image; "
+                "a lens shift of more than half the image is not supported — check cx, cy or the shift percentages"
+            )
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return (int(self.width), int(self.height))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """3×3 K in the corner convention."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def opencv_matrix(self) -> np.ndarray:
+        """3×3 K in OpenCV's pixel-centre convention."""
+        k = self.matrix
+        k[0, 2] -= 0.5
+        k[1, 2] -= 0.5
+        return k
+
+    @property
+    def square_pixels(self) -> bool:
+        return abs(self.fx - self.fy) <= 1e-6 * self.fx
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Project N×3 points of this device's OpenCV frame to N×2 pixels (NaN behind the device)."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        z = np.where(p[:, 2] > 1e-12, p[:, 2], np.nan)
+        return np.stack([self.fx * p[:, 0] / z + self.cx, self.fy * p[:, 1] / z + self.cy], axis=1)
+
+    def rays(self, pixels: np.ndarray) -> np.ndarray:
+        """Directions (z = 1) in the device frame through N×2 pixel positions."""
+        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        return np.stack([(px[:, 0] - self.cx) / self.fx, (px[:, 1] - self.cy) / self.fy, np.ones(len(px))], axis=1)
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """The same lens at another resolution (e.g. a small test render)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(int(width), int(height), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+    @property
+    def shift(self) -> tuple[float, float]:
+        """Lens shift as (right, up) fractions of the image width/height."""
+        return ((self.width / 2 - self.cx) / self.width, (self.cy - self.height / 2) / self.height)
+
+    @property
+    def throw_ratio(self) -> float:
+        """Distance / image width (horizontal)."""
+        return self.fx / self.width
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"width": int(self.width), "height": int(self.height), "fx": float(self.fx), "fy": float(self.fy),
+                "cx": float(self.cx), "cy": float(self.cy), "convention": "pixel corners at integers"}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "Intrinsics":
+        try:
+            return Intrinsics(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
+                              float(d["cx"]), float(d["cy"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RigError(f"intrinsics need width, height, fx, fy, cx, cy: {exc}") from None
+
+
+def intrinsics_from_fov(width: int, height: int, fov_x_deg: float) -> Intrinsics:
+    """Square-pixel intrinsics with a centred principal point and a horizontal field of view."""
+    if not 0 < fov_x_deg < 180:
+        raise RigError(f"horizontal field of view must lie in (0°, 180°), got {fov_x_deg}")
+    f = width / (2 * math.tan(math.radians(fov_x_deg) / 2))
+    return Intrinsics(int(width), int(height), f, f, width / 2, height / 2)
+
+
+def projector_intrinsics_from_throw(width: int, height: int, throw_ratio: float,
+                                    shift_x: float = 0.0, shift_y: float = 0.0) -> Intrinsics:
+    """Spec-sheet form to K: the one place where throw ratio and lens shift become intrinsics.
+
+    ``throw_ratio`` is distance / image width. ``shift_x``/``shift_y`` are the
+    displacement of the image centre from the lens axis, as fractions of the
+    image width/height, positive right/up (a table-top projector whose image
+    starts at the lens axis has ``shift_y = 0.5``).
+    """
+    if not (isinstance(throw_ratio, (int, float)) and math.isfinite(throw_ratio)) or throw_ratio <= 0:
+        raise RigError(f"throw ratio must be a positive number (distance / image width), got {throw_ratio!r}")
+    if width <= 0 or height <= 0:
+        raise RigError(f"projector resolution must be positive, got {width}×{height}")
+    f = throw_ratio * width
+    return Intrinsics(int(width), int(height), f, f, width / 2 - shift_x * width, height / 2 + shift_y * height)
+
+
+def _as_pose(matrix: Any, what: str) -> np.ndarray:
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise RigError(f"{what} must be a finite 4×4 matrix")
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0 or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise RigError(f"{what} must be a rigid transform (rotation + translation, no scale or mirror)")
+    return m
+
+
+@dataclass(frozen=True)
+class Camera:
+    """The camera: it defines the rig frame, so its pose is the identity."""
+
+    intrinsics: Intrinsics
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"intrinsics": self.intrinsics.to_dict()}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "Camera":
+        return Camera(Intrinsics.from_dict(d["intrinsics"]))
+
+
+@dataclass(frozen=True)
+class Projector:
+    """A projector: pinhole intrinsics of its native frame, pose, brightness, and where its input sits.
+
+    ``input_size``/``input_offset`` place the projector input image (the paper's
+    600×600) inside the native frame (800×600); the rest of the frame is black.
+    ``intensity`` scales emitted light: 1 gives an irradiance of π·value on a
+    plane 1 m in front of the lens (Mitsuba's ``projector`` with ``scale = 1``).
+    """
+
+    intrinsics: Intrinsics
+    camera_from_projector: np.ndarray = field(default_factory=lambda: np.eye(4))
+    intensity: float = 1.0
+    input_size: tuple[int, int] | None = None
+    input_offset: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "camera_from_projector", _as_pose(self.camera_from_projector, "projector pose"))
+        if not math.isfinite(self.intensity) or self.intensity <= 0:
+            raise RigError(f"projector intensity must be positive, got {self.intensity}")
+        w, h = self.intrinsics.size
+        size = tuple(int(v) for v in (self.input_size or (w, h)))
+        if size[0] <= 0 or size[1] <= 0 or size[0] > w or size[1] > h:
+            raise RigError(f"projector input size {size} must be positive and fit in the {w}×{h} frame")
+        offset = self.input_offset
+        if offset is None:
+            offset = ((w - size[0]) // 2, (h - size[1]) // 2)
+        offset = tuple(int(v) for v in offset)
+        if offset[0] < 0 or offset[1] < 0 or offset[0] + size[0] > w or offset[1] + size[1] > h:
+            raise RigError(f"projector input {size} at offset {offset} does not fit in the {w}×{h} frame")
+        object.__setattr__(self, "input_size", size)
+        object.__setattr__(self, "input_offset", offset)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.camera_from_projector[:3, 3].copy()
+
+    @property
+    def direction(self) -> np.ndarray:
+        """Unit optical axis (+z of the projector frame) in the rig frame."""
+        return self.camera_from_projector[:3, 2].copy()
+
+    def frame_from_input(self, image: np.ndarray) -> np.ndarray:
+        """Place an input image (input_size) into a black native frame."""
+        w, h = self.input_size
+        img = np.asarray(image, dtype=np.float32)
+        if img.shape[:2] != (h, w):
+            from ..errors import ImageError
+            raise ImageError(f"projector input must be {w}×{h} pixels, got {img.shape[1]}×{img.shape[0]}")
+        fw, fh = self.intrinsics.size
+        frame = np.zeros((fh, fw) + img.shape[2:], dtype=np.float32)
+        x0, y0 = self.input_offset
+        frame[y0:y0 + h, x0:x0 + w] = img
+        return frame
+
+    def project(self, points_rig: np.ndarray) -> np.ndarray:
+        """Projector pixels of N×3 rig-frame points."""
+        inv = np.linalg.inv(self.camera_from_projector)
+        p = np.asarray(points_rig, dtype=np.float64).reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]
+        return self.intrinsics.project(p)
+
+    def with_pose(self, camera_from_projector: np.ndarray) -> "Projector":
+        return replace(self, camera_from_projector=np.asarray(camera_from_projector, dtype=np.float64))
+
+    def scaled(self, width: int, height: int) -> "Projector":
+        """The same projector at another native resolution; the input keeps its share of the frame."""
+        sx, sy = width / self.intrinsics.width, height / self.intrinsics.height
+        size = (max(1, round(self.input_size[0] * sx)), max(1, round(self.input_size[1] * sy)))
+        offset = (round(self.input_offset[0] * sx), round(self.input_offset[1] * sy))
+        offset = (min(offset[0], width - size[0]), min(offset[1], height - size[1]))
+        return replace(self, intrinsics=self.intrinsics.scaled(width, height), input_size=size, input_offset=offset)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"intrinsics": self.intrinsics.to_dict(),
+                "camera_from_projector": self.camera_from_projector.tolist(),
+                "intensity": float(self.intensity),
+                "input_size": list(self.input_size), "input_offset": list(self.input_offset)}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "Projector":
+        try:
+            return Projector(Intrinsics.from_dict(d["intrinsics"]), np.asarray(d["camera_from_projector"], dtype=float),
+                             float(d.get("intensity", 1.0)),
+                             tuple(d["input_size"]) if d.get("input_size") else None,
+                             tuple(d["input_offset"]) if d.get("input_offset") else None)
+        except KeyError as exc:
+            raise RigError(f"projector description lacks {exc}") from None
+
+
+@dataclass(frozen=True)
+class Rig:
+    """Camera (at the origin of the rig frame) and projector."""
+
+    camera: Camera
+    projector: Projector
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"frame": "OpenCV camera frame: x right, y down, z forward, metres",
+                "camera": self.camera.to_dict(), "projector": self.projector.to_dict()}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "Rig":
+        try:
+            return Rig(Camera.from_dict(d["camera"]), Projector.from_dict(d["projector"]))
+        except KeyError as exc:
+            raise RigError(f"rig description lacks {exc}") from None
+
+
+def look_at_pose(position: Any, target: Any, up: Any = (0.0, -1.0, 0.0)) -> np.ndarray:
+    """OpenCV-frame pose (z towards target, y down ≈ against ``up``) as a 4×4 camera_from_device."""
+    p, t, u = (np.asarray(v, dtype=np.float64) for v in (position, target, up))
+    z = t - p
+    if np.linalg.norm(z) < 1e-12:
+        raise RigError("look-at target coincides with the position")
+    z /= np.linalg.norm(z)
+    x = np.cross(-u, z)  # y points down, so x = y × z with y = -up
+    if np.linalg.norm(x) < 1e-9:
+        raise RigError("look-at 'up' is parallel to the viewing direction")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, p
+    return m

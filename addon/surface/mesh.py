@@ -1,0 +1,51 @@
+"""The textured triangle mesh that every renderer and stage shares.
+
+Vertices are in the rig frame (metres). The diffuse albedo is an image
+(float32, linear, H×W×3) looked up with per-vertex UVs, with ``v = 0`` at the
+*bottom* row of the image as in Blender and OBJ files (row 0 of the array is
+the top of the image).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import SurfaceError
+
+
+@dataclass(frozen=True)
+class SurfaceMesh:
+    vertices: np.ndarray  # N×3 float64, rig frame
+    faces: np.ndarray  # M×3 int32, counter-clockwise seen from the camera side
+    uvs: np.ndarray  # N×2 float64 in [0, 1]
+    albedo: np.ndarray  # H×W×3 float32, linear, in [0, 1]
+    name: str = "surface"
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.vertices, dtype=np.float64)
+        f = np.asarray(self.faces)
+        uv = np.asarray(self.uvs, dtype=np.float64)
+        a = np.asarray(self.albedo, dtype=np.float32)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3:
+            raise SurfaceError(f"surface {self.name!r}: vertices must be N×3 with N ≥ 3, got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise SurfaceError(f"surface {self.name!r} has no triangles")
+        if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
+            raise SurfaceError(f"surface {self.name!r}: face indices must index its {len(v)} vertices")
+        if uv.shape != (len(v), 2):
+            raise SurfaceError(f"surface {self.name!r}: needs one UV per vertex, got {uv.shape}")
+        if a.ndim != 3 or a.shape[2] != 3 or min(a.shape[:2]) < 1:
+            raise SurfaceError(f"surface {self.name!r}: albedo must be an H×W×3 image, got {a.shape}")
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(uv)) and np.all(np.isfinite(a))):
+            raise SurfaceError(f"surface {self.name!r} holds NaN or infinite values")
+        object.__setattr__(self, "vertices", v)
+        object.__setattr__(self, "faces", f.astype(np.int32))
+        object.__setattr__(self, "uvs", uv)
+        object.__setattr__(self, "albedo", np.clip(a, 0.0, 1.0))
+
+    def face_normals(self) -> np.ndarray:
+        p = self.vertices[self.faces]
+        n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
