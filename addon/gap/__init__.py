@@ -1,0 +1,1 @@
+"""Sim-to-real diagnosis: effect models, fitting, attribution, report."""

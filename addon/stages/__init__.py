@@ -1,0 +1,1 @@
+"""The three optimisations of the method: projector pose (A), warp (B), projector input (C)."""
