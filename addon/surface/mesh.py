@@ -49,3 +49,30 @@ class SurfaceMesh:
         p = self.vertices[self.faces]
         n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def ray_intersect(mesh: SurfaceMesh, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Distance along each ray to the nearest triangle (Möller–Trumbore), ``inf`` where it misses.
+
+    ``origins``/``directions`` are N×3 (or 3) in the rig frame; directions need
+    not be unit length (the result is in units of the direction's length).
+    """
+    o = np.broadcast_to(np.asarray(origins, dtype=np.float64), np.shape(directions)).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    tri = mesh.vertices[mesh.faces]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    best = np.full(len(d), np.inf)
+    for start in range(0, len(d), 256):  # chunks keep the N×M temporaries small
+        dd, oo = d[start:start + 256, None, :], o[start:start + 256, None, :]
+        p = np.cross(dd, e2[None])
+        det = np.einsum("nmk,mk->nm", p, e1)
+        ok = np.abs(det) > 1e-12
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = oo - tri[None, :, 0]
+        u = np.einsum("nmk,nmk->nm", s, p) * inv
+        q = np.cross(s, e1[None])
+        v = np.einsum("nk,nmk->nm", dd[:, 0], q) * inv
+        t = np.einsum("mk,nmk->nm", e2, q) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+        best[start:start + 256] = np.where(hit, t, np.inf).min(axis=1)
+    return best

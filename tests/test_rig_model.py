@@ -1,0 +1,133 @@
+"""Rig model: intrinsics, spec-sheet conversion, poses, validation."""
+
+import numpy as np
+import pytest
+
+from procam.addon.errors import ImageError, RigError
+from procam.addon.rig import frames
+from procam.addon.rig.demo import demo_rig
+from procam.addon.rig.model import (Intrinsics, Projector, Rig, intrinsics_from_fov, look_at_pose,
+                                    projector_intrinsics_from_throw)
+
+
+def test_throw_ratio_and_shift_round_trip():
+    k = projector_intrinsics_from_throw(800, 600, 1.25, shift_x=-0.05, shift_y=0.15)
+    assert k.fx == pytest.approx(1000.0) and k.fy == pytest.approx(1000.0)
+    assert k.cx == pytest.approx(440.0) and k.cy == pytest.approx(390.0)
+    assert k.throw_ratio == pytest.approx(1.25)
+    assert k.shift == pytest.approx((-0.05, 0.15))
+
+
+def test_shifted_image_sits_above_the_axis():
+    # A positive vertical shift puts the image centre above the lens axis (rig y is down).
+    k = projector_intrinsics_from_throw(800, 600, 1.0, shift_y=0.2)
+    ray = k.rays(np.array([[400.0, 300.0]]))[0]
+    assert ray[1] == pytest.approx(-0.2 * 600 / 800)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(width=0, height=600, throw_ratio=1.0), "resolution"),
+    (dict(width=800, height=600, throw_ratio=0.0), "throw ratio"),
+    (dict(width=800, height=600, throw_ratio=-1.0), "throw ratio"),
+    (dict(width=800, height=600, throw_ratio=1.0, shift_y=0.8), "principal point"),
+])
+def test_bad_projector_specs_are_named(kwargs, message):
+    with pytest.raises(RigError, match=message):
+        projector_intrinsics_from_throw(**kwargs)
+
+
+def test_opencv_matrix_shifts_half_a_pixel():
+    k = intrinsics_from_fov(640, 480, 60.0)
+    assert k.opencv_matrix()[0, 2] == pytest.approx(319.5)
+    assert k.matrix[0, 2] == pytest.approx(320.0)
+
+
+def test_projection_and_rays_are_inverse():
+    k = Intrinsics(800, 600, 1010.0, 990.0, 410.0, 380.0)
+    px = np.array([[0.0, 0.0], [800.0, 600.0], [123.4, 456.7]])
+    pts = k.rays(px) * np.array([[1.0], [2.5], [0.7]])
+    assert np.abs(k.project(pts) - px).max() < 1e-9
+
+
+def test_point_behind_device_projects_to_nan():
+    k = intrinsics_from_fov(64, 48, 60)
+    assert np.all(np.isnan(k.project(np.array([[0.0, 0.0, -1.0]]))))
+
+
+def test_look_at_pose_is_rigid_and_aims():
+    pose = look_at_pose([0.2, 0.1, 0.0], [0.0, 0.0, 2.0])
+    r = pose[:3, :3]
+    assert np.allclose(r @ r.T, np.eye(3)) and np.linalg.det(r) == pytest.approx(1.0)
+    aim = np.array([-0.2, -0.1, 2.0])
+    assert np.allclose(r[:, 2], aim / np.linalg.norm(aim))
+    assert r[1, 1] > 0.9  # y stays (mostly) down
+
+
+def test_projector_rejects_non_rigid_pose_and_bad_input_placement():
+    k = projector_intrinsics_from_throw(800, 600, 1.2)
+    with pytest.raises(RigError, match="rigid"):
+        Projector(k, np.diag([2.0, 1.0, 1.0, 1.0]))
+    with pytest.raises(RigError, match="fit"):
+        Projector(k, input_size=(900, 600))
+    with pytest.raises(RigError, match="intensity"):
+        Projector(k, intensity=0.0)
+
+
+def test_input_placement_and_frame():
+    rig = demo_rig()
+    p = rig.projector
+    assert p.input_size == (600, 600) and p.input_offset == (100, 0)
+    frame = p.frame_from_input(np.ones((600, 600, 3)))
+    assert frame.shape == (600, 800, 3)
+    assert frame[:, :100].max() == 0 and frame[:, 700:].max() == 0 and frame[:, 100:700].min() == 1
+    with pytest.raises(ImageError, match="600×600"):
+        p.frame_from_input(np.ones((10, 10, 3)))
+
+
+def test_demo_projector_is_lens_shifted_and_lands_on_camera_image():
+    rig = demo_rig()
+    k = rig.projector.intrinsics
+    assert abs(k.cy - k.height / 2) >= 0.1 * k.height
+    # Projector frame corners hit a plane at 1.7 m inside the camera image.
+    p = rig.projector
+    rays = p.camera_from_projector[:3, :3] @ k.rays(np.array([[0, 0], [800, 0], [0, 600], [800, 600]])).T
+    t = (1.7 - p.position[2]) / rays[2]
+    pts = p.position[:, None] + rays * t
+    px = rig.camera.intrinsics.project(pts.T)
+    assert np.all((px >= 0) & (px <= [640, 480]))
+    # and back: projecting those points into the projector gives the corners again
+    assert np.abs(p.project(pts.T) - [[0, 0], [800, 0], [0, 600], [800, 600]]).max() < 1e-6
+
+
+def test_rig_dict_round_trip():
+    rig = demo_rig((64, 48), (80, 60))
+    back = Rig.from_dict(rig.to_dict())
+    assert back.camera.intrinsics == rig.camera.intrinsics
+    assert np.allclose(back.projector.camera_from_projector, rig.projector.camera_from_projector)
+    assert back.projector.input_size == rig.projector.input_size
+
+
+def test_scaled_keeps_the_lens():
+    k = projector_intrinsics_from_throw(800, 600, 1.25, shift_y=0.15)
+    s = k.scaled(200, 150)
+    assert s.throw_ratio == pytest.approx(k.throw_ratio) and s.shift == pytest.approx(k.shift)
+
+
+def test_blender_frame_is_z_up_with_camera_looking_along_y():
+    cam = frames.blender_matrix_world(np.eye(4))
+    assert np.allclose(cam[:3, 2], [0, -1, 0])  # Blender cameras look down local -Z → world +Y
+    assert np.allclose(cam[:3, 1], [0, 0, 1])  # local +Y (up) → world +Z
+    pose = look_at_pose([0.3, -0.1, 0.2], [0.0, 0.2, 2.0])
+    assert np.allclose(frames.pose_from_blender_matrix(frames.blender_matrix_world(pose)), pose)
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    assert np.allclose(frames.rig_points(frames.blender_points(pts)), pts)
+
+
+def test_blender_camera_params_round_trip():
+    k = Intrinsics(640, 480, 580.0, 580.0, 300.0, 270.0)
+    p = frames.blender_camera_params(k)
+    back = frames.intrinsics_from_blender_camera(p["lens"], p["sensor_width"], 24.0, p["sensor_fit"],
+                                                 p["shift_x"], p["shift_y"], 640, 480)
+    assert np.allclose(back.matrix, k.matrix)
+    with pytest.raises(RigError, match="square"):
+        frames.blender_camera_params(Intrinsics(640, 480, 580.0, 590.0, 320.0, 240.0))
