@@ -1,0 +1,70 @@
+"""RGBD → mesh: accuracy against a known surface, noise and holes handled, unusable depth rejected."""
+
+import numpy as np
+import pytest
+
+from procam.addon.errors import SurfaceError
+from procam.addon.rig.demo import demo_camera
+from procam.addon.surface.mesh import ray_intersect
+from procam.addon.surface.reconstruct import reconstruct_surface
+from procam.addon.surface.shapes import builtin_surface
+
+W, H = 96, 72
+
+
+def true_depth(surface):
+    cam = demo_camera(W, H).intrinsics
+    ys, xs = np.mgrid[0:H, 0:W] + 0.5
+    t = ray_intersect(surface, np.zeros(3), cam.rays(np.stack([xs.ravel(), ys.ravel()], 1)))
+    return cam, np.where(np.isfinite(t), t, np.nan).reshape(H, W)  # rays have z = 1, so t is depth
+
+
+@pytest.fixture(scope="module", params=["plane", "vedge"])
+def scene(request):
+    s = builtin_surface(request.param, resolution=24)
+    cam, depth = true_depth(s)
+    return s, cam, depth
+
+
+def test_noisy_depth_with_holes_and_outliers_gives_sub_centimetre_surface(scene):
+    surface, cam, depth = scene
+    rng = np.random.default_rng(1)
+    noisy = depth + rng.normal(0, 0.01, depth.shape)
+    noisy[rng.random(depth.shape) < 0.03] = np.nan
+    spikes = rng.random(depth.shape) < 0.01
+    noisy[spikes] += 0.5
+    rgb = rng.random((H, W, 3)).astype(np.float32)
+    mesh, report = reconstruct_surface(noisy, cam, rgb, step=2)
+    assert report.outliers >= 0.5 * np.sum(spikes & np.isfinite(depth))
+    along = mesh.vertices / mesh.vertices[:, 2:3]
+    t = ray_intersect(surface, np.zeros(3), along)
+    err = np.abs(mesh.vertices[:, 2] - t)[np.isfinite(t)]
+    assert len(err) > 0.9 * len(mesh.vertices)
+    assert err.mean() < 0.01
+    # Normals face the camera, and UVs put each vertex where the camera sees it.
+    assert mesh.face_normals()[:, 2].mean() < -0.5
+    px = cam.project(mesh.vertices)
+    assert np.allclose(mesh.uvs[:, 0], np.clip(px[:, 0] / W, 0, 1))
+    assert np.allclose(mesh.uvs[:, 1], np.clip(1 - px[:, 1] / H, 0, 1))
+    assert mesh.albedo.shape == (H, W, 3)
+
+
+def test_mostly_empty_depth_is_a_clear_error(scene):
+    _, cam, depth = scene
+    sparse = depth.copy()
+    sparse[np.random.default_rng(0).random(depth.shape) < 0.8] = np.nan
+    with pytest.raises(SurfaceError, match="mostly empty"):
+        reconstruct_surface(sparse, cam)
+
+
+def test_depth_of_other_aspect_ratio_is_rejected(scene):
+    _, cam, depth = scene
+    with pytest.raises(SurfaceError, match="aspect"):
+        reconstruct_surface(depth[:, : W // 2], cam)
+
+
+def test_lower_resolution_depth_of_same_aspect_is_accepted(scene):
+    surface, cam, depth = scene
+    mesh, _ = reconstruct_surface(depth[::2, ::2], cam, step=1)
+    t = ray_intersect(surface, np.zeros(3), mesh.vertices / mesh.vertices[:, 2:3])
+    assert np.nanmean(np.abs(mesh.vertices[:, 2] - t)[np.isfinite(t)]) < 0.01
