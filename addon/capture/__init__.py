@@ -1,0 +1,1 @@
+"""Capture sets (folder + capture.json), projected patterns, and capture devices (lab, folder, live)."""

@@ -1,0 +1,498 @@
+"""Capture devices: things that show a projector frame and return what the camera saw.
+
+The pipeline talks to a :class:`Device` and never knows which one it has:
+
+* the virtual lab (``addon/lab/``) renders the frame with Cycles;
+* :class:`LiveDevice` shows the frame full-screen on the projector's display
+  (OpenCV highgui) and grabs a camera frame (OpenCV ``VideoCapture``);
+* the folder workflow, for users with their own projection/capture tools:
+  :func:`export_sequence` writes the numbered pattern frames, the user shows
+  and photographs them, :func:`import_captures` turns the photographs into a
+  capture set; :class:`FolderDevice` then replays that capture set, answering
+  ``project`` for every frame that was captured.
+
+:func:`capture_sequence` runs a pattern sequence through any device into a
+new capture set.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import struct
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..errors import CaptureError, ImageError, RigError
+from ..imageio import read_image, write_atomic_bytes, write_image
+from ..rig.model import Camera, Projector, intrinsics_from_fov
+from .format import AtomicFolder, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
+from .patterns import PatternSpec, calibration_sequence
+
+SEQUENCE_FORMAT = "procam-sequence"
+SEQUENCE_VERSION = 1
+SEQUENCE_MANIFEST = "sequence.json"
+CAPTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+ENCODINGS = ("auto", "srgb", "linear")
+
+
+class Device(ABC):
+    """Shows a native projector frame and returns the camera's image (float32 H×W×3, linear)."""
+
+    projector: Projector
+
+    @abstractmethod
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        """Show ``frame`` (native projector resolution, float32 H×W×3 in [0, 1]) and capture."""
+
+    def capture_off(self) -> np.ndarray:
+        """Capture with the projector off; devices that cannot switch it off show a black frame."""
+        w, h = self.projector.intrinsics.size
+        return self.project(np.zeros((h, w, 3), dtype=np.float32))
+
+    def close(self) -> None:
+        """Release windows, cameras, renderers."""
+
+    def check_frame(self, frame: np.ndarray) -> np.ndarray:
+        f = np.asarray(frame, dtype=np.float32)
+        if f.ndim == 2:
+            f = np.repeat(f[..., None], 3, axis=2)
+        w, h = self.projector.intrinsics.size
+        if f.shape != (h, w, 3):
+            raise CaptureError(f"a projector frame must be {w}×{h}×3 (the native resolution), got {f.shape}; "
+                               "place an input image with Projector.frame_from_input")
+        if not np.all(np.isfinite(f)) or f.min() < 0 or f.max() > 1:
+            raise CaptureError("a projector frame must hold values in [0, 1]")
+        return f
+
+    def __enter__(self) -> "Device":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def capture_sequence(device: Device, sequence: Sequence[PatternSpec], out_dir: str | Path, camera: Camera, *,
+                     force: bool = False, depth: np.ndarray | None = None, depth_info: DepthInfo | None = None,
+                     notes: dict[str, Any] | None = None, **writer_args: Any) -> CaptureSet:
+    """Show each pattern through ``device`` and write the captures as a new capture set."""
+    with CaptureSetWriter(out_dir, camera, device.projector, depth_info=depth_info, notes=notes,
+                          force=force, **writer_args) as writer:
+        for spec in sequence:
+            frame = spec.image
+            shot = device.capture_off() if spec.projector_off else device.project(frame)
+            writer.add(spec.kind, shot, name=spec.name, frame=None if spec.projector_off else frame, **spec.params)
+        if depth is not None:
+            writer.add_depth(depth)
+    return CaptureSet.load(out_dir, verify_images=False)
+
+
+# -- folder workflow: export ---------------------------------------------------------------------
+
+def _is_sequence(path: Path) -> bool:
+    return (path / SEQUENCE_MANIFEST).is_file()
+
+
+def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: int | None = None,
+                    area: str = "input", seed: int = 0, camera: Camera | None = None, graycode: bool = True,
+                    validation: bool = True, force: bool = False) -> Path:
+    """Write the numbered pattern frames (``0000_surface.png`` …) and ``sequence.json`` into a new folder.
+
+    Frames are native projector resolution, 16-bit PNG, raw projector input
+    levels (no sRGB transfer: show them without colour management). An
+    existing non-empty folder is replaced only with ``force`` and only if it is
+    itself an exported sequence.
+    """
+    seq = calibration_sequence(projector, checker_size, area=area, graycode=graycode, validation=validation, seed=seed)
+    folder = AtomicFolder(out_dir, force=force, what="pattern sequence", replaceable=_is_sequence)
+    try:
+        frames = []
+        for i, spec in enumerate(seq):
+            file = f"{i:04d}_{spec.name}.png"
+            write_image(folder.tmp / file, spec.image)
+            frames.append({"index": i, "file": file, "name": spec.name, "kind": spec.kind, "params": spec.params})
+        doc = {"format": SEQUENCE_FORMAT, "version": SEQUENCE_VERSION,
+               "projector": projector.to_dict(), "camera": camera.to_dict() if camera else None,
+               "area": area, "seed": int(seed), "count": len(frames),
+               "encoding": "raw projector input levels in [0, 1], 16-bit PNG, no sRGB transfer",
+               "instructions": [
+                   "Show each frame full-screen on the projector, at its native resolution, without scaling "
+                   "or colour management, in the numbered order.",
+                   "For 'surface' switch the projector off (or cover the lens); if you cannot, show the frame.",
+                   "Keep camera exposure, white balance and focus fixed for the whole sequence.",
+                   "Save one photo per frame; name them so that sorting by the number in the name gives the "
+                   "sequence order (e.g. 0000.png, 0001.png …), then run: procam import-captures SEQUENCE CAPTURES --out SET"],
+               "frames": frames}
+        write_atomic_bytes(folder.tmp / SEQUENCE_MANIFEST, (json.dumps(doc, indent=1) + "\n").encode())
+    except BaseException:
+        folder.abort()
+        raise
+    return folder.commit()
+
+
+@dataclass(frozen=True)
+class SequenceInfo:
+    """An exported pattern sequence as read back from ``sequence.json``."""
+
+    path: Path
+    projector: Projector
+    camera: Camera | None
+    frames: list[dict[str, Any]]
+
+
+def load_sequence(sequence_dir: str | Path) -> SequenceInfo:
+    root = Path(sequence_dir)
+    manifest = root / SEQUENCE_MANIFEST
+    if not manifest.is_file():
+        raise CaptureError(f"{root} is not an exported pattern sequence: {SEQUENCE_MANIFEST} is missing "
+                           "(create one with `procam patterns`)")
+    try:
+        doc = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError(f"cannot read {manifest}: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != SEQUENCE_FORMAT:
+        raise CaptureError(f"{manifest} is not a ProCam pattern sequence")
+    if doc.get("version") != SEQUENCE_VERSION:
+        raise CaptureError(f"{manifest}: sequence version {doc.get('version')!r} is not supported")
+    try:
+        projector = Projector.from_dict(doc["projector"])
+        camera = Camera.from_dict(doc["camera"]) if doc.get("camera") else None
+    except (KeyError, TypeError, ValueError, RigError) as exc:
+        raise CaptureError(f"{manifest}: invalid projector or camera model: {exc}") from None
+    frames = doc.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise CaptureError(f"{manifest}: no frames listed")
+    for i, f in enumerate(frames):
+        if not isinstance(f, dict) or not {"file", "name", "kind"} <= f.keys():
+            raise CaptureError(f"{manifest}: frame {i} needs file, name and kind")
+    return SequenceInfo(root, projector, camera, frames)
+
+
+# -- folder workflow: import ---------------------------------------------------------------------
+
+def _png_bit_depth(head: bytes) -> int | None:
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return head[24]
+
+
+def _tiff_bit_depth(path: Path) -> int | None:
+    """BitsPerSample (tag 258) of the first IFD of a classic TIFF; None when it cannot be told."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+            if head[:2] not in (b"II", b"MM"):
+                return None
+            e = "<" if head[:2] == b"II" else ">"
+            if struct.unpack(e + "H", head[2:4])[0] != 42:
+                return None  # BigTIFF: not parsed here
+            fh.seek(struct.unpack(e + "I", head[4:8])[0])
+            (n,) = struct.unpack(e + "H", fh.read(2))
+            for _ in range(n):
+                tag, typ, count, value = struct.unpack(e + "HHI4s", fh.read(12))
+                if tag == 258:
+                    if count <= 2:
+                        return struct.unpack(e + "H", value[:2])[0]
+                    fh.seek(struct.unpack(e + "I", value)[0])
+                    return struct.unpack(e + "H", fh.read(2))[0]
+            return 1  # the TIFF default when the tag is absent
+    except (OSError, struct.error):
+        return None
+
+
+def stored_bit_depth(path: str | Path) -> int | None:
+    """Bits per channel of an image file (8, 16, 32 for float) read from its header; None if unknown."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in (".jpg", ".jpeg"):
+        return 8
+    if suffix == ".exr":
+        return 32
+    if suffix in (".tif", ".tiff"):
+        return _tiff_bit_depth(path)
+    if suffix == ".png":
+        with open(path, "rb") as fh:
+            return _png_bit_depth(fh.read(26))
+    return None
+
+
+def check_complete(path: str | Path) -> None:
+    """Refuse files cut short. OpenCV rejects a truncated PNG but decodes a truncated JPEG with a grey tail."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            fh.seek(max(0, size - 4096))
+            tail = fh.read()
+    except OSError as exc:
+        raise CaptureError(f"cannot read capture {path}: {exc.strerror or exc}") from None
+    if size == 0:
+        raise CaptureError(f"capture {path} is empty")
+    if suffix == ".png" and b"IEND" not in tail[-16:]:
+        raise CaptureError(f"capture {path} is truncated (no PNG end marker); copy it again from the camera")
+    if suffix in (".jpg", ".jpeg") and not tail.rstrip(b"\x00\r\n ").endswith(b"\xff\xd9"):
+        raise CaptureError(f"capture {path} is truncated (no JPEG end marker); copy it again from the camera")
+
+
+def _number(path: Path) -> int | None:
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else None
+
+
+def list_captures(captures_dir: str | Path) -> list[Path]:
+    """The capture files of a folder in sequence order (by the last number in each name)."""
+    root = Path(captures_dir)
+    if not root.is_dir():
+        raise CaptureError(f"captures folder {root} does not exist")
+    files = [p for p in root.iterdir() if p.is_file() and not p.name.startswith(".")
+             and p.suffix.lower() in CAPTURE_SUFFIXES]
+    if not files:
+        raise CaptureError(f"no captures in {root} (expected numbered {', '.join(CAPTURE_SUFFIXES)} files)")
+    unnumbered = [p.name for p in files if _number(p) is None]
+    if unnumbered:
+        raise CaptureError(f"captures without a number in their name: {', '.join(sorted(unnumbered)[:5])}; "
+                           "name them so the number gives the sequence order")
+    by_number: dict[int, Path] = {}
+    for p in files:
+        n = _number(p)
+        if n in by_number:
+            raise CaptureError(f"captures {by_number[n].name} and {p.name} carry the same number {n}")
+        by_number[n] = p
+    return [by_number[n] for n in sorted(by_number)]
+
+
+def _load_capture(path: Path, encoding: str) -> tuple[np.ndarray, str]:
+    check_complete(path)
+    bits = stored_bit_depth(path)
+    try:
+        img = read_image(path)
+    except ImageError as exc:
+        raise CaptureError(f"capture {path} is unreadable or damaged: {exc}") from None
+    if encoding == "auto":
+        if bits is None:
+            raise CaptureError(f"cannot tell the bit depth of {path}; pass encoding='srgb' or 'linear' (--encoding)")
+        encoding = "srgb" if bits <= 8 else "linear"
+    if encoding == "srgb":
+        if bits == 32:
+            raise CaptureError(f"{path} is a float image; float captures are linear, not sRGB")
+        return srgb_to_linear(img), f"sRGB-encoded {bits}-bit, linearised on import"
+    return img, f"linear {bits}-bit" if bits else "linear"
+
+
+def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: Camera | None,
+                    projector: Projector | None, out_capture_dir: str | Path, *, encoding: str = "auto",
+                    camera_fov: float = 60.0, depth: np.ndarray | None = None,
+                    depth_native_size: tuple[int, int] | None = None, force: bool = False) -> CaptureSet:
+    """Turn photographs of an exported sequence into a new capture set.
+
+    Captures are matched to frames in order of the number in their names.
+    ``encoding='auto'`` treats 8-bit files (JPEG, 8-bit PNG/TIFF) as sRGB and
+    linearises them, 16-bit and float files as linear; the choice is recorded
+    per image (``params.source_encoding``). ``camera`` None builds a nominal
+    camera with ``camera_fov`` at the captures' size; ``projector`` None takes
+    the one in ``sequence.json``. ``depth`` (metres) is stored with the camera
+    intrinsics scaled to its size. Any bad file raises a
+    :class:`CaptureError` naming it, and nothing is written.
+    """
+    if encoding not in ENCODINGS:
+        raise CaptureError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    seq = load_sequence(sequence_dir)
+    projector = projector or seq.projector
+    camera = camera or seq.camera
+    files = list_captures(captures_dir)
+    if len(files) != len(seq.frames):
+        raise CaptureError(f"the sequence has {len(seq.frames)} frames but {captures_dir} holds {len(files)} "
+                           f"captures ({files[0].name} … {files[-1].name}); one capture per frame is needed")
+    first, first_enc = _load_capture(files[0], encoding)
+    size = (first.shape[1], first.shape[0])
+    if camera is None:
+        camera = Camera(intrinsics_from_fov(size[0], size[1], camera_fov))
+        camera_note = f"nominal: {camera_fov}° horizontal field of view, centred principal point"
+    else:
+        camera_note = "given"
+    depth_info = None
+    if depth is not None:
+        dh, dw = np.asarray(depth).shape[:2]
+        depth_info = DepthInfo(camera.intrinsics.scaled(dw, dh), tuple(depth_native_size or (dw, dh)))
+    notes = {"device": "folder", "sequence": str(Path(sequence_dir).resolve()),
+             "captures": str(Path(captures_dir).resolve()), "encoding": encoding, "camera": camera_note}
+    with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes,
+                          force=force) as writer:
+        for i, (frame, path) in enumerate(zip(seq.frames, files)):
+            img, enc = (first, first_enc) if i == 0 else _load_capture(path, encoding)
+            if (img.shape[1], img.shape[0]) != camera.intrinsics.size:
+                cw, ch = camera.intrinsics.size
+                raise CaptureError(f"capture {path} is {img.shape[1]}×{img.shape[0]} pixels, but the camera "
+                                   f"resolution is {cw}×{ch}")
+            pattern = None
+            if frame["kind"] != "surface":
+                try:
+                    pattern = read_image(seq.path / frame["file"])
+                except ImageError as exc:
+                    raise CaptureError(f"pattern frame {frame['file']} of the sequence is unreadable: {exc}") from None
+            params = dict(frame.get("params") or {})
+            writer.add(frame["kind"], img, name=frame["name"], frame=pattern, source=path.name,
+                       source_encoding=enc, **params)
+        if depth is not None:
+            writer.add_depth(depth)
+    return CaptureSet.load(out_capture_dir, verify_images=False)
+
+
+def _frame_key(frame: np.ndarray) -> str:
+    # The 16-bit quantisation the capture set stores, so a frame matches its stored pattern file exactly.
+    q = np.round(np.clip(np.asarray(frame, dtype=np.float32), 0, 1) * 65535.0).astype(np.uint16)
+    return hashlib.sha1(q.tobytes() + str(q.shape).encode()).hexdigest()
+
+
+class FolderDevice(Device):
+    """Replays a capture set: ``project(frame)`` returns the capture recorded for exactly that frame.
+
+    It lets the pipeline run offline on captures made with the user's own
+    tools. A frame that was never captured raises a :class:`CaptureError`
+    (export it, capture it, import again).
+    """
+
+    def __init__(self, capture_dir: str | Path) -> None:
+        self.captures = CaptureSet.load(capture_dir)
+        self.projector = self.captures.projector
+        self.camera = self.captures.camera
+        self._by_frame: dict[str, str] = {}
+        keys: dict[str, str] = {}  # pattern file → key: patterns shown twice are stored once
+        for e in self.captures.entries:
+            if e.pattern:
+                if e.pattern not in keys:
+                    keys[e.pattern] = _frame_key(read_image(self.captures.path / e.pattern))
+                self._by_frame.setdefault(keys[e.pattern], e.file)
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        f = self.check_frame(frame)
+        file = self._by_frame.get(_frame_key(f))
+        if file is None:
+            raise CaptureError(f"this frame was never captured in {self.captures.path}; export it with the "
+                               "sequence, capture it with your tools and import the captures again")
+        return read_image(self.captures.path / file)
+
+    def capture_off(self) -> np.ndarray:
+        if self.captures.entries_of("surface"):
+            return self.captures.image("surface")
+        return super().capture_off()
+
+
+# -- live hardware -------------------------------------------------------------------------------
+
+_HEADLESS_HELP = ("this OpenCV has no GUI support (the pip package opencv-contrib-python-headless has none), so it "
+                  "cannot open a full-screen projector window. Replace it in ProCam's Python with the GUI build "
+                  "of the same version: `pip uninstall opencv-contrib-python-headless` then "
+                  f"`pip install opencv-contrib-python=={cv2.__version__}` — or use the folder workflow "
+                  "(`procam patterns` / `procam import-captures`)")
+
+
+def highgui_available() -> bool:
+    """Whether this OpenCV build can open windows (its build information names a GUI backend)."""
+    m = re.search(r"^\s*GUI:\s*(\S+)", cv2.getBuildInformation(), re.MULTILINE)
+    return bool(m) and m.group(1).upper() != "NONE"
+
+
+def check_display() -> None:
+    """Raise a :class:`CaptureError` when no window can be shown on a projector."""
+    if not highgui_available():
+        raise CaptureError(f"no live projector output: {_HEADLESS_HELP}")
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise CaptureError("no live projector output: no graphical display ($DISPLAY and $WAYLAND_DISPLAY are "
+                           "unset; headless machine or SSH session?). Run on the machine the projector is "
+                           "plugged into, inside its desktop session, or use the folder workflow")
+
+
+def open_camera(index: int, size: tuple[int, int] | None = None) -> "cv2.VideoCapture":
+    """Open camera ``index`` with OpenCV, optionally asking for a resolution; a clear error when it fails."""
+    cap = cv2.VideoCapture(int(index))
+    if not cap.isOpened():
+        cap.release()
+        raise CaptureError(f"cannot open camera {index} through OpenCV VideoCapture: no such camera, it is in "
+                           "use by another program, or this user may not access it (on Linux: /dev/video*, "
+                           "group 'video'). Try another --camera index")
+    if size is not None:
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, int(size[0]))
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, int(size[1]))
+    return cap
+
+
+class LiveDevice(Device):
+    """A real projector (full-screen window on its display) and a real camera (OpenCV ``VideoCapture``).
+
+    ``display_origin`` is the top-left of the projector's screen in the
+    desktop's coordinates (e.g. ``(1920, 0)`` for a projector right of a
+    1920-wide monitor): OpenCV cannot pick a monitor, so the window is moved
+    there before it goes full-screen. Frame values go to the framebuffer as
+    8-bit levels without any transfer curve (the projector's own response is
+    what calibration measures); 8-bit camera frames are sRGB-encoded and are
+    linearised (``camera_encoding``).
+    """
+
+    def __init__(self, projector: Projector, camera_index: int = 0, display_origin: tuple[int, int] = (0, 0), *,
+                 camera_size: tuple[int, int] | None = None, settle_s: float = 0.3, average: int = 1,
+                 flush: int = 3, camera_encoding: str = "srgb", window: str = "ProCam projector") -> None:
+        if camera_encoding not in ("srgb", "linear"):
+            raise CaptureError(f"camera encoding must be 'srgb' or 'linear', got {camera_encoding!r}")
+        check_display()
+        self.projector = projector
+        self.settle_s, self.average, self.flush = float(settle_s), max(1, int(average)), max(0, int(flush))
+        self.camera_encoding = camera_encoding
+        self.window = window
+        self._cap = None
+        try:
+            cv2.namedWindow(window, cv2.WINDOW_NORMAL)
+            cv2.moveWindow(window, int(display_origin[0]), int(display_origin[1]))
+            cv2.setWindowProperty(window, cv2.WND_PROP_FULLSCREEN, cv2.WINDOW_FULLSCREEN)
+        except cv2.error as exc:
+            raise CaptureError(f"cannot open the projector window: {exc}") from None
+        try:
+            self._cap = open_camera(camera_index, camera_size)
+        except CaptureError:
+            cv2.destroyWindow(window)
+            raise
+
+    def _grab(self) -> np.ndarray:
+        for _ in range(self.flush):  # drivers queue a few frames; drop those taken before the pattern showed
+            self._cap.grab()
+        acc = None
+        for _ in range(self.average):
+            ok, img = self._cap.read()
+            if not ok or img is None:
+                raise CaptureError("the camera stopped delivering frames")
+            scale = 65535.0 if img.dtype == np.uint16 else 255.0
+            f = img[..., ::-1].astype(np.float32) / scale if img.ndim == 3 else np.repeat(
+                (img.astype(np.float32) / scale)[..., None], 3, axis=2)
+            acc = f if acc is None else acc + f
+        out = acc / self.average
+        return srgb_to_linear(out) if self.camera_encoding == "srgb" else out.astype(np.float32)
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        f = self.check_frame(frame)
+        cv2.imshow(self.window, np.round(f[..., ::-1] * 255.0).astype(np.uint8))
+        cv2.waitKey(max(1, int(self.settle_s * 1000)))  # also lets highgui paint the window
+        return self._grab()
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+        try:
+            cv2.destroyWindow(self.window)
+        except cv2.error:
+            pass
+
+
+__all__ = ["Device", "FolderDevice", "LiveDevice", "SequenceInfo", "capture_sequence", "check_complete",
+           "check_display", "export_sequence", "highgui_available", "import_captures", "list_captures",
+           "load_sequence", "open_camera", "stored_bit_depth"]

@@ -1,0 +1,650 @@
+"""Capture sets: a folder with ``capture.json`` and the images a session captured.
+
+A capture set is what a real session (projector + camera + phone/RGBD depth)
+or the virtual lab produces, and what calibration reads. Layout::
+
+    capture.json          models + one entry per image (schema below)
+    images/NNNN_name.png  camera captures, 16-bit linear PNG at the camera resolution
+    patterns/NNNN_name.png  the native projector frame that was shown for an entry
+    depth/name.npy        depth in metres (float32 .npy or .exr), 0 = no measurement
+
+``capture.json`` (format ``procam-capture``, version 1)::
+
+    {"format": "procam-capture", "version": 1, "colour_space": "linear",
+     "camera": Camera.to_dict(), "camera_status": "nominal" | "calibrated",
+     "projector": Projector.to_dict(), "projector_status": "nominal" | "calibrated",
+     "projector_pose_known": false,
+     "depth": {"intrinsics": Intrinsics.to_dict() of the depth image as stored,
+               "native_size": [256, 192], "units": "metres", "missing": 0} | null,
+     "target_area": [x, y, width, height] | null,   # camera pixels, corner convention
+     "notes": {...},                                 # free-form provenance
+     "images": [{"file": "images/0003_checker_p0.png", "kind": "checker", "name": "checker_p0",
+                 "pattern": "patterns/0003_checker_p0.png",
+                 "params": {"square": 50, "phase": 0, "area": "input"}}, ...]}
+
+Kinds and their required ``params``: ``surface`` (projector off), ``black``,
+``white``, ``checker`` (square, phase), ``graycode`` (axis, bit, inverted),
+``validation`` (pattern, plus its own parameters), ``target`` (a desired
+appearance; any size, it is fitted into ``target_area`` later), ``depth``.
+``params`` may also carry provenance such as ``source_encoding``.
+
+Captures are never modified in place: :class:`CaptureSetWriter` builds a new
+set in a hidden sibling folder and renames it into place only once it is
+complete and loads back cleanly.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import CaptureError, ImageError, RigError
+from ..imageio import read_image, write_atomic_bytes, write_image
+from ..rig.model import Camera, Intrinsics, Projector
+
+FORMAT = "procam-capture"
+VERSION = 1
+SUPPORTED_VERSIONS = (1,)
+MANIFEST = "capture.json"
+
+KINDS = ("surface", "black", "white", "checker", "graycode", "validation", "target", "depth")
+#: Kinds whose image is a camera capture and so must have the camera's size.
+CAMERA_KINDS = ("surface", "black", "white", "checker", "graycode", "validation")
+REQUIRED_PARAMS: dict[str, tuple[str, ...]] = {
+    "checker": ("square", "phase"),
+    "graycode": ("axis", "bit", "inverted"),
+    "validation": ("pattern",),
+}
+#: A depth map with more than this share of missing pixels is refused.
+MAX_DEPTH_MISSING = 0.5
+IMAGE_SUFFIXES = (".png", ".exr", ".npy")
+DEPTH_SUFFIXES = (".npy", ".exr")
+
+
+@dataclass(frozen=True)
+class DepthInfo:
+    """Intrinsics of the depth image as stored, and the sensor's native resolution."""
+
+    intrinsics: Intrinsics
+    native_size: tuple[int, int]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"intrinsics": self.intrinsics.to_dict(), "native_size": [int(v) for v in self.native_size],
+                "units": "metres", "missing": 0}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "DepthInfo":
+        size = d.get("native_size")
+        if (not isinstance(size, (list, tuple)) or len(size) != 2
+                or not all(isinstance(v, int) and v > 0 for v in size)):
+            raise CaptureError(f"depth native_size must be [width, height] in pixels, got {size!r}")
+        if d.get("units", "metres") != "metres":
+            raise CaptureError(f"depth units must be metres, got {d.get('units')!r}")
+        try:
+            intr = Intrinsics.from_dict(d["intrinsics"])
+        except (KeyError, TypeError, RigError) as exc:
+            raise CaptureError(f"depth intrinsics are invalid: {exc}") from None
+        return DepthInfo(intr, (int(size[0]), int(size[1])))
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One image of a capture set: what it shows and where it lies (paths relative to the set)."""
+
+    file: str
+    kind: str
+    name: str
+    params: dict[str, Any] = field(default_factory=dict)
+    pattern: str | None = None
+
+    def matches(self, filters: dict[str, Any]) -> bool:
+        for key, value in filters.items():
+            have = self.name if key == "name" else self.params.get(key, _MISSING)
+            if have is _MISSING or have != value:
+                return False
+        return True
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"file": self.file, "kind": self.kind, "name": self.name}
+        if self.pattern:
+            d["pattern"] = self.pattern
+        if self.params:
+            d["params"] = _jsonable(self.params)
+        return d
+
+
+_MISSING = object()
+
+
+def _jsonable(value: Any) -> Any:
+    """Plain JSON types (numpy scalars/arrays become numbers/lists) so the manifest is portable."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _check_params(kind: str, params: dict[str, Any], where: str) -> None:
+    missing = [p for p in REQUIRED_PARAMS.get(kind, ()) if p not in params]
+    if missing:
+        raise CaptureError(f"{where}: a {kind!r} entry needs the parameter(s) {', '.join(missing)}")
+    if kind == "checker":
+        sq, ph = params["square"], params["phase"]
+        if not isinstance(sq, int) or isinstance(sq, bool) or sq <= 0:
+            raise CaptureError(f"{where}: checker square size must be a positive number of pixels, got {sq!r}")
+        if ph not in (0, 1) or isinstance(ph, bool):
+            raise CaptureError(f"{where}: checker phase must be 0 or 1, got {ph!r}")
+    elif kind == "graycode":
+        if params["axis"] not in ("x", "y"):
+            raise CaptureError(f"{where}: Gray-code axis must be 'x' or 'y', got {params['axis']!r}")
+        bit = params["bit"]
+        if not isinstance(bit, int) or isinstance(bit, bool) or bit < 0:
+            raise CaptureError(f"{where}: Gray-code bit must be a whole number ≥ 0, got {bit!r}")
+        if not isinstance(params["inverted"], bool):
+            raise CaptureError(f"{where}: Gray-code 'inverted' must be true or false, got {params['inverted']!r}")
+    area = params.get("area")
+    if area is not None and area not in ("input", "frame"):
+        raise CaptureError(f"{where}: pattern area must be 'input' or 'frame', got {area!r}")
+
+
+def _inside(root: Path, rel: str, where: str) -> Path:
+    """Resolve ``rel`` inside the set; refuse absolute paths and escapes so a set stays self-contained."""
+    if not isinstance(rel, str) or not rel or Path(rel).is_absolute() or ".." in Path(rel).parts:
+        raise CaptureError(f"{where}: file {rel!r} must be a relative path inside the capture set")
+    return root / rel
+
+
+def _size(img: np.ndarray) -> tuple[int, int]:
+    return (int(img.shape[1]), int(img.shape[0]))
+
+
+def validate_depth(depth: np.ndarray, where: str) -> np.ndarray:
+    """Check a depth map (metres, 0/NaN = missing); return it as float32 with NaN for missing."""
+    d = np.asarray(depth, dtype=np.float32)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.ndim == 3:
+        # A depth image saved with repeated channels: accept only if they agree.
+        if not np.allclose(d, d[..., :1], equal_nan=True):
+            raise CaptureError(f"{where}: depth must have one channel, got {d.shape[2]} different ones")
+        d = d[..., 0]
+    if d.ndim != 2:
+        raise CaptureError(f"{where}: depth must be an H×W array, got shape {d.shape}")
+    finite = np.isfinite(d)
+    if np.any(np.isinf(d)):
+        raise CaptureError(f"{where}: depth holds infinite values; store missing depth as 0")
+    if np.any(d[finite] < 0):
+        raise CaptureError(f"{where}: depth holds negative values (min {float(np.nanmin(d)):.3f} m); "
+                           "depth is a distance in metres and must be positive")
+    valid = finite & (d > 0)
+    missing = 1.0 - float(valid.mean()) if d.size else 1.0
+    if missing > MAX_DEPTH_MISSING:
+        raise CaptureError(f"{where}: depth map is mostly empty ({missing:.0%} of pixels are 0 or NaN, "
+                           f"at most {MAX_DEPTH_MISSING:.0%} allowed); re-capture the depth or check its units")
+    return np.where(valid, d, np.nan).astype(np.float32)
+
+
+@dataclass
+class CaptureSet:
+    """A loaded, validated capture set. Images are read from disk on demand (never cached, never written)."""
+
+    path: Path
+    camera: Camera
+    projector: Projector
+    entries: list[Entry]
+    depth_info: DepthInfo | None = None
+    target_area: tuple[int, int, int, int] | None = None
+    camera_status: str = "nominal"
+    projector_status: str = "nominal"
+    projector_pose_known: bool = False
+    colour_space: str = "linear"
+    notes: dict[str, Any] = field(default_factory=dict)
+    version: int = VERSION
+
+    # -- loading ---------------------------------------------------------------------------------
+
+    @staticmethod
+    def load(path: str | Path, *, verify_images: bool = True) -> "CaptureSet":
+        """Read and validate a capture set; every problem is a :class:`CaptureError` naming the file.
+
+        With ``verify_images`` (default) every image is decoded once to check it
+        is readable, complete and of the right size; images are not kept.
+        """
+        root = Path(path)
+        if not root.is_dir():
+            raise CaptureError(f"no capture set at {root}: folder does not exist")
+        manifest = root / MANIFEST
+        if not manifest.is_file():
+            raise CaptureError(f"{root} is not a capture set: {MANIFEST} is missing")
+        try:
+            doc = json.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError) as exc:
+            raise CaptureError(f"cannot read {manifest}: {exc}") from None
+        except json.JSONDecodeError as exc:
+            raise CaptureError(f"{manifest} is not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}") from None
+        cs = CaptureSet._from_doc(root, doc, str(manifest))
+        if verify_images:
+            cs.verify()
+        return cs
+
+    @staticmethod
+    def _from_doc(root: Path, doc: Any, where: str) -> "CaptureSet":
+        if not isinstance(doc, dict):
+            raise CaptureError(f"{where}: expected a JSON object")
+        if doc.get("format") != FORMAT:
+            raise CaptureError(f"{where}: not a ProCam capture set (format {doc.get('format')!r}, expected {FORMAT!r})")
+        version = doc.get("version")
+        if version not in SUPPORTED_VERSIONS:
+            raise CaptureError(f"{where}: capture-set version {version!r} is not supported by this ProCam "
+                               f"(supported: {', '.join(map(str, SUPPORTED_VERSIONS))}); update ProCam")
+        colour = doc.get("colour_space", "linear")
+        if colour != "linear":
+            raise CaptureError(f"{where}: colour space {colour!r} is not supported; captures must be stored linear")
+        try:
+            camera = Camera.from_dict(doc["camera"])
+            projector = Projector.from_dict(doc["projector"])
+        except KeyError as exc:
+            raise CaptureError(f"{where}: missing {exc} model") from None
+        except (RigError, TypeError, ValueError) as exc:
+            raise CaptureError(f"{where}: invalid camera or projector model: {exc}") from None
+        depth_info = DepthInfo.from_dict(doc["depth"]) if doc.get("depth") else None
+        target_area = doc.get("target_area")
+        if target_area is not None:
+            ok = (isinstance(target_area, (list, tuple)) and len(target_area) == 4
+                  and all(isinstance(v, int) and not isinstance(v, bool) for v in target_area))
+            if ok:
+                x, y, w, h = target_area
+                cw, ch = camera.intrinsics.size
+                ok = w > 0 and h > 0 and x >= 0 and y >= 0 and x + w <= cw and y + h <= ch
+            if not ok:
+                raise CaptureError(f"{where}: target_area must be [x, y, width, height] of whole camera pixels "
+                                   f"inside the {camera.intrinsics.width}×{camera.intrinsics.height} image, got {target_area!r}")
+            target_area = tuple(target_area)
+        images = doc.get("images")
+        if not isinstance(images, list):
+            raise CaptureError(f"{where}: 'images' must be a list of entries")
+        entries: list[Entry] = []
+        files: set[str] = set()
+        names: set[str] = set()
+        for i, raw in enumerate(images):
+            here = f"{where}, image entry {i}"
+            if not isinstance(raw, dict) or "file" not in raw or "kind" not in raw:
+                raise CaptureError(f"{here}: each entry needs at least 'file' and 'kind'")
+            kind, rel = raw["kind"], raw["file"]
+            if kind not in KINDS:
+                raise CaptureError(f"{here} ({rel}): unknown kind {kind!r}; known kinds: {', '.join(KINDS)}")
+            _inside(root, rel, here)
+            params = raw.get("params", {})
+            if not isinstance(params, dict):
+                raise CaptureError(f"{here} ({rel}): 'params' must be an object")
+            _check_params(kind, params, f"{here} ({rel})")
+            name = raw.get("name") or Path(rel).stem
+            if rel in files:
+                raise CaptureError(f"{here}: duplicate entry for file {rel}")
+            if name in names:
+                raise CaptureError(f"{here} ({rel}): duplicate entry name {name!r}")
+            suffixes = DEPTH_SUFFIXES if kind == "depth" else IMAGE_SUFFIXES
+            if Path(rel).suffix.lower() not in suffixes:
+                raise CaptureError(f"{here}: {rel} has an unsupported type for a {kind} image (use {', '.join(suffixes)})")
+            pattern = raw.get("pattern")
+            if pattern is not None:
+                _inside(root, pattern, here)
+            if kind == "depth" and depth_info is None:
+                raise CaptureError(f"{here} ({rel}): a depth image needs the 'depth' section (its intrinsics)")
+            files.add(rel)
+            names.add(name)
+            entries.append(Entry(rel, kind, str(name), dict(params), pattern))
+        return CaptureSet(root, camera, projector, entries, depth_info, target_area,
+                          str(doc.get("camera_status", "nominal")), str(doc.get("projector_status", "nominal")),
+                          bool(doc.get("projector_pose_known", False)), colour, dict(doc.get("notes") or {}), version)
+
+    def verify(self) -> None:
+        """Decode every file once: exists, readable, complete, right size, sane depth."""
+        cam = self.camera.intrinsics.size
+        frame = self.projector.intrinsics.size
+        for e in self.entries:
+            if e.kind == "depth":
+                self._read_depth(e)
+                continue
+            img = self._read(e.file)
+            if e.kind in CAMERA_KINDS and _size(img) != cam:
+                raise CaptureError(f"{self.path / e.file}: image is {_size(img)[0]}×{_size(img)[1]} pixels, "
+                                   f"but the camera resolution is {cam[0]}×{cam[1]}")
+            if e.pattern:
+                pat = self._read(e.pattern)
+                if _size(pat) != frame:
+                    raise CaptureError(f"{self.path / e.pattern}: projected pattern is {_size(pat)[0]}×{_size(pat)[1]}, "
+                                       f"but the projector frame is {frame[0]}×{frame[1]}")
+
+    def _read(self, rel: str) -> np.ndarray:
+        path = self.path / rel
+        if not path.is_file():
+            raise CaptureError(f"capture set {self.path}: file {rel} is missing")
+        try:
+            return read_image(path)
+        except ImageError as exc:
+            raise CaptureError(f"capture set {self.path}: {rel} is unreadable or truncated ({exc})") from None
+
+    def _read_depth(self, e: Entry) -> np.ndarray:
+        path = self.path / e.file
+        if not path.is_file():
+            raise CaptureError(f"capture set {self.path}: depth file {e.file} is missing")
+        try:
+            raw = read_image(path, channels=None)
+        except ImageError as exc:
+            # read_image refuses NaN: our writer stores missing depth as 0, so say so.
+            raise CaptureError(f"capture set {self.path}: depth file {e.file} is unreadable ({exc}); "
+                               "store missing depth as 0, not NaN") from None
+        d = validate_depth(raw, f"{self.path / e.file}")
+        want = self.depth_info.intrinsics.size if self.depth_info else None
+        if want and _size(d) != want:
+            raise CaptureError(f"{self.path / e.file}: depth is {_size(d)[0]}×{_size(d)[1]} pixels, but the depth "
+                               f"intrinsics say {want[0]}×{want[1]}")
+        return d
+
+    # -- access ----------------------------------------------------------------------------------
+
+    def entries_of(self, kind: str) -> list[Entry]:
+        if kind not in KINDS:
+            raise CaptureError(f"unknown kind {kind!r}; known kinds: {', '.join(KINDS)}")
+        return [e for e in self.entries if e.kind == kind]
+
+    def entry(self, kind: str, **filters: Any) -> Entry:
+        """The one entry of ``kind`` whose params (or ``name``) equal ``filters``."""
+        found = [e for e in self.entries_of(kind) if e.matches(filters)]
+        what = f"{kind}" + (f" with {', '.join(f'{k}={v!r}' for k, v in filters.items())}" if filters else "")
+        if not found:
+            raise CaptureError(f"capture set {self.path} has no {what} image")
+        if len(found) > 1:
+            raise CaptureError(f"capture set {self.path} has {len(found)} {what} images "
+                               f"({', '.join(e.name for e in found)}); say which one, e.g. name=…")
+        return found[0]
+
+    def image(self, kind: str, **filters: Any) -> np.ndarray:
+        """The capture (float32 H×W×3, linear) of the one entry matching ``kind`` and ``filters``."""
+        return self._read(self.entry(kind, **filters).file)
+
+    def pattern(self, kind: str, **filters: Any) -> np.ndarray:
+        """The native projector frame that was shown for that entry."""
+        e = self.entry(kind, **filters)
+        if not e.pattern:
+            raise CaptureError(f"capture set {self.path}: {e.file} records no projected pattern")
+        return self._read(e.pattern)
+
+    def depth(self, **filters: Any) -> np.ndarray:
+        """Depth in metres (float32 H×W at the depth intrinsics' size), NaN where missing."""
+        return self._read_depth(self.entry("depth", **filters))
+
+    def file(self, entry: Entry) -> Path:
+        return self.path / entry.file
+
+    def __iter__(self) -> Iterator[Entry]:
+        return iter(self.entries)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT, "version": VERSION, "colour_space": "linear",
+                "camera": self.camera.to_dict(), "camera_status": self.camera_status,
+                "projector": self.projector.to_dict(), "projector_status": self.projector_status,
+                "projector_pose_known": self.projector_pose_known,
+                "depth": self.depth_info.to_dict() if self.depth_info else None,
+                "target_area": list(self.target_area) if self.target_area else None,
+                "notes": _jsonable(self.notes),
+                "images": [e.to_dict() for e in self.entries]}
+
+    @staticmethod
+    def writer(path: str | Path, camera: Camera, projector: Projector, **kwargs: Any) -> "CaptureSetWriter":
+        """Start a new capture set at ``path``; see :class:`CaptureSetWriter`."""
+        return CaptureSetWriter(path, camera, projector, **kwargs)
+
+
+# -- writing -------------------------------------------------------------------------------------
+
+def is_capture_set(path: str | Path) -> bool:
+    return (Path(path) / MANIFEST).is_file()
+
+
+class AtomicFolder:
+    """Build a folder in a hidden sibling and rename it into place when complete.
+
+    An existing ``target`` is refused unless ``force``; even then it is only
+    renamed to a backup and removed after the new folder is in place, so a
+    failure at any point leaves either the old folder or the new one, never
+    a mixture. ``replaceable(path)`` says which existing folders ``force``
+    may replace (others are refused even with ``force``, to protect user data).
+    """
+
+    def __init__(self, target: str | Path, *, force: bool = False, what: str = "folder",
+                 replaceable: Any = None) -> None:
+        self.target = Path(target)
+        self.force = force
+        self.what = what
+        if self.target.exists():
+            if not self.target.is_dir():
+                raise CaptureError(f"{self.target} exists and is not a folder; choose another output path")
+            empty = not any(self.target.iterdir())
+            if not empty:
+                if replaceable is not None and not replaceable(self.target):
+                    raise CaptureError(f"{self.target} exists, is not empty and is not a {what}; "
+                                       "refusing to replace it — choose another output folder")
+                if not force:
+                    raise CaptureError(f"{self.target} already holds a {what}; it is never overwritten "
+                                       "without --force (force=True)")
+        try:
+            self.target.parent.mkdir(parents=True, exist_ok=True)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+        except OSError as exc:
+            raise CaptureError(f"cannot write {self.what} at {self.target}: {exc.strerror or exc}") from None
+        self.done = False
+
+    def commit(self) -> Path:
+        if self.done:
+            raise CaptureError(f"{self.what} at {self.target} was already completed")
+        backup: Path | None = None
+        try:
+            if self.target.exists():
+                backup = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.old-", dir=self.target.parent))
+                backup.rmdir()  # mkdtemp reserves a unique name; rename needs it free
+                os.replace(self.target, backup)
+            os.replace(self.tmp, self.target)
+        except OSError as exc:
+            if backup is not None and backup.exists() and not self.target.exists():
+                os.replace(backup, self.target)  # put the old one back
+            self.abort()
+            raise CaptureError(f"cannot move the new {self.what} into {self.target}: {exc.strerror or exc}") from None
+        self.done = True
+        if backup is not None:
+            shutil.rmtree(backup, ignore_errors=True)
+        return self.target
+
+    def abort(self) -> None:
+        if not self.done:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            self.done = True
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-") or "image"
+
+
+def default_name(kind: str, params: dict[str, Any]) -> str:
+    """A readable unique-ish entry name from kind and parameters (``graycode_x03_inv``)."""
+    if kind == "checker":
+        return f"checker_s{params['square']}_p{params['phase']}"
+    if kind == "graycode":
+        return f"graycode_{params['axis']}{params['bit']:02d}" + ("_inv" if params["inverted"] else "")
+    return kind
+
+
+class CaptureSetWriter:
+    """Creates a NEW capture set atomically; use as a context manager or call :meth:`commit`.
+
+    Images are checked as they are added (size, finite values), so a bad
+    capture fails before anything is moved into place. On an exception inside
+    the ``with`` block nothing is written. Missing depth may be NaN or 0; it is
+    stored as 0 (``read_image`` refuses NaN) and loaded back as NaN.
+    """
+
+    def __init__(self, path: str | Path, camera: Camera, projector: Projector, *,
+                 depth_info: DepthInfo | None = None, target_area: tuple[int, int, int, int] | None = None,
+                 camera_status: str = "nominal", projector_status: str = "nominal",
+                 projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
+                 force: bool = False) -> None:
+        self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set)
+        self.path = Path(path)
+        self.camera, self.projector = camera, projector
+        self.depth_info = depth_info
+        self.target_area = tuple(int(v) for v in target_area) if target_area is not None else None
+        self.camera_status, self.projector_status = camera_status, projector_status
+        self.projector_pose_known = projector_pose_known
+        self.notes = dict(notes or {})
+        self.entries: list[Entry] = []
+        self._names: set[str] = set()
+        self._patterns: dict[str, str] = {}  # content hash → file, so a frame shown twice is stored once
+        (self._folder.tmp / "images").mkdir()
+
+    @property
+    def _tmp(self) -> Path:
+        return self._folder.tmp
+
+    def _unique(self, name: str) -> str:
+        base, n = _slug(name), 1
+        out = base
+        while out in self._names:
+            n += 1
+            out = f"{base}_{n}"
+        return out
+
+    def add(self, kind: str, image: np.ndarray, *, name: str | None = None, frame: np.ndarray | None = None,
+            **params: Any) -> Entry:
+        """Add one capture. ``frame`` is the native projector frame that was shown (stored under patterns/)."""
+        if kind not in KINDS or kind == "depth":
+            if kind == "depth":
+                raise CaptureError("use add_depth() for depth images")
+            raise CaptureError(f"unknown kind {kind!r}; known kinds: {', '.join(KINDS)}")
+        params = _jsonable(params)
+        _check_params(kind, params, f"new {kind} image")
+        img = np.asarray(image, dtype=np.float32)
+        label = name or default_name(kind, params)
+        if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (1, 3)):
+            raise CaptureError(f"{label}: expected an H×W×3 image, got shape {img.shape}")
+        cam = self.camera.intrinsics.size
+        if kind in CAMERA_KINDS and _size(img) != cam:
+            raise CaptureError(f"{label}: image is {_size(img)[0]}×{_size(img)[1]} pixels, "
+                               f"but the camera resolution is {cam[0]}×{cam[1]}")
+        if not np.all(np.isfinite(img)):
+            raise CaptureError(f"{label}: image holds NaN or infinite values")
+        if img.min(initial=0.0) < 0.0 or img.max(initial=0.0) > 1.0:
+            # 16-bit PNG clips; say so instead of silently losing highlights.
+            raise CaptureError(f"{label}: values outside [0, 1] (min {img.min():.3g}, max {img.max():.3g}); "
+                               "scale the capture (e.g. exposure) before storing it")
+        name = self._unique(label)
+        index = len(self.entries)
+        rel = f"images/{index:04d}_{name}.png"
+        write_image(self._tmp / rel, img)
+        pattern_rel = self._store_pattern(frame, index, name) if frame is not None else None
+        entry = Entry(rel, kind, name, dict(params), pattern_rel)
+        self.entries.append(entry)
+        self._names.add(name)
+        return entry
+
+    def _store_pattern(self, pattern: np.ndarray, index: int, name: str) -> str:
+        pat = np.asarray(pattern, dtype=np.float32)
+        frame = self.projector.intrinsics.size
+        if _size(pat) != frame:
+            raise CaptureError(f"{name}: projected pattern is {_size(pat)[0]}×{_size(pat)[1]}, "
+                               f"but the projector frame is {frame[0]}×{frame[1]}; pass the native frame "
+                               "(Projector.frame_from_input)")
+        if not np.all(np.isfinite(pat)) or pat.min(initial=0.0) < 0 or pat.max(initial=0.0) > 1:
+            raise CaptureError(f"{name}: projected pattern must hold values in [0, 1]")
+        # Hash the 16-bit quantised frame: that is exactly what the file will hold.
+        q = np.round(pat * 65535.0).astype(np.uint16)
+        key = hashlib.sha1(q.tobytes() + str(q.shape).encode()).hexdigest()
+        if key not in self._patterns:
+            (self._tmp / "patterns").mkdir(exist_ok=True)
+            rel = f"patterns/{index:04d}_{name}.png"
+            write_image(self._tmp / rel, pat)
+            self._patterns[key] = rel
+        return self._patterns[key]
+
+    def add_depth(self, depth: np.ndarray, *, name: str = "depth", suffix: str = ".npy", **params: Any) -> Entry:
+        """Add a depth map in metres (H×W at the depth intrinsics' size; 0 or NaN = missing)."""
+        if self.depth_info is None:
+            raise CaptureError("a depth image needs depth intrinsics: pass depth_info= to the writer")
+        if suffix not in DEPTH_SUFFIXES:
+            raise CaptureError(f"depth is stored as {' or '.join(DEPTH_SUFFIXES)}, not {suffix!r}")
+        d = validate_depth(depth, f"depth {name!r}")
+        want = self.depth_info.intrinsics.size
+        if _size(d) != want:
+            raise CaptureError(f"depth {name!r} is {_size(d)[0]}×{_size(d)[1]} pixels, but the depth intrinsics "
+                               f"say {want[0]}×{want[1]}")
+        name = self._unique(name)
+        (self._tmp / "depth").mkdir(exist_ok=True)
+        rel = f"depth/{name}{suffix}"
+        write_image(self._tmp / rel, np.nan_to_num(d, nan=0.0))
+        entry = Entry(rel, "depth", name, dict(_jsonable(params)))
+        self.entries.append(entry)
+        self._names.add(name)
+        return entry
+
+    def to_dict(self) -> dict[str, Any]:
+        return CaptureSet(self.path, self.camera, self.projector, self.entries, self.depth_info, self.target_area,
+                          self.camera_status, self.projector_status, self.projector_pose_known, "linear",
+                          self.notes).to_dict()
+
+    def commit(self) -> CaptureSet:
+        """Write capture.json, check the new set loads cleanly, then move it into place."""
+        try:
+            doc = self.to_dict()
+            write_atomic_bytes(self._tmp / MANIFEST, (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode())
+            # Reading back everything we wrote is the cheapest proof the set is complete.
+            CaptureSet.load(self._tmp)
+        except BaseException:
+            self._folder.abort()
+            raise
+        self._folder.commit()
+        return CaptureSet.load(self.path, verify_images=False)
+
+    def abort(self) -> None:
+        self._folder.abort()
+
+    def __enter__(self) -> "CaptureSetWriter":
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif not self._folder.done:
+            self.commit()
+
+
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    """The sRGB transfer inverted (IEC 61966-2-1), for 8-bit captures that cameras store sRGB-encoded."""
+    v = np.asarray(values, dtype=np.float32)
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(values: np.ndarray) -> np.ndarray:
+    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
+    return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+__all__ = ["AtomicFolder", "CaptureSet", "CaptureSetWriter", "DepthInfo", "Entry", "KINDS", "FORMAT", "VERSION",
+           "is_capture_set", "srgb_to_linear", "linear_to_srgb", "validate_depth", "default_name"]

@@ -1,0 +1,103 @@
+"""``procam patterns`` and ``procam import-captures``: the folder workflow for users with their own tools.
+
+``patterns`` writes the numbered calibration frames at the projector's native
+resolution; the user shows and photographs them; ``import-captures`` turns the
+photographs into a capture set that calibration reads.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..cli import command
+from ..errors import CaptureError, RigError
+from ..imageio import read_image
+from ..rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
+def _configure_patterns(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--projector-width", type=_positive_int, required=True, help="native projector width (px)")
+    p.add_argument("--projector-height", type=_positive_int, required=True, help="native projector height (px)")
+    p.add_argument("--input-width", type=_positive_int, help="projector input width inside the frame (default: frame)")
+    p.add_argument("--input-height", type=_positive_int, help="projector input height (default: frame)")
+    p.add_argument("--throw-ratio", type=float, default=1.0, help="nominal throw ratio, distance / width (default 1.0)")
+    p.add_argument("--shift-x", type=float, default=0.0, help="nominal lens shift right, fraction of the width")
+    p.add_argument("--shift-y", type=float, default=0.0, help="nominal lens shift up, fraction of the height")
+    p.add_argument("--checker", type=_positive_int, help="checkerboard square size in pixels (default: ~1/12 of the input)")
+    p.add_argument("--area", choices=("input", "frame"), default="input",
+                   help="draw patterns inside the projector input (default) or over the whole frame")
+    p.add_argument("--no-graycode", action="store_true", help="leave out the Gray-code frames")
+    p.add_argument("--no-validation", action="store_true", help="leave out the validation frames")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random validation patterns")
+    p.add_argument("--out", type=Path, required=True, help="new folder for the numbered frames")
+    p.add_argument("--force", action="store_true", help="replace an existing sequence folder at --out")
+
+
+@command("patterns", "Export the numbered calibration pattern sequence for your own projection/capture tools.",
+         _configure_patterns)
+def run_patterns(args: argparse.Namespace) -> int:
+    from ..capture.devices import export_sequence, load_sequence
+
+    w, h = args.projector_width, args.projector_height
+    intr = projector_intrinsics_from_throw(w, h, args.throw_ratio, args.shift_x, args.shift_y)
+    if (args.input_width is None) != (args.input_height is None):
+        raise RigError("give both --input-width and --input-height, or neither")
+    size = (args.input_width, args.input_height) if args.input_width else None
+    projector = Projector(intr, input_size=size)
+    out = export_sequence(projector, args.out, checker_size=args.checker, area=args.area, seed=args.seed,
+                          graycode=not args.no_graycode, validation=not args.no_validation, force=args.force)
+    n = len(load_sequence(out).frames)
+    print(f"wrote {n} frames ({w}×{h}) and sequence.json to {out}")
+    return 0
+
+
+def _configure_import(p: argparse.ArgumentParser) -> None:
+    p.add_argument("sequence_dir", type=Path, help="folder written by `procam patterns`")
+    p.add_argument("captures_dir", type=Path, help="folder of numbered captures (png, jpg, tif, exr), one per frame")
+    p.add_argument("--out", type=Path, required=True, help="new capture-set folder")
+    p.add_argument("--camera-width", type=_positive_int, help="expected capture width (checked)")
+    p.add_argument("--camera-height", type=_positive_int, help="expected capture height (checked)")
+    p.add_argument("--camera-fov", type=float, default=60.0,
+                   help="nominal horizontal field of view of the camera in degrees (default 60)")
+    p.add_argument("--encoding", choices=("auto", "srgb", "linear"), default="auto",
+                   help="how the captures are encoded; auto: 8-bit files are sRGB, 16-bit/float are linear")
+    p.add_argument("--depth", type=Path, help="depth map in metres (.npy or .exr), aligned with the camera")
+    p.add_argument("--depth-native-width", type=_positive_int, help="native depth-sensor width (e.g. 256)")
+    p.add_argument("--depth-native-height", type=_positive_int, help="native depth-sensor height (e.g. 192)")
+    p.add_argument("--force", action="store_true", help="replace an existing capture set at --out")
+
+
+@command("import-captures", "Import numbered captures of an exported pattern sequence as a capture set.",
+         _configure_import)
+def run_import(args: argparse.Namespace) -> int:
+    from ..capture.devices import import_captures
+
+    camera = None
+    if (args.camera_width is None) != (args.camera_height is None):
+        raise CaptureError("give both --camera-width and --camera-height, or neither")
+    if args.camera_width:
+        camera = Camera(intrinsics_from_fov(args.camera_width, args.camera_height, args.camera_fov))
+    depth = None
+    if args.depth is not None:
+        depth = read_image(args.depth, channels=1)
+    native = None
+    if args.depth_native_width or args.depth_native_height:
+        if not (args.depth_native_width and args.depth_native_height):
+            raise CaptureError("give both --depth-native-width and --depth-native-height")
+        native = (args.depth_native_width, args.depth_native_height)
+    cs = import_captures(args.sequence_dir, args.captures_dir, camera, None, args.out, encoding=args.encoding,
+                         camera_fov=args.camera_fov, depth=depth, depth_native_size=native, force=args.force)
+    w, h = cs.camera.intrinsics.size
+    print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
+    return 0
