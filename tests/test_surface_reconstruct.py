@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from procam.addon.errors import SurfaceError
+from procam.addon.render.raycast import depth_map
 from procam.addon.rig.demo import demo_camera
 from procam.addon.surface.mesh import ray_intersect
 from procam.addon.surface.reconstruct import reconstruct_surface
@@ -14,9 +15,17 @@ W, H = 96, 72
 
 def true_depth(surface):
     cam = demo_camera(W, H).intrinsics
-    ys, xs = np.mgrid[0:H, 0:W] + 0.5
-    t = ray_intersect(surface, np.zeros(3), cam.rays(np.stack([xs.ravel(), ys.ravel()], 1)))
-    return cam, np.where(np.isfinite(t), t, np.nan).reshape(H, W)  # rays have z = 1, so t is depth
+    return cam, depth_map(surface, cam).astype(np.float64)
+
+
+def test_mitsuba_depth_map_agrees_with_numpy_ray_casting():
+    surface = builtin_surface("vedge", resolution=12)
+    cam = demo_camera(32, 24).intrinsics
+    ys, xs = np.mgrid[0:24, 0:32] + 0.5
+    t = ray_intersect(surface, np.zeros(3), cam.rays(np.stack([xs.ravel(), ys.ravel()], 1))).reshape(24, 32)
+    d = depth_map(surface, cam)
+    assert np.array_equal(np.isfinite(t), np.isfinite(d))
+    assert np.nanmax(np.abs(d - t)) < 1e-5
 
 
 @pytest.fixture(scope="module", params=["plane", "vedge"])
