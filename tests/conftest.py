@@ -46,3 +46,31 @@ def run_python() -> Callable[..., subprocess.CompletedProcess]:
                               capture_output=True, text=True, timeout=timeout)
 
     return run
+
+
+_LAB_SETS: dict[tuple, tuple[Path, Path]] = {}
+
+
+@pytest.fixture(scope="session")
+def lab_set(tmp_path_factory) -> Callable[..., tuple[Path, Path]]:
+    """Render (once per session and set of arguments) a small lab capture set; returns (capture dir, truth file).
+
+    Small by default (camera 192×144, projector 240×180, 8 spp) so stage tests stay fast on 2 cores.
+    """
+
+    def make(surface: str = "vedge", effects: str = "", *, scale: float = 0.3, samples: int = 8,
+             graycode: bool = True, seed: int = 0) -> tuple[Path, Path]:
+        key = (surface, effects, scale, samples, graycode, seed)
+        if key not in _LAB_SETS:
+            from procam.addon.lab.lab import make_truth, run_lab
+
+            root = tmp_path_factory.mktemp(f"lab-{surface}")
+            cam = (round(640 * scale), round(480 * scale))
+            proj = (round(800 * scale), round(600 * scale))
+            truth = make_truth(surface, effects=effects, seed=seed, samples=samples, camera_size=cam,
+                               projector_size=proj)
+            run_lab(truth, root / "captures", truth_path=root / "truth.json", graycode=graycode)
+            _LAB_SETS[key] = (root / "captures", root / "truth.json")
+        return _LAB_SETS[key]
+
+    return make
