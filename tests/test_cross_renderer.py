@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from procam.addon.rig.demo import demo_rig
+from procam.addon.rig.model import Rig
 from procam.addon.surface.shapes import builtin_surface
 
 pytestmark = pytest.mark.blender
@@ -38,19 +39,16 @@ def test_cycles_and_mitsuba_agree(rig_and_surface, bounces, intensity_limit):
 
 def test_cross_check_detects_a_wrong_projector(rig_and_surface):
     """The measurement itself can fail: a Mitsuba model with a projector 2 px off must show it."""
-    from procam.addon.lab.crosscheck import measure
-
-    rig, surface = rig_and_surface
-    from procam.addon.lab.crosscheck import checkerboard_frame, predicted_corners
+    from procam.addon.lab.crosscheck import checkerboard_frame, measure, predicted_corners
     from procam.addon.render.forward import ForwardModel
     from procam.addon.rig.model import Intrinsics, Projector
 
+    rig, surface = rig_and_surface
     k = rig.projector.intrinsics
     shifted = Projector(Intrinsics(k.width, k.height, k.fx, k.fy, k.cx + 2.0, k.cy), rig.projector.camera_from_projector,
                         rig.projector.intensity * 1.05)
-    from dataclasses import replace
     good = ForwardModel(rig, surface, spp=16, smoothing_eps=0.0, clamp=False)
-    bad = ForwardModel(replace(rig, projector=shifted), surface, spp=16, smoothing_eps=0.0, clamp=False)
+    bad = ForwardModel(Rig(rig.camera, shifted), surface, spp=16, smoothing_eps=0.0, clamp=False)
     frames = {"white": np.ones((k.height, k.width, 3), np.float32), "checker": checkerboard_frame(k.width, k.height, 40)}
     a = {n: good.render(f) for n, f in frames.items()}
     b = {n: bad.render(f) for n, f in frames.items()}
