@@ -14,7 +14,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from .errors import ProCamError
@@ -24,31 +24,77 @@ class OutputError(ProCamError):
     """An output folder that cannot be written or already holds results."""
 
 
+class AtomicFolder:
+    """Build a folder in a hidden sibling and rename it into place when complete.
+
+    An existing ``target`` is refused unless ``force``; even then it is only
+    renamed to a backup and removed after the new folder is in place, so a
+    failure at any point leaves either the old folder or the new one, never
+    a mixture. ``replaceable(path)`` says which existing folders ``force``
+    may replace (others are refused even with ``force``, to protect user data).
+    """
+
+    def __init__(self, target: str | Path, *, force: bool = False, what: str = "folder",
+                 replaceable: Callable[[Path], bool] | None = None,
+                 error: type[ProCamError] = OutputError) -> None:
+        self.target = Path(target)
+        self.error = error
+        self.force = force
+        self.what = what
+        if self.target.exists():
+            if not self.target.is_dir():
+                raise self.error(f"{self.target} exists and is not a folder; choose another output path")
+            empty = not any(self.target.iterdir())
+            if not empty:
+                if replaceable is not None and not replaceable(self.target):
+                    raise self.error(f"{self.target} exists, is not empty and is not a {what}; "
+                                       "refusing to replace it — choose another output folder")
+                if not force:
+                    raise self.error(f"{self.target} already holds a {what}; it is never overwritten "
+                                       "without --force (force=True)")
+        try:
+            self.target.parent.mkdir(parents=True, exist_ok=True)
+            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+        except OSError as exc:
+            raise self.error(f"cannot write {self.what} at {self.target}: {exc.strerror or exc}") from None
+        self.done = False
+
+    def commit(self) -> Path:
+        if self.done:
+            raise self.error(f"{self.what} at {self.target} was already completed")
+        backup: Path | None = None
+        try:
+            if self.target.exists():
+                backup = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.old-", dir=self.target.parent))
+                backup.rmdir()  # mkdtemp reserves a unique name; rename needs it free
+                os.replace(self.target, backup)
+            os.replace(self.tmp, self.target)
+        except OSError as exc:
+            if backup is not None and backup.exists() and not self.target.exists():
+                os.replace(backup, self.target)  # put the old one back
+            self.abort()
+            raise self.error(f"cannot move the new {self.what} into {self.target}: {exc.strerror or exc}") from None
+        self.done = True
+        if backup is not None:
+            shutil.rmtree(backup, ignore_errors=True)
+        return self.target
+
+    def abort(self) -> None:
+        if not self.done:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            self.done = True
+
+
 @contextlib.contextmanager
-def fresh_output_folder(path: str | Path, *, force: bool = False) -> Iterator[Path]:
+def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "results folder") -> Iterator[Path]:
     """Yield a temporary folder; on success it becomes ``path`` (replacing it only with ``force``)."""
-    final = Path(path).absolute()
-    if final.exists() and not force:
-        if not final.is_dir() or any(final.iterdir()):
-            raise OutputError(f"{path} already exists and is not empty; choose another --out or pass --force")
-    parent = final.parent
+    folder = AtomicFolder(path, force=force, what=what)
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=parent))
-    except OSError as exc:
-        raise OutputError(f"cannot create output folder {path}: {exc.strerror or exc}") from None
-    try:
-        yield tmp
+        yield folder.tmp
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        folder.abort()
         raise
-    old = None
-    if final.exists():
-        old = parent / f".{final.name}.old-{os.getpid()}-{time.time_ns()}"
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    folder.commit()
 
 
 def progress(message: str) -> None:

@@ -35,7 +35,8 @@ import numpy as np
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..rig.model import Camera, Projector, intrinsics_from_fov
-from .format import AtomicFolder, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
+from ..outputs import AtomicFolder
+from .format import CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
 from .patterns import PatternSpec, calibration_sequence
 
 SEQUENCE_FORMAT = "procam-sequence"
@@ -113,7 +114,7 @@ def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: 
     itself an exported sequence.
     """
     seq = calibration_sequence(projector, checker_size, area=area, graycode=graycode, validation=validation, seed=seed)
-    folder = AtomicFolder(out_dir, force=force, what="pattern sequence", replaceable=_is_sequence)
+    folder = AtomicFolder(out_dir, force=force, what="pattern sequence", replaceable=_is_sequence, error=CaptureError)
     try:
         frames = []
         for i, spec in enumerate(seq):

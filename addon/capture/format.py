@@ -37,10 +37,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
-import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +47,7 @@ import numpy as np
 
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
+from ..outputs import AtomicFolder
 from ..rig.model import Camera, Intrinsics, Projector
 
 FORMAT = "procam-capture"
@@ -421,65 +419,6 @@ def is_capture_set(path: str | Path) -> bool:
     return (Path(path) / MANIFEST).is_file()
 
 
-class AtomicFolder:
-    """Build a folder in a hidden sibling and rename it into place when complete.
-
-    An existing ``target`` is refused unless ``force``; even then it is only
-    renamed to a backup and removed after the new folder is in place, so a
-    failure at any point leaves either the old folder or the new one, never
-    a mixture. ``replaceable(path)`` says which existing folders ``force``
-    may replace (others are refused even with ``force``, to protect user data).
-    """
-
-    def __init__(self, target: str | Path, *, force: bool = False, what: str = "folder",
-                 replaceable: Any = None) -> None:
-        self.target = Path(target)
-        self.force = force
-        self.what = what
-        if self.target.exists():
-            if not self.target.is_dir():
-                raise CaptureError(f"{self.target} exists and is not a folder; choose another output path")
-            empty = not any(self.target.iterdir())
-            if not empty:
-                if replaceable is not None and not replaceable(self.target):
-                    raise CaptureError(f"{self.target} exists, is not empty and is not a {what}; "
-                                       "refusing to replace it — choose another output folder")
-                if not force:
-                    raise CaptureError(f"{self.target} already holds a {what}; it is never overwritten "
-                                       "without --force (force=True)")
-        try:
-            self.target.parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
-        except OSError as exc:
-            raise CaptureError(f"cannot write {self.what} at {self.target}: {exc.strerror or exc}") from None
-        self.done = False
-
-    def commit(self) -> Path:
-        if self.done:
-            raise CaptureError(f"{self.what} at {self.target} was already completed")
-        backup: Path | None = None
-        try:
-            if self.target.exists():
-                backup = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.old-", dir=self.target.parent))
-                backup.rmdir()  # mkdtemp reserves a unique name; rename needs it free
-                os.replace(self.target, backup)
-            os.replace(self.tmp, self.target)
-        except OSError as exc:
-            if backup is not None and backup.exists() and not self.target.exists():
-                os.replace(backup, self.target)  # put the old one back
-            self.abort()
-            raise CaptureError(f"cannot move the new {self.what} into {self.target}: {exc.strerror or exc}") from None
-        self.done = True
-        if backup is not None:
-            shutil.rmtree(backup, ignore_errors=True)
-        return self.target
-
-    def abort(self) -> None:
-        if not self.done:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            self.done = True
-
-
 def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-") or "image"
 
@@ -507,7 +446,7 @@ class CaptureSetWriter:
                  camera_status: str = "nominal", projector_status: str = "nominal",
                  projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
                  force: bool = False) -> None:
-        self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set)
+        self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, error=CaptureError)
         self.path = Path(path)
         self.camera, self.projector = camera, projector
         self.depth_info = depth_info

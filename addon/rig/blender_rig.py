@@ -177,6 +177,11 @@ def _image_from_array(name: str, rgb: np.ndarray, built: _Built | None = None,
     return image
 
 
+def add_image(name: str, rgb: np.ndarray) -> bpy.types.Image:
+    """A packed float Non-Color Blender image holding an H×W×3 array (row 0 = top), to view in Blender."""
+    return _image_from_array(name, np.asarray(rgb, dtype=np.float32)[..., :3])
+
+
 def _image_to_array(image: bpy.types.Image) -> np.ndarray:
     """H×W×3 float32 linear values of a Blender image (row 0 = top)."""
     w, h = image.size

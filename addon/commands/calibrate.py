@@ -1,0 +1,70 @@
+"""``procam calibrate``: surface, projector pose (stage A) and warp (stage B) from a capture set."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from ..cli import command
+from ..errors import CalibrationError
+
+
+def _configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("capture_dir", type=Path, help="capture set folder (from procam lab or import-captures)")
+    p.add_argument("--out", type=Path, required=True, help="calibration folder to create")
+    p.add_argument("--init", choices=("graycode", "nominal", "blender"), default="graycode",
+                   help="starting pose for stage A: Gray-code correspondences + PnP (default), the capture set's "
+                        "nominal projector, or the ProCam Projector placed in a .blend (--blend)")
+    p.add_argument("--blend", type=Path, help="with --init blender: the .blend holding the ProCam Projector")
+    p.add_argument("--no-blend-output", action="store_true", help="do not write scene.blend")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
+
+
+def _pose_from_blend(path: Path) -> np.ndarray:
+    import bpy
+
+    from ..rig.blender_rig import read_projector
+
+    if not path.is_file():
+        raise CalibrationError(f"--blend file not found: {path}")
+    try:
+        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+    except RuntimeError as exc:
+        raise CalibrationError(f"cannot open {path}: {exc}") from None
+    return read_projector(bpy.context.scene).camera_from_projector
+
+
+@command("calibrate", "Estimate surface, projector pose and warp from a capture set.", _configure)
+def run(args: argparse.Namespace) -> int:
+    from ..outputs import progress
+    from ..stages.calibrate import calibrate
+
+    initial = None
+    if args.init == "blender":
+        if args.blend is None:
+            raise CalibrationError("--init blender needs --blend FILE.blend with a ProCam Projector in it")
+        initial = _pose_from_blend(args.blend)
+    last = [-1.0]
+
+    def say(msg: str, frac: float) -> None:
+        if frac - last[0] >= 0.02 or frac >= 1.0:
+            progress(f"{100 * frac:3.0f}% {msg}")
+            last[0] = frac
+
+    cal = calibrate(args.capture_dir, args.out, init="given" if initial is not None else args.init,
+                    initial_pose=initial, force=args.force, with_blend=not args.no_blend_output,
+                    progress=say, seed=args.seed)
+    r = cal.report
+    print(f"calibration: {args.out}")
+    print(f"  surface: {r['surface_report']['vertices']} vertices, {r['surface_report']['faces']} faces")
+    p = cal.rig.projector
+    print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
+          f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']})")
+    b, a = r["warp_report"]["corners_before_px"], r["warp_report"]["corners_after_px"]
+    if b and a:
+        print(f"  warp: checker corners median {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
+    print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items()))
+    return 0
