@@ -52,11 +52,18 @@ def checkerboard_frame(width: int, height: int, square: int) -> np.ndarray:
 
 def predicted_corners(rig: Rig, surface: SurfaceMesh, square: int, margin: int = 1) -> np.ndarray:
     """Camera pixels where the checkerboard's inner corners land, by ray casting (NaN where hidden)."""
-    proj = rig.projector
-    w, h = proj.intrinsics.size
+    w, h = rig.projector.intrinsics.size
     xs = np.arange(square * margin, w - square * margin + 1, square)
     ys = np.arange(square * margin, h - square * margin + 1, square)
     px = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2).astype(np.float64)
+    return frame_points_to_camera(rig, surface, px)
+
+
+def frame_points_to_camera(rig: Rig, surface: SurfaceMesh, px: np.ndarray) -> np.ndarray:
+    """Camera pixels (N×2) of projector-frame points ``px`` (N×2, native frame, corner convention),
+    by ray casting onto the surface; NaN where the ray misses or the camera does not see the hit point."""
+    proj = rig.projector
+    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
     dirs = proj.intrinsics.rays(px) @ proj.camera_from_projector[:3, :3].T
     t = ray_intersect(surface, proj.position, dirs)
     pts = proj.position + dirs * t[:, None]
@@ -65,6 +72,12 @@ def predicted_corners(rig: Rig, surface: SurfaceMesh, square: int, margin: int =
     tc = ray_intersect(surface, np.zeros(3), pts)
     cam[~np.isfinite(t) | (tc < 0.999)] = np.nan
     return cam
+
+
+def refine_corners(pattern: np.ndarray, guesses: np.ndarray, window: int) -> np.ndarray:
+    """Sub-pixel corners (N×2, corner convention) of a grey H×W ``pattern`` near ``guesses`` (N×2),
+    with OpenCV's ``cornerSubPix`` and a (2·window+1)² search window."""
+    return _refine(pattern, guesses, window)
 
 
 def _refine(pattern: np.ndarray, guesses: np.ndarray, window: int) -> np.ndarray:

@@ -25,6 +25,22 @@ from ..rig.model import Intrinsics
 from .mesh import SurfaceMesh
 
 
+def import_pymeshlab():
+    """Import pymeshlab, loading bpy first when it is installed.
+
+    Both bundle Embree; once pymeshlab's is loaded, a later ``import bpy`` in
+    the same process fails ("undefined symbol rtcGetSceneTraversable"), while
+    the other order works. Inside Blender bpy is always first.
+    """
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        pass
+    import pymeshlab
+
+    return pymeshlab
+
+
 @dataclass(frozen=True)
 class ReconstructionReport:
     valid_fraction: float  # share of depth pixels with a usable depth before hole filling
@@ -128,8 +144,7 @@ def reconstruct_surface(depth: np.ndarray, camera: Intrinsics, rgb: np.ndarray |
         raise SurfaceError("the depth map gives no connected surface (all neighbouring depths jump); "
                            "check that the depth image shows the projection surface")
 
-    import pymeshlab
-
+    pymeshlab = import_pymeshlab()
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=np.nan_to_num(verts),
                                face_matrix=tris.astype(np.int32)))
