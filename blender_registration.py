@@ -11,11 +11,14 @@ from collections.abc import Sequence
 import bpy
 
 from .operators.create_rig import PROCAM_OT_create_rig
+from .operators.run_lab import PROCAM_OT_run_lab
 from .operators.set_projector_image import PROCAM_OT_set_projector_image
 from .operators.set_surface import PROCAM_OT_set_surface
+from .panels.captures import PROCAM_PT_captures, scene_properties
 from .panels.rig import PROCAM_PT_rig
 
-CLASSES = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_PT_rig)
+CLASSES = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
+           PROCAM_PT_rig, PROCAM_PT_captures)
 CLI_COMMAND = "procam"
 
 _cli_handle = None
@@ -35,6 +38,8 @@ def register() -> None:
     global _cli_handle
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    for name, prop in scene_properties().items():
+        setattr(bpy.types.Scene, name, prop)
     if hasattr(bpy.utils, "register_cli_command") and _cli_handle is None:
         _cli_handle = bpy.utils.register_cli_command(CLI_COMMAND, run_cli)
 
@@ -44,5 +49,8 @@ def unregister() -> None:
     if _cli_handle is not None:
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None
+    for name in scene_properties():
+        if hasattr(bpy.types.Scene, name):
+            delattr(bpy.types.Scene, name)
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -6,14 +6,19 @@ mode), reads it as float32 linear RGB, and removes the file. Every setting
 that could bend the values is pinned for the render and restored afterwards:
 no view transform, look, exposure or gamma, a 1-pixel box filter, no
 denoising, no clamping, and a black world so that only the projector lights
-the room.
+the room. Blender's per-frame chatter on stdout ("Saved: '…exr'") is
+silenced for the render so that commands keep stdout for their results.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
 import shutil
+import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +62,57 @@ def _dark_world() -> bpy.types.World:
             node.inputs["Strength"].default_value = 0.0
             node.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
     return world
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Send the C-level stdout to /dev/null for one render (Blender prints "Saved: '…exr'" per frame).
+
+    Only file descriptor 1 is redirected, and only for the duration of the
+    render; stderr (warnings, errors) is untouched. C stdio buffers are flushed
+    on both sides so that earlier output still reaches the real stdout and the
+    render's chatter does not leak out later. Where the descriptor cannot be
+    duplicated (an embedded or unusual console), the render runs unsilenced.
+    """
+    try:
+        sys.stdout.flush()
+        _c_flush()
+        saved = os.dup(1)
+    except (OSError, ValueError, AttributeError):
+        yield
+        return
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, 1)
+        finally:
+            os.close(devnull)
+    except OSError:
+        os.close(saved)
+        yield
+        return
+    try:
+        yield
+    finally:
+        _c_flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _c_flush() -> None:
+    """fflush(NULL): push C stdio buffers out before the descriptor behind stdout changes."""
+    global _LIBC
+    if _LIBC is None:
+        try:
+            _LIBC = ctypes.CDLL(None)
+            _LIBC.fflush.argtypes = [ctypes.c_void_p]
+        except (OSError, AttributeError, TypeError):  # no C library handle (e.g. Windows)
+            _LIBC = False
+    if _LIBC:
+        _LIBC.fflush(None)
+
+
+_LIBC: Any = None
 
 
 def _read_exr(path: Path) -> np.ndarray:
@@ -138,7 +194,8 @@ def render_cycles(scene: bpy.types.Scene, *, samples: int = 64, bounces: int = 0
         world = _dark_world()
         settings.set(scene, "world", world)
 
-        bpy.ops.render.render(write_still=True, scene=scene.name)
+        with _quiet_stdout():
+            bpy.ops.render.render(write_still=True, scene=scene.name)
         written = sorted(tmpdir.glob("*.exr"))
         if not written:
             raise RenderError("Cycles wrote no image; check the console for Cycles errors")

@@ -8,30 +8,55 @@ rendered image. The truth — the real projector pose, the surface, the effects
 and their parameters — is written to a *sealed* JSON file outside the capture
 set; pipeline and diagnosis code never read it, only evaluation does, and the
 lab device can be re-opened from it to capture more images later.
+
+Randomness: every shot ``k`` of a device draws its Cycles seed and its sensor
+noise from ``(seed, k)`` alone, and the depth image from ``(seed, "depth")``.
+So two devices opened on the same truth (or on its saved copy) with the same
+seed return identical captures for the same sequence of frames, and taking
+the depth image or not does not change any RGB capture.
+
+The device builds its objects in a scene of its own (``bpy.data.scenes.new``)
+and removes that scene and everything it created on :meth:`LabDevice.close`,
+so it can run inside a user's Blender session without touching their scene.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
+import os
+import shutil
+import tempfile
+import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..capture.devices import Device, capture_sequence
-from ..capture.format import CaptureSet, DepthInfo
-from ..capture.patterns import calibration_sequence
-from ..errors import LabError
+from ..capture.devices import Device
+from ..capture.format import CaptureSet, CaptureSetWriter, DepthInfo, is_capture_set, validate_depth
+from ..capture.patterns import PatternSpec, calibration_sequence
+from ..errors import CaptureError, LabError
 from ..imageio import write_atomic_bytes
 from ..rig.demo import demo_rig
-from ..rig.model import Camera, Projector, Rig
+from ..rig.model import Camera, Rig
 from ..surface.mesh import SurfaceMesh
 from ..surface.shapes import SHAPES, builtin_surface
 from .effects import EffectSet, apply_camera, apply_projector, camera_render_intrinsics, parse_effects, render_settings
 
 TRUTH_FORMAT = "procam-lab-truth"
+#: Name of the scratch scene a :class:`LabDevice` renders in.
+LAB_SCENE_NAME = "ProCam Lab"
+#: Pattern kinds that calibration only binarises: rendered with fewer samples (see :func:`binary_samples`).
+BINARY_KINDS = ("checker", "graycode")
+#: Cycles takes a signed 32-bit seed.
+_SEED_RANGE = 2 ** 31
+
+#: ``progress(done, total, message)``: called before each step of :func:`run_lab`.
+Progress = Callable[[int, int, str], None]
 
 
 def rough_pose(pose: np.ndarray, rng: np.random.Generator, offset_m: float = 0.16,
@@ -61,11 +86,16 @@ class LabTruth:
     samples: int
     nominal_pose: np.ndarray
 
+    @staticmethod
+    def mesh_path(path: str | Path) -> Path:
+        """Where the surface of the truth file ``path`` is stored (``<stem>.surface.npz`` beside it)."""
+        path = Path(path)
+        return path.with_name(path.stem + ".surface.npz")
+
     def save(self, path: str | Path) -> Path:
         """Write ``path`` (JSON) and the surface beside it (``<stem>.surface.npz``), each atomically."""
         path = Path(path)
-        mesh_path = path.with_name(path.stem + ".surface.npz")
-        import io
+        mesh_path = self.mesh_path(path)
         buf = io.BytesIO()
         np.savez_compressed(buf, vertices=self.surface.vertices, faces=self.surface.faces, uvs=self.surface.uvs,
                             albedo=self.surface.albedo)
@@ -86,7 +116,7 @@ class LabTruth:
         path = Path(path)
         try:
             doc = json.loads(path.read_text())
-            if doc.get("format") != TRUTH_FORMAT:
+            if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
                 raise LabError(f"{path} is not a ProCam lab truth file")
             data = np.load(path.with_name(doc["surface"]["mesh"]))
             surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"],
@@ -96,34 +126,70 @@ class LabTruth:
                             np.asarray(doc["nominal_camera_from_projector"], dtype=float))
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
-        except (OSError, ValueError, KeyError) as exc:
+        except (OSError, ValueError, KeyError, TypeError) as exc:
             raise LabError(f"cannot read lab truth {path}: {exc}") from None
 
 
-def make_truth(surface: str | Path = "curve", *, effects: str | EffectSet | None = None, seed: int = 0,
-               samples: int = 16, camera_size: tuple[int, int] = (640, 480),
-               projector_size: tuple[int, int] = (800, 600)) -> LabTruth:
-    """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``) or a mesh file."""
-    if isinstance(surface, str) and surface in SHAPES:
-        mesh = builtin_surface(surface, seed=seed)
-        source = surface
+def _whole(value: Any, what: str, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+        raise LabError(f"{what} must be a whole number ≥ {lo}, got {value!r}")
+    return int(value)
+
+
+def scaled_rig(rig: Rig, scale: float) -> Rig:
+    """The same rig at ``scale`` times its resolutions (same lenses and pose; at least 8×6 pixels)."""
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0.05 <= scale <= 2:
+        raise LabError(f"the resolution scale must lie between 0.05 and 2, got {scale!r}")
+    if scale == 1:
+        return rig
+
+    def size(intr: Any) -> tuple[int, int]:
+        return max(8, round(intr.width * scale)), max(6, round(intr.height * scale))
+
+    return Rig(Camera(rig.camera.intrinsics.scaled(*size(rig.camera.intrinsics))),
+               rig.projector.scaled(*size(rig.projector.intrinsics)))
+
+
+def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | EffectSet | None = None,
+               seed: int = 0, samples: int = 16, camera_size: tuple[int, int] = (640, 480),
+               projector_size: tuple[int, int] = (800, 600), rig: Rig | None = None, scale: float = 1.0,
+               surface_source: str | None = None) -> LabTruth:
+    """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
+
+    ``rig`` replaces the demo rig (then ``camera_size``/``projector_size`` are
+    not used); ``scale`` scales either rig's resolutions (:func:`scaled_rig`).
+    The nominal projector pose the pipeline gets is the true one disturbed as
+    by a person placing it by eye (:func:`rough_pose`). Cheap checks come
+    first so that a bad request fails before any mesh is read.
+    """
+    seed = _whole(seed, "the seed", 0)
+    samples = _whole(samples, "Cycles samples", 1)
+    effect_set = parse_effects(effects)
+    if rig is None:
+        for what, size in (("camera", camera_size), ("projector", projector_size)):
+            if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 2 for v in size):
+                raise LabError(f"{what} size must be (width, height) in whole pixels ≥ 2, got {size!r}")
+        rig = demo_rig(tuple(int(v) for v in camera_size), tuple(int(v) for v in projector_size))
+    rig = scaled_rig(rig, scale)
+    camera_render_intrinsics(effect_set, rig.camera.intrinsics)  # refuses a lens distortion that folds the image
+    if isinstance(surface, SurfaceMesh):
+        mesh, source = surface, surface_source or f"mesh {surface.name!r}"
+    elif isinstance(surface, str) and surface in SHAPES:
+        mesh, source = builtin_surface(surface, seed=seed), surface
     else:
         mesh = load_mesh_file(Path(surface))
-        source = str(Path(surface).resolve())
-    if not isinstance(samples, int) or samples < 1:
-        raise LabError(f"Cycles samples must be a whole number ≥ 1, got {samples!r}")
-    rig = demo_rig(camera_size, projector_size)
+        source = surface_source or str(Path(surface).resolve())
     rng = np.random.default_rng(seed + 7919)
-    return LabTruth(rig, mesh, source, parse_effects(effects), seed, samples,
-                    rough_pose(rig.projector.camera_from_projector, rng))
+    return LabTruth(rig, mesh, source, effect_set, seed, samples, rough_pose(rig.projector.camera_from_projector, rng))
 
 
 def load_mesh_file(path: Path) -> SurfaceMesh:
     """A user's ``.obj``/``.ply`` surface (rig frame, metres), with its texture if the file names one."""
     if not path.is_file():
         raise LabError(f"unknown surface {str(path)!r}: not one of {', '.join(SHAPES)} and no such mesh file")
-    import pymeshlab
+    from ..surface.reconstruct import import_pymeshlab
 
+    pymeshlab = import_pymeshlab()
     ms = pymeshlab.MeshSet()
     try:
         ms.load_new_mesh(str(path))
@@ -147,10 +213,51 @@ def load_mesh_file(path: Path) -> SurfaceMesh:
     return SurfaceMesh(verts, faces, uvs, albedo, name=path.stem)
 
 
-class LabDevice(Device):
-    """A capture device that renders with Cycles: ``project(frame)`` returns the simulated camera image."""
+def _stream(seed: int, *keys: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(seed), *map(int, keys)]))
 
-    def __init__(self, truth: LabTruth, *, samples: int | None = None) -> None:
+
+def lab_depth(truth: LabTruth, seed: int | None = None) -> tuple[np.ndarray, DepthInfo]:
+    """A phone-LiDAR-like depth image at camera resolution (metres, NaN = none), and how it was taken.
+
+    Needs no Blender scene (a ray cast); the noise comes from ``(seed, "depth")``.
+    """
+    from ..render.raycast import depth_map
+    from .depth import depth_capture, sensor_resolution
+
+    k = truth.rig.camera.intrinsics
+    rng = _stream(truth.seed if seed is None else seed, zlib.crc32(b"depth"))
+    d = depth_capture(depth_map(truth.surface, k), k, truth.effects, rng)
+    return d, DepthInfo(k, tuple(sensor_resolution(truth.effects, k)))
+
+
+_ID_COLLECTIONS = ("objects", "meshes", "cameras", "lights", "materials", "images", "textures", "node_groups",
+                   "worlds", "collections")
+
+
+def _id_snapshot() -> dict[str, set[int]]:
+    import bpy
+
+    return {name: {b.as_pointer() for b in getattr(bpy.data, name)} for name in _ID_COLLECTIONS}
+
+
+def _new_ids(before: dict[str, set[int]]) -> list[Any]:
+    import bpy
+
+    return [b for name in _ID_COLLECTIONS for b in getattr(bpy.data, name) if b.as_pointer() not in before[name]]
+
+
+class LabDevice(Device):
+    """A capture device that renders with Cycles: ``project(frame)`` returns the simulated camera image.
+
+    ``seed`` (default: the truth's) sets the random streams of the shots; a
+    re-opened device with the same seed repeats the same captures for the same
+    frames. ``samples`` (default: the truth's) is the Cycles samples per pixel
+    and may be changed between shots. Close the device (or use it as a context
+    manager) to remove its scratch scene.
+    """
+
+    def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None) -> None:
         import bpy
 
         from ..rig import blender_rig
@@ -159,40 +266,69 @@ class LabDevice(Device):
         self.projector = truth.rig.projector
         self.camera = truth.rig.camera
         self.effects = truth.effects
-        self.samples = int(samples or truth.samples)
+        self.samples = _whole(truth.samples if samples is None else samples, "Cycles samples", 1)
+        self.seed = _whole(truth.seed if seed is None else seed, "the seed", 0)
         self._settings = render_settings(truth.effects, self.camera.intrinsics)
-        self._rng = np.random.default_rng(truth.seed)
         self._shots = 0
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-        self._scene = bpy.context.scene
         # Lens distortion resamples the image, so render a margin around it (same focal length).
         render_k = camera_render_intrinsics(truth.effects, self.camera.intrinsics)
-        objs = blender_rig.create_rig(self._scene, Rig(Camera(render_k), truth.rig.projector), truth.surface)
+        before = _id_snapshot()
+        self._images_before = before["images"]
+        self._scene = bpy.data.scenes.new(LAB_SCENE_NAME)
+        self._owned: list[Any] = []
+        try:
+            objs = blender_rig.create_rig(self._scene, Rig(Camera(render_k), truth.rig.projector), truth.surface)
+            if self._settings.get("glossy_weight", 0.0) > 0:
+                _add_glossy_lobe(objs.surface, self._settings["glossy_weight"], self._settings["glossy_roughness"])
+        except BaseException:
+            self._owned = _new_ids(before)
+            self.close()
+            raise
+        self._owned = _new_ids(before)
         self._light = objs.projector
-        if self._settings.get("glossy_weight", 0.0) > 0:
-            _add_glossy_lobe(objs.surface, self._settings["glossy_weight"], self._settings["glossy_roughness"])
+        # (Cycles' persistent data was measured: no gain here, since a frame's render time is nearly all sampling.)
 
     @property
     def bounces(self) -> int:
         return int(self._settings.get("diffuse_bounces", 0))
 
+    @property
+    def shots(self) -> int:
+        """How many captures this device has taken (each one's randomness depends on its number)."""
+        return self._shots
+
+    def _check_open(self) -> None:
+        if self._scene is None:
+            raise LabError("this lab device is closed; open a new LabDevice")
+
     def _render(self) -> np.ndarray:
         from .cycles import render_cycles
 
+        self._check_open()
+        k = self._shots
         self._shots += 1
-        img = render_cycles(self._scene, samples=self.samples, bounces=self.bounces,
-                            seed=self.truth.seed * 100003 + self._shots)
-        return apply_camera(img, self.effects, self.camera.intrinsics, self._rng)
+        seed = int(np.random.SeedSequence([self.seed, k]).generate_state(1)[0]) % _SEED_RANGE
+        bounces = self.bounces
+        img = render_cycles(self._scene, samples=self.samples, bounces=bounces, seed=seed)
+        gain = float(self._settings.get("indirect_gain", 0.0))
+        if bounces > 0 and gain < 1.0:
+            # direct + gain·indirect: the direct-only render with the same seed shares its sampling pattern,
+            # so the difference (the indirect light) is not much noisier than either render
+            direct = render_cycles(self._scene, samples=self.samples, bounces=0, seed=seed)
+            img = direct + np.float32(gain) * (img - direct)
+        return apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k))
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         from ..rig import blender_rig
 
+        self._check_open()
         f = self.check_frame(frame)
         blender_rig.set_projector_image(self._light, apply_projector(f, self.effects, self.projector))
         return self._render()
 
     def capture_off(self) -> np.ndarray:
         """Projector switched off: only ambient light (and camera effects) remain."""
+        self._check_open()
         light = self._light.data
         energy = light.energy
         light.energy = 0.0
@@ -202,13 +338,47 @@ class LabDevice(Device):
             light.energy = energy
 
     def depth(self) -> tuple[np.ndarray, DepthInfo]:
-        """A phone-LiDAR-like depth image at camera resolution, and how it was taken."""
-        from ..render.raycast import depth_map
-        from .depth import depth_capture, sensor_resolution
+        """A phone-LiDAR-like depth image at camera resolution, and how it was taken (see :func:`lab_depth`)."""
+        return lab_depth(self.truth, self.seed)
 
-        k = self.camera.intrinsics
-        d = depth_capture(depth_map(self.truth.surface, k), k, self.effects, self._rng)
-        return d, DepthInfo(k, tuple(sensor_resolution(self.effects, k)))
+    def close(self) -> None:
+        """Remove the scratch scene and every datablock the device created."""
+        import bpy
+
+        scene, self._scene = getattr(self, "_scene", None), None
+        owned, self._owned = getattr(self, "_owned", []), []
+        light = getattr(self, "_light", None)
+        try:
+            if light is not None and light.data is not None and light.data.node_tree is not None:
+                for node in light.data.node_tree.nodes:  # the frame image may have been replaced since
+                    if node.type == "TEX_IMAGE" and node.image is not None and node.image not in owned:
+                        owned.append(node.image)
+            # the first render of a session makes Blender's "Render Result" image: remove it if we made it
+            owned += [im for im in bpy.data.images if im.type == "RENDER_RESULT"
+                      and im.as_pointer() not in getattr(self, "_images_before", ())]
+        except ReferenceError:
+            pass
+        if scene is not None:
+            try:
+                bpy.data.scenes.remove(scene)
+            except ReferenceError:
+                pass
+        alive = []
+        for block in owned:
+            try:
+                block.name  # noqa: B018 — raises ReferenceError once removed
+                alive.append(block)
+            except ReferenceError:
+                pass
+        if alive:
+            bpy.data.batch_remove(alive)
+
+    def __del__(self) -> None:  # a forgotten close() must not leave a scene behind in a user's session
+        try:
+            if getattr(self, "_scene", None) is not None:
+                self.close()
+        except Exception:  # noqa: BLE001 — interpreter shutdown: Blender may already be gone
+            pass
 
 
 def _add_glossy_lobe(obj: Any, weight: float, roughness: float) -> None:
@@ -226,35 +396,175 @@ def _add_glossy_lobe(obj: Any, weight: float, roughness: float) -> None:
     tree.links.new(mix.outputs[0], out.inputs["Surface"])
 
 
-def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
-            graycode: bool = True, validation: bool = True, progress: Any = None) -> CaptureSet:
-    """Render a complete calibration capture set into ``out_dir`` and seal the truth at ``truth_path``."""
+# --------------------------------------------------------------------------- a whole capture session
+
+
+def binary_samples(samples: int) -> int:
+    """Samples for patterns that calibration only binarises (checker, Gray code): a quarter, at least 4.
+
+    Their camera images are thresholded at half-way levels, where Monte Carlo
+    noise of a few percent changes nothing, so they need not pay for the
+    samples the photometric captures (white, black, validation) need.
+    """
+    return min(samples, max(4, samples // 4))
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _check_writable_folder(folder: Path, what: str) -> None:
+    """``folder`` exists as a writable folder or can be created (nothing is left behind by the check)."""
+    base = _nearest_existing(folder)
+    if not base.is_dir():
+        raise LabError(f"cannot write the {what} at {folder}: {base} is a file, not a folder")
+    try:
+        probe = tempfile.mkdtemp(prefix=".procam-probe-", dir=base)
+        os.rmdir(probe)
+    except OSError as exc:
+        raise LabError(f"cannot write the {what} at {folder}: {exc.strerror or exc} ({base})") from None
+
+
+def check_lab_outputs(out_dir: str | Path, truth_path: str | Path, *, force: bool = False) -> tuple[Path, Path]:
+    """Refuse, before any rendering, outputs that :func:`run_lab` could not write or must not replace.
+
+    The truth file (and the surface stored beside it) must lie outside the
+    capture set; an existing capture set or truth file is replaced only with
+    ``force``; a non-empty folder that is not a capture set is never replaced.
+    Returns both paths made absolute.
+    """
     out_dir, truth_path = Path(out_dir).absolute(), Path(truth_path).absolute()
-    if out_dir == truth_path.parent or out_dir in truth_path.parents:
-        raise LabError(f"the truth file {truth_path} must lie outside the capture set {out_dir}")
-    if not truth_path.parent.is_dir():
-        raise LabError(f"cannot write the truth file: folder {truth_path.parent} does not exist")
-    device = LabDevice(truth)
+    out_real = Path(os.path.realpath(out_dir))
+    for p in (truth_path, LabTruth.mesh_path(truth_path)):
+        real = Path(os.path.realpath(p))
+        if real == out_real or out_real in real.parents:
+            raise LabError(f"the truth file {p} must lie outside the capture set {out_dir}: the pipeline reads "
+                           "everything in the capture set, and the truth is sealed from it")
+    if truth_path.suffix.lower() != ".json":
+        raise LabError(f"the truth file must be a .json file, got {truth_path.name!r}")
+    if out_dir.exists():
+        if not out_dir.is_dir():
+            raise LabError(f"{out_dir} exists and is not a folder; choose another output folder")
+        if any(out_dir.iterdir()):
+            if not is_capture_set(out_dir):
+                raise LabError(f"{out_dir} is not empty and is not a capture set; refusing to replace it — "
+                               "choose another output folder")
+            if not force:
+                raise LabError(f"{out_dir} already holds a capture set; it is never overwritten without --force "
+                               "(Replace in Blender)")
+    for p in (truth_path, LabTruth.mesh_path(truth_path)):
+        if p.is_dir():
+            raise LabError(f"the truth file {p} is a folder; give a file name")
+        if p.exists() and not force:
+            raise LabError(f"the truth file {p} already exists (the sealed truth of another lab session?); "
+                           "it is never overwritten without --force (Replace in Blender)")
+    _check_writable_folder(out_dir.parent, "capture set")
+    _check_writable_folder(truth_path.parent, "truth file")
+    return out_dir, truth_path
+
+
+def _check_depth(depth: np.ndarray, truth: LabTruth) -> None:
+    try:
+        validate_depth(depth, "lab depth")
+    except CaptureError:
+        seen = float(np.mean(np.isfinite(depth) & (depth > 0)))
+        raise LabError(f"the surface {truth.surface_source!r} covers only {seen:.0%} of the camera view (at most "
+                       "half may be empty): place it in front of the camera (rig frame: x right, y down, z forward, "
+                       "metres; the camera is at the origin)") from None
+
+
+class _NominalDevice(Device):
+    """The lab device as the pipeline sees it: it reports the nominal projector, not the true one."""
+
+    def __init__(self, device: LabDevice, nominal: Any) -> None:
+        self.device, self.projector = device, nominal
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        return self.device.project(frame)
+
+    def capture_off(self) -> np.ndarray:
+        return self.device.capture_off()
+
+
+def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
+            graycode: bool = True, validation: bool = True, fast_binary: bool = True,
+            progress: Progress | None = None) -> CaptureSet:
+    """Render a complete calibration capture set into ``out_dir`` and seal the truth at ``truth_path``.
+
+    Everything that can be checked is checked before rendering (outputs, the
+    surface in view); the capture set appears only once complete (an existing
+    one is replaced only with ``force``, and only then), and the truth file
+    with it. ``fast_binary`` renders checker and Gray-code frames with
+    :func:`binary_samples`. ``progress(done, total, message)`` reports each step.
+    """
+    out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force)
     nominal = replace(truth.rig.projector, camera_from_projector=truth.nominal_pose)
-    seq = calibration_sequence(truth.rig.projector, graycode=graycode, validation=validation, seed=truth.seed)
-    if progress is not None:
-        seq = progress(seq)
-    depth, depth_info = device.depth()
+    seq: list[PatternSpec] = calibration_sequence(truth.rig.projector, graycode=graycode, validation=validation,
+                                                  seed=truth.seed)
+    total = len(seq) + 2  # + depth + the scene
+    report = progress or (lambda done, n, message: None)
+    report(0, total, "depth image")
+    depth, depth_info = lab_depth(truth)
+    _check_depth(depth, truth)
+    binary = binary_samples(truth.samples) if fast_binary else truth.samples
+    notes = {"device": "virtual lab (Cycles)", "samples": truth.samples,
+             "samples_binary": {"kinds": list(BINARY_KINDS), "samples": binary},
+             "truth": "sealed, outside this folder"}
+    report(1, total, "building the lab scene")
+    created_dirs = sorted({p for d in (out_dir.parent, truth_path.parent) for p in (d, *d.parents) if not p.exists()},
+                          key=lambda p: len(p.parts), reverse=True)
+    writer = CaptureSetWriter(out_dir, truth.rig.camera, nominal, depth_info=depth_info, notes=notes, force=force)
+    tmp_truth: Path | None = None
+    try:
+        with LabDevice(truth) as device:
+            shown = _NominalDevice(device, nominal)
+            for i, spec in enumerate(seq):
+                report(i + 2, total, spec.name)
+                device.samples = binary if spec.kind in BINARY_KINDS else truth.samples
+                frame = None if spec.projector_off else spec.image
+                shot = shown.capture_off() if frame is None else shown.project(frame)
+                writer.add(spec.kind, shot, name=spec.name, frame=frame, **spec.params)
+        writer.add_depth(depth)
+        # Seal the truth under a temporary name first: the set and its truth appear together or not at all.
+        truth_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp_truth = Path(tempfile.mkdtemp(prefix=f".{truth_path.stem}.tmp-", dir=truth_path.parent))
+        truth.save(tmp_truth / truth_path.name)
+        writer.commit()
+    except BaseException:
+        writer.abort()
+        if tmp_truth is not None:
+            _remove_tree(tmp_truth)
+        for p in created_dirs:  # folders made on the way to the outputs, deepest first
+            try:
+                p.rmdir()
+            except OSError:
+                pass
+        raise
+    try:
+        for src, dst in ((tmp_truth / LabTruth.mesh_path(truth_path).name, LabTruth.mesh_path(truth_path)),
+                         (tmp_truth / truth_path.name, truth_path)):
+            os.replace(src, dst)
+    except OSError as exc:
+        raise LabError(f"the capture set is in {out_dir}, but its truth could not be moved to {truth_path}: "
+                       f"{exc.strerror or exc}; it is still in {tmp_truth}") from None
+    _remove_tree(tmp_truth)
+    report(total, total, "done")
+    return CaptureSet.load(out_dir, verify_images=False)
 
-    class _Nominal(Device):
-        """The lab device as the pipeline sees it: it reports the nominal projector, not the true one."""
 
-        projector = nominal
+def _remove_tree(path: Path) -> None:
+    shutil.rmtree(path, ignore_errors=True)
 
-        def project(self, frame: np.ndarray) -> np.ndarray:
-            return device.project(frame)
 
-        def capture_off(self) -> np.ndarray:
-            return device.capture_off()
+def describe_run(cs: CaptureSet, seconds: float) -> str:
+    """One line about a finished lab run (for the CLI and the operator)."""
+    n = len([e for e in cs.entries if e.kind != "depth"])
+    w, h = cs.camera.intrinsics.size
+    return f"{n} captures + depth at {w}×{h} in {seconds:.0f} s"
 
-    result = capture_sequence(_Nominal(), seq, out_dir, truth.rig.camera, force=force, depth=depth,
-                              depth_info=depth_info,
-                              notes={"device": "virtual lab (Cycles)", "samples": device.samples,
-                                     "truth": "sealed, outside this folder"})
-    truth.save(truth_path)
-    return result
+
+__all__ = ["LAB_SCENE_NAME", "LabDevice", "LabTruth", "binary_samples", "check_lab_outputs", "describe_run",
+           "lab_depth", "load_mesh_file", "make_truth", "rough_pose", "run_lab", "scaled_rig"]

@@ -1,0 +1,433 @@
+"""The virtual lab end to end: each effect's signature in rendered captures, seeds, the sealed truth,
+``procam lab`` on good and bad input, and the Run Virtual Lab operator on a user's scene.
+
+Renders are small (camera 160×120, projector 200×150, 8 spp) so the whole file runs in about a minute on 2 cores.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from procam.addon.capture.format import CaptureSet  # noqa: E402
+from procam.addon.capture.patterns import checkerboard  # noqa: E402
+from procam.addon.cli import main  # noqa: E402
+from procam.addon.errors import LabError, RenderError  # noqa: E402
+from procam.addon.lab.effects import distort_points, parse_effects  # noqa: E402
+from procam.addon.lab.lab import LAB_SCENE_NAME, LabDevice, LabTruth, lab_depth, make_truth, run_lab  # noqa: E402
+from procam.addon.rig import blender_rig  # noqa: E402
+
+pytestmark = pytest.mark.blender
+
+CAMERA, PROJECTOR, SAMPLES = (160, 120), (200, 150), 8
+FRAME_NAMES = ("black", "white", "grey", "red", "checker", "half")
+
+
+@pytest.fixture(scope="module")
+def base() -> LabTruth:
+    """A vedge lab (concave vertical corner) with no effects."""
+    return make_truth("vedge", seed=3, samples=SAMPLES, camera_size=CAMERA, projector_size=PROJECTOR)
+
+
+@pytest.fixture(scope="module")
+def frames(base) -> dict[str, np.ndarray]:
+    proj = base.rig.projector
+    w, h = proj.input_size
+
+    def place(img) -> np.ndarray:
+        return proj.frame_from_input(np.asarray(img, dtype=np.float32))
+
+    half = np.zeros((h, w, 3))
+    half[:, : int(0.35 * w)] = 1.0  # lights only the left face of the corner
+    return {"black": place(np.zeros((h, w, 3))), "white": place(np.ones((h, w, 3))),
+            "grey": place(np.full((h, w, 3), 0.5)), "red": place(np.tile([1.0, 0.0, 0.0], (h, w, 1))),
+            "checker": place(checkerboard((w, h), 15)), "half": place(half)}
+
+
+@pytest.fixture(scope="module")
+def shoot(base, frames):
+    """Captures of every test frame (same order, so the same per-shot seeds) for an effects spec; cached."""
+    cache: dict[str, dict[str, np.ndarray]] = {}
+
+    def run(spec: str) -> dict[str, np.ndarray]:
+        if spec not in cache:
+            with LabDevice(replace(base, effects=parse_effects(spec))) as device:
+                cache[spec] = {name: device.project(frames[name]) for name in FRAME_NAMES}
+        return cache[spec]
+
+    return run
+
+
+@pytest.fixture(scope="module")
+def lit(shoot) -> np.ndarray:
+    """Camera pixels the white frame lights (effects off)."""
+    return shoot("")["white"].mean(axis=2) > 0.05
+
+
+def _footprint_corners(mask: np.ndarray, n: int = 10) -> np.ndarray:
+    """Top-left, top-right, bottom-right, bottom-left corners of a lit quadrilateral (pixel centres)."""
+    v, u = np.nonzero(mask)
+    u, v = u + 0.5, v + 0.5
+    out = []
+    for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+        idx = np.argsort(-(su * u + sv * v))[:n]
+        out.append([u[idx].mean(), v[idx].mean()])
+    return np.array(out)
+
+
+def _same(a: np.ndarray, b: np.ndarray, tol: float = 1e-6) -> bool:
+    return float(np.abs(a - b).max()) <= tol
+
+
+# --------------------------------------------------------------------------- effects in the rendered captures
+
+
+def test_no_effect_gives_clean_captures(shoot, lit):
+    off = shoot("")
+    assert off["black"].max() == 0.0  # a dark room: nothing but the projector lights it
+    assert 0.2 < lit.mean() < 0.8
+    assert off["red"][..., 1:].max() == 0.0  # Lambertian + no crosstalk: red light stays red
+
+
+def test_response_moves_mid_greys_not_black_and_white(shoot, lit):
+    on, off = shoot("response=1"), shoot("")
+    assert _same(on["black"], off["black"]) and _same(on["white"], off["white"])
+    ratio = np.median(on["grey"][lit] / off["grey"][lit])
+    gamma = parse_effects("response=1")["response"]["gamma"]
+    assert ratio == pytest.approx(0.5 ** (gamma - 1.0), abs=0.03)  # out = in^γ on the emitted light
+
+
+def test_crosstalk_leaks_red_into_green_and_blue(shoot, lit):
+    on, off = shoot("crosstalk=1"), shoot("")
+    r, g, b = on["red"][lit].mean(axis=0)
+    assert g > 0.05 * r and b > 0.05 * r
+    assert off["red"][lit][:, 1:].max() == 0.0
+    assert _same(on["white"], off["white"], 1e-4)  # rows sum to 1: white stays white
+
+
+def test_black_level_lifts_black_everywhere(shoot, lit):
+    on, off = shoot("black_level=1"), shoot("")
+    assert off["black"].max() == 0.0
+    assert on["black"].min() > 0.02  # ambient light reaches every pixel
+    assert on["black"][lit].mean() > on["black"][~lit].mean() + 0.003  # plus the projector's leak where it shines
+
+
+def test_vignetting_darkens_the_footprint_corners_not_its_centre(shoot, lit):
+    on, off = shoot("vignetting=1"), shoot("")
+    ratio = np.where(lit, on["white"].mean(axis=2) / np.maximum(off["white"].mean(axis=2), 1e-6), np.nan)
+
+    def around(u: float, v: float) -> float:
+        return float(np.nanmean(ratio[int(v) - 3:int(v) + 3, int(u) - 3:int(u) + 3]))
+
+    cv, cu = np.argwhere(lit).mean(axis=0)
+    centre = around(cu + 0.5, cv + 0.5)
+    corners = [around(u, v) for u, v in _footprint_corners(lit)]
+    assert centre > 0.95
+    assert max(corners) < centre - 0.08
+    assert min(corners) < 0.8
+
+
+def test_defocus_widens_checker_edges(shoot, lit):
+    def mid_share(caps: dict[str, np.ndarray]) -> float:
+        q = caps["checker"].mean(axis=2)[lit] / np.maximum(caps["white"].mean(axis=2)[lit], 1e-6)
+        return float(np.mean((q > 0.2) & (q < 0.8)))  # pixels on a blurred edge, between black and white
+
+    sharp, blurred = mid_share(shoot("")), mid_share(shoot("defocus=1,defocus.sigma=8"))
+    assert blurred > 3 * sharp and blurred > 0.15
+
+
+def test_interreflection_lights_the_unlit_face_of_the_corner(shoot, lit):
+    on, off = shoot("interreflection=1"), shoot("")
+    cols = np.arange(CAMERA[0])[None, :]
+    unlit_face = lit & (off["half"].max(axis=2) == 0.0) & (cols > 0.62 * CAMERA[0])
+    assert unlit_face.sum() > 500
+    assert off["half"][unlit_face].max() == 0.0  # direct light only: the right face stays black
+    assert on["half"][unlit_face].mean() > 2e-3  # light bounced over from the lit left face
+    assert _same(on["black"], off["black"])
+    # strength 0.25: one bounce, half of the indirect light kept (direct + gain·indirect)
+    half_gain, full_gain = shoot("interreflection=0.25"), shoot("interreflection=0.25,interreflection.gain=1")
+    ratio = half_gain["half"][unlit_face].mean() / full_gain["half"][unlit_face].mean()
+    assert ratio == pytest.approx(parse_effects("interreflection=0.25")["interreflection"]["gain"], abs=0.1)
+    lit_face = off["half"].mean(axis=2) > 0.05
+    np.testing.assert_allclose(half_gain["half"][lit_face].mean(), off["half"][lit_face].mean(), rtol=0.05)
+
+
+def test_glossy_changes_the_image_not_as_a_gain(shoot, lit):
+    on, off = shoot("glossy=1"), shoot("")
+    ratio = on["white"].mean(axis=2)[lit] / np.maximum(off["white"].mean(axis=2)[lit], 1e-6)
+    assert np.abs(on["white"] - off["white"])[lit].mean() > 0.01
+    assert ratio.std() > 0.1  # view-dependent highlights, not a uniform scale of the diffuse image
+    assert _same(on["black"], off["black"])
+
+
+def test_camera_response_changes_white_balance(shoot, lit):
+    spec = "camera_response=1,camera_response.curve=0"  # white balance alone
+    on, off = shoot(spec), shoot("")
+    e = parse_effects(spec)["camera_response"]
+    ok = lit & (on["white"].max(axis=2) < 0.99)
+    gains = np.median(on["white"][ok] / np.maximum(off["white"][ok], 1e-6), axis=0)
+    np.testing.assert_allclose(gains, [e["gain_r"], 1.0, e["gain_b"]], atol=0.01)
+    with_curve = shoot("camera_response=1")
+    assert np.median(with_curve["grey"][lit] / off["grey"][lit]) > 1.2  # the tone curve lifts mid-greys
+
+
+def test_distortion_moves_features_radially(shoot, lit, base):
+    spec = "distortion=1,distortion.k1=-0.3,distortion.k2=0"
+    on = shoot(spec)
+    lit_on = on["white"].mean(axis=2) > 0.05
+    before, after = _footprint_corners(lit), _footprint_corners(lit_on)
+    k = base.rig.camera.intrinsics
+    predicted = distort_points(before, k, parse_effects(spec))
+    centre = np.array([k.cx, k.cy])
+    moved_in = np.linalg.norm(before - centre, axis=1) - np.linalg.norm(after - centre, axis=1)
+    assert np.all(moved_in > 1.5)  # barrel distortion pulls the corners towards the centre
+    np.testing.assert_allclose(after, predicted, atol=1.2)
+    assert lit_on.sum() < lit.sum()
+
+
+def test_noise_has_the_configured_std(shoot, lit):
+    on, off = shoot("noise=1"), shoot("")
+    e = parse_effects("noise=1")["noise"]
+    diff = (on["white"] - off["white"])[lit]
+    expected = np.sqrt(np.mean(e["gain"] * off["white"][lit] + e["sigma"] ** 2))
+    assert diff.std() == pytest.approx(expected, rel=0.15)
+    assert abs(diff.mean()) < 0.2 * expected
+
+
+def test_depth_noise_changes_depth_only(shoot, base):
+    spec = "depth_noise=1"
+    clean, _ = lab_depth(base)
+    noisy, info = lab_depth(replace(base, effects=parse_effects(spec)))
+    assert info.native_size[0] < CAMERA[0]  # sensed at low resolution, then upsampled
+    both = np.isfinite(clean) & np.isfinite(noisy)
+    d = (noisy - clean)[both]
+    assert np.median(d) == pytest.approx(parse_effects(spec)["depth_noise"]["bias"], abs=0.005)
+    assert d.std() > 0.01
+    assert all(_same(a, b, 0.0) for a, b in zip(shoot(spec).values(), shoot("").values()))
+
+
+# --------------------------------------------------------------------------- seeds, cleanup, truth
+
+
+def test_same_seed_same_captures_other_seed_other_noise(base, frames):
+    truth = replace(base, effects=parse_effects("realistic"))
+    shots = []
+    for seed in (None, None, 11):
+        with LabDevice(truth, seed=seed) as device:
+            shots.append([device.project(frames["grey"]), device.capture_off()])
+    assert all(np.array_equal(a, b) for a, b in zip(shots[0], shots[1]))
+    assert not np.array_equal(shots[0][0], shots[2][0])
+    # and the depth does not depend on how many frames were shot before it
+    np.testing.assert_array_equal(lab_depth(truth)[0], lab_depth(truth)[0])
+
+
+def test_device_renders_in_its_own_scene_and_cleans_up(base, frames):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    user = bpy.context.scene
+    bpy.ops.mesh.primitive_cube_add()
+    names = {c: sorted(b.name for b in getattr(bpy.data, c)) for c in ("scenes", "objects", "meshes", "materials",
+                                                                     "images", "lights", "cameras", "worlds")}
+    device = LabDevice(replace(base, effects=parse_effects("glossy=0.5")))
+    assert LAB_SCENE_NAME in bpy.data.scenes and bpy.context.scene == user
+    device.project(frames["white"])
+    device.close()
+    device.close()  # twice is harmless
+    assert {c: sorted(b.name for b in getattr(bpy.data, c)) for c in names} == names
+    with pytest.raises(LabError, match="closed"):
+        device.project(frames["white"])
+
+
+def test_truth_round_trip_reopens_the_same_lab(base, tmp_path, frames):
+    truth = replace(base, effects=parse_effects("realistic"))
+    run_lab(truth, tmp_path / "set", truth_path=tmp_path / "truth.json", graycode=False, validation=False)
+    files = {p.relative_to(tmp_path / "set").as_posix() for p in (tmp_path / "set").rglob("*")}
+    assert not any("truth" in f for f in files)
+    loaded = LabTruth.load(tmp_path / "truth.json")
+    assert loaded.effects == truth.effects and loaded.seed == truth.seed
+    np.testing.assert_array_equal(loaded.rig.projector.camera_from_projector, truth.rig.projector.camera_from_projector)
+    cs = CaptureSet.load(tmp_path / "set")
+    assert cs.projector.camera_from_projector.tolist() != truth.rig.projector.camera_from_projector.tolist()  # nominal
+    with LabDevice(loaded) as again:
+        surface_off, black, white = again.capture_off(), again.project(frames["black"]), again.project(frames["white"])
+    np.testing.assert_array_equal(white, cs.image("white"))  # shot 3 of the session, re-rendered identically
+    np.testing.assert_array_equal(surface_off, cs.image("surface"))
+
+
+@pytest.mark.parametrize("truth_rel", ["set/truth.json", "set/sub/truth.json", "set"])
+def test_run_lab_refuses_a_truth_inside_the_capture_set(base, tmp_path, truth_rel):
+    with pytest.raises(LabError, match="outside the capture set"):
+        run_lab(base, tmp_path / "set", truth_path=tmp_path / truth_rel)
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- procam lab
+
+
+def _tree(root: Path) -> dict[str, str]:
+    return {p.relative_to(root).as_posix(): hashlib.sha1(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+SMALL = ["--scale", "0.2", "--samples", "2", "--no-graycode"]
+
+
+@pytest.fixture(scope="module")
+def cli_set(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("cli")
+    assert main(["lab", "--surface", "plane", "--out", str(root / "set"), *SMALL]) == 0
+    return root
+
+
+def test_cli_writes_set_and_truth_and_reports_progress_on_stderr(cli_set, capsys):
+    cs = CaptureSet.load(cli_set / "set")
+    assert cs.camera.intrinsics.size == (128, 96)
+    assert {e.kind for e in cs.entries} >= {"surface", "black", "white", "checker", "validation", "depth"}
+    assert (cli_set / "set.truth.json").is_file() and (cli_set / "set.truth.surface.npz").is_file()
+    assert sorted(p.name for p in cli_set.iterdir()) == ["set", "set.truth.json", "set.truth.surface.npz"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--surface", "blob"], "unknown surface 'blob'"),
+    (["--effects", "blurr=0.5"], "unknown effect 'blurr'"),
+    (["--effects", "noise=2"], "strength of 'noise' must lie in [0, 1]"),
+    (["--effects", "noise.sigma=9"], "noise.sigma must lie in"),
+    (["--samples", "0"], "Cycles samples must be a whole number"),
+    (["--scale", "9"], "--scale must lie between"),
+])
+def test_cli_bad_input_fails_early_and_writes_nothing(tmp_path, capsys, args, message):
+    code = main(["lab", "--out", str(tmp_path / "out" / "set"), *SMALL, *args])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_refuses_an_unwritable_output_folder(tmp_path, capsys):
+    (tmp_path / "file").write_text("not a folder")
+    code = main(["lab", "--out", str(tmp_path / "file" / "set"), *SMALL])
+    assert code == 2 and "is a file, not a folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_cli_refuses_a_surface_out_of_view(tmp_path, capsys):
+    mesh = tmp_path / "behind.obj"
+    mesh.write_text("v -1 -1 -1.5\nv 1 -1 -1.5\nv 1 1 -1.5\nv -1 1 -1.5\nf 1 2 3\nf 1 3 4\n")
+    code = main(["lab", "--surface", str(mesh), "--out", str(tmp_path / "set"), *SMALL])
+    assert code == 2 and "covers only 0% of the camera view" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["behind.obj"]
+
+
+def test_cli_never_overwrites_without_force_and_replaces_only_when_complete(cli_set, tmp_path, capsys, monkeypatch):
+    import shutil
+
+    for name in ("set", "set.truth.json", "set.truth.surface.npz"):
+        src = cli_set / name
+        (shutil.copytree if src.is_dir() else shutil.copy2)(src, tmp_path / name)
+    before = {**_tree(tmp_path)}
+    out = ["--out", str(tmp_path / "set")]
+
+    assert main(["lab", *out, *SMALL]) == 2
+    assert "already holds a capture set" in capsys.readouterr().err
+    assert _tree(tmp_path) == before
+
+    assert main(["lab", *out, "--truth", str(tmp_path / "other.json"), *SMALL]) == 2  # the set still protects itself
+    assert _tree(tmp_path) == before
+
+    calls = {"n": 0}
+    project = LabDevice.project
+
+    def failing(self, frame):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise RenderError("the renderer died half-way")
+        return project(self, frame)
+
+    monkeypatch.setattr(LabDevice, "project", failing)
+    assert main(["lab", *out, *SMALL, "--force", "--seed", "5"]) == 2
+    assert "half-way" in capsys.readouterr().err
+    assert _tree(tmp_path) == before  # the old set and truth are intact, no half-written set
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["set", "set.truth.json", "set.truth.surface.npz"]
+
+    monkeypatch.setattr(LabDevice, "project", project)
+    assert main(["lab", *out, *SMALL, "--force", "--seed", "5"]) == 0
+    after = _tree(tmp_path)
+    assert after["set/capture.json"] != before["set/capture.json"]  # replaced (validation images follow the seed)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["set", "set.truth.json", "set.truth.surface.npz"]
+    assert LabTruth.load(tmp_path / "set.truth.json").seed == 5
+
+
+def test_cli_takes_a_user_mesh_file(tmp_path, capfd):
+    mesh = tmp_path / "wall.obj"
+    mesh.write_text("v -1.4 -1.1 1.5\nv 1.4 -1.1 1.5\nv 1.4 1.1 1.5\nv -1.4 1.1 1.5\n"
+                    "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    out = tmp_path / "set"
+    assert main(["lab", "--surface", str(mesh), "--out", str(out), *SMALL, "--effects", "noise=0.3"]) == 0
+    streams = capfd.readouterr()  # file-descriptor level: Blender's own prints would show here
+    assert "lab:" in streams.err and "lab:" not in streams.out and "Saved:" not in streams.out + streams.err
+    assert streams.out.startswith("capture set:")
+    cs = CaptureSet.load(out)
+    white = cs.image("white")
+    assert (white.mean(axis=2) > 0.1).mean() > 0.2  # the projector lights the user's wall
+    truth = LabTruth.load(tmp_path / "set.truth.json")
+    assert truth.surface_source == str(mesh.resolve()) and len(truth.surface.faces) == 2
+
+
+# --------------------------------------------------------------------------- the operator
+
+
+def _scene_state(scene) -> dict:
+    return {"objects": {o.name: (o.type, [list(r) for r in o.matrix_world], blender_rig.role(o))
+                        for o in scene.objects},
+            "data": {c: len(getattr(bpy.data, c)) for c in ("scenes", "objects", "meshes", "materials", "images",
+                                                             "lights", "cameras", "worlds")},
+            "render": (scene.render.engine, scene.render.resolution_x, scene.render.resolution_y, scene.camera.name),
+            "frame": blender_rig.projector_image(blender_rig.find_rig_objects(scene).projector).tobytes()}
+
+
+def test_operator_runs_the_lab_on_the_scene_and_leaves_it_alone(registered, tmp_path):
+    from procam.panels.captures import capture_set_status
+
+    bpy.ops.procam.create_rig(camera_width=64, camera_height=48, projector_width=80, projector_height=60,
+                              input_width=60, input_height=60, surface="vedge")
+    scene = bpy.context.scene
+    before = _scene_state(scene)
+    out = tmp_path / "set"
+    assert bpy.ops.procam.run_lab(out_dir=str(out), samples=2, graycode=False, effects="noise=0.5") == {"FINISHED"}
+    assert _scene_state(scene) == before  # the lab rendered in a scratch scene and removed it
+    assert LAB_SCENE_NAME not in bpy.data.scenes
+    cs = CaptureSet.load(out)
+    assert cs.camera.intrinsics.size == (64, 48) and cs.projector.intrinsics.size == (80, 60)
+    truth = LabTruth.load(tmp_path / "set.truth.json")
+    np.testing.assert_allclose(truth.rig.projector.camera_from_projector,
+                               blender_rig.read_rig(scene).projector.camera_from_projector, atol=1e-9)
+    assert "Blender object" in truth.surface_source
+    assert scene.procam_capture_dir == str(out)
+    icon, text = capture_set_status(scene.procam_capture_dir)
+    assert icon == "CHECKMARK" and text.startswith(f"{len(cs.entries) - 1} images + depth")
+
+    # a second run onto the same set is refused without Replace; the scene and the set stay as they are
+    files = _tree(out)
+    with pytest.raises(RuntimeError, match="already holds a capture set"):
+        bpy.ops.procam.run_lab(out_dir=str(out), samples=2, graycode=False)
+    assert _scene_state(scene) == before and _tree(out) == files
+
+
+def test_operator_reports_a_missing_surface(registered, tmp_path):
+    from procam.panels.captures import capture_set_status
+
+    bpy.ops.procam.create_rig(camera_width=64, camera_height=48, projector_width=80, projector_height=60)
+    with pytest.raises(RuntimeError, match="no ProCam Surface"):
+        bpy.ops.procam.run_lab(out_dir=str(tmp_path / "set"), samples=2, graycode=False)
+    assert list(tmp_path.iterdir()) == [] and bpy.context.scene.procam_capture_dir == ""
+    (tmp_path / "empty").mkdir()
+    icon, text = capture_set_status(str(tmp_path / "empty"))
+    assert icon == "ERROR" and "capture.json is missing" in text
+    assert bpy.ops.procam.run_lab(out_dir=str(tmp_path / "set"), surface="plane", samples=2, graycode=False,
+                                  use_scene_rig=False, scale=0.1) == {"FINISHED"}
+    assert CaptureSet.load(tmp_path / "set").camera.intrinsics.size == (64, 48)
