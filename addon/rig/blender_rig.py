@@ -179,7 +179,10 @@ def _image_from_array(name: str, rgb: np.ndarray, built: _Built | None = None,
 
 def add_image(name: str, rgb: np.ndarray) -> bpy.types.Image:
     """A packed float Non-Color Blender image holding an H×W×3 array (row 0 = top), to view in Blender."""
-    return _image_from_array(name, np.asarray(rgb, dtype=np.float32)[..., :3])
+    img = np.asarray(rgb, dtype=np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    return _image_from_array(name, img[..., :3])
 
 
 def _image_to_array(image: bpy.types.Image) -> np.ndarray:

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet
@@ -108,7 +109,8 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
     both = lit & (photo.mean(axis=2) > 1e-4)
     if both.sum() > 100:
         scale = np.nanmedian(albedo[both] / np.maximum(photo[both], 1e-6), axis=0)
-        fill = photo * scale
+        # The unlit photo is dark and noisy (ambient light only): smooth it before scaling it up.
+        fill = cv2.GaussianBlur(photo, (0, 0), 2.0) * scale
     else:
         fill = np.full_like(photo, np.nanmedian(albedo[lit]) if lit.any() else 0.5)
     return np.clip(np.where(lit[..., None], albedo, fill), 0.0, 1.0).astype(np.float32)
