@@ -16,6 +16,9 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from .errors import ProCamError
 
@@ -95,6 +98,19 @@ def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "r
         folder.abort()
         raise
     folder.commit()
+
+
+def jsonable(value: Any) -> Any:
+    """Plain JSON types (numpy scalars/arrays become numbers/lists) so manifests are portable."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 def progress(message: str) -> None:

@@ -24,8 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from procam.addon.capture.format import CaptureSet
 from procam.addon.lab.lab import LabTruth, make_truth, run_lab
 from procam.addon.stages.pose import PAPER_EPS, Phase, estimate_pose, pose_error

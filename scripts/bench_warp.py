@@ -23,7 +23,6 @@ the neighbours than about stage B).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
 import time
@@ -33,17 +32,9 @@ import numpy as np
 
 def perturbed(pose: np.ndarray, offset_m: float, angle_deg: float, seed: int) -> np.ndarray:
     """``pose`` moved by ``offset_m`` and turned by ``angle_deg`` about a random axis (seeded)."""
-    rng = np.random.default_rng(seed)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    a = math.radians(angle_deg)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    rot = np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
-    shift = rng.normal(size=3)
-    out = pose.copy()
-    out[:3, :3] = rot @ pose[:3, :3]
-    out[:3, 3] += offset_m * shift / np.linalg.norm(shift)
-    return out
+    from procam.addon.lab.lab import rough_pose
+
+    return rough_pose(pose, np.random.default_rng(seed), offset_m, angle_deg)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
-from ..outputs import AtomicFolder
+from ..outputs import AtomicFolder, jsonable
 from ..rig.model import Camera, Intrinsics, Projector
 
 FORMAT = "procam-capture"
@@ -117,24 +117,13 @@ class Entry:
         if self.pattern:
             d["pattern"] = self.pattern
         if self.params:
-            d["params"] = _jsonable(self.params)
+            d["params"] = jsonable(self.params)
         return d
 
 
 _MISSING = object()
 
 
-def _jsonable(value: Any) -> Any:
-    """Plain JSON types (numpy scalars/arrays become numbers/lists) so the manifest is portable."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def _check_params(kind: str, params: dict[str, Any], where: str) -> None:
@@ -404,7 +393,7 @@ class CaptureSet:
                 "projector_pose_known": self.projector_pose_known,
                 "depth": self.depth_info.to_dict() if self.depth_info else None,
                 "target_area": list(self.target_area) if self.target_area else None,
-                "notes": _jsonable(self.notes),
+                "notes": jsonable(self.notes),
                 "images": [e.to_dict() for e in self.entries]}
 
     @staticmethod
@@ -478,7 +467,7 @@ class CaptureSetWriter:
             if kind == "depth":
                 raise CaptureError("use add_depth() for depth images")
             raise CaptureError(f"unknown kind {kind!r}; known kinds: {', '.join(KINDS)}")
-        params = _jsonable(params)
+        params = jsonable(params)
         _check_params(kind, params, f"new {kind} image")
         img = np.asarray(image, dtype=np.float32)
         label = name or default_name(kind, params)
@@ -538,7 +527,7 @@ class CaptureSetWriter:
         (self._tmp / "depth").mkdir(exist_ok=True)
         rel = f"depth/{name}{suffix}"
         write_image(self._tmp / rel, np.nan_to_num(d, nan=0.0))
-        entry = Entry(rel, "depth", name, dict(_jsonable(params)))
+        entry = Entry(rel, "depth", name, dict(jsonable(params)))
         self.entries.append(entry)
         self._names.add(name)
         return entry
