@@ -45,3 +45,9 @@ class NotImplementedStageError(ProCamError):
 
 class LabError(ProCamError):
     """A bad virtual-lab request: unknown surface or effect, a value out of range."""
+
+
+class Cancelled(ProCamError):
+    """The user cancelled a running stage; nothing was written."""
+
+    exit_code = 130

@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from ..capture.devices import Device
-from ..errors import CalibrationError, CaptureError, ProCamError
+from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
 from .display_area import DisplayArea, fit_target
 
 Progress = Callable[[str, float], None]
@@ -78,11 +78,6 @@ MODES = ("closed-loop", "open-loop", "none")
 class CompensationError(ProCamError):
     """Stage C cannot proceed or diverged."""
 
-
-class Cancelled(ProCamError):
-    """The user cancelled a long run."""
-
-    exit_code = 130
 
 
 @dataclass

@@ -105,7 +105,7 @@ import numpy as np
 
 from ..capture.format import CaptureSet
 from ..capture.patterns import decode_gray_code_set
-from ..errors import CalibrationError, CaptureError, ProCamError
+from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
 from ..outputs import jsonable
 from ..render.pose import apply_pose_delta
 from ..render.scene import border_smoothing
@@ -134,11 +134,6 @@ REFRESH = 25
 
 Progress = Callable[[str, float], None]
 
-
-class Cancelled(ProCamError):
-    """The user cancelled a running stage; nothing was written."""
-
-    exit_code = 130
 
 
 @dataclass
