@@ -61,6 +61,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
 from .display_area import DisplayArea, fit_target
+from .metrics import psnr
 
 Progress = Callable[[str, float], None]
 
@@ -123,10 +124,7 @@ class CompensationResult:
 
 def area_psnr(image: np.ndarray, target: np.ndarray, area: DisplayArea) -> float:
     """PSNR (dB, peak 1) of ``image`` against ``target`` inside the area (both camera size)."""
-    a = area.crop(np.clip(image, 0, 1)).astype(np.float64)
-    b = area.crop(np.clip(target, 0, 1)).astype(np.float64)
-    mse = float(np.mean((a - b) ** 2))
-    return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
+    return psnr(area.crop(image), area.crop(target))
 
 
 def _split_iterations(total: int) -> tuple[int, int]:

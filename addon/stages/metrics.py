@@ -23,7 +23,7 @@ def _pair(image: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def psnr(image: np.ndarray, target: np.ndarray) -> float:
     """Peak signal-to-noise ratio in dB for images in [0, 1] (peak 1)."""
     a, b = _pair(image, target)
-    mse = float(np.mean((a - b) ** 2))
+    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
     return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
 
 
