@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from procam.addon.errors import CalibrationError, ImageError
+from procam.addon.errors import CalibrationError, Cancelled, ImageError, ProCamError
 from procam.addon.stages.warp import (Warp, _DrWarp, _pixel_basis, bending_matrix, grid_image, pixel_centres,
                                       sample_bilinear, solve_inverse, tps_basis)
 
@@ -304,5 +304,6 @@ def test_missing_checkerboard_and_size_mismatch_are_refused(warp_set, tmp_path):
 
 def test_cancel_stops_stage_b(warp_set, tmp_path):
     folder, surface, rig = _setup(warp_set, tmp_path)
-    with pytest.raises(CalibrationError, match="cancelled"):
+    with pytest.raises(Cancelled, match="cancelled") as err:
         _fit(folder, surface, rig, cancel=lambda: True)
+    assert isinstance(err.value, ProCamError)

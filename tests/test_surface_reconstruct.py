@@ -77,3 +77,34 @@ def test_lower_resolution_depth_of_same_aspect_is_accepted(scene):
     mesh, _ = reconstruct_surface(depth[::2, ::2], cam, step=1)
     t = ray_intersect(surface, np.zeros(3), mesh.vertices / mesh.vertices[:, 2:3])
     assert np.nanmean(np.abs(mesh.vertices[:, 2] - t)[np.isfinite(t)]) < 0.01
+
+
+def test_constant_depth_bias_survives_smoothing_and_a_known_offset_removes_it(scene):
+    surface, cam, depth = scene
+    rng = np.random.default_rng(2)
+    biased = depth + 0.012 + rng.normal(0, 0.004, depth.shape)
+
+    def signed_errors(mesh):
+        along = mesh.vertices / mesh.vertices[:, 2:3]
+        t = ray_intersect(surface, np.zeros(3), along)
+        ok = np.isfinite(t)
+        assert ok.mean() > 0.9
+        return mesh.vertices[ok, 2] - t[ok]
+
+    mesh, report = reconstruct_surface(biased, cam, step=2)
+    err = signed_errors(mesh)
+    # Smoothing averages the noise away but keeps the offset: every part of the surface is ~12 mm too far.
+    assert abs(err.mean() - 0.012) < 0.0015
+    assert np.percentile(err, 5) > 0.006
+    assert report.depth_offset == 0.0
+    mesh, report = reconstruct_surface(biased, cam, step=2, depth_offset=0.012)
+    err = signed_errors(mesh)
+    assert abs(err.mean()) < 0.0015 and np.abs(err).mean() < 0.003
+    assert report.depth_offset == 0.012 and report.to_dict()["depth_offset"] == 0.012
+
+
+@pytest.mark.parametrize("offset", [float("nan"), 0.8, -1.0, True, "0.01"])
+def test_unusable_depth_offset_is_a_clear_error(scene, offset):
+    _, cam, depth = scene
+    with pytest.raises(SurfaceError, match="depth offset"):
+        reconstruct_surface(depth, cam, depth_offset=offset)

@@ -112,7 +112,7 @@ import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet, Entry
-from ..errors import CalibrationError, ImageError, ProCamError
+from ..errors import CalibrationError, Cancelled, ImageError, ProCamError
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 
@@ -727,8 +727,8 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
     bending weight stops the warp short — 0.5 px instead of 0.13 px — while
     none at all lets M wiggle: W∘M 0.07 px instead of 0.002 px.)
     ``progress(message, fraction)`` is
-    called as it goes; ``cancel()`` returning True stops it with a
-    :class:`CalibrationError`. Bad captures raise :class:`CalibrationError`
+    called as it goes; ``cancel()`` returning True stops it with
+    :class:`Cancelled`. Bad captures raise :class:`CalibrationError`
     naming the file at fault.
     """
     from ..render import backend
@@ -739,7 +739,7 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
 
     def check_cancel() -> None:
         if cancel is not None and cancel():
-            raise CalibrationError("stage B (warp) was cancelled; no warp was stored")
+            raise Cancelled("stage B (warp) was cancelled; no warp was stored")
 
     if not isinstance(iterations, int) or iterations < 0:
         raise CalibrationError(f"stage B iterations must be a whole number ≥ 0, got {iterations!r}")

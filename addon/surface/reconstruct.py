@@ -10,10 +10,31 @@ median) are dropped and small holes filled from their neighbours.
 
 The texture is the camera's own image: each vertex's UV is where the camera
 sees it, so the albedo image is pixel-aligned with the captures.
+
+What no reconstruction removes is a constant depth *bias* (a time-of-flight
+sensor's offset; the lab's ``depth_noise.bias``, 1 cm at the ``realistic``
+strength): smoothing averages noise, not an offset. Nor can the rest of the
+calibration see it. Depth + b is nearly the whole scene scaled by
+(1 + b/z̄) about the camera — 0.6 % for 1 cm at 1.7 m — which no camera or
+projector image can tell apart (the pose scales with it). What is left,
+b·(z − z̄)/z̄ along each ray (< 1 mm over this rig's 25 cm depth range), is
+below what Gray code + PnP can resolve (``scripts/bench_surface.py
+--bias-probe``: pose and b fitted together on ideal Gray-code
+correspondences find a true 1 cm as 0.9–1.2 cm from otherwise exact depth,
+but as −0.1…+0.7 cm once the depth is noisy and 1.9–3.8 cm under the lab's
+lens distortion; on the plane not at all). So ``depth_offset`` takes a
+device offset measured once (e.g. the phone's depth of a wall at a
+tape-measured distance), and is 0 otherwise. Measured with
+``scripts/bench_surface.py`` (full resolution, lab ``realistic`` depth, all
+four built-in surfaces, 3 seeds): mean distance to the true surface over the
+lit area 0.97–1.03 cm, of which the bias is 1.00 cm; without the bias, or
+up to that unobservable scale, 0.23–0.27 cm (noise; holes and the 256×192
+upsampling add < 0.01 cm).
 """
 
 from __future__ import annotations
 
+import numbers
 import time
 from dataclasses import dataclass
 
@@ -23,6 +44,9 @@ import numpy as np
 from ..errors import SurfaceError
 from ..rig.model import Intrinsics
 from .mesh import SurfaceMesh
+
+#: Largest sensor depth bias (metres) accepted as ``depth_offset``.
+MAX_DEPTH_OFFSET = 0.5
 
 
 def import_pymeshlab():
@@ -43,6 +67,7 @@ def import_pymeshlab():
 
 @dataclass(frozen=True)
 class ReconstructionReport:
+    depth_offset: float  # metres subtracted from every depth (the sensor's known bias)
     valid_fraction: float  # share of depth pixels with a usable depth before hole filling
     outliers: int  # depth pixels dropped as outliers
     vertices: int
@@ -87,18 +112,28 @@ def _fill_holes(depth: np.ndarray, valid: np.ndarray, iterations: int) -> tuple[
 def reconstruct_surface(depth: np.ndarray, camera: Intrinsics, rgb: np.ndarray | None = None, *,
                         step: int = 4, near: float = 0.1, far: float = 20.0, min_valid: float = 0.5,
                         fill_iterations: int = 4, smoothing_steps: int = 20, edge_jump: float = 0.04,
-                        name: str = "reconstructed") -> tuple[SurfaceMesh, ReconstructionReport]:
+                        depth_offset: float = 0.0, name: str = "reconstructed"
+                        ) -> tuple[SurfaceMesh, ReconstructionReport]:
     """Mesh + texture from a depth image (metres, camera-aligned) and the RGB image of the unlit surface.
 
     ``step`` is the grid spacing in depth pixels; ``edge_jump`` the relative
     depth difference across a triangle beyond which it is treated as an
-    occlusion edge and not filled. Raises :class:`SurfaceError` when the depth
-    map cannot give a surface.
+    occlusion edge and not filled. ``depth_offset`` (metres, + = the sensor
+    reads too far) is the sensor's constant bias, measured once per device; it
+    is subtracted from every depth (see the module doc for why nothing here
+    can estimate it). Raises :class:`SurfaceError` when the depth map cannot
+    give a surface.
     """
     t0 = time.perf_counter()
+    if isinstance(depth_offset, bool) or not isinstance(depth_offset, numbers.Real) \
+            or not abs(depth_offset) <= MAX_DEPTH_OFFSET:
+        raise SurfaceError(f"the depth offset must be a number of metres within ±{MAX_DEPTH_OFFSET}, got "
+                           f"{depth_offset!r}; give the sensor's measured bias (+ = it reads too far) — a larger "
+                           "error is a wrong unit or scale, not an offset")
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim == 3:
         depth = depth[..., 0]
+    depth = depth - float(depth_offset)
     h, w = depth.shape
     if (w, h) != camera.size:
         if abs(w / h - camera.width / camera.height) > 1e-3:
@@ -166,5 +201,6 @@ def reconstruct_surface(depth: np.ndarray, camera: Intrinsics, rgb: np.ndarray |
     mesh = SurfaceMesh(v, f, np.clip(uv, 0, 1), albedo, name=name)
     if np.mean(mesh.face_normals()[:, 2]) > 0:  # keep normals facing the camera
         mesh = SurfaceMesh(v, f[:, ::-1].copy(), mesh.uvs, mesh.albedo, name=name)
-    report = ReconstructionReport(frac, int(outlier.sum()), len(v), len(f), time.perf_counter() - t0)
+    report = ReconstructionReport(float(depth_offset), frac, int(outlier.sum()), len(v), len(f),
+                                  time.perf_counter() - t0)
     return mesh, report
