@@ -1,4 +1,4 @@
-"""Blender side of the extension: registers operators, panels and the ``procam`` command-line command.
+"""Blender side of the extension: registers operators, panels, scene properties and the ``procam`` CLI command.
 
 Imported only from ``register()``/``unregister()`` in ``__init__.py``, so that
 importing the package outside Blender never imports ``bpy``.
@@ -10,18 +10,40 @@ from collections.abc import Sequence
 
 import bpy
 
+from .operators.calibrate import PROCAM_OT_calibrate, PROCAM_OT_load_calibration
+from .operators.cancel_job import PROCAM_OT_cancel_job
+from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, PROCAM_OT_preview_compensated,
+                                   PROCAM_OT_remove_target)
 from .operators.create_rig import PROCAM_OT_create_rig
+from .operators.diagnose import PROCAM_OT_diagnose
+from .operators.export import PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames
 from .operators.run_lab import PROCAM_OT_run_lab
 from .operators.set_projector_image import PROCAM_OT_set_projector_image
 from .operators.set_surface import PROCAM_OT_set_surface
-from .panels.captures import PROCAM_PT_captures, scene_properties
+from .operators.show_image import PROCAM_OT_show_image
+from .panels import captures, properties
+from .panels.calibrate import PROCAM_PT_calibrate
+from .panels.captures import PROCAM_PT_captures
+from .panels.compensate import PROCAM_PT_compensate, PROCAM_UL_targets
+from .panels.diagnose import PROCAM_PT_diagnose
+from .panels.export import PROCAM_PT_export
 from .panels.rig import PROCAM_PT_rig
 
-CLASSES = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
-           PROCAM_PT_rig, PROCAM_PT_captures)
+OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
+             PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_add_targets, PROCAM_OT_remove_target,
+             PROCAM_OT_compensate, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image,
+             PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job)
+#: Sidebar panels in workflow order.
+PANELS = (PROCAM_PT_rig, PROCAM_PT_captures, PROCAM_PT_calibrate, PROCAM_PT_compensate, PROCAM_PT_diagnose,
+          PROCAM_PT_export)
+CLASSES = (properties.PROCAM_PG_target, PROCAM_UL_targets, *OPERATORS, *PANELS)
 CLI_COMMAND = "procam"
 
 _cli_handle = None
+
+
+def scene_properties() -> dict[str, object]:
+    return {**captures.scene_properties(), **properties.scene_properties()}
 
 
 def run_cli(argv: Sequence[str]) -> int:
@@ -46,6 +68,9 @@ def register() -> None:
 
 def unregister() -> None:
     global _cli_handle
+    from .addon import jobs
+
+    jobs.BOARD.clear()  # a worker must not outlive its operators
     if _cli_handle is not None:
         bpy.utils.unregister_cli_command(_cli_handle)
         _cli_handle = None

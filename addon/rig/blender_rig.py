@@ -682,3 +682,111 @@ def rig_summary(scene: bpy.types.Scene) -> dict[str, str]:
     if objs.surface is not None:
         out["surface"] = f"{objs.surface.name}: {len(objs.surface.data.polygons)} faces"
     return out
+
+
+# --------------------------------------------------------------------------- calibration and result images
+
+CALIBRATED_SURFACE_NAME = "ProCam Calibrated Surface"
+
+
+def _same_model(obj: bpy.types.Object, props: dict[str, Any]) -> bool:
+    """True when a ProCam object's stored intrinsics (and input placement) equal ``props``."""
+    mine = _props(obj)
+    keys = [k for k in props if k not in ("pose", "role", "intensity")]
+    try:
+        return all(np.allclose(np.asarray(mine[k], dtype=float), np.asarray(props[k], dtype=float), atol=1e-9)
+                   for k in keys)
+    except (KeyError, TypeError, ValueError):
+        return False
+
+
+def apply_calibration(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh, *, source: str = "") -> RigObjects:
+    """Bring a calibration into the scene: the projector moves to the estimated pose, the surface appears textured.
+
+    A camera and projector whose stored models equal the calibration's are
+    kept (the projector is only moved, its image stays); others are replaced.
+    The reconstructed surface becomes the ProCam Surface; a surface from an
+    earlier calibration is removed, the user's own surface is unmarked and
+    hidden (so a render shows only the calibrated one) but kept.
+    """
+    objs = find_rig_objects(scene)
+    keep_cam = objs.camera is not None and _same_model(objs.camera, _camera_props(rig.camera.intrinsics, np.eye(4)))
+    keep_proj = objs.projector is not None and _same_model(objs.projector, _projector_props(rig.projector))
+    previous = [o for o in scene.objects if role(o) == "surface" or "calibration" in _props(o)]
+    mesh = SurfaceMesh(surface.vertices, surface.faces, surface.uvs, surface.albedo, name=CALIBRATED_SURFACE_NAME)
+    new = create_rig_objects(scene, camera=None if keep_cam else rig.camera.intrinsics,
+                             projector=None if keep_proj else rig.projector, surface=mesh)
+    # Nothing below can fail on valid objects: move, rename, tag, tidy.
+    if keep_proj:
+        proj = new.projector
+        proj.matrix_world = _matrix(frames.blender_matrix_world(_rig_to_world(scene) @ rig.projector.camera_from_projector))
+        data = _props(proj)
+        data["pose"] = [float(v) for v in rig.projector.camera_from_projector.ravel()]
+        data["intensity"] = float(rig.projector.intensity)
+        proj[PROP] = data
+        proj.data.energy = ENERGY_PER_INTENSITY * rig.projector.intensity
+    new.surface.name = CALIBRATED_SURFACE_NAME
+    new.surface[PROP] = {"role": "surface", "calibration": str(source)}
+    for old in previous:
+        if old == new.surface:
+            continue
+        if "calibration" in _props(old):
+            _remove_object_tree(old)
+        else:
+            old.hide_viewport = old.hide_render = True
+    return find_rig_objects(scene)
+
+
+def set_image(name: str, rgb: np.ndarray) -> bpy.types.Image:
+    """A packed float Non-Color image called ``name`` holding ``rgb``, reusing an image of that name and size."""
+    img = np.asarray(rgb, dtype=np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    existing = bpy.data.images.get(name)
+    image = _image_from_array(name, img[..., :3], image=existing)
+    if existing is not None and existing is not image and existing.users == 0:
+        bpy.data.images.remove(existing)
+        image.name = name
+    return image
+
+
+def load_image_file(path: str | Path, name: str | None = None) -> bpy.types.Image:
+    """A Blender image of a file on disk (not packed), read as data (Non-Color); reloaded if already loaded."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"image file not found: {path}")
+    try:
+        image = bpy.data.images.load(str(path), check_existing=True)
+    except RuntimeError as exc:
+        raise ImageError(f"Blender cannot read {path}: {exc}") from None
+    image.reload()
+    image.colorspace_settings.name = "Non-Color"  # our PNGs hold linear data (see imageio)
+    if name:
+        image.name = name
+    return image
+
+
+def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMesh, images: dict[str, np.ndarray],
+                                  *, force: bool = False) -> Path:
+    """``blender_file.save_calibration_blend`` to a temporary name renamed into place; never overwrites unless ``force``."""
+    import os
+    import tempfile
+
+    from ..outputs import OutputError
+    from .blender_file import save_calibration_blend
+
+    path = Path(path)
+    if path.suffix.lower() != ".blend":
+        raise OutputError(f"{path.name} is not a .blend file name; give a path ending in .blend")
+    if path.exists() and not force:
+        raise OutputError(f"{path} exists; it is only replaced with Replace (force) on")
+    if not path.parent.is_dir():
+        raise OutputError(f"cannot write {path}: folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".blend", dir=path.parent)
+    os.close(fd)
+    try:
+        save_calibration_blend(tmp, rig, surface, images)
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    return path

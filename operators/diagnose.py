@@ -1,0 +1,43 @@
+"""ProCam ▸ Diagnose: the sim-to-real diagnosis of the calibration as a background job (needs ``addon.gap``)."""
+
+import bpy
+
+from ..addon import jobs
+from ..addon.workflow import CALIBRATION_MANIFEST, Summary, diagnosis_available, run_diagnosis
+from . import paths
+from .job_operator import JobOperator, job_running_message
+
+
+class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
+    """Explain where and why the simulation still differs from the captures (ranked effects, regions, maps);
+    runs in the background, Esc cancels"""
+
+    bl_idname = "procam.diagnose"
+    bl_label = "Diagnose"
+    bl_options = {"REGISTER", "UNDO"}
+    step = "diagnose"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        scene = context.scene
+        why = job_running_message()
+        if why is None:
+            ok, reason = diagnosis_available()
+            why = None if ok else f"diagnosis not available: {reason}"
+        if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+            why = "no calibration: run Calibrate or choose a calibration folder"
+        if why is None and not scene.procam_diagnosis_dir:
+            why = "choose the diagnosis folder to write"
+        if why is not None:
+            cls.poll_message_set(why)
+        return why is None
+
+    def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
+        scene = context.scene
+        cal = paths.resolve(scene.procam_calibration_dir, "calibration folder")
+        out = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder")
+        return jobs.Job("diagnosis", run_diagnosis, cal, out, force=scene.procam_replace_outputs)
+
+    def apply(self, context: bpy.types.Context, result: object) -> str:
+        summary: Summary = result
+        return f"Diagnosis: {summary.headline}"

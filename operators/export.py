@@ -1,0 +1,80 @@
+"""ProCam ▸ Export: save the calibration as a .blend, or the compensated frames as a numbered 16-bit PNG sequence."""
+
+import bpy
+from bpy.props import BoolProperty, StringProperty
+
+from ..addon.errors import ProCamError
+from ..addon.rig import blender_rig
+from ..addon.workflow import CALIBRATION_MANIFEST, COMPENSATION_MANIFEST, export_frames, load_calibration_view
+from . import paths
+
+
+class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
+    """Save the calibration (rig, textured surface, diagnostic images) as a .blend file; the open file is untouched"""
+
+    bl_idname = "procam.export_calibration_blend"
+    bl_label = "Save Calibration .blend"
+    bl_options = {"REGISTER"}  # writes a file, changes no data in this one
+
+    filepath: StringProperty(name="File", subtype="FILE_PATH")
+    filter_blender: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
+    force: BoolProperty(name="Replace", description="Replace an existing file")
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+            cls.poll_message_set("no calibration folder: run Calibrate or choose one")
+            return False
+        return True
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        if not self.filepath:
+            self.filepath = str(paths.existing(context.scene.procam_calibration_dir, CALIBRATION_MANIFEST)
+                                / "scene.blend")
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        try:
+            view = load_calibration_view(paths.resolve(context.scene.procam_calibration_dir, "calibration folder"))
+            out = blender_rig.save_calibration_blend_atomic(paths.resolve(self.filepath, ".blend file"),
+                                                            view.calibration.rig, view.calibration.surface,
+                                                            view.images, force=self.force)
+        except ProCamError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Saved the calibration as {out}")
+        return {"FINISHED"}
+
+
+class PROCAM_OT_export_frames(bpy.types.Operator):
+    """Write the compensated projector frames as a numbered 16-bit PNG sequence (frame_0001.png …) for a media server"""
+
+    bl_idname = "procam.export_frames"
+    bl_label = "Export Projector Frames"
+    bl_options = {"REGISTER"}  # writes files, changes no data
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH")
+    filter_folder: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
+    force: BoolProperty(name="Replace", description="Replace an existing frame sequence")
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        if paths.existing(context.scene.procam_compensation_dir, COMPENSATION_MANIFEST) is None:
+            cls.poll_message_set("no compensation results: run Compensate or choose a results folder")
+            return False
+        return True
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        try:
+            out = export_frames(paths.resolve(context.scene.procam_compensation_dir, "results folder"),
+                                paths.resolve(self.directory, "frame folder"), force=self.force)
+        except ProCamError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Projector frames written to {out}")
+        return {"FINISHED"}

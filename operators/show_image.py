@@ -1,0 +1,41 @@
+"""ProCam ▸ Show Image: open a result image (diagnostic, residual map, compensated input) as a Blender image."""
+
+from pathlib import Path
+
+import bpy
+from bpy.props import StringProperty
+
+from ..addon.errors import ProCamError
+from ..addon.rig import blender_rig
+
+
+class PROCAM_OT_show_image(bpy.types.Operator):
+    """Load the image file as a Blender image and show it in the open Image Editors"""
+
+    bl_idname = "procam.show_image"
+    bl_label = "Show Image"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(name="Image", subtype="FILE_PATH")
+    name: StringProperty(name="Name", description="Name of the Blender image (default: ProCam + file name)")
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.scene is not None
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        path = Path(bpy.path.abspath(self.filepath))
+        try:
+            image = blender_rig.load_image_file(path, self.name or f"ProCam {path.stem}")
+        except ProCamError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        shown = 0
+        screen = context.screen
+        for area in (screen.areas if screen is not None else ()):
+            if area.type == "IMAGE_EDITOR":
+                area.spaces.active.image = image
+                shown += 1
+        where = f"shown in {shown} Image Editor(s)" if shown else "open an Image Editor to view it"
+        self.report({"INFO"}, f"Image {image.name!r} ({image.size[0]}×{image.size[1]}): {where}")
+        return {"FINISHED"}

@@ -1,0 +1,36 @@
+"""View3D ▸ Sidebar ▸ ProCam ▸ Calibrate: the calibration folder, its state and key figures, and its images."""
+
+import bpy
+
+from ..addon.workflow import calibration_summary
+from .step_state import draw_state
+
+
+class PROCAM_PT_calibrate(bpy.types.Panel):
+    bl_idname = "PROCAM_PT_calibrate"
+    bl_label = "Calibrate"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "ProCam"
+    bl_order = 2
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        scene = context.scene
+        layout.prop(scene, "procam_calibration_dir", text="")
+        row = layout.row()
+        row.prop(scene, "procam_calibration_init", text="Start")
+        summary = calibration_summary(bpy.path.abspath(scene.procam_calibration_dir))
+        done = draw_state(layout, "calibrate", summary)
+        col = layout.column(align=True)
+        col.operator("procam.calibrate", icon="PLAY")
+        col.operator("procam.load_calibration", icon="IMPORT")
+        col.prop(scene, "procam_replace_outputs")
+        if done and summary.data.get("diagnostics"):
+            sub = layout.column(align=True)
+            sub.label(text="Diagnostic images:")
+            root = bpy.path.abspath(scene.procam_calibration_dir)
+            for name in summary.data["diagnostics"]:
+                op = sub.operator("procam.show_image", text=name.removesuffix(".png"), icon="IMAGE_DATA")
+                op.filepath = f"{root.rstrip('/')}/diagnostics/{name}"
+                op.name = f"ProCam Calibration {name.removesuffix('.png')}"

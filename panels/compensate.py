@@ -1,0 +1,56 @@
+"""View3D ▸ Sidebar ▸ ProCam ▸ Compensate: targets, open/closed loop, state, results and Preview on Projector."""
+
+from pathlib import Path
+
+import bpy
+
+from ..addon.workflow import compensation_summary
+from .step_state import draw_state
+
+
+class PROCAM_UL_targets(bpy.types.UIList):
+    """The target images, one per row (file name; the full path in the tooltip of the property)."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        layout.label(text=Path(item.filepath).name or "(no file)", icon="IMAGE_DATA")
+
+
+class PROCAM_PT_compensate(bpy.types.Panel):
+    bl_idname = "PROCAM_PT_compensate"
+    bl_label = "Compensate"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "ProCam"
+    bl_order = 3
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        scene = context.scene
+        layout.label(text="Targets:")
+        row = layout.row()
+        row.template_list("PROCAM_UL_targets", "", scene, "procam_targets", scene, "procam_target_index", rows=3)
+        col = row.column(align=True)
+        col.operator("procam.add_targets", text="", icon="ADD")
+        col.operator("procam.remove_target", text="", icon="REMOVE")
+        layout.prop(scene, "procam_target_folder")
+        layout.prop(scene, "procam_compensation_mode", expand=True)
+        if scene.procam_compensation_mode == "CLOSED":
+            layout.prop(scene, "procam_device")
+        layout.prop(scene, "procam_iterations")
+        layout.prop(scene, "procam_compensation_dir")
+        summary = compensation_summary(bpy.path.abspath(scene.procam_compensation_dir))
+        done = draw_state(layout, "compensate", summary)
+        layout.operator("procam.compensate", icon="PLAY")
+        if not done:
+            return
+        root = bpy.path.abspath(scene.procam_compensation_dir).rstrip("/")
+        col = layout.column(align=True)
+        for t in summary.data.get("targets", []):
+            row = col.row(align=True)
+            row.label(text=t["name"])
+            op = row.operator("procam.show_image", text="", icon="IMAGE_DATA")
+            op.filepath, op.name = f"{root}/{t['input']}", f"ProCam {t['name']} input"
+            op = row.operator("procam.show_image", text="", icon="CAMERA_DATA")
+            op.filepath, op.name = f"{root}/{t['simulated']}", f"ProCam {t['name']} simulated"
+            row.operator("procam.preview_compensated", text="", icon="LIGHT_SPOT").target = t["name"]
+        layout.operator("procam.preview_compensated", icon="LIGHT_SPOT")

@@ -1,0 +1,55 @@
+"""View3D ▸ Sidebar ▸ ProCam ▸ Diagnose: ranked effects, regions and residual maps of a diagnosis folder."""
+
+import bpy
+
+from ..addon.workflow import diagnosis_available, diagnosis_summary
+from .step_state import draw_state, wrapped
+
+
+def _num(value: object, spec: str) -> str:
+    try:
+        return format(float(value), spec)
+    except (TypeError, ValueError):
+        return "–"
+
+
+class PROCAM_PT_diagnose(bpy.types.Panel):
+    bl_idname = "PROCAM_PT_diagnose"
+    bl_label = "Diagnose"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "ProCam"
+    bl_order = 4
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        scene = context.scene
+        ok, reason = diagnosis_available()
+        if not ok:
+            wrapped(layout, f"diagnosis not available: {reason}", icon="ERROR")
+        layout.prop(scene, "procam_diagnosis_dir", text="")
+        summary = diagnosis_summary(bpy.path.abspath(scene.procam_diagnosis_dir))
+        done = draw_state(layout, "diagnose", summary)
+        layout.operator("procam.diagnose", icon="VIEWZOOM")
+        if not done:
+            return
+        selected = set(summary.data["selected"])
+        box = layout.box()
+        box.label(text="Effects (selected first, by held-out gain):")
+        for e in summary.data["effects"]:
+            row = box.row()
+            row.label(text=e["name"], icon="CHECKBOX_HLT" if e["name"] in selected else "CHECKBOX_DEHLT")
+            row.label(text=f"RMSE {_num(e.get('heldout_rmse_before'), '.4f')} → "
+                           f"{_num(e.get('heldout_rmse_after'), '.4f')}, conf. {_num(e.get('confidence'), '.2f')}")
+        box = layout.box()
+        box.label(text="Regions (by share of the error):")
+        for r in summary.data["regions"]:
+            wrapped(box, f"{100 * float(r.get('share', 0) or 0):.0f}% {r.get('description', '')} "
+                         f"{tuple(r.get('bbox', ()))}", icon="SELECT_SET")
+        if summary.data["maps"]:
+            col = layout.column(align=True)
+            col.label(text="Residual maps:")
+            root = bpy.path.abspath(scene.procam_diagnosis_dir).rstrip("/")
+            for rel in summary.data["maps"]:
+                op = col.operator("procam.show_image", text=rel.removesuffix(".png"), icon="IMAGE_DATA")
+                op.filepath, op.name = f"{root}/{rel}", f"ProCam diagnosis {rel.removesuffix('.png')}"

@@ -1,0 +1,44 @@
+"""Scene properties of the Calibrate, Compensate, Diagnose and Export steps (registered by ``blender_registration``)."""
+
+import bpy
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, IntProperty, StringProperty
+
+
+class PROCAM_PG_target(bpy.types.PropertyGroup):
+    """One target image of the Compensate step."""
+
+    filepath: StringProperty(name="Target", subtype="FILE_PATH", description="Target image file")
+
+
+INIT_ITEMS = [("graycode", "Gray Code", "Start stage A from Gray-code correspondences + PnP"),
+              ("nominal", "Nominal", "Start stage A from the capture set's nominal projector pose"),
+              ("blender", "Scene Projector", "Start stage A from where the ProCam Projector stands in the scene")]
+MODE_ITEMS = [("OPEN", "Open Loop", "No device: the bias θ comes from the calibration's validation captures"),
+              ("CLOSED", "Closed Loop", "θ from captures of the projector input through a device (lab or folder)")]
+
+
+def scene_properties() -> dict[str, object]:
+    """Properties set on ``bpy.types.Scene``; PROCAM_PG_target must be registered first."""
+    return {
+        "procam_calibration_dir": StringProperty(
+            name="Calibration", subtype="DIR_PATH",
+            description="Calibration folder: Calibrate writes it, Compensate and Diagnose read it"),
+        "procam_calibration_init": EnumProperty(name="Start Pose", items=INIT_ITEMS, default="graycode"),
+        "procam_replace_outputs": BoolProperty(
+            name="Replace Results", description="Let a step replace its existing output folder (never otherwise)"),
+        "procam_targets": CollectionProperty(type=PROCAM_PG_target, name="Targets"),
+        "procam_target_index": IntProperty(name="Active Target", default=0, min=0),
+        "procam_target_folder": StringProperty(
+            name="Image Sequence", subtype="DIR_PATH",
+            description="Folder of target images (e.g. the frames of a clip), compensated in numbered order"),
+        "procam_compensation_mode": EnumProperty(name="Mode", items=MODE_ITEMS, default="OPEN"),
+        "procam_device": StringProperty(
+            name="Device", description="Closed loop: lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR"),
+        "procam_iterations": IntProperty(
+            name="Iterations", description="Total stage-C iterations, split 200:300 like the paper",
+            default=500, min=0, soft_max=1000),
+        "procam_compensation_dir": StringProperty(
+            name="Results", subtype="DIR_PATH", description="Compensation folder: projector inputs and frames"),
+        "procam_diagnosis_dir": StringProperty(
+            name="Diagnosis", subtype="DIR_PATH", description="Diagnosis folder (gap.json and residual maps)"),
+    }

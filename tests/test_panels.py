@@ -1,0 +1,215 @@
+"""Every ProCam panel's draw() against the real context, in each step state.
+
+Blender in background mode cannot make a real UILayout (no window to draw in;
+``window_manager.popup_menu`` crashes there), so draw() gets a recording
+layout that enforces the real API from ``bpy.types.UILayout.bl_rna``: each
+call must be a UILayout function with known keywords and its required
+arguments, icons and enum values must exist, operators must be registered,
+properties must exist on their data, and attributes set on an operator
+button must be that operator's properties.
+"""
+
+import json
+import threading
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from procam.addon import jobs  # noqa: E402
+from procam.addon.errors import ImageError  # noqa: E402
+from procam.addon.imageio import write_image  # noqa: E402
+
+RNA = bpy.types.UILayout.bl_rna
+
+
+class ButtonProps:
+    """The properties of an operator button: only the operator's own may be set."""
+
+    def __init__(self, idname):
+        module, name = idname.split(".")
+        rna = getattr(getattr(bpy.ops, module), name).get_rna_type()
+        object.__setattr__(self, "_names", {p.identifier for p in rna.properties} - {"rna_type"})
+        object.__setattr__(self, "_idname", idname)
+
+    def __setattr__(self, key, value):
+        assert key in self._names, f"{self._idname} has no property {key!r}"
+
+
+class RecordingLayout:
+    def __init__(self, calls):
+        object.__setattr__(self, "calls", calls)
+
+    def __setattr__(self, key, value):
+        assert key in RNA.properties, f"UILayout has no attribute {key!r}"
+
+    def __getattr__(self, name):
+        fn = RNA.functions.get(name)
+        assert fn is not None, f"UILayout has no function {name!r}"
+        params = [p for p in fn.parameters if not p.is_output]
+        output = next((p for p in fn.parameters if p.is_output), None)
+
+        def call(*args, **kwargs):
+            assert len(args) <= len(params), f"{name}: too many positional arguments"
+            given = dict(zip((p.identifier for p in params), args))
+            for key in kwargs:
+                assert key in {p.identifier for p in params}, f"{name}() has no keyword {key!r}"
+                assert key not in given, f"{name}(): {key!r} given twice"
+            given.update(kwargs)
+            for p in params:
+                if p.is_required:
+                    assert p.identifier in given, f"{name}() needs {p.identifier!r}"
+                value = given.get(p.identifier)
+                if value is not None and p.type == "ENUM" and not p.is_enum_flag:
+                    assert value in {i.identifier for i in p.enum_items}, f"{name}(): {p.identifier}={value!r}"
+            if name in ("operator",):
+                idname = given["operator"]
+                module, op = idname.split(".")
+                assert hasattr(getattr(bpy.ops, module), op) and getattr(getattr(bpy.ops, module), op).idname(), idname
+            if name in ("prop",):
+                assert given["property"] in given["data"].bl_rna.properties, f"no property {given['property']!r}"
+            if name == "template_list":
+                assert hasattr(bpy.types, given["listtype_name"]), given["listtype_name"]
+                assert given["propname"] in given["dataptr"].bl_rna.properties
+                assert given["active_propname"] in given["active_dataptr"].bl_rna.properties
+            self.calls.append((name, given))
+            if output is not None and output.type == "POINTER":
+                kind = output.fixed_type.identifier
+                if kind == "UILayout":
+                    return RecordingLayout(self.calls)
+                if kind == "OperatorProperties":
+                    return ButtonProps(given["operator"])
+            return None
+
+        return call
+
+
+PANELS = ("PROCAM_PT_rig", "PROCAM_PT_captures", "PROCAM_PT_calibrate", "PROCAM_PT_compensate",
+          "PROCAM_PT_diagnose", "PROCAM_PT_export")
+
+
+def draw_all(context):
+    out = {}
+    for name in PANELS:
+        panel = getattr(bpy.types, name)
+        calls = []
+        fake = type("Drawn", (), {"layout": RecordingLayout(calls)})()
+        panel.draw(fake, context)
+        out[name] = calls
+    return out
+
+
+def texts(calls):
+    return " | ".join(str(c[1].get("text", "")) for c in calls)
+
+
+def test_panels_are_in_workflow_order(registered):
+    orders = [getattr(bpy.types, n).bl_order for n in PANELS]
+    assert orders == sorted(orders) and len(set(orders)) == len(PANELS)
+    assert {getattr(bpy.types, n).bl_category for n in PANELS} == {"ProCam"}
+
+
+def test_recording_layout_catches_api_mistakes(registered):
+    layout = RecordingLayout([])
+    with pytest.raises(AssertionError, match="no function"):
+        layout.lable(text="x")
+    with pytest.raises(AssertionError, match="icon"):
+        layout.label(text="x", icon="NOT_AN_ICON")
+    with pytest.raises(AssertionError, match="no keyword"):
+        layout.operator("procam.calibrate", txt="x")
+    with pytest.raises(AssertionError, match="no property"):
+        layout.prop(bpy.context.scene, "procam_nothing")
+    with pytest.raises(AssertionError, match="has no property"):
+        layout.operator("procam.cancel_job").stp = "x"
+
+
+def test_every_panel_draws_not_run_state(registered):
+    drawn = draw_all(bpy.context)
+    assert "Not run" in texts(drawn["PROCAM_PT_calibrate"])
+    assert "Not run" in texts(drawn["PROCAM_PT_compensate"])
+    ops = [c[1]["operator"] for calls in drawn.values() for c in calls if c[0] == "operator"]
+    assert {"procam.create_rig", "procam.run_lab", "procam.calibrate", "procam.load_calibration", "procam.add_targets",
+            "procam.compensate", "procam.diagnose", "procam.export_frames",
+            "procam.export_calibration_blend"} <= set(ops)
+
+
+def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
+    scene = bpy.context.scene
+    # Running: a job blocked in a worker shows a progress bar and a Cancel button.
+    gate = threading.Event()
+
+    def engine(*, progress, cancel):
+        progress("stage A: solving PnP", 0.4)
+        gate.wait(5)
+
+    job = jobs.BOARD.add("calibrate", jobs.Job("calibration", engine)).start()
+    try:
+        for _ in range(100):
+            if job.snapshot().fraction > 0:
+                break
+            threading.Event().wait(0.01)
+        calls = draw_all(bpy.context)["PROCAM_PT_calibrate"]
+        assert any(c[0] == "progress" and c[1]["factor"] == pytest.approx(0.4) for c in calls)
+        assert "stage A: solving PnP" in texts(calls) and "Cancel" in texts(calls)
+    finally:
+        gate.set()
+        job.wait(5)
+
+    # Failed: the message is shown.
+    def fails(*, progress, cancel):
+        raise ImageError("target t.png is unreadable: choose another file")
+
+    jobs.BOARD.add("compensate", jobs.Job("compensation", fails)).run()
+    assert "unreadable" in texts(draw_all(bpy.context)["PROCAM_PT_compensate"])
+
+    # Done: a compensation folder and a diagnosis folder are summarised with their figures and buttons.
+    comp = tmp_path / "comp"
+    comp.mkdir()
+    for suffix in ("input", "frame", "simulated"):
+        write_image(comp / f"a_{suffix}.png", np.zeros((4, 4, 3), np.float32))
+    (comp / "compensation.json").write_text(json.dumps({
+        "format": "procam-compensation", "mode": "open-loop", "complete": True,
+        "targets": [{"name": "a", "status": "done", "input": "a_input.png", "frame": "a_frame.png",
+                     "simulated": "a_simulated.png", "seconds": 3.0, "psnr_simulated_start": 20.0,
+                     "psnr_simulated": 27.5}]}))
+    gap = tmp_path / "gap"
+    gap.mkdir()
+    write_image(gap / "residual.png", np.zeros((4, 4, 3), np.float32))
+    (gap / "gap.json").write_text(json.dumps({
+        "residual": {"rmse": 0.031, "psnr": 30.2},
+        "regions": [{"bbox": [0, 0, 10, 10], "share": 0.55, "description": "projector border"}],
+        "effects": [{"name": "vignetting", "params": {}, "heldout_rmse_before": 0.03, "heldout_rmse_after": 0.025,
+                     "confidence": 0.7},
+                    {"name": "response", "params": {}, "heldout_rmse_before": 0.03, "heldout_rmse_after": 0.02,
+                     "confidence": 0.9}],
+        "selected": ["response"]}))
+    jobs.BOARD.clear()
+    scene.procam_compensation_dir = str(comp)
+    scene.procam_diagnosis_dir = str(gap)
+    drawn = draw_all(bpy.context)
+    comp_text = texts(drawn["PROCAM_PT_compensate"])
+    assert "1/1 targets compensated (open-loop)" in comp_text and "20.0 → 27.5 dB" in comp_text
+    assert any(c[0] == "operator" and c[1]["operator"] == "procam.preview_compensated"
+               for c in drawn["PROCAM_PT_compensate"])
+    diag = texts(drawn["PROCAM_PT_diagnose"])
+    assert diag.index("response") < diag.index("vignetting")  # selected first
+    assert "55% projector border" in diag and "residual" in diag
+
+
+def test_calibrate_panel_shows_key_figures_of_a_calibration_folder(registered, tmp_path):
+    cal = tmp_path / "cal"
+    (cal / "diagnostics").mkdir(parents=True)
+    write_image(cal / "diagnostics" / "pose_mask.png", np.zeros((4, 4, 3), np.float32))
+    pose = np.eye(4)
+    pose[:3, 3] = [0.2, -0.1, 0.05]
+    (cal / "calibration.json").write_text(json.dumps({
+        "format": "procam-calibration", "camera_from_projector": pose.tolist(), "init": "graycode",
+        "surface_report": {"vertices": 120, "faces": 200}, "losses": {"pose": 0.01, "warp": 0.04},
+        "warp_report": {"corners_before_px": {"median": 2.5}, "corners_after_px": {"median": 0.1}},
+        "seconds": {"surface": 1.0, "pose": 2.0, "warp": 3.0}}))
+    bpy.context.scene.procam_calibration_dir = str(cal)
+    calls = draw_all(bpy.context)["PROCAM_PT_calibrate"]
+    text = texts(calls)
+    assert "2.50 → 0.10 px" in text and "200 faces" in text and "(+0.200, -0.100, +0.050) m" in text
+    assert any(c[0] == "operator" and c[1]["operator"] == "procam.show_image" for c in calls)
