@@ -74,3 +74,41 @@ def lab_set(tmp_path_factory) -> Callable[..., tuple[Path, Path]]:
         return _LAB_SETS[key]
 
     return make
+
+
+_LAB_CALIBRATIONS: dict[tuple, Path] = {}
+
+
+@pytest.fixture(scope="session")
+def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path, Path]]:
+    """A calibration folder made from a lab set's truth (true rig and surface, identity warp), once per session.
+
+    Returns (calibration dir, capture dir, truth file); the arguments are those of ``lab_set``. Compensation
+    tests use it so that they do not depend on (or wait for) stages A and B.
+    """
+
+    def make(*args, **kwargs) -> tuple[Path, Path, Path]:
+        captures_dir, truth_path = lab_set(*args, **kwargs)
+        key = (str(captures_dir),)
+        if key not in _LAB_CALIBRATIONS:
+            import json
+
+            import numpy as np
+
+            from procam.addon.lab.lab import LabTruth
+            from procam.addon.stages.calibrate import Calibration
+            from procam.addon.stages.warp import Warp
+
+            truth = LabTruth.load(truth_path)  # tests are evaluation code: they may read the truth
+            cal = Calibration(truth.rig, truth.surface, Warp.identity(truth.rig.projector.input_size),
+                              str(captures_dir))
+            folder = tmp_path_factory.mktemp("calibration") / "cal"
+            folder.mkdir()
+            (folder / "calibration.json").write_text(json.dumps(cal.to_dict()))
+            s = cal.surface
+            np.savez_compressed(folder / "surface.npz", vertices=s.vertices, faces=s.faces, uvs=s.uvs,
+                                albedo=s.albedo)
+            _LAB_CALIBRATIONS[key] = folder
+        return _LAB_CALIBRATIONS[key], captures_dir, truth_path
+
+    return make

@@ -65,7 +65,8 @@ class ForwardModel:
 
     def __init__(self, rig: Rig, surface: SurfaceMesh, *, camera_size: tuple[int, int] | None = None,
                  bounces: int = 0, spp: int = 4, smoothing_eps: float = 0.01, clamp: bool = True,
-                 variant: str | None = None, seed: int = 0, integrator: str = "auto") -> None:
+                 variant: str | None = None, seed: int = 0, integrator: str = "auto",
+                 glossy_roughness: float | None = None) -> None:
         self.variant = variant or backend.default_variant()
         mi = self._mi = backend.mitsuba(self.variant)
         import drjit as dr
@@ -83,12 +84,13 @@ class ForwardModel:
         self.clamp = bool(clamp)
         self._seeds = itertools.count(int(seed))
         try:
-            self.scene = build_scene(mi, rig, surface, intr, bounces=bounces, spp=spp, integrator=integrator)
+            self.scene = build_scene(mi, rig, surface, intr, bounces=bounces, spp=spp, integrator=integrator,
+                                     glossy_roughness=glossy_roughness)
         except RuntimeError as exc:  # Mitsuba reports plugin/parameter problems as RuntimeError
             raise RenderError(f"Mitsuba could not build the scene: {exc}") from None
         self.params = mi.traverse(self.scene)
-        self._albedo_key = next(k for k in self.params.keys()
-                                if k.startswith(SURFACE_ID) and k.endswith("reflectance.data"))
+        self._albedo_key = next((k for k in self.params.keys()
+                                 if k.startswith(SURFACE_ID) and k.endswith("reflectance.data")), None)
         pw, ph = self.projector_size
         self.set_smoothing(smoothing_eps)
         index, inside = pad_index(pw, ph)
@@ -123,6 +125,8 @@ class ForwardModel:
         if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
             raise ImageError(f"an albedo must be an H×W×3 image, got shape {img.shape}")
         img = check_image(img, (img.shape[1], img.shape[0]), "the albedo", "give a linear RGB image in [0, 1]")
+        if self._albedo_key is None:
+            raise RenderError("this forward model's surface is a white glossy lobe; it has no albedo to set")
         self.params[self._albedo_key] = self._mi.TensorXf(np.clip(img, 0.0, 1.0))
         self.params.update()
 

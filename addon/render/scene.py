@@ -210,10 +210,13 @@ def surface_mesh(mi: ModuleType, surface: SurfaceMesh) -> Any:
 
 
 def build_scene(mi: ModuleType, rig: Rig, surface: SurfaceMesh, camera: Intrinsics, *,
-                bounces: int = 0, spp: int = 4, integrator: str = "auto") -> Any:
+                bounces: int = 0, spp: int = 4, integrator: str = "auto", glossy_roughness: float | None = None) -> Any:
     """Load the Mitsuba scene of a rig and surface, rendered at the resolution of ``camera``.
 
     The projector starts dark; :class:`.forward.ForwardModel` sets its frame.
+    ``glossy_roughness`` replaces the diffuse material by a white GGX lobe of that
+    (Blender-style) roughness, α = roughness²: the diagnosis mixes such renders
+    with the diffuse ones to model a non-Lambertian surface (``gap`` effect ``glossy``).
     """
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise RigError(f"samples per pixel must be a whole number ≥ 1, got {spp!r}")
@@ -225,10 +228,14 @@ def build_scene(mi: ModuleType, rig: Rig, surface: SurfaceMesh, camera: Intrinsi
     # Stratified (jittered) samples integrate a pixel's square with less noise; it needs a square count.
     sampler = "stratified" if root * root == spp else "independent"
 
-    bsdf = mi.load_dict({"type": "twosided", "material": {
-        "type": "diffuse",
-        "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(surface.albedo, dtype=np.float32)),
-                        "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}}})
+    reflectance = {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(surface.albedo, dtype=np.float32)),
+                   "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp"}
+    if glossy_roughness is None:
+        material = {"type": "diffuse", "reflectance": reflectance}
+    else:
+        material = {"type": "roughconductor", "material": "none", "distribution": "ggx",
+                    "alpha": max(float(glossy_roughness) ** 2, 1e-3)}
+    bsdf = mi.load_dict({"type": "twosided", "material": material})
     mesh = surface_mesh(mi, surface)
     mesh.set_bsdf(bsdf)
 

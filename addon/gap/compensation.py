@@ -1,0 +1,231 @@
+"""Compensation with diagnosed effects: the fitted effect models applied around stage C.
+
+Stage C optimises through ``f̂``; the effects the diagnosis selected are put
+around it rather than inside, each where it acts:
+
+* input side (``response``, ``crosstalk``, ``black_level``'s projector part,
+  ``vignetting``): the projector turns an input ``x`` into the light ``g(x)``,
+  so the input sent is ``g⁻¹(x*)`` (the classical linearisation, clipped to
+  what the projector can do), and the captures that estimate θ are paired with
+  the light ``g(x)`` that was really emitted;
+* camera side (``black_level``'s ambient part, ``camera_response``): the camera
+  turns light ``v`` into ``h(v)``, so the target and every capture are taken
+  back through ``h⁻¹`` before stage C compares them with ``f̂``;
+* ``interreflection``: stage C simulates indirect light (3 bounces) instead of
+  direct light only;
+* ``depth_noise``: the surface is moved along the camera rays by the fitted
+  smooth depth error.
+
+``defocus``, ``glossy`` and ``distortion`` are diagnosed but not inverted here
+(a blur has no stable inverse on a [0, 1] input, the glossy lobe needs a
+different material in the differentiable scene, and distortion would need the
+display area itself remapped); stage C's θ absorbs what they leave. The result
+says which effects it used and which it could not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .models import MODELS, crosstalk_matrix, vignetting_radius
+
+#: Effects compensation inverts (see the module docstring); the others are reported as not used.
+INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "camera_response", "interreflection",
+              "depth_noise")
+NOT_INVERTED = {"defocus": "a blur has no stable inverse on a [0, 1] input; θ absorbs what it leaves",
+                "glossy": "the glossy lobe is not in the differentiable scene; θ absorbs it",
+                "distortion": "the display area is not remapped; θ absorbs the shift"}
+#: Emitted light below this share of white is treated as the darkest the projector can do.
+_EPS = 1e-4
+
+
+def _srgb(v: np.ndarray) -> np.ndarray:
+    v = np.clip(v, 0.0, 1.0)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+
+
+@dataclass
+class EffectAdapter:
+    """The selected effects with their fitted parameters, as transforms around stage C."""
+
+    params: dict[str, dict[str, float]]
+    projector: Any  # calibrated rig.model.Projector
+    used: list[str] = field(default_factory=list)
+    not_used: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        unknown = [n for n in self.params if n not in MODELS]
+        if unknown:
+            raise KeyError(f"unknown effect(s) {unknown}")
+        self.used = [n for n in MODELS if n in self.params and n in INVERTIBLE]
+        self.not_used = {n: NOT_INVERTED[n] for n in self.params if n in NOT_INVERTED}
+        iw, ih = self.projector.input_size
+        ys, xs = np.mgrid[0:ih, 0:iw].astype(np.float32)
+        self._vig_r = vignetting_radius(self.projector, np.stack([xs, ys], axis=2))
+
+    def _p(self, name: str) -> list[float] | None:
+        return [float(v) for v in self.params[name].values()] if name in self.params else None
+
+    @property
+    def bounces(self) -> int | None:
+        """Indirect bounces stage C should simulate (None: leave the caller's choice)."""
+        p = self._p("interreflection")
+        return None if p is None else (3 if p[0] >= 0.25 else 0)
+
+    # ------------------------------------------------------------------ projector side
+
+    def emitted(self, x: np.ndarray) -> np.ndarray:
+        """g(x): the light the projector emits for the input ``x`` (input size, H×W×3)."""
+        a = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+        if (p := self._p("response")) is not None:
+            a = np.power(a, np.array(p, np.float32))
+        if (p := self._p("crosstalk")) is not None:
+            a = a @ crosstalk_matrix(np.array(p)).T
+        if (p := self._p("black_level")) is not None:
+            a = p[0] + (1.0 - p[0]) * a
+        if (p := self._p("vignetting")) is not None:
+            a = a * self._vignetting_gain(p, a.shape)[..., None]
+        return a.astype(np.float32)
+
+    def input_for(self, light: np.ndarray) -> np.ndarray:
+        """g⁻¹: the input that makes the projector emit ``light`` (clipped to what it can emit)."""
+        a = np.asarray(light, np.float32)
+        if (p := self._p("vignetting")) is not None:
+            a = a / np.maximum(self._vignetting_gain(p, a.shape), 0.05)[..., None]
+        if (p := self._p("black_level")) is not None:
+            a = (a - p[0]) / max(1.0 - p[0], _EPS)
+        if (p := self._p("crosstalk")) is not None:
+            a = a @ np.linalg.inv(crosstalk_matrix(np.array(p))).T
+        a = np.clip(a, 0.0, 1.0)
+        if (p := self._p("response")) is not None:
+            a = np.power(a, 1.0 / np.maximum(np.array(p, np.float32), 1e-3))
+        return np.clip(a, 0.0, 1.0).astype(np.float32)
+
+    def _vignetting_gain(self, p: list[float], shape: tuple[int, ...]) -> np.ndarray:
+        r = self._vig_r
+        if r.shape != tuple(shape[:2]):
+            import cv2
+
+            r = cv2.resize(r, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+        return 1.0 - p[0] * np.power(r, p[1])
+
+    # ------------------------------------------------------------------ camera side
+
+    def camera_to_light(self, image: np.ndarray) -> np.ndarray:
+        """h⁻¹: the light the camera saw, from a capture (or a target in capture space)."""
+        y = np.asarray(image, np.float32)
+        if (p := self._p("camera_response")) is not None:
+            gr, gb, curve = p
+            lut_v = np.linspace(0.0, 1.0, 4097, dtype=np.float32)
+            lut_y = (1.0 - curve) * lut_v + curve * _srgb(lut_v)
+            y = np.interp(np.clip(y, 0, 1), lut_y, lut_v).astype(np.float32) / np.array([gr, 1.0, gb], np.float32)
+        if (p := self._p("black_level")) is not None:
+            y = y - np.array(p[1:], np.float32)
+        return np.clip(y, 0.0, 1.0).astype(np.float32)
+
+    # ------------------------------------------------------------------ geometry
+
+    def calibration(self, calibration: Any) -> Any:
+        """The calibration with the surface moved by the fitted depth error (unchanged without it)."""
+        p = self._p("depth_noise")
+        if p is None:
+            return calibration
+        v = np.asarray(calibration.surface.vertices, np.float64)
+        xn, yn = v[:, 0] / v[:, 2], v[:, 1] / v[:, 2]
+        delta = p[0] + p[1] * xn + p[2] * yn
+        unit = v / np.linalg.norm(v, axis=1, keepdims=True)
+        moved = replace(calibration.surface, vertices=(v + unit * delta[:, None]).astype(np.float32))
+        return replace(calibration, surface=moved)
+
+
+class AdaptedCaptures:
+    """A capture set seen through the effects: patterns are the light emitted, images the light seen.
+
+    Duck-types the parts of :class:`..capture.format.CaptureSet` that open-loop θ
+    estimation reads.
+    """
+
+    def __init__(self, captures: Any, adapter: EffectAdapter) -> None:
+        self._c, self._a = captures, adapter
+        self.path, self.camera, self.projector = captures.path, captures.camera, captures.projector
+
+    def entries_of(self, kind: str) -> list[Any]:
+        return self._c.entries_of(kind)
+
+    def image(self, kind: str, **filters: Any) -> np.ndarray:
+        return self._a.camera_to_light(self._c.image(kind, **filters))
+
+    def pattern(self, kind: str, **filters: Any) -> np.ndarray:
+        frame = np.array(self._c.pattern(kind, **filters), np.float32)
+        p = self._a.projector
+        x0, y0 = p.input_offset
+        iw, ih = p.input_size
+        frame[y0:y0 + ih, x0:x0 + iw] = self._a.emitted(frame[y0:y0 + ih, x0:x0 + iw])
+        return frame
+
+
+class AdaptedDevice:
+    """A capture device seen through the effects (closed loop): send g⁻¹(x), return h⁻¹(capture)."""
+
+    def __init__(self, device: Any, adapter: EffectAdapter) -> None:
+        self._d, self._a = device, adapter
+        self.projector = device.projector
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._d, name)
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        return self._a.camera_to_light(self._d.project(self.send(frame)))
+
+    def send(self, frame: np.ndarray) -> np.ndarray:
+        """The native frame to give the real projector for the wanted light ``frame``."""
+        f = np.array(frame, np.float32)
+        p = self._a.projector
+        x0, y0 = p.input_offset
+        iw, ih = p.input_size
+        f[y0:y0 + ih, x0:x0 + iw] = self._a.input_for(f[y0:y0 + ih, x0:x0 + iw])
+        return f
+
+
+def load_adapter(gap_dir_or_doc: Any, projector: Any, names: list[str] | None = None) -> EffectAdapter:
+    """The adapter of a diagnosis (``gap.json`` folder or document), with its selected effects or ``names``."""
+    import json
+    from pathlib import Path
+
+    doc = gap_dir_or_doc
+    if not isinstance(doc, dict):
+        doc = json.loads((Path(doc) / "gap.json").read_text())
+    params = dict(doc.get("selected_params") or {})
+    if names is not None:
+        fitted = {e["name"]: e["params"] for e in doc.get("effects", []) if e.get("params")}
+        params = {n: params.get(n, fitted.get(n)) for n in names if params.get(n, fitted.get(n)) is not None}
+    return EffectAdapter(params, projector)
+
+
+def compensate_with_effects(calibration: Any, target: np.ndarray, *, area: Any, adapter: EffectAdapter,
+                            device: Any = None, bounces: int = 1, **options: Any) -> Any:
+    """Stage C with the adapter's effects around it (closed loop with ``device``, else open loop).
+
+    Returns the :class:`..stages.compensate.CompensationResult` with ``x_input``
+    and ``x_frame`` replaced by the inputs to send (``g⁻¹`` applied), and the
+    effects used / not used in its report.
+    """
+    from ..capture.format import CaptureSet
+    from ..stages.compensate import Compensator
+
+    cal = adapter.calibration(calibration)
+    comp = Compensator(cal, bounces=adapter.bounces if adapter.bounces is not None else bounces)
+    light_target = adapter.camera_to_light(np.asarray(target, np.float32))
+    if device is None:
+        captures = CaptureSet.load(cal.capture_dir, verify_images=False)
+        bias = comp.estimate_bias(AdaptedCaptures(captures, adapter))
+        res = comp.run(light_target, area, open_loop_theta=bias, **options)
+    else:
+        res = comp.run(light_target, area, device=AdaptedDevice(device, adapter), **options)
+    x_input = adapter.input_for(res.x_input)
+    report = {**res.report, "effects": {"used": adapter.used, "not_used": adapter.not_used,
+                                        "params": {n: adapter.params[n] for n in adapter.params}}}
+    return replace(res, x_input=x_input, x_frame=adapter.projector.frame_from_input(x_input), report=report)

@@ -1,0 +1,298 @@
+"""What the diagnosis compares: captured patterns beside the calibrated model's renders of them.
+
+For each pattern of the capture set that the diagnosis uses (black, white,
+checkerboards, the coarser Gray-code bits, the validation patterns) this holds,
+at a working resolution of the camera image:
+
+* the capture (area-averaged down to the working size),
+* ``direct``: the calibrated model ``f̂`` of the real input ``x`` (through the
+  inverse warp, ``f̂(M(x))``), direct light only, as calibration uses it,
+* ``indirect``: what three more bounces of light add to it,
+* ``glossy``: renders with the surface replaced by a white GGX lobe at a few
+  roughnesses (for the ``glossy`` effect model).
+
+Effect models (``models.py``) act on the real input or on the camera image; to
+evaluate them without re-rendering for every parameter value, this also holds the
+model's *light path* per camera pixel: where in the real input the light that
+reaches it comes from (``corr``, input pixels, pixel-centre convention of
+``cv2.remap``), the gain ``f̂`` gives a white input there, the 3-D point and
+depth. Direct light is (up to the projector pixel footprint) ``gain · x(corr)``,
+so an input-side change ``x → g(x)`` changes the image by ``gain · (g(x) − x)(corr)``.
+
+Only the capture set and the calibration are read; never a lab truth file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..capture.format import CaptureSet, Entry
+from ..errors import CaptureError, ProCamError
+
+Progress = Callable[[str, float], None]
+
+#: Roughnesses (Blender convention, α = r²) of the glossy-lobe renders the ``glossy`` model interpolates.
+GLOSSY_ROUGHNESS = (0.2, 0.4, 0.6)
+#: Indirect bounces rendered for the ``interreflection`` model (most energy is in the first two).
+INDIRECT_BOUNCES = 3
+#: Gray-code bits whose stripes are narrower than this (input pixels) are left out: at the working
+#: resolution they alias, and stage B has already used them.
+MIN_STRIPE_PX = 8
+#: A camera pixel is "lit" when a white input gives it at least this share of the brightest pixel.
+LIT_SHARE = 0.08
+
+
+class DiagnosisError(ProCamError):
+    """The diagnosis cannot run on this calibration / capture set."""
+
+
+@dataclass
+class Observation:
+    """One projected pattern: its real input, its capture and the model's renders (working resolution)."""
+
+    name: str
+    kind: str
+    x: np.ndarray  # real projector input (input size, H×W×3, [0, 1])
+    capture: np.ndarray  # h×w×3 linear
+    direct: np.ndarray  # f̂(M(x)), direct light
+    indirect: np.ndarray  # extra light of INDIRECT_BOUNCES bounces
+    glossy: dict[float, np.ndarray]  # white GGX lobe renders by roughness
+    sampled: np.ndarray  # x(corr): the input value on each camera pixel's light path
+
+    @property
+    def fine(self) -> bool:
+        """Binary patterns with sharp edges (checker, Gray code): where blur and misregistration show."""
+        return self.kind in ("checker", "graycode")
+
+
+@dataclass
+class GapData:
+    """Everything the effect models and the residual analysis need; no truth."""
+
+    observations: list[Observation]
+    size: tuple[int, int]  # working (width, height)
+    mask: np.ndarray  # h×w bool: lit by the projector and seen by the camera
+    gain: np.ndarray  # h×w×3: f̂ of a white input
+    corr: np.ndarray  # h×w×2 float32: real-input position (cv2.remap convention) of each camera pixel's light
+    corr_per_metre: np.ndarray  # h×w×2: how ``corr`` moves when the surface point moves 1 m further along its ray
+    points: np.ndarray  # h×w×3 rig-frame surface points (NaN where no surface)
+    rays: np.ndarray  # h×w×3 unit camera rays
+    crease: np.ndarray  # h×w float: how sharply the surface normal turns there (0 flat … 1 crease)
+    projector: Any  # rig.model.Projector (calibrated)
+    camera: Any  # rig.model.Intrinsics at the working size
+    warp: Any
+    fit_index: list[int] = field(default_factory=list)
+    held_index: list[int] = field(default_factory=list)
+    report: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def names(self) -> list[str]:
+        return [o.name for o in self.observations]
+
+
+def _run_lengths(row: np.ndarray) -> int:
+    """Shortest run of equal values along a 1-D binary signal (the stripe width)."""
+    edges = np.flatnonzero(np.diff(row > 0.5)) + 1
+    runs = np.diff(np.concatenate([[0], edges, [len(row)]]))
+    return int(runs.min()) if len(runs) else len(row)
+
+
+def choose_entries(captures: CaptureSet, input_of: Callable[[Entry], np.ndarray]) -> list[Entry]:
+    """The patterns the diagnosis uses, in a fixed order: black, white, checkers, Gray code, validation."""
+    chosen: list[Entry] = []
+    for kind in ("black", "white", "checker"):
+        chosen += captures.entries_of(kind)
+    for e in captures.entries_of("graycode"):
+        if e.params.get("inverted"):
+            continue
+        x = input_of(e)[..., 0]
+        line = x[x.shape[0] // 2] if e.params.get("axis") == "x" else x[:, x.shape[1] // 2]
+        if _run_lengths(line) >= MIN_STRIPE_PX:
+            chosen.append(e)
+    validation = captures.entries_of("validation")
+    if not validation:
+        raise DiagnosisError(
+            f"the capture set {captures.path} has no validation captures; the diagnosis needs them to test the "
+            "model on patterns calibration did not use: recapture with validation patterns (procam lab does by "
+            "default; for a real session `procam patterns` exports them: grey levels 0.25/0.5/0.75, red/green/blue "
+            "ramps and smooth random images)")
+    return chosen + validation
+
+
+def split_patterns(observations: list[Observation]) -> tuple[list[int], list[int]]:
+    """Fit / held-out split: alternate within each kind so both halves see every kind of pattern.
+
+    Black and white go to the fit half (calibration already used them); each
+    kind's patterns alternate, starting on the held-out side for validation.
+    """
+    fit: list[int] = []
+    held: list[int] = []
+    by_kind: dict[str, list[int]] = {}
+    for i, o in enumerate(observations):
+        by_kind.setdefault(o.kind, []).append(i)
+    for kind, idx in by_kind.items():
+        if kind in ("black", "white"):
+            fit += idx
+            continue
+        start = 1 if kind == "validation" else 0
+        for j, i in enumerate(idx):
+            (fit if (j + start) % 2 == 0 else held).append(i)
+    if not held or not fit:
+        raise DiagnosisError("too few patterns to hold some out: the capture set needs at least two validation "
+                             "captures")
+    return sorted(fit), sorted(held)
+
+
+def _downsize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    if image.shape[1] == size[0] and image.shape[0] == size[1]:
+        return np.asarray(image, np.float32)
+    return cv2.resize(np.asarray(image, np.float32), size, interpolation=cv2.INTER_AREA)
+
+
+def _check_levels(captures: CaptureSet) -> None:
+    white, black = captures.image("white"), captures.image("black")
+    if float(np.mean(white >= 0.999)) > 0.25:
+        raise DiagnosisError(f"the white capture of {captures.path} is saturated on {np.mean(white >= 0.999):.0%} of "
+                             "the image: recapture with a shorter exposure (the diagnosis compares light levels)")
+    if float(np.percentile(white - black, 99)) < 0.02:
+        raise DiagnosisError(f"the white capture of {captures.path} is hardly brighter than the black one: the "
+                             "captures are all dark (projector off or lens cap on?); recapture")
+
+
+def _crease_map(points: np.ndarray) -> np.ndarray:
+    """0 on flat surface … 1 where the normal turns by ≥ 30° across a few pixels."""
+    valid = np.isfinite(points[..., 2])
+    # Off the surface, repeat the nearest row's points so no false crease appears at its silhouette.
+    p = np.where(valid[..., None], points, np.nanmedian(points[valid], axis=0) if valid.any() else 0.0)
+    p = p.astype(np.float32)
+    dx = np.zeros_like(p)
+    dy = np.zeros_like(p)
+    dx[:, 1:-1] = p[:, 2:] - p[:, :-2]
+    dy[1:-1] = p[2:] - p[:-2]
+    n = np.cross(dx, dy)
+    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    blurred = cv2.GaussianBlur(n, (0, 0), 2.0)
+    cos = np.clip(np.sum(n * blurred, axis=2) / np.maximum(np.linalg.norm(blurred, axis=2), 1e-12), -1, 1)
+    turn = np.degrees(np.arccos(cos))
+    turn[cv2.erode(valid.astype(np.uint8), np.ones((7, 7), np.uint8)) == 0] = 0.0
+    return np.clip(cv2.dilate(turn, np.ones((5, 5), np.uint8)) / 30.0, 0.0, 1.0).astype(np.float32)
+
+
+def _input_position(calibration: Any, points: np.ndarray) -> np.ndarray:
+    """Real-input position (corner convention, input pixels) of the light reaching rig-frame points."""
+    proj = calibration.rig.projector
+    uv = np.full((len(points), 2), np.nan)
+    ok = np.all(np.isfinite(points), axis=1)
+    uv[ok] = proj.project(points[ok])
+    uv -= np.asarray(proj.input_offset, float)  # frame → input pixels
+    if calibration.warp is not None:
+        # The model shows z = M(x): its input pixel u carries the real input at φ_M(u).
+        scale = np.asarray(calibration.warp.size) / proj.input_size
+        good = np.all(np.isfinite(uv), axis=1)
+        uv[good] = calibration.warp.map_m(uv[good] * scale) / scale
+    return uv
+
+
+def light_paths(calibration: Any, camera: Any
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per working-size camera pixel: real-input position (remap convention), its change per metre of
+    depth along the ray, 3-D point, unit ray, and whether the pixel's light comes from the input."""
+    from ..render.raycast import first_hits
+
+    w, h = camera.size
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5
+    rays = camera.rays(np.stack([xs.ravel(), ys.ravel()], axis=1))
+    t = first_hits(calibration.surface, np.zeros(3), rays)
+    points = rays * t[:, None]
+    unit = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    uv = _input_position(calibration, points)
+    step = 0.005  # metres: small against the surface's size, large against float error
+    per_metre = (_input_position(calibration, points + unit * step) - uv) / step
+    iw, ih = calibration.rig.projector.input_size
+    inside = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= iw) & (uv[:, 1] >= 0) & (uv[:, 1] <= ih)
+    inside &= np.all(np.isfinite(per_metre), axis=1)
+    corr = np.where(inside[:, None], uv - 0.5, -10.0).astype(np.float32).reshape(h, w, 2)
+    per_metre = np.where(inside[:, None], per_metre, 0.0).astype(np.float32).reshape(h, w, 2)
+    return (corr, per_metre, points.reshape(h, w, 3).astype(np.float32), unit.reshape(h, w, 3).astype(np.float32),
+            inside.reshape(h, w))
+
+
+def sample_input(x: np.ndarray, corr: np.ndarray) -> np.ndarray:
+    """The input image's value at each camera pixel's light path (bilinear; black off the input)."""
+    return cv2.remap(np.asarray(x, np.float32), corr[..., 0], corr[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int = 32, seed: int = 0,
+                  progress: Progress | None = None, cancel: Callable[[], bool] | None = None) -> GapData:
+    """Read a calibration and its capture set and render the model of every pattern the diagnosis uses."""
+    from ..errors import Cancelled
+    from ..render.forward import ForwardModel
+    from ..stages.calibrate import Calibration
+
+    say = progress or (lambda msg, frac: None)
+    cal = Calibration.load(calibration_dir)
+    if not cal.capture_dir or not Path(cal.capture_dir).is_dir():
+        raise DiagnosisError(f"the capture set {cal.capture_dir!r} that {calibration_dir} was calibrated from is "
+                             "missing; the diagnosis compares the model with those captures")
+    try:
+        captures = CaptureSet.load(cal.capture_dir)
+    except CaptureError as exc:
+        raise DiagnosisError(f"cannot read the calibration's capture set: {exc}") from None
+    _check_levels(captures)
+    proj = cal.rig.projector
+    x0, y0 = proj.input_offset
+    iw, ih = proj.input_size
+
+    def input_of(e: Entry) -> np.ndarray:
+        frame = captures.pattern(e.kind, name=e.name)
+        if frame.shape[:2] != (proj.intrinsics.height, proj.intrinsics.width):
+            raise DiagnosisError(f"pattern {e.name} is {frame.shape[1]}×{frame.shape[0]}, the calibrated projector "
+                                 f"{proj.intrinsics.width}×{proj.intrinsics.height}: wrong calibration for this set?")
+        return np.clip(frame[y0:y0 + ih, x0:x0 + iw], 0.0, 1.0).astype(np.float32)
+
+    entries = choose_entries(captures, input_of)
+    cw, ch = cal.rig.camera.intrinsics.size
+    size = (max(16, round(cw * scale)), max(12, round(ch * scale)))
+    camera = cal.rig.camera.intrinsics.scaled(*size)
+    say("light paths", 0.0)
+    corr, per_metre, points, rays, inside = light_paths(cal, camera)
+
+    def model(**kw: Any) -> ForwardModel:
+        return ForwardModel(cal.rig, cal.surface, camera_size=size, spp=spp, smoothing_eps=0.0, clamp=False,
+                            seed=seed, **kw)
+
+    direct_model = model()
+    warp_m = (lambda x: x) if cal.warp is None else (lambda x: np.clip(cal.warp.apply_m(x), 0, 1))
+    gain = direct_model.render_input(np.ones((ih, iw, 3), np.float32), spp=4 * spp)
+    mask = inside & (gain.mean(axis=2) > LIT_SHARE * float(np.percentile(gain.mean(axis=2), 99.5)))
+    if mask.sum() < 100:
+        raise DiagnosisError("the calibrated projector lights fewer than 100 camera pixels at the working "
+                             "resolution: check the calibration (procam calibrate) or use a larger --scale")
+    indirect_model = model(bounces=INDIRECT_BOUNCES)
+    glossy_models = {r: model(glossy_roughness=r) for r in GLOSSY_ROUGHNESS}
+    observations: list[Observation] = []
+    for i, e in enumerate(entries):
+        if cancel is not None and cancel():
+            raise Cancelled("diagnosis cancelled")
+        say(f"rendering pattern {i + 1}/{len(entries)}: {e.name}", 0.05 + 0.9 * i / len(entries))
+        x = input_of(e)
+        z = warp_m(x)
+        s = 1000 + 10 * i
+        direct = direct_model.render_input(z, seed=s)
+        indirect = np.maximum(indirect_model.render_input(z, seed=s + 1) - direct, 0.0) \
+            if float(z.max()) > 0 else np.zeros_like(direct)
+        glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
+        capture = _downsize(captures.image(e.kind, name=e.name), size)
+        observations.append(Observation(e.name, e.kind, x, capture, direct, indirect, glossy, sample_input(x, corr)))
+    fit, held = split_patterns(observations)
+    return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera, cal.warp,
+                   fit, held, report={"calibration": str(Path(calibration_dir).absolute()),
+                                      "capture_set": str(captures.path), "working_size": list(size), "spp": spp,
+                                      "patterns": [o.name for o in observations]})

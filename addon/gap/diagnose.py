@@ -1,0 +1,216 @@
+"""The sim-to-real diagnosis of a calibration: where, which effect, how far the gap shrinks (DESIGN.md §7).
+
+``diagnose(calibration_dir, out_dir)`` writes ``gap.json``, the residual maps and
+region overlay as PNGs (and the raw maps as EXR), and ``summary.md``, a one-page
+report with the images. Nothing here reads a lab truth file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..imageio import write_atomic_bytes, write_image
+from ..outputs import AtomicFolder, jsonable
+from .data import GapData, load_gap_data
+from .fit import MIN_SHARE, Fit, Selection, residual_stack, select_effects
+from .models import MODELS, NAMES, Composite, signature_mask
+from .regions import find_regions, residual_maps
+
+FORMAT = "procam-gap"
+VERSION = 1
+MANIFEST = "gap.json"
+#: The effect explains its gain where its signature says when that share of the squared-error reduction falls
+#: on its signature pixels, and more than their share of the pixels.
+SIGNATURE_ENRICHMENT = 1.2
+
+Progress = Callable[[str, float], None]
+
+#: Effects a single camera and projector cannot tell apart from what calibration already absorbs.
+ABSORBED = {
+    "vignetting": "a smooth projector falloff looks exactly like darker surface reflectance to one camera; the "
+                  "albedo estimated from the white capture already holds it, so compensation is not hurt",
+    "camera_response": "its white-balance gains are absorbed by the albedo in the same way; only its tone curve "
+                       "(mid levels) is visible",
+}
+
+
+def _psnr(rmse: float) -> float:
+    return float("inf") if rmse <= 0 else 20.0 * math.log10(1.0 / rmse)
+
+
+def _signature(data: GapData, name: str, base: Fit, fit: Fit) -> dict[str, Any]:
+    """Where the effect's reduction of squared error falls, against the pixels its signature names."""
+    if fit.error is not None:
+        return {}
+    b = residual_stack(Composite(data, ()), base.theta, data.held_index)
+    a = residual_stack(Composite(data, fit.names), fit.theta, data.held_index)
+    # Only where the effect helps: a model may also shift error around, which is not "explaining" it.
+    gain = np.where(data.mask, np.maximum(((b ** 2) - (a ** 2)).mean(axis=3), 0.0), 0.0)
+    sig = np.stack([signature_mask(name, data, data.observations[i]) for i in data.held_index]) & data.mask
+    total = float(gain.sum())
+    pixel_share = float(sig.sum() / max(data.mask.sum() * len(data.held_index), 1))
+    share = float(gain[sig].sum() / total) if total > 0 else 0.0
+    return {"where": MODELS[name].signature, "share_of_reduction": round(share, 3),
+            "share_of_pixels": round(pixel_share, 3),
+            "consistent": bool(total > 0 and share >= 0.5 and share >= SIGNATURE_ENRICHMENT * pixel_share)}
+
+
+def _confidence(sel: Selection, name: str, sig: dict[str, Any]) -> dict[str, Any]:
+    step = next((s for s in sel.steps if s["candidate"] == name), None)
+    out: dict[str, Any] = {"signature": sig}
+    if step is None or name not in sel.selected:
+        return {**out, "level": "not selected"}
+    ranking = step["ranking"]
+    gain1 = step["before"] - ranking[0][1]
+    gain2 = step["before"] - ranking[1][1] if len(ranking) > 1 else 0.0
+    margin = (gain1 - max(gain2, 0.0)) / gain1 if gain1 > 0 else 0.0
+    runner = ranking[1][0] if len(ranking) > 1 else None
+    level = "high" if margin >= 0.3 and sig.get("consistent") else ("medium" if margin >= 0.3 or sig.get("consistent")
+                                                                  else "low")
+    return {**out, "margin": round(margin, 3), "runner_up": runner, "level": level}
+
+
+def _colour_signed(r: np.ndarray, scale: float) -> np.ndarray:
+    return np.clip(0.5 + r / (2 * scale), 0, 1)
+
+
+def _heat(v: np.ndarray, scale: float) -> np.ndarray:
+    u8 = (np.clip(v / scale, 0, 1) * 255).astype(np.uint8)
+    return cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)[..., ::-1].astype(np.float32) / 255.0
+
+
+def _overlay(base: np.ndarray, regions: list[Any], size: tuple[int, int]) -> np.ndarray:
+    img = cv2.resize(np.clip(base, 0, 1) ** (1 / 2.2), size, interpolation=cv2.INTER_LINEAR)
+    img = (img * 255).astype(np.uint8).copy()
+    for k, r in enumerate(regions):
+        x, y, w, h = r.bbox
+        cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), (255, 60, 60), 2)
+        cv2.putText(img, f"{k + 1}: {r.share:.0%}", (x + 3, y + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 80), 1)
+    return img.astype(np.float32) / 255.0
+
+
+def _summary(doc: dict[str, Any]) -> str:
+    res, after = doc["residual"], doc["residual_after"]
+    lines = ["# ProCam sim-to-real diagnosis", "",
+             f"Calibration `{doc['calibration']}`; {len(doc['patterns']['fit'])} patterns fitted, "
+             f"{len(doc['patterns']['held_out'])} held out.", "",
+             f"**Held-out residual of the calibrated model:** RMSE {res['rmse']:.4f} ({res['psnr']:.1f} dB PSNR).",
+             f"**With the selected effects:** RMSE {after['rmse']:.4f} ({after['psnr']:.1f} dB).", "",
+             "**Selected:** " + (", ".join(doc["selected"]) if doc["selected"] else
+                                 "none: no effect model removes a significant share of the residual"), "",
+             "## Which effect", "",
+             "| rank | effect | held-out RMSE alone | removes | confidence | signature (share of gain where expected) |",
+             "|---|---|---|---|---|---|"]
+    for k, e in enumerate(doc["effects"]):
+        if e.get("error"):
+            lines.append(f"| – | {e['name']} | failed to fit: {e['error']} | | | |")
+            continue
+        sig = e["confidence"].get("signature", {})
+        lines.append(f"| {k + 1} | {e['name']} | {e['heldout_rmse_after']:.4f} | {e['reduction']:.0%} | "
+                     f"{e['confidence']['level']} | {sig.get('share_of_reduction', 0):.0%} "
+                     f"{sig.get('where', '')} |")
+    lines += ["", "## How far the gap shrinks (greedy steps, held-out RMSE)", ""]
+    for s in doc["steps"]:
+        verdict = f"added **{s['added']}**" if s["added"] else f"stopped: best candidate {s['candidate']} removes " \
+                                                              f"only {s['share']:.0%} (< {doc['min_share']:.0%})"
+        lines.append(f"- {s['before']:.4f} → {s['after']:.4f} ({s['share']:.0%}): {verdict}")
+    if doc["selected"]:
+        lines += ["", "Fitted parameters: " + "; ".join(
+            f"{n} {doc['selected_params'][n]}" for n in doc["selected"])]
+    lines += ["", "## Where", "", "![regions](regions.png) ![residual](residual_abs.png)", "",
+              "| region | bbox (x, y, w, h) | share of squared error | description |", "|---|---|---|---|"]
+    for k, r in enumerate(doc["regions"]):
+        lines.append(f"| {k + 1} | {tuple(r['bbox'])} | {r['share']:.0%} | {r['description']} |")
+    lines += ["", "Maps: `residual_signed.png` (per channel, grey = 0, ±scale in the JSON), `residual_abs.png`, "
+                  "`residual_after_abs.png` (with the selected effects).", "",
+              "Not identifiable from these captures: " + "; ".join(f"**{k}**: {v}" for k, v in ABSORBED.items()), ""]
+    return "\n".join(lines)
+
+
+def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float = 0.5, spp: int = 32,
+             candidates: tuple[str, ...] = NAMES, min_share: float = MIN_SHARE, force: bool = False,
+             progress: Progress | None = None, cancel: Callable[[], bool] | None = None) -> dict[str, Any]:
+    """Run the diagnosis and write its folder; returns the ``gap.json`` document."""
+    from ..errors import ProCamError
+
+    say = progress or (lambda msg, frac: None)
+    folder = AtomicFolder(out_dir, force=force, what="diagnosis folder",
+                          replaceable=lambda p: (p / MANIFEST).is_file(), error=ProCamError)
+    try:
+        t0 = time.perf_counter()
+        data = load_gap_data(calibration_dir, scale=scale, spp=spp, cancel=cancel,
+                             progress=lambda m, f: say(f"model: {m}", 0.4 * f))
+        t_render = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        sel = select_effects(data, candidates, min_share=min_share, cancel=cancel,
+                             progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
+        t_fit = time.perf_counter() - t0
+        base, final = sel.base, sel.final or sel.base
+        effects = []
+        ranked = sorted(sel.alone.items(), key=lambda kv: (kv[1].error is not None, kv[1].held_rmse))
+        for name, f in ranked:
+            if f.error is not None:
+                effects.append({"name": name, "error": f.error, "params": None, "heldout_rmse_before": base.held_rmse,
+                                "heldout_rmse_after": None, "confidence": {"level": "failed"}})
+                continue
+            sig = _signature(data, name, base, f) if name in sel.selected or name == ranked[0][0] else {}
+            effects.append({"name": name, "params": f.params()[name], "heldout_rmse_before": base.held_rmse,
+                            "heldout_rmse_after": f.held_rmse,
+                            "reduction": (base.held_rmse - f.held_rmse) / max(base.held_rmse, 1e-12),
+                            "fit_seconds": round(f.seconds, 2), "confidence": _confidence(sel, name, sig)})
+        res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
+        res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
+        cam_full = _camera_full_size(calibration_dir, data)
+        regions = find_regions(data, res_base, cam_full, data.held_index)
+        doc = {"format": FORMAT, "version": VERSION, "calibration": data.report["calibration"],
+               "capture_set": data.report["capture_set"], "working_size": list(data.size),
+               "patterns": {"fit": [data.names[i] for i in data.fit_index],
+                            "held_out": [data.names[i] for i in data.held_index]},
+               "lit_pixels": int(data.mask.sum()),
+               "residual": {"rmse": base.held_rmse, "psnr": _psnr(base.held_rmse),
+                            "fit_rmse": base.fit_rmse},
+               "residual_after": {"rmse": final.held_rmse, "psnr": _psnr(final.held_rmse)},
+               "regions": [r.to_dict() for r in regions],
+               "effects": effects,
+               "steps": [{k: v for k, v in s.items()} for s in sel.steps],
+               "selected": list(sel.selected),
+               "selected_params": final.params() if sel.selected else {},
+               "min_share": min_share,
+               "not_identifiable": ABSORBED,
+               "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1)}}
+        maps = residual_maps(res_base, data.mask)
+        after = residual_maps(res_final, data.mask)
+        scale_abs = max(float(np.percentile(maps["abs"][data.mask], 99)), 1e-3)
+        doc["map_scale"] = scale_abs
+        tmp = folder.tmp
+        write_atomic_bytes(tmp / MANIFEST, (json.dumps(jsonable(doc), indent=1) + "\n").encode())
+        write_image(tmp / "residual_signed.png", _colour_signed(maps["signed"], scale_abs))
+        write_image(tmp / "residual_abs.png", _heat(maps["abs"].mean(axis=2), scale_abs))
+        write_image(tmp / "residual_abs_rgb.png", np.clip(maps["abs"] / scale_abs, 0, 1))
+        write_image(tmp / "residual_after_abs.png", _heat(after["abs"].mean(axis=2), scale_abs))
+        write_image(tmp / "residual_signed.exr", maps["signed"])
+        write_image(tmp / "residual_abs.exr", maps["abs"])
+        white = data.observations[next(i for i, o in enumerate(data.observations) if o.kind == "white")].capture
+        write_image(tmp / "regions.png", _overlay(white, regions, cam_full))
+        write_atomic_bytes(tmp / "summary.md", _summary(doc).encode())
+    except BaseException:
+        folder.abort()
+        raise
+    folder.commit()
+    say("done", 1.0)
+    return doc
+
+
+def _camera_full_size(calibration_dir: str | Path, data: GapData) -> tuple[int, int]:
+    doc = json.loads((Path(calibration_dir) / "calibration.json").read_text())
+    from ..rig.model import Rig
+
+    return Rig.from_dict(doc["rig"]).camera.intrinsics.size

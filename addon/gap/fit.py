@@ -1,0 +1,193 @@
+"""Fitting effect models on some patterns, scoring them on the held-out rest, and greedy selection.
+
+Each candidate is fitted (bounded Levenberg–Marquardt, finite-difference
+Jacobian: the models have at most a handful of parameters and evaluate in
+milliseconds per pattern) on the *fit* patterns and scored by the RMSE of
+simulation vs capture on the *held-out* patterns, over the lit camera pixels.
+Effects are added greedily, the one that lowers the held-out RMSE most first,
+while each still removes at least ``min_share`` of the RMSE that is left: an
+effect that only fits noise does not pass, so "no effect" is a possible answer.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import Cancelled
+from .data import GapData
+from .models import MODELS, NAMES, Composite
+
+#: An effect is added only if it removes at least this share of the held-out RMSE still left.
+MIN_SHARE = 0.06
+#: Camera pixels per pattern the fit uses (a fixed random subset of the lit ones; scoring uses all).
+FIT_PIXELS = 12000
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class Fit:
+    """One composite model fitted on the fit patterns and scored on the held-out ones."""
+
+    names: tuple[str, ...]
+    theta: np.ndarray
+    fit_rmse: float
+    held_rmse: float
+    seconds: float
+    error: str | None = None
+
+    def params(self) -> dict[str, dict[str, float]]:
+        from .models import describe_params
+
+        comp_slices, i = {}, 0
+        for n in (n for n in NAMES if n in self.names):
+            k = len(MODELS[n].params)
+            comp_slices[n] = self.theta[i:i + k]
+            i += k
+        return {n: describe_params(n, v) for n, v in comp_slices.items()}
+
+
+def rmse(comp: Composite, theta: np.ndarray, index: list[int]) -> float:
+    """RMSE of prediction vs capture over the lit pixels and all channels of the given patterns."""
+    m = comp.data.mask
+    total, count = 0.0, 0
+    for i in index:
+        o = comp.data.observations[i]
+        r = (comp.predict(theta, o) - o.capture)[m]
+        total += float(np.sum(r.astype(np.float64) ** 2))
+        count += r.size
+    return float(np.sqrt(total / max(count, 1)))
+
+
+def residual_stack(comp: Composite, theta: np.ndarray, index: list[int]) -> np.ndarray:
+    """Signed residuals prediction − capture (n × h × w × 3) of the given patterns."""
+    return np.stack([comp.predict(theta, comp.data.observations[i]) - comp.data.observations[i].capture
+                     for i in index])
+
+
+def _fit_pixels(data: GapData, seed: int = 0) -> np.ndarray:
+    flat = np.flatnonzero(data.mask.ravel())
+    if len(flat) > FIT_PIXELS:
+        flat = np.sort(np.random.default_rng(seed).choice(flat, FIT_PIXELS, replace=False))
+    return flat
+
+
+def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.ndarray] | None = None,
+                  iterations: int = 15) -> Fit:
+    """Fit the composite of ``names`` on the fit patterns (starting from ``start`` where given)."""
+    t0 = time.perf_counter()
+    comp = Composite(data, names)
+    theta = comp.initial()
+    for n, v in (start or {}).items():
+        if n in comp.slices:
+            theta[comp.slices[n]] = v
+    lo, hi = comp.bounds()
+    theta = np.clip(theta, lo, hi)
+    if comp.size == 0:
+        return Fit(comp.names, theta, rmse(comp, theta, data.fit_index), rmse(comp, theta, data.held_index),
+                   time.perf_counter() - t0)
+    pixels = _fit_pixels(data)
+    caps = np.concatenate([data.observations[i].capture.reshape(-1, 3)[pixels].ravel() for i in data.fit_index])
+
+    def residual(t: np.ndarray) -> np.ndarray:
+        pred = np.concatenate([comp.predict(t, data.observations[i]).reshape(-1, 3)[pixels].ravel()
+                               for i in data.fit_index])
+        return (pred - caps).astype(np.float64)
+
+    step = 1e-3 * (hi - lo)
+    try:
+        r = residual(theta)
+        cost = float(r @ r)
+        lam = 1e-3
+        for _ in range(iterations):
+            jac = np.empty((r.size, comp.size))
+            for k in range(comp.size):
+                t = theta.copy()
+                # Step inwards at an upper bound so the difference stays inside the box.
+                h = step[k] if theta[k] + step[k] <= hi[k] else -step[k]
+                t[k] += h
+                jac[:, k] = (residual(t) - r) / h
+            jtj, jtr = jac.T @ jac, jac.T @ r
+            improved = False
+            for _ in range(6):
+                a = jtj + lam * np.diag(np.maximum(np.diag(jtj), 1e-12))
+                try:
+                    delta = -np.linalg.solve(a, jtr)
+                except np.linalg.LinAlgError:
+                    delta = -np.linalg.lstsq(a, jtr, rcond=None)[0]
+                cand = np.clip(theta + delta, lo, hi)
+                rc = residual(cand)
+                c = float(rc @ rc)
+                if np.isfinite(c) and c < cost:
+                    shrink = (cost - c) / max(cost, 1e-30)
+                    theta, r, cost, lam = cand, rc, c, max(lam / 3, 1e-7)
+                    improved = True
+                    break
+                lam *= 4
+            if not improved or shrink < 1e-5:
+                break
+        if not np.all(np.isfinite(theta)):
+            raise FloatingPointError("parameters became NaN")
+    except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
+        return Fit(comp.names, comp.initial(), float("nan"), float("nan"), time.perf_counter() - t0,
+                   error=f"{type(exc).__name__}: {exc}")
+    return Fit(comp.names, theta, float(np.sqrt(cost / max(r.size, 1))), rmse(comp, theta, data.held_index),
+               time.perf_counter() - t0)
+
+
+@dataclass
+class Selection:
+    """The greedy selection: every candidate alone, then each step that added an effect."""
+
+    base: Fit
+    alone: dict[str, Fit]  # each candidate fitted alone on top of f̂
+    steps: list[dict[str, Any]] = field(default_factory=list)  # {"added", "before", "after", "share", "ranking"}
+    selected: list[str] = field(default_factory=list)
+    final: Fit | None = None
+    min_share: float = MIN_SHARE
+
+
+def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_share: float = MIN_SHARE,
+                   max_effects: int = 4, progress: Progress | None = None,
+                   cancel: Callable[[], bool] | None = None) -> Selection:
+    """Greedy forward selection on held-out RMSE (see the module docstring)."""
+    say = progress or (lambda msg, frac: None)
+    base = fit_composite(data, ())
+    sel = Selection(base, {}, min_share=min_share)
+    current = base
+    remaining = [c for c in candidates if c in MODELS]
+    for step in range(max_effects):
+        fits: dict[str, Fit] = {}
+        for j, name in enumerate(remaining):
+            if cancel is not None and cancel():
+                raise Cancelled("diagnosis cancelled")
+            say(f"round {step + 1}: fitting {'+'.join([*sel.selected, name])}",
+                (step + j / max(len(remaining), 1)) / max_effects)
+            start = current.params() if sel.selected else {}
+            f = fit_composite(data, tuple(sel.selected) + (name,),
+                              start={n: np.array(list(v.values())) for n, v in start.items()})
+            fits[name] = f
+            if step == 0:
+                sel.alone[name] = f
+        ranking = sorted((n for n in fits if fits[n].error is None), key=lambda n: fits[n].held_rmse)
+        if not ranking:
+            break
+        best = fits[ranking[0]]
+        share = (current.held_rmse - best.held_rmse) / max(current.held_rmse, 1e-12)
+        sel.steps.append({"added": ranking[0] if share >= min_share else None, "candidate": ranking[0],
+                          "before": current.held_rmse, "after": best.held_rmse, "share": share,
+                          "ranking": [(n, fits[n].held_rmse) for n in ranking]})
+        if share < min_share:
+            break
+        sel.selected.append(ranking[0])
+        current = best
+        remaining.remove(ranking[0])
+        if not remaining:
+            break
+    sel.final = current
+    return sel

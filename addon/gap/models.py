@@ -1,0 +1,238 @@
+"""Effect models: extensions of the forward model ``f̂`` named after the lab's effects (one registry).
+
+Each model adds a few parameters to ``f̂`` and predicts a capture from the
+renders in :class:`.data.Observation`. Where light meets each effect:
+
+* on the real input, before the renderer (``response`` → ``crosstalk`` →
+  ``black_level``'s projector part → ``vignetting``; ``defocus`` blurs the input
+  first): evaluated along each camera pixel's light path, so a change
+  ``x → g(x)`` of the input changes direct light by ``gain · (g(x) − x)(corr)``;
+* in the renderer (``interreflection`` adds a share of the indirect-light render,
+  ``glossy`` mixes in a white GGX lobe), and the geometry (``depth_noise``: a
+  smooth depth error moves each pixel's light path, ``corr``);
+* on the camera image (``black_level``'s ambient part → ``distortion`` →
+  ``camera_response``).
+
+The same names as ``addon/lab/effects.py``; ``noise`` has no model (it is the
+floor the diagnosis cannot remove). Parameters are plain floats with bounds; the
+``identity`` values switch a model off exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .data import GLOSSY_ROUGHNESS, GapData, Observation, sample_input
+
+
+@dataclass(frozen=True)
+class EffectModel:
+    """A named extension of f̂: parameter names, identity values, bounds, and where it should show."""
+
+    name: str
+    params: tuple[str, ...]
+    identity: tuple[float, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    signature: str  # where its residual should lie, in words (see ``signature_mask``)
+    start: tuple[float, ...] | None = None  # where the fit starts (identity is a saddle for some models)
+
+    def initial(self) -> np.ndarray:
+        return np.asarray(self.start if self.start is not None else self.identity, float)
+
+
+MODELS: dict[str, EffectModel] = {m.name: m for m in (
+    EffectModel("response", ("gamma_r", "gamma_g", "gamma_b"), (1, 1, 1), (0.3,) * 3, (3.5,) * 3,
+                "mid input levels"),
+    EffectModel("crosstalk", ("rg", "rb", "gr", "gb", "br", "bg"), (0,) * 6, (-0.1,) * 6, (0.5,) * 6,
+                "saturated input colours"),
+    EffectModel("black_level", ("projector", "ambient_r", "ambient_g", "ambient_b"), (0, 0, 0, 0),
+                (0, -0.02, -0.02, -0.02), (0.2, 0.5, 0.5, 0.5), "dark input levels"),
+    EffectModel("vignetting", ("falloff", "exponent"), (0, 2), (-0.5, 1), (0.9, 6), "near the projector's corners",
+                start=(0.05, 2)),
+    EffectModel("defocus", ("sigma",), (0,), (0,), (12,), "at edges of the projected pattern (high spatial "
+                "frequency)", start=(0.7,)),
+    EffectModel("interreflection", ("gain",), (0,), (0,), (2.5,), "where indirect light is strong (concave parts)"),
+    EffectModel("glossy", ("weight", "roughness"), (0, 0.4), (0, GLOSSY_ROUGHNESS[0]), (0.8, GLOSSY_ROUGHNESS[-1]),
+                "where a glossy lobe changes the image (view-dependent highlights)", start=(0.05, 0.4)),
+    EffectModel("camera_response", ("gain_r", "gain_b", "curve"), (1, 1, 0), (0.5, 0.5, 0), (2, 2, 1),
+                "mid camera levels"),
+    EffectModel("distortion", ("k1", "k2"), (0, 0), (-0.4, -0.15), (0.4, 0.15), "near the camera image border"),
+    EffectModel("depth_noise", ("offset", "slope_x", "slope_y"), (0, 0, 0), (-0.1,) * 3, (0.1,) * 3,
+                "at edges of the projected pattern, along the projector–camera baseline"),
+)}
+NAMES: tuple[str, ...] = tuple(MODELS)
+
+
+def crosstalk_matrix(p: np.ndarray) -> np.ndarray:
+    """3×3 mixing, rows summing to 1 (white stays white): out_c = Σ_d M[c, d] · in_d."""
+    rg, rb, gr, gb, br, bg = p
+    return np.array([[1 - rg - rb, rg, rb], [gr, 1 - gr - gb, gb], [br, bg, 1 - br - bg]], np.float32)
+
+
+def vignetting_radius(projector: Any, positions: np.ndarray) -> np.ndarray:
+    """Field-angle radius about the projector's principal point, over that of the farthest input corner,
+    at real-input positions (…×2, cv2.remap convention)."""
+    iw, ih = projector.input_size
+    k = projector.intrinsics
+    ccx, ccy = k.cx - projector.input_offset[0] - 0.5, k.cy - projector.input_offset[1] - 0.5
+    rx, ry = (positions[..., 0] - ccx) / k.fx, (positions[..., 1] - ccy) / k.fy
+    rmax = max(np.hypot(cx / k.fx, cy / k.fy) for cx in (-0.5 - ccx, iw - 0.5 - ccx) for cy in (-0.5 - ccy, ih - 0.5 - ccy))
+    return (np.hypot(rx, ry) / rmax).astype(np.float32)
+
+
+def _srgb(v: np.ndarray) -> np.ndarray:
+    v = np.clip(v, 0.0, 1.0)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+
+
+class Composite:
+    """Several effect models on top of f̂, with one flat parameter vector (in ``names`` order)."""
+
+    def __init__(self, data: GapData, names: tuple[str, ...]) -> None:
+        unknown = [n for n in names if n not in MODELS]
+        if unknown:
+            raise KeyError(f"unknown effect model(s) {unknown}; known: {', '.join(NAMES)}")
+        self.data = data
+        self.names = tuple(n for n in NAMES if n in names)  # the physical order, whatever the caller's
+        self.slices: dict[str, slice] = {}
+        i = 0
+        for n in self.names:
+            k = len(MODELS[n].params)
+            self.slices[n] = slice(i, i + k)
+            i += k
+        self.size = i
+        h, w = data.mask.shape
+        c = data.camera
+        ys, xs = np.mgrid[0:h, 0:w] + 0.5
+        self._xn = ((xs - c.cx) / c.fx).astype(np.float32)
+        self._yn = ((ys - c.cy) / c.fy).astype(np.float32)
+        self._vig_r = vignetting_radius(data.projector, data.corr)
+
+    def initial(self) -> np.ndarray:
+        return np.concatenate([MODELS[n].initial() for n in self.names]) if self.names else np.zeros(0)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.concatenate([MODELS[n].lower for n in self.names]) if self.names else np.zeros(0)
+        hi = np.concatenate([MODELS[n].upper for n in self.names]) if self.names else np.zeros(0)
+        return lo.astype(float), hi.astype(float)
+
+    def split(self, theta: np.ndarray) -> dict[str, np.ndarray]:
+        return {n: np.asarray(theta[s], float) for n, s in self.slices.items()}
+
+    # ------------------------------------------------------------------ prediction
+
+    def _corr(self, p: dict[str, np.ndarray]) -> np.ndarray:
+        d = self.data
+        if "depth_noise" not in p:
+            return d.corr
+        off, sx, sy = p["depth_noise"]
+        # A smooth depth error δ (metres along each camera ray) moves each light path to first order.
+        delta = (off + sx * self._xn + sy * self._yn)[..., None]
+        return np.where(d.corr > -5, d.corr + d.corr_per_metre * delta, d.corr).astype(np.float32)
+
+    def predict(self, theta: np.ndarray, obs: Observation, corr: np.ndarray | None = None) -> np.ndarray:
+        """The capture this composite model predicts for one pattern (h×w×3, clipped to [0, 1])."""
+        p = self.split(theta)
+        d = self.data
+        if corr is None:
+            corr = self._corr(p)
+        x = obs.x
+        if "defocus" in p and p["defocus"][0] > 0.05:
+            x = cv2.GaussianBlur(x, (0, 0), float(p["defocus"][0]))
+        moved = corr is not d.corr
+        a = sample_input(x, corr) if (moved or x is not obs.x) else obs.sampled
+        if "response" in p:
+            a = np.power(np.clip(a, 0.0, 1.0), p["response"].astype(np.float32))
+        if "crosstalk" in p:
+            a = a @ crosstalk_matrix(p["crosstalk"]).T
+        if "black_level" in p:
+            b = float(p["black_level"][0])
+            a = b + (1.0 - b) * a
+        if "vignetting" in p:
+            falloff, exponent = p["vignetting"]
+            a = a * (1.0 - falloff * np.power(self._vig_r, exponent))[..., None]
+        img = obs.direct + d.gain * (a - obs.sampled)
+        if "interreflection" in p:
+            img = img + float(p["interreflection"][0]) * obs.indirect
+        if "glossy" in p:
+            weight, rough = p["glossy"]
+            img = (1.0 - weight) * img + weight * _glossy_at(obs, float(rough))
+        if "black_level" in p:
+            img = img + p["black_level"][1:].astype(np.float32)
+        if "distortion" in p:
+            img = self._distort(img, *p["distortion"])
+        if "camera_response" in p:
+            gr, gb, curve = p["camera_response"]
+            img = np.clip(img * np.array([gr, 1.0, gb], np.float32), 0.0, 1.0)
+            img = (1.0 - curve) * img + curve * _srgb(img)
+        return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+    def _distort(self, img: np.ndarray, k1: float, k2: float) -> np.ndarray:
+        # The captured pixel at distorted position p shows the scene of the undistorted position:
+        # sample the undistorted image at p's undistorted position (one fixed-point step is enough
+        # for |k1| ≤ 0.4 over a normal field of view).
+        c = self.data.camera
+        xd, yd = self._xn, self._yn
+        xu, yu = xd, yd
+        for _ in range(3):
+            r2 = xu * xu + yu * yu
+            f = 1 + k1 * r2 + k2 * r2 * r2
+            xu, yu = xd / f, yd / f
+        mx = (xu * c.fx + c.cx - 0.5).astype(np.float32)
+        my = (yu * c.fy + c.cy - 0.5).astype(np.float32)
+        return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _glossy_at(obs: Observation, rough: float) -> np.ndarray:
+    rs = sorted(obs.glossy)
+    rough = min(max(rough, rs[0]), rs[-1])
+    j = max(0, min(len(rs) - 2, int(np.searchsorted(rs, rough)) - 1))
+    r0, r1 = rs[j], rs[j + 1]
+    t = (rough - r0) / (r1 - r0)
+    return (1 - t) * obs.glossy[r0] + t * obs.glossy[r1]
+
+
+def signature_mask(name: str, data: GapData, obs: Observation) -> np.ndarray:
+    """Camera pixels (h×w bool) of one pattern where the effect's residual should lie."""
+    a = obs.sampled
+    level = a.mean(axis=2)
+    if name == "response":
+        return (level > 0.15) & (level < 0.85)
+    if name == "crosstalk":
+        return (a.max(axis=2) - a.min(axis=2)) > 0.3
+    if name == "black_level":
+        return level < 0.15
+    if name == "vignetting":
+        comp = Composite(data, ())
+        return comp._vig_r > 0.6
+    if name in ("defocus", "depth_noise"):
+        gx = cv2.Sobel(level, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(level, cv2.CV_32F, 0, 1, ksize=3)
+        return cv2.dilate((np.hypot(gx, gy) > 0.5).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    if name == "interreflection":
+        ind = obs.indirect.mean(axis=2)
+        return ind > np.percentile(ind[data.mask], 75) if data.mask.any() else ind > 0
+    if name == "glossy":
+        diff = np.abs(_glossy_at(obs, 0.4) - obs.direct).mean(axis=2)
+        return diff > np.percentile(diff[data.mask], 75) if data.mask.any() else diff > 0
+    if name == "camera_response":
+        v = obs.direct.mean(axis=2)
+        return (v > 0.15) & (v < 0.7)
+    if name == "distortion":
+        h, w = data.mask.shape
+        ys, xs = np.mgrid[0:h, 0:w]
+        r = np.hypot((xs - w / 2) / (w / 2), (ys - h / 2) / (h / 2))
+        return r > 0.6
+    raise KeyError(name)
+
+
+def describe_params(name: str, values: np.ndarray) -> dict[str, float]:
+    return {p: round(float(v), 5) for p, v in zip(MODELS[name].params, values)}
+
+
+__all__ = ["Composite", "EffectModel", "MODELS", "NAMES", "crosstalk_matrix", "describe_params", "signature_mask"]

@@ -1,0 +1,165 @@
+"""Sim-to-real diagnosis (addon/gap): a withheld effect is found, no effect gives no answer, bad input is explained.
+
+The lab sets are tiny (scale 0.2) and the calibration is the truth's geometry
+(``lab_calibration``), so these tests check the diagnosis itself; the full
+matrix on calibrated data is ``scripts/bench_diagnosis.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from procam.addon.gap import fit as gap_fit
+from procam.addon.gap.compensation import EffectAdapter
+from procam.addon.gap.data import DiagnosisError, load_gap_data
+from procam.addon.gap.diagnose import diagnose
+from procam.addon.gap.models import MODELS, NAMES, Composite
+from procam.addon.rig.demo import demo_rig
+
+TINY = dict(scale=0.2, samples=8)
+CANDIDATES = ("response", "black_level", "defocus", "distortion")
+
+
+@pytest.fixture(scope="module")
+def response_case(lab_calibration):
+    return lab_calibration("plane", "response=0.8", **TINY)
+
+
+@pytest.fixture(scope="module")
+def clean_case(lab_calibration):
+    return lab_calibration("plane", "", **TINY)
+
+
+def test_withheld_response_is_found_and_outputs_written(response_case, tmp_path):
+    cal_dir, _, _ = response_case
+    out = tmp_path / "gap"
+    doc = diagnose(cal_dir, out, scale=1.0, spp=16, candidates=CANDIDATES)
+    assert doc["selected"][:1] == ["response"]
+    assert doc["effects"][0]["name"] == "response"
+    first = doc["effects"][0]
+    # The model removes most of the residual on patterns it was not fitted on.
+    assert first["heldout_rmse_after"] < 0.6 * first["heldout_rmse_before"]
+    gammas = list(first["params"].values())
+    assert all(1.5 < g < 2.6 for g in gammas), gammas  # lab: 1 + 1.2·0.8 = 1.96 (± spread)
+    assert first["confidence"]["level"] in ("high", "medium")
+    saved = json.loads((out / "gap.json").read_text())
+    assert set(saved) >= {"residual", "regions", "effects", "selected"}
+    assert set(saved["residual"]) >= {"rmse", "psnr"}
+    for e in saved["effects"]:
+        assert set(e) >= {"name", "params", "heldout_rmse_before", "heldout_rmse_after", "confidence"}
+    for r in saved["regions"]:
+        assert set(r) >= {"bbox", "share", "description"}
+    for name in ("residual_signed.png", "residual_abs.png", "residual_after_abs.png", "regions.png", "summary.md"):
+        assert (out / name).is_file(), name
+    assert "response" in (out / "summary.md").read_text()
+
+
+def test_no_effect_selects_nothing(clean_case, tmp_path):
+    cal_dir, _, _ = clean_case
+    doc = diagnose(cal_dir, tmp_path / "gap", scale=1.0, spp=16, candidates=CANDIDATES)
+    assert doc["selected"] == []
+    assert doc["residual_after"]["rmse"] == doc["residual"]["rmse"]
+
+
+def test_effect_that_fails_to_fit_is_reported_and_others_ranked(response_case, monkeypatch):
+    cal_dir, _, _ = response_case
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    real = Composite.predict
+
+    def broken(self, theta, obs, corr=None):
+        if "defocus" in self.names:
+            raise FloatingPointError("synthetic failure")
+        return real(self, theta, obs, corr)
+
+    monkeypatch.setattr(Composite, "predict", broken)
+    sel = gap_fit.select_effects(data, ("response", "defocus"))
+    assert sel.alone["defocus"].error and "synthetic failure" in sel.alone["defocus"].error
+    assert sel.selected == ["response"]
+
+
+def test_identity_parameters_reproduce_the_base_model(response_case):
+    cal_dir, _, _ = response_case
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    comp = Composite(data, NAMES)
+    theta = np.concatenate([np.asarray(MODELS[n].identity, float) for n in comp.names])
+    for obs in data.observations[:4]:
+        np.testing.assert_allclose(comp.predict(theta, obs), np.clip(obs.direct, 0, 1), atol=2e-3)
+
+
+def test_adapter_inverts_what_it_models():
+    proj = demo_rig((64, 48), (80, 60)).projector
+    adapter = EffectAdapter({"response": {"gamma_r": 2.0, "gamma_g": 1.8, "gamma_b": 1.6},
+                             "crosstalk": dict(zip(MODELS["crosstalk"].params, (0.05, 0.02, 0.04, 0.05, 0.01, 0.04))),
+                             "black_level": {"projector": 0.02, "ambient_r": 0.01, "ambient_g": 0.01,
+                                             "ambient_b": 0.005},
+                             "vignetting": {"falloff": 0.3, "exponent": 2.0},
+                             "camera_response": {"gain_r": 1.1, "gain_b": 0.9, "curve": 0.5},
+                             "defocus": {"sigma": 1.0}}, proj)
+    assert "defocus" in adapter.not_used and "defocus" not in adapter.used
+    iw, ih = proj.input_size
+    rng = np.random.default_rng(0)
+    light = rng.uniform(0.2, 0.6, (ih, iw, 3)).astype(np.float32)  # within what the projector can emit
+    np.testing.assert_allclose(adapter.emitted(adapter.input_for(light)), light, atol=2e-3)
+    v = rng.uniform(0.05, 0.6, (10, 10, 3)).astype(np.float32)
+    seen = v + np.array([0.01, 0.01, 0.005], np.float32)
+    seen = np.clip(seen * np.array([1.1, 1.0, 0.9], np.float32), 0, 1)
+    srgb = np.where(seen <= 0.0031308, 12.92 * seen, 1.055 * seen ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(adapter.camera_to_light(0.5 * seen + 0.5 * srgb), v, atol=2e-3)
+
+
+def _copy_set(src, dst, edit):
+    shutil.copytree(src, dst)
+    doc = json.loads((dst / "capture.json").read_text())
+    edit(doc, dst)
+    (dst / "capture.json").write_text(json.dumps(doc))
+
+
+def _calibration_for(cal_dir, captures, tmp_path):
+    cal = tmp_path / "cal"
+    shutil.copytree(cal_dir, cal)
+    doc = json.loads((cal / "calibration.json").read_text())
+    doc["capture_set"] = str(captures)
+    (cal / "calibration.json").write_text(json.dumps(doc))
+    return cal
+
+
+def test_missing_validation_captures_say_how_to_get_them(clean_case, tmp_path):
+    cal_dir, captures, _ = clean_case
+
+    def drop(doc, _):
+        key = "entries" if "entries" in doc else "images"
+        doc[key] = [e for e in doc[key] if e["kind"] != "validation"]
+
+    _copy_set(captures, tmp_path / "set", drop)
+    with pytest.raises(DiagnosisError, match="validation"):
+        diagnose(_calibration_for(cal_dir, tmp_path / "set", tmp_path), tmp_path / "gap", scale=1.0, spp=4)
+    assert not (tmp_path / "gap").exists()
+
+
+def test_all_dark_captures_are_refused(clean_case, tmp_path):
+    cal_dir, captures, _ = clean_case
+
+    def dark_white(doc, folder):
+        key = "entries" if "entries" in doc else "images"
+        black = next(e for e in doc[key] if e["kind"] == "black")["file"]
+        white = next(e for e in doc[key] if e["kind"] == "white")["file"]
+        shutil.copyfile(folder / black, folder / white)
+
+    _copy_set(captures, tmp_path / "set", dark_white)
+    with pytest.raises(DiagnosisError, match="dark"):
+        diagnose(_calibration_for(cal_dir, tmp_path / "set", tmp_path), tmp_path / "gap", scale=1.0, spp=4)
+
+
+def test_cli_diagnose_runs_and_rejects_unknown_effects(response_case, tmp_path, capsys):
+    from procam.addon.cli import main
+
+    cal_dir, _, _ = response_case
+    assert main(["diagnose", str(cal_dir), "--out", str(tmp_path / "bad"), "--effects", "sparkle"]) == 2
+    assert "unknown effect" in capsys.readouterr().err
+    assert main(["diagnose", str(cal_dir), "--out", str(tmp_path / "gap"), "--scale", "1", "--spp", "8",
+                 "--effects", "response,black_level"]) == 0
+    assert "response" in capsys.readouterr().out
