@@ -111,6 +111,9 @@ def _describe(data: GapData, residuals: np.ndarray, sel: np.ndarray, pattern_ind
         elif bright > 0.5:
             tags.append("bright input")
             words.append("in bright input levels")
+        elif float(w[(levels >= 0.2) & (levels <= 0.8)].sum()) > 0.6:
+            tags.append("mid input")
+            words.append("in mid input levels")
         fine = float(w[[o.fine for o in obs]].sum())
         share_fine = sum(o.fine for o in obs) / len(obs)
         if fine > max(0.6, 1.3 * share_fine):
