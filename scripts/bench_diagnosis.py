@@ -112,12 +112,21 @@ def main(argv: list[str] | None = None) -> int:
             cal, truth, doc = run_case(args.work, surface, effects, args.strength, args.scale, args.samples,
                                        args.diag_scale)
             ranked = [e["name"] for e in doc["effects"] if not e.get("error")]
+            before, after = doc["residual"]["rmse_structured"], doc["residual_after"]["rmse_structured"]
             floor_case = args.work / f"{surface}__none" / "diagnosis" / "gap.json"
-            floor = json.loads(floor_case.read_text())["residual"]["rmse"] if floor_case.is_file() else None
-            before, after = doc["residual"]["rmse"], doc["residual_after"]["rmse"]
+            floor_doc = json.loads(floor_case.read_text())["residual"] if floor_case.is_file() else None
+            floor = floor_doc["rmse_structured"] if floor_doc else None
             removed = None
-            if effects and floor is not None and before > floor:
-                removed = (before - after) / (before - floor)
+            if effects and floor_doc:
+                # Per pixel class (smooth parts, pattern edges): the share of the RMSE above the no-effect
+                # floor that the selected effects remove, in the class where the injected effect shows.
+                shares = []
+                for b, a, f in zip(doc["residual"]["mse_classes"], doc["residual_after"]["mse_classes"],
+                                   floor_doc["mse_classes"]):
+                    b, a, f = np.sqrt(b), np.sqrt(a), np.sqrt(f)
+                    if b - f > 0.1 * f:
+                        shares.append((b - a) / (b - f))
+                removed = max(shares) if shares else None
             comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
             row = {"surface": surface, "injected": list(effects), "first": ranked[0] if ranked else None,
                    "selected": doc["selected"], "rmse_before": before, "rmse_after": after, "floor": floor,

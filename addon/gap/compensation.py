@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .models import MODELS, crosstalk_matrix, vignetting_radius
+from .models import MODELS, crosstalk_matrix, inverse_camera_curve, light_scale, vignetting_radius
 
 #: Effects compensation inverts (see the module docstring); the others are reported as not used.
 INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "camera_response", "interreflection",
@@ -42,11 +42,6 @@ NOT_INVERTED = {"defocus": "a blur has no stable inverse on a [0, 1] input; θ a
 _EPS = 1e-4
 
 
-def _srgb(v: np.ndarray) -> np.ndarray:
-    v = np.clip(v, 0.0, 1.0)
-    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
-
-
 @dataclass
 class EffectAdapter:
     """The selected effects with their fitted parameters, as transforms around stage C."""
@@ -55,6 +50,8 @@ class EffectAdapter:
     projector: Any  # calibrated rig.model.Projector
     used: list[str] = field(default_factory=list)
     not_used: dict[str, str] = field(default_factory=dict)
+    #: f̂ of a white input at the camera size, from the compensator (``camera_to_light`` needs it for a camera curve).
+    white: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         unknown = [n for n in self.params if n not in MODELS]
@@ -114,16 +111,24 @@ class EffectAdapter:
 
     # ------------------------------------------------------------------ camera side
 
-    def camera_to_light(self, image: np.ndarray) -> np.ndarray:
-        """h⁻¹: the light the camera saw, from a capture (or a target in capture space)."""
+    def camera_to_light(self, image: np.ndarray, white: np.ndarray | None = None) -> np.ndarray:
+        """h⁻¹: a capture (or a target in capture space) in the model's units.
+
+        With a camera curve the model's albedo holds the curve at white, so light
+        is rescaled by the model's white ``white`` (f̂ of a white input, same size
+        as ``image``); without ``white`` the image is assumed to be white-level.
+        """
         y = np.asarray(image, np.float32)
-        if (p := self._p("camera_response")) is not None:
-            gr, gb, curve = p
-            lut_v = np.linspace(0.0, 1.0, 4097, dtype=np.float32)
-            lut_y = (1.0 - curve) * lut_v + curve * _srgb(lut_v)
-            y = np.interp(np.clip(y, 0, 1), lut_y, lut_v).astype(np.float32) / np.array([gr, 1.0, gb], np.float32)
+        curve = self._p("camera_response")
+        if curve is not None:
+            y = inverse_camera_curve(y, curve[0])
         if (p := self._p("black_level")) is not None:
             y = y - np.array(p[1:], np.float32)
+        if curve is not None:
+            if white is None and self.white is not None and self.white.shape == y.shape:
+                white = self.white
+            if white is not None:
+                y = y / light_scale(np.asarray(white, np.float32), curve[0])
         return np.clip(y, 0.0, 1.0).astype(np.float32)
 
     # ------------------------------------------------------------------ geometry
@@ -218,7 +223,11 @@ def compensate_with_effects(calibration: Any, target: np.ndarray, *, area: Any, 
 
     cal = adapter.calibration(calibration)
     comp = Compensator(cal, bounces=adapter.bounces if adapter.bounces is not None else bounces)
-    light_target = adapter.camera_to_light(np.asarray(target, np.float32))
+    adapter.white = comp.white()
+    from ..stages.display_area import fit_target
+
+    fitted = fit_target(np.asarray(target, np.float32), area)
+    light_target = adapter.camera_to_light(fitted, white=area.crop(adapter.white))
     if device is None:
         captures = CaptureSet.load(cal.capture_dir, verify_images=False)
         bias = comp.estimate_bias(AdaptedCaptures(captures, adapter))
@@ -229,3 +238,39 @@ def compensate_with_effects(calibration: Any, target: np.ndarray, *, area: Any, 
     report = {**res.report, "effects": {"used": adapter.used, "not_used": adapter.not_used,
                                         "params": {n: adapter.params[n] for n in adapter.params}}}
     return replace(res, x_input=x_input, x_frame=adapter.projector.frame_from_input(x_input), report=report)
+
+
+def adapter_from_options(effects: str | None, diagnosis: Any, projector: Any) -> EffectAdapter | None:
+    """The adapter for ``--effects auto|NAME,...|none`` with ``--diagnosis DIR`` (a ``procam diagnose`` folder).
+
+    ``auto`` uses the effects the diagnosis selected; names use those effects' fitted parameters
+    (from the selection, else from fitting each alone). Effect models always need a diagnosis:
+    their parameters are fitted there, on the calibration's validation captures.
+    """
+    import json
+    from pathlib import Path
+
+    from ..errors import ProCamError
+
+    spec = (effects or "none").strip().lower()
+    if spec in ("", "none", "off"):
+        return None
+    if diagnosis is None:
+        raise ProCamError(f"--effects {effects} needs --diagnosis DIR: the folder `procam diagnose CALIB --out DIR` "
+                          "wrote, where the effects' parameters were fitted")
+    path = Path(diagnosis) / "gap.json"
+    if not path.is_file():
+        raise ProCamError(f"{diagnosis} is not a diagnosis folder (no gap.json); run procam diagnose first")
+    doc = json.loads(path.read_text())
+    if spec == "auto":
+        return load_adapter(doc, projector)
+    names = [n.strip() for n in effects.split(",") if n.strip()]
+    unknown = [n for n in names if n not in MODELS]
+    if unknown:
+        raise ProCamError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(MODELS)}")
+    adapter = load_adapter(doc, projector, names)
+    missing = [n for n in names if n not in adapter.params]
+    if missing:
+        raise ProCamError(f"the diagnosis in {diagnosis} has no fitted parameters for {', '.join(missing)} "
+                          "(it failed to fit or was not a candidate); rerun procam diagnose with it")
+    return adapter

@@ -64,6 +64,7 @@ class Observation:
     indirect: np.ndarray  # extra light of INDIRECT_BOUNCES bounces
     glossy: dict[float, np.ndarray]  # white GGX lobe renders by roughness
     sampled: np.ndarray  # x(corr): the input value on each camera pixel's light path
+    edges: np.ndarray | None = None  # h×w bool: on an edge of the projected pattern (see fit.structured)
 
     @property
     def fine(self) -> bool:
@@ -94,6 +95,11 @@ class GapData:
     @property
     def names(self) -> list[str]:
         return [o.name for o in self.observations]
+
+    @property
+    def white(self) -> Observation:
+        """The white pattern: calibration estimated the albedo from it."""
+        return next(o for o in self.observations if o.kind == "white")
 
 
 def _run_lengths(row: np.ndarray) -> int:
@@ -223,6 +229,13 @@ def light_paths(calibration: Any, camera: Any
             inside.reshape(h, w))
 
 
+def pattern_edges(sampled: np.ndarray, step: float = 0.15) -> np.ndarray:
+    """Camera pixels within a pixel of an edge of the projected pattern (input step ≥ ``step`` per pixel)."""
+    level = sampled.mean(axis=2).astype(np.float32)
+    g = np.hypot(cv2.Sobel(level, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(level, cv2.CV_32F, 0, 1, ksize=3)) / 4
+    return cv2.dilate((g >= step).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+
+
 def sample_input(x: np.ndarray, corr: np.ndarray) -> np.ndarray:
     """The input image's value at each camera pixel's light path (bilinear; black off the input)."""
     return cv2.remap(np.asarray(x, np.float32), corr[..., 0], corr[..., 1], cv2.INTER_LINEAR,
@@ -265,8 +278,8 @@ def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int =
     corr, per_metre, points, rays, inside = light_paths(cal, camera)
 
     def model(**kw: Any) -> ForwardModel:
-        return ForwardModel(cal.rig, cal.surface, camera_size=size, spp=spp, smoothing_eps=0.0, clamp=False,
-                            seed=seed, **kw)
+        return ForwardModel(cal.rig, cal.surface, camera_size=size, smoothing_eps=0.0, clamp=False, seed=seed,
+                            **{"spp": spp, **kw})
 
     direct_model = model()
     warp_m = (lambda x: x) if cal.warp is None else (lambda x: np.clip(cal.warp.apply_m(x), 0, 1))
@@ -275,7 +288,10 @@ def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int =
     if mask.sum() < 100:
         raise DiagnosisError("the calibrated projector lights fewer than 100 camera pixels at the working "
                              "resolution: check the calibration (procam calibrate) or use a larger --scale")
-    indirect_model = model(bounces=INDIRECT_BOUNCES)
+    # Indirect light as the difference of two path tracers that share their random numbers, so the direct
+    # part (and its noise) cancels; it is smooth, so more samples and a light blur keep its noise small.
+    indirect_model = model(bounces=INDIRECT_BOUNCES, integrator="prb", spp=4 * spp)
+    direct_prb = model(bounces=0, integrator="prb", spp=4 * spp)
     glossy_models = {r: model(glossy_roughness=r) for r in GLOSSY_ROUGHNESS}
     observations: list[Observation] = []
     for i, e in enumerate(entries):
@@ -286,11 +302,16 @@ def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int =
         z = warp_m(x)
         s = 1000 + 10 * i
         direct = direct_model.render_input(z, seed=s)
-        indirect = np.maximum(indirect_model.render_input(z, seed=s + 1) - direct, 0.0) \
-            if float(z.max()) > 0 else np.zeros_like(direct)
+        if float(z.max()) > 0:
+            extra = indirect_model.render_input(z, seed=s + 1) - direct_prb.render_input(z, seed=s + 1)
+            indirect = cv2.GaussianBlur(extra, (0, 0), 1.0)
+        else:
+            indirect = np.zeros_like(direct)
         glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
         capture = _downsize(captures.image(e.kind, name=e.name), size)
-        observations.append(Observation(e.name, e.kind, x, capture, direct, indirect, glossy, sample_input(x, corr)))
+        sampled = sample_input(x, corr)
+        observations.append(Observation(e.name, e.kind, x, capture, direct, indirect, glossy, sampled,
+                                        pattern_edges(sampled)))
     fit, held = split_patterns(observations)
     return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera, cal.warp,
                    fit, held, report={"calibration": str(Path(calibration_dir).absolute()),

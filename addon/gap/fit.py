@@ -7,6 +7,21 @@ simulation vs capture on the *held-out* patterns, over the lit camera pixels.
 Effects are added greedily, the one that lowers the held-out RMSE most first,
 while each still removes at least ``min_share`` of the RMSE that is left: an
 effect that only fits noise does not pass, so "no effect" is a possible answer.
+
+Scoring uses the *structured* residual: the residual image smoothed with a
+small Gaussian (``SMOOTH_SIGMA`` pixels) except on the edges of the projected
+pattern, where it is kept as it is. Sensor and render noise is independent from
+pixel to pixel and mostly averages out; what effects leave is either coherent
+over several pixels (light levels, indirect light) or sits on pattern edges
+(blur, misregistration), whose two-signed profile smoothing would cancel.
+Measured on lab sets (vedge, 192×144): with interreflection injected, the
+indirect-light model removes 1 % of the raw held-out RMSE (the capture noise
+that bounces add dominates) but 16 % (σ = 1 px) to 35 % (σ = 2 px) of the
+smoothed one, and 0.2 % of it on the set without the effect. Because pattern
+edges keep their noise, an effect is scored by the share of the error it removes
+in each class of pixels (smooth parts, pattern edges), whichever is larger.
+Fits use the raw residual (noise does not bias a least-squares fit). The raw
+RMSE is reported beside the structured one.
 """
 
 from __future__ import annotations
@@ -16,6 +31,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..errors import Cancelled
@@ -26,6 +42,8 @@ from .models import MODELS, NAMES, Composite
 MIN_SHARE = 0.06
 #: Camera pixels per pattern the fit uses (a fixed random subset of the lit ones; scoring uses all).
 FIT_PIXELS = 12000
+#: Gaussian (pixels of the working image) that separates the structured residual from pixel noise.
+SMOOTH_SIGMA = 1.5
 
 Progress = Callable[[str, float], None]
 
@@ -37,9 +55,18 @@ class Fit:
     names: tuple[str, ...]
     theta: np.ndarray
     fit_rmse: float
-    held_rmse: float
+    held_rmse: float  # structured residual (smoothed off pattern edges)
     seconds: float
     error: str | None = None
+    held_rmse_raw: float = float("nan")  # the plain simulation-vs-capture RMSE
+    held_mse_classes: tuple[float, float] = (float("nan"), float("nan"))  # structured MSE: smooth parts, edges
+
+    def share_of(self, before: "Fit") -> float:
+        """Share of ``before``'s held-out error this fit removes: the larger of the two pixel classes."""
+        if self.error is not None:
+            return float("-inf")
+        shares = [(b - a) / b for b, a in zip(before.held_mse_classes, self.held_mse_classes) if b > 0]
+        return float(max(shares)) if shares else 0.0
 
     def params(self) -> dict[str, dict[str, float]]:
         from .models import describe_params
@@ -52,16 +79,46 @@ class Fit:
         return {n: describe_params(n, v) for n, v in comp_slices.items()}
 
 
-def rmse(comp: Composite, theta: np.ndarray, index: list[int]) -> float:
-    """RMSE of prediction vs capture over the lit pixels and all channels of the given patterns."""
+def structured(residual: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
+    """The residual image without its pixel noise, kept sharp on ``edges`` (see the module docstring)."""
+    if SMOOTH_SIGMA <= 0:
+        return residual
+    smooth = cv2.GaussianBlur(residual, (0, 0), SMOOTH_SIGMA)
+    return smooth if edges is None else np.where(edges[..., None], residual, smooth)
+
+
+def rmse(comp: Composite, theta: np.ndarray, index: list[int], *, smooth: bool = True) -> float:
+    """RMSE of prediction vs capture over the lit pixels and all channels of the given patterns
+    (of the structured residual unless ``smooth`` is False)."""
+    return scores(comp, theta, index)["structured" if smooth else "raw"]
+
+
+def scores(comp: Composite, theta: np.ndarray, index: list[int]) -> dict[str, Any]:
+    """Raw and structured RMSE, and the structured MSE on smooth parts and on pattern edges."""
     m = comp.data.mask
-    total, count = 0.0, 0
+    sums = {"raw": 0.0, "flat": 0.0, "edge": 0.0}
+    counts = {"raw": 0, "flat": 0, "edge": 0}
     for i in index:
         o = comp.data.observations[i]
-        r = (comp.predict(theta, o) - o.capture)[m]
-        total += float(np.sum(r.astype(np.float64) ** 2))
-        count += r.size
-    return float(np.sqrt(total / max(count, 1)))
+        r = comp.predict(theta, o) - o.capture
+        st = structured(r, o.edges)
+        edge = (o.edges if o.edges is not None else np.zeros_like(m)) & m
+        flat = m & ~edge
+        for key, img, sel in (("raw", r, m), ("flat", st, flat), ("edge", st, edge)):
+            v = img[sel].astype(np.float64)
+            sums[key] += float(np.sum(v ** 2))
+            counts[key] += v.size
+    mse = {k: sums[k] / max(counts[k], 1) for k in sums}
+    total = (sums["flat"] + sums["edge"]) / max(counts["flat"] + counts["edge"], 1)
+    return {"raw": float(np.sqrt(mse["raw"])), "structured": float(np.sqrt(total)),
+            "classes": (mse["flat"], mse["edge"])}
+
+
+def _scored(names: tuple[str, ...], theta: np.ndarray, fit_rmse: float, comp: Composite, data: GapData,
+            seconds: float) -> Fit:
+    sc = scores(comp, theta, data.held_index)
+    return Fit(names, theta, fit_rmse, sc["structured"], seconds, held_rmse_raw=sc["raw"],
+               held_mse_classes=sc["classes"])
 
 
 def residual_stack(comp: Composite, theta: np.ndarray, index: list[int]) -> np.ndarray:
@@ -89,9 +146,10 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
     lo, hi = comp.bounds()
     theta = np.clip(theta, lo, hi)
     if comp.size == 0:
-        return Fit(comp.names, theta, rmse(comp, theta, data.fit_index), rmse(comp, theta, data.held_index),
-                   time.perf_counter() - t0)
+        return _scored(comp.names, theta, rmse(comp, theta, data.fit_index, smooth=False), comp, data,
+                       time.perf_counter() - t0)
     pixels = _fit_pixels(data)
+
     caps = np.concatenate([data.observations[i].capture.reshape(-1, 3)[pixels].ravel() for i in data.fit_index])
 
     def residual(t: np.ndarray) -> np.ndarray:
@@ -136,8 +194,7 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
     except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
         return Fit(comp.names, comp.initial(), float("nan"), float("nan"), time.perf_counter() - t0,
                    error=f"{type(exc).__name__}: {exc}")
-    return Fit(comp.names, theta, float(np.sqrt(cost / max(r.size, 1))), rmse(comp, theta, data.held_index),
-               time.perf_counter() - t0)
+    return _scored(comp.names, theta, float(np.sqrt(cost / max(r.size, 1))), comp, data, time.perf_counter() - t0)
 
 
 @dataclass
@@ -174,14 +231,15 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
             fits[name] = f
             if step == 0:
                 sel.alone[name] = f
-        ranking = sorted((n for n in fits if fits[n].error is None), key=lambda n: fits[n].held_rmse)
+        ranking = sorted((n for n in fits if fits[n].error is None), key=lambda n: -fits[n].share_of(current))
         if not ranking:
             break
         best = fits[ranking[0]]
-        share = (current.held_rmse - best.held_rmse) / max(current.held_rmse, 1e-12)
+        share = best.share_of(current)
         sel.steps.append({"added": ranking[0] if share >= min_share else None, "candidate": ranking[0],
                           "before": current.held_rmse, "after": best.held_rmse, "share": share,
-                          "ranking": [(n, fits[n].held_rmse) for n in ranking]})
+                          "before_raw": current.held_rmse_raw, "after_raw": best.held_rmse_raw,
+                          "ranking": [(n, fits[n].share_of(current)) for n in ranking]})
         if share < min_share:
             break
         sel.selected.append(ranking[0])

@@ -59,8 +59,7 @@ MODELS: dict[str, EffectModel] = {m.name: m for m in (
     EffectModel("interreflection", ("gain",), (0,), (0,), (2.5,), "where indirect light is strong (concave parts)"),
     EffectModel("glossy", ("weight", "roughness"), (0, 0.4), (0, GLOSSY_ROUGHNESS[0]), (0.8, GLOSSY_ROUGHNESS[-1]),
                 "where a glossy lobe changes the image (view-dependent highlights)", start=(0.05, 0.4)),
-    EffectModel("camera_response", ("gain_r", "gain_b", "curve"), (1, 1, 0), (0.5, 0.5, 0), (2, 2, 1),
-                "mid camera levels"),
+    EffectModel("camera_response", ("curve",), (0,), (0,), (1,), "mid camera levels", start=(0.1,)),
     EffectModel("distortion", ("k1", "k2"), (0, 0), (-0.4, -0.15), (0.4, 0.15), "near the camera image border"),
     EffectModel("depth_noise", ("offset", "slope_x", "slope_y"), (0, 0, 0), (-0.1,) * 3, (0.1,) * 3,
                 "at edges of the projected pattern, along the projector–camera baseline"),
@@ -88,6 +87,29 @@ def vignetting_radius(projector: Any, positions: np.ndarray) -> np.ndarray:
 def _srgb(v: np.ndarray) -> np.ndarray:
     v = np.clip(v, 0.0, 1.0)
     return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
+
+
+def camera_curve(v: np.ndarray, curve: float) -> np.ndarray:
+    """The camera's tone curve: linear light → captured value (a blend of linear and the sRGB encoding)."""
+    v = np.clip(v, 0.0, 1.0)
+    return ((1.0 - curve) * v + curve * _srgb(v)).astype(np.float32)
+
+
+def inverse_camera_curve(y: np.ndarray, curve: float) -> np.ndarray:
+    """Captured value → linear light (the curve is increasing, so a table inverts it)."""
+    grid = np.linspace(0.0, 1.0, 4097, dtype=np.float32)
+    y = np.asarray(y, np.float32)
+    # Above 1 (an effective albedo may exceed 1) continue with slope 1 rather than saturate.
+    return (np.interp(np.clip(y, 0.0, 1.0), camera_curve(grid, curve), grid) + np.maximum(y - 1.0, 0.0)
+            ).astype(np.float32)
+
+
+def light_scale(white: np.ndarray, curve: float) -> np.ndarray:
+    """Per pixel: linear light over model units, where the model's white (``white``) is a captured value."""
+    white = np.asarray(white, np.float32)
+    # Where white gives (almost) no light the scale is undefined and nothing depends on it: keep 1.
+    return np.where(white > 1e-3, inverse_camera_curve(white, curve) / np.maximum(white, 1e-3), 1.0
+                    ).astype(np.float32)
 
 
 class Composite:
@@ -157,19 +179,24 @@ class Composite:
             falloff, exponent = p["vignetting"]
             a = a * (1.0 - falloff * np.power(self._vig_r, exponent))[..., None]
         img = obs.direct + d.gain * (a - obs.sampled)
+        # The albedo was estimated from the white capture, so it already holds white's share of any extra
+        # light (indirect, glossy): the model adds only what a pattern gets beyond white × its input level.
+        white = d.white
         if "interreflection" in p:
-            img = img + float(p["interreflection"][0]) * obs.indirect
+            img = img + float(p["interreflection"][0]) * (obs.indirect - white.indirect * obs.sampled)
         if "glossy" in p:
             weight, rough = p["glossy"]
-            img = (1.0 - weight) * img + weight * _glossy_at(obs, float(rough))
+            img = img + weight * (_glossy_at(obs, float(rough)) - _glossy_at(white, float(rough)) * obs.sampled)
+        if "camera_response" in p:
+            # The albedo holds the curve at white: take the image to light with white's scale before the
+            # ambient light adds and the curve applies (white-balance gains cancel against the albedo).
+            img = img * light_scale(d.gain, float(p["camera_response"][0]))
         if "black_level" in p:
             img = img + p["black_level"][1:].astype(np.float32)
         if "distortion" in p:
             img = self._distort(img, *p["distortion"])
         if "camera_response" in p:
-            gr, gb, curve = p["camera_response"]
-            img = np.clip(img * np.array([gr, 1.0, gb], np.float32), 0.0, 1.0)
-            img = (1.0 - curve) * img + curve * _srgb(img)
+            img = camera_curve(img, float(p["camera_response"][0]))
         return np.clip(img, 0.0, 1.0).astype(np.float32)
 
     def _distort(self, img: np.ndarray, k1: float, k2: float) -> np.ndarray:
