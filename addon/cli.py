@@ -1,17 +1,51 @@
 """Headless commands: ``procam …`` in the venv and ``blender --background --command procam …``.
 
 One code path for both: :func:`main` takes an argument list and returns an exit
-code. A :class:`~procam.addon.errors.ProCamError` is printed as one line on
-stderr with exit code 2; a bug prints its traceback and exits 1.
+code; it never raises and never prints a traceback on the terminal. The codes
+scripts can rely on (also printed by ``procam --help``):
+
+====  =====================================================================
+0     success
+1     an unexpected internal error (a bug): one line on stderr, the traceback in a log file it names
+2     a problem you can fix (:class:`~procam.addon.errors.ProCamError`: a missing file, a bad
+      value, an output that exists without ``--force``), or a usage error from the argument parser
+130   cancelled (Ctrl-C, or :class:`~procam.addon.errors.Cancelled`); finished work is kept
+====  =====================================================================
+
+Results go to stdout, progress and errors to stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import tempfile
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator, Sequence
 
-from .errors import ProCamError
+from .errors import Cancelled, ProCamError
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_USER = 2  # also argparse's code for usage errors
+EXIT_CANCELLED = 130  # 128 + SIGINT, what shells report for Ctrl-C
+
+EPILOG = f"""\
+exit codes:
+  {EXIT_OK:<4} success
+  {EXIT_INTERNAL:<4} internal error (a bug in ProCam): a one-line message names the log file with the traceback
+  {EXIT_USER:<4} a problem you can fix (the message says what to do), or wrong command-line arguments
+  {EXIT_CANCELLED:<4} cancelled (Ctrl-C); finished work is kept
+
+Results go to stdout, progress and errors to stderr. `procam COMMAND --help` describes each command.
+Inside Blender: blender --background --command procam COMMAND ...
+Environment: PROCAM_LOG_DIR (where internal-error logs go; default the temporary folder),
+PROCAM_TRACEBACK=1 (also print the traceback on stderr)."""
 
 Command = tuple[str, str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 _COMMANDS: list[Command] = []
@@ -25,32 +59,118 @@ def command(name: str, help_text: str, configure: Callable[[argparse.ArgumentPar
     return wrap
 
 
+def _fill_missing_help(parser: argparse.ArgumentParser) -> None:
+    """Every option gets a help line, so ``--help`` never lists a bare flag."""
+    for action in parser._actions:
+        if action.help is not None or isinstance(action, argparse._HelpAction):
+            continue
+        if action.dest == "seed":
+            action.help = "seed of every random stream; the same seed repeats the same result (default %(default)s)"
+        elif action.choices:
+            action.help = "one of " + ", ".join(map(str, action.choices)) + " (default %(default)s)"
+        elif action.default not in (None, argparse.SUPPRESS):
+            action.help = "(default %(default)s)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import commands  # noqa: F401  (registers the subcommands)
 
-    parser = argparse.ArgumentParser(prog="procam", description="ProCam: projector compensation by differentiable rendering.")
+    parser = argparse.ArgumentParser(prog="procam", description="ProCam: projector compensation by differentiable rendering.",
+                                     epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_text, configure, run in _COMMANDS:
         p = sub.add_parser(name, help=help_text, description=help_text)
         configure(p)
+        _fill_missing_help(p)
+        if p.epilog is None:
+            p.epilog = f"exit codes: {EXIT_OK} success, {EXIT_USER} a problem you can fix (or bad arguments), " \
+                       f"{EXIT_CANCELLED} cancelled, {EXIT_INTERNAL} internal error (see procam --help)"
         p.set_defaults(_run=run)
     return parser
 
 
+def _crash_log(name: str, exc: BaseException) -> str:
+    """Write the traceback of an unexpected error to a log file; its path, or why it could not be written."""
+    folder = os.environ.get("PROCAM_LOG_DIR") or tempfile.gettempdir()
+    text = "".join(traceback.format_exception(exc))
+    try:
+        os.makedirs(folder, exist_ok=True)
+        fd, path = tempfile.mkstemp(prefix=f"procam-{name}-{time.strftime('%Y%m%d-%H%M%S')}-", suffix=".log",
+                                    dir=folder)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"procam {name} failed with an internal error\nargv: {sys.argv!r}\n\n{text}")
+        return path
+    except OSError as err:
+        return f"(not written: {err}); set PROCAM_TRACEBACK=1 to see it"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    """Run one ``procam`` command; returns the exit code (module doc) instead of raising."""
+    try:
+        parser = build_parser()
+    except Exception as exc:  # a command module that does not import: a bug, reported like any other
+        return _internal_error("", exc)
+    try:
+        args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    except SystemExit as exc:  # --help (0) or a usage error (2): a code, not an exit, so Blender keeps control
+        return exc.code if isinstance(exc.code, int) else (EXIT_OK if exc.code is None else EXIT_USER)
     if not getattr(args, "_run", None):
         parser.print_help()
-        return 0
+        return EXIT_OK
+    name = args.command
     try:
         return int(args._run(args) or 0)
+    except Cancelled as exc:
+        print(f"procam {name}: cancelled: {exc}", file=sys.stderr)
+        return EXIT_CANCELLED
     except ProCamError as exc:
-        print(f"procam {args.command}: error: {exc}", file=sys.stderr)
+        print(f"procam {name}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print(f"procam {args.command}: cancelled", file=sys.stderr)
-        return 130
+        print(f"procam {name}: cancelled", file=sys.stderr)
+        return EXIT_CANCELLED
+    except Exception as exc:
+        return _internal_error(name, exc)
+
+
+def _internal_error(name: str, exc: BaseException) -> int:
+    """A bug: a short message on stderr, the details in a log file to attach to a report."""
+    where = _crash_log(name or "main", exc)
+    if os.environ.get("PROCAM_TRACEBACK"):
+        traceback.print_exception(exc, file=sys.stderr)
+    who = f"procam {name}" if name else "procam"
+    print(f"{who}: internal error: {type(exc).__name__}: {exc}\n"
+          f"{who}: this is a bug in ProCam; the traceback is in {where}", file=sys.stderr)
+    return EXIT_INTERNAL
+
+
+@contextlib.contextmanager
+def cancel_on_interrupt() -> Iterator[Callable[[], bool]]:
+    """Yield ``cancel()`` for stage loops: the first Ctrl-C makes it true, so the running stage stops
+    cleanly at its next step (and raises :class:`Cancelled`); a second Ctrl-C interrupts at once.
+
+    Outside the main thread (a Blender worker) signals cannot be caught: ``cancel()`` stays false there.
+    """
+    hits = [0]
+
+    def handler(signum: int, frame: object) -> None:
+        hits[0] += 1
+        if hits[0] > 1:
+            raise KeyboardInterrupt
+        print("procam: cancelling after the current step (Ctrl-C again to stop at once)", file=sys.stderr,
+              flush=True)
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        try:
+            previous = signal.signal(signal.SIGINT, handler)
+        except ValueError:
+            previous = None
+    try:
+        yield lambda: hits[0] > 0
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

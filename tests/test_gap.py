@@ -97,18 +97,21 @@ def test_adapter_inverts_what_it_models():
                              "black_level": {"projector": 0.02, "ambient_r": 0.01, "ambient_g": 0.01,
                                              "ambient_b": 0.005},
                              "vignetting": {"falloff": 0.3, "exponent": 2.0},
-                             "camera_response": {"gain_r": 1.1, "gain_b": 0.9, "curve": 0.5},
+                             "camera_response": {"curve": 0.5},
                              "defocus": {"sigma": 1.0}}, proj)
     assert "defocus" in adapter.not_used and "defocus" not in adapter.used
     iw, ih = proj.input_size
     rng = np.random.default_rng(0)
     light = rng.uniform(0.2, 0.6, (ih, iw, 3)).astype(np.float32)  # within what the projector can emit
     np.testing.assert_allclose(adapter.emitted(adapter.input_for(light)), light, atol=2e-3)
-    v = rng.uniform(0.05, 0.6, (10, 10, 3)).astype(np.float32)
-    seen = v + np.array([0.01, 0.01, 0.005], np.float32)
-    seen = np.clip(seen * np.array([1.1, 1.0, 0.9], np.float32), 0, 1)
-    srgb = np.where(seen <= 0.0031308, 12.92 * seen, 1.055 * seen ** (1 / 2.4) - 0.055)
-    np.testing.assert_allclose(adapter.camera_to_light(0.5 * seen + 0.5 * srgb), v, atol=2e-3)
+    # Light v seen by a camera with ambient light and a tone curve; the model's white holds the curve at
+    # white (W = curve(w)), so in model units the light is v·W/w.
+    v = rng.uniform(0.05, 0.5, (10, 10, 3)).astype(np.float32)
+    w = rng.uniform(0.6, 0.9, (10, 10, 3)).astype(np.float32)
+    srgb = lambda a: np.where(a <= 0.0031308, 12.92 * a, 1.055 * a ** (1 / 2.4) - 0.055)  # noqa: E731
+    curve = lambda a: 0.5 * a + 0.5 * srgb(a)  # noqa: E731
+    seen = curve(v + np.array([0.01, 0.01, 0.005], np.float32))
+    np.testing.assert_allclose(adapter.camera_to_light(seen, white=curve(w)), v * curve(w) / w, atol=3e-3)
 
 
 def _copy_set(src, dst, edit):
@@ -163,3 +166,17 @@ def test_cli_diagnose_runs_and_rejects_unknown_effects(response_case, tmp_path, 
     assert main(["diagnose", str(cal_dir), "--out", str(tmp_path / "gap"), "--scale", "1", "--spp", "8",
                  "--effects", "response,black_level"]) == 0
     assert "response" in capsys.readouterr().out
+
+    # Compensation with the diagnosed effects: needs the diagnosis, records what it used.
+    from procam.addon.capture.targets import natural_target
+    from procam.addon.imageio import write_image
+
+    write_image(tmp_path / "t.png", natural_target("city", (64, 48)))
+    base = ["compensate", str(cal_dir), str(tmp_path / "t.png"), "--iterations", "3", "--effects", "auto"]
+    assert main(base + ["--out", str(tmp_path / "c0")]) == 2
+    assert "--diagnosis" in capsys.readouterr().err
+    assert not (tmp_path / "c0").exists()
+    assert main(base + ["--out", str(tmp_path / "c1"), "--diagnosis", str(tmp_path / "gap")]) == 0
+    doc = json.loads((tmp_path / "c1" / "compensation.json").read_text())
+    assert doc["effects"]["used"] == ["response"]
+    assert doc["effects"]["params"]["response"]["gamma_g"] > 1.3

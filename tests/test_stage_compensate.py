@@ -13,13 +13,14 @@ import json
 import sys
 import types
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from procam.addon.errors import CaptureError, ImageError
-from procam.addon.stages.compensate import (BiasModel, Cancelled, CompensationError, Compensator, area_psnr,
-                                            compensate)
+from procam.addon.stages.compensate import (SCHEDULES, BiasModel, Cancelled, CompensationError, Compensator,
+                                            Schedule, area_psnr, compensate, get_schedule, matched_alpha, plateaued)
 from procam.addon.stages.display_area import (DisplayArea, DisplayAreaError, TargetAspectWarning, choose_area,
                                               fit_target, largest_rectangle, load_target, parse_area)
 
@@ -133,7 +134,9 @@ def test_open_loop_compensation(setup, open_loop):
     assert res.report["bias"]["held_out_rmse"][bias.kind] <= res.report["bias"]["held_out_rmse"]["no_bias"]
     # The simulated loss decreases.
     losses = np.array(res.losses)
-    assert len(losses) == ITER_Z + ITER_JOINT and np.all(np.isfinite(losses))
+    # The default schedule's z phases may end early on a plateau; the θ-fixed phase runs in full.
+    assert len(losses) == res.report["iterations"]["total"] <= ITER_Z + ITER_JOINT and np.all(np.isfinite(losses))
+    assert res.report["iterations"]["joint"] == ITER_JOINT
     assert losses[-5:].mean() < losses[:5].mean()
     # Closer to the target than the target projected with geometry only (no photometric compensation).
     uncompensated = bias.predict(setup.comp.simulate(setup.comp.initial_input(res.target, how="geometric")))
@@ -171,6 +174,69 @@ def test_closed_loop_improves_the_capture(setup, open_loop):
           f"compensated {p_comp:.2f} dB (simulated {res.report['psnr_simulated']:.2f} dB)")
     assert p_comp > p_unc + 5.0
     assert p_comp > p_one
+
+
+# -- schedules ------------------------------------------------------------------------------------
+
+def test_schedule_rules():
+    assert not plateaued([1.0, 0.9, 0.8, 0.7], 2, 0.02)
+    assert plateaued([1.0, 0.8, 0.5, 0.5, 0.49, 0.5], 2, 0.02)
+    assert not plateaued([0.5] * 3, 2, 0.02) and not plateaued([0.5] * 10, 0, 0.02)
+    # α matched to the capture interval gives each capture the weight it has in the paper's rule.
+    assert matched_alpha(20) == pytest.approx(0.01)
+    assert (1 - 2 * matched_alpha(5)) ** 5 == pytest.approx(0.98 ** 20)
+    assert get_schedule("fast").theta_rate == matched_alpha(get_schedule("fast").capture_every)
+    assert Schedule("t", alpha=None, capture_every=20).theta_rate == pytest.approx(0.01)
+    fast = get_schedule("fast")
+    lrs = [fast.learning_rate(i, 50) for i in range(50)]
+    assert lrs[0] == pytest.approx(fast.lr) and lrs[-1] == pytest.approx(fast.lr_end)
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+    # A number of captures is spread over whatever joint iterations there are.
+    assert fast.capture_interval == 3 and replace(fast, iterations_joint=120).capture_interval == 8
+    assert Schedule("t", iterations_joint=7, captures=3).capture_interval == 3
+    # The paper's schedule stays reachable by name, unchanged.
+    paper = get_schedule("paper")
+    assert (paper.iterations_z, paper.iterations_joint, paper.lr, paper.alpha, paper.lr_end) == (200, 300, 0.01,
+                                                                                                  0.01, None)
+    assert (paper.plateau, paper.coarse, paper.spp_z, paper.reference_spp, paper.captures) == (0, 1.0, None, 16,
+                                                                                                None)
+    assert paper.capture_interval == 20 and paper.theta_rate == 0.01
+    assert set(SCHEDULES) == {"fast", "paper"}
+    for bad, msg in ((dict(iterations_z=-1), "iterations_z"), (dict(capture_every=0), "capture_every"),
+                     (dict(lr_end=0.1), "lr_end"), (dict(coarse=0.01), "coarse"), (dict(spp_z=0), "spp_z"),
+                     (dict(captures=0), "captures"), (dict(reference_spp=8), "square"),
+                     (dict(alpha=0.7), "α")):
+        with pytest.raises(CompensationError, match=msg):
+            get_schedule(Schedule("bad", **bad))
+    with pytest.raises(CompensationError, match="unknown schedule"):
+        get_schedule("fastest")
+
+
+def test_paper_schedule_runs_every_iteration(setup):
+    res = setup.comp.run(_target(), setup.area, schedule="paper", iterations_z=4, iterations_joint=3,
+                         use_bias=False)
+    assert len(res.losses) == 7 and [p["phase"] for p in res.report["phases"]] == ["z", "z, θ fixed"]
+    assert res.report["schedule"]["name"] == "paper" and res.report["phases"][0]["stopped"] == "limit"
+
+
+def test_coarse_to_fine_and_plateau_stop(setup):
+    comp = setup.comp
+    # A tolerance no loss can meet (halving every 2 iterations): each z phase stops after 2 windows.
+    sched = Schedule("t", iterations_z=20, iterations_joint=3, plateau=2, plateau_tol=0.5, spp_z=1, coarse=0.5,
+                     iterations_coarse=10)
+    res = comp.run(_target(), setup.area, schedule=sched, use_bias=False)
+    cw, ch = comp.camera_size
+    coarse, fine, last = res.report["phases"]
+    assert coarse["phase"] == "coarse" and coarse["camera"] == [round(cw / 2), round(ch / 2)]
+    assert coarse["iterations"] == 4 and coarse["stopped"] == "plateau" and coarse["spp"] == 1
+    assert fine["camera"] == [cw, ch] and fine["iterations"] == 4 and fine["stopped"] == "plateau"
+    assert last["iterations"] == 3 and len(res.losses) == 11 == res.report["iterations"]["total"]
+    # The answer has the input's and the camera's sizes whatever resolution the optimisation ran at.
+    assert res.z.shape == (comp.ih, comp.iw, 3) and res.simulated.shape == (ch, cw, 3)
+    # The coarse model is built once per compensator (its scene and kernels serve every target).
+    assert comp.model_at(0.5) is comp.model_at(0.5) and comp.model_at(1.0) is comp.model
+    small = comp.downsample(np.ones((ch, cw, 3), np.float32), (cw // 2, ch // 2))
+    assert small.shape == (ch // 2, cw // 2, 3) and np.allclose(small, 1.0)
 
 
 def test_no_bias_ablation_and_reused_kernels(setup):
@@ -218,7 +284,7 @@ def test_bad_inputs_are_clear_errors(setup):
     comp.model.render_dr = diverging
     try:
         with pytest.raises(CompensationError, match="simulation"):
-            comp.run(_target(), area, iterations_z=2, iterations_joint=0, use_bias=False)
+            comp.run(_target(), area, schedule="paper", iterations_z=2, iterations_joint=0, use_bias=False)
     finally:
         comp.model.render_dr = real
     with pytest.raises(Cancelled, match="cancelled"):

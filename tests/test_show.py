@@ -1,0 +1,276 @@
+"""``procam show``: a numbered target sequence → numbered 16-bit projector frames, resumable, at tiny size.
+
+The calibration comes from the lab's truth (``lab_calibration`` fixture), the
+schedule is a few iterations at 1 spp: these tests check the bookkeeping
+(numbering, manifest, resume, failures, refusals), not compensation quality.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from procam.addon.cli import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
+from procam.addon.imageio import write_image
+from procam.addon.stages.sequence import (MANIFEST, SequenceError, ShowFolder, frame_digits, frame_name,
+                                          list_frames)
+
+FAST = ["--iterations", "4", "--spp", "1"]
+
+
+def _target(seed: int, w: int = 160, h: int = 120) -> np.ndarray:
+    from procam.addon.capture.patterns import smooth_random
+
+    return (0.05 + 0.4 * smooth_random((w, h), seed, 20.0)).astype(np.float32)
+
+
+def _frames(folder: Path, numbers, prefix: str = "shot_") -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for n in numbers:
+        write_image(folder / f"{prefix}{n:04d}.png", _target(n))
+    return folder
+
+
+def _manifest(out: Path) -> dict:
+    return json.loads((out / MANIFEST).read_text())
+
+
+def _mtimes(out: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(out.glob("frame_*.png"))}
+
+
+def _leftovers(out: Path) -> list[str]:
+    """Temporary files of atomic writes: none may stay behind, whatever happened."""
+    return [p.name for p in out.iterdir() if p.name.startswith(".")]
+
+
+# -- listing a sequence (no rendering) -----------------------------------------------------------
+
+def test_list_frames(tmp_path):
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for n in (7, 8, 10):
+        (seq / f"shot_{n:04d}.png").write_bytes(b"x")
+    (seq / "notes.txt").write_text("not an image")
+    (seq / ".hidden.png").write_bytes(b"x")
+    by_folder = list_frames([seq])
+    assert [(f.number, f.path.name) for f in by_folder] == [(7, "shot_0007.png"), (8, "shot_0008.png"),
+                                                            (10, "shot_0010.png")]
+    assert [f.number for f in list_frames([seq / "shot_####.png"])] == [7, 8, 10]
+    assert [f.number for f in list_frames([seq / "shot_%04d.png"])] == [7, 8, 10]
+    assert [f.number for f in list_frames([seq / "shot_0010.png", seq / "shot_0007.png"])] == [7, 10]
+    # Names without distinct numbers: 1, 2, … in natural order.
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for name in ("b.png", "a10.png", "a9.png"):
+        (plain / name).write_bytes(b"x")
+    assert [(f.number, f.path.name) for f in list_frames([plain])] == [(1, "a9.png"), (2, "a10.png"), (3, "b.png")]
+    assert frame_name(7, frame_digits(by_folder)) == "frame_0007.png"
+    assert frame_digits([type(by_folder[0])(123456, seq)]) == 6
+    (seq / "shot_08.png").write_bytes(b"x")  # frame 8 twice under the pattern shot_#.png
+    with pytest.raises(SequenceError, match="both match"):
+        list_frames([seq / "shot_#.png"])
+    for bad, msg in (([tmp_path / "none_####.png"], "no file"), ([tmp_path / "missing.png"], "not found"),
+                     ([tmp_path / "nofolder" / "x_####.png"], "does not exist"), ([tmp_path / "empty"], "not found"),
+                     ([seq, seq / "shot_0007.png"], "folder"), ([seq / "a_#_#.png"], "more than one")):
+        with pytest.raises(SequenceError, match=msg):
+            list_frames(bad)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SequenceError, match="no images"):
+        list_frames([tmp_path / "empty"])
+
+
+def test_show_folder_refuses_foreign_folders_and_second_writers(tmp_path):
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "important.txt").write_text("keep me")
+    with pytest.raises(SequenceError, match="not a show folder"):
+        ShowFolder(user).open()
+    first = ShowFolder(tmp_path / "show")
+    assert first.open() is None
+    try:
+        with pytest.raises(SequenceError, match="another procam run"):
+            ShowFolder(tmp_path / "show").open()
+    finally:
+        first.unlock()
+    second = ShowFolder(tmp_path / "show")
+    assert second.open() is None  # free again once the first one let go
+    second.unlock()
+
+
+# -- the command end to end ----------------------------------------------------------------------
+
+def test_show_end_to_end_resume_and_refusals(lab_calibration, tmp_path, capsys):
+    cal_dir, _, _ = lab_calibration()
+    seq = _frames(tmp_path / "frames", (7, 8, 9))
+    out = tmp_path / "show"
+    args = ["show", str(cal_dir), str(seq / "shot_####.png"), "--out", str(out), *FAST]
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    cal = json.loads((cal_dir / "calibration.json").read_text())
+    fw, fh = cal["rig"]["projector"]["intrinsics"]["width"], cal["rig"]["projector"]["intrinsics"]["height"]
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0007.png", "frame_0008.png", "frame_0009.png"]
+    for p in out.glob("frame_*.png"):
+        raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert raw.dtype == np.uint16 and raw.shape == (fh, fw, 3)
+        assert p.stat().st_mode & 0o044  # readable by a media server running as another user
+    assert doc["complete"] and doc["mode"] == "open-loop"
+    assert doc["calibration"]["sha256"] == hashlib.sha256((cal_dir / "calibration.json").read_bytes()).hexdigest()
+    assert doc["schedule"]["iterations"] == 4 and doc["schedule"]["spp"] == 1
+    assert doc["effects"]["interreflection_bounces"] == 1 and doc["open_loop_bias"]["file"]
+    for n in ("7", "8", "9"):
+        e = doc["frames"][n]
+        assert e["status"] == "done" and e["seconds"] > 0 and np.isfinite(e["psnr_model"])
+        assert e["sha256"] == hashlib.sha256((out / e["file"]).read_bytes()).hexdigest()
+    assert (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (3, 0)
+    assert "3 frame(s) compensated" in capsys.readouterr().out
+    assert not _leftovers(out)
+
+    # Rerun: nothing recomputed, no file touched.
+    before = _mtimes(out)
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    assert (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"], doc["runs"][-1]["status"]) == (0, 3, "complete")
+    assert _mtimes(out) == before
+
+    # A damaged frame (same size, other bytes) is redone; the others stay as they are.
+    damaged = out / "frame_0008.png"
+    data = bytearray(damaged.read_bytes())
+    data[-20] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    assert (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (1, 2)
+    after = _mtimes(out)
+    assert after["frame_0007.png"] == before["frame_0007.png"] and after["frame_0009.png"] == before["frame_0009.png"]
+    assert doc["frames"]["8"]["sha256"] == hashlib.sha256(damaged.read_bytes()).hexdigest()
+    capsys.readouterr()
+
+    # Other settings, or a changed target: refused, nothing touched, until --force.
+    runs = len(doc["runs"])
+    assert main(args[:-4] + ["--iterations", "3", "--spp", "1"]) == EXIT_USER
+    err = capsys.readouterr().err
+    assert "other settings" in err and "iterations" in err and "--force" in err and "Traceback" not in err
+    write_image(seq / "shot_0009.png", _target(99))
+    assert main(args) == EXIT_USER
+    assert "frame(s) 9 changed" in capsys.readouterr().err
+    assert _mtimes(out) == after and len(_manifest(out)["runs"]) == runs
+    assert main(args[:-4] + ["--iterations", "3", "--spp", "1", "--no-bias", "--force"]) == EXIT_OK
+    doc = _manifest(out)
+    assert (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (3, 0) and doc["schedule"]["iterations"] == 3
+    assert doc["mode"] == "none" and not (out / "open_loop_bias.npz").exists()
+    assert doc["complete"] and not _leftovers(out)
+
+
+def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys, monkeypatch):
+    from procam.addon.stages.compensate import Compensator
+
+    cal_dir, _, _ = lab_calibration()
+    seq = _frames(tmp_path / "frames", (1, 2, 3))
+    (seq / "shot_0002.png").write_bytes(b"this is not a PNG")  # a damaged frame in the middle
+    out = tmp_path / "show"
+    args = ["show", str(cal_dir), str(seq), "--out", str(out), *FAST, "--no-bias"]
+    assert main(args) == EXIT_USER
+    err = capsys.readouterr().err
+    assert "1 frame(s) failed" in err and "frame 2" in err and "rerun" in err
+    doc = _manifest(out)
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0001.png", "frame_0003.png"]
+    assert doc["frames"]["2"]["status"] == "failed" and "cannot read" in doc["frames"]["2"]["error"]
+    assert [f["frame"] for f in doc["failures"]] == [2] and not doc["complete"]
+    assert doc["runs"][-1]["status"] == "incomplete" and not _leftovers(out)
+    # Fixed: the rerun does frame 2 only.
+    write_image(seq / "shot_0002.png", _target(2))
+    before = _mtimes(out)
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    assert doc["complete"] and (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (1, 2)
+    assert {k: v for k, v in _mtimes(out).items() if k != "frame_0002.png"} == before
+
+    # A bug (crash) in the middle of a fresh show: exit 1, short message, traceback in a log, frame 1 kept.
+    real, calls = Compensator.run, []
+
+    def flaky(self, *a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise ZeroDivisionError("simulated crash")
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(Compensator, "run", flaky)
+    monkeypatch.setenv("PROCAM_LOG_DIR", str(tmp_path / "logs"))
+    out2 = tmp_path / "show2"
+    args2 = ["show", str(cal_dir), str(seq), "--out", str(out2), *FAST, "--no-bias"]
+    assert main(args2) == EXIT_INTERNAL
+    err = capsys.readouterr().err
+    assert "internal error: ZeroDivisionError: simulated crash" in err and "Traceback" not in err
+    logs = list((tmp_path / "logs").glob("procam-show-*.log"))
+    assert len(logs) == 1 and "Traceback" in logs[0].read_text() and str(logs[0]) in err
+    doc = _manifest(out2)
+    assert doc["runs"][-1]["status"].startswith("crashed") and list(doc["frames"]) == ["1"]
+    assert [p.name for p in out2.glob("frame_*.png")] == ["frame_0001.png"] and not _leftovers(out2)
+
+    # Ctrl-C during frame 2 of the rerun: exit 130, frame 2 not written, then a rerun completes.
+    def interrupted(self, *a, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Compensator, "run", interrupted)
+    assert main(args2) == EXIT_CANCELLED
+    assert "cancelled" in capsys.readouterr().err
+    assert _manifest(out2)["runs"][-1]["status"] == "cancelled" and not (out2 / "frame_0002.png").exists()
+    monkeypatch.setattr(Compensator, "run", real)
+    assert main(args2) == EXIT_OK
+    doc = _manifest(out2)
+    assert doc["complete"] and (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (2, 1)
+    assert [r["status"] for r in doc["runs"]] == ["crashed: ZeroDivisionError: simulated crash", "cancelled",
+                                                  "complete"]
+    assert not _leftovers(out2)
+
+    # A disk that refuses the frame stops the show at once (every frame would fail alike): exit 2, said so.
+    import procam.addon.imageio as imageio
+
+    def full_disk(path, image):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(imageio, "write_image", full_disk)
+    out3 = tmp_path / "show3"
+    assert main(["show", str(cal_dir), str(seq / "shot_0001.png"), str(seq / "shot_0003.png"), "--out", str(out3),
+                 *FAST, "--no-bias"]) == EXIT_USER
+    assert "cannot write frame 1" in capsys.readouterr().err
+    doc = _manifest(out3)
+    assert doc["runs"][-1]["status"].startswith("stopped") and doc["frames"] == {} and not doc["failures"]
+
+
+def test_show_refuses_a_foreign_folder_before_any_work(lab_calibration, tmp_path, capsys):
+    cal_dir, _, _ = lab_calibration()
+    seq = _frames(tmp_path / "frames", (1,))
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "notes.txt").write_text("mine")
+    assert main(["show", str(cal_dir), str(seq), "--out", str(user), *FAST]) == EXIT_USER
+    assert "not a show folder" in capsys.readouterr().err
+    assert [p.name for p in user.iterdir()] == ["notes.txt"]
+    assert main(["show", str(cal_dir), str(tmp_path / "nothing_####.png"), "--out", str(tmp_path / "o")]) == EXIT_USER
+    assert "no file" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    assert main(["show", str(tmp_path), str(seq), "--out", str(tmp_path / "o")]) == EXIT_USER
+    assert "calibration" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_show_closed_loop_through_the_lab(lab_calibration, tmp_path, capsys):
+    cal_dir, _, truth = lab_calibration()
+    seq = _frames(tmp_path / "frames", (5,))
+    out = tmp_path / "show"
+    args = ["show", str(cal_dir), str(seq), "--out", str(out), "--iterations", "4", "--spp", "1",
+            "--capture-every", "1"]
+    assert main(args + ["--device", f"lab:{truth}"]) == EXIT_OK
+    doc = _manifest(out)
+    assert doc["mode"] == "closed-loop" and doc["device"] == f"lab:{Path(truth).absolute()}"
+    assert doc["frames"]["5"]["captures"] >= 1 and doc["schedule"]["capture_every"] == 1
+    capsys.readouterr()
+    # The same folder without the device (open loop) is another setting: refused.
+    assert main(args) == EXIT_USER
+    err = capsys.readouterr().err
+    assert "mode: 'closed-loop' → 'open-loop'" in err and "--force" in err
