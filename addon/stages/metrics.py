@@ -33,3 +33,15 @@ def ssim(image: np.ndarray, target: np.ndarray) -> float:
     score = cv2.quality.QualitySSIM_compute(np.ascontiguousarray(a * 255.0), np.ascontiguousarray(b * 255.0))[0]
     channels = a.shape[2] if a.ndim == 3 else 1
     return float(np.mean(score[:channels]))
+
+
+def error_map(image: np.ndarray, target: np.ndarray, scale: float = 0.2) -> np.ndarray:
+    """Signed difference ``image − target`` (channel mean) as blue (too dark) – white – red (too bright);
+    ``|difference| = scale`` saturates."""
+    a, b = _pair(image, target)
+    d = np.clip((a - b).mean(axis=2) / scale, -1, 1) if a.ndim == 3 else np.clip((a - b) / scale, -1, 1)
+    out = np.ones(d.shape + (3,), np.float32)
+    out[..., 0] -= np.clip(-d, 0, 1)
+    out[..., 1] -= np.abs(d)
+    out[..., 2] -= np.clip(d, 0, 1)
+    return out

@@ -1,0 +1,200 @@
+"""``procam evaluate`` end to end on the small lab set, its metrics.json, bad inputs, and the no-W ablation.
+
+The calibration is the lab truth with an identity warp (stages A and B are
+tested elsewhere); compensation runs a few iterations without θ so the test
+stays fast. Tests are evaluation code: they may read the lab truth.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import types
+
+import numpy as np
+import pytest
+
+from procam.addon.cli import main
+from procam.addon.errors import CaptureError
+
+
+def _target(w: int = 160, h: int = 120, seed: int = 3) -> np.ndarray:
+    from procam.addon.capture.patterns import smooth_random
+
+    return (0.05 + 0.4 * smooth_random((w, h), seed, 20.0)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def env(lab_set, tmp_path_factory):
+    from procam.addon.imageio import write_image
+    from procam.addon.lab.lab import LabTruth
+    from procam.addon.stages.calibrate import Calibration
+    from procam.addon.stages.warp import Warp
+
+    captures_dir, truth_path = lab_set()
+    truth = LabTruth.load(truth_path)
+    cal = Calibration(truth.rig, truth.surface, Warp.identity(truth.rig.projector.input_size), str(captures_dir))
+    root = tmp_path_factory.mktemp("evaluate")
+    cal_dir = root / "cal"
+    cal_dir.mkdir()
+    (cal_dir / "calibration.json").write_text(json.dumps(cal.to_dict()))
+    s = cal.surface
+    np.savez_compressed(cal_dir / "surface.npz", vertices=s.vertices, faces=s.faces, uvs=s.uvs, albedo=s.albedo)
+    targets = root / "targets"
+    targets.mkdir()
+    write_image(targets / "a.png", _target())
+    write_image(targets / "b.png", _target(seed=5))
+    comp = root / "comp"
+    assert main(["compensate", str(cal_dir), str(targets / "a.png"), str(targets / "b.png"), "--out", str(comp),
+                 "--iterations", "4", "--spp", "1", "--no-bias"]) == 0
+    return types.SimpleNamespace(cal=cal, cal_dir=cal_dir, truth_path=truth_path, root=root, targets=targets,
+                                 comp=comp, captures_dir=captures_dir)
+
+
+def _evaluate(env, out, *targets, inputs=None, extra=()):
+    return main(["evaluate", str(env.cal_dir), "--inputs", str(inputs or env.comp), "--targets",
+                 *[str(t) for t in targets], "--device", f"lab:{env.truth_path}", "--out", str(out), *extra])
+
+
+def test_evaluate_end_to_end(env, capsys):
+    from procam.addon.imageio import read_image
+
+    out = env.root / "eval"
+    assert _evaluate(env, out, env.targets / "a.png", extra=["--classical"]) == 0
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["complete"] and [t["name"] for t in doc["targets"]] == ["a"]
+    row = doc["targets"][0]
+    assert {"name", "psnr", "ssim"} <= set(row) and set(doc["mean"]) == {"psnr", "ssim"}
+    assert doc["mean"]["psnr"] == pytest.approx(row["psnr"], abs=1e-3)
+    assert 5 < row["psnr"] < 60 and 0 < row["ssim"] <= 1 and row["warnings"] == []
+    # Even 4 iterations of stage C start from the photometric inverse: better than the target projected as is.
+    assert row["psnr"] > row["uncompensated"]["psnr"]
+    # The classical baseline, in the same run: fitted with 3 flat primaries captured through the device.
+    assert doc["classical"]["flat_colours_captured"] == 3 and row["classical"]["psnr"] > row["uncompensated"]["psnr"]
+    area = row["area"]
+    side = read_image(out / row["image"])  # target | uncompensated | compensated | classical | error
+    assert side.shape[0] == area["height"] and side.shape[1] > 5 * area["width"]
+    cam = env.cal.rig.camera.intrinsics
+    assert read_image(out / "a_capture.png").shape == (cam.height, cam.width, 3)
+    assert "uncompensated → compensated" in capsys.readouterr().out
+    # Never overwritten without --force.
+    assert _evaluate(env, out, env.targets / "a.png") == 2
+
+
+def test_bad_inputs_are_clear_errors(env, capsys):
+    from procam.addon.imageio import write_image
+
+    root = env.root
+    # No compensation folder / no compensation for this target name.
+    assert _evaluate(env, root / "e1", env.targets / "a.png", inputs=root / "nowhere") == 2
+    assert "procam compensate" in capsys.readouterr().err
+    write_image(root / "c.png", _target())
+    assert _evaluate(env, root / "e2", root / "c.png") == 2
+    assert "no finished compensation for a target named 'c'" in capsys.readouterr().err
+    # Missing input files.
+    broken = root / "comp_missing"
+    shutil.copytree(env.comp, broken)
+    (broken / "a_frame.png").unlink()
+    (broken / "a_input.png").unlink()
+    assert _evaluate(env, root / "e3", env.targets / "a.png", inputs=broken) == 2
+    assert "missing" in capsys.readouterr().err
+    # Inputs computed from another capture set.
+    other = root / "comp_other"
+    shutil.copytree(env.comp, other)
+    doc = json.loads((other / "compensation.json").read_text())
+    doc["capture_set"] = str(root / "some-other-capture-set")
+    (other / "compensation.json").write_text(json.dumps(doc))
+    assert _evaluate(env, root / "e4", env.targets / "a.png", inputs=other) == 2
+    assert "were computed from the capture set" in capsys.readouterr().err
+    # An unreadable target and an empty one.
+    bad = root / "bad"
+    bad.mkdir()
+    (bad / "a.png").write_bytes(b"not an image")
+    assert _evaluate(env, root / "e5", bad / "a.png") == 2
+    assert "a.png" in capsys.readouterr().err
+    (bad / "b.png").write_bytes(b"")
+    assert _evaluate(env, root / "e6", bad / "b.png") == 2
+    assert "empty" in capsys.readouterr().err
+    for name in ("e1", "e2", "e3", "e4", "e5", "e6"):
+        assert not (root / name).exists()
+
+
+def test_other_capture_set_is_named(env):
+    from procam.addon.stages.evaluate import CompensationInputs, MismatchError
+
+    inputs = CompensationInputs.load(env.comp)
+    inputs.doc["capture_set"] = "/elsewhere/captures"
+    with pytest.raises(MismatchError, match="capture set /elsewhere/captures"):
+        inputs.check_against(env.cal)
+    inputs = CompensationInputs.load(env.comp)
+    inputs.doc["camera_size"] = [10, 10]
+    with pytest.raises(MismatchError, match="camera size"):
+        inputs.check_against(env.cal)
+
+
+def test_other_aspect_warns_and_is_recorded(env, capsys):
+    from procam.addon.imageio import write_image
+
+    wide = env.root / "wide"
+    wide.mkdir()
+    write_image(wide / "a.png", _target(240, 100))
+    out = env.root / "eval_wide"
+    assert _evaluate(env, out, wide / "a.png") == 0
+    row = json.loads((out / "metrics.json").read_text())["targets"][0]
+    assert row["warnings"] and "stretched" in row["warnings"][0]
+    assert "stretched" in capsys.readouterr().err
+
+
+def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
+    """A device that returns a capture of the wrong size on the second target: the first one's results stay."""
+    from procam.addon.commands import compensate as compensate_cmd
+    from procam.addon.lab.lab import LabDevice, LabTruth
+
+    class Flaky:
+        def __init__(self, truth):
+            self.inner, self.calls = LabDevice(truth), 0
+            self.projector = self.inner.projector
+
+        def project(self, frame):
+            self.calls += 1
+            img = self.inner.project(frame)
+            return img if self.calls <= 2 else img[:-1]  # two projections per target: compensated, uncompensated
+
+        def close(self):
+            self.inner.close()
+
+    monkeypatch.setattr(compensate_cmd, "open_device", lambda spec: Flaky(LabTruth.load(env.truth_path)))
+    out = env.root / "eval_flaky"
+    assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
+    assert "camera is" in capsys.readouterr().err
+    doc = json.loads((out / "metrics.json").read_text())
+    assert not doc["complete"] and [t["status"] for t in doc["targets"]] == ["done", "failed"]
+    assert (out / "a_comparison.png").is_file() and not (out / "b_comparison.png").exists()
+    assert doc["mean"]["psnr"] == doc["targets"][0]["psnr"]
+
+
+def test_check_capture_size():
+    from procam.addon.stages.evaluate import check_capture
+
+    assert check_capture(np.zeros((4, 5, 3)), (5, 4)).dtype == np.float32
+    with pytest.raises(CaptureError, match="5×4"):
+        check_capture(np.zeros((4, 6, 3)), (5, 4))
+    with pytest.raises(CaptureError, match="NaN"):
+        check_capture(np.full((4, 5, 3), np.nan), (5, 4))
+
+
+def test_no_w_ablation_uses_an_identity_warp(env):
+    from procam.addon.stages.compensate import Compensator
+    from procam.addon.stages.evaluate import without_warp
+    from procam.addon.stages.warp import Warp
+
+    size = env.cal.rig.projector.input_size
+    rng = np.random.default_rng(0)
+    shifts = rng.normal(0, 1.5, (8, 8, 2))
+    warped = type(env.cal)(env.cal.rig, env.cal.surface, Warp(8, size, shifts, -shifts), env.cal.capture_dir)
+    ablation = without_warp(warped)
+    assert ablation.warp.is_identity and not warped.warp.is_identity and ablation.rig is warped.rig
+    z = rng.uniform(0, 1, (size[1], size[0], 3)).astype(np.float32)
+    comp = Compensator(ablation, bounces=0, spp=1)
+    assert np.array_equal(comp.warp_w(z), z) and np.array_equal(comp.warp_m(z), z)
+    assert not np.allclose(Compensator(warped, bounces=0, spp=1).warp_w(z), z)
