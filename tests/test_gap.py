@@ -180,3 +180,12 @@ def test_cli_diagnose_runs_and_rejects_unknown_effects(response_case, tmp_path, 
     doc = json.loads((tmp_path / "c1" / "compensation.json").read_text())
     assert doc["effects"]["used"] == ["response"]
     assert doc["effects"]["params"]["response"]["gamma_g"] > 1.3
+
+    # The show command takes the same options; the effects are part of its resumable settings.
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "t.png").rename(tmp_path / "frames" / "shot_0001.png")
+    show = ["show", str(cal_dir), str(tmp_path / "frames"), "--out", str(tmp_path / "show"), "--iterations", "2"]
+    assert main(show + ["--effects", "auto", "--diagnosis", str(tmp_path / "gap")]) == 0
+    manifest = json.loads((tmp_path / "show" / "show.json").read_text())
+    assert manifest["effects"]["effect_models"] == ["response"]
+    assert main(show) == 2  # other effects than the finished frames': refused without --force

@@ -119,15 +119,20 @@ def resolved_schedule(arguments: dict[str, Any]) -> Any:
     return replace(get_schedule(arguments["schedule"]), **overrides).check()
 
 
+def add_effect_options(p: argparse.ArgumentParser) -> None:
+    """``--effects`` / ``--diagnosis``: diagnosed effect models around stage C (addon/gap/compensation.py)."""
+    p.add_argument("--effects", default="none",
+                   help="effect models around stage C, fitted by procam diagnose: 'auto' (the ones it selected), "
+                        "NAME,... or 'none' (default); needs --diagnosis")
+    p.add_argument("--diagnosis", type=Path, default=None, help="the procam diagnose folder for --effects")
+
+
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
     p.add_argument("targets", type=Path, nargs="+", metavar="TARGET", help="target images (PNG, JPEG, EXR, …)")
     p.add_argument("--out", type=Path, required=True, help="folder to create for the projector inputs")
     add_schedule_options(p)
-    p.add_argument("--effects", default="none",
-                   help="effect models around stage C, fitted by procam diagnose: 'auto' (the ones it selected), "
-                        "NAME,... or 'none' (default); needs --diagnosis")
-    p.add_argument("--diagnosis", type=Path, default=None, help="the procam diagnose folder for --effects")
+    add_effect_options(p)
     p.add_argument("--force", action="store_true", help="replace an existing compensation folder at --out")
 
 

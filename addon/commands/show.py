@@ -21,7 +21,7 @@ import contextlib
 from pathlib import Path
 
 from ..cli import command
-from .compensate import add_schedule_options, check_schedule, open_device, schedule_arguments
+from .compensate import add_effect_options, add_schedule_options, check_schedule, open_device, schedule_arguments
 
 EPILOG = """\
 TARGETS is a folder of images, a numbered pattern (frames/shot_####.png or frames/shot_%04d.png), or a list of
@@ -42,6 +42,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True,
                    help="show folder: created, or resumed when it holds a show made with the same settings")
     add_schedule_options(p)
+    add_effect_options(p)
     p.add_argument("--force", action="store_true",
                    help="redo every frame, even finished ones (needed when the settings or targets changed)")
     p.add_argument("--fail-fast", action="store_true",
@@ -58,7 +59,11 @@ def run(args: argparse.Namespace) -> int:
     from ..stages.display_area import parse_area
     from ..stages.sequence import SequenceError, ShowOptions, list_frames, prepare_show
 
+    from ..gap.compensation import adapter_from_options
+    from ..stages.calibrate import Calibration
+
     check_schedule(args)
+    adapter = adapter_from_options(args.effects, args.diagnosis, Calibration.load(args.calibration).rig.projector)
     options = ShowOptions(**schedule_arguments(args), spp=args.spp, bounces=args.bounces, seed=args.seed,
                           area=parse_area(args.area) if args.area else None, target_encoding=args.target_encoding,
                           use_bias=not args.no_bias)
@@ -84,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
         result = prepare_show(args.calibration, frames, args.out, options, device=device, device_spec=device_spec,
                               force=args.force, fail_fast=args.fail_fast, on_progress=tick, log=progress,
-                              cancel=cancel)
+                              cancel=cancel, effects=adapter)
         if bar:
             bar[0].close()
     doc = result.manifest

@@ -421,7 +421,7 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
                  options: ShowOptions, *, device: Any = None, device_spec: str | None = None, force: bool = False,
                  fail_fast: bool = False, on_progress: OnProgress | None = None,
                  log: Callable[[str], None] | None = None, cancel: Callable[[], bool] | None = None,
-                 compensator: Any = None) -> ShowResult:
+                 compensator: Any = None, effects: Any = None) -> ShowResult:
     """Compensate every frame into ``out_dir`` (module doc); resumes a show made with the same settings.
 
     ``device``: closed loop through it (``device_spec`` names it in the
@@ -430,7 +430,8 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
     spp, bounces and seed must equal the options'). Per-frame failures are
     recorded and reported in the result (the caller decides the exit code);
     :class:`~procam.addon.errors.Cancelled` or any unexpected error is recorded
-    in the manifest and raised.
+    in the manifest and raised. ``effects``: a :class:`~..gap.compensation.EffectAdapter` whose diagnosed
+    effect models sit around stage C (part of the settings: a rerun with other effects needs ``force``).
     """
     from .calibrate import Calibration
     from .display_area import choose_area
@@ -451,6 +452,9 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
     digits = frame_digits(frames)
     settings = settings_of(options, calibration=ident, device=device_spec if mode == "closed-loop" else None,
                            mode=mode, digits=digits)
+    settings["effects"] = effects.params if effects is not None else None
+    if effects is not None and compensator is not None:
+        raise SequenceError("a show with effect models builds its own compensator (its scene moves with them)")
     user_area = None
     if options.area is not None:
         user_area = choose_area(cal, aspect=1.0, user=options.area)  # fails now if outside the camera image
@@ -502,10 +506,15 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
             "device": device_spec if mode == "closed-loop" else None, "mode": mode,
             "schedule": {"iterations": schedule.iterations_z + schedule.iterations_joint, **settings["schedule"],
                          "spp": options.spp, "seed": options.seed},
-            # What the simulation f̂ models; diagnosed effect models (issue 6) are not applied by this command yet.
-            "effects": {"direct_light": True, "interreflection_bounces": options.bounces,
+            # What the simulation f̂ models, and the diagnosed effect models around it (addon/gap).
+            "effects": {"direct_light": True,
+                        "interreflection_bounces": effects.bounces if effects is not None and effects.bounces
+                        is not None else options.bounces,
                         "bias": mode if mode != "open-loop" else "open-loop (see open_loop_bias)",
-                        "warp": cal.warp is not None, "effect_models": []},
+                        "warp": cal.warp is not None,
+                        "effect_models": effects.used if effects is not None else [],
+                        "not_inverted": effects.not_used if effects is not None else {},
+                        "params": effects.params if effects is not None else {}},
             "projector": {"frame_size": list(proj.intrinsics.size), "input_size": list(proj.input_size),
                           "input_offset": list(proj.input_offset)},
             "camera_size": list(cal.rig.camera.intrinsics.size),
@@ -535,7 +544,8 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
         try:
             if todo:
                 _run_frames(todo, folder, result, run, options, cal, mode, digits, user_area, device=device,
-                            compensator=compensator, fail_fast=fail_fast, tick=tick, say=say, cancel=cancel)
+                            compensator=compensator, fail_fast=fail_fast, tick=tick, say=say, cancel=cancel,
+                            effects=effects)
             run["status"] = "complete" if not result.failed else "incomplete"
         except Cancelled as exc:
             run["status"] = "cancelled"
@@ -577,7 +587,7 @@ def _procam_version() -> str:
 def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult, run: dict[str, Any],
                 options: ShowOptions, cal: Any, mode: str, digits: int, user_area: Any, *, device: Any,
                 compensator: Any, fail_fast: bool, tick: OnProgress, say: Callable[[str], None],
-                cancel: Callable[[], bool] | None) -> None:
+                cancel: Callable[[], bool] | None, effects: Any = None) -> None:
     """The frame loop of :func:`prepare_show` (split out to keep the bookkeeping above readable)."""
     from ..capture.format import CaptureSet
     from ..imageio import write_image
@@ -589,7 +599,15 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
     comp = compensator
     if comp is None:
         say(f"loading the calibrated scene ({mode})")
-        comp = Compensator(cal, bounces=options.bounces, spp=options.spp, seed=options.seed)
+        if effects is None:
+            comp = Compensator(cal, bounces=options.bounces, spp=options.spp, seed=options.seed)
+        else:
+            from ..gap.compensation import AdaptedDevice
+
+            bounces = effects.bounces if effects.bounces is not None else options.bounces
+            comp = Compensator(effects.calibration(cal), bounces=bounces, spp=options.spp, seed=options.seed)
+            effects.white = comp.white()
+            device = AdaptedDevice(device, effects) if device is not None else None
     elif (comp.bounces, comp.spp, comp.seed) != (options.bounces, options.spp, options.seed):
         raise SequenceError("the compensator given was made with other bounces/spp/seed than the show's options")
     try:
@@ -602,7 +620,12 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
         bias = _load_bias(bias_path) if bias_path.is_file() else None
         if bias is None:
             say("estimating θ from the validation captures (open loop, once for the whole show)")
-            bias = comp.estimate_bias(captures)
+            if effects is not None and captures is not None:
+                from ..gap.compensation import AdaptedCaptures
+
+                bias = comp.estimate_bias(AdaptedCaptures(captures, effects))
+            else:
+                bias = comp.estimate_bias(captures)
             _save_bias(bias_path, bias)
         doc["open_loop_bias"] = {"file": BIAS_FILE, "kind": bias.kind, **bias.report}
 
@@ -631,6 +654,8 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", TargetAspectWarning)
                 fitted = fit_target(img, area, what=f"target {f.path.name}")
+                if effects is not None:
+                    fitted = effects.camera_to_light(fitted, white=area.crop(effects.white))
                 res = comp.run(fitted, area, device=device, **options.run_arguments(), open_loop_theta=bias,
                                use_bias=options.use_bias, cancel=cancel, name=f"frame {f.number}",
                                progress=lambda msg, frac, i=i: tick(i + min(max(frac, 0.0), 0.999), len(todo), msg,
@@ -653,7 +678,9 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
             continue
         # Outside the per-frame handling above: a full or vanished disk fails every frame alike, so stop here.
         try:
-            out = write_image(folder.path / name, res.x_frame)
+            frame = res.x_frame if effects is None else \
+                cal.rig.projector.frame_from_input(effects.input_for(res.x_input))
+            out = write_image(folder.path / name, frame)
         except (OSError, ProCamError) as exc:
             raise SequenceError(f"cannot write frame {f.number} into {folder.path}: {exc}; the finished frames "
                                 "are kept, rerun to resume") from None
