@@ -39,8 +39,11 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         for e in summary.data["effects"]:
             row = box.row()
             row.label(text=e["name"], icon="CHECKBOX_HLT" if e["name"] in selected else "CHECKBOX_DEHLT")
-            row.label(text=f"RMSE {_num(e.get('heldout_rmse_before'), '.4f')} → "
-                           f"{_num(e.get('heldout_rmse_after'), '.4f')}, conf. {_num(e.get('confidence'), '.2f')}")
+            conf = e.get("confidence")
+            level = conf.get("level", "–") if isinstance(conf, dict) else _num(conf, ".2f")
+            row.label(text=f"removes {_num(100 * float(e.get('reduction') or 0), '.0f')}%, "
+                           f"RMSE {_num(e.get('heldout_rmse_before'), '.4f')} → "
+                           f"{_num(e.get('heldout_rmse_after'), '.4f')}, {level}")
         box = layout.box()
         box.label(text="Regions (by share of the error):")
         for r in summary.data["regions"]:

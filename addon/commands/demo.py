@@ -53,7 +53,7 @@ def _heat(diff: np.ndarray, scale: float) -> np.ndarray:
 @command("demo", "Run the built-in demo end to end (lab, calibration, compensation, metrics).", _configure)
 def run(args: argparse.Namespace) -> int:
     from ..capture.targets import natural_target
-    from ..imageio import write_image
+    from ..imageio import write_atomic_bytes, write_image
     from ..lab.crosscheck import run_cross_check
     from ..lab.lab import LabDevice, make_truth, run_lab
     from ..outputs import fresh_output_folder, progress
@@ -142,6 +142,15 @@ def run(args: argparse.Namespace) -> int:
                                 "selected": gap["selected"], "selected_params": gap["selected_params"],
                                 "regions": gap["regions"][:3]}
         seconds["diagnose"] = time.perf_counter() - t0
+        # The folder is built under a temporary name and renamed at the end: point the calibration and the
+        # diagnosis at the capture set's final place, so procam evaluate / diagnose work on the demo's output.
+        final = Path(args.out).absolute()
+        for rel, keys in (("calibration/calibration.json", ("capture_set",)),
+                          ("diagnosis/gap.json", ("capture_set", "calibration"))):
+            doc = json.loads((out / rel).read_text())
+            for key in keys:
+                doc[key] = str(final / Path(doc[key]).relative_to(out.absolute()))
+            write_atomic_bytes(out / rel, (json.dumps(doc, indent=1) + "\n").encode())
         summary["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
         summary["seconds_total"] = round(time.perf_counter() - t_start, 1)
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
