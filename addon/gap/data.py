@@ -290,8 +290,8 @@ def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int =
                              "resolution: check the calibration (procam calibrate) or use a larger --scale")
     # Indirect light as the difference of two path tracers that share their random numbers, so the direct
     # part (and its noise) cancels; it is smooth, so more samples and a light blur keep its noise small.
-    indirect_model = model(bounces=INDIRECT_BOUNCES, integrator="prb", spp=4 * spp)
-    direct_prb = model(bounces=0, integrator="prb", spp=4 * spp)
+    indirect_model = model(bounces=INDIRECT_BOUNCES, integrator="prb", spp=2 * spp)
+    direct_prb = model(bounces=0, integrator="prb", spp=2 * spp)
     glossy_models = {r: model(glossy_roughness=r) for r in GLOSSY_ROUGHNESS}
     observations: list[Observation] = []
     for i, e in enumerate(entries):

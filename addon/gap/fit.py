@@ -41,7 +41,7 @@ from .models import MODELS, NAMES, Composite
 #: An effect is added only if it removes at least this share of the held-out RMSE still left.
 MIN_SHARE = 0.06
 #: Camera pixels per pattern the fit uses (a fixed random subset of the lit ones; scoring uses all).
-FIT_PIXELS = 12000
+FIT_PIXELS = 8000
 #: Gaussian (pixels of the working image) that separates the structured residual from pixel noise.
 SMOOTH_SIGMA = 1.5
 
