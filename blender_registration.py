@@ -12,6 +12,7 @@ import bpy
 
 from .operators.calibrate import PROCAM_OT_calibrate, PROCAM_OT_load_calibration
 from .operators.cancel_job import PROCAM_OT_cancel_job
+from .operators.capture_io import PROCAM_OT_export_patterns, PROCAM_OT_import_captures
 from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, PROCAM_OT_preview_compensated,
                                    PROCAM_OT_remove_target)
 from .operators.create_rig import PROCAM_OT_create_rig
@@ -30,6 +31,7 @@ from .panels.export import PROCAM_PT_export
 from .panels.rig import PROCAM_PT_rig
 
 OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
+             PROCAM_OT_export_patterns, PROCAM_OT_import_captures,
              PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_add_targets, PROCAM_OT_remove_target,
              PROCAM_OT_compensate, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image,
              PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job)

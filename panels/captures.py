@@ -68,3 +68,6 @@ class PROCAM_PT_captures(bpy.types.Panel):
         for line in lines[1:]:
             col.label(text=line)
         layout.operator("procam.run_lab", icon="RENDER_STILL")
+        row = layout.row(align=True)  # a session with the user's own projector and camera
+        row.operator("procam.export_patterns", icon="EXPORT")
+        row.operator("procam.import_captures", icon="IMPORT")

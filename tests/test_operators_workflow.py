@@ -242,3 +242,27 @@ def test_diagnose_operator_and_cancel_button(registered, calibrated, tmp_path, m
     finally:
         gate.set()
     assert job.wait(5) and job.status == jobs.CANCELLED
+
+
+def test_export_patterns_then_import_captures(registered, tmp_path):
+    """A session with one's own hardware: export the frames, 'photograph' them (here: the frames themselves),
+    import; the scene then points at the new capture set. Without a rig, export is disabled and says why."""
+    scene = bpy.context.scene
+    assert not bpy.ops.procam.export_patterns.poll()
+    assert bpy.ops.procam.create_rig() == {"FINISHED"}
+    assert bpy.ops.procam.export_patterns(directory=str(tmp_path / "seq")) == {"FINISHED"}
+    frames = sorted((tmp_path / "seq").glob("[0-9]*.png"))
+    assert len(frames) > 10 and (tmp_path / "seq" / "sequence.json").is_file()
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    import cv2
+
+    w, h = blender_rig.read_camera(scene).intrinsics.size
+    for i, f in enumerate(frames):  # the camera's size, named the way cameras name photographs
+        write_image(photos / f"IMG_{i + 1:04d}.png", cv2.resize(read_image(f), (w, h), interpolation=cv2.INTER_AREA))
+    with pytest.raises(RuntimeError, match="Choose the"):
+        bpy.ops.procam.import_captures(sequence_dir=str(tmp_path / "seq"))
+    assert bpy.ops.procam.import_captures(sequence_dir=str(tmp_path / "seq"), photos_dir=str(photos),
+                                          out_dir=str(tmp_path / "set")) == {"FINISHED"}
+    assert scene.procam_capture_dir == str(tmp_path / "set")
+    assert (tmp_path / "set" / "capture.json").is_file()
