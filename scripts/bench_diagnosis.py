@@ -98,7 +98,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="all", help="'all', or e.g. 'none,response,response+defocus'")
     ap.add_argument("--targets", type=int, default=2, help="natural targets for the compensation comparison (0: skip)")
     ap.add_argument("--iterations", type=int, default=60, help="stage-C iterations per target (open loop)")
+    ap.add_argument("--summarise", type=Path, default=None,
+                    help="only print the tables of the case rows (JSON lines) an earlier, interrupted run logged")
     args = ap.parse_args(argv)
+    if args.summarise:
+        rows = [json.loads(line) for line in args.summarise.read_text().splitlines() if line.startswith("{")]
+        print(report_markdown(rows, args))
+        return 0
 
     if args.cases == "all":
         cases = [()] + [(e,) for e in SINGLE] + list(PAIRS)
