@@ -94,10 +94,6 @@ def _obj_text(mesh: SurfaceMesh) -> str:
     return "\n".join(lines) + "\n"
 
 
-#: Upper bound of the effective albedo (see ``albedo_from_captures``).
-ALBEDO_MAX = 1.5
-
-
 def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, floor: float = 0.05) -> np.ndarray:
     """Camera-aligned albedo: (white − black) / simulated irradiance of the white frame where lit."""
     from ..render.forward import ForwardModel
@@ -117,10 +113,7 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
         fill = cv2.GaussianBlur(photo, (0, 0), 2.0) * scale
     else:
         fill = np.full_like(photo, np.nanmedian(albedo[lit]) if lit.any() else 0.5)
-    # An effective albedo, not a physical one: where a glossy highlight or indirect light makes the white
-    # capture brighter than a white diffuse surface could be, clipping at 1 would leave that light out of
-    # the model (the sim-to-real diagnosis measured it: 4 % of a glossy surface's pixels, most of its residual).
-    return np.clip(np.where(lit[..., None], albedo, fill), 0.0, ALBEDO_MAX).astype(np.float32)
+    return np.clip(np.where(lit[..., None], albedo, fill), 0.0, 1.0).astype(np.float32)
 
 
 def calibrate(capture_dir: str | Path, out_dir: str | Path, *, init: str = "graycode",
