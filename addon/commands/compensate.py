@@ -196,19 +196,17 @@ def run(args: argparse.Namespace) -> int:
     bar = stack.enter_context(ProgressBar(len(targets), "compensate", unit="targets"))
     try:
         device = open_device(args.device)
-        bounces = args.bounces
-        model_cal, model_device, model_captures = cal, device, captures
-        if adapter is not None:
+        model_device, model_captures = device, captures
+        if adapter is None:
+            comp = Compensator(cal, bounces=args.bounces, spp=args.spp, seed=args.seed)
+        else:
             # The effects sit around stage C: it sees light emitted and light seen (addon/gap/compensation.py).
-            bounces = adapter.bounces if adapter.bounces is not None else bounces
-            model_cal = adapter.calibration(cal)
+            comp = adapter.compensator(cal, bounces=args.bounces, spp=args.spp, seed=args.seed)
             model_device = AdaptedDevice(device, adapter) if device is not None else None
             model_captures = AdaptedCaptures(captures, adapter) if captures is not None else None
             progress(f"effect models: {', '.join(adapter.used) or 'none'}"
                      + (f"; not inverted: {', '.join(adapter.not_used)}" if adapter.not_used else ""))
-        comp = Compensator(model_cal, bounces=bounces, spp=args.spp, seed=args.seed)
-        if adapter is not None:
-            adapter.white = comp.white()
+        bounces = comp.bounces
         bias = None
         if device is None and not args.no_bias:
             progress("estimating θ from the validation captures (open loop)")
@@ -220,8 +218,7 @@ def run(args: argparse.Namespace) -> int:
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", TargetAspectWarning)
                     fitted = fit_target(img, area, what=f"target {path.name}")
-                    model_target = fitted if adapter is None else \
-                        adapter.camera_to_light(fitted, white=area.crop(adapter.white))
+                    model_target = fitted if adapter is None else adapter.model_target(fitted, area)
                     res = comp.run(model_target, area,
                                    device=model_device, **sched,
                                    progress=lambda msg, frac, i=i: bar.update(i + min(frac, 0.999), msg),
@@ -237,9 +234,8 @@ def run(args: argparse.Namespace) -> int:
                 progress(f"warning: {n}")
             files = {"input": f"{name}_input.png", "frame": f"{name}_frame.png",
                      "simulated": f"{name}_simulated.png", "target": f"{name}_target.png"}
-            x_input = adapter.input_for(res.x_input) if adapter else res.x_input
-            write_image(folder.tmp / files["input"], x_input)
-            write_image(folder.tmp / files["frame"], cal.rig.projector.frame_from_input(x_input))
+            write_image(folder.tmp / files["input"], adapter.input_for(res.x_input) if adapter else res.x_input)
+            write_image(folder.tmp / files["frame"], adapter.frame_to_send(res.x_input) if adapter else res.x_frame)
             write_image(folder.tmp / files["simulated"], res.simulated)
             write_image(folder.tmp / files["target"], fitted)
             records.append({"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,

@@ -131,6 +131,26 @@ class EffectAdapter:
                 y = y / light_scale(np.asarray(white, np.float32), curve[0])
         return np.clip(y, 0.0, 1.0).astype(np.float32)
 
+    # ------------------------------------------------------------------ stage C around the effects
+
+    def compensator(self, calibration: Any, *, bounces: int = 1, spp: int = 4, seed: int = 0) -> Any:
+        """The stage-C compensator of the calibration as the effects change it (surface, bounces); keeps its
+        simulated white, which the camera-side inverse needs."""
+        from ..stages.compensate import Compensator
+
+        comp = Compensator(self.calibration(calibration), bounces=self.bounces if self.bounces is not None
+                           else bounces, spp=spp, seed=seed)
+        self.white = comp.white()
+        return comp
+
+    def model_target(self, fitted: np.ndarray, area: Any) -> np.ndarray:
+        """A target fitted to the display area, in the units stage C compares with f̂."""
+        return self.camera_to_light(fitted, white=area.crop(self.white) if self.white is not None else None)
+
+    def frame_to_send(self, x_input: np.ndarray) -> np.ndarray:
+        """The native projector frame to send for stage C's answer ``x*`` (input size)."""
+        return self.projector.frame_from_input(self.input_for(x_input))
+
     # ------------------------------------------------------------------ geometry
 
     def calibration(self, calibration: Any) -> Any:
@@ -219,25 +239,20 @@ def compensate_with_effects(calibration: Any, target: np.ndarray, *, area: Any, 
     effects used / not used in its report.
     """
     from ..capture.format import CaptureSet
-    from ..stages.compensate import Compensator
-
-    cal = adapter.calibration(calibration)
-    comp = Compensator(cal, bounces=adapter.bounces if adapter.bounces is not None else bounces)
-    adapter.white = comp.white()
     from ..stages.display_area import fit_target
 
-    fitted = fit_target(np.asarray(target, np.float32), area)
-    light_target = adapter.camera_to_light(fitted, white=area.crop(adapter.white))
+    comp = adapter.compensator(calibration, bounces=bounces)
+    light_target = adapter.model_target(fit_target(np.asarray(target, np.float32), area), area)
     if device is None:
-        captures = CaptureSet.load(cal.capture_dir, verify_images=False)
+        captures = CaptureSet.load(calibration.capture_dir, verify_images=False)
         bias = comp.estimate_bias(AdaptedCaptures(captures, adapter))
         res = comp.run(light_target, area, open_loop_theta=bias, **options)
     else:
         res = comp.run(light_target, area, device=AdaptedDevice(device, adapter), **options)
-    x_input = adapter.input_for(res.x_input)
     report = {**res.report, "effects": {"used": adapter.used, "not_used": adapter.not_used,
-                                        "params": {n: adapter.params[n] for n in adapter.params}}}
-    return replace(res, x_input=x_input, x_frame=adapter.projector.frame_from_input(x_input), report=report)
+                                        "params": dict(adapter.params)}}
+    return replace(res, x_input=adapter.input_for(res.x_input), x_frame=adapter.frame_to_send(res.x_input),
+                   report=report)
 
 
 def adapter_from_options(effects: str | None, diagnosis: Any, projector: Any) -> EffectAdapter | None:

@@ -604,9 +604,7 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
         else:
             from ..gap.compensation import AdaptedDevice
 
-            bounces = effects.bounces if effects.bounces is not None else options.bounces
-            comp = Compensator(effects.calibration(cal), bounces=bounces, spp=options.spp, seed=options.seed)
-            effects.white = comp.white()
+            comp = effects.compensator(cal, bounces=options.bounces, spp=options.spp, seed=options.seed)
             device = AdaptedDevice(device, effects) if device is not None else None
     elif (comp.bounces, comp.spp, comp.seed) != (options.bounces, options.spp, options.seed):
         raise SequenceError("the compensator given was made with other bounces/spp/seed than the show's options")
@@ -655,7 +653,7 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
                 warnings.simplefilter("always", TargetAspectWarning)
                 fitted = fit_target(img, area, what=f"target {f.path.name}")
                 if effects is not None:
-                    fitted = effects.camera_to_light(fitted, white=area.crop(effects.white))
+                    fitted = effects.model_target(fitted, area)
                 res = comp.run(fitted, area, device=device, **options.run_arguments(), open_loop_theta=bias,
                                use_bias=options.use_bias, cancel=cancel, name=f"frame {f.number}",
                                progress=lambda msg, frac, i=i: tick(i + min(max(frac, 0.0), 0.999), len(todo), msg,
@@ -678,8 +676,7 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
             continue
         # Outside the per-frame handling above: a full or vanished disk fails every frame alike, so stop here.
         try:
-            frame = res.x_frame if effects is None else \
-                cal.rig.projector.frame_from_input(effects.input_for(res.x_input))
+            frame = res.x_frame if effects is None else effects.frame_to_send(res.x_input)
             out = write_image(folder.path / name, frame)
         except (OSError, ProCamError) as exc:
             raise SequenceError(f"cannot write frame {f.number} into {folder.path}: {exc}; the finished frames "
