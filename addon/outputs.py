@@ -22,7 +22,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +106,21 @@ def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "r
         folder.abort()
         raise
     folder.commit()
+
+
+def output_names(paths: "Iterable[str | Path]") -> list[str]:
+    """Output names from file stems, made unique (a/x.png and b/x.png become x and x_2)."""
+    import re
+
+    out: list[str] = []
+    for p in paths:
+        base = re.sub(r"[^A-Za-z0-9_.-]+", "-", Path(p).stem).strip("-") or "target"
+        name, n = base, 1
+        while name in out:
+            n += 1
+            name = f"{base}_{n}"
+        out.append(name)
+    return out
 
 
 def jsonable(value: Any) -> Any:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from .errors import CalibrationError, Cancelled, ImageError, NotImplementedStageError, ProCamError
-from .outputs import AtomicFolder, fresh_output_folder, jsonable
+from .outputs import AtomicFolder, fresh_output_folder, jsonable, output_names
 
 Progress = Callable[[str, float], None]
 Cancel = Callable[[], bool]
@@ -264,19 +264,6 @@ def target_paths(files: Sequence[str | Path], sequence_dir: str | Path | None = 
         out += found
     if not out:
         raise ImageError("no target images: add target files or choose an image sequence folder")
-    return out
-
-
-def output_names(paths: Sequence[Path]) -> list[str]:
-    """Output names from file stems, made unique (a/x.png and b/x.png become x and x_2), as ``procam compensate``."""
-    out: list[str] = []
-    for p in paths:
-        base = re.sub(r"[^A-Za-z0-9_.-]+", "-", Path(p).stem).strip("-") or "target"
-        name, n = base, 1
-        while name in out:
-            n += 1
-            name = f"{base}_{n}"
-        out.append(name)
     return out
 
 

@@ -136,27 +136,12 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing compensation folder at --out")
 
 
-def _names(paths: list[Path]) -> list[str]:
-    """Output names from file stems, made unique (a/x.png and b/x.png become x and x_2)."""
-    import re
-
-    out: list[str] = []
-    for p in paths:
-        base = re.sub(r"[^A-Za-z0-9_.-]+", "-", p.stem).strip("-") or "target"
-        name, n = base, 1
-        while name in out:
-            n += 1
-            name = f"{base}_{n}"
-        out.append(name)
-    return out
-
-
 @command("compensate", "Find the projector input for each target image (stage C).", _configure)
 def run(args: argparse.Namespace) -> int:
     from ..capture.format import AtomicFolder, CaptureSet
     from ..cli import cancel_on_interrupt
     from ..imageio import write_atomic_bytes, write_image
-    from ..outputs import ProgressBar, progress
+    from ..outputs import ProgressBar, output_names, progress
     from ..stages.calibrate import Calibration
     from ..stages.compensate import Compensator
     from ..stages.display_area import TargetAspectWarning, choose_area, fit_target, load_target, parse_area
@@ -170,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
     ident = calibration_identity(args.calibration)
     # Read every target first: a bad file fails before minutes of work.
     targets = [load_target(p, encoding=args.target_encoding) for p in args.targets]
-    names = _names(list(args.targets))
+    names = output_names(args.targets)
     user_area = parse_area(args.area) if args.area else None
     sched = schedule_arguments(args)
     resolved = resolved_schedule(sched)

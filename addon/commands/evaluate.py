@@ -48,12 +48,13 @@ def run(args: argparse.Namespace) -> int:
     from ..stages.calibrate import Calibration
     from ..stages.display_area import load_target
     from ..stages.evaluate import METRICS, CompensationInputs, evaluate_folder
-    from .compensate import _names, open_device
+    from ..outputs import output_names
+    from .compensate import open_device
 
     cal = Calibration.load(args.calibration)
     inputs = CompensationInputs.load(args.inputs)
     inputs.check_against(cal)
-    names = _names(list(args.targets))
+    names = output_names(args.targets)
     for name in names:
         inputs.record(name)  # a target with no compensation fails before anything is read or projected
     targets = [(name, *load_target(p, encoding=args.target_encoding)) for name, p in zip(names, args.targets)]
