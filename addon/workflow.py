@@ -218,7 +218,7 @@ def load_calibration_view(folder: str | Path, *, progress: Progress | None = Non
     say = progress or _quiet
     folder = Path(folder)
     say("reading the calibration", 0.0)
-    cal = Calibration.load(folder)
+    cal = Calibration.load(folder, complete=False)  # a stage at a time: show what is there
     images: dict[str, np.ndarray] = {}
     diag = folder / "diagnostics"
     files = sorted(diag.glob("*.png")) if diag.is_dir() else []
@@ -233,13 +233,15 @@ def load_calibration_view(folder: str | Path, *, progress: Progress | None = Non
 
 def run_calibration(capture_dir: str | Path, out_dir: str | Path, *, init: str = "graycode",
                     initial_pose: np.ndarray | None = None, force: bool = False, seed: int = 0,
+                    stages: str | None = None, depth_offset: float | None = None,
                     progress: Progress | None = None, cancel: Cancel | None = None) -> CalibrationView:
     """``procam calibrate`` without the .blend (the UI's scene is the .blend; Export saves one)."""
     from .stages.calibrate import calibrate
 
     say = progress or _quiet
     calibrate(capture_dir, out_dir, init=init, initial_pose=initial_pose, force=force, with_blend=False,
-              progress=lambda m, f: say(m, 0.95 * f), cancel=cancel, seed=seed)
+              progress=lambda m, f: say(m, 0.95 * f), cancel=cancel, seed=seed, stages=stages,
+              depth_offset=depth_offset)
     return load_calibration_view(out_dir, progress=lambda m, f: say(m, 0.95 + 0.05 * f))
 
 

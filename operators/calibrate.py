@@ -6,9 +6,10 @@ diagnostic images become Blender images (``ProCam …``).
 """
 
 import bpy
+from bpy.props import EnumProperty
 
 from ..addon import jobs
-from ..addon.errors import ProCamError
+from ..addon.errors import CalibrationError, ProCamError
 from ..addon.rig import blender_rig
 from ..addon.workflow import (CALIBRATION_MANIFEST, CalibrationView, load_calibration_view,
                               prepare_worker_libraries, run_calibration)
@@ -18,16 +19,27 @@ from .job_operator import JobOperator, job_running_message
 IMAGE_PREFIX = "ProCam Calibration "
 
 
+STAGE_ITEMS = [("ALL", "All", "Surface, then the projector pose (stage A), then the warp (stage B)"),
+               ("SURFACE", "Surface", "Only the surface from the depth image; pose and warp must be rerun after it"),
+               ("POSE", "Pose", "Only the projector pose (stage A) on the calibration's surface; the warp must be "
+                                "rerun after it"),
+               ("WARP", "Warp", "Only the warp (stage B) on the calibration's surface and pose")]
+
+
 def apply_view(context: bpy.types.Context, view: CalibrationView) -> str:
     """Write a calibration into the scene; returns the report."""
     cal = view.calibration
-    objs = blender_rig.apply_calibration(context.scene, cal.rig, cal.surface, source=str(view.folder))
+    posed = cal.stages["pose"] != "not run"
+    objs = blender_rig.apply_calibration(context.scene, cal.rig, cal.surface, source=str(view.folder),
+                                         move_projector=posed)
     for name, image in view.images.items():
         blender_rig.set_image(IMAGE_PREFIX + name, image)
     context.scene.procam_calibration_dir = str(view.folder)
-    pos = cal.rig.projector.position
-    return (f"Calibration {view.folder.name}: {objs.projector.name!r} at ({pos[0]:+.3f}, {pos[1]:+.3f}, "
-            f"{pos[2]:+.3f}) m, surface {len(cal.surface.faces)} faces, {len(view.images)} images")
+    pos = objs.projector.matrix_world.translation
+    todo = f"; still to run: {', '.join(cal.missing_stages)}" if cal.missing_stages else ""
+    return (f"Calibration {view.folder.name}: {objs.projector.name!r} "
+            f"{'at' if posed else 'left at'} ({pos[0]:+.3f}, {pos[1]:+.3f}, {pos[2]:+.3f}), surface "
+            f"{len(cal.surface.faces)} faces, {len(view.images)} images{todo}")
 
 
 class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
@@ -38,6 +50,14 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
     bl_label = "Calibrate"
     bl_options = {"REGISTER", "UNDO"}
     step = "calibrate"
+
+    stage: EnumProperty(name="Stage", items=STAGE_ITEMS, default="ALL",
+                        description="Which stage to run; a single later stage reuses the earlier ones from the "
+                                    "calibration folder")
+
+    @classmethod
+    def description(cls, context: bpy.types.Context, properties: bpy.types.OperatorProperties) -> str:
+        return next(d for k, _, d in STAGE_ITEMS if k == properties.stage) + "; Esc cancels"
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
@@ -64,8 +84,13 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
         if init == "blender":
             initial = blender_rig.read_projector(scene).camera_from_projector
             init = "given"
+        stages = None if self.stage == "ALL" else self.stage.lower()
+        if stages in ("pose", "warp") and paths.existing(scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+            raise CalibrationError(f"the {stages} stage reuses the calibration folder's earlier stages, but it "
+                                   "holds no calibration yet; run Surface (or All) first")
+        offset = float(scene.procam_depth_offset) if scene.procam_depth_offset_given else None
         return jobs.Job("calibration", run_calibration, captures, out, init=init, initial_pose=initial,
-                        force=scene.procam_replace_outputs)
+                        force=scene.procam_replace_outputs, stages=stages, depth_offset=offset)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         return apply_view(context, result)

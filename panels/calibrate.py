@@ -22,8 +22,16 @@ class PROCAM_PT_calibrate(bpy.types.Panel):
         row.prop(scene, "procam_calibration_init", text="Start")
         summary = calibration_summary(bpy.path.abspath(scene.procam_calibration_dir))
         done = draw_state(layout, "calibrate", summary)
+        row = layout.row(align=True)
+        row.prop(scene, "procam_depth_offset_given", text="")
+        sub = row.row(align=True)
+        sub.enabled = scene.procam_depth_offset_given
+        sub.prop(scene, "procam_depth_offset")
         col = layout.column(align=True)
-        col.operator("procam.calibrate", icon="PLAY")
+        col.operator("procam.calibrate", icon="PLAY").stage = "ALL"
+        row = col.row(align=True)
+        for stage, text in (("SURFACE", "Surface"), ("POSE", "Pose"), ("WARP", "Warp")):
+            row.operator("procam.calibrate", text=text).stage = stage
         col.operator("procam.load_calibration", icon="IMPORT")
         col.prop(scene, "procam_replace_outputs")
         if done and summary.data.get("diagnostics"):

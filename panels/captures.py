@@ -43,7 +43,7 @@ def capture_set_status(path: str) -> tuple[str, str]:
     else:
         images = [e for e in cs.entries if e.kind != "depth"]
         w, h = cs.camera.intrinsics.size
-        depth = " + depth" if len(images) < len(cs.entries) else ""
+        depth = (" + depth" if len(images) < len(cs.entries) else "") + (" + wall" if cs.depth_walls() else "")
         result = ("CHECKMARK", f"{len(images)} images{depth}, camera {w}×{h}")
     _STATUS[str(root)] = (stamp, *result)
     return result

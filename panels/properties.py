@@ -1,7 +1,7 @@
 """Scene properties of the Calibrate, Compensate, Diagnose and Export steps (registered by ``blender_registration``)."""
 
 import bpy
-from bpy.props import BoolProperty, CollectionProperty, EnumProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 
 class PROCAM_PG_target(bpy.types.PropertyGroup):
@@ -24,6 +24,13 @@ def scene_properties() -> dict[str, object]:
             name="Calibration", subtype="DIR_PATH",
             description="Calibration folder: Calibrate writes it, Compensate and Diagnose read it"),
         "procam_calibration_init": EnumProperty(name="Start Pose", items=INIT_ITEMS, default="graycode"),
+        "procam_depth_offset_given": BoolProperty(
+            name="Set Depth Offset",
+            description="Give the depth sensor's bias by hand instead of reading it from the capture set's wall "
+                        "depth image (a flat wall at a tape-measured distance)"),
+        "procam_depth_offset": FloatProperty(
+            name="Depth Offset", subtype="DISTANCE", unit="LENGTH", default=0.0, min=-0.5, max=0.5,
+            description="The depth sensor's constant bias (+ = it reads too far), subtracted from the depth"),
         "procam_replace_outputs": BoolProperty(
             name="Replace Results", description="Let a step replace its existing output folder (never otherwise)"),
         "procam_targets": CollectionProperty(type=PROCAM_PG_target, name="Targets"),

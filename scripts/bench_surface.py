@@ -1,7 +1,7 @@
 """Benchmark of the surface from depth: distance to the lab's true surface over the lit area, per surface and seed.
 
     .venv/bin/python scripts/bench_surface.py [--scale 1] [--surfaces plane,curve,vedge,hedge]
-        [--seeds 0,1,2] [--variants realistic,nobias,noise,holes,sensor,bias,offset] [--out FILE.json]
+        [--seeds 0,1,2] [--variants realistic,wall,nobias,noise,holes,sensor,bias] [--out FILE.json]
     .venv/bin/python scripts/bench_surface.py --bias-probe [--surfaces ...] [--seeds ...]
 
 For each built-in surface and seed it takes the virtual lab's depth image (a
@@ -24,8 +24,10 @@ projector's frustum and is not shadowed from it. Per such pixel:
 Variants split the ``depth_noise`` effect at its ``realistic`` strength into its parts:
 ``sensor`` (only the 256×192 sensor and its bilinear upsampling), ``noise`` (+ noise only),
 ``holes`` (+ grazing holes and dropout only), ``bias`` (+ bias only), ``nobias`` (all but the
-bias), ``realistic`` (all), and ``offset`` (all, reconstructed with ``depth_offset`` set to the
-sensor's bias, as if the phone had been checked once against a tape-measured wall).
+bias), ``realistic`` (all, nothing corrects the bias), and ``wall`` (all, reconstructed as
+``procam calibrate`` does with the lab's capture sets: ``depth_offset`` read from the same
+sensor's depth image of a flat wall at a tape-measured 1.5 m, ``lab_wall_depth`` +
+``wall_depth_offset``; the truth's bias is never read).
 
 ``--bias-probe`` asks whether the calibration could find the bias itself: it
 makes ideal Gray-code correspondences (each camera pixel's true surface point
@@ -49,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-VARIANTS = ("realistic", "nobias", "noise", "holes", "sensor", "bias", "offset")
+VARIANTS = ("realistic", "wall", "nobias", "noise", "holes", "sensor", "bias")
 PROBE_CONDITIONS = ("bias", "noisy", "lens")
 
 
@@ -63,7 +65,7 @@ def variant_effects(name: str) -> str:
              "holes": f"realistic,depth_noise=0,depth_noise.holes={p['holes']},depth_noise.dropout={p['dropout']}",
              "bias": f"realistic,depth_noise=0,depth_noise.bias={p['bias']}",
              "nobias": "realistic,depth_noise.bias=0",
-             "realistic": "realistic", "offset": "realistic"}
+             "realistic": "realistic", "wall": "realistic"}
     if name not in parts:
         raise SystemExit(f"unknown variant {name!r}; choose from {', '.join(VARIANTS)}")
     return parts[name]
@@ -116,8 +118,8 @@ def distances(mesh, rays: np.ndarray, depth: np.ndarray, normals: np.ndarray) ->
 
 
 def surface_rows(surfaces: list[str], variants: list[str], seeds: list[int], scale: float) -> list[dict]:
-    from procam.addon.lab.lab import lab_depth, make_truth
-    from procam.addon.surface.reconstruct import import_pymeshlab, reconstruct_surface
+    from procam.addon.lab.lab import WALL_DISTANCE, lab_depth, lab_wall_depth, make_truth
+    from procam.addon.surface.reconstruct import import_pymeshlab, reconstruct_surface, wall_depth_offset
 
     import_pymeshlab()  # once, outside the timings
     rows = []
@@ -128,8 +130,8 @@ def surface_rows(surfaces: list[str], variants: list[str], seeds: list[int], sca
                 truth = make_truth(surf, effects=effects, seed=seed, scale=scale)  # evaluation only
                 rays, depth_true, normals = lit_pixels(truth)
                 depth, info = lab_depth(truth)
-                offset = float(truth.effects["depth_noise"]["bias"]) if variant == "offset" else 0.0
                 t0 = time.perf_counter()
+                offset = wall_depth_offset(lab_wall_depth(truth), WALL_DISTANCE) if variant == "wall" else 0.0
                 mesh, _ = reconstruct_surface(depth, info.intrinsics, depth_offset=offset)
                 seconds = time.perf_counter() - t0
                 row = {"surface": surf, "variant": variant, "effects": effects, "seed": seed,

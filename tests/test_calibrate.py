@@ -64,3 +64,63 @@ def test_metrics():
     assert psnr(a, a) == float("inf") and ssim(a, a) == pytest.approx(1.0)
     assert psnr(np.clip(a + 0.01, 0, 1), a) == pytest.approx(40.0, abs=0.6)
     assert ssim(np.clip(a + rng.normal(0, 0.2, a.shape), 0, 1), a) < 0.9
+
+
+def test_depth_bias_read_from_the_wall_image(calibrated):
+    """The lab's capture set carries the depth sensor's image of a wall at a known distance; calibration reads
+    the sensor's bias from it (never from the truth) and the surface lies where the true one is."""
+    captures, truth_path, _, cal = calibrated
+    sr = cal.report["surface_report"]
+    bias = LabTruth.load(truth_path).effects["depth_noise"]["bias"]
+    assert bias > 0 and sr["depth_offset"] == pytest.approx(bias, abs=0.002)
+    assert sr["depth_offset_source"].startswith("wall depth image depth/wall.npy")
+    from procam.addon.capture.format import CaptureSet
+    from procam.addon.stages.calibrate import scene_depth
+    cs = CaptureSet.load(captures)
+    depth, offset, source = scene_depth(cs, 0.004)
+    assert offset == 0.004 and source == "given" and depth.shape == cs.depth_info.intrinsics.size[::-1]
+
+
+def test_wall_offset_refuses_bad_walls():
+    from procam.addon.errors import SurfaceError
+    from procam.addon.surface.reconstruct import wall_depth_offset
+    wall = np.full((30, 40), 1.51)
+    assert wall_depth_offset(wall, 1.5) == pytest.approx(0.01)
+    with pytest.raises(SurfaceError, match="mostly empty"):
+        wall_depth_offset(np.where(np.arange(40) < 35, np.nan, wall), 1.5)
+    with pytest.raises(SurfaceError, match="more than a sensor bias"):
+        wall_depth_offset(wall * 1000, 1.5)  # millimetres
+    with pytest.raises(SurfaceError, match="wall distance"):
+        wall_depth_offset(wall, -1)
+
+
+def test_stages_one_at_a_time(calibrated, tmp_path, capsys):
+    """Surface, then pose, then warp, each a run of its own: each reuses the folder's earlier stages, an
+    unfinished calibration is refused where a complete one is needed, and the end equals one full run."""
+    captures, _, _, full = calibrated
+    out = tmp_path / "cal"
+    with pytest.raises(CalibrationError, match="run the earlier stages first"):
+        calibrate(captures, out, stages="pose")
+    with pytest.raises(CalibrationError, match="skip one"):
+        calibrate(captures, out, stages="surface,warp")
+    cal = calibrate(captures, out, stages="surface", with_blend=False)
+    assert cal.stages == {"surface": "run", "pose": "not run", "warp": "not run"} and cal.warp is None
+    with pytest.raises(CalibrationError, match="has not run pose, warp yet.*--stages pose,warp"):
+        Calibration.load(out)
+    assert main(["compensate", str(out), "city", "--out", str(tmp_path / "comp")]) == 2
+    assert "has not run pose, warp yet" in capsys.readouterr().err
+    with pytest.raises(CalibrationError, match="has not run stage\\(s\\) pose"):
+        calibrate(captures, out, stages="warp")
+    cal = calibrate(captures, out, stages="pose", with_blend=False)
+    assert cal.stages == {"surface": "reused", "pose": "run", "warp": "not run"}
+    assert np.allclose(cal.rig.projector.camera_from_projector, full.rig.projector.camera_from_projector, atol=1e-6)
+    assert main(["calibrate", str(captures), "--out", str(out), "--stages", "warp", "--no-blend-output"]) == 0
+    done = Calibration.load(out)
+    assert done.stages == {"surface": "reused", "pose": "reused", "warp": "run"} and not done.missing_stages
+    assert np.allclose(done.warp.w_shifts, full.warp.w_shifts, atol=1e-5)
+    names = {p.name for p in (out / "diagnostics").iterdir()}
+    assert {"pose_mask.png", "warp_grid.png"} <= names  # the pose's images kept through the warp-only run
+    other = tmp_path / "other"
+    shutil.copytree(captures, other)
+    with pytest.raises(CalibrationError, match="was made from"):
+        calibrate(other, out, stages="warp")

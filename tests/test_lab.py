@@ -410,7 +410,7 @@ def test_operator_runs_the_lab_on_the_scene_and_leaves_it_alone(registered, tmp_
     assert "Blender object" in truth.surface_source
     assert scene.procam_capture_dir == str(out)
     icon, text = capture_set_status(scene.procam_capture_dir)
-    assert icon == "CHECKMARK" and text.startswith(f"{len(cs.entries) - 1} images + depth")
+    assert icon == "CHECKMARK" and text.startswith(f"{len(cs.entries) - 2} images + depth + wall")
 
     # a second run onto the same set is refused without Replace; the scene and the set stay as they are
     files = _tree(out)

@@ -94,6 +94,39 @@ def test_calibrate_operator_moves_the_projector_and_shows_the_textured_surface(r
     assert jobs.BOARD.get("calibrate").status == jobs.FAILED
 
 
+def test_calibrate_one_stage_at_a_time(registered, tiny, tmp_path):
+    """Surface, Pose, Warp buttons: the surface alone leaves the artist's projector where it stands; each later
+    stage reuses the folder's earlier ones; a depth offset given in the panel replaces the wall image's."""
+    scene = bpy.context.scene
+    bpy.ops.procam.create_rig(camera_width=96, camera_height=72, projector_width=120, projector_height=90,
+                              surface="vedge")
+    scene.procam_capture_dir = str(tiny[0])
+    scene.procam_calibration_dir = str(tmp_path / "cal")
+    with pytest.raises(RuntimeError, match="holds no calibration yet"):
+        bpy.ops.procam.calibrate(stage="POSE")
+    scene.procam_depth_offset_given, scene.procam_depth_offset = True, 0.003
+    assert bpy.ops.procam.calibrate(stage="SURFACE") == {"FINISHED"}
+    cal = Calibration.load(tmp_path / "cal", complete=False)
+    assert cal.missing_stages == ["pose", "warp"]
+    assert cal.report["surface_report"]["depth_offset"] == pytest.approx(0.003)
+    assert blender_rig.find_rig_objects(scene).surface.name == blender_rig.CALIBRATED_SURFACE_NAME
+    projector = blender_rig.find_rig_objects(scene).projector  # the artist moves it; a surface rerun keeps it there
+    projector.location.x += 0.1
+    bpy.context.view_layer.update()
+    placed = blender_rig.read_projector(scene).camera_from_projector
+    scene.procam_replace_outputs = True
+    assert bpy.ops.procam.calibrate(stage="SURFACE") == {"FINISHED"}
+    assert np.allclose(blender_rig.read_projector(scene).camera_from_projector, placed, atol=1e-6)
+    assert bpy.ops.procam.calibrate(stage="POSE") == {"FINISHED"}
+    cal = Calibration.load(tmp_path / "cal", complete=False)
+    assert cal.missing_stages == ["warp"]
+    assert np.allclose(blender_rig.read_projector(scene).camera_from_projector,
+                       cal.rig.projector.camera_from_projector, atol=1e-6)
+    assert bpy.ops.procam.calibrate(stage="WARP") == {"FINISHED"}
+    assert not Calibration.load(tmp_path / "cal").missing_stages
+    assert "ProCam Calibration warp_grid" in bpy.data.images
+
+
 def test_cancelled_calibration_leaves_scene_and_disk_unchanged(registered, tiny, tmp_path, monkeypatch):
     scene = bpy.context.scene
     bpy.ops.procam.create_rig(camera_width=96, camera_height=72, projector_width=120, projector_height=90,

@@ -63,6 +63,9 @@ REQUIRED_PARAMS: dict[str, tuple[str, ...]] = {
     "graycode": ("axis", "bit", "inverted"),
     "validation": ("pattern",),
 }
+#: Parameter of a ``depth`` entry that makes it the sensor's image of a flat wall at this distance (metres),
+#: from which calibration reads the sensor's constant bias; the scene's depth entry has no such parameter.
+WALL_PARAM = "wall_distance_m"
 #: A depth map with more than this share of missing pixels is refused.
 MAX_DEPTH_MISSING = 0.5
 IMAGE_SUFFIXES = (".png", ".exr", ".npy")
@@ -374,8 +377,22 @@ class CaptureSet:
         return self._read(e.pattern)
 
     def depth(self, **filters: Any) -> np.ndarray:
-        """Depth in metres (float32 H×W at the depth intrinsics' size), NaN where missing."""
-        return self._read_depth(self.entry("depth", **filters))
+        """Depth in metres (float32 H×W at the depth intrinsics' size), NaN where missing.
+
+        Without filters: the one depth image of the scene (not a wall image, :meth:`depth_walls`).
+        """
+        if filters:
+            return self._read_depth(self.entry("depth", **filters))
+        scene = [e for e in self.entries_of("depth") if WALL_PARAM not in e.params]
+        if len(scene) != 1:
+            raise CaptureError(f"capture set {self.path} needs exactly one depth image of the scene, has "
+                               f"{len(scene)} ({', '.join(e.file for e in scene) or 'none'}); capture the surface "
+                               "with the depth camera from the RGB camera's position")
+        return self._read_depth(scene[0])
+
+    def depth_walls(self) -> list[tuple[Entry, float]]:
+        """The depth sensor's images of a flat wall facing it, with the wall's tape-measured distance (metres)."""
+        return [(e, e.params[WALL_PARAM]) for e in self.entries_of("depth") if WALL_PARAM in e.params]
 
     def file(self, entry: Entry) -> Path:
         return self.path / entry.file

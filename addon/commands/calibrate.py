@@ -19,6 +19,14 @@ def _configure(p: argparse.ArgumentParser) -> None:
                         "nominal projector, or the ProCam Projector placed in a .blend (--blend)")
     p.add_argument("--blend", type=Path, help="with --init blender: the .blend holding the ProCam Projector")
     p.add_argument("--no-blend-output", action="store_true", help="do not write scene.blend")
+    p.add_argument("--stages", default="all", metavar="STAGES",
+                   help="run these stages only, comma-separated from surface,pose,warp (a contiguous run): "
+                        "earlier ones come from the calibration already in --out, later ones are left to run "
+                        "(default: all)")
+    p.add_argument("--depth-offset", type=float, default=None, metavar="METRES",
+                   help="the depth sensor's constant bias (+ = it reads too far), subtracted from the depth; "
+                        "default: read from the capture set's wall depth image (a flat wall at a tape-measured "
+                        "distance), else 0")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
@@ -56,14 +64,18 @@ def run(args: argparse.Namespace) -> int:
 
     cal = calibrate(args.capture_dir, args.out, init="given" if initial is not None else args.init,
                     initial_pose=initial, force=args.force, with_blend=not args.no_blend_output,
-                    progress=say, seed=args.seed)
+                    progress=say, seed=args.seed, depth_offset=args.depth_offset, stages=args.stages)
     r = cal.report
     print(f"calibration: {args.out}")
-    print(f"  surface: {r['surface_report']['vertices']} vertices, {r['surface_report']['faces']} faces")
+    sr = r["surface_report"]
+    print(f"  surface: {sr['vertices']} vertices, {sr['faces']} faces, depth offset {100 * sr['depth_offset']:+.2f} cm "
+          f"({sr['depth_offset_source']})")
     p = cal.rig.projector
-    print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
-          f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']})")
-    b, a = r["warp_report"]["corners_before_px"], r["warp_report"]["corners_after_px"]
+    if "init" in r:
+        print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
+              f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']})")
+    print("  stages: " + ", ".join(f"{k} {v}" for k, v in cal.stages.items()))
+    b, a = (r.get("warp_report") or {}).get("corners_before_px"), (r.get("warp_report") or {}).get("corners_after_px")
     if b and a:
         print(f"  warp: checker corners median {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items()))

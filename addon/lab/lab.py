@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from ..capture.devices import Device
-from ..capture.format import CaptureSet, CaptureSetWriter, DepthInfo, is_capture_set, validate_depth
+from ..capture.format import WALL_PARAM, CaptureSet, CaptureSetWriter, DepthInfo, is_capture_set, validate_depth
 from ..capture.patterns import PatternSpec, calibration_sequence
 from ..errors import CaptureError, LabError
 from ..imageio import write_atomic_bytes
@@ -229,6 +229,32 @@ def lab_depth(truth: LabTruth, seed: int | None = None) -> tuple[np.ndarray, Dep
     rng = _stream(truth.seed if seed is None else seed, zlib.crc32(b"depth"))
     d = depth_capture(depth_map(truth.surface, k), k, truth.effects, rng)
     return d, DepthInfo(k, tuple(sensor_resolution(truth.effects, k)))
+
+
+#: Distance (metres) of the flat wall whose depth image calibrates the sensor's bias (see lab_wall_depth).
+WALL_DISTANCE = 1.5
+
+
+def lab_wall_depth(truth: LabTruth, distance: float = WALL_DISTANCE, seed: int | None = None) -> np.ndarray:
+    """The same sensor's depth image of a flat wall square to the camera at a tape-measured ``distance``.
+
+    What a user does once per depth device to learn its constant bias
+    (:func:`procam.addon.surface.reconstruct.wall_depth_offset`): the lab
+    applies the ``depth_noise`` effect exactly as to the scene (noise, bias,
+    sensor resolution, lost returns), with its own noise stream.
+    """
+    from ..render.raycast import depth_map
+    from ..surface.mesh import SurfaceMesh
+    from .depth import depth_capture
+
+    k = truth.rig.camera.intrinsics
+    half = 2.0 * distance  # far wider than any camera's field of view
+    wall = SurfaceMesh(np.array([[-half, -half, distance], [half, -half, distance], [half, half, distance],
+                                 [-half, half, distance]]), np.array([[0, 2, 1], [0, 3, 2]]),
+                       np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]),
+                       np.full((2, 2, 3), 0.8, np.float32), name="wall")
+    rng = _stream(truth.seed if seed is None else seed, zlib.crc32(b"depth-wall"))
+    return depth_capture(depth_map(wall, k), k, truth.effects, rng)
 
 
 _ID_COLLECTIONS = ("objects", "meshes", "cameras", "lights", "materials", "images", "textures", "node_groups",
@@ -490,7 +516,7 @@ class _NominalDevice(Device):
 
 
 def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
-            graycode: bool = True, validation: bool = True, fast_binary: bool = True,
+            graycode: bool = True, validation: bool = True, fast_binary: bool = True, depth_wall: bool = True,
             progress: Progress | None = None) -> CaptureSet:
     """Render a complete calibration capture set into ``out_dir`` and seal the truth at ``truth_path``.
 
@@ -498,7 +524,10 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     surface in view); the capture set appears only once complete (an existing
     one is replaced only with ``force``, and only then), and the truth file
     with it. ``fast_binary`` renders checker and Gray-code frames with
-    :func:`binary_samples`. ``progress(done, total, message)`` reports each step.
+    :func:`binary_samples`. ``depth_wall`` adds the depth sensor's image of a
+    flat wall at a known distance (:func:`lab_wall_depth`), from which
+    calibration reads the sensor's bias. ``progress(done, total, message)``
+    reports each step.
     """
     out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force)
     nominal = replace(truth.rig.projector, camera_from_projector=truth.nominal_pose)
@@ -528,6 +557,8 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
                 shot = shown.capture_off() if frame is None else shown.project(frame)
                 writer.add(spec.kind, shot, name=spec.name, frame=frame, **spec.params)
         writer.add_depth(depth)
+        if depth_wall:
+            writer.add_depth(lab_wall_depth(truth), name="wall", **{WALL_PARAM: WALL_DISTANCE})
         # Seal the truth under a temporary name first: the set and its truth appear together or not at all.
         truth_path.parent.mkdir(parents=True, exist_ok=True)
         tmp_truth = Path(tempfile.mkdtemp(prefix=f".{truth_path.stem}.tmp-", dir=truth_path.parent))
@@ -563,7 +594,8 @@ def describe_run(cs: CaptureSet, seconds: float) -> str:
     """One line about a finished lab run (for the CLI and the operator)."""
     n = len([e for e in cs.entries if e.kind != "depth"])
     w, h = cs.camera.intrinsics.size
-    return f"{n} captures + depth at {w}×{h} in {seconds:.0f} s"
+    wall = " + wall depth" if cs.depth_walls() else ""
+    return f"{n} captures + depth{wall} at {w}×{h} in {seconds:.0f} s"
 
 
 __all__ = ["LAB_SCENE_NAME", "LabDevice", "LabTruth", "binary_samples", "check_lab_outputs", "describe_run",

@@ -700,8 +700,12 @@ def _same_model(obj: bpy.types.Object, props: dict[str, Any]) -> bool:
         return False
 
 
-def apply_calibration(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh, *, source: str = "") -> RigObjects:
+def apply_calibration(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh, *, source: str = "",
+                      move_projector: bool = True) -> RigObjects:
     """Bring a calibration into the scene: the projector moves to the estimated pose, the surface appears textured.
+
+    ``move_projector`` False (a calibration whose pose stage has not run)
+    leaves an existing projector where the artist put it.
 
     A camera and projector whose stored models equal the calibration's are
     kept (the projector is only moved, its image stays); others are replaced.
@@ -717,7 +721,7 @@ def apply_calibration(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh, *,
     new = create_rig_objects(scene, camera=None if keep_cam else rig.camera.intrinsics,
                              projector=None if keep_proj else rig.projector, surface=mesh)
     # Nothing below can fail on valid objects: move, rename, tag, tidy.
-    if keep_proj:
+    if keep_proj and move_projector:
         proj = new.projector
         proj.matrix_world = _matrix(frames.blender_matrix_world(_rig_to_world(scene) @ rig.projector.camera_from_projector))
         data = _props(proj)

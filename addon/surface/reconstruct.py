@@ -23,8 +23,10 @@ below what Gray code + PnP can resolve (``scripts/bench_surface.py
 correspondences find a true 1 cm as 0.9–1.2 cm from otherwise exact depth,
 but as −0.1…+0.7 cm once the depth is noisy and 1.9–3.8 cm under the lab's
 lens distortion; on the plane not at all). So ``depth_offset`` takes a
-device offset measured once (e.g. the phone's depth of a wall at a
-tape-measured distance), and is 0 otherwise. Measured with
+device offset measured once: a depth image of a flat wall facing the
+camera at a tape-measured distance, stored in the capture set as a
+``depth`` entry with ``wall_distance_m`` (:func:`wall_depth_offset`; the
+lab writes one), or given by hand; 0 when neither exists. Measured with
 ``scripts/bench_surface.py`` (full resolution, lab ``realistic`` depth, all
 four built-in surfaces, 3 seeds): mean distance to the true surface over the
 lit area 0.97–1.03 cm, of which the bias is 1.00 cm; without the bias, or
@@ -107,6 +109,28 @@ def _fill_holes(depth: np.ndarray, valid: np.ndarray, iterations: int) -> tuple[
         d = np.where(grow, s / np.maximum(n, 1e-6), d)
         w = np.where(grow, 1.0, w)
     return d, w > 0
+
+
+def wall_depth_offset(depth: np.ndarray, distance_m: float, *, min_valid: float = 0.25) -> float:
+    """The depth sensor's constant bias from its image of a flat wall facing it at ``distance_m`` (metres).
+
+    The median over the valid pixels: for a plane, depth varies about
+    linearly across the image, so the median is the depth at the image centre
+    even when the wall is not square to the camera; holes and outliers do not
+    move it. Raises :class:`SurfaceError` when the image cannot give one.
+    """
+    if isinstance(distance_m, bool) or not isinstance(distance_m, numbers.Real) or not 0.1 <= distance_m <= 20.0:
+        raise SurfaceError(f"the wall distance must be a number of metres in [0.1, 20], got {distance_m!r}")
+    d = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    if valid.mean() < min_valid:
+        raise SurfaceError(f"the wall depth image is mostly empty ({100 * valid.mean():.0f} % valid, need "
+                           f"{100 * min_valid:.0f} %); recapture the wall facing it, in less sunlight")
+    offset = float(np.median(d[valid])) - float(distance_m)
+    if abs(offset) > MAX_DEPTH_OFFSET:
+        raise SurfaceError(f"the wall depth image reads {offset:+.2f} m from the stated {distance_m} m, more than a "
+                           f"sensor bias (±{MAX_DEPTH_OFFSET} m); check the distance and the depth units")
+    return offset
 
 
 def reconstruct_surface(depth: np.ndarray, camera: Intrinsics, rgb: np.ndarray | None = None, *,
