@@ -21,7 +21,7 @@ from .operators.export import PROCAM_OT_export_calibration_blend, PROCAM_OT_expo
 from .operators.run_lab import PROCAM_OT_run_lab
 from .operators.set_projector_image import PROCAM_OT_set_projector_image
 from .operators.set_surface import PROCAM_OT_set_surface
-from .operators.show_image import PROCAM_OT_show_image
+from .operators.show_image import PROCAM_OT_show_image, PROCAM_OT_show_text
 from .panels import captures, properties
 from .panels.calibrate import PROCAM_PT_calibrate
 from .panels.captures import PROCAM_PT_captures
@@ -33,7 +33,7 @@ from .panels.rig import PROCAM_PT_rig
 OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
              PROCAM_OT_export_patterns, PROCAM_OT_import_captures,
              PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_add_targets, PROCAM_OT_remove_target,
-             PROCAM_OT_compensate, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image,
+             PROCAM_OT_compensate, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
              PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job)
 #: Sidebar panels in workflow order.
 PANELS = (PROCAM_PT_rig, PROCAM_PT_captures, PROCAM_PT_calibrate, PROCAM_PT_compensate, PROCAM_PT_diagnose,

@@ -177,7 +177,9 @@ def _diagnosis_summary(root: Path, doc: dict[str, Any]) -> Summary:
     head = (f"Residual RMSE {_fmt(residual.get('rmse'), '.4f')}, PSNR {_fmt(residual.get('psnr'), '.1f', ' dB')}; "
             f"{len(selected)} effect{'s' if len(selected) != 1 else ''} selected")
     maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
-    return Summary(True, head, (), {"effects": effects, "selected": selected, "regions": regions, "maps": maps})
+    text = next((n for n in ("summary.md", "summary.html") if (root / n).is_file()), None)
+    return Summary(True, head, (), {"effects": effects, "selected": selected, "regions": regions, "maps": maps,
+                                    "summary": text})
 
 
 def diagnosis_summary(folder: str | Path) -> Summary:

@@ -1,4 +1,5 @@
-"""ProCam ▸ Show Image: open a result image (diagnostic, residual map, compensated input) as a Blender image."""
+"""ProCam ▸ Show Image / Show Text: open a result image (diagnostic, residual map, compensated input) as a Blender
+image, or a result text (the diagnosis summary) as a Blender text."""
 
 from pathlib import Path
 
@@ -38,4 +39,40 @@ class PROCAM_OT_show_image(bpy.types.Operator):
                 shown += 1
         where = f"shown in {shown} Image Editor(s)" if shown else "open an Image Editor to view it"
         self.report({"INFO"}, f"Image {image.name!r} ({image.size[0]}×{image.size[1]}): {where}")
+        return {"FINISHED"}
+
+
+class PROCAM_OT_show_text(bpy.types.Operator):
+    """Load the text file (e.g. the diagnosis summary) as a Blender text and show it in the open Text Editors"""
+
+    bl_idname = "procam.show_text"
+    bl_label = "Show Text"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filepath: StringProperty(name="Text", subtype="FILE_PATH")
+    name: StringProperty(name="Name", description="Name of the Blender text (default: ProCam + file name)")
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.scene is not None
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        path = Path(bpy.path.abspath(self.filepath))
+        try:
+            body = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            self.report({"ERROR"}, f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}")
+            return {"CANCELLED"}
+        name = self.name or f"ProCam {path.name}"
+        text = bpy.data.texts.get(name) or bpy.data.texts.new(name)
+        text.clear()
+        text.write(body)
+        shown = 0
+        screen = context.screen
+        for area in (screen.areas if screen is not None else ()):
+            if area.type == "TEXT_EDITOR":
+                area.spaces.active.text = text
+                shown += 1
+        where = f"shown in {shown} Text Editor(s)" if shown else "open a Text Editor to read it"
+        self.report({"INFO"}, f"Text {name!r} ({len(body.splitlines())} lines): {where}")
         return {"FINISHED"}

@@ -49,10 +49,13 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         for r in summary.data["regions"]:
             wrapped(box, f"{100 * float(r.get('share', 0) or 0):.0f}% {r.get('description', '')} "
                          f"{tuple(r.get('bbox', ()))}", icon="SELECT_SET")
+        root = bpy.path.abspath(scene.procam_diagnosis_dir).rstrip("/")
+        if summary.data.get("summary"):
+            op = layout.operator("procam.show_text", text="Open Summary", icon="TEXT")
+            op.filepath, op.name = f"{root}/{summary.data['summary']}", "ProCam diagnosis summary"
         if summary.data["maps"]:
             col = layout.column(align=True)
             col.label(text="Residual maps:")
-            root = bpy.path.abspath(scene.procam_diagnosis_dir).rstrip("/")
             for rel in summary.data["maps"]:
                 op = col.operator("procam.show_image", text=rel.removesuffix(".png"), icon="IMAGE_DATA")
                 op.filepath, op.name = f"{root}/{rel}", f"ProCam diagnosis {rel.removesuffix('.png')}"

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from procam.addon.capture.format import CaptureSet
 from procam.addon.lab.lab import LabTruth, make_truth, run_lab
+from procam.addon.stages.calibrate import scene_depth
 from procam.addon.stages.pose import PAPER_EPS, Phase, estimate_pose, pose_error
 from procam.addon.surface.reconstruct import reconstruct_surface
 
@@ -79,7 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         captures = CaptureSet.load(caps_dir)
         truth = LabTruth.load(truth_path).rig.projector.camera_from_projector  # evaluation only
         t0 = time.perf_counter()
-        surface, _ = reconstruct_surface(captures.depth(), captures.depth_info.intrinsics, captures.image("surface"))
+        depth, offset, _ = scene_depth(captures)  # as calibrate does: the wall image's sensor bias removed
+        surface, _ = reconstruct_surface(depth, captures.depth_info.intrinsics, captures.image("surface"),
+                                         depth_offset=offset)
         t_surface = time.perf_counter() - t0
         start = pose_error(captures.projector.camera_from_projector, truth)
         print(f"# {surf_name}: nominal start {1000 * start[0]:.0f} mm / {start[1]:.2f}°, surface "

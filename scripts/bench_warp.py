@@ -56,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     from procam.addon.capture.format import CaptureSet
     from procam.addon.lab.lab import LabTruth, make_truth, run_lab
     from procam.addon.rig.model import Rig
+    from procam.addon.stages.calibrate import scene_depth
     from procam.addon.stages.warp import estimate_warp
     from procam.addon.surface.reconstruct import reconstruct_surface
 
@@ -93,7 +94,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.surface == "truth":
             surface = truth.surface
         else:
-            surface, _ = reconstruct_surface(captures.depth(), captures.camera.intrinsics, captures.image("surface"))
+            depth, offset, _ = scene_depth(captures)  # as calibrate does: the wall image's sensor bias removed
+            surface, _ = reconstruct_surface(depth, captures.camera.intrinsics, captures.image("surface"),
+                                             depth_offset=offset)
         t_surf = time.perf_counter() - t0
         pose = truth.rig.projector.camera_from_projector
         if args.pose == "perturbed":

@@ -176,6 +176,7 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
     gap = tmp_path / "gap"
     gap.mkdir()
     write_image(gap / "residual.png", np.zeros((4, 4, 3), np.float32))
+    (gap / "summary.md").write_text("# Sim-to-real gap\n\nresponse removes 33 %\n")
     (gap / "gap.json").write_text(json.dumps({
         "residual": {"rmse": 0.031, "psnr": 30.2},
         "regions": [{"bbox": [0, 0, 10, 10], "share": 0.55, "description": "projector border"}],
@@ -195,6 +196,12 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
     diag = texts(drawn["PROCAM_PT_diagnose"])
     assert diag.index("response") < diag.index("vignetting")  # selected first
     assert "55% projector border" in diag and "residual" in diag
+    opens = [c[1] for c in drawn["PROCAM_PT_diagnose"] if c[0] == "operator" and c[1]["operator"] == "procam.show_text"]
+    assert len(opens) == 1
+    assert bpy.ops.procam.show_text(filepath=str(gap / "summary.md"), name="ProCam diagnosis summary") == {"FINISHED"}
+    assert bpy.data.texts["ProCam diagnosis summary"].as_string().startswith("# Sim-to-real gap")
+    with pytest.raises(RuntimeError, match="cannot read .*missing.md"):
+        bpy.ops.procam.show_text(filepath=str(gap / "missing.md"))
 
 
 def test_calibrate_panel_shows_key_figures_of_a_calibration_folder(registered, tmp_path):
