@@ -314,7 +314,8 @@ def read_compensation(folder: str | Path) -> CompensationView:
 
 def run_compensation(calibration_dir: str | Path, targets: Sequence[str | Path], out_dir: str | Path, *,
                      device: Any = None, device_spec: str | None = None, use_bias: bool = True,
-                     iterations: int = 500, spp: int = 4, bounces: int = 1, seed: int = 0, force: bool = False,
+                     schedule: str | None = None, iterations: int | None = None, spp: int = 4, bounces: int = 1,
+                     seed: int = 0, force: bool = False,
                      progress: Progress | None = None, cancel: Cancel | None = None) -> CompensationView:
     """Stage C for each target into a new compensation folder (the layout of ``procam compensate``).
 
@@ -326,7 +327,7 @@ def run_compensation(calibration_dir: str | Path, targets: Sequence[str | Path],
     from .capture.format import CaptureSet
     from .imageio import write_atomic_bytes, write_image
     from .stages.calibrate import Calibration
-    from .stages.compensate import Compensator, _split_iterations
+    from .stages.compensate import DEFAULT_SCHEDULE, Compensator, get_schedule, split_iterations
     from .stages.display_area import TargetAspectWarning, choose_area, fit_target, load_target
 
     say, stop = progress or _quiet, cancel or _never
@@ -337,7 +338,11 @@ def run_compensation(calibration_dir: str | Path, targets: Sequence[str | Path],
     cal = Calibration.load(calibration_dir)
     loaded = [load_target(p) for p in paths]
     names = output_names(paths)
-    iterations_z, iterations_joint = _split_iterations(int(iterations))
+    schedule = schedule or DEFAULT_SCHEDULE
+    iterations_z, iterations_joint = split_iterations(iterations, schedule)
+    resolved = get_schedule(schedule)
+    iterations_z = resolved.iterations_z if iterations_z is None else iterations_z
+    iterations_joint = resolved.iterations_joint if iterations_joint is None else iterations_joint
     try:
         captures = CaptureSet.load(cal.capture_dir, verify_images=False) if cal.capture_dir else None
     except ProCamError:
@@ -373,7 +378,7 @@ def run_compensation(calibration_dir: str | Path, targets: Sequence[str | Path],
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", TargetAspectWarning)
                     fitted = fit_target(img, area, what=f"target {path.name}")
-                    res = comp.run(fitted, area, device=device, iterations_z=iterations_z,
+                    res = comp.run(fitted, area, device=device, schedule=schedule, iterations_z=iterations_z,
                                    iterations_joint=iterations_joint, progress=step, cancel=stop,
                                    open_loop_theta=bias, use_bias=use_bias, name=name)
             except Cancelled:
@@ -401,7 +406,8 @@ def run_compensation(calibration_dir: str | Path, targets: Sequence[str | Path],
                "calibration": str(Path(calibration_dir).absolute()), "capture_set": cal.capture_dir,
                "mode": modes[0] if len(modes) == 1 else (modes or None), "device": device_spec,
                "open_loop_bias": None if bias is None else {"kind": bias.kind, **bias.report},
-               "iterations": {"total": int(iterations), "z": iterations_z, "joint": iterations_joint},
+               "schedule": schedule,
+               "iterations": {"total": iterations_z + iterations_joint, "z": iterations_z, "joint": iterations_joint},
                "bounces": bounces, "spp": spp, "seed": seed, "warp": cal.warp is not None,
                "complete": failure is None, "targets": records, "written_by": "blender-ui"}
         write_atomic_bytes(folder.tmp / COMPENSATION_MANIFEST, (json.dumps(jsonable(doc), indent=1) + "\n").encode())

@@ -65,7 +65,8 @@ class PROCAM_OT_compensate(JobOperator, bpy.types.Operator):
             if relay is not None:
                 device = jobs.RelayedDevice(device, relay)
         return jobs.Job("compensation", run_compensation, cal, targets, out, device=device, device_spec=spec,
-                        iterations=scene.procam_iterations, force=scene.procam_replace_outputs)
+                        schedule=scene.procam_schedule, iterations=scene.procam_iterations or None,
+                        force=scene.procam_replace_outputs)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         view: CompensationView = result

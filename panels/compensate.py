@@ -36,7 +36,9 @@ class PROCAM_PT_compensate(bpy.types.Panel):
         layout.prop(scene, "procam_compensation_mode", expand=True)
         if scene.procam_compensation_mode == "CLOSED":
             layout.prop(scene, "procam_device")
-        layout.prop(scene, "procam_iterations")
+        row = layout.row(align=True)
+        row.prop(scene, "procam_schedule", text="")
+        row.prop(scene, "procam_iterations")
         layout.prop(scene, "procam_compensation_dir")
         summary = compensation_summary(bpy.path.abspath(scene.procam_compensation_dir))
         done = draw_state(layout, "compensate", summary)

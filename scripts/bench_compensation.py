@@ -55,7 +55,7 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     from procam.addon.outputs import progress
     from procam.addon.stages.calibrate import Calibration, calibrate
     from procam.addon.stages.classical import fit_classical
-    from procam.addon.stages.compensate import Compensator, _split_iterations, compensate
+    from procam.addon.stages.compensate import Compensator, compensate, split_iterations
     from procam.addon.stages.display_area import choose_area, fit_target
     from procam.addon.stages.evaluate import measure, side_by_side, uncompensated_input, without_warp
 
@@ -83,7 +83,7 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     cam_size = cal.rig.camera.intrinsics.size
     area = choose_area(cal, aspect=4 / 3, captures=captures)
     mask = area.mask(cam_size)
-    it_z, it_joint = _split_iterations(args.iterations)
+    it_z, it_joint = split_iterations(args.iterations)
     device = LabDevice(truth)
     try:
         t0 = time.perf_counter()

@@ -88,25 +88,28 @@ class TimedDevice:
 
 
 def levers() -> list[tuple[str, "Schedule"]]:
-    """The paper's schedule, then each lever of the fast one added on top of the previous row."""
-    from procam.addon.stages.compensate import SCHEDULES
+    """The paper's schedule, then each lever of the fast one added on top of the previous row (the last row is
+    ``fast``), then the earlier fast schedule (coarse-to-fine z, plateau stop, 1 spp, cosine lr) for comparison."""
+    from procam.addon.stages.compensate import SCHEDULES, Schedule
 
     paper, fast = SCHEDULES["paper"], SCHEDULES["fast"]
     rows = [("paper (200 z + 300 joint)", paper)]
-    s = replace(paper, name="plateau", plateau=fast.plateau, plateau_tol=fast.plateau_tol)
-    rows.append(("+ z phase stops on a loss plateau", s))
+    s = replace(paper, name="fixed-point", iterations_z=fast.iterations_z, fixed_point=fast.fixed_point,
+                fixed_point_spp=fast.fixed_point_spp)
+    rows.append((f"+ {fast.fixed_point} fixed-point steps ({fast.fixed_point_spp}-spp forward renders) instead of "
+                 f"{paper.iterations_z} Adam z iterations", s))
     s = replace(s, name="captures", iterations_joint=fast.iterations_joint, capture_every=fast.capture_every,
                 captures=fast.captures, alpha=fast.alpha)
     rows.append((f"+ joint {fast.iterations_joint} its, {fast.captures} captures, one every {fast.capture_interval} "
                  "(α matched)", s))
-    s = replace(s, name="lr-decay", lr_end=fast.lr_end)
-    rows.append((f"+ cosine lr decay to {fast.lr_end:g} (joint)", s))
-    s = replace(s, name="spp", spp_z=fast.spp_z, reference_spp=fast.reference_spp)
-    rows.append((f"+ {fast.spp_z} spp in z, {fast.reference_spp}-spp θ references", s))
-    s = replace(s, name="fast", coarse=fast.coarse, iterations_coarse=fast.iterations_coarse,
-                iterations_z=fast.iterations_z)
-    rows.append((f"+ coarse z at {fast.coarse:g}× camera res (= fast)", s))
-    assert s == fast, "the last row must be the default schedule"
+    s = replace(s, name="fast", fixed_point_joint=fast.fixed_point_joint, reference_spp=fast.reference_spp)
+    rows.append((f"+ {fast.fixed_point_joint} fixed-point steps after each capture, {fast.reference_spp}-spp θ "
+                 "references (= fast)", s))
+    assert s == fast, "the last cumulative row must be the fast schedule"
+    rows.append(("earlier fast: coarse z at 0.5×, plateau stop, 1 spp z, cosine lr, 9-spp references",
+                 Schedule("coarse", iterations_z=60, iterations_joint=45, lr_end=0.001, alpha=None, capture_every=3,
+                          captures=15, plateau=5, plateau_tol=0.02, spp_z=1, coarse=0.5, iterations_coarse=40,
+                          reference_spp=9)))
     return rows
 
 
@@ -119,6 +122,7 @@ def summarise(results: list[dict], rows: list[tuple[str, "Schedule"]]) -> list[d
             continue
         table.append({"schedule": sched.name, "label": label, "targets": len(mine),
                       "iterations": float(np.mean([r["iterations"]["total"] for r in mine])),
+                      "fixed_point": float(np.mean([r["iterations"].get("fixed_point", 0) for r in mine])),
                       "captures": float(np.mean([r["captures"] for r in mine])),
                       **{k: float(np.mean([r[k] for r in mine]))
                          for k in ("compute_s", "compute_cpu_s", "wall_s", "model_psnr", "captured_psnr",
@@ -127,11 +131,12 @@ def summarise(results: list[dict], rows: list[tuple[str, "Schedule"]]) -> list[d
 
 
 def markdown(table: list[dict]) -> str:
-    lines = ["| schedule | targets | iterations | captures | compute s/target | compute CPU-s/target "
-             "| wall s/target (lab) | model PSNR | captured PSNR | captured SSIM |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| schedule | targets | Adam iterations | fixed-point steps | captures | compute s/target "
+             "| compute CPU-s/target | wall s/target (lab) | model PSNR | captured PSNR | captured SSIM |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for t in table:
-        lines.append(f"| {t['label']} | {t['targets']} | {t['iterations']:.0f} | {t['captures']:.0f} | "
+        lines.append(f"| {t['label']} | {t['targets']} | {t['iterations']:.0f} | {t['fixed_point']:.0f} | "
+                     f"{t['captures']:.0f} | "
                      f"{t['compute_s']:.1f} | {t['compute_cpu_s']:.1f} | {t['wall_s']:.1f} | {t['model_psnr']:.2f} | "
                      f"{t['captured_psnr']:.2f} | {t['captured_ssim']:.3f} |")
     return "\n".join(lines)
@@ -144,8 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--surface", default="vedge", choices=("plane", "curve", "vedge", "hedge"))
     p.add_argument("--targets", default="city,forest", help="built-in natural targets, comma-separated")
     p.add_argument("--schedules", default=None,
-                   help="rows to run, comma-separated, run in this order (default: all; names: paper, plateau, "
-                        "captures, lr-decay, spp, fast)")
+                   help="rows to run, comma-separated, run in this order (default: all; names: paper, "
+                        "fixed-point, captures, fast, coarse)")
     p.add_argument("--lab-dir", type=Path, default=None,
                    help="folder of the lab set + calibration (reused when present; default: /tmp/procam-bench-stage-c-"
                         "SURFACE-SCALE)")
@@ -210,7 +215,8 @@ def main(argv: list[str] | None = None) -> int:
         for _, sched in rows:
             comp.run(first, area, schedule=replace(sched, iterations_z=min(2, sched.iterations_z),
                                                    iterations_coarse=min(1, sched.iterations_coarse),
-                                                   iterations_joint=0), use_bias=False, name="warm-up")
+                                                   iterations_joint=0, fixed_point=min(1, sched.fixed_point)),
+                     use_bias=False, name="warm-up")
         comp.simulate(np.zeros((comp.ih, comp.iw, 3), np.float32), spp=9)
         t_warm = time.perf_counter() - t0
         print(f"scene load {t_load:.1f} s, warm-up (kernels, caches) {t_warm:.1f} s", flush=True)
@@ -236,7 +242,8 @@ def main(argv: list[str] | None = None) -> int:
                 results.append(row)
                 if args.out:
                     save(args.out, results, rows)
-                print(f"{sched.name:10s} {n:10s} its {row['iterations']['total']:4d} captures {row['captures']:3d} "
+                print(f"{sched.name:11s} {n:10s} its {row['iterations']['total']:4d} "
+                      f"(+{row['iterations'].get('fixed_point', 0)} fixed-point) captures {row['captures']:3d} "
                       f"compute {row['compute_s']:6.1f} s ({row['compute_cpu_s']:6.1f} CPU-s) "
                       f"wall {row['wall_s']:6.1f} s model {row['model_psnr']:6.2f} "
                       f"captured {row['captured_psnr']:6.2f} dB", flush=True)

@@ -239,6 +239,37 @@ def test_coarse_to_fine_and_plateau_stop(setup):
     assert small.shape == (ch // 2, cw // 2, 3) and np.allclose(small, 1.0)
 
 
+def test_fixed_point_phases(setup):
+    """Forward-only fixed-point steps bring the model closer to the target than the one-shot inverse alone, and
+    in the joint phase they run after every capture."""
+    from procam.addon.lab.lab import LabDevice
+
+    comp, area = setup.comp, setup.area
+    sched = Schedule("t", iterations_z=0, iterations_joint=0, fixed_point=6)
+    start = comp.run(_target(), area, schedule=replace(sched, fixed_point=0), use_bias=False)
+    res = comp.run(_target(), area, schedule=sched, use_bias=False)
+    assert res.report["phases"][0]["phase"] == "fixed-point" and res.report["iterations"]["fixed_point"] == 6
+    print(f"model PSNR: one-shot inverse {start.report['psnr_simulated']:.2f} dB, after 6 fixed-point steps "
+          f"{res.report['psnr_simulated']:.2f} dB")
+    assert res.report["psnr_simulated"] > start.report["psnr_simulated"] + 0.5
+    with LabDevice(setup.truth) as device:
+        res = comp.run(_target(), area, device=device, schedule=replace(sched, fixed_point=2, iterations_joint=4,
+                                                                        captures=2, fixed_point_joint=1))
+    assert res.captures == 2 and res.report["iterations"]["fixed_point"] == 2 + 2 * 1
+    # Rendering only the display area: the same optimisation on the pixels the loss sees; θ is 0 outside it.
+    with LabDevice(setup.truth) as device:
+        cropped = comp.run(_target(), area, device=device, schedule=replace(sched, fixed_point=2, iterations_joint=4,
+                                                                            captures=2, fixed_point_joint=1,
+                                                                            crop=True))
+    assert cropped.report["phases"][-1]["window"] == (area.x, area.y, area.width, area.height)
+    outside = ~area.mask(comp.camera_size)
+    assert np.all(cropped.theta[outside] == 0) and np.any(cropped.theta[~outside] != 0)
+    assert cropped.report["psnr_simulated"] > start.report["psnr_simulated"]
+    for bad in (0.0, 1.5):
+        with pytest.raises(CompensationError, match="fixed_point_step"):
+            get_schedule(replace(sched, fixed_point_step=bad))
+
+
 def test_no_bias_ablation_and_reused_kernels(setup):
     res = setup.comp.run(_target(), setup.area, iterations_z=5, iterations_joint=5, use_bias=False)
     assert res.mode == "none" and np.array_equal(res.theta, np.zeros_like(res.theta))

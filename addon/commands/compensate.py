@@ -100,13 +100,13 @@ def check_schedule(args: argparse.Namespace) -> None:
 def schedule_arguments(args: argparse.Namespace) -> dict[str, Any]:
     """Keyword arguments of :meth:`Compensator.run` for the schedule options: the schedule's name and only the
     values given on the command line (the others are the schedule's)."""
-    from ..stages.compensate import DEFAULT_SCHEDULE, _split_iterations
+    from ..stages.compensate import DEFAULT_SCHEDULE, split_iterations
 
-    iterations_z, iterations_joint = _split_iterations(args.iterations)
+    schedule = getattr(args, "schedule", None) or DEFAULT_SCHEDULE
+    iterations_z, iterations_joint = split_iterations(args.iterations, schedule)
     given = {"iterations_z": iterations_z, "iterations_joint": iterations_joint, "lr": args.lr,
              "capture_every": args.capture_every}
-    return {"schedule": getattr(args, "schedule", None) or DEFAULT_SCHEDULE,
-            **{k: v for k, v in given.items() if v is not None}}
+    return {"schedule": schedule, **{k: v for k, v in given.items() if v is not None}}
 
 
 def resolved_schedule(arguments: dict[str, Any]) -> Any:

@@ -60,13 +60,15 @@ class ForwardModel:
     samples per pixel; ``smoothing_eps`` the border smoothing ε of Eq. 11–12
     (0 turns it off); ``clamp`` clips the output to [0, 1] (Eq. 13);
     ``variant`` a Mitsuba variant (default: ``backend.default_variant()``);
-    ``seed`` the first of the seeds used when a render gets none.
+    ``seed`` the first of the seeds used when a render gets none; ``crop``
+    (x, y, width, height) renders only that window of the camera image (what
+    a loss restricted to it needs: the cost falls with the pixels rendered).
     """
 
     def __init__(self, rig: Rig, surface: SurfaceMesh, *, camera_size: tuple[int, int] | None = None,
                  bounces: int = 0, spp: int = 4, smoothing_eps: float = 0.01, clamp: bool = True,
                  variant: str | None = None, seed: int = 0, integrator: str = "auto",
-                 glossy_roughness: float | None = None) -> None:
+                 glossy_roughness: float | None = None, crop: tuple[int, int, int, int] | None = None) -> None:
         self.variant = variant or backend.default_variant()
         mi = self._mi = backend.mitsuba(self.variant)
         import drjit as dr
@@ -79,13 +81,15 @@ class ForwardModel:
             intr = intr.scaled(int(camera_size[0]), int(camera_size[1]))
         #: Intrinsics of the rendered camera image (the rig camera, rescaled to ``camera_size``).
         self.camera: Intrinsics = intr
+        #: (x, y, width, height) of the camera window rendered (None: the whole image); renders have its size.
+        self.crop = None if crop is None else tuple(int(v) for v in crop)
         self.bounces = int(bounces)
         self.spp = int(spp)
         self.clamp = bool(clamp)
         self._seeds = itertools.count(int(seed))
         try:
             self.scene = build_scene(mi, rig, surface, intr, bounces=bounces, spp=spp, integrator=integrator,
-                                     glossy_roughness=glossy_roughness)
+                                     glossy_roughness=glossy_roughness, crop=self.crop)
         except RuntimeError as exc:  # Mitsuba reports plugin/parameter problems as RuntimeError
             raise RenderError(f"Mitsuba could not build the scene: {exc}") from None
         self.params = mi.traverse(self.scene)

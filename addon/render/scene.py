@@ -209,14 +209,26 @@ def surface_mesh(mi: ModuleType, surface: SurfaceMesh) -> Any:
     return mesh
 
 
+def _crop_settings(crop: tuple[int, int, int, int] | None, w: int, h: int) -> dict[str, int]:
+    """The hdrfilm's crop window, checked against the film."""
+    if crop is None:
+        return {}
+    x, y, cw, ch = (int(v) for v in crop)
+    if cw < 1 or ch < 1 or x < 0 or y < 0 or x + cw > w or y + ch > h:
+        raise RigError(f"the camera crop {crop} does not lie inside the {w}×{h} film")
+    return {"crop_offset_x": x, "crop_offset_y": y, "crop_width": cw, "crop_height": ch}
+
+
 def build_scene(mi: ModuleType, rig: Rig, surface: SurfaceMesh, camera: Intrinsics, *,
-                bounces: int = 0, spp: int = 4, integrator: str = "auto", glossy_roughness: float | None = None) -> Any:
+                bounces: int = 0, spp: int = 4, integrator: str = "auto", glossy_roughness: float | None = None,
+                crop: tuple[int, int, int, int] | None = None) -> Any:
     """Load the Mitsuba scene of a rig and surface, rendered at the resolution of ``camera``.
 
     The projector starts dark; :class:`.forward.ForwardModel` sets its frame.
     ``glossy_roughness`` replaces the diffuse material by a white GGX lobe of that
     (Blender-style) roughness, α = roughness²: the diagnosis mixes such renders
     with the diffuse ones to model a non-Lambertian surface (``gap`` effect ``glossy``).
+    ``crop`` = (x, y, width, height) in camera pixels renders only that window of the film (same lens).
     """
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise RigError(f"samples per pixel must be a whole number ≥ 1, got {spp!r}")
@@ -248,7 +260,7 @@ def build_scene(mi: ModuleType, rig: Rig, surface: SurfaceMesh, camera: Intrinsi
             "to_world": mi.ScalarTransform4f(mitsuba_to_world(np.eye(4)).astype(np.float32)),
             "sampler": {"type": sampler, "sample_count": int(spp)},
             "film": {"type": "hdrfilm", "width": int(w), "height": int(h), "pixel_format": "rgb",
-                     "component_format": "float32", "rfilter": {"type": "box"}},
+                     "component_format": "float32", "rfilter": {"type": "box"}, **_crop_settings(crop, w, h)},
         },
         EMITTER_ID: {
             "type": "projector", "fov": frustum.fov_x_deg, "fov_axis": "x", "scale": float(proj.intensity),

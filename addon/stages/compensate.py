@@ -106,6 +106,8 @@ ITERATIONS_JOINT = 300
 ALPHA = 0.01
 LEARNING_RATE = 0.01
 CAPTURE_EVERY = 20
+#: Step of the fixed-point phase (module doc): below 1 because indirect light adds to what the direct term predicts.
+FIXED_POINT_STEP = 0.7
 #: Samples per pixel of renders that are not inside the loop (θ references, final simulation): less noise.
 REFERENCE_SPP = 16
 MODES = ("closed-loop", "open-loop", "none")
@@ -157,24 +159,32 @@ class Schedule:
     plateau: int = 0
     plateau_tol: float = 0.02
     spp_z: int | None = None
+    spp_joint: int | None = None
     coarse: float = 1.0
     iterations_coarse: int = 0
     reference_spp: int = REFERENCE_SPP
+    fixed_point: int = 0
+    fixed_point_joint: int = 0
+    fixed_point_spp: int = 4
+    fixed_point_step: float = FIXED_POINT_STEP
+    crop: bool = False
 
     def check(self) -> "Schedule":
         """Self, or a CompensationError naming the first bad value."""
-        for what in ("iterations_z", "iterations_joint", "iterations_coarse", "plateau"):
+        for what in ("iterations_z", "iterations_joint", "iterations_coarse", "plateau", "fixed_point",
+                     "fixed_point_joint"):
             v = getattr(self, what)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise CompensationError(f"{what} must be a whole number ≥ 0, got {v!r}")
-        for what in ("capture_every", "reference_spp", "captures"):
+        for what in ("capture_every", "reference_spp", "captures", "fixed_point_spp"):
             v = getattr(self, what)
             if (v is not None or what != "captures") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise CompensationError(f"{what} must be a whole number ≥ 1, got {v!r}")
-        if self.spp_z is not None and (isinstance(self.spp_z, bool) or not isinstance(self.spp_z, int)
-                                       or self.spp_z < 1):
-            raise CompensationError(f"spp_z must be a whole number ≥ 1 or None, got {self.spp_z!r}")
-        for what in ("spp_z", "reference_spp"):
+        for what in ("spp_z", "spp_joint"):
+            v = getattr(self, what)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise CompensationError(f"{what} must be a whole number ≥ 1 or None, got {v!r}")
+        for what in ("spp_z", "spp_joint", "reference_spp", "fixed_point_spp"):
             # The scene's stratified sampler (a square spp) silently rounds other counts up to a square.
             v = getattr(self, what)
             if v is not None and math.isqrt(v) ** 2 != v:
@@ -189,6 +199,9 @@ class Schedule:
         if not (math.isfinite(self.coarse) and 0.1 <= self.coarse <= 1.0):
             raise CompensationError(f"coarse must lie in [0.1, 1] (a fraction of the camera resolution), "
                                     f"got {self.coarse!r}")
+        if not (isinstance(self.fixed_point_step, (int, float)) and 0 < self.fixed_point_step <= 1):
+            raise CompensationError(f"fixed_point_step must lie in (0, 1] (1 is the Newton step of direct light), "
+                                    f"got {self.fixed_point_step!r}")
         if not (math.isfinite(self.plateau_tol) and 0 <= self.plateau_tol < 1):
             raise CompensationError(f"plateau_tol must lie in [0, 1), got {self.plateau_tol!r}")
         return self
@@ -287,13 +300,17 @@ def plateaued(losses: list[float], window: int, tol: float) -> bool:
     return float(np.mean(losses[-window:])) > (1.0 - tol) * float(np.mean(losses[-2 * window:-window]))
 
 
-def _split_iterations(total: int | None) -> tuple[int | None, int | None]:
-    """Split a total iteration count 200 : 300 like the paper (None: the schedule's own counts)."""
+def split_iterations(total: int | None, schedule: "str | Schedule" = DEFAULT_SCHEDULE
+                     ) -> tuple[int | None, int | None]:
+    """Split a total iteration count between z alone and z + θ in the schedule's own ratio (the paper's 200 : 300;
+    all joint for ``'fast'``, whose z phase is fixed-point steps). None: the schedule's own counts."""
     if total is None:
         return None, None
-    if total < 0:
-        raise CompensationError(f"the iteration count must be ≥ 0, got {total}")
-    z = round(total * ITERATIONS_Z / (ITERATIONS_Z + ITERATIONS_JOINT))
+    if isinstance(total, bool) or not isinstance(total, int) or total < 0:
+        raise CompensationError(f"the iteration count must be a whole number ≥ 0, got {total!r}")
+    s = get_schedule(schedule)
+    both = s.iterations_z + s.iterations_joint
+    z = round(total * s.iterations_z / both) if both else 0
     return z, total - z
 
 
@@ -332,6 +349,7 @@ class Compensator:
         self._correspondence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._white: np.ndarray | None = None
         self._coarse_models: dict[tuple[int, int], Any] = {}
+        self._crop_models: dict[tuple[int, int, int, int], Any] = {}
 
     # ------------------------------------------------------------------ helpers
 
@@ -349,6 +367,18 @@ class Compensator:
                                                      bounces=self.bounces, spp=self.spp, smoothing_eps=0.0,
                                                      clamp=True, seed=self.seed, variant=self.model.variant)
         return self._coarse_models[size]
+
+    def model_cropped(self, window: tuple[int, int, int, int]) -> Any:
+        """The full-resolution forward model rendering only ``window`` = (x, y, width, height) of the camera
+        (built once per window: every target in the same display area reuses its scene and kernels)."""
+        key = tuple(int(v) for v in window)
+        if key not in self._crop_models:
+            from ..render.forward import ForwardModel
+
+            self._crop_models[key] = ForwardModel(self.rig, self.calibration.surface, bounces=self.bounces,
+                                                  spp=self.spp, smoothing_eps=0.0, clamp=True, seed=self.seed,
+                                                  variant=self.model.variant, crop=key)
+        return self._crop_models[key]
 
     @staticmethod
     def downsample(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -596,8 +626,42 @@ class Compensator:
                                              None), placed, area)
         it = 0  # iterations so far, over all phases (seeds and progress)
 
+        # With ``crop`` the full-resolution renders cover only the display area, the one place the loss looks:
+        # targets, weights, θ and captures are cut to it, and θ is 0 outside it at the end.
+        window = (area.x, area.y, area.width, area.height) if sched.crop else None
+
+        def cut(image: np.ndarray) -> np.ndarray:
+            if window is None:
+                return image
+            x, y, w, h = window
+            return image[y:y + h, x:x + w]
+
+        def uncut(image: np.ndarray) -> np.ndarray:
+            if window is None:
+                return image
+            x, y, w, h = window
+            full = np.zeros((self.camera_size[1], self.camera_size[0], 3), np.float32)
+            full[y:y + h, x:x + w] = image
+            return full
+
+        full_model = self.model if window is None else self.model_cropped(window)
+        bias_c = None if bias is None else BiasModel(cut(bias.theta), None if bias.gain is None else cut(bias.gain),
+                                                     bias.kind, bias.report)
+        placed_c, mask_c = cut(placed), cut(mask)
+
+        def render_np(z: np.ndarray, spp: int, seed: int) -> np.ndarray:
+            """``f̂(z)`` over the rendered window (the whole camera without ``crop``)."""
+            return full_model.render_input(np.clip(z, 0.0, 1.0), spp=spp, seed=seed)
+
         def loss_terms(scale: float) -> tuple[Any, Any, Any, Any, Any, float]:
             """Model, target, weights, θ and gain tensors at a camera scale, and 1 / the weights' sum."""
+            if scale >= 1.0:
+                h, w = placed_c.shape[:2]
+                weights = mask_c.astype(np.float32)
+                return (full_model, mi.TensorXf(placed_c), mi.TensorXf(np.repeat(weights[..., None], 3, axis=2)),
+                        mi.TensorXf(np.zeros((h, w, 3), np.float32) if bias_c is None else bias_c.theta),
+                        None if bias_c is None or bias_c.gain is None else mi.TensorXf(bias_c.gain),
+                        1.0 / float(3 * weights.sum()))
             model = self.model_at(scale)
             size = model.camera_size
             weights = self.downsample(mask.astype(np.float32), size)
@@ -624,6 +688,33 @@ class Compensator:
                 raise self._diverged(name, it, opt["z"], theta_t, img)
             losses.append(value)
             return value, dr.detach(img)
+
+        mask3 = mask_c[..., None]
+        reach = self.white() if bias is None or bias.gain is None else bias.gain * self.white()
+        inv_reach = cut(1.0 / np.maximum(reach, 0.05))  # the dark rim of the footprint would amplify noise
+
+        def fixed_point(z: np.ndarray, theta: np.ndarray | None, steps: int, label: str) -> np.ndarray:
+            """``steps`` preconditioned fixed-point steps on z (module doc, "Speed"): forward renders only."""
+            nonlocal it_fp
+            for k in range(steps):
+                if cancel is not None and cancel():
+                    raise Cancelled(f"compensation of {name!r} cancelled ({label})")
+                raw = render_np(z, sched.fixed_point_spp, base_seed + 3 * total + 7 * it_fp)
+                it_fp += 1
+                r = np.where(mask3, placed_c - self._predict(raw, bias_c, theta), 0.0)
+                step = sched.fixed_point_step * (1.0 if k < (steps + 1) // 2 else 0.5)
+                z = np.clip(z + step * self.camera_to_input(uncut(r * inv_reach)), 0.0, 1.0).astype(np.float32)
+            if not np.all(np.isfinite(z)):
+                raise CompensationError(f"the virtual input z of {name!r} holds NaN after the {label} steps")
+            return z
+
+        it_fp = 0
+        if sched.fixed_point:
+            t_phase = time.perf_counter()
+            opt["z"] = mi.TensorXf(fixed_point(z0, None, sched.fixed_point, "fixed-point"))
+            phases.append({"phase": "fixed-point", "camera": list(self.camera_size), "iterations": sched.fixed_point,
+                           "spp": sched.fixed_point_spp, "stopped": "limit",
+                           "seconds": round(time.perf_counter() - t_phase, 2)})
 
         # -- z alone: coarse, then full resolution; each ends early on a plateau of its loss
         for label, scale, limit in (("coarse", sched.coarse, n_coarse),
@@ -660,17 +751,22 @@ class Compensator:
                 z_now = np.array(opt["z"], dtype=np.float32)
                 x = self.warp_w(z_now)
                 t_dev = time.perf_counter()
-                y = self._check_capture(device.project(self.rig.projector.frame_from_input(x)))
+                y = cut(self._check_capture(device.project(self.rig.projector.frame_from_input(x))))
                 seconds_phase_device += time.perf_counter() - t_dev
                 captures += 1
-                f_c = self.simulate(z_now, spp=sched.reference_spp, seed=base_seed + 2 * total + captures)
+                f_c = render_np(z_now, sched.reference_spp, base_seed + 2 * total + captures)
                 residual = f_c - y
                 residual_t = mi.TensorXf(residual.astype(np.float32))
                 if captures == 1 and theta_init == "capture":
                     theta_t = mi.TensorXf(np.clip(residual, f_c - 1.0, f_c).astype(np.float32))
+                if sched.fixed_point_joint:
+                    # Bring z to the θ this capture revealed at once instead of over the next iterations.
+                    opt["z"] = mi.TensorXf(fixed_point(np.array(opt["z"], dtype=np.float32),
+                                                       np.array(theta_t, dtype=np.float32),
+                                                       sched.fixed_point_joint, "joint fixed-point"))
                 say(f"{name}: capture {captures} at iteration {it}", it / max(total, 1))
             opt.set_learning_rate(sched.learning_rate(j, n_joint))
-            value, f_now = step(model, target_t, weight_t, theta_t, gain_t, inv_count, None)
+            value, f_now = step(model, target_t, weight_t, theta_t, gain_t, inv_count, sched.spp_joint)
             if joint:
                 # Eq. 10, then Eq. 14 against the current simulation.
                 theta_t = theta_t + 2.0 * alpha_used * (residual_t - theta_t)
@@ -685,16 +781,17 @@ class Compensator:
         seconds_device += seconds_phase_device
         if n_joint:
             phases.append({"phase": "joint" if mode == "closed-loop" else "z, θ fixed",
-                           "camera": list(self.camera_size), "iterations": n_joint, "spp": self.spp,
-                           "captures": captures, "seconds": round(time.perf_counter() - t_phase, 2),
+                           "camera": list(full_model.camera_size), "window": window, "iterations": n_joint,
+                           "spp": sched.spp_joint or self.spp, "captures": captures,
+                           "seconds": round(time.perf_counter() - t_phase, 2),
                            "seconds_device": round(seconds_phase_device, 2)})
 
-        z = np.array(opt["z"], dtype=np.float32) if it else z0
+        z = np.array(opt["z"], dtype=np.float32)
         if not np.all(np.isfinite(z)):
             raise CompensationError(f"the virtual input z of {name!r} holds NaN after the optimisation")
         raw = self.simulate(z, seed=base_seed - 2)
         if mode == "closed-loop":
-            theta = np.array(theta_t, dtype=np.float32) if captures else np.zeros_like(raw)
+            theta = uncut(np.array(theta_t, dtype=np.float32)) if captures else np.zeros_like(raw)
             # Eq. 14 against this (less noisy) final simulation rather than the last 4-spp one.
             theta = np.clip(theta, raw - 1.0, raw)
             simulated = np.clip(raw - theta, 0.0, 1.0)
@@ -706,7 +803,7 @@ class Compensator:
         x_input = self.warp_w(z)
         seconds = time.perf_counter() - t_start
         report = {"schedule": asdict(sched), "phases": phases,
-                  "iterations": {"z": it - n_joint, "joint": n_joint, "total": it},
+                  "iterations": {"z": it - n_joint, "joint": n_joint, "total": it, "fixed_point": it_fp},
                   "lr": sched.lr, "alpha": sched.theta_rate,
                   "capture_every": sched.capture_interval if mode == "closed-loop" else None, "init": init,
                   "theta_init": theta_init if mode == "closed-loop" else None,
