@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"how many of the six natural targets, in order (default {DEFAULT_TARGET_COUNT}, "
                         "to stay near 35 min on 2 cores; 6 = the paper's count)")
     p.add_argument("--iterations", type=int, default=None,
-                   help="stage C iterations per target, split 200:300 like the paper (default: stage C's default "
+                   help="stage C iterations per target, split like the schedule's own (default: stage C's default "
                         "schedule, which sets its own counts)")
     p.add_argument("--effects", default="realistic")
     p.add_argument("--samples", type=int, default=16, help="Cycles samples of the lab")

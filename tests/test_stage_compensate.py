@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 
 from procam.addon.errors import CaptureError, ImageError
-from procam.addon.stages.compensate import (SCHEDULES, BiasModel, Cancelled, CompensationError, Compensator,
-                                            Schedule, area_psnr, compensate, get_schedule, matched_alpha, plateaued)
+from procam.addon.stages.compensate import (DEFAULT_SCHEDULE, SCHEDULES, BiasModel, Cancelled, CompensationError,
+                                            Compensator, Schedule, area_psnr, compensate, get_schedule, matched_alpha,
+                                            plateaued, split_iterations)
 from procam.addon.stages.display_area import (DisplayArea, DisplayAreaError, TargetAspectWarning, choose_area,
                                               fit_target, largest_rectangle, load_target, parse_area)
 
@@ -132,12 +133,12 @@ def test_open_loop_compensation(setup, open_loop):
     assert res.mode == "open-loop" and res.captures == 0
     assert bias.kind in ("mean", "affine")
     assert res.report["bias"]["held_out_rmse"][bias.kind] <= res.report["bias"]["held_out_rmse"]["no_bias"]
-    # The simulated loss decreases.
     losses = np.array(res.losses)
     # The default schedule's z phases may end early on a plateau; the θ-fixed phase runs in full.
     assert len(losses) == res.report["iterations"]["total"] <= ITER_Z + ITER_JOINT and np.all(np.isfinite(losses))
     assert res.report["iterations"]["joint"] == ITER_JOINT
-    assert losses[-5:].mean() < losses[:5].mean()
+    # The fast schedule's fixed-point start leaves Adam near the noise floor, so compare the model's start and end.
+    assert res.report["psnr_simulated"] > res.report["psnr_simulated_start"] + 0.5
     # Closer to the target than the target projected with geometry only (no photometric compensation).
     uncompensated = bias.predict(setup.comp.simulate(setup.comp.initial_input(res.target, how="geometric")))
     before, after = area_psnr(uncompensated, res.target, area), area_psnr(res.simulated, res.target, area)
@@ -185,21 +186,30 @@ def test_schedule_rules():
     # α matched to the capture interval gives each capture the weight it has in the paper's rule.
     assert matched_alpha(20) == pytest.approx(0.01)
     assert (1 - 2 * matched_alpha(5)) ** 5 == pytest.approx(0.98 ** 20)
-    assert get_schedule("fast").theta_rate == matched_alpha(get_schedule("fast").capture_every)
-    assert Schedule("t", alpha=None, capture_every=20).theta_rate == pytest.approx(0.01)
     fast = get_schedule("fast")
-    lrs = [fast.learning_rate(i, 50) for i in range(50)]
-    assert lrs[0] == pytest.approx(fast.lr) and lrs[-1] == pytest.approx(fast.lr_end)
+    assert fast.theta_rate == matched_alpha(fast.capture_interval)
+    assert Schedule("t", alpha=None, capture_every=20).theta_rate == pytest.approx(0.01)
+    cosine = Schedule("t", lr=0.01, lr_end=0.001)
+    lrs = [cosine.learning_rate(i, 50) for i in range(50)]
+    assert lrs[0] == pytest.approx(0.01) and lrs[-1] == pytest.approx(0.001)
     assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+    assert fast.learning_rate(149, 150) == fast.lr  # no decay in the fast schedule
     # A number of captures is spread over whatever joint iterations there are.
-    assert fast.capture_interval == 3 and replace(fast, iterations_joint=120).capture_interval == 8
+    assert fast.capture_interval == 10 and replace(fast, iterations_joint=120).capture_interval == 8
     assert Schedule("t", iterations_joint=7, captures=3).capture_interval == 3
+    assert (fast.fixed_point, fast.fixed_point_joint, fast.fixed_point_spp, fast.crop, fast.iterations_z) == \
+        (8, 2, 16, True, 0)
+    assert get_schedule(DEFAULT_SCHEDULE) is fast
+    # Splitting a total iteration count follows the schedule: the paper's 200:300, all joint for fast.
+    assert split_iterations(100, "paper") == (40, 60) and split_iterations(100, "fast") == (0, 100)
+    assert split_iterations(None) == (None, None)
     # The paper's schedule stays reachable by name, unchanged.
     paper = get_schedule("paper")
     assert (paper.iterations_z, paper.iterations_joint, paper.lr, paper.alpha, paper.lr_end) == (200, 300, 0.01,
                                                                                                   0.01, None)
     assert (paper.plateau, paper.coarse, paper.spp_z, paper.reference_spp, paper.captures) == (0, 1.0, None, 16,
                                                                                                 None)
+    assert (paper.fixed_point, paper.fixed_point_joint, paper.crop) == (0, 0, False)
     assert paper.capture_interval == 20 and paper.theta_rate == 0.01
     assert set(SCHEDULES) == {"fast", "paper"}
     for bad, msg in ((dict(iterations_z=-1), "iterations_z"), (dict(capture_every=0), "capture_every"),
@@ -359,7 +369,7 @@ def test_cli_round_trip(setup, tmp_path, monkeypatch, capsys):
             "--iterations", "6", "--spp", "1", "--seed", "3"]
     assert main(args) == 0
     doc = json.loads((out / "compensation.json").read_text())
-    assert doc["mode"] == "open-loop" and doc["complete"] and doc["iterations"] == {"total": 6, "z": 2, "joint": 4}
+    assert doc["mode"] == "open-loop" and doc["complete"] and doc["iterations"] == {"total": 6, "z": 0, "joint": 6}
     proj, cam = setup.cal.rig.projector, setup.cal.rig.camera.intrinsics
     for t, name in zip(doc["targets"], ("a", "b")):
         assert t["name"] == name and t["status"] == "done" and len(t["losses"]) == 6 and t["seconds"] > 0
@@ -382,4 +392,4 @@ def test_cli_round_trip(setup, tmp_path, monkeypatch, capsys):
     doc = json.loads((out / "compensation.json").read_text())
     assert doc["mode"] == "closed-loop" and doc["device"].startswith("lab:") and doc["capture_every"] == 1
     assert doc["area"] == {"x": 40, "y": 30, "width": 100, "height": 75, "source": "user"}
-    assert [t["captures"] for t in doc["targets"]] == [2, 2]
+    assert [t["captures"] for t in doc["targets"]] == [3, 3]  # the fast schedule's 3 iterations are all joint

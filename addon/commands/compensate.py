@@ -58,7 +58,9 @@ def add_schedule_options(p: argparse.ArgumentParser) -> None:
 
     def counts(name: str) -> str:
         s = SCHEDULES[name]
-        return f"{name}: {s.iterations_z}+{s.iterations_joint}, lr {s.lr}, capture every {s.capture_every}"
+        start = f"{s.fixed_point} fixed-point steps + " if s.fixed_point else ""
+        return (f"{name}: {start}{s.iterations_z}+{s.iterations_joint} iterations, lr {s.lr}, a capture every "
+                f"{s.capture_interval}")
 
     p.add_argument("--device", default=None,
                    help="closed loop through lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR; "

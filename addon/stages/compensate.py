@@ -48,39 +48,40 @@ Choices beyond the paper, and why:
   (leave-one-pattern-out). The result says ``mode='open-loop'``.
 
 Speed (issue 5: under 60 s per target on 2 cores at 640×480 with one bounce,
-no worse than the paper's 500 steps). One iteration costs a forward and an
-adjoint render (~0.46 s at 4 spp there), so the paper's schedule is ~230 s
-plus a 16-spp reference render per capture. The ``'fast'`` :class:`Schedule`
-spends fewer, cheaper iterations:
+no worse than the paper's 500 steps). An Adam iteration costs a forward and an
+adjoint render (~0.75 s at 4 spp over the whole camera), so the paper's
+schedule is ~400 s. The ``'fast'`` :class:`Schedule` (the default) gets the
+same quality from less:
 
-* **z phases stop on a plateau** of the window-averaged loss: from the
-  one-shot inverse start, z settles in a few dozen iterations, not 200.
-* **Coarse to fine**: the first z phase renders the camera at half its
-  resolution (a quarter of the cost; target, area weights and θ
-  area-averaged to it); z stays at the input resolution throughout.
-* **Fewer samples early**: 1 spp in the z phases, 9-spp θ references.
-  (Sample counts are squares: the scene's stratified sampler rounds others up.)
-* **15 captures, one every 3 joint iterations, with α matched**
-  (:func:`matched_alpha`): each capture keeps the weight it has in θ with the
-  paper's α and a capture every 20, so the paper's 15 captures take 45
-  iterations, not 300. (Given other joint counts, the fast schedule still
-  spreads 15 captures over them.)
-* **Cosine learning-rate decay** over the joint phase (0.01 → 0.001), so the
-  final z is not left jittering by the last noisy steps.
+* **Fixed-point steps instead of the z phase** (``fixed_point``): direct
+  light makes the camera image nearly linear in z, pixel by pixel, with the
+  simulated white image as the slope; so
+  ``z ← clip(z + η · M_c((y_t − (f̂(z) − θ)) / f̂(1)))``, ``M_c`` the ray-cast
+  camera → input correspondence and η = 0.7 (below 1: indirect light adds to
+  the direct term; halved for the second half of the steps), is a
+  preconditioned (Jacobi) step that needs a forward render only and moves
+  every input pixel, where an Adam step moves only the pixels its few
+  samples reach (16-spp renders: their noise goes straight into z). Eight
+  such steps replace the paper's 200 Adam iterations on z alone; Adam (the
+  paper's method, true gradients) then does the rest.
+* **Two fixed-point steps after each capture** (``fixed_point_joint``): the
+  new θ is taken into z at once, not over the next iterations.
+* **Render only the display area** (``crop``): the loss looks nowhere else,
+  so the camera film is cropped to the area (a quarter of the demo's
+  pixels); θ is then 0 outside it.
+* **15 captures spread over fewer joint iterations, α matched**
+  (:func:`matched_alpha`): each capture keeps the weight it has in θ with
+  the paper's α and a capture every 20.
 * **Compiled kernels are reused**: Mitsuba's seeds and Dr.Jit's Adam step
   are opaque, so no iteration recompiles (Dr.Jit's kernel history: every
   launch after the first iteration is a cache hit), and one
-  :class:`Compensator` keeps both resolutions' scenes for every target.
+  :class:`Compensator` keeps each model (full, cropped, coarse) for every
+  target.
 
-Measured (``scripts/bench_stage_c.py --scale 1 --targets city --schedules
-fast,paper``; vedge, realistic lab, closed loop, 15 captures each; machine
-shared, load ≈ 6 on 2 cores, so CPU-seconds are the fair figure, wall on 2
-idle cores ≈ CPU-s / 2): paper 500 iterations, 640 CPU-s, captured PSNR
-29.66 dB (model 29.49); fast 65 iterations, 86 CPU-s, 29.18 dB (model
-28.91). A variant with 75 joint iterations (capture every 5) gave 119 CPU-s
-and 29.33 dB. Fast is 7.5× cheaper but ~0.5 dB worse, so **the default stays
-``'paper'``**; both z phases stopped at their 10-iteration minimum (1-spp
-loss noise trips the plateau test), the likely cause of the lower model PSNR.
+Tried and not kept (``scripts/bench_stage_c.py``, row ``coarse``): a coarse
+z phase at half the camera resolution, 1 spp in the z phases, a plateau stop
+and a cosine learning-rate decay — cheaper, but 0.5 dB below the paper.
+Figures: README ("Stage C speed").
 """
 
 from __future__ import annotations
@@ -226,14 +227,13 @@ class Schedule:
         return float(self.lr_end + 0.5 * (self.lr - self.lr_end) * (1.0 + math.cos(math.pi * t)))
 
 
-#: The paper's schedule (the default) and the fast one (module doc, "Speed": 7.5× less compute, 0.5 dB worse).
+#: The fast schedule (the default; module doc, "Speed") and the paper's.
 SCHEDULES: dict[str, Schedule] = {
+    "fast": Schedule("fast", iterations_z=0, iterations_joint=150, alpha=None, captures=15, fixed_point=8,
+                     fixed_point_joint=2, fixed_point_spp=16, crop=True),
     "paper": Schedule("paper"),
-    "fast": Schedule("fast", iterations_z=60, iterations_joint=45, lr_end=0.1 * LEARNING_RATE,
-                     alpha=None, capture_every=3, captures=15, plateau=5, plateau_tol=0.02, spp_z=1,
-                     coarse=0.5, iterations_coarse=40, reference_spp=9),
 }
-DEFAULT_SCHEDULE = "paper"
+DEFAULT_SCHEDULE = "fast"
 
 
 def get_schedule(schedule: str | Schedule) -> Schedule:
@@ -865,4 +865,5 @@ def compensate(calibration: Any, target: np.ndarray, *, area: DisplayArea, devic
 
 __all__ = ["ALPHA", "BiasModel", "CAPTURE_EVERY", "Cancelled", "CompensationError", "CompensationResult",
            "Compensator", "DEFAULT_SCHEDULE", "ITERATIONS_JOINT", "ITERATIONS_Z", "LEARNING_RATE", "MODES",
-           "SCHEDULES", "Schedule", "area_psnr", "compensate", "get_schedule", "matched_alpha", "plateaued"]
+           "SCHEDULES", "Schedule", "area_psnr", "compensate", "get_schedule", "matched_alpha", "plateaued",
+           "split_iterations"]
