@@ -147,6 +147,11 @@ class Schedule:
     ``lr_end`` over the joint phase. ``spp_z``: samples per pixel of the z
     phases (None = the compensator's ``spp``, which the joint phase uses).
     ``reference_spp``: samples of the render of each captured z (θ's residual).
+    ``spp_joint``: samples of the joint phase (None = the compensator's).
+    ``fixed_point``: fixed-point steps on z before the z phases, and
+    ``fixed_point_joint`` after each capture, each a ``fixed_point_spp``
+    forward render and a step of ``fixed_point_step`` (module doc, "Speed").
+    ``crop``: full-resolution renders cover only the display area.
     """
 
     name: str
