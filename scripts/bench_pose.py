@@ -27,7 +27,7 @@ from pathlib import Path
 from procam.addon.capture.format import CaptureSet
 from procam.addon.lab.lab import LabTruth, make_truth, run_lab
 from procam.addon.stages.calibrate import scene_depth
-from procam.addon.stages.pose import PAPER_EPS, Phase, estimate_pose, pose_error
+from procam.addon.stages.pose import estimate_pose, pose_error
 from procam.addon.surface.reconstruct import reconstruct_surface
 
 STRATEGIES = ("pnp", "pnp+mask", "mask", "paper")
@@ -55,9 +55,7 @@ def run(strategy: str, captures: CaptureSet, surface, seed: int):
     if strategy == "mask":
         return estimate_pose(captures, surface, init="nominal", seed=seed)
     if strategy == "paper":
-        phases = [Phase("paper", 200, None, PAPER_EPS, 1.0, 0.05)]
-        return estimate_pose(captures, surface, init="nominal", phases=phases, target="binary",
-                             precondition=False, seed=seed)
+        return estimate_pose(captures, surface, init="nominal", method="paper", seed=seed)
     raise SystemExit(f"unknown strategy {strategy!r}; choose from {', '.join(STRATEGIES)}")
 
 

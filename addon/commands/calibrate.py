@@ -17,6 +17,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init", choices=("graycode", "nominal", "blender"), default="graycode",
                    help="starting pose for stage A: Gray-code correspondences + PnP (default), the capture set's "
                         "nominal projector, or the ProCam Projector placed in a .blend (--blend)")
+    p.add_argument("--stage-a", choices=("ours", "paper"), default="ours",
+                   help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the "
+                        "paper's (binary mask, Γ with ε = 0.01, 200 Adam steps), from the start --init gives "
+                        "(--init nominal --stage-a paper reproduces the paper's pipeline)")
     p.add_argument("--blend", type=Path, help="with --init blender: the .blend holding the ProCam Projector")
     p.add_argument("--no-blend-output", action="store_true", help="do not write scene.blend")
     p.add_argument("--stages", default="all", metavar="STAGES",
@@ -64,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     cal = calibrate(args.capture_dir, args.out, init="given" if initial is not None else args.init,
                     initial_pose=initial, force=args.force, with_blend=not args.no_blend_output,
-                    progress=say, seed=args.seed, depth_offset=args.depth_offset, stages=args.stages)
+                    progress=say, seed=args.seed, depth_offset=args.depth_offset, stages=args.stages,
+                    stage_a=args.stage_a)
     r = cal.report
     print(f"calibration: {args.out}")
     sr = r["surface_report"]
@@ -73,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     p = cal.rig.projector
     if "init" in r:
         print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
-              f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']})")
+              f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']}, stage A: {args.stage_a})")
     print("  stages: " + ", ".join(f"{k} {v}" for k, v in cal.stages.items()))
     b, a = (r.get("warp_report") or {}).get("corners_before_px"), (r.get("warp_report") or {}).get("corners_after_px")
     if b and a:

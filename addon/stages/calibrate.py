@@ -207,7 +207,7 @@ def calibrate(capture_dir: str | Path, out_dir: str | Path, *, init: str = "gray
               initial_pose: np.ndarray | None = None, force: bool = False, with_blend: bool = True,
               progress: Progress | None = None, cancel: Callable[[], bool] | None = None,
               seed: int = 0, depth_offset: float | None = None,
-              stages: str | tuple[str, ...] | list[str] | None = None) -> Calibration:
+              stages: str | tuple[str, ...] | list[str] | None = None, stage_a: str = "ours") -> Calibration:
     """Run surface, stage A and stage B on a capture set and write the calibration folder.
 
     ``depth_offset`` (metres, + = the depth sensor reads too far) overrides
@@ -216,6 +216,9 @@ def calibrate(capture_dir: str | Path, out_dir: str | Path, *, init: str = "gray
     come from the calibration already at ``out_dir`` (same capture set; it is
     then replaced, no ``force`` needed), the ones after are left "not run"
     and the folder cannot be used to compensate until they are.
+    ``stage_a='paper'`` runs the paper's mask-only stage A (binary mask, Γ,
+    plain Adam; :func:`.pose.estimate_pose`) instead of ours, to reproduce
+    the paper's pipeline and its ablations.
     """
     from .pose import estimate_pose
     from .warp import estimate_warp, grid_image
@@ -262,7 +265,7 @@ def calibrate(capture_dir: str | Path, out_dir: str | Path, *, init: str = "gray
             t0 = time.perf_counter()
             say("stage A: projector pose", 0.1)
             pose = estimate_pose(captures, mesh, init=init, initial_pose=initial_pose, cancel=cancel, seed=seed,
-                                 progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
+                                 method=stage_a, progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
             seconds["pose"] = time.perf_counter() - t0
             rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
             report.update(init=pose.init, pose=pose.to_dict())

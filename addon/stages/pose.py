@@ -125,6 +125,9 @@ MIN_IOU = 0.5
 #: Fewest decoded Gray-code pixels with a surface point that PnP accepts.
 MIN_CORRESPONDENCES = 50
 INITS = ("graycode", "nominal", "blender", "given")
+#: Stage-A methods: ours (soft debiased target, annealed Γ, preconditioned) or the paper's (binary mask, Γ with
+#: ε = 0.01 throughout, plain Adam, 200 steps), kept to reproduce the paper and its ablations.
+METHODS = ("ours", "paper")
 #: Adam steps on the mask from a rough start (no Gray code).
 DEFAULT_ITERATIONS = 200
 #: Camera width rendered in the coarse phase: enough pixels for the footprint, 4× fewer than full resolution.
@@ -382,6 +385,11 @@ class Phase:
     lr_end: float
 
 
+def paper_phases(iterations: int = 200) -> list[Phase]:
+    """The paper's stage A: one phase at full resolution with Γ at ε = 0.01 and an exponentially decaying step."""
+    return [Phase("paper", iterations, None, PAPER_EPS, 1.0, 0.05)]
+
+
 def default_phases(iterations: int, rough: bool) -> list[Phase]:
     """The schedule: a coarse phase with the paper's Γ (only from a rough start), then a sharp full-resolution one."""
     if iterations <= 0:
@@ -602,7 +610,8 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
                   initial_pose: np.ndarray | None = None, iterations: int | None = None,
                   progress: Progress | None = None, cancel: Callable[[], bool] | None = None,
                   seed: int = 0, spp: int = 4, phases: list[Phase] | None = None,
-                  target: str = "soft", precondition: bool | None = None) -> PoseResult:
+                  target: str | None = None, precondition: bool | None = None,
+                  method: str = "ours") -> PoseResult:
     """Stage A: the projector's ``camera_from_projector`` from a capture set and the reconstructed surface.
 
     ``init`` picks the start: ``'graycode'`` (PnP on decoded Gray-code
@@ -614,6 +623,8 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     ``phases`` overrides the schedule, ``target`` picks the debiased soft
     target (default) or the paper's binary mask, ``precondition`` the
     Gauss–Newton change of variables (default: on from a rough start).
+    ``method='paper'`` sets all three as the paper does (:func:`paper_phases`,
+    the binary mask, no preconditioning), from whichever start ``init`` gives.
     Every result ends with a check: the footprint rendered at full resolution
     at the final pose against the mask (``info['mask_check']``: loss and
     intersection over union; below 50 % overlap is an error).
@@ -625,13 +636,20 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     t0 = time.perf_counter()
     if init not in INITS:
         raise CalibrationError(f"unknown stage-A start {init!r}; choose one of {', '.join(INITS)}")
+    if method not in METHODS:
+        raise CalibrationError(f"unknown stage-A method {method!r}; choose one of {', '.join(METHODS)}")
+    if method == "paper":
+        phases = paper_phases(DEFAULT_ITERATIONS if iterations is None else int(iterations)) if phases is None else phases
+        target = target or "binary"
+        precondition = False if precondition is None else precondition
+    target = target or "soft"
     if target not in ("soft", "binary"):
         raise CalibrationError(f"unknown stage-A target {target!r}; choose 'soft' (debiased) or 'binary' (the paper's)")
     report = progress or (lambda message, fraction: None)
     mask, diff = target_mask(captures)
     soft = soft_target(mask, diff)
     steps: dict[str, np.ndarray] = {}
-    info: dict[str, Any] = {"mask_fraction": float(mask.mean())}
+    info: dict[str, Any] = {"mask_fraction": float(mask.mean()), "method": method}
     cam = captures.camera.intrinsics
     if init == "graycode":
         report("stage A: decoding Gray code and solving PnP", 0.0)
