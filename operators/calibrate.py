@@ -37,6 +37,7 @@ def apply_view(context: bpy.types.Context, view: CalibrationView) -> str:
     context.scene.procam_calibration_dir = str(view.folder)
     pos = objs.projector.matrix_world.translation
     todo = f"; still to run: {', '.join(cal.missing_stages)}" if cal.missing_stages else ""
+    todo += "".join(f"; warning: {w}" for w in cal.warnings)
     return (f"Calibration {view.folder.name}: {objs.projector.name!r} "
             f"{'at' if posed else 'left at'} ({pos[0]:+.3f}, {pos[1]:+.3f}, {pos[2]:+.3f}), surface "
             f"{len(cal.surface.faces)} faces, {len(view.images)} images{todo}")

@@ -9,7 +9,9 @@ import pytest
 from procam.addon.cli import main
 from procam.addon.errors import CalibrationError
 from procam.addon.lab.lab import LabTruth
-from procam.addon.stages.calibrate import Calibration, calibrate
+from procam.addon.capture.format import CaptureSet
+from procam.addon.imageio import read_image, write_image
+from procam.addon.stages.calibrate import Calibration, calibrate, white_saturation
 from procam.addon.stages.metrics import psnr, ssim
 
 
@@ -36,6 +38,24 @@ def test_calibration_folder_is_complete_and_accurate(calibrated):
     back = Calibration.load(out)
     assert np.allclose(back.rig.projector.camera_from_projector, est.camera_from_projector)
     assert back.warp is not None and np.allclose(back.warp.w_shifts, cal.warp.w_shifts, atol=1e-5)
+    assert doc["white_saturated_share"] < 0.01 and back.warnings == []  # realistic: its glossy lobe clips 0.1 %
+
+
+def test_a_saturated_white_capture_is_reported(calibrated, tmp_path, capsys):
+    """A highlight or too long an exposure clips the white capture: the albedo is then too dark, so say so."""
+    captures, _, _, _ = calibrated
+    bright = tmp_path / "bright"
+    shutil.copytree(captures, bright)
+    white = bright / CaptureSet.load(bright, verify_images=False).entry("white").file
+    write_image(white, np.clip(3.0 * read_image(white), 0, 1))
+    share = white_saturation(CaptureSet.load(bright))
+    assert share > 0.3
+    assert main(["calibrate", str(bright), "--out", str(tmp_path / "cal"), "--stages", "surface",
+                 "--no-blend-output"]) == 0
+    assert "saturated on" in capsys.readouterr().out
+    cal = Calibration.load(tmp_path / "cal", complete=False)
+    assert cal.report["white_saturated_share"] == pytest.approx(share)
+    assert "shorter exposure" in cal.warnings[0]
 
 
 def test_existing_calibration_is_not_overwritten(calibrated):

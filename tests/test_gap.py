@@ -189,3 +189,26 @@ def test_cli_diagnose_runs_and_rejects_unknown_effects(response_case, tmp_path, 
     manifest = json.loads((tmp_path / "show" / "show.json").read_text())
     assert manifest["effects"]["effect_models"] == ["response"]
     assert main(show) == 2  # other effects than the finished frames': refused without --force
+
+
+def test_a_region_where_the_white_capture_clipped_is_described_as_such(clean_case):
+    """The albedo comes from the white capture, so a clipped highlight leaves the model too dark there."""
+    from procam.addon.gap.regions import find_regions
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    block = (slice(cy - 4, cy + 4), slice(cx - 4, cx + 4))
+    held = data.held_index
+    residuals = np.zeros((len(held),) + data.mask.shape + (3,), np.float32)
+    residuals[:, block[0], block[1]] = -0.1
+
+    def described() -> str:
+        regions = find_regions(data, residuals, data.size, held)
+        assert len(regions) == 1 and regions[0].share > 0.99
+        return regions[0].description
+
+    assert "saturated" not in described()
+    data.white.capture[block] = 1.0
+    text = described()
+    assert "white capture is saturated" in text and "simulation too dark" in text

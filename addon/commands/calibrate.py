@@ -80,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
               f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']}, stage A: {args.stage_a})")
     print("  stages: " + ", ".join(f"{k} {v}" for k, v in cal.stages.items()))
+    for w in cal.warnings:
+        print(f"  warning: {w}")
     b, a = (r.get("warp_report") or {}).get("corners_before_px"), (r.get("warp_report") or {}).get("corners_after_px")
     if b and a:
         print(f"  warp: checker corners median {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")

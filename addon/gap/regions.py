@@ -5,8 +5,8 @@ patterns and channels) is thresholded at the level above which the worst pixels
 hold half of the squared error, opened/closed, and split into connected
 components, largest share of the squared error first. Each region is then
 described against what is known about the scene from the calibration alone:
-surface creases, the unlit side of a concave edge, the projector border, the
-input levels and colour channel that dominate its error, and whether its error
+surface creases, the unlit side of a concave edge, the projector border, a
+saturated white capture (the albedo there is a lower bound), the input levels and colour channel that dominate its error, and whether its error
 comes from sharp (binary) or smooth patterns.
 """
 
@@ -18,6 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..stages.calibrate import SATURATED
 from .data import GapData
 
 #: Regions smaller than this share of the lit pixels are merged into "scattered" error.
@@ -99,6 +100,11 @@ def _describe(data: GapData, residuals: np.ndarray, sel: np.ndarray, pattern_ind
     if float(np.median(border)) < 0.05 * min(iw, ih):
         tags.append("projector border")
         words.append("near the border of the projector input")
+    if float((data.white.capture[sel] >= SATURATED).any(axis=1).mean()) > 0.3:
+        # The albedo came from the white capture; where that clipped it is a lower bound (stages.calibrate).
+        tags.append("saturated white")
+        words.append("where the white capture is saturated (a highlight or too long an exposure: the albedo "
+                     "read there is too dark)")
     obs = [data.observations[i] for i in pattern_index]
     per = np.array([float((residuals[k][sel] ** 2).mean()) for k in range(len(obs))])
     levels = np.array([float(o.sampled[sel].mean()) for o in obs])
