@@ -212,3 +212,23 @@ def test_a_region_where_the_white_capture_clipped_is_described_as_such(clean_cas
     data.white.capture[block] = 1.0
     text = described()
     assert "white capture is saturated" in text and "simulation too dark" in text
+
+
+def test_glossy_model_restores_light_lost_where_white_clipped(clean_case):
+    """A highlight that saturated the white capture leaves the albedo too dark there; the glossy model puts
+    the lobe's light back there, and only there (weight 0 is still the identity)."""
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    block = (slice(cy - 4, cy + 4), slice(cx - 4, cx + 4))
+    data.white.capture[block] = 1.0
+    comp = Composite(data, ("glossy",))
+    grey = next(o for o in data.observations if o.name == "val_grey_0.5")
+    base = comp.predict(np.array([0.0, 0.4]), grey)
+    np.testing.assert_allclose(base, np.clip(grey.direct, 0, 1), atol=2e-3)
+    lit = comp.predict(np.array([0.5, 0.4]), grey)
+    assert float((lit - base)[block].mean()) > 0.01
+    outside = data.mask.copy()
+    outside[cy - 6:cy + 6, cx - 6:cx + 6] = False
+    # Outside the clipped block only the lobe's (small) departure from white × level remains.
+    assert float(np.abs(lit - base)[outside].mean()) < 0.2 * float((lit - base)[block].mean())

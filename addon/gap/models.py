@@ -8,7 +8,9 @@ renders in :class:`.data.Observation`. Where light meets each effect:
   first): evaluated along each camera pixel's light path, so a change
   ``x → g(x)`` of the input changes direct light by ``gain · (g(x) − x)(corr)``;
 * in the renderer (``interreflection`` adds a share of the indirect-light render,
-  ``glossy`` mixes in a white GGX lobe), and the geometry (``depth_noise``: a
+  ``glossy`` mixes in a white GGX lobe, and where the lobe clipped the white
+  capture, from which calibration read the albedo, puts back the light the
+  sensor lost), and the geometry (``depth_noise``: a
   smooth depth error moves each pixel's light path, ``corr``);
 * on the camera image (``black_level``'s ambient part → ``distortion`` →
   ``camera_response``).
@@ -26,7 +28,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..stages.calibrate import SATURATED
 from .data import GLOSSY_ROUGHNESS, GapData, Observation, sample_input
+
+#: Width (share of the working image width) over which the diffuse white is carried into clipped highlights.
+FILL_SIGMA = 0.04
 
 
 @dataclass(frozen=True)
@@ -134,6 +140,7 @@ class Composite:
         self._xn = ((xs - c.cx) / c.fx).astype(np.float32)
         self._yn = ((ys - c.cy) / c.fy).astype(np.float32)
         self._vig_r = vignetting_radius(data.projector, data.corr)
+        self._saturated, self._diffuse_white = _clipped_white(data)
 
     def initial(self) -> np.ndarray:
         return np.concatenate([MODELS[n].initial() for n in self.names]) if self.names else np.zeros(0)
@@ -187,6 +194,13 @@ class Composite:
         if "glossy" in p:
             weight, rough = p["glossy"]
             img = img + weight * (_glossy_at(obs, float(rough)) - _glossy_at(white, float(rough)) * obs.sampled)
+            if weight > 0 and self._saturated.any():  # weight 0 is the identity, exactly
+                # Where the white capture clipped, the albedo holds only what the sensor could take, so the
+                # model is too dark at every lower level. The lobe says what white really was: the diffuse
+                # white of the neighbourhood plus the highlight; scale the prediction up to it there.
+                full = self._diffuse_white + weight * _glossy_at(white, float(rough))
+                scale = np.maximum(full, d.gain) / np.maximum(d.gain, 1e-3)
+                img = np.where(self._saturated, img * scale, img)
         if "camera_response" in p:
             # The albedo holds the curve at white: take the image to light with white's scale before the
             # ambient light adds and the curve applies (white-balance gains cancel against the albedo).
@@ -213,6 +227,20 @@ class Composite:
         mx = (xu * c.fx + c.cx - 0.5).astype(np.float32)
         my = (yu * c.fy + c.cy - 0.5).astype(np.float32)
         return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _clipped_white(data: GapData) -> tuple[np.ndarray, np.ndarray]:
+    """Where the white capture saturated (h×w×3 bool), and the model's white carried into those pixels from
+    the unclipped neighbourhood (normalised Gaussian convolution): the diffuse part of a clipped highlight."""
+    sat = (data.white.capture >= SATURATED) & data.mask[..., None]
+    if not sat.any():
+        return sat, data.gain
+    sigma = max(1.0, FILL_SIGMA * data.mask.shape[1])
+    keep = (data.mask[..., None] & ~sat).astype(np.float32)
+    num = cv2.GaussianBlur(data.gain * keep, (0, 0), sigma)
+    den = cv2.GaussianBlur(keep, (0, 0), sigma)
+    fill = np.where(den > 1e-3, num / np.maximum(den, 1e-3), data.gain)
+    return sat, np.where(sat, fill, data.gain).astype(np.float32)
 
 
 def _glossy_at(obs: Observation, rough: float) -> np.ndarray:
@@ -246,7 +274,8 @@ def signature_mask(name: str, data: GapData, obs: Observation) -> np.ndarray:
         return ind > np.percentile(ind[data.mask], 75) if data.mask.any() else ind > 0
     if name == "glossy":
         diff = np.abs(_glossy_at(obs, 0.4) - obs.direct).mean(axis=2)
-        return diff > np.percentile(diff[data.mask], 75) if data.mask.any() else diff > 0
+        lobe = diff > np.percentile(diff[data.mask], 75) if data.mask.any() else diff > 0
+        return lobe | (data.white.capture >= SATURATED).any(axis=2)
     if name == "camera_response":
         v = obs.direct.mean(axis=2)
         return (v > 0.15) & (v < 0.7)
