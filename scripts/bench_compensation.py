@@ -193,7 +193,8 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
                 crops.append(area.crop(meas.capture))
             write_image(out / f"{surface}_{name}_paper_pose.png", side_by_side(fitted, crops[1], crops[0]))
             rows.append(row)
-            progress(f"[{surface}] paper's stage A, {name}: " + ", ".join(f"{m} {row[m]['psnr']:.2f} dB" for m in methods))
+            progress(f"[{surface}] paper's stage A, {name}: "
+                     + ", ".join(f"{m} {row[m]['psnr']:.2f} dB" for m in methods))
     finally:
         device.close()
     result = {"surface": surface, "pose_error": {"position_mm": 1000 * pos, "direction_deg": ang},

@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     p = cal.rig.projector
     if "init" in r:
         print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
-              f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']}, stage A: {args.stage_a})")
+              f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']}, stage A: "
+              f"{r.get('pose', {}).get('info', {}).get('method', 'ours')})")
     print("  stages: " + ", ".join(f"{k} {v}" for k, v in cal.stages.items()))
     for w in cal.warnings:
         print(f"  warning: {w}")

@@ -6,8 +6,9 @@ hold half of the squared error, opened/closed, and split into connected
 components, largest share of the squared error first. Each region is then
 described against what is known about the scene from the calibration alone:
 surface creases, the unlit side of a concave edge, the projector border, a
-saturated white capture (the albedo there is a lower bound), the input levels and colour channel that dominate its error, and whether its error
-comes from sharp (binary) or smooth patterns.
+saturated white capture (the albedo there is a lower bound), the input levels
+and colour channel that dominate its error, and whether its error comes from
+sharp (binary) or smooth patterns.
 """
 
 from __future__ import annotations

@@ -639,7 +639,8 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     if method not in METHODS:
         raise CalibrationError(f"unknown stage-A method {method!r}; choose one of {', '.join(METHODS)}")
     if method == "paper":
-        phases = paper_phases(DEFAULT_ITERATIONS if iterations is None else int(iterations)) if phases is None else phases
+        if phases is None:
+            phases = paper_phases(DEFAULT_ITERATIONS if iterations is None else int(iterations))
         target = target or "binary"
         precondition = False if precondition is None else precondition
     target = target or "soft"
