@@ -45,15 +45,19 @@ def _cli(argv: list[str]) -> None:
         raise SystemExit(f"procam {' '.join(argv)} failed with exit code {code}")
 
 
+def case_name(surface: str, effects: tuple[str, ...], seed: int = 0) -> str:
+    return f"{surface}__{'+'.join(effects) or 'none'}" + (f"__seed{seed}" if seed else "")
+
+
 def run_case(work: Path, surface: str, effects: tuple[str, ...], strength: float, scale: float, samples: int,
-             diag_scale: float) -> tuple[Path, Path, dict]:
-    name = f"{surface}__{'+'.join(effects) or 'none'}"
+             diag_scale: float, seed: int = 0) -> tuple[Path, Path, dict]:
+    name = case_name(surface, effects, seed)
     lab, truth, cal, diag = (work / name / "captures", work / name / "truth.json", work / name / "calibration",
                              work / name / "diagnosis")
     spec = ",".join(f"{e}={strength}" for e in effects) or "none"
     if not (truth.is_file() and (lab / "capture.json").is_file()):
         _cli(["lab", "--surface", surface, "--effects", spec, "--scale", str(scale), "--samples", str(samples),
-              "--out", str(lab), "--truth", str(truth), "--force"])
+              "--out", str(lab), "--truth", str(truth), "--seed", str(seed), "--force"])
     if not (cal / "calibration.json").is_file():
         _cli(["calibrate", str(lab), "--out", str(cal), "--no-blend-output", "--force"])
     if not (diag / "gap.json").is_file():
@@ -102,6 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel")
     ap.add_argument("--diag-scale", type=float, default=1.0, help="diagnosis working scale of the capture size")
     ap.add_argument("--cases", default="all", help="'all', or e.g. 'none,response,response+defocus'")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="lab seeds per case (surface texture and noise; seed 0 keeps the plain case names)")
     ap.add_argument("--targets", type=int, default=2, help="natural targets for the compensation comparison (0: skip)")
     ap.add_argument("--iterations", type=int, default=60, help="stage-C iterations per target (open loop)")
     ap.add_argument("--summarise", type=Path, default=None,
@@ -118,35 +124,35 @@ def main(argv: list[str] | None = None) -> int:
         cases = [tuple(c.split("+")) if c != "none" else () for c in args.cases.split(",")]
     targets = ["city", "forest", "interior", "sunrise"][:args.targets]
     rows = []
-    for surface in args.surfaces.split(","):
-        for effects in cases:
-            t0 = time.perf_counter()
-            cal, truth, doc = run_case(args.work, surface, effects, args.strength, args.scale, args.samples,
-                                       args.diag_scale)
-            ranked = [e["name"] for e in doc["effects"] if not e.get("error")]
-            before, after = doc["residual"]["rmse_structured"], doc["residual_after"]["rmse_structured"]
-            floor_case = args.work / f"{surface}__none" / "diagnosis" / "gap.json"
-            floor_doc = json.loads(floor_case.read_text())["residual"] if floor_case.is_file() else None
-            floor = floor_doc["rmse_structured"] if floor_doc else None
-            removed = None
-            if effects and floor_doc:
-                # Per pixel class (smooth parts, pattern edges): the share of the RMSE above the no-effect
-                # floor that the selected effects remove, in the class where the injected effect shows.
-                shares = []
-                for b, a, f in zip(doc["residual"]["mse_classes"], doc["residual_after"]["mse_classes"],
-                                   floor_doc["mse_classes"]):
-                    b, a, f = np.sqrt(b), np.sqrt(a), np.sqrt(f)
-                    if b - f > 0.1 * f:
-                        shares.append((b - a) / (b - f))
-                removed = max(shares) if shares else None
-            comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
-            row = {"surface": surface, "injected": list(effects), "first": ranked[0] if ranked else None,
-                   "selected": doc["selected"], "rmse_before": before, "rmse_after": after, "floor": floor,
-                   "removed_above_floor": removed, "compensation": comp, "seconds": round(time.perf_counter() - t0, 1),
-                   "confidence": {e["name"]: e["confidence"].get("level") for e in doc["effects"]
-                                  if e["name"] in doc["selected"]}}
-            rows.append(row)
-            print(json.dumps(row), file=sys.stderr, flush=True)
+    for surface, seed, effects in ((s, k, e) for s in args.surfaces.split(",") for k in range(args.seeds)
+                                   for e in cases):
+        t0 = time.perf_counter()
+        cal, truth, doc = run_case(args.work, surface, effects, args.strength, args.scale, args.samples,
+                                   args.diag_scale, seed)
+        ranked = [e["name"] for e in doc["effects"] if not e.get("error")]
+        before, after = doc["residual"]["rmse_structured"], doc["residual_after"]["rmse_structured"]
+        floor_case = args.work / case_name(surface, (), seed) / "diagnosis" / "gap.json"
+        floor_doc = json.loads(floor_case.read_text())["residual"] if floor_case.is_file() else None
+        floor = floor_doc["rmse_structured"] if floor_doc else None
+        removed = None
+        if effects and floor_doc:
+            # Per pixel class (smooth parts, pattern edges): the share of the RMSE above the no-effect
+            # floor that the selected effects remove, in the class where the injected effect shows.
+            shares = []
+            for b, a, f in zip(doc["residual"]["mse_classes"], doc["residual_after"]["mse_classes"],
+                               floor_doc["mse_classes"]):
+                b, a, f = np.sqrt(b), np.sqrt(a), np.sqrt(f)
+                if b - f > 0.1 * f:
+                    shares.append((b - a) / (b - f))
+            removed = max(shares) if shares else None
+        comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
+        row = {"surface": surface, "seed": seed, "injected": list(effects), "first": ranked[0] if ranked else None,
+               "selected": doc["selected"], "rmse_before": before, "rmse_after": after, "floor": floor,
+               "removed_above_floor": removed, "compensation": comp, "seconds": round(time.perf_counter() - t0, 1),
+               "confidence": {e["name"]: e["confidence"].get("level") for e in doc["effects"]
+                              if e["name"] in doc["selected"]}}
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
     md = report_markdown(rows, args)
     print(md)
     if args.out:
@@ -168,7 +174,8 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         c = f"{comp['base']:.2f} → {comp['effects']:.2f}" if comp else "–"
         rem = f"{r['removed_above_floor']:.0%}" if r["removed_above_floor"] is not None else "–"
         fl = f"{r['floor']:.4f}" if r["floor"] is not None else "–"
-        lines.append(f"| {r['surface']} | {'+'.join(r['injected']) or 'none'} | {r['first']} | "
+        where = r["surface"] + (f" (seed {r['seed']})" if r.get("seed") else "")
+        lines.append(f"| {where} | {'+'.join(r['injected']) or 'none'} | {r['first']} | "
                      f"{', '.join(r['selected']) or 'none'} | {r['rmse_before']:.4f} → {r['rmse_after']:.4f} | {fl} | "
                      f"{rem} | {c} | {r['seconds']} |")
     single = [r for r in rows if len(r["injected"]) == 1]
@@ -177,7 +184,10 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
     lines += ["", "Summary:"]
     # An effect "leaves a gap" on a surface when, injected alone, it lifts the held-out RMSE > 5 % above the
     # no-effect floor; one that does not (absorbed by the calibration, or absent from that surface) cannot be found.
-    gap = {(r["surface"], r["injected"][0]): r["floor"] is not None and r["rmse_before"] > GAP_MARGIN * r["floor"]
+    def key(r: dict, effect: str) -> tuple:
+        return r["surface"], r.get("seed", 0), effect
+
+    gap = {key(r, r["injected"][0]): r["floor"] is not None and r["rmse_before"] > GAP_MARGIN * r["floor"]
            for r in single}
     if single:
         first = sum(r["first"] == r["injected"][0] for r in single)
@@ -185,8 +195,8 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         half = sum((r["removed_above_floor"] or 0) >= 0.5 for r in single)
         lines.append(f"- single effects: ranked first {first}/{len(single)}, selected first {sel}/{len(single)}, "
                      f"≥ 50 % of the above-floor residual removed {half}/{len(single)}")
-        shows = [r for r in single if gap[(r["surface"], r["injected"][0])]]
-        hidden = [r for r in single if not gap[(r["surface"], r["injected"][0])]]
+        shows = [r for r in single if gap[key(r, r["injected"][0])]]
+        hidden = [r for r in single if not gap[key(r, r["injected"][0])]]
         lines.append(f"  - that leave a gap ({len(shows)}): ranked first "
                      f"{sum(r['first'] == r['injected'][0] for r in shows)}, ≥ 50 % removed "
                      f"{sum((r['removed_above_floor'] or 0) >= 0.5 for r in shows)}")
@@ -198,8 +208,8 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
     if pairs:
         both = sum(set(r["injected"]) <= set(r["selected"]) for r in pairs)
         lines.append(f"- two effects: both selected {both}/{len(pairs)}")
-        known = [r for r in pairs if all((r["surface"], e) in gap for e in r["injected"])]
-        shows = [r for r in known if all(gap[(r["surface"], e)] for e in r["injected"])]
+        known = [r for r in pairs if all(key(r, e) in gap for e in r["injected"])]
+        shows = [r for r in known if all(gap[key(r, e)] for e in r["injected"])]
         if known:
             lines.append(f"  - where both leave a gap alone: both selected "
                          f"{sum(set(r['injected']) <= set(r['selected']) for r in shows)}/{len(shows)}")
