@@ -412,14 +412,18 @@ def test_capture_sequence_and_decode_set(tmp_path):
 
 # -- folder workflow --------------------------------------------------------------------------------
 
-def shoot_folder(seq_dir: Path, out: Path, suffix: str = ".png", bits: int = 16, names="IMG_{:04d}") -> Path:
-    """Play the user's part: show each exported frame to a synthetic camera and save the photos."""
+def shoot_folder(seq_dir: Path, out: Path, suffix: str = ".png", bits: int = 16,
+                 names: str | None = "IMG_{:04d}") -> Path:
+    """Play the user's part: show each exported frame to a synthetic camera and save the photos.
+
+    ``names`` None saves each photo under its frame's name.
+    """
     info = load_sequence(seq_dir)
     dev = WarpDevice(info.projector)
     out.mkdir()
     for i, f in enumerate(info.frames):
         cap = dev.project(read_image(seq_dir / f["file"]))
-        path = out / (names.format(i + 100) + suffix)
+        path = out / ((Path(f["file"]).stem if names is None else names.format(i + 100)) + suffix)
         if bits == 8:  # a phone: 8-bit sRGB-encoded
             cv2.imwrite(str(path), np.round(linear_to_srgb(cap)[..., ::-1] * 255).astype(np.uint8))
         else:
@@ -461,6 +465,20 @@ def test_export_and_import(tmp_path):
         dev.project(np.full((FRAME[1], FRAME[0], 3), 0.123, np.float32))
     with pytest.raises(CaptureError, match="native resolution"):
         dev.project(np.zeros((10, 10, 3)))
+
+
+def test_photos_named_after_their_frames_import_in_frame_order(tmp_path):
+    # Frame names end in a pattern's own index (…_graycode_x00, …_graycode_x00_inv), which repeats:
+    # their last number cannot order them.
+    proj = small_projector()
+    seq_dir = export_sequence(proj, tmp_path / "seq", checker_size=10, seed=2)
+    caps = shoot_folder(seq_dir, tmp_path / "photos", suffix=".jpg", bits=8, names=None)
+    assert (caps / "0006_graycode_x00_inv.jpg").is_file()
+    cs = import_captures(seq_dir, caps, None, None, tmp_path / "set")
+    frames = load_sequence(seq_dir).frames
+    assert [e.params["source"] for e in cs.entries] == [Path(f["file"]).stem + ".jpg" for f in frames]
+    assert cs.entry("white").params["source"] == "0002_white.jpg"
+    assert cs.entry("checker", phase=0).params["source"] == "0003_checker_s10_p0.jpg"
 
 
 def test_import_truncated_leaves_nothing(tmp_path):

@@ -250,8 +250,15 @@ def _number(path: Path) -> int | None:
     return int(digits[-1]) if digits else None
 
 
-def list_captures(captures_dir: str | Path) -> list[Path]:
-    """The capture files of a folder in sequence order (by the last number in each name)."""
+def list_captures(captures_dir: str | Path, frame_files: list[str] | None = None) -> list[Path]:
+    """The capture files of a folder in sequence order.
+
+    Photographs saved under their frames' names (``0006_graycode_x00_inv.jpg``
+    for ``0006_graycode_x00_inv.png``) are ordered as ``frame_files``; any
+    other names by the last number in each (``IMG_0051.JPG``), as cameras
+    number them. Frame names need the first rule: their last number is a
+    pattern's own index, which repeats (``…_x00``, ``…_x00_inv``).
+    """
     root = Path(captures_dir)
     if not root.is_dir():
         raise CaptureError(f"captures folder {root} does not exist")
@@ -259,6 +266,9 @@ def list_captures(captures_dir: str | Path) -> list[Path]:
              and p.suffix.lower() in CAPTURE_SUFFIXES]
     if not files:
         raise CaptureError(f"no captures in {root} (expected numbered {', '.join(CAPTURE_SUFFIXES)} files)")
+    order = {Path(f).stem: i for i, f in enumerate(frame_files or [])}
+    if order and all(p.stem in order for p in files):
+        return sorted(files, key=lambda p: order[p.stem])
     unnumbered = [p.name for p in files if _number(p) is None]
     if unnumbered:
         raise CaptureError(f"captures without a number in their name: {', '.join(sorted(unnumbered)[:5])}; "
@@ -296,7 +306,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
                     depth_native_size: tuple[int, int] | None = None, force: bool = False) -> CaptureSet:
     """Turn photographs of an exported sequence into a new capture set.
 
-    Captures are matched to frames in order of the number in their names.
+    Captures are matched to frames by name, or else by the number in their names (``list_captures``).
     ``encoding='auto'`` treats 8-bit files (JPEG, 8-bit PNG/TIFF) as sRGB and
     linearises them, 16-bit and float files as linear; the choice is recorded
     per image (``params.source_encoding``). ``camera`` None builds a nominal
@@ -310,7 +320,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     seq = load_sequence(sequence_dir)
     projector = projector or seq.projector
     camera = camera or seq.camera
-    files = list_captures(captures_dir)
+    files = list_captures(captures_dir, [f["file"] for f in seq.frames])
     if len(files) != len(seq.frames):
         raise CaptureError(f"the sequence has {len(seq.frames)} frames but {captures_dir} holds {len(files)} "
                            f"captures ({files[0].name} … {files[-1].name}); one capture per frame is needed")
