@@ -20,13 +20,34 @@ import numpy as np  # noqa: E402
 from .errors import ImageError  # noqa: E402
 
 
+# Read once, in the importing (main) thread: os.umask can only be read by setting it, which would race
+# with files other threads create.
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
+
+def usual_mode(path: str | Path) -> None:
+    """Give a file or folder the mode an ordinary ``open``/``mkdir`` would (0666/0777 less the umask).
+
+    ``mkstemp``/``mkdtemp`` create private (0600/0700) names, which the rename
+    into place would keep: a media server or a show crew's other account could
+    not read the calibration or the frames.
+    """
+    path = Path(path)
+    try:
+        os.chmod(path, (0o777 if path.is_dir() else 0o666) & ~_UMASK)
+    except OSError:
+        pass  # a file system without POSIX modes: nothing to fix
+
+
 def atomic_path(path: Path) -> tuple[Path, Path]:
-    """A temporary sibling for ``path`` (same suffix, same folder, so rename is atomic)."""
+    """A temporary sibling for ``path`` (same suffix, same folder, so rename is atomic), with the usual mode."""
     path = Path(path)
     if not path.parent.is_dir():
         raise ImageError(f"cannot write {path}: folder {path.parent} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
+    usual_mode(tmp)
     return Path(tmp), path
 
 

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ProCamError
+from .imageio import usual_mode
 
 
 class OutputError(ProCamError):
@@ -66,6 +67,7 @@ class AtomicFolder:
         try:
             self.target.parent.mkdir(parents=True, exist_ok=True)
             self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+            usual_mode(self.tmp)
         except OSError as exc:
             raise self.error(f"cannot write {self.what} at {self.target}: {exc.strerror or exc}") from None
         self.done = False

@@ -134,6 +134,16 @@ def test_round_trip(tmp_path):
     assert manifest["images"][3]["params"] == {"square": 10, "phase": 0}
 
 
+def test_outputs_get_the_usual_modes_not_mkstemps_private_ones(tmp_path):
+    # A show machine's media server or another crew account must be able to read what we write.
+    out = tmp_path / "set"
+    write_small_set(out)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask
+    assert {p.stat().st_mode & 0o777 for p in out.iterdir() if p.is_file()} == {0o666 & ~umask}
+
+
 @pytest.fixture
 def good_set(tmp_path) -> Path:
     out = tmp_path / "good"

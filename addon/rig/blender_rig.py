@@ -776,6 +776,7 @@ def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMe
     import os
     import tempfile
 
+    from ..imageio import usual_mode
     from ..outputs import OutputError
     from .blender_file import save_calibration_blend
 
@@ -788,6 +789,7 @@ def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMe
         raise OutputError(f"cannot write {path}: folder {path.parent} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".blend", dir=path.parent)
     os.close(fd)
+    usual_mode(tmp)
     try:
         save_calibration_blend(tmp, rig, surface, images)
         os.replace(tmp, path)

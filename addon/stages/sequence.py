@@ -332,7 +332,6 @@ class ShowFolder:
 
         assert self.doc is not None
         write_atomic_bytes(self.path / MANIFEST, (json.dumps(jsonable(self.doc), indent=1) + "\n").encode())
-        _readable(self.path / MANIFEST)
 
     def verified(self, entry: dict[str, Any] | None) -> str | None:
         """None when ``entry`` is a finished frame whose file is intact, else why it must be redone."""
@@ -346,17 +345,6 @@ class ShowFolder:
         if file_sha256(path) != entry.get("sha256"):
             return f"{path.name} does not match its checksum (damaged or replaced)"
         return None
-
-
-def _readable(path: Path) -> None:
-    """Give a file the usual permissions: atomic writes create it 0600 (mkstemp), but a media server
-    or another user account must be able to read the frames."""
-    mask = os.umask(0)
-    os.umask(mask)
-    try:
-        os.chmod(path, 0o666 & ~mask)
-    except OSError:
-        pass  # a file system without POSIX modes: nothing to fix
 
 
 def _source_record(path: Path) -> dict[str, Any]:
@@ -681,7 +669,6 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
         except (OSError, ProCamError) as exc:
             raise SequenceError(f"cannot write frame {f.number} into {folder.path}: {exc}; the finished frames "
                                 "are kept, rerun to resume") from None
-        _readable(out)
         notes = [str(w.message) for w in caught]
         for n in notes:
             say(f"frame {f.number}: warning: {n}")
