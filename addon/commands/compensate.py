@@ -70,8 +70,9 @@ def add_schedule_options(p: argparse.ArgumentParser) -> None:
                         "--iterations, --lr and --capture-every override its values: " +
                         "; ".join(counts(n) for n in SCHEDULES))
     p.add_argument("--iterations", type=int, default=None,
-                   help=f"total iterations, split {ITERATIONS_Z}:{ITERATIONS_JOINT} between z alone and z + θ "
-                        "(default: the schedule's)")
+                   help="total Adam iterations, split between z alone and z + θ in the schedule's own ratio "
+                        f"(paper: {ITERATIONS_Z}:{ITERATIONS_JOINT}; fast: all joint, after its fixed-point steps; "
+                        "default: the schedule's counts)")
     p.add_argument("--area", default=None,
                    help="display area x,y,width,height in camera pixels (default: the capture set's, else the "
                         "largest rectangle of the target's aspect ratio that the projector covers)")
