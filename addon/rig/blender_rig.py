@@ -774,9 +774,8 @@ def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMe
                                   *, force: bool = False) -> Path:
     """``blender_file.save_calibration_blend`` to a temporary name renamed into place; never overwrites unless ``force``."""
     import os
-    import tempfile
 
-    from ..imageio import usual_mode
+    from ..imageio import atomic_path
     from ..outputs import OutputError
     from .blender_file import save_calibration_blend
 
@@ -787,9 +786,7 @@ def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMe
         raise OutputError(f"{path} exists; it is only replaced with Replace (force) on")
     if not path.parent.is_dir():
         raise OutputError(f"cannot write {path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".blend", dir=path.parent)
-    os.close(fd)
-    usual_mode(tmp)
+    tmp, _ = atomic_path(path)
     try:
         save_calibration_blend(tmp, rig, surface, images)
         os.replace(tmp, path)
