@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
             removed = max(shares) if shares else None
         comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
         row = {"surface": surface, "seed": seed, "injected": list(effects), "first": ranked[0] if ranked else None,
-               "selected": doc["selected"], "rmse_before": before, "rmse_after": after, "floor": floor,
+               "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before, "rmse_after": after, "floor": floor,
                "removed_above_floor": removed, "compensation": comp, "seconds": round(time.perf_counter() - t0, 1),
                "confidence": {e["name"]: e["confidence"].get("level") for e in doc["effects"]
                               if e["name"] in doc["selected"]}}
@@ -201,8 +201,10 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
                      f"{sum(r['first'] == r['injected'][0] for r in shows)}, ≥ 50 % removed "
                      f"{sum((r['removed_above_floor'] or 0) >= 0.5 for r in shows)}")
         lines.append(f"  - that leave none ({len(hidden)}: "
-                     f"{', '.join(sorted({r['surface'] + ' ' + r['injected'][0] for r in hidden}))}): nothing selected "
-                     f"{sum(not r['selected'] for r in hidden)}")
+                     f"{', '.join(sorted({r['surface'] + ' ' + r['injected'][0] for r in hidden}))}): ranked first "
+                     f"{sum(r['first'] == r['injected'][0] for r in hidden)} (found where calibration absorbed it "
+                     f"{sum(r['injected'][0] in r.get('absorbed', []) for r in hidden)}), nothing modelled "
+                     f"{sum(not (set(r['selected']) - set(r.get('absorbed', []))) for r in hidden)}")
     if none:
         lines.append(f"- no effect: nothing selected {sum(not r['selected'] for r in none)}/{len(none)}")
     if pairs:

@@ -232,3 +232,58 @@ def test_glossy_model_restores_light_lost_where_white_clipped(clean_case):
     outside[cy - 6:cy + 6, cx - 6:cx + 6] = False
     # Outside the clipped block only the lobe's (small) departure from white × level remains.
     assert float(np.abs(lit - base)[outside].mean()) < 0.2 * float((lit - base)[block].mean())
+
+
+# --------------------------------------------------------------------------- effects calibration absorbs
+
+@pytest.fixture(scope="module")
+def absorbed_case(lab_calibration):
+    return lab_calibration("vedge", "vignetting=0.8,distortion=0.8,depth_noise=0.8", **TINY)
+
+
+def test_absorbed_effects_are_found_where_calibration_absorbed_them(absorbed_case, clean_case):
+    from procam.addon.gap.evidence import calibration_evidence
+
+    found = calibration_evidence(absorbed_case[0])
+    assert all(e.detected for e in found.values()), {n: e.evidence or e.error for n, e in found.items()}
+    # lab at strength 0.8: falloff 0.28 at the farthest corner, bias 1.6 cm
+    assert found["vignetting"].params["falloff"] == pytest.approx(0.28, abs=0.06)
+    assert found["depth_noise"].params["bias_m"] == pytest.approx(0.016, abs=0.002)
+    clean = calibration_evidence(clean_case[0])
+    assert not any(e.detected for e in clean.values()), {n: e.evidence or e.error for n, e in clean.items()}
+    assert clean["vignetting"].params["falloff"] < 0.05
+
+
+def test_absorbed_effects_rank_first_but_are_not_modelled(absorbed_case, tmp_path):
+    doc = diagnose(absorbed_case[0], tmp_path / "gap", scale=1.0, spp=8, candidates=("response", "vignetting",
+                                                                                      "distortion", "depth_noise"))
+    # This calibration carries the lab's true albedo, so vignetting is not absorbed here: it shows in the residual
+    # and is modelled; a real calibration reads the albedo from the white capture (the benchmark's case).
+    assert doc["modelled"] == ["vignetting"]
+    assert doc["absorbed"] == ["distortion", "depth_noise"]
+    assert doc["selected"] == doc["modelled"] + doc["absorbed"]
+    assert [e["name"] for e in doc["effects"][:3]] == doc["selected"]
+    assert set(doc["selected_params"]) == {"vignetting"}  # nothing else for --effects auto to invert
+    assert "Effects calibration absorbs" in (tmp_path / "gap" / "summary.md").read_text()
+
+
+def test_a_dark_surface_photo_says_to_turn_the_room_lights_on(clean_case):
+    from procam.addon.capture.format import CaptureSet
+    from procam.addon.gap.evidence import vignetting_evidence
+    from procam.addon.stages.calibrate import Calibration
+    from procam.addon.stages.pose import surface_view, target_mask
+
+    cal = Calibration.load(clean_case[0])
+    captures = CaptureSet.load(clean_case[1])
+
+    class DarkPhoto:
+        def __getattr__(self, name):
+            return getattr(captures, name)
+
+        def image(self, kind, **kw):
+            img = captures.image(kind, **kw)
+            return img * 0 if kind == "surface" else img
+
+    view = surface_view(cal.surface, cal.rig.camera.intrinsics)
+    ev = vignetting_evidence(DarkPhoto(), cal, view, target_mask(captures)[0])
+    assert not ev.detected and "room lights on" in ev.error

@@ -128,7 +128,8 @@ def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: 
                "instructions": [
                    "Show each frame full-screen on the projector, at its native resolution, without scaling "
                    "or colour management, in the numbered order.",
-                   "For 'surface' switch the projector off (or cover the lens); if you cannot, show the frame.",
+                   "For 'surface' switch the projector off (or cover the lens) and turn the room lights on, evenly: "
+                   "this photo shows the surface's own colours. Take every other frame in the dark.",
                    "Keep camera exposure, white balance and focus fixed for the whole sequence.",
                    "Save one photo per frame; name them so that sorting by the number in the name gives the "
                    "sequence order (e.g. 0000.png, 0001.png …), then run: procam import-captures SEQUENCE CAPTURES --out SET"],

@@ -20,6 +20,7 @@ import numpy as np
 from ..imageio import write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, jsonable
 from .data import GapData, load_gap_data
+from .evidence import calibration_evidence
 from .fit import MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, residual_stack, select_effects, structured
 from .models import MODELS, NAMES, Composite, signature_mask
 from .regions import find_regions, residual_maps
@@ -33,16 +34,17 @@ SIGNATURE_ENRICHMENT = 1.2
 
 Progress = Callable[[str, float], None]
 
-#: Effects a single camera and projector cannot tell apart from what calibration already absorbs.
+#: What calibration absorbs of each effect, so that the validation residual cannot show it. The first three are
+#: looked for where they were absorbed instead (:mod:`.evidence`).
 ABSORBED = {
-    "vignetting": "a smooth projector falloff looks exactly like darker surface reflectance to one camera; the "
-                  "albedo estimated from the white capture already holds it, so compensation is not hurt",
+    "vignetting": "a smooth projector falloff looks exactly like darker surface reflectance in the white capture; "
+                  "the albedo holds it, so compensation is not hurt. Found from the room-lit surface photo",
     "camera_response": "its white-balance gains are absorbed by the albedo in the same way; only its tone curve "
                        "(mid levels) is visible",
-    "distortion": "camera lens distortion moves the projected pattern smoothly in the camera image; the stage-B "
-                  "warp, fitted in that image, absorbs it",
-    "depth_noise": "a depth bias scales the scene about the camera, which the projector pose absorbs; noise is "
-                   "smoothed by the reconstruction — only what remains shows, near creases",
+    "distortion": "camera lens distortion moves the projected pattern smoothly in the camera image; the pose and the "
+                  "stage-B warp absorb it. Found from the Gray-code correspondences",
+    "depth_noise": "the wall image removes the depth bias (else the pose absorbs it) and the reconstruction smooths "
+                   "the noise; only what remains shows, near creases. Found from the depth sensor's wall image",
 }
 
 
@@ -116,7 +118,10 @@ def _summary(doc: dict[str, Any]) -> str:
              "Effects are ranked and selected on the residual without pixel noise (smoothed by "
              f"{doc['smooth_sigma_px']} px except on pattern edges), on patterns they were not fitted on.", "",
              "**Selected:** " + (", ".join(doc["selected"]) if doc["selected"] else
-                                 "none: no effect model removes a significant share of the residual"), "",
+                                 "none: no effect model removes a significant share of the residual, and calibration "
+                                 "absorbed none"), "",
+             *([f"**Absorbed by calibration** (found from its inputs, nothing left to model): "
+                f"{', '.join(doc['absorbed'])}", ""] if doc["absorbed"] else []),
              "## Which effect", "",
              "| rank | effect | held-out RMSE alone | removes | confidence | signature (share of gain where expected) |",
              "|---|---|---|---|---|---|"]
@@ -133,16 +138,23 @@ def _summary(doc: dict[str, Any]) -> str:
         verdict = f"added **{s['added']}**" if s["added"] else f"stopped: best candidate {s['candidate']} removes " \
                                                               f"only {s['share']:.0%} (< {doc['min_share']:.0%})"
         lines.append(f"- {s['before']:.4f} → {s['after']:.4f} ({s['share']:.0%}): {verdict}")
-    if doc["selected"]:
+    if doc["modelled"]:
         lines += ["", "Fitted parameters: " + "; ".join(
-            f"{n} {doc['selected_params'][n]}" for n in doc["selected"])]
+            f"{n} {doc['selected_params'][n]}" for n in doc["modelled"])]
+    lines += ["", "## Effects calibration absorbs", "",
+              "Looked for where calibration absorbed them, fitted on half the pixels and scored on the other half.", "",
+              "| effect | found | absorbed by | evidence | parameters |", "|---|---|---|---|---|"]
+    for n, e in doc["evidence"].items():
+        what = e["evidence"] if not e["error"] else f"not measured: {e['error']}"
+        lines.append(f"| {n} | {'**yes**' if e['detected'] else 'no'} | {e['absorbed_by']} | {what} | "
+                     f"{e['params'] or ''} |")
     lines += ["", "## Where", "", "![regions](regions.png) ![residual](residual_abs.png)", "",
               "| region | bbox (x, y, w, h) | share of squared error | description |", "|---|---|---|---|"]
     for k, r in enumerate(doc["regions"]):
         lines.append(f"| {k + 1} | {tuple(r['bbox'])} | {r['share']:.0%} | {r['description']} |")
     lines += ["", "Maps: `residual_signed.png` (per channel, grey = 0, ±scale in the JSON), `residual_abs.png`, "
                   "`residual_after_abs.png` (with the selected effects).", "",
-              "Not identifiable from these captures: " + "; ".join(f"**{k}**: {v}" for k, v in ABSORBED.items()), ""]
+              "What calibration absorbs: " + "; ".join(f"**{k}**: {v}" for k, v in ABSORBED.items()), ""]
     return "\n".join(lines)
 
 
@@ -164,9 +176,16 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
         sel = select_effects(data, candidates, min_share=min_share, cancel=cancel,
                              progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
         t_fit = time.perf_counter() - t0
+        say("evidence of absorbed effects", 0.9)
+        t0 = time.perf_counter()
+        evidence = calibration_evidence(calibration_dir, cancel=cancel)
+        t_evidence = time.perf_counter() - t0
+        found = [n for n, e in evidence.items() if e.detected and n in candidates and n not in sel.selected]
         base, final = sel.base, sel.final or sel.base
         effects = []
-        ranked = sorted(sel.alone.items(), key=lambda kv: -kv[1].share_of(base))
+        # Selected on the residual first, then found where calibration absorbed them, then the rest by share.
+        ranked = sorted(sel.alone.items(), key=lambda kv: (0 if kv[0] in sel.selected else 1 if kv[0] in found else 2,
+                                                           -kv[1].share_of(base)))
         for name, f in ranked:
             if f.error is not None:
                 effects.append({"name": name, "error": f.error, "params": None, "heldout_rmse_before": base.held_rmse,
@@ -180,6 +199,11 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
                             "heldout_mse_classes_after": list(f.held_mse_classes),
                             "reduction": f.share_of(base),
                             "fit_seconds": round(f.seconds, 2), "confidence": _confidence(sel, name, sig)})
+            if name in evidence:
+                effects[-1]["absorbed"] = evidence[name].to_dict()
+                if name in found:
+                    effects[-1]["confidence"] = {**effects[-1]["confidence"], "level": "absorbed by calibration",
+                                                 "evidence": evidence[name].evidence}
         res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
         res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
         cam_full = _camera_full_size(calibration_dir, data)
@@ -204,11 +228,17 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
                "regions": [r.to_dict() for r in regions],
                "effects": effects,
                "steps": [{k: v for k, v in s.items()} for s in sel.steps],
-               "selected": list(sel.selected),
+               # selected: on the residual (modelled, ``selected_params``, what ``--effects auto`` uses), then
+               # found where calibration absorbed them (nothing left to model: ``absorbed``).
+               "selected": list(sel.selected) + found,
+               "modelled": list(sel.selected),
+               "absorbed": found,
                "selected_params": final.params() if sel.selected else {},
+               "evidence": {n: e.to_dict() for n, e in evidence.items()},
                "min_share": min_share,
-               "not_identifiable": ABSORBED,
-               "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1)}}
+               "what_calibration_absorbs": ABSORBED,
+               "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1),
+                           "evidence": round(t_evidence, 1)}}
         maps = residual_maps(res_base, data.mask)
         after = residual_maps(res_final, data.mask)
         scale_abs = max(float(np.percentile(maps["abs"][data.mask], 99)), 1e-3)

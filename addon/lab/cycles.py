@@ -6,7 +6,7 @@ mode), reads it as float32 linear RGB, and removes the file. Every setting
 that could bend the values is pinned for the render and restored afterwards:
 no view transform, look, exposure or gamma, a 1-pixel box filter, no
 denoising, no clamping, and a black world so that only the projector lights
-the room. Blender's per-frame chatter on stdout ("Saved: '…exr'") is
+the room (unless a render asks for the room lights on). Blender's per-frame chatter on stdout ("Saved: '…exr'") is
 silenced for the render so that commands keep stdout for their results.
 """
 
@@ -51,16 +51,18 @@ class _Settings:
         self._saved.clear()
 
 
-def _dark_world() -> bpy.types.World:
+def _world(room_light: float = 0.0) -> bpy.types.World:
+    """The lab's room: dark, or lit evenly from every direction with radiance ``room_light`` (white)."""
     world = bpy.data.worlds.new(_DARK_WORLD)
     world.color = (0.0, 0.0, 0.0)
     if world.node_tree is None:  # Blender < 5.0 creates worlds without nodes
         world.use_nodes = True
     for node in world.node_tree.nodes:
         if node.type == "BACKGROUND":
-            # A new world lights the scene grey until its strength is 0 (DESIGN.md §4).
-            node.inputs["Strength"].default_value = 0.0
-            node.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+            # A new world lights the scene grey until its strength is set (DESIGN.md §4).
+            lit = room_light > 0
+            node.inputs["Strength"].default_value = float(room_light) if lit else 0.0
+            node.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0) if lit else (0.0, 0.0, 0.0, 1.0)
     return world
 
 
@@ -131,15 +133,19 @@ def _read_exr(path: Path) -> np.ndarray:
 
 
 def render_cycles(scene: bpy.types.Scene, *, samples: int = 64, bounces: int = 0, seed: int = 0,
-                  size: tuple[int, int] | None = None) -> np.ndarray:
+                  size: tuple[int, int] | None = None, room_light: float = 0.0) -> np.ndarray:
     """Render the scene camera with Cycles on the CPU: float32, linear, H×W×3.
 
     ``bounces`` = 0 gives direct light only; more adds interreflections.
     ``size`` = (width, height) overrides the render resolution for this
     render only (the camera keeps its lens: same aspect gives scaled K).
+    ``room_light`` > 0 lights the room evenly from every direction (a white
+    world of that radiance) instead of leaving it dark.
     """
     if scene.camera is None:
         raise RenderError("the scene has no camera to render from: create the rig first (ProCam ▸ Create Rig)")
+    if not np.isfinite(room_light) or room_light < 0:
+        raise RenderError(f"room light must be a radiance ≥ 0, got {room_light}")
     if samples < 1 or bounces < 0:
         raise RenderError(f"samples must be ≥ 1 and bounces ≥ 0, got samples={samples}, bounces={bounces}")
     if size is not None and (int(size[0]) < 1 or int(size[1]) < 1):
@@ -191,7 +197,7 @@ def render_cycles(scene: bpy.types.Scene, *, samples: int = 64, bounces: int = 0
         settings.set(fmt, "exr_codec", "ZIP")
         settings.set(r, "use_file_extension", True)
         settings.set(r, "filepath", str(tmpdir / "frame"))
-        world = _dark_world()
+        world = _world(room_light)
         settings.set(scene, "world", world)
 
         with _quiet_stdout():

@@ -54,6 +54,11 @@ LAB_SCENE_NAME = "ProCam Lab"
 BINARY_KINDS = ("checker", "graycode")
 #: Cycles takes a signed 32-bit seed.
 _SEED_RANGE = 2 ** 31
+#: Radiance of the even room light for the projector-off photo (white world; a white Lambertian texel facing it
+#: reads about this much). The photo of the surface is taken with the room lights on, like the colour image of a
+#: depth scan: it shows the surface's own colours, which is how calibration fills the albedo outside the projector's
+#: reach and how the diagnosis tells projector vignetting from paint. Every other capture is taken in the dark.
+ROOM_LIGHT = 0.25
 
 #: ``progress(done, total, message)``: called before each step of :func:`run_lab`.
 Progress = Callable[[int, int, str], None]
@@ -327,7 +332,7 @@ class LabDevice(Device):
         if self._scene is None:
             raise LabError("this lab device is closed; open a new LabDevice")
 
-    def _render(self) -> np.ndarray:
+    def _render(self, room_light: float = 0.0) -> np.ndarray:
         from .cycles import render_cycles
 
         self._check_open()
@@ -335,12 +340,12 @@ class LabDevice(Device):
         self._shots += 1
         seed = int(np.random.SeedSequence([self.seed, k]).generate_state(1)[0]) % _SEED_RANGE
         bounces = self.bounces
-        img = render_cycles(self._scene, samples=self.samples, bounces=bounces, seed=seed)
+        img = render_cycles(self._scene, samples=self.samples, bounces=bounces, seed=seed, room_light=room_light)
         gain = float(self._settings.get("indirect_gain", 0.0))
         if bounces > 0 and gain < 1.0:
             # direct + gain·indirect: the direct-only render with the same seed shares its sampling pattern,
             # so the difference (the indirect light) is not much noisier than either render
-            direct = render_cycles(self._scene, samples=self.samples, bounces=0, seed=seed)
+            direct = render_cycles(self._scene, samples=self.samples, bounces=0, seed=seed, room_light=room_light)
             img = direct + np.float32(gain) * (img - direct)
         return apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k))
 
@@ -353,13 +358,13 @@ class LabDevice(Device):
         return self._render()
 
     def capture_off(self) -> np.ndarray:
-        """Projector switched off: only ambient light (and camera effects) remain."""
+        """Projector switched off, room lights on (:data:`ROOM_LIGHT`): the photo of the surface."""
         self._check_open()
         light = self._light.data
         energy = light.energy
         light.energy = 0.0
         try:
-            return self._render()
+            return self._render(room_light=ROOM_LIGHT)
         finally:
             light.energy = energy
 

@@ -1,0 +1,369 @@
+"""Evidence for the effects calibration absorbs, read from the calibration's own inputs.
+
+Three of the lab's effects leave almost no residual on the validation patterns,
+because a calibration step absorbs them, so the held-out selection of
+:mod:`.fit` cannot see them. A user still needs to know they are there: what a
+calibration absorbed is only right for this rig, and comes back as soon as the
+projector, the surface or the camera changes. Each is found where it was
+absorbed:
+
+* ``vignetting`` (the white-capture albedo holds it): the surface photo is taken
+  with the room lights on, so ``(white − black) / projector irradiance`` over
+  ``photo / room-light irradiance`` (the ambient occlusion of the calibrated
+  surface) is the projector's own falloff, paint cancelling out. It is fitted
+  as ``1 − falloff·(r/r_max)²`` about the projector's principal point, ``r``
+  the field-angle tangent, like the lab's and the model's ``vignetting``.
+* ``distortion`` (the pose and the stage-B warp hold it): the Gray-code
+  correspondences, lifted to 3-D by the calibrated surface, are fitted by the
+  projector pose alone and by the pose plus the camera's radial ``k1, k2``.
+* ``depth_noise`` (the wall image removes the bias, the reconstruction smooths
+  the noise): read off the depth sensor's image of a flat wall, as the median
+  offset and the spread about a fitted plane; without a wall image, the spread
+  of the scene depth's second differences (a plane's are zero).
+
+Fits use half of the pixels (alternate square blocks) and are scored on the
+other half, as effect models are scored on held-out patterns. The thresholds
+below were checked on the diagnosis benchmark's sets without the effect (see
+the README's diagnosis section).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+#: Vignetting is found when the fitted falloff at the farthest frame corner reaches this share of the light …
+VIGNETTING_MIN_FALLOFF = 0.05
+#: … and the radial law removes this share of the held-out spread of the albedo ratio.
+VIGNETTING_MIN_SHARE = 0.10
+#: A surface photo darker than this (median over the lit pixels, linear) was taken without room light.
+MIN_PHOTO_LEVEL = 0.01
+#: Distortion is found when k1, k2 remove this share of the held-out Gray-code reprojection MSE (whose floor is the
+#: code's own ±0.5 px quantisation); fits on sets without it removed at most 0.35 %.
+DISTORTION_MIN_SHARE = 0.005
+#: Depth bias or noise (1σ at 1 m) the diagnosis reports as ``depth_noise``: a tenth of a phone LiDAR's.
+DEPTH_MIN_M = 0.002
+#: Pixels a fit uses at most (a fixed random subset of the usable ones).
+MAX_PIXELS = 20000
+#: Cosine-weighted directions for the room light's ambient occlusion.
+AO_DIRECTIONS = 128
+
+Cancel = Callable[[], bool]
+
+
+@dataclass
+class Evidence:
+    """What the calibration's inputs say about one absorbed effect."""
+
+    name: str
+    detected: bool
+    params: dict[str, float] = field(default_factory=dict)
+    share: float = 0.0  # held-out share of the spread the effect's law removes (vignetting, distortion)
+    evidence: str = ""  # in words, with the numbers
+    absorbed_by: str = ""
+    error: str | None = None  # why it could not be measured
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"detected": self.detected, "params": self.params, "heldout_share": round(self.share, 4),
+                "evidence": self.evidence, "absorbed_by": self.absorbed_by, "error": self.error}
+
+
+def _blocks(xs: np.ndarray, ys: np.ndarray, width: int) -> np.ndarray:
+    """True on the fit half: alternate square blocks, about 1/16 of the image wide."""
+    b = max(8, width // 16)
+    return ((xs // b) + (ys // b)) % 2 == 0
+
+
+def _subset(n: int, seed: int = 0) -> np.ndarray:
+    idx = np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(idx, MAX_PIXELS, replace=False)) if n > MAX_PIXELS else idx
+
+
+# ------------------------------------------------------------------ vignetting
+
+def ambient_occlusion(surface: Any, points: np.ndarray, normals: np.ndarray, *, directions: int = AO_DIRECTIONS,
+                      seed: int = 0) -> np.ndarray:
+    """Share of an even room light each surface point receives (cosine-weighted visibility of the sky)."""
+    from ..render.backend import mitsuba
+    from ..render.scene import surface_mesh
+
+    mi = mitsuba()
+    scene = mi.load_dict({"type": "scene", "surface": surface_mesh(mi, surface)})
+    rng = np.random.default_rng(seed)
+    u1, u2 = rng.random(directions), rng.random(directions)
+    local = np.stack([np.sqrt(u1) * np.cos(2 * np.pi * u2), np.sqrt(u1) * np.sin(2 * np.pi * u2), np.sqrt(1 - u1)], 1)
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    origin = mi.Point3f(*((points + n * 1e-3).T.astype(np.float32)))
+    seen = np.zeros(len(points))
+    for d in local:
+        dirs = t1 * d[0] + t2 * d[1] + n * d[2]
+        seen += ~np.array(scene.ray_test(mi.Ray3f(origin, mi.Vector3f(*(dirs.T.astype(np.float32))))), dtype=bool)
+    return seen / directions
+
+
+def _tukey_line(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Robust straight line y ≈ a + b·x (iteratively reweighted, Tukey's biweight): paint edges are outliers."""
+    a = np.stack([np.ones_like(x), x], axis=1)
+    w = np.ones_like(x)
+    coef = np.zeros(2)
+    for _ in range(15):
+        coef = np.linalg.lstsq(a * w[:, None], y * w, rcond=None)[0]
+        r = y - a @ coef
+        scale = 1.4826 * np.median(np.abs(r)) + 1e-9
+        u = r / (4.685 * scale)
+        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+    return coef
+
+
+def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) -> Evidence:
+    from ..stages.pose import full_white_irradiance
+
+    ev = Evidence("vignetting", False, absorbed_by="the albedo estimated from the white capture")
+    if not captures.entries_of("surface"):
+        ev.error = "no photo of the surface (projector off, room lights on) in the capture set"
+        return ev
+    proj = cal.rig.projector
+    white, black, photo = captures.image("white"), captures.image("black"), captures.image("surface")
+    irradiance = full_white_irradiance(view, proj, proj.camera_from_projector)
+    # Both images are smoothed a little: the photo is dim, and the ratio need not be sharp.
+    lit_light = cv2.GaussianBlur(white - black, (0, 0), 1.5).mean(axis=2)
+    room = cv2.GaussianBlur(photo, (0, 0), 1.5).mean(axis=2)
+    ok = mask & view.hit & (irradiance > 0)
+    ok = cv2.erode(ok.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    if ok.sum() < 500:
+        ev.error = "too few lit surface pixels"
+        return ev
+    level = float(np.median(room[ok]))
+    if level < MIN_PHOTO_LEVEL:
+        ev.error = (f"the surface photo is dark (median {level:.3f} where the projector lights the surface): take it "
+                    "with the room lights on, so that paint can be told from projector falloff")
+        return ev
+    ok &= (room > 0.1 * level) & (lit_light > 0)
+    ys, xs = np.nonzero(ok)
+    pick = _subset(len(xs))
+    ys, xs = ys[pick], xs[pick]
+    pts, nrm = view.points[ys, xs], view.normals[ys, xs]
+    ao = ambient_occlusion(cal.surface, pts, nrm)
+    good = ao > 0.05
+    ys, xs, pts, ao = ys[good], xs[good], pts[good], ao[good]
+    # log of (projector light / model irradiance) over (room light / occlusion): the paint cancels.
+    y = np.log(lit_light[ys, xs] / irradiance[ys, xs]) - np.log(room[ys, xs] / ao)
+    s = _radius_share(proj, pts)
+    fit = _blocks(xs, ys, captures.camera.intrinsics.width)
+    coef = _tukey_line(s[fit], y[fit])
+    held = ~fit
+    before = y[held] - np.median(y[held])
+    after = y[held] - (coef[0] + coef[1] * s[held])
+    after -= np.median(after)
+    mad0, mad1 = float(np.median(np.abs(before))), float(np.median(np.abs(after)))
+    ev.share = 1.0 - (mad1 / mad0) ** 2 if mad0 > 0 else 0.0
+    falloff = float(1.0 - np.exp(coef[1]))
+    ev.params = {"falloff": round(falloff, 4), "exponent": 2.0}
+    ev.detected = bool(falloff >= VIGNETTING_MIN_FALLOFF and ev.share >= VIGNETTING_MIN_SHARE)
+    ev.evidence = (f"projector light over room light (paint cancels) falls by {falloff:.1%} towards the farthest frame "
+                   f"corner; the radial law removes {ev.share:.0%} of its held-out spread "
+                   f"(found at ≥ {VIGNETTING_MIN_FALLOFF:.0%} and ≥ {VIGNETTING_MIN_SHARE:.0%})")
+    return ev
+
+
+def _radius_share(proj: Any, points: np.ndarray) -> np.ndarray:
+    """(r / r_max)² of rig-frame points about the projector's principal point (r: field-angle tangent)."""
+    p_from_c = np.linalg.inv(proj.camera_from_projector)
+    q = points @ p_from_c[:3, :3].T + p_from_c[:3, 3]
+    k = proj.intrinsics.opencv_matrix()
+    f = np.array([k[0, 0], k[1, 1]])
+    w, h = proj.intrinsics.size
+    corners = (np.array([[0, 0], [w, 0], [0, h], [w, h]], float) - k[:2, 2]) / f
+    return np.sum((q[:, :2] / q[:, 2:3]) ** 2, axis=1) / float(np.max(np.sum(corners ** 2, axis=1)))
+
+
+# ------------------------------------------------------------------ distortion
+
+def _bilinear(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``img`` (H×W×C) at pixel positions ``pts`` (pixel-centre convention); NaN outside."""
+    h, w = img.shape[:2]
+    x, y = pts[:, 0] - 0.5, pts[:, 1] - 0.5
+    x0 = np.clip(np.floor(x).astype(int), 0, w - 2)
+    y0 = np.clip(np.floor(y).astype(int), 0, h - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    v = (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy) + img[y0 + 1, x0] * (1 - fx) * fy
+         + img[y0 + 1, x0 + 1] * fx * fy)
+    v[(x < 0) | (y < 0) | (x > w - 1) | (y > h - 1)] = np.nan
+    return v
+
+
+def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, free: list[int],
+                         steps: np.ndarray, iterations: int = 30) -> np.ndarray:
+    r = residual(theta)
+    cost, lam = float(r @ r), 1e-3
+    for _ in range(iterations):
+        jac = np.empty((r.size, len(free)))
+        for j, k in enumerate(free):
+            t = theta.copy()
+            t[k] += steps[k]
+            jac[:, j] = (residual(t) - r) / steps[k]
+        a, g = jac.T @ jac, jac.T @ r
+        for _ in range(8):
+            t = theta.copy()
+            t[free] -= np.linalg.lstsq(a + lam * np.diag(np.maximum(np.diag(a), 1e-12)), g, rcond=None)[0]
+            rt = residual(t)
+            c = float(rt @ rt)
+            if np.isfinite(c) and c < cost:
+                done = (cost - c) / max(cost, 1e-30) < 1e-8
+                theta, r, cost, lam = t, rt, c, lam / 3
+                break
+            lam *= 4
+        else:
+            break
+        if done:
+            break
+    return theta
+
+
+def distortion_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) -> Evidence:
+    from ..capture.patterns import decode_gray_code_set
+    from ..errors import CaptureError
+
+    ev = Evidence("distortion", False, absorbed_by="the projector pose (Gray-code PnP) and the stage-B warp")
+    if not captures.entries_of("graycode"):
+        ev.error = "no Gray-code captures in the capture set"
+        return ev
+    try:
+        dec = decode_gray_code_set(captures)
+    except CaptureError as exc:
+        ev.error = f"cannot decode the Gray code: {exc}"
+        return ev
+    use = dec.valid & view.hit & mask
+    ys, xs = np.nonzero(use)
+    if len(xs) < 500:
+        ev.error = f"only {len(xs)} decoded surface pixels"
+        return ev
+    pick = _subset(len(xs))
+    ys, xs = ys[pick], xs[pick]
+    cam, proj = cal.rig.camera.intrinsics, cal.rig.projector
+    k, kp = cam.opencv_matrix(), proj.intrinsics.opencv_matrix()
+    f = np.array([k[0, 0], k[1, 1]])
+    seen = (np.stack([xs + 0.5, ys + 0.5], axis=1) - k[:2, 2]) / f  # normalised, as the lens distorted them
+    code = dec.coords[ys, xs].astype(np.float64) - 0.5
+    p_from_c = np.linalg.inv(proj.camera_from_projector)
+    rvec, _ = cv2.Rodrigues(p_from_c[:3, :3])
+    start = np.concatenate([rvec.ravel(), p_from_c[:3, 3], [0.0, 0.0]])
+
+    def residual(theta: np.ndarray, sel: np.ndarray) -> np.ndarray:
+        xu = seen[sel]
+        for _ in range(4):  # undistort: x_d = x_u (1 + k1 r_u² + k2 r_u⁴), fixed point
+            r2 = np.sum(xu * xu, axis=1, keepdims=True)
+            xu = seen[sel] / (1 + theta[6] * r2 + theta[7] * r2 * r2)
+        pts = _bilinear(view.points, xu * f + k[:2, 2])
+        proj_pts, _ = cv2.projectPoints(np.nan_to_num(pts), theta[:3], theta[3:6], kp, None)
+        r = proj_pts.reshape(-1, 2) - code[sel]
+        r[~np.isfinite(pts[:, 0])] = 0.0
+        return r.ravel()
+
+    steps = np.array([1e-6] * 6 + [1e-4] * 2)
+    everything = np.ones(len(xs), bool)
+    pose = _levenberg_marquardt(lambda t: residual(t, everything), start, list(range(6)), steps)
+    # Decoding errors (defocused stripes, grazing light) are outliers to both laws.
+    thresh = max(1.0, 2.0 * proj.intrinsics.width / 800.0)
+    inlier = np.hypot(*residual(pose, everything).reshape(-1, 2).T) < thresh
+    fit = _blocks(xs, ys, cam.width) & inlier
+    held = ~_blocks(xs, ys, cam.width) & inlier
+    if fit.sum() < 200 or held.sum() < 200:
+        ev.error = "too few consistent Gray-code correspondences"
+        return ev
+    mse = {}
+    thetas = {}
+    for name, free in (("pose", list(range(6))), ("pose+k", list(range(8)))):
+        thetas[name] = _levenberg_marquardt(lambda t: residual(t, fit), pose, free, steps)
+        mse[name] = float(np.mean(residual(thetas[name], held) ** 2)) * 2  # per correspondence (x and y)
+    ev.share = (mse["pose"] - mse["pose+k"]) / mse["pose"] if mse["pose"] > 0 else 0.0
+    ev.params = {"k1": round(float(thetas["pose+k"][6]), 4), "k2": round(float(thetas["pose+k"][7]), 4)}
+    ev.detected = bool(ev.share >= DISTORTION_MIN_SHARE)
+    ev.evidence = (f"camera radial k1, k2 lower the held-out Gray-code reprojection error from "
+                   f"{np.sqrt(mse['pose']):.3f} to {np.sqrt(mse['pose+k']):.3f} projector px ({ev.share:.1%} of its "
+                   f"MSE; found at ≥ {DISTORTION_MIN_SHARE:.1%}; k1 trades with the pose's distance, k2 less)")
+    return ev
+
+
+# ------------------------------------------------------------------ depth
+
+def _plane_spread(depth: np.ndarray) -> tuple[float, int]:
+    """Robust spread (1σ, metres) of a depth image about its best plane, and the valid pixel count."""
+    valid = np.isfinite(depth) & (depth > 0)
+    ys, xs = np.nonzero(valid)
+    a = np.stack([np.ones(len(xs)), xs, ys], axis=1).astype(np.float64)
+    z = depth[valid].astype(np.float64)
+    r = z - a @ np.linalg.lstsq(a, z, rcond=None)[0]
+    return float(1.4826 * np.median(np.abs(r - np.median(r)))), int(valid.sum())
+
+
+def depth_evidence(captures: Any, cal: Any) -> Evidence:
+    ev = Evidence("depth_noise", False, absorbed_by="the wall image's bias correction (or the pose), and the "
+                                                      "reconstruction's smoothing")
+    walls = captures.depth_walls()
+    report = cal.report.get("surface_report") or {}
+    if walls:
+        entry, distance = walls[0]
+        wall = captures.depth(name=entry.name).astype(np.float64)
+        spread, n = _plane_spread(wall)
+        if n < 100:
+            ev.error = "the wall depth image is nearly empty"
+            return ev
+        bias = float(np.nanmedian(wall[np.isfinite(wall) & (wall > 0)])) - float(distance)
+        missing = 1.0 - n / wall.size
+        noise_1m = spread / float(distance)
+        ev.params = {"bias_m": round(bias, 4), "noise_m_at_1m": round(noise_1m, 4), "missing": round(missing, 4)}
+        ev.detected = bool(abs(bias) >= DEPTH_MIN_M or noise_1m >= DEPTH_MIN_M)
+        ev.evidence = (f"the sensor's image of a flat wall at {distance} m reads {100 * bias:+.2f} cm off, spreads "
+                       f"{100 * spread:.2f} cm about its plane ({100 * noise_1m:.2f} cm at 1 m) and misses "
+                       f"{missing:.1%} of returns (found at ≥ {100 * DEPTH_MIN_M:.1f} cm)")
+        return ev
+    depth = captures.depth().astype(np.float64)
+    # Second differences along rows: zero on any plane, noise·√6 where the sensor is noisy.
+    d2 = depth[:, 2:] - 2 * depth[:, 1:-1] + depth[:, :-2]
+    ok = np.isfinite(d2)
+    if ok.sum() < 100:
+        ev.error = "the scene depth image is nearly empty"
+        return ev
+    spread = float(1.4826 * np.median(np.abs(d2[ok]))) / np.sqrt(6.0)
+    noise_1m = spread / float(np.nanmedian(depth))
+    ev.params = {"noise_m_at_1m": round(noise_1m, 4), "bias_m": float(report.get("depth_offset", 0.0))}
+    ev.detected = bool(noise_1m >= DEPTH_MIN_M)
+    ev.evidence = (f"no wall depth image, so the bias cannot be seen; the scene depth's pixel-to-pixel noise is "
+                   f"{100 * noise_1m:.2f} cm at 1 m (found at ≥ {100 * DEPTH_MIN_M:.1f} cm)")
+    return ev
+
+
+# ------------------------------------------------------------------ all three
+
+def calibration_evidence(calibration_dir: str | Path, *, cancel: Cancel | None = None) -> dict[str, Evidence]:
+    """Evidence for ``vignetting``, ``distortion`` and ``depth_noise`` from a calibration and its capture set."""
+    from ..capture.format import CaptureSet
+    from ..errors import Cancelled, ProCamError
+    from ..stages.calibrate import Calibration
+    from ..stages.pose import surface_view, target_mask
+
+    cal = Calibration.load(calibration_dir)
+    captures = CaptureSet.load(cal.capture_dir, verify_images=False)
+    view = surface_view(cal.surface, cal.rig.camera.intrinsics)
+    mask, _ = target_mask(captures)
+    out: dict[str, Evidence] = {}
+    for name, run in (("vignetting", lambda: vignetting_evidence(captures, cal, view, mask)),
+                      ("distortion", lambda: distortion_evidence(captures, cal, view, mask)),
+                      ("depth_noise", lambda: depth_evidence(captures, cal))):
+        if cancel is not None and cancel():
+            raise Cancelled("diagnosis cancelled")
+        try:
+            out[name] = run()
+        except (ProCamError, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+            out[name] = Evidence(name, False, error=f"{type(exc).__name__}: {exc}")
+    return out
