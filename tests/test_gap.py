@@ -287,3 +287,13 @@ def test_a_dark_surface_photo_says_to_turn_the_room_lights_on(clean_case):
     view = surface_view(cal.surface, cal.rig.camera.intrinsics)
     ev = vignetting_evidence(DarkPhoto(), cal, view, target_mask(captures)[0])
     assert not ev.detected and "room lights on" in ev.error
+
+
+def test_compensation_inverts_only_what_still_helps_without_the_effects_it_cannot_invert(response_case):
+    data = load_gap_data(response_case[0], scale=1.0, spp=8)
+    final = gap_fit.fit_composite(data, ("response", "black_level"))
+    sel = gap_fit.Selection(gap_fit.fit_composite(data, ()), {}, selected=["response", "black_level"], final=final)
+    keep, dropped = gap_fit.compensation_subset(data, sel, ("response", "black_level"))
+    assert keep == ["response"] and "removes only" in dropped["black_level"]  # the lab injected no black level
+    keep, dropped = gap_fit.compensation_subset(data, sel, ("black_level",))
+    assert keep == [] and dropped["response"] == "compensation cannot invert it"

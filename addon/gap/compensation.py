@@ -216,17 +216,20 @@ class AdaptedDevice:
 
 
 def load_adapter(gap_dir_or_doc: Any, projector: Any, names: list[str] | None = None) -> EffectAdapter:
-    """The adapter of a diagnosis (``gap.json`` folder or document), with its selected effects or ``names``."""
+    """The adapter of a diagnosis (``gap.json`` folder or document): the effects it found compensation can invert
+    (``auto``), or ``names`` with their fitted parameters."""
     import json
     from pathlib import Path
 
     doc = gap_dir_or_doc
     if not isinstance(doc, dict):
         doc = json.loads((Path(doc) / "gap.json").read_text())
-    params = dict(doc.get("selected_params") or {})
-    if names is not None:
+    selected = dict(doc.get("selected_params") or {})
+    if names is None:  # what the diagnosis found compensation can invert (older documents: every selected effect)
+        params = dict((doc.get("compensation") or {}).get("params", selected))
+    else:
         fitted = {e["name"]: e["params"] for e in doc.get("effects", []) if e.get("params")}
-        params = {n: params.get(n, fitted.get(n)) for n in names if params.get(n, fitted.get(n)) is not None}
+        params = {n: selected.get(n, fitted.get(n)) for n in names if selected.get(n, fitted.get(n)) is not None}
     return EffectAdapter(params, projector)
 
 

@@ -21,7 +21,9 @@ from ..imageio import write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, jsonable
 from .data import GapData, load_gap_data
 from .evidence import calibration_evidence
-from .fit import MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, residual_stack, select_effects, structured
+from .compensation import INVERTIBLE
+from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, residual_stack, select_effects,
+                  structured)
 from .models import MODELS, NAMES, Composite, signature_mask
 from .regions import find_regions, residual_maps
 
@@ -122,6 +124,10 @@ def _summary(doc: dict[str, Any]) -> str:
                                  "absorbed none"), "",
              *([f"**Absorbed by calibration** (found from its inputs, nothing left to model): "
                 f"{', '.join(doc['absorbed'])}", ""] if doc["absorbed"] else []),
+             *([f"**Compensation with `--effects auto` inverts:** "
+                f"{', '.join(doc['compensation']['effects']) or 'none'}"
+                + "".join(f"; not {n}: {why}" for n, why in doc["compensation"]["left_out"].items()), ""]
+               if doc["modelled"] else []),
              "## Which effect", "",
              "| rank | effect | held-out RMSE alone | removes | confidence | signature (share of gain where expected) |",
              "|---|---|---|---|---|---|"]
@@ -176,6 +182,7 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
         sel = select_effects(data, candidates, min_share=min_share, cancel=cancel,
                              progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
         t_fit = time.perf_counter() - t0
+        inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share)
         say("evidence of absorbed effects", 0.9)
         t0 = time.perf_counter()
         evidence = calibration_evidence(calibration_dir, cancel=cancel)
@@ -234,6 +241,10 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
                "modelled": list(sel.selected),
                "absorbed": found,
                "selected_params": final.params() if sel.selected else {},
+               # what --effects auto inverts around stage C, and why the other selected effects are not
+               "compensation": {"effects": inverted,
+                                "params": {n: v for n, v in final.params().items() if n in inverted},
+                                "left_out": left_out},
                "evidence": {n: e.to_dict() for n, e in evidence.items()},
                "min_share": min_share,
                "what_calibration_absorbs": ABSORBED,

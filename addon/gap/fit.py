@@ -249,3 +249,40 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
             break
     sel.final = current
     return sel
+
+
+def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], *,
+                        min_share: float = MIN_SHARE) -> tuple[list[str], dict[str, str]]:
+    """The selected effects compensation should invert, and why each other selected effect is left out.
+
+    Compensation inverts only ``usable`` effects, so its model is f̂ with those
+    alone, at the parameters fitted together with all the selected ones. An
+    effect fitted to share the residual with one compensation cannot invert can
+    be wrong without it (on the plane with a glossy surface, a 3 % gamma fitted
+    beside the glossy lobe cost 0.18 dB). So the usable effects are eliminated
+    backwards on that model: each must still remove ``min_share`` of the
+    held-out error the others leave, and together of f̂'s own.
+    """
+    final = sel.final or sel.base
+    params = {n: np.array(list(v.values())) for n, v in final.params().items()} if sel.selected else {}
+    dropped = {n: "compensation cannot invert it" for n in sel.selected if n not in usable}
+    keep = [n for n in sel.selected if n in usable]
+
+    def scored(names: list[str]) -> Fit:
+        comp = Composite(data, tuple(names))
+        theta = comp.initial()
+        for n in comp.names:
+            theta[comp.slices[n]] = params[n]
+        return _scored(comp.names, theta, float("nan"), comp, data, 0.0)
+
+    while keep:
+        with_all = scored(keep)
+        gains = {n: with_all.share_of(scored([m for m in keep if m != n])) for n in keep}
+        weakest = min(keep, key=lambda n: gains[n])
+        if gains[weakest] >= min_share:
+            if with_all.share_of(sel.base) >= min_share:
+                break
+        dropped[weakest] = (f"without the effects compensation cannot invert, it removes only "
+                            f"{max(gains[weakest], 0.0):.0%} of the held-out error (< {min_share:.0%})")
+        keep.remove(weakest)
+    return keep, dropped
