@@ -171,11 +171,13 @@ def _diagnosis_summary(root: Path, doc: dict[str, Any]) -> Summary:
         except (TypeError, ValueError):
             return float("-inf")
 
-    effects.sort(key=lambda e: (e["name"] not in selected, -gain(e)))
+    # Selected in the diagnosis's order (found on the residual, then absorbed by calibration), then by gain.
+    effects.sort(key=lambda e: (0, selected.index(e["name"])) if e["name"] in selected else (1, -gain(e)))
     regions = [r for r in doc.get("regions", []) if isinstance(r, dict)]
     regions.sort(key=lambda r: -float(r.get("share", 0) or 0))
     head = (f"Residual RMSE {_fmt(residual.get('rmse'), '.4f')}, PSNR {_fmt(residual.get('psnr'), '.1f', ' dB')}; "
-            f"{len(selected)} effect{'s' if len(selected) != 1 else ''} selected")
+            f"{len(selected)} effect{'s' if len(selected) != 1 else ''} selected"
+            + (f" ({len(doc['absorbed'])} absorbed by calibration)" if doc.get("absorbed") else ""))
     maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
     text = next((n for n in ("summary.md", "summary.html") if (root / n).is_file()), None)
     return Summary(True, head, (), {"effects": effects, "selected": selected, "regions": regions, "maps": maps,

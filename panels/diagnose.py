@@ -35,7 +35,7 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
             return
         selected = set(summary.data["selected"])
         box = layout.box()
-        box.label(text="Effects (selected first, by held-out gain):")
+        box.label(text="Effects (selected first, as the diagnosis ranks them):")
         for e in summary.data["effects"]:
             row = box.row()
             row.label(text=e["name"], icon="CHECKBOX_HLT" if e["name"] in selected else "CHECKBOX_DEHLT")
