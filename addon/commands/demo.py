@@ -140,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         gap = diagnose(out / "calibration", out / "diagnosis", scale=0.3 if args.full else 0.6)
         summary["diagnosis"] = {"residual": gap["residual"], "residual_after": gap["residual_after"],
                                 "selected": gap["selected"], "selected_params": gap["selected_params"],
+                                "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
                                 "regions": gap["regions"][:3]}
         seconds["diagnose"] = time.perf_counter() - t0
         # The folder is built under a temporary name and renamed at the end: point the calibration and the
@@ -177,6 +178,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"  diagnosis: held-out residual RMSE {g['residual']['rmse']:.4f} → {g['residual_after']['rmse']:.4f} "
           f"({g['residual']['psnr']:.1f} → {g['residual_after']['psnr']:.1f} dB) with the selected effects: "
           f"{', '.join(g['selected']) or 'none'} (see {args.out}/diagnosis/summary.md)")
+    if g["absorbed"]:
+        print(f"    absorbed by calibration, found from its inputs: {', '.join(g['absorbed'])}; "
+              f"--effects auto would invert: {', '.join(g['compensation']) or 'none'}")
     for k, r in enumerate(g["regions"]):
         print(f"    region {k + 1}: {r['share']:.0%} of the error, {r['description']}")
     print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())
