@@ -155,6 +155,9 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) ->
     ao = ambient_occlusion(cal.surface, pts, nrm)
     good = ao > 0.05
     ys, xs, pts, ao = ys[good], xs[good], pts[good], ao[good]
+    if len(xs) < 500:
+        ev.error = "too few surface pixels lit by both the projector and the room"
+        return ev
     # log of (projector light / model irradiance) over (room light / occlusion): the paint cancels.
     y = np.log(lit_light[ys, xs] / irradiance[ys, xs]) - np.log(room[ys, xs] / ao)
     s = _radius_share(proj, pts)
@@ -299,6 +302,8 @@ def distortion_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) ->
 def _plane_spread(depth: np.ndarray) -> tuple[float, int]:
     """Robust spread (1σ, metres) of a depth image about its best plane, and the valid pixel count."""
     valid = np.isfinite(depth) & (depth > 0)
+    if valid.sum() < 100:
+        return float("nan"), int(valid.sum())
     ys, xs = np.nonzero(valid)
     a = np.stack([np.ones(len(xs)), xs, ys], axis=1).astype(np.float64)
     z = depth[valid].astype(np.float64)
