@@ -20,7 +20,9 @@ around it rather than inside, each where it acts:
 (a blur has no stable inverse on a [0, 1] input, the glossy lobe needs a
 different material in the differentiable scene, and distortion would need the
 display area itself remapped); stage C's θ absorbs what they leave. The result
-says which effects it used and which it could not.
+says which effects it used and which it could not. With ``--effects auto`` it
+uses the diagnosis's ``compensation`` list: the selected effects that still help
+without the ones it cannot invert (:func:`.fit.compensation_subset`).
 """
 
 from __future__ import annotations

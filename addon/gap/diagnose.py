@@ -20,8 +20,8 @@ import numpy as np
 from ..imageio import write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, jsonable
 from .data import GapData, load_gap_data
-from .evidence import calibration_evidence
 from .compensation import INVERTIBLE
+from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, residual_stack, select_effects,
                   structured)
 from .models import MODELS, NAMES, Composite, signature_mask
@@ -235,8 +235,8 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
                "regions": [r.to_dict() for r in regions],
                "effects": effects,
                "steps": [{k: v for k, v in s.items()} for s in sel.steps],
-               # selected: on the residual (modelled, ``selected_params``, what ``--effects auto`` uses), then
-               # found where calibration absorbed them (nothing left to model: ``absorbed``).
+               # selected: on the residual (modelled, fitted jointly: ``selected_params``), then found where
+               # calibration absorbed them (nothing left to model: ``absorbed``).
                "selected": list(sel.selected) + found,
                "modelled": list(sel.selected),
                "absorbed": found,
