@@ -24,7 +24,7 @@ from .compensation import INVERTIBLE
 from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, residual_stack, select_effects,
                   structured)
-from .models import MODELS, NAMES, Composite, signature_mask
+from .models import MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, signature_mask
 from .regions import find_regions, residual_maps
 
 FORMAT = "procam-gap"
@@ -185,7 +185,7 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
         inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share)
         say("evidence of absorbed effects", 0.9)
         t0 = time.perf_counter()
-        evidence = calibration_evidence(calibration_dir, cancel=cancel)
+        evidence = calibration_evidence(calibration_dir, cancel=cancel, **_linear_light(data, sel))
         t_evidence = time.perf_counter() - t0
         found = [n for n, e in evidence.items() if e.detected and n in candidates and n not in sel.selected]
         base, final = sel.base, sel.final or sel.base
@@ -271,6 +271,19 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
     folder.commit()
     say("done", 1.0)
     return doc
+
+
+def _linear_light(data: GapData, sel: Selection) -> dict[str, Any]:
+    """What the selected effects say about the light in the captures, for :func:`.evidence.calibration_evidence`."""
+    params = (sel.final or sel.base).params() if sel.selected else {}
+    out: dict[str, Any] = {}
+    if "camera_response" in params:
+        curve = float(params["camera_response"]["curve"])
+        out["light"] = lambda img: inverse_camera_curve(img, curve)
+    if "glossy" in params:
+        weight, rough = params["glossy"]["weight"], params["glossy"]["roughness"]
+        out["white_extra"] = float(weight) * glossy_at(data.white, float(rough))
+    return out
 
 
 def _camera_full_size(calibration_dir: str | Path, data: GapData) -> tuple[int, int]:

@@ -12,7 +12,11 @@ absorbed:
   ``photo / room-light irradiance`` (the ambient occlusion of the calibrated
   surface) is the projector's own falloff, paint cancelling out. It is fitted
   as ``1 − falloff·(r/r_max)²`` about the projector's principal point, ``r``
-  the field-angle tangent, like the lab's and the model's ``vignetting``.
+  the field-angle tangent, like the lab's and the model's ``vignetting``. The
+  ratio needs linear light: a camera curve the residual found is inverted
+  first, and a glossy lobe it found is taken out of the white capture (both
+  otherwise vary with brightness, which falls off from the projector's axis
+  too).
 * ``distortion`` (the pose and the stage-B warp hold it): the Gray-code
   correspondences, lifted to 3-D by the calibrated surface, are fitted by the
   projector pose alone and by the pose plus the camera's radial ``k1, k2``.
@@ -54,6 +58,7 @@ MAX_PIXELS = 20000
 AO_DIRECTIONS = 128
 
 Cancel = Callable[[], bool]
+Light = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass
@@ -124,7 +129,11 @@ def _tukey_line(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return coef
 
 
-def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) -> Evidence:
+def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *, light: Light | None = None,
+                        white_extra: np.ndarray | None = None) -> Evidence:
+    """``light`` takes captured values back to linear light (a fitted camera curve); ``white_extra`` is light the
+    diagnosis's models put in the white capture besides the projector's diffuse light (a glossy lobe)."""
+    from ..stages.calibrate import SATURATED
     from ..stages.pose import full_white_irradiance
 
     ev = Evidence("vignetting", False, absorbed_by="the albedo estimated from the white capture")
@@ -132,15 +141,19 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) ->
         ev.error = "no photo of the surface (projector off, room lights on) in the capture set"
         return ev
     proj = cal.rig.projector
-    white, black, photo = captures.image("white"), captures.image("black"), captures.image("surface")
+    raw_white = captures.image("white")
+    linear = light or (lambda img: img)
+    white, black, photo = linear(raw_white), linear(captures.image("black")), linear(captures.image("surface"))
+    if white_extra is not None:
+        white = white - cv2.resize(white_extra, (white.shape[1], white.shape[0]), interpolation=cv2.INTER_LINEAR)
     irradiance = full_white_irradiance(view, proj, proj.camera_from_projector)
     # Both images are smoothed a little: the photo is dim, and the ratio need not be sharp.
     lit_light = cv2.GaussianBlur(white - black, (0, 0), 1.5).mean(axis=2)
     room = cv2.GaussianBlur(photo, (0, 0), 1.5).mean(axis=2)
-    ok = mask & view.hit & (irradiance > 0)
+    ok = mask & view.hit & (irradiance > 0) & (raw_white.max(axis=2) < SATURATED)  # clipped white holds no ratio
     ok = cv2.erode(ok.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     if ok.sum() < 500:
-        ev.error = "too few lit surface pixels"
+        ev.error = "too few lit surface pixels below saturation"
         return ev
     level = float(np.median(room[ok]))
     if level < MIN_PHOTO_LEVEL:
@@ -350,8 +363,10 @@ def depth_evidence(captures: Any, cal: Any) -> Evidence:
 
 # ------------------------------------------------------------------ all three
 
-def calibration_evidence(calibration_dir: str | Path, *, cancel: Cancel | None = None) -> dict[str, Evidence]:
-    """Evidence for ``vignetting``, ``distortion`` and ``depth_noise`` from a calibration and its capture set."""
+def calibration_evidence(calibration_dir: str | Path, *, light: Light | None = None,
+                         white_extra: np.ndarray | None = None, cancel: Cancel | None = None) -> dict[str, Evidence]:
+    """Evidence for ``vignetting``, ``distortion`` and ``depth_noise`` from a calibration and its capture set
+    (``light`` and ``white_extra``: what the diagnosis's selected effects say, see :func:`vignetting_evidence`)."""
     from ..capture.format import CaptureSet
     from ..errors import Cancelled, ProCamError
     from ..stages.calibrate import Calibration
@@ -362,7 +377,8 @@ def calibration_evidence(calibration_dir: str | Path, *, cancel: Cancel | None =
     view = surface_view(cal.surface, cal.rig.camera.intrinsics)
     mask, _ = target_mask(captures)
     out: dict[str, Evidence] = {}
-    for name, run in (("vignetting", lambda: vignetting_evidence(captures, cal, view, mask)),
+    for name, run in (("vignetting", lambda: vignetting_evidence(captures, cal, view, mask, light=light,
+                                                                 white_extra=white_extra)),
                       ("distortion", lambda: distortion_evidence(captures, cal, view, mask)),
                       ("depth_noise", lambda: depth_evidence(captures, cal))):
         if cancel is not None and cancel():

@@ -193,12 +193,12 @@ class Composite:
             img = img + float(p["interreflection"][0]) * (obs.indirect - white.indirect * obs.sampled)
         if "glossy" in p:
             weight, rough = p["glossy"]
-            img = img + weight * (_glossy_at(obs, float(rough)) - _glossy_at(white, float(rough)) * obs.sampled)
+            img = img + weight * (glossy_at(obs, float(rough)) - glossy_at(white, float(rough)) * obs.sampled)
             if weight > 0 and self._saturated.any():  # weight 0 is the identity, exactly
                 # Where the white capture clipped, the albedo holds only what the sensor could take, so the
                 # model is too dark at every lower level. The lobe says what white really was: the diffuse
                 # white of the neighbourhood plus the highlight; scale the prediction up to it there.
-                full = self._diffuse_white + weight * _glossy_at(white, float(rough))
+                full = self._diffuse_white + weight * glossy_at(white, float(rough))
                 scale = np.maximum(full, d.gain) / np.maximum(d.gain, 1e-3)
                 img = np.where(self._saturated, img * scale, img)
         if "camera_response" in p:
@@ -243,7 +243,8 @@ def _clipped_white(data: GapData) -> tuple[np.ndarray, np.ndarray]:
     return sat, np.where(sat, fill, data.gain).astype(np.float32)
 
 
-def _glossy_at(obs: Observation, rough: float) -> np.ndarray:
+def glossy_at(obs: Observation, rough: float) -> np.ndarray:
+    """The white GGX lobe render of a pattern at roughness ``rough`` (interpolated between the rendered ones)."""
     rs = sorted(obs.glossy)
     rough = min(max(rough, rs[0]), rs[-1])
     j = max(0, min(len(rs) - 2, int(np.searchsorted(rs, rough)) - 1))
@@ -273,7 +274,7 @@ def signature_mask(name: str, data: GapData, obs: Observation) -> np.ndarray:
         ind = obs.indirect.mean(axis=2)
         return ind > np.percentile(ind[data.mask], 75) if data.mask.any() else ind > 0
     if name == "glossy":
-        diff = np.abs(_glossy_at(obs, 0.4) - obs.direct).mean(axis=2)
+        diff = np.abs(glossy_at(obs, 0.4) - obs.direct).mean(axis=2)
         lobe = diff > np.percentile(diff[data.mask], 75) if data.mask.any() else diff > 0
         return lobe | (data.white.capture >= SATURATED).any(axis=2)
     if name == "camera_response":
