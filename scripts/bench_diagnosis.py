@@ -147,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
             removed = max(shares) if shares else None
         comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
         row = {"surface": surface, "seed": seed, "injected": list(effects), "first": ranked[0] if ranked else None,
-               "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before, "rmse_after": after, "floor": floor,
+               "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before,
+               "rmse_after": after, "floor": floor,
                "removed_above_floor": removed, "compensation": comp, "seconds": round(time.perf_counter() - t0, 1),
                "confidence": {e["name"]: e["confidence"].get("level") for e in doc["effects"]
                               if e["name"] in doc["selected"]}}

@@ -61,8 +61,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  held-out residual: RMSE {res['rmse']:.4f} ({res['psnr']:.1f} dB)"
           f" → {after['rmse']:.4f} ({after['psnr']:.1f} dB) with the selected effects; without pixel noise "
           f"{res['rmse_structured']:.4f} → {after['rmse_structured']:.4f}")
-    print("  selected: " + (", ".join(doc["selected"]) or "none")
-          + (f" ({', '.join(doc['absorbed'])} absorbed by calibration, found from its inputs)" if doc["absorbed"] else ""))
+    absorbed = f" ({', '.join(doc['absorbed'])} absorbed by calibration, found from its inputs)" if doc["absorbed"] else ""
+    print("  selected: " + (", ".join(doc["selected"]) or "none") + absorbed)
     for e in doc["effects"][:3]:
         if e.get("error"):
             continue

@@ -6,8 +6,9 @@ mode), reads it as float32 linear RGB, and removes the file. Every setting
 that could bend the values is pinned for the render and restored afterwards:
 no view transform, look, exposure or gamma, a 1-pixel box filter, no
 denoising, no clamping, and a black world so that only the projector lights
-the room (unless a render asks for the room lights on). Blender's per-frame chatter on stdout ("Saved: '…exr'") is
-silenced for the render so that commands keep stdout for their results.
+the room (unless a render asks for the room lights on). Blender's per-frame
+chatter on stdout ("Saved: '…exr'") is silenced for the render so that
+commands keep stdout for their results.
 """
 
 from __future__ import annotations
