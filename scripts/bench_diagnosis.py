@@ -29,12 +29,12 @@ import numpy as np
 GAP_MARGIN = 1.05
 SINGLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "interreflection", "glossy",
           "camera_response", "distortion", "depth_noise")
-#: Pairs injected together. The last two hold only effects that leave a gap on every surface: a pair with an
-#: effect the calibration absorbs (depth_noise) or the surface cannot show (interreflection on the plane) can
-#: at best find the other one, so the summary counts both kinds apart.
+#: Pairs injected together. Some pair an effect the calibration absorbs (found from its evidence) with one the
+#: residual shows; interreflection on the plane cannot show (a flat surface has no bounces), so the summary also
+#: counts the pairs whose effects each leave a gap or are found alone.
 PAIRS = (("response", "defocus"), ("crosstalk", "interreflection"), ("black_level", "glossy"),
          ("camera_response", "depth_noise"), ("response", "black_level"), ("crosstalk", "glossy"),
-         ("camera_response", "defocus"))
+         ("camera_response", "defocus"), ("vignetting", "glossy"), ("distortion", "response"))
 
 
 def _cli(argv: list[str]) -> None:

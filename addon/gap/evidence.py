@@ -115,11 +115,10 @@ def ambient_occlusion(surface: Any, points: np.ndarray, normals: np.ndarray, *, 
     return seen / directions
 
 
-def _tukey_line(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Robust straight line y ≈ a + b·x (iteratively reweighted, Tukey's biweight): paint edges are outliers."""
-    a = np.stack([np.ones_like(x), x], axis=1)
-    w = np.ones_like(x)
-    coef = np.zeros(2)
+def _tukey_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Robust linear least squares y ≈ a·coef (iteratively reweighted, Tukey's biweight): paint edges are outliers."""
+    w = np.ones_like(y)
+    coef = np.zeros(a.shape[1])
     for _ in range(15):
         coef = np.linalg.lstsq(a * w[:, None], y * w, rcond=None)[0]
         r = y - a @ coef
@@ -132,7 +131,12 @@ def _tukey_line(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *, light: Light | None = None,
                         white_extra: np.ndarray | None = None) -> Evidence:
     """``light`` takes captured values back to linear light (a fitted camera curve); ``white_extra`` is light the
-    diagnosis's models put in the white capture besides the projector's diffuse light (a glossy lobe)."""
+    diagnosis's models put in the white capture besides the projector's diffuse light (a glossy lobe).
+
+    What is left of a glossy highlight after ``white_extra`` (its weight is only fitted) peaks where the mirror
+    direction meets the camera, near the projector's axis on a surface facing both: its share of the white
+    light is a second, free regressor, so that only the falloff it cannot explain counts.
+    """
     from ..stages.calibrate import SATURATED
     from ..stages.pose import full_white_irradiance
 
@@ -174,15 +178,21 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *,
     # log of (projector light / model irradiance) over (room light / occlusion): the paint cancels.
     y = np.log(lit_light[ys, xs] / irradiance[ys, xs]) - np.log(room[ys, xs] / ao)
     s = _radius_share(proj, pts)
+    others = [np.ones_like(s)]
+    if white_extra is not None:
+        extra = cv2.resize(white_extra, (white.shape[1], white.shape[0]), interpolation=cv2.INTER_LINEAR).mean(axis=2)
+        others.append(extra[ys, xs] / lit_light[ys, xs])
+    without = np.stack(others, axis=1)
+    with_s = np.concatenate([without, s[:, None]], axis=1)
     fit = _blocks(xs, ys, captures.camera.intrinsics.width)
-    coef = _tukey_line(s[fit], y[fit])
     held = ~fit
-    before = y[held] - np.median(y[held])
-    after = y[held] - (coef[0] + coef[1] * s[held])
-    after -= np.median(after)
-    mad0, mad1 = float(np.median(np.abs(before))), float(np.median(np.abs(after)))
-    ev.share = 1.0 - (mad1 / mad0) ** 2 if mad0 > 0 else 0.0
-    falloff = float(1.0 - np.exp(coef[1]))
+    spread = []
+    for a in (without, with_s):
+        r = y[held] - a[held] @ _tukey_fit(a[fit], y[fit])
+        spread.append(float(np.median(np.abs(r - np.median(r)))))
+    coef = _tukey_fit(with_s[fit], y[fit])
+    ev.share = 1.0 - (spread[1] / spread[0]) ** 2 if spread[0] > 0 else 0.0
+    falloff = float(1.0 - np.exp(coef[-1]))
     ev.params = {"falloff": round(falloff, 4), "exponent": 2.0}
     ev.detected = bool(falloff >= VIGNETTING_MIN_FALLOFF and ev.share >= VIGNETTING_MIN_SHARE)
     ev.evidence = (f"projector light over room light (paint cancels) falls by {falloff:.1%} towards the farthest frame "
