@@ -79,7 +79,9 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     adapter = load_adapter(doc, cal.rig.projector)
     base = Compensator(cal)
     bias = base.estimate_bias()
-    out = {"base": [], "effects": []}
+    # base_again: the base input captured a second time (another shot, so other sensor and Cycles noise): how far
+    # two captures of the same input differ, against which a small gain or loss is read.
+    out = {"base": [], "effects": [], "base_again": []}
     with LabDevice(LabTruth.load(truth_path)) as device:
         for t in targets:
             img = natural_target(t, (400, 300))
@@ -87,6 +89,7 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
             placed = area.place(fit_target(img, area), cal.rig.camera.intrinsics.size)
             r0 = base.run(img, area, open_loop_theta=bias, iterations_z=iterations, iterations_joint=0)
             out["base"].append(area_psnr(device.project(r0.x_frame), placed, area))
+            out["base_again"].append(area_psnr(device.project(r0.x_frame), placed, area))
             if adapter.params:
                 r1 = compensate_with_effects(cal, img, area=area, adapter=adapter, iterations_z=iterations,
                                              iterations_joint=0)
@@ -213,15 +216,25 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         lines.append(f"- two effects: both selected {both}/{len(pairs)}")
         known = [r for r in pairs if all(key(r, e) in gap for e in r["injected"])]
         shows = [r for r in known if all(gap[key(r, e)] for e in r["injected"])]
+        found = {key(r, r["injected"][0]) for r in single if r["first"] == r["injected"][0]}
+        alone = [r for r in known if all(key(r, e) in found for e in r["injected"])]
         if known:
             lines.append(f"  - where both leave a gap alone: both selected "
-                         f"{sum(set(r['injected']) <= set(r['selected']) for r in shows)}/{len(shows)}")
+                         f"{sum(set(r['injected']) <= set(r['selected']) for r in shows)}/{len(shows)}; where "
+                         f"each is found alone (a gap, or absorbed and found): "
+                         f"{sum(set(r['injected']) <= set(r['selected']) for r in alone)}/{len(alone)}")
     comp = [r for r in rows if r["compensation"] and r["injected"]]
     if comp:
         gains = [r["compensation"]["effects"] - r["compensation"]["base"] for r in comp]
         worse = sum(g < -0.05 for g in gains)
         lines.append(f"- compensation with the selected effects: mean gain {np.mean(gains):+.2f} dB where an effect "
-                     f"was injected; worse (by > 0.05 dB) in {worse}/{len(comp)} cases")
+                     f"was injected; worse (by > 0.05 dB) in {worse}/{len(comp)} cases; worst "
+                     f"{min(gains):+.2f} dB")
+        again = [abs(r["compensation"]["base_again"] - r["compensation"]["base"]) for r in rows
+                 if r["compensation"] and "base_again" in r["compensation"]]
+        if again:
+            lines.append(f"- two captures of the same input differ by {np.median(again):.3f} dB (median), up to "
+                         f"{max(again):.3f} dB, over {len(again)} cases")
     return "\n".join(lines) + "\n"
 
 
