@@ -261,7 +261,7 @@ def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], 
     be wrong without it (on the plane with a glossy surface, a 3 % gamma fitted
     beside the glossy lobe cost 0.18 dB). So the usable effects are eliminated
     backwards on that model: each must still remove ``min_share`` of the
-    held-out error the others leave, and together of f̂'s own.
+    held-out error the others leave.
     """
     final = sel.final or sel.base
     params = {n: np.array(list(v.values())) for n, v in final.params().items()} if sel.selected else {}
@@ -279,9 +279,8 @@ def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], 
         with_all = scored(keep)
         gains = {n: with_all.share_of(scored([m for m in keep if m != n])) for n in keep}
         weakest = min(keep, key=lambda n: gains[n])
-        if gains[weakest] >= min_share:
-            if with_all.share_of(sel.base) >= min_share:
-                break
+        if gains[weakest] >= min_share:  # (alone, the gain is over f̂ itself)
+            break
         dropped[weakest] = (f"without the effects compensation cannot invert, it removes only "
                             f"{max(gains[weakest], 0.0):.0%} of the held-out error (< {min_share:.0%})")
         keep.remove(weakest)
