@@ -118,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.summarise:
         rows = [json.loads(line) for line in args.summarise.read_text().splitlines() if line.startswith("{")]
+        # A case logged twice (e.g. seed 0 of --cases none after the full matrix) counts once, as last logged.
+        rows = list({(r["surface"], r.get("seed", 0), tuple(r["injected"])): r for r in rows}.values())
         print(report_markdown(rows, args))
         return 0
 
