@@ -79,23 +79,30 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     adapter = load_adapter(doc, cal.rig.projector)
     base = Compensator(cal)
     bias = base.estimate_bias()
-    # base_again: the base input captured a second time (another shot, so other sensor and Cycles noise): how far
-    # two captures of the same input differ, against which a small gain or loss is read.
+    truth = LabTruth.load(truth_path)
+
+    def captured(x: np.ndarray, placed: np.ndarray, area, seed: int | None = None) -> float:
+        # Each input is the first shot of a device of its own: base and effects see the same sensor and Cycles
+        # noise draw (common random numbers), so their difference is the inputs' and not the noise's.
+        with LabDevice(truth, seed=seed) as device:
+            return area_psnr(device.project(x), placed, area)
+
+    # base_again: the base input under another noise draw (another lab seed): how far two captures of the same
+    # input differ, the scale against which a small difference between separate captures would be read.
     out = {"base": [], "effects": [], "base_again": []}
-    with LabDevice(LabTruth.load(truth_path)) as device:
-        for t in targets:
-            img = natural_target(t, (400, 300))
-            area = choose_area(cal, aspect=4 / 3)
-            placed = area.place(fit_target(img, area), cal.rig.camera.intrinsics.size)
-            r0 = base.run(img, area, open_loop_theta=bias, iterations_z=iterations, iterations_joint=0)
-            out["base"].append(area_psnr(device.project(r0.x_frame), placed, area))
-            out["base_again"].append(area_psnr(device.project(r0.x_frame), placed, area))
-            if adapter.params:
-                r1 = compensate_with_effects(cal, img, area=area, adapter=adapter, iterations_z=iterations,
-                                             iterations_joint=0)
-                out["effects"].append(area_psnr(device.project(r1.x_frame), placed, area))
-            else:
-                out["effects"].append(out["base"][-1])
+    for t in targets:
+        img = natural_target(t, (400, 300))
+        area = choose_area(cal, aspect=4 / 3)
+        placed = area.place(fit_target(img, area), cal.rig.camera.intrinsics.size)
+        r0 = base.run(img, area, open_loop_theta=bias, iterations_z=iterations, iterations_joint=0)
+        out["base"].append(captured(r0.x_frame, placed, area))
+        out["base_again"].append(captured(r0.x_frame, placed, area, seed=truth.seed + 1))
+        if adapter.params:
+            r1 = compensate_with_effects(cal, img, area=area, adapter=adapter, iterations_z=iterations,
+                                         iterations_joint=0)
+            out["effects"].append(captured(r1.x_frame, placed, area))
+        else:
+            out["effects"].append(out["base"][-1])
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
