@@ -182,7 +182,8 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
         # An albedo read from the white capture holds the projector's falloff exactly, so a vignetting model on
         # top of it can only fit something else (on vedge with crosstalk and glossy it fitted the lobe's
         # leftovers, and inverting it cost 0.12 dB): it is fitted and shown, but found from the evidence alone.
-        evidence_only = ("vignetting",) if _albedo_from_white(calibration_dir) else ()
+        cal_doc = json.loads((Path(calibration_dir) / "calibration.json").read_text())
+        evidence_only = ("vignetting",) if _albedo_from_white(cal_doc) else ()
         sel = select_effects(data, tuple(c for c in candidates if c not in evidence_only), min_share=min_share,
                              cancel=cancel, progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
         for name in (n for n in evidence_only if n in candidates):
@@ -219,7 +220,7 @@ def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float =
                                                  "evidence": evidence[name].evidence}
         res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
         res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
-        cam_full = _camera_full_size(calibration_dir, data)
+        cam_full = _camera_full_size(cal_doc)
         regions = find_regions(data, np.stack([structured(r, data.observations[i].edges)
                                                for r, i in zip(res_base, data.held_index)]),
                                cam_full, data.held_index)
@@ -292,14 +293,12 @@ def _linear_light(data: GapData, sel: Selection) -> dict[str, Any]:
     return out
 
 
-def _albedo_from_white(calibration_dir: str | Path) -> bool:
+def _albedo_from_white(cal_doc: dict[str, Any]) -> bool:
     """Whether calibration read the albedo from the white and black captures (its albedo step ran)."""
-    doc = json.loads((Path(calibration_dir) / "calibration.json").read_text())
-    return "albedo" in (doc.get("seconds") or {})
+    return "albedo" in (cal_doc.get("seconds") or {})
 
 
-def _camera_full_size(calibration_dir: str | Path, data: GapData) -> tuple[int, int]:
-    doc = json.loads((Path(calibration_dir) / "calibration.json").read_text())
+def _camera_full_size(cal_doc: dict[str, Any]) -> tuple[int, int]:
     from ..rig.model import Rig
 
-    return Rig.from_dict(doc["rig"]).camera.intrinsics.size
+    return Rig.from_dict(cal_doc["rig"]).camera.intrinsics.size
