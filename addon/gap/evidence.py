@@ -340,13 +340,17 @@ def depth_evidence(captures: Any, cal: Any) -> Evidence:
     walls = captures.depth_walls()
     report = cal.report.get("surface_report") or {}
     if walls:
+        from ..errors import SurfaceError
+        from ..surface.reconstruct import wall_depth_offset
+
         entry, distance = walls[0]
         wall = captures.depth(name=entry.name).astype(np.float64)
-        spread, n = _plane_spread(wall)
-        if n < 100:
-            ev.error = "the wall depth image is nearly empty"
+        try:
+            bias = wall_depth_offset(wall, distance)  # the bias calibration corrects, read the same way
+        except SurfaceError as exc:
+            ev.error = f"wall depth image {entry.file}: {exc}"
             return ev
-        bias = float(np.nanmedian(wall[np.isfinite(wall) & (wall > 0)])) - float(distance)
+        spread, n = _plane_spread(wall)
         missing = 1.0 - n / wall.size
         noise_1m = spread / float(distance)
         ev.params = {"bias_m": round(bias, 4), "noise_m_at_1m": round(noise_1m, 4), "missing": round(missing, 4)}
