@@ -13,8 +13,8 @@ import bpy
 from .operators.calibrate import PROCAM_OT_calibrate, PROCAM_OT_load_calibration
 from .operators.cancel_job import PROCAM_OT_cancel_job
 from .operators.capture_io import PROCAM_OT_export_patterns, PROCAM_OT_import_captures
-from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, PROCAM_OT_preview_compensated,
-                                   PROCAM_OT_remove_target)
+from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, PROCAM_OT_evaluate,
+                                   PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated, PROCAM_OT_remove_target)
 from .operators.create_rig import PROCAM_OT_create_rig
 from .operators.diagnose import PROCAM_OT_diagnose
 from .operators.export import PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames
@@ -33,7 +33,7 @@ from .panels.rig import PROCAM_PT_rig
 OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
              PROCAM_OT_export_patterns, PROCAM_OT_import_captures,
              PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_add_targets, PROCAM_OT_remove_target,
-             PROCAM_OT_compensate, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
+             PROCAM_OT_compensate, PROCAM_OT_evaluate, PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
              PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job)
 #: Sidebar panels in workflow order.
 PANELS = (PROCAM_PT_rig, PROCAM_PT_captures, PROCAM_PT_calibrate, PROCAM_PT_compensate, PROCAM_PT_diagnose,
@@ -50,7 +50,7 @@ def scene_properties() -> dict[str, object]:
 
 def run_cli(argv: Sequence[str]) -> int:
     """``blender --background --command procam ARGS``: the same code path as the venv's ``procam ARGS``."""
-    from .addon.cli import main
+    from .addon.cli.app import main
 
     try:
         return main(list(argv))

@@ -35,14 +35,6 @@ class CalibrationError(ProCamError):
     """A calibration stage cannot proceed from the given captures."""
 
 
-class NotImplementedStageError(ProCamError):
-    """A stage of the pipeline that is not built yet."""
-
-    def __init__(self, what: str, issue: str = "") -> None:
-        extra = f" (tracked in {issue})" if issue else ""
-        super().__init__(f"{what} is not implemented yet in this version of ProCam{extra}.")
-
-
 class LabError(ProCamError):
     """A bad virtual-lab request: unknown surface or effect, a value out of range."""
 

@@ -1,27 +1,20 @@
-"""Output folders that appear whole or not at all, and progress reporting on stderr for long work.
+"""Output folders that appear whole or not at all, and the naming conventions every step's files share.
 
 A command writes into a hidden temporary sibling of its output folder and
 renames it into place only when everything is written, so a crash or a
 cancel never leaves a half-written result under the real name, and an
 existing result is only replaced with ``force`` — after the new one is complete.
-
-Progress goes to stderr (stdout stays for results). :func:`progress` prints
-one time-stamped line. :class:`ProgressBar` tracks a count of work units: on a
-terminal it redraws one line in place (carriage return), elsewhere (a log
-file, a pipe, a CI job) it prints plain time-stamped lines, at most one every
-few seconds, so logs stay readable and greppable. Lines printed with
-:func:`progress` while a bar is drawn appear above the bar.
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
+import hashlib
+import json
 import os
+import re
 import shutil
-import sys
 import tempfile
-import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -29,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ProCamError
-from .imageio import usual_mode
+from .imageio import usual_mode, write_atomic_bytes
 
 
 class OutputError(ProCamError):
@@ -112,8 +105,6 @@ def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "r
 
 def output_names(paths: "Iterable[str | Path]") -> list[str]:
     """Output names from file stems, made unique (a/x.png and b/x.png become x and x_2)."""
-    import re
-
     out: list[str] = []
     for p in paths:
         base = re.sub(r"[^A-Za-z0-9_.-]+", "-", Path(p).stem).strip("-") or "target"
@@ -138,143 +129,50 @@ def jsonable(value: Any) -> Any:
     return value
 
 
-def _stamp(message: str) -> str:
-    return f"[procam {time.strftime('%H:%M:%S')}] {message}"
+def natural_key(path: str | Path) -> list[Any]:
+    """Sort key for file names in natural order: frame2 before frame10."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", Path(path).name)]
 
 
-#: The bar currently drawn in place on a terminal, so that :func:`progress` can print above it.
-_drawn: "ProgressBar | None" = None
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
-def progress(message: str) -> None:
-    """One progress line on stderr (stdout stays for results)."""
-    bar = _drawn
-    if bar is not None:
-        bar._clear()
-    print(_stamp(message), file=sys.stderr, flush=True)
-    if bar is not None:
-        bar._draw()
+def write_manifest(path: str | Path, doc: dict[str, Any]) -> Path:
+    """A step's JSON manifest, in plain JSON types, written under a temporary name and renamed into place."""
+    write_atomic_bytes(Path(path), (json.dumps(jsonable(doc), indent=1) + "\n").encode())
+    return Path(path)
 
 
-def _duration(seconds: float) -> str:
-    seconds = max(0, int(round(seconds)))
-    h, rest = divmod(seconds, 3600)
-    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60:02d}:{rest % 60:02d}"
-
-
-class ProgressBar:
-    """Progress over ``total`` units (frames, targets) on stderr: a bar redrawn in place on a terminal,
-    time-stamped lines elsewhere.
-
-    ``update(done, message)`` takes a fractional ``done`` (3.4 = three units
-    finished and 40 % of the fourth). Updates are throttled (``interval``
-    seconds; default 0.1 on a terminal, 2 elsewhere) unless ``force`` is true,
-    which callers use when a unit finishes so that every finished unit is logged.
-    ``stream`` defaults to ``sys.stderr``; ``tty`` overrides the terminal test.
-    """
-
-    def __init__(self, total: int, label: str, *, unit: str = "", stream: Any = None,
-                 tty: bool | None = None, interval: float | None = None) -> None:
-        self.total = max(int(total), 0)
-        self.label = label
-        self.unit = unit
-        self.stream = stream
-        if tty is None:
-            isatty = getattr(self._out, "isatty", None)
-            tty = bool(isatty and isatty())
-        self.tty = tty
-        self.interval = interval if interval is not None else (0.1 if tty else 2.0)
-        self.started = time.monotonic()
-        self.done = 0.0
-        self.message = ""
-        self._last = float("-inf")
-        self._shown = False
-        self._logged = ""
-
-    @property
-    def _out(self) -> Any:
-        return self.stream if self.stream is not None else sys.stderr
-
-    def text(self, *, width: int | None = None) -> str:
-        """The current state as one line (without time stamp or carriage return)."""
-        elapsed = time.monotonic() - self.started
-        frac = min(self.done / self.total, 1.0) if self.total else 1.0
-        # One decimal, rounded down: 0.999 of a frame is not "1" frame done.
-        count = f"{math.floor(self.done * 10) / 10:.1f}".removesuffix(".0")
-        unit = f" {self.unit}" if self.unit else ""
-        left = ""
-        if 0 < self.done < self.total:
-            left = f"<{_duration(elapsed / self.done * (self.total - self.done))}"
-        head = f"{self.label} {math.floor(100 * frac):3d}%"
-        tail = f"{count}/{self.total}{unit} [{_duration(elapsed)}{left}]"
-        if self.tty:
-            cells = 20
-            filled = int(round(frac * cells))
-            line = f"{head} |{'#' * filled}{'.' * (cells - filled)}| {tail}"
-        else:
-            line = f"{head} {tail}"
-        if self.message:
-            line += f" {self.message}"
-        if width is not None and len(line) > width:
-            line = line[:max(width - 1, 0)] + "…"
-        return line
-
-    def update(self, done: float, message: str = "", *, force: bool = False) -> None:
-        self.done = min(max(float(done), 0.0), float(self.total))
-        if message:
-            self.message = message
-        now = time.monotonic()
-        if not force and now - self._last < self.interval:
-            return
-        self._last = now
-        if self.tty:
-            self._draw()
-        else:
-            self._line()
-
-    def _line(self) -> None:
-        text = self.text()
-        if text != self._logged:  # close() after a forced final update does not repeat it
-            print(_stamp(text), file=self._out, flush=True)
-            self._logged = text
-
-    def _draw(self) -> None:
-        global _drawn
-        width = shutil.get_terminal_size((100, 20)).columns - 1
-        self._out.write("\r" + self.text(width=width) + "\x1b[K")
-        self._out.flush()
-        self._shown = True
-        if self._out is sys.stderr:
-            _drawn = self
-
-    def _clear(self) -> None:
-        if self._shown:
-            self._out.write("\r\x1b[K")
-            self._out.flush()
-
-    def close(self, message: str = "") -> None:
-        """Print the final state once, and end the terminal line."""
-        global _drawn
-        if message:
-            self.message = message
-        if self.tty:
-            self._draw()
-            self._out.write("\n")
-            self._out.flush()
-        else:
-            self._line()
-        self._shown = False
-        if _drawn is self:
-            _drawn = None
-
-    def __enter__(self) -> "ProgressBar":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        global _drawn
-        if self.tty and self._shown:
-            self._out.write("\n")  # leave the last state visible above an error message
-            self._out.flush()
-        self._shown = False
-        if _drawn is self:
-            _drawn = None
+@contextlib.contextmanager
+def folder_in_place(path: str | Path, *, force: bool = False, what: str = "results folder",
+                    replaceable: Callable[[Path], bool] | None = None) -> Iterator[Path]:
+    """Yield ``path`` itself, new and empty, for work whose files must name their final place (step folders
+    that point at each other). An existing folder is set aside first (only with ``force`` and when
+    ``replaceable``) and removed once the work succeeds; on failure the partial folder goes and the old one
+    comes back."""
+    target = Path(path).absolute()
+    backup: Path | None = None
+    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+        if not target.is_dir() or (replaceable is not None and not replaceable(target)):
+            raise OutputError(f"{target} exists and is not a {what}; refusing to replace it — choose another folder")
+        if not force:
+            raise OutputError(f"{target} already holds a {what}; it is never overwritten without --force")
+        backup = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+        backup.rmdir()
+        os.replace(target, backup)
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+        usual_mode(target)
+        yield target
+    except BaseException:
+        shutil.rmtree(target, ignore_errors=True)
+        if backup is not None:
+            os.replace(backup, target)
+        raise
+    if backup is not None:
+        shutil.rmtree(backup, ignore_errors=True)

@@ -9,10 +9,12 @@ import bpy
 from bpy.props import EnumProperty
 
 from ..addon import jobs
+from ..addon.blender import rig as blender_rig
 from ..addon.errors import CalibrationError, ProCamError
-from ..addon.rig import blender_rig
-from ..addon.workflow import (CALIBRATION_MANIFEST, CalibrationView, load_calibration_view,
-                              prepare_worker_libraries, run_calibration)
+from ..addon.native import prepare_worker_libraries
+from ..addon.steps import calibrate as calibrate_step
+from ..addon.steps.calibrate import CalibrateOptions, CalibrationView
+from ..addon.steps.layout import CALIBRATION, CAPTURES
 from . import paths
 from .job_operator import JobOperator, job_running_message
 
@@ -64,7 +66,7 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
     def poll(cls, context: bpy.types.Context) -> bool:
         scene = context.scene
         why = job_running_message()
-        if why is None and paths.existing(scene.procam_capture_dir, "capture.json") is None:
+        if why is None and paths.existing(scene.procam_capture_dir, CAPTURES.manifest) is None:
             why = "no capture set: run the virtual lab or choose a capture-set folder in Captures"
         if why is None and not scene.procam_calibration_dir:
             why = "choose the calibration folder to write"
@@ -86,12 +88,14 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
             initial = blender_rig.read_projector(scene).camera_from_projector
             init = "given"
         stages = None if self.stage == "ALL" else self.stage.lower()
-        if stages in ("pose", "warp") and paths.existing(scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+        if stages in ("pose", "warp") and paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
             raise CalibrationError(f"the {stages} stage reuses the calibration folder's earlier stages, but it "
                                    "holds no calibration yet; run Surface (or All) first")
         offset = float(scene.procam_depth_offset) if scene.procam_depth_offset_given else None
-        return jobs.Job("calibration", run_calibration, captures, out, init=init, initial_pose=initial,
-                        force=scene.procam_replace_outputs, stages=stages, depth_offset=offset)
+        # No scene.blend: the open scene is the .blend here, and bpy must not run in the worker (Export saves one).
+        options = CalibrateOptions(captures, out, init=init, initial_pose=initial, stages=stages or "all",
+                                   depth_offset=offset, with_blend=False, force=scene.procam_replace_outputs)
+        return jobs.Job("calibration", calibrate_step.run_view, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         return apply_view(context, result)
@@ -106,7 +110,7 @@ class PROCAM_OT_load_calibration(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest) is None:
             cls.poll_message_set("no calibration folder (with calibration.json): run Calibrate or choose one")
             return False
         return True
@@ -114,7 +118,7 @@ class PROCAM_OT_load_calibration(bpy.types.Operator):
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
             folder = paths.resolve(context.scene.procam_calibration_dir, "calibration folder")
-            view = load_calibration_view(folder)
+            view = calibrate_step.read_view(folder)
             message = apply_view(context, view)
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))

@@ -10,8 +10,10 @@ its capture-set path.
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
+from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
+from ..addon.steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
+from . import paths
 
 
 def _rig_missing(context: bpy.types.Context) -> str:
@@ -44,15 +46,13 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        from ..addon.capture.devices import export_sequence
-
         if not self.directory:
             self.report({"ERROR"}, "Choose a folder for the pattern frames")
             return {"CANCELLED"}
         try:
             rig = blender_rig.read_rig(context.scene)
-            out = export_sequence(rig.projector, bpy.path.abspath(self.directory), camera=rig.camera,
-                                  force=self.force)
+            out = run_patterns(PatternsOptions(rig.projector, paths.resolve(self.directory, "pattern folder"),
+                                               camera=rig.camera, force=self.force))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -84,8 +84,6 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
         return context.window_manager.invoke_props_dialog(self, width=420)
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        from ..addon.capture.devices import import_captures
-
         missing = [n for n, v in (("pattern sequence", self.sequence_dir), ("photographs", self.photos_dir),
                                   ("new capture set", self.out_dir)) if not v]
         if missing:
@@ -94,12 +92,13 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
         objs = blender_rig.find_rig_objects(context.scene)
         try:
             camera = blender_rig.read_camera(context.scene) if objs.camera is not None else None
-            out = bpy.path.abspath(self.out_dir)
-            captures = import_captures(bpy.path.abspath(self.sequence_dir), bpy.path.abspath(self.photos_dir),
-                                       camera, None, out, force=self.force)
+            out = paths.resolve(self.out_dir, "new capture set")
+            captures = run_import(ImportOptions(paths.resolve(self.sequence_dir, "pattern sequence"),
+                                                paths.resolve(self.photos_dir, "photographs"), out, camera=camera,
+                                                force=self.force))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        context.scene.procam_capture_dir = out
+        context.scene.procam_capture_dir = str(out)
         self.report({"INFO"}, f"capture set {out}: {len(captures)} images")
         return {"FINISHED"}

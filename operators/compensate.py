@@ -1,4 +1,5 @@
-"""ProCam ▸ Compensate (stage C for every target, as a background job), the target list, and Preview on Projector.
+"""ProCam ▸ Compensate (stage C for every target), Evaluate and Prepare Show (background jobs), the target list,
+and Preview on Projector.
 
 The compensated inputs and simulated camera views become Blender images
 (``ProCam NAME input`` / ``ProCam NAME simulated``, read from the result
@@ -12,21 +13,61 @@ import bpy
 from bpy.props import CollectionProperty, StringProperty
 
 from ..addon import jobs
+from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
-from ..addon.workflow import (CALIBRATION_MANIFEST, COMPENSATION_MANIFEST, CompensationView, read_compensation,
-                              run_compensation, target_paths)
+from ..addon.stages.display_area import parse_area
+from ..addon.steps import compensate as compensate_step
+from ..addon.steps import evaluate as evaluate_step
+from ..addon.steps import show as show_step
+from ..addon.steps.layout import CALIBRATION, COMPENSATION
+from ..addon.steps.stage_c import StageCOptions, open_device
 from . import paths
 from .job_operator import JobOperator, job_running_message
 
 
-def _open_device(spec: str):
-    from ..addon.commands.compensate import open_device
+def stage_c_options(scene: bpy.types.Scene) -> StageCOptions:
+    """The scene's Compensate settings as the step's options (what ``procam compensate`` takes as flags)."""
+    closed = scene.procam_compensation_mode == "CLOSED"
+    effects = scene.procam_effects.strip() or "none"
+    diagnosis = None
+    if effects.lower() != "none":
+        diagnosis = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder (for the effect models)")
+    return StageCOptions(schedule=scene.procam_schedule, iterations=scene.procam_iterations or None,
+                         seed=scene.procam_seed, area=parse_area(scene.procam_area) if scene.procam_area.strip()
+                         else None, use_bias=scene.procam_use_bias, device=scene.procam_device if closed else None,
+                         effects=effects, diagnosis=diagnosis)
 
-    return open_device(spec)
+
+def scene_targets(scene: bpy.types.Scene) -> tuple:
+    """The target images of the Compensate list, then those of the image sequence folder."""
+    files = [paths.resolve(t.filepath, "target image") for t in scene.procam_targets]
+    folder = paths.resolve(scene.procam_target_folder, "image sequence folder") if scene.procam_target_folder else None
+    return compensate_step.target_paths(files, folder)
 
 
-class PROCAM_OT_compensate(JobOperator, bpy.types.Operator):
+def _compensate_poll(scene: bpy.types.Scene, *, device_needed: bool) -> str | None:
+    why = job_running_message()
+    if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
+        why = "no calibration: run Calibrate or choose a calibration folder"
+    if why is None and not (len(scene.procam_targets) or scene.procam_target_folder):
+        why = "no targets: add target images or choose an image sequence folder"
+    if why is None and (device_needed or scene.procam_compensation_mode == "CLOSED") and not scene.procam_device:
+        why = "needs a device: lab:TRUTH_FILE or folder:CAPTURE_DIR"
+    return why
+
+
+class _DeviceJob(JobOperator):
+    """A job that projects through the scene's device: opened here, on the main thread (the lab builds a
+    Blender scene and renders with Cycles), and relayed to from the worker."""
+
+    def open_device(self, spec: str | None, relay: "jobs.MainThreadRelay | None"):
+        if not spec:
+            return None
+        self._device = device = open_device(spec)
+        return jobs.RelayedDevice(device, relay) if relay is not None else device
+
+
+class PROCAM_OT_compensate(_DeviceJob, bpy.types.Operator):
     """Find the projector input for each target (stage C) in the background, open or closed loop; Esc cancels"""
 
     bl_idname = "procam.compensate"
@@ -37,13 +78,7 @@ class PROCAM_OT_compensate(JobOperator, bpy.types.Operator):
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
         scene = context.scene
-        why = job_running_message()
-        if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
-            why = "no calibration: run Calibrate or choose a calibration folder"
-        if why is None and not (len(scene.procam_targets) or scene.procam_target_folder):
-            why = "no targets: add target images or choose an image sequence folder"
-        if why is None and scene.procam_compensation_mode == "CLOSED" and not scene.procam_device:
-            why = "closed loop needs a device: lab:TRUTH_FILE or folder:CAPTURE_DIR"
+        why = _compensate_poll(scene, device_needed=False)
         if why is None and not scene.procam_compensation_dir:
             why = "choose the results folder to write"
         if why is not None:
@@ -52,29 +87,96 @@ class PROCAM_OT_compensate(JobOperator, bpy.types.Operator):
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         scene = context.scene
-        cal = paths.resolve(scene.procam_calibration_dir, "calibration folder")
-        files = [paths.resolve(t.filepath, "target image") for t in scene.procam_targets]
-        folder = paths.resolve(scene.procam_target_folder, "image sequence folder") if scene.procam_target_folder else None
-        targets = target_paths(files, folder)
-        out = paths.resolve(scene.procam_compensation_dir, "results folder")
-        device, spec = None, None
-        if scene.procam_compensation_mode == "CLOSED":
-            spec = scene.procam_device
-            # Opened here, on the main thread: the lab builds a Blender scene and renders with Cycles.
-            self._device = device = _open_device(spec)
-            if relay is not None:
-                device = jobs.RelayedDevice(device, relay)
-        return jobs.Job("compensation", run_compensation, cal, targets, out, device=device, device_spec=spec,
-                        schedule=scene.procam_schedule, iterations=scene.procam_iterations or None,
-                        force=scene.procam_replace_outputs)
+        options = compensate_step.CompensateOptions(
+            paths.resolve(scene.procam_calibration_dir, "calibration folder"), scene_targets(scene),
+            paths.resolve(scene.procam_compensation_dir, "results folder"), stage_c_options(scene),
+            force=scene.procam_replace_outputs)
+        options.stage_c.check()  # a bad value fails here, before a device is opened
+        return jobs.Job("compensation", compensate_step.run, options,
+                        device=self.open_device(options.stage_c.device_spec, relay))
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
-        view: CompensationView = result
+        view: compensate_step.CompensationView = result
         for t in view.targets:
             blender_rig.load_image_file(t.input_path, f"ProCam {t.name} input")
             blender_rig.load_image_file(t.simulated_path, f"ProCam {t.name} simulated")
         context.scene.procam_compensation_dir = str(view.folder)
         return f"Compensated {len(view.targets)} target(s) ({view.mode}) into {view.folder}"
+
+
+class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
+    """Project the compensated inputs and the uncompensated targets through the device and measure PSNR/SSIM in
+    the display area, in the background; Esc cancels"""
+
+    bl_idname = "procam.evaluate"
+    bl_label = "Evaluate"
+    bl_options = {"REGISTER", "UNDO"}
+    step = "evaluate"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        scene = context.scene
+        why = _compensate_poll(scene, device_needed=True)
+        if why is None and paths.existing(scene.procam_compensation_dir, COMPENSATION.manifest) is None:
+            why = "no compensation results: run Compensate or choose a results folder"
+        if why is None and not scene.procam_evaluation_dir:
+            why = "choose the evaluation folder to write"
+        if why is not None:
+            cls.poll_message_set(why)
+        return why is None
+
+    def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
+        scene = context.scene
+        options = evaluate_step.EvaluateOptions(
+            paths.resolve(scene.procam_calibration_dir, "calibration folder"),
+            paths.resolve(scene.procam_compensation_dir, "results folder"), scene_targets(scene),
+            scene.procam_device, paths.resolve(scene.procam_evaluation_dir, "evaluation folder"),
+            force=scene.procam_replace_outputs)
+        return jobs.Job("evaluation", evaluate_step.run, options, device=self.open_device(options.device, relay))
+
+    def apply(self, context: bpy.types.Context, result: object) -> str:
+        folder = paths.resolve(context.scene.procam_evaluation_dir, "evaluation folder")
+        for t in result["targets"]:
+            if t.get("status") == "done":
+                blender_rig.load_image_file(folder / t["image"], f"ProCam {t['name']} comparison")
+        return f"Evaluation: {evaluate_step.summary(folder).headline}"
+
+
+class PROCAM_OT_prepare_show(_DeviceJob, bpy.types.Operator):
+    """Compensate every frame of the image sequence folder into numbered 16-bit projector frames, resumably
+    (a rerun finishes what is left), in the background; Esc cancels and keeps the finished frames"""
+
+    bl_idname = "procam.prepare_show"
+    bl_label = "Prepare Show"
+    bl_options = {"REGISTER", "UNDO"}
+    step = "show"
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        scene = context.scene
+        why = _compensate_poll(scene, device_needed=False)
+        if why is None and not scene.procam_target_folder:
+            why = "choose the image sequence folder of the show"
+        if why is None and not scene.procam_show_dir:
+            why = "choose the show folder to write (or resume)"
+        if why is not None:
+            cls.poll_message_set(why)
+        return why is None
+
+    def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
+        scene = context.scene
+        options = show_step.ShowOptions(
+            paths.resolve(scene.procam_calibration_dir, "calibration folder"),
+            (paths.resolve(scene.procam_target_folder, "image sequence folder"),),
+            paths.resolve(scene.procam_show_dir, "show folder"), stage_c_options(scene),
+            force=scene.procam_replace_outputs)
+        options.stage_c.check()
+        return jobs.Job("show", show_step.run, options, device=self.open_device(options.stage_c.device_spec, relay))
+
+    def apply(self, context: bpy.types.Context, result: object) -> str:
+        r: show_step.ShowResult = result
+        failed = f", {len(r.failed)} failed (see show.json; rerun to retry)" if r.failed else ""
+        return f"Show: {len(r.done)} frame(s) compensated, {len(r.skipped)} already finished{failed} in {r.folder}"
 
 
 class PROCAM_OT_add_targets(bpy.types.Operator):
@@ -158,7 +260,7 @@ class PROCAM_OT_preview_compensated(bpy.types.Operator):
         why = None
         if blender_rig.find_rig_objects(scene).projector is None:
             why = "the scene has no ProCam Projector: create the rig or load the calibration"
-        elif paths.existing(scene.procam_compensation_dir, COMPENSATION_MANIFEST) is None:
+        elif paths.existing(scene.procam_compensation_dir, COMPENSATION.manifest) is None:
             why = "no compensation results: run Compensate or choose a results folder"
         if why is not None:
             cls.poll_message_set(why)
@@ -167,7 +269,7 @@ class PROCAM_OT_preview_compensated(bpy.types.Operator):
     def execute(self, context: bpy.types.Context) -> set[str]:
         scene = context.scene
         try:
-            view = read_compensation(paths.resolve(scene.procam_compensation_dir, "results folder"))
+            view = compensate_step.read(paths.resolve(scene.procam_compensation_dir, "results folder"))
             chosen = [t for t in view.targets if not self.target or t.name == self.target]
             if not chosen:
                 names = ", ".join(t.name for t in view.targets) or "none"

@@ -7,7 +7,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
+from ..addon.blender import rig as blender_rig
 from ..addon.rig.demo import demo_rig
 from ..addon.rig.model import Camera, Intrinsics, Projector, Rig, intrinsics_from_fov, projector_intrinsics_from_throw
 from ..addon.surface.shapes import builtin_surface

@@ -1,9 +1,10 @@
-"""ProCam ▸ Diagnose: the sim-to-real diagnosis of the calibration as a background job (needs ``addon.gap``)."""
+"""ProCam ▸ Diagnose: the sim-to-real diagnosis of the calibration as a background job."""
 
 import bpy
 
 from ..addon import jobs
-from ..addon.workflow import CALIBRATION_MANIFEST, Summary, diagnosis_available, run_diagnosis
+from ..addon.steps import diagnose as diagnose_step
+from ..addon.steps.layout import CALIBRATION
 from . import paths
 from .job_operator import JobOperator, job_running_message
 
@@ -21,10 +22,7 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
     def poll(cls, context: bpy.types.Context) -> bool:
         scene = context.scene
         why = job_running_message()
-        if why is None:
-            ok, reason = diagnosis_available()
-            why = None if ok else f"diagnosis not available: {reason}"
-        if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+        if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
             why = "no calibration: run Calibrate or choose a calibration folder"
         if why is None and not scene.procam_diagnosis_dir:
             why = "choose the diagnosis folder to write"
@@ -36,8 +34,9 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
         scene = context.scene
         cal = paths.resolve(scene.procam_calibration_dir, "calibration folder")
         out = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder")
-        return jobs.Job("diagnosis", run_diagnosis, cal, out, force=scene.procam_replace_outputs)
+        options = diagnose_step.DiagnoseOptions(cal, out, force=scene.procam_replace_outputs)
+        return jobs.Job("diagnosis", diagnose_step.run, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
-        summary: Summary = result
+        summary = diagnose_step.summary(paths.resolve(context.scene.procam_diagnosis_dir, "diagnosis folder"))
         return f"Diagnosis: {summary.headline}"

@@ -4,8 +4,8 @@ import bpy
 from bpy.props import BoolProperty, StringProperty
 
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
-from ..addon.workflow import CALIBRATION_MANIFEST, COMPENSATION_MANIFEST, export_frames, load_calibration_view
+from ..addon.steps import export as export_step
+from ..addon.steps.layout import CALIBRATION, COMPENSATION
 from . import paths
 
 
@@ -22,24 +22,23 @@ class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION_MANIFEST) is None:
+        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest) is None:
             cls.poll_message_set("no calibration folder: run Calibrate or choose one")
             return False
         return True
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         if not self.filepath:
-            self.filepath = str(paths.existing(context.scene.procam_calibration_dir, CALIBRATION_MANIFEST)
+            self.filepath = str(paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest)
                                 / "scene.blend")
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
-            view = load_calibration_view(paths.resolve(context.scene.procam_calibration_dir, "calibration folder"))
-            out = blender_rig.save_calibration_blend_atomic(paths.resolve(self.filepath, ".blend file"),
-                                                            view.calibration.rig, view.calibration.surface,
-                                                            view.images, force=self.force)
+            out = export_step.run_blend(export_step.ExportBlendOptions(
+                paths.resolve(context.scene.procam_calibration_dir, "calibration folder"),
+                paths.resolve(self.filepath, ".blend file"), force=self.force))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -60,7 +59,7 @@ class PROCAM_OT_export_frames(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        if paths.existing(context.scene.procam_compensation_dir, COMPENSATION_MANIFEST) is None:
+        if paths.existing(context.scene.procam_compensation_dir, COMPENSATION.manifest) is None:
             cls.poll_message_set("no compensation results: run Compensate or choose a results folder")
             return False
         return True
@@ -71,8 +70,9 @@ class PROCAM_OT_export_frames(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
-            out = export_frames(paths.resolve(context.scene.procam_compensation_dir, "results folder"),
-                                paths.resolve(self.directory, "frame folder"), force=self.force)
+            out = export_step.run_frames(export_step.ExportFramesOptions(
+                paths.resolve(context.scene.procam_compensation_dir, "results folder"),
+                paths.resolve(self.directory, "frame folder"), force=self.force))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

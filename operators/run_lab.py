@@ -13,9 +13,10 @@ from pathlib import Path
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
+from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
-from ..addon.lab.lab import check_lab_outputs, describe_run, make_truth, run_lab
-from ..addon.rig import blender_rig
+from ..addon.lab.lab import describe_run
+from ..addon.steps.capture import LabOptions, run_lab
 
 _SURFACES = [("SCENE", "Scene Surface", "The scene's ProCam Surface (set it with Set Surface)"),
              ("plane", "Plane", "A flat textured wall"),
@@ -83,7 +84,6 @@ class PROCAM_OT_run_lab(bpy.types.Operator):
         wm.progress_begin(0, 100)
         try:
             out, truth_path = self._paths(context)
-            check_lab_outputs(out, truth_path, force=self.force)
             objs = blender_rig.find_rig_objects(scene)
             rig = (blender_rig.read_rig(scene)
                    if self.use_scene_rig and objs.camera is not None and objs.projector is not None else None)
@@ -91,14 +91,10 @@ class PROCAM_OT_run_lab(bpy.types.Operator):
                 surface, source = blender_rig.read_surface(scene), f"Blender object {objs.surface.name!r}"
             else:
                 surface, source = self.surface, None
-            truth = make_truth(surface, effects=self.effects, seed=self.seed, samples=self.samples, rig=rig,
-                               scale=self.scale, surface_source=source)
-
-            def progress(done: int, total: int, message: str) -> None:
-                wm.progress_update(int(100 * done / max(1, total)))
-
-            cs = run_lab(truth, out, truth_path=truth_path, force=self.force, graycode=self.graycode,
-                         progress=progress)
+            options = LabOptions(out, surface=surface, effects=self.effects, seed=self.seed, samples=self.samples,
+                                 scale=self.scale, graycode=self.graycode, truth=truth_path, rig=rig,
+                                 surface_source=source, force=self.force)
+            cs = run_lab(options, lambda message, fraction: wm.progress_update(int(100 * fraction)))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

@@ -5,7 +5,7 @@ import bpy
 from bpy.props import BoolProperty, StringProperty
 
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
+from ..addon.blender import rig as blender_rig
 
 
 class PROCAM_OT_set_projector_image(bpy.types.Operator):

@@ -3,7 +3,7 @@
 import bpy
 
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
+from ..addon.blender import rig as blender_rig
 
 
 class PROCAM_OT_set_surface(bpy.types.Operator):

@@ -7,7 +7,7 @@ import bpy
 from bpy.props import StringProperty
 
 from ..addon.errors import ProCamError
-from ..addon.rig import blender_rig
+from ..addon.blender import rig as blender_rig
 
 
 def _show_in_editors(context: bpy.types.Context, editor: str, attribute: str, datablock: bpy.types.ID) -> int:

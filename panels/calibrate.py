@@ -2,7 +2,7 @@
 
 import bpy
 
-from ..addon.workflow import calibration_summary
+from ..addon.steps import calibrate as calibrate_step
 from .step_state import draw_state
 
 
@@ -20,7 +20,7 @@ class PROCAM_PT_calibrate(bpy.types.Panel):
         layout.prop(scene, "procam_calibration_dir", text="")
         row = layout.row()
         row.prop(scene, "procam_calibration_init", text="Start")
-        summary = calibration_summary(bpy.path.abspath(scene.procam_calibration_dir))
+        summary = calibrate_step.summary(bpy.path.abspath(scene.procam_calibration_dir))
         done = draw_state(layout, "calibrate", summary)
         row = layout.row(align=True)
         row.prop(scene, "procam_depth_offset_given", text="")

@@ -1,10 +1,12 @@
-"""View3D ▸ Sidebar ▸ ProCam ▸ Compensate: targets, open/closed loop, state, results and Preview on Projector."""
+"""View3D ▸ Sidebar ▸ ProCam ▸ Compensate: targets, how stage C runs (what ``procam compensate`` offers), state,
+results, Preview on Projector, and Evaluate."""
 
 from pathlib import Path
 
 import bpy
 
-from ..addon.workflow import compensation_summary
+from ..addon.steps import compensate as compensate_step
+from ..addon.steps import evaluate as evaluate_step
 from .step_state import draw_state
 
 
@@ -34,13 +36,18 @@ class PROCAM_PT_compensate(bpy.types.Panel):
         col.operator("procam.remove_target", text="", icon="REMOVE")
         layout.prop(scene, "procam_target_folder")
         layout.prop(scene, "procam_compensation_mode", expand=True)
-        if scene.procam_compensation_mode == "CLOSED":
-            layout.prop(scene, "procam_device")
+        layout.prop(scene, "procam_device")
         row = layout.row(align=True)
         row.prop(scene, "procam_schedule", text="")
         row.prop(scene, "procam_iterations")
+        col = layout.column(align=True)
+        col.prop(scene, "procam_area")
+        col.prop(scene, "procam_effects")
+        row = col.row(align=True)
+        row.prop(scene, "procam_use_bias")
+        row.prop(scene, "procam_seed")
         layout.prop(scene, "procam_compensation_dir")
-        summary = compensation_summary(bpy.path.abspath(scene.procam_compensation_dir))
+        summary = compensate_step.summary(bpy.path.abspath(scene.procam_compensation_dir))
         done = draw_state(layout, "compensate", summary)
         layout.operator("procam.compensate", icon="PLAY")
         if not done:
@@ -56,3 +63,7 @@ class PROCAM_PT_compensate(bpy.types.Panel):
             op.filepath, op.name = f"{root}/{t['simulated']}", f"ProCam {t['name']} simulated"
             row.operator("procam.preview_compensated", text="", icon="LIGHT_SPOT").target = t["name"]
         layout.operator("procam.preview_compensated", icon="LIGHT_SPOT")
+        layout.prop(scene, "procam_evaluation_dir")
+        evaluation = evaluate_step.summary(bpy.path.abspath(scene.procam_evaluation_dir))
+        draw_state(layout, "evaluate", evaluation)
+        layout.operator("procam.evaluate", icon="GRAPH")

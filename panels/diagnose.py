@@ -2,15 +2,9 @@
 
 import bpy
 
-from ..addon.workflow import diagnosis_available, diagnosis_summary
+from ..addon.steps import diagnose as diagnose_step
+from ..addon.steps.summary import fmt as _num
 from .step_state import draw_state, wrapped
-
-
-def _num(value: object, spec: str) -> str:
-    try:
-        return format(float(value), spec)
-    except (TypeError, ValueError):
-        return "–"
 
 
 class PROCAM_PT_diagnose(bpy.types.Panel):
@@ -24,11 +18,8 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         scene = context.scene
-        ok, reason = diagnosis_available()
-        if not ok:
-            wrapped(layout, f"diagnosis not available: {reason}", icon="ERROR")
         layout.prop(scene, "procam_diagnosis_dir", text="")
-        summary = diagnosis_summary(bpy.path.abspath(scene.procam_diagnosis_dir))
+        summary = diagnose_step.summary(bpy.path.abspath(scene.procam_diagnosis_dir))
         done = draw_state(layout, "diagnose", summary)
         layout.operator("procam.diagnose", icon="VIEWZOOM")
         if not done:

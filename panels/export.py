@@ -1,6 +1,10 @@
-"""View3D ▸ Sidebar ▸ ProCam ▸ Export: save the calibration .blend, export the projector frame sequence."""
+"""View3D ▸ Sidebar ▸ ProCam ▸ Export: save the calibration .blend, export the projector frame sequence, prepare
+a show from the image sequence folder."""
 
 import bpy
+
+from ..addon.steps import show as show_step
+from .step_state import draw_state
 
 
 class PROCAM_PT_export(bpy.types.Panel):
@@ -15,3 +19,8 @@ class PROCAM_PT_export(bpy.types.Panel):
         col = self.layout.column(align=True)
         col.operator("procam.export_calibration_blend", icon="FILE_BLEND")
         col.operator("procam.export_frames", icon="SEQUENCE")
+        layout = self.layout
+        scene = context.scene
+        layout.prop(scene, "procam_show_dir")
+        draw_state(layout, "show", show_step.summary(bpy.path.abspath(scene.procam_show_dir)))
+        layout.operator("procam.prepare_show", icon="SEQUENCE")

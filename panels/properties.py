@@ -17,7 +17,7 @@ SCHEDULE_ITEMS = [("fast", "Fast", "Fixed-point start, 60 joint iterations, 15 c
                                    "schedule in a fraction of the time"),
                   ("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ")]
 MODE_ITEMS = [("OPEN", "Open Loop", "No device: the bias θ comes from the calibration's validation captures"),
-              ("CLOSED", "Closed Loop", "θ from captures of the projector input through a device (lab or folder)")]
+              ("CLOSED", "Closed Loop", "θ from captures of the projector input through the device (lab or folder)")]
 
 
 def scene_properties() -> dict[str, object]:
@@ -43,7 +43,25 @@ def scene_properties() -> dict[str, object]:
             description="Folder of target images (e.g. the frames of a clip), compensated in numbered order"),
         "procam_compensation_mode": EnumProperty(name="Mode", items=MODE_ITEMS, default="OPEN"),
         "procam_device": StringProperty(
-            name="Device", description="Closed loop: lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR"),
+            name="Device", description="lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR: the closed loop "
+                                       "captures through it, and Evaluate projects through it"),
+        "procam_area": StringProperty(
+            name="Display Area", description="x,y,width,height in camera pixels; empty: the largest rectangle of "
+                                             "each target's aspect ratio that the projector covers"),
+        "procam_effects": StringProperty(
+            name="Effect Models", default="none",
+            description="Diagnosed effect models around stage C: 'auto' (those the diagnosis found compensation "
+                        "can invert), NAME,... or 'none'; their parameters come from the Diagnosis folder"),
+        "procam_use_bias": BoolProperty(
+            name="Bias θ", default=True,
+            description="Estimate the per-pixel bias θ (off: the no-θ ablation, neither captures nor validation)"),
+        "procam_seed": IntProperty(name="Seed", default=0, min=0,
+                                   description="Seed of every random stream; the same seed repeats the result"),
+        "procam_evaluation_dir": StringProperty(
+            name="Evaluation", subtype="DIR_PATH", description="Evaluation folder: metrics.json and side-by-sides"),
+        "procam_show_dir": StringProperty(
+            name="Show", subtype="DIR_PATH",
+            description="Show folder: numbered projector frames of the image sequence, resumable"),
         "procam_schedule": EnumProperty(name="Schedule", items=SCHEDULE_ITEMS, default="fast"),
         "procam_iterations": IntProperty(
             name="Iterations", description="Total stage-C Adam iterations (0 = the schedule's own: fast 60, paper "

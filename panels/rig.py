@@ -2,7 +2,7 @@
 
 import bpy
 
-from ..addon.rig import blender_rig
+from ..addon.blender import rig as blender_rig
 
 
 class PROCAM_PT_rig(bpy.types.Panel):

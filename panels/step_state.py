@@ -6,7 +6,7 @@ import textwrap
 import bpy
 
 from ..addon import jobs
-from ..addon.workflow import Summary
+from ..addon.steps.summary import Summary
 
 WRAP = 44
 

@@ -60,12 +60,14 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_image
     from procam.addon.lab.lab import LabDevice, LabTruth, make_truth, run_lab
-    from procam.addon.outputs import progress
-    from procam.addon.stages.calibrate import Calibration, calibrate
+    from procam.addon.cli.terminal import progress
+    from procam.addon.steps.calibrate import CalibrateOptions
+    from procam.addon.steps.calibrate import read as read_calibration
+    from procam.addon.steps.calibrate import run as run_calibration
     from procam.addon.stages.classical import fit_classical
     from procam.addon.stages.compensate import Compensator, compensate, split_iterations
     from procam.addon.stages.display_area import choose_area, fit_target
-    from procam.addon.stages.evaluate import measure, side_by_side, uncompensated_input, without_warp
+    from procam.addon.stages.metrics import measure, side_by_side, uncompensated_input, without_warp
 
     folder = work / surface
     folder.mkdir(parents=True, exist_ok=True)
@@ -84,9 +86,9 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     if not (calib_dir / "calibration.json").is_file():
         progress(f"[{surface}] calibrating (surface, stage A, stage B)")
         t0 = time.perf_counter()
-        calibrate(captures_dir, calib_dir, seed=args.seed, with_blend=False, force=True)
+        run_calibration(CalibrateOptions(captures_dir, calib_dir, seed=args.seed, with_blend=False, force=True))
         seconds["calibrate"] = time.perf_counter() - t0
-    cal = Calibration.load(calib_dir)
+    cal = read_calibration(calib_dir)
     captures = CaptureSet.load(captures_dir, verify_images=False)
     cam_size = cal.rig.camera.intrinsics.size
     area = choose_area(cal, aspect=4 / 3, captures=captures)
@@ -150,11 +152,13 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_image
     from procam.addon.lab.lab import LabDevice, LabTruth
-    from procam.addon.outputs import progress
-    from procam.addon.stages.calibrate import Calibration, calibrate
+    from procam.addon.cli.terminal import progress
+    from procam.addon.steps.calibrate import CalibrateOptions
+    from procam.addon.steps.calibrate import read as read_calibration
+    from procam.addon.steps.calibrate import run as run_calibration
     from procam.addon.stages.compensate import Compensator, compensate, split_iterations
     from procam.addon.stages.display_area import DisplayArea, fit_target
-    from procam.addon.stages.evaluate import measure, side_by_side, without_warp
+    from procam.addon.stages.metrics import measure, side_by_side, without_warp
     from procam.addon.stages.pose import pose_error
 
     folder = work / surface
@@ -164,10 +168,10 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
     if not (calib_dir / "calibration.json").is_file():
         progress(f"[{surface}] calibrating with the paper's stage A (nominal start, binary mask)")
         t0 = time.perf_counter()
-        calibrate(folder / "captures", calib_dir, init="nominal", stage_a="paper", seed=args.seed,
-                  with_blend=False, force=True)
+        run_calibration(CalibrateOptions(folder / "captures", calib_dir, init="nominal", stage_a="paper", seed=args.seed,
+                  with_blend=False, force=True))
         seconds["calibrate"] = time.perf_counter() - t0
-    cal = Calibration.load(calib_dir)
+    cal = read_calibration(calib_dir)
     truth = LabTruth.load(folder / "truth.json")
     pos, ang = pose_error(cal.rig.projector.camera_from_projector, truth.rig.projector.camera_from_projector)
     warp = cal.report.get("warp_report") or {}

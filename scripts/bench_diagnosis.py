@@ -38,7 +38,7 @@ PAIRS = (("response", "defocus"), ("crosstalk", "interreflection"), ("black_leve
 
 
 def _cli(argv: list[str]) -> None:
-    from procam.addon.cli import main
+    from procam.addon.cli.app import main
 
     code = main(argv)
     if code != 0:
@@ -71,11 +71,11 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     from procam.addon.capture.targets import natural_target
     from procam.addon.gap.compensation import compensate_with_effects, load_adapter
     from procam.addon.lab.lab import LabDevice, LabTruth
-    from procam.addon.stages.calibrate import Calibration
+    from procam.addon.steps.calibrate import read as read_calibration
     from procam.addon.stages.compensate import Compensator, area_psnr
     from procam.addon.stages.display_area import choose_area, fit_target
 
-    cal = Calibration.load(cal_dir)
+    cal = read_calibration(cal_dir)
     adapter = load_adapter(doc, cal.rig.projector)
     base = Compensator(cal)
     bias = base.estimate_bias()

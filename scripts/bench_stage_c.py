@@ -45,7 +45,8 @@ def prepare(lab_dir: Path, surface: str, scale: float, samples: int, seed: int) 
     import bpy  # noqa: F401  (bpy before pymeshlab: both bundle Embree, see scripts/bench_warp.py)
 
     from procam.addon.lab.lab import make_truth, run_lab
-    from procam.addon.stages.calibrate import calibrate
+    from procam.addon.steps.calibrate import CalibrateOptions
+    from procam.addon.steps.calibrate import run as run_calibration
 
     captures, truth_path, cal_dir = lab_dir / "captures", lab_dir / "truth.json", lab_dir / "calibration"
     seconds: dict[str, float] = {}
@@ -62,7 +63,7 @@ def prepare(lab_dir: Path, surface: str, scale: float, samples: int, seed: int) 
     if not (cal_dir / "calibration.json").is_file():
         t0 = time.perf_counter()
         print("calibrate: surface, stage A, stage B", flush=True)
-        calibrate(captures, cal_dir, seed=seed, with_blend=False, force=True)
+        run_calibration(CalibrateOptions(captures, cal_dir, seed=seed, with_blend=False, force=True))
         seconds["calibrate"] = time.perf_counter() - t0
     return captures, truth_path, cal_dir, seconds
 
@@ -172,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_atomic_bytes
     from procam.addon.lab.lab import LabDevice, LabTruth
-    from procam.addon.stages.calibrate import Calibration
+    from procam.addon.steps.calibrate import read as read_calibration
     from procam.addon.stages.compensate import Compensator, area_psnr
     from procam.addon.stages.display_area import choose_area, fit_target
     from procam.addon.stages.metrics import ssim
@@ -184,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = [by_name[w] for w in wanted if w in by_name]  # in the order asked (the table keeps lever order)
         if not rows:
             raise SystemExit(f"no schedule among {wanted}; names: {', '.join(s.name for _, s in levers())}")
-    cal = Calibration.load(cal_dir)
+    cal = read_calibration(cal_dir)
     truth = LabTruth.load(truth_path)  # the bench may read the truth (for the lab device); the pipeline never does
     area = choose_area(cal, aspect=4 / 3)
     names = [n.strip() for n in args.targets.split(",") if n.strip()]

@@ -119,7 +119,8 @@ def distances(mesh, rays: np.ndarray, depth: np.ndarray, normals: np.ndarray) ->
 
 def surface_rows(surfaces: list[str], variants: list[str], seeds: list[int], scale: float) -> list[dict]:
     from procam.addon.lab.lab import WALL_DISTANCE, lab_depth, lab_wall_depth, make_truth
-    from procam.addon.surface.reconstruct import import_pymeshlab, reconstruct_surface, wall_depth_offset
+    from procam.addon.native import import_pymeshlab
+    from procam.addon.surface.reconstruct import reconstruct_surface, wall_depth_offset
 
     import_pymeshlab()  # once, outside the timings
     rows = []

@@ -91,23 +91,17 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
         captures_dir, truth_path = lab_set(*args, **kwargs)
         key = (str(captures_dir),)
         if key not in _LAB_CALIBRATIONS:
-            import json
-
-            import numpy as np
-
             from procam.addon.lab.lab import LabTruth
             from procam.addon.stages.calibrate import Calibration
             from procam.addon.stages.warp import Warp
+            from procam.addon.steps import calibrate as calibrate_step
 
             truth = LabTruth.load(truth_path)  # tests are evaluation code: they may read the truth
             cal = Calibration(truth.rig, truth.surface, Warp.identity(truth.rig.projector.input_size),
                               str(captures_dir))
             folder = tmp_path_factory.mktemp("calibration") / "cal"
             folder.mkdir()
-            (folder / "calibration.json").write_text(json.dumps(cal.to_dict()))
-            s = cal.surface
-            np.savez_compressed(folder / "surface.npz", vertices=s.vertices, faces=s.faces, uvs=s.uvs,
-                                albedo=s.albedo)
+            calibrate_step.write(folder, cal, {}, with_blend=False)
             _LAB_CALIBRATIONS[key] = folder
         return _LAB_CALIBRATIONS[key], captures_dir, truth_path
 

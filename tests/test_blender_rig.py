@@ -14,7 +14,8 @@ bpy = pytest.importorskip("bpy")
 
 from procam.addon.errors import ImageError, RigError, SurfaceError  # noqa: E402
 from procam.addon.lab.cycles import render_cycles  # noqa: E402
-from procam.addon.rig import blender_rig, frames  # noqa: E402
+from procam.addon.blender import rig as blender_rig  # noqa: E402
+from procam.addon.rig import frames  # noqa: E402
 from procam.addon.rig.demo import demo_rig  # noqa: E402
 from procam.addon.rig.model import (Intrinsics, Projector, look_at_pose,  # noqa: E402
                                     projector_intrinsics_from_throw)

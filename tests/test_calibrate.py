@@ -6,12 +6,15 @@ import shutil
 import numpy as np
 import pytest
 
-from procam.addon.cli import main
+from procam.addon.cli.app import main
 from procam.addon.errors import CalibrationError
 from procam.addon.lab.lab import LabTruth
 from procam.addon.capture.format import CaptureSet
 from procam.addon.imageio import read_image, write_image
-from procam.addon.stages.calibrate import Calibration, calibrate, white_saturation
+from procam.addon.stages.calibrate import white_saturation
+from procam.addon.steps.calibrate import CalibrateOptions
+from procam.addon.steps.calibrate import read as read_calibration
+from procam.addon.steps.calibrate import run as run_calibration
 from procam.addon.stages.metrics import psnr, ssim
 
 
@@ -19,7 +22,7 @@ from procam.addon.stages.metrics import psnr, ssim
 def calibrated(lab_set, tmp_path_factory):
     captures, truth = lab_set("vedge", "realistic")
     out = tmp_path_factory.mktemp("cal") / "calibration"
-    cal = calibrate(captures, out)
+    cal = run_calibration(CalibrateOptions(captures, out))
     return captures, truth, out, cal
 
 
@@ -35,7 +38,7 @@ def test_calibration_folder_is_complete_and_accurate(calibrated):
     est = cal.rig.projector
     assert np.linalg.norm(est.position - truth.position) < 0.02  # metres, at 0.3 scale
     assert np.degrees(np.arccos(np.clip(est.direction @ truth.direction, -1, 1))) < 0.5
-    back = Calibration.load(out)
+    back = read_calibration(out)
     assert np.allclose(back.rig.projector.camera_from_projector, est.camera_from_projector)
     assert back.warp is not None and np.allclose(back.warp.w_shifts, cal.warp.w_shifts, atol=1e-5)
     assert doc["white_saturated_share"] < 0.01 and back.warnings == []  # realistic: its glossy lobe clips 0.1 %
@@ -53,7 +56,7 @@ def test_a_saturated_white_capture_is_reported(calibrated, tmp_path, capsys):
     assert main(["calibrate", str(bright), "--out", str(tmp_path / "cal"), "--stages", "surface",
                  "--no-blend-output"]) == 0
     assert "saturated on" in capsys.readouterr().out
-    cal = Calibration.load(tmp_path / "cal", complete=False)
+    cal = read_calibration(tmp_path / "cal", complete=False)
     assert cal.report["white_saturated_share"] == pytest.approx(share)
     assert "shorter exposure" in cal.warnings[0]
 
@@ -73,7 +76,7 @@ def test_failed_calibration_leaves_nothing(calibrated, tmp_path):
     doc["images"] = [e for e in doc["images"] if e["kind"] != "checker"]
     (broken / "capture.json").write_text(json.dumps(doc))
     with pytest.raises(CalibrationError, match="checker"):
-        calibrate(broken, tmp_path / "cal")
+        run_calibration(CalibrateOptions(broken, tmp_path / "cal"))
     assert not (tmp_path / "cal").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["broken"]
 
@@ -120,22 +123,22 @@ def test_stages_one_at_a_time(calibrated, tmp_path, capsys):
     captures, _, _, full = calibrated
     out = tmp_path / "cal"
     with pytest.raises(CalibrationError, match="run the earlier stages first"):
-        calibrate(captures, out, stages="pose")
+        run_calibration(CalibrateOptions(captures, out, stages="pose"))
     with pytest.raises(CalibrationError, match="skip one"):
-        calibrate(captures, out, stages="surface,warp")
-    cal = calibrate(captures, out, stages="surface", with_blend=False)
+        run_calibration(CalibrateOptions(captures, out, stages="surface,warp"))
+    cal = run_calibration(CalibrateOptions(captures, out, stages="surface", with_blend=False))
     assert cal.stages == {"surface": "run", "pose": "not run", "warp": "not run"} and cal.warp is None
     with pytest.raises(CalibrationError, match="has not run pose, warp yet.*--stages pose,warp"):
-        Calibration.load(out)
+        read_calibration(out)
     assert main(["compensate", str(out), "city", "--out", str(tmp_path / "comp")]) == 2
     assert "has not run pose, warp yet" in capsys.readouterr().err
     with pytest.raises(CalibrationError, match="has not run stage\\(s\\) pose"):
-        calibrate(captures, out, stages="warp")
-    cal = calibrate(captures, out, stages="pose", with_blend=False)
+        run_calibration(CalibrateOptions(captures, out, stages="warp"))
+    cal = run_calibration(CalibrateOptions(captures, out, stages="pose", with_blend=False))
     assert cal.stages == {"surface": "reused", "pose": "run", "warp": "not run"}
     assert np.allclose(cal.rig.projector.camera_from_projector, full.rig.projector.camera_from_projector, atol=1e-6)
     assert main(["calibrate", str(captures), "--out", str(out), "--stages", "warp", "--no-blend-output"]) == 0
-    done = Calibration.load(out)
+    done = read_calibration(out)
     assert done.stages == {"surface": "reused", "pose": "reused", "warp": "run"} and not done.missing_stages
     assert np.allclose(done.warp.w_shifts, full.warp.w_shifts, atol=1e-5)
     names = {p.name for p in (out / "diagnostics").iterdir()}
@@ -143,4 +146,4 @@ def test_stages_one_at_a_time(calibrated, tmp_path, capsys):
     other = tmp_path / "other"
     shutil.copytree(captures, other)
     with pytest.raises(CalibrationError, match="was made from"):
-        calibrate(other, out, stages="warp")
+        run_calibration(CalibrateOptions(other, out, stages="warp"))

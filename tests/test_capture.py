@@ -18,7 +18,7 @@ from procam.addon.capture.format import CaptureSet, DepthInfo, linear_to_srgb, s
 from procam.addon.capture.patterns import (calibration_sequence, checkerboard, decode_gray_code,
                                            decode_gray_code_set, gray_code_bits, gray_code_layout,
                                            gray_code_patterns, smooth_random, validation_patterns)
-from procam.addon.cli import main
+from procam.addon.cli.app import main
 from procam.addon.errors import CaptureError
 from procam.addon.imageio import read_image, write_image
 from procam.addon.rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
@@ -590,6 +590,6 @@ def test_cli_patterns_and_import(tmp_path, capsys):
 
 
 def test_cli_lists_commands(capsys):
-    from procam.addon.cli import build_parser
+    from procam.addon.cli.app import build_parser
     text = build_parser().format_help()
     assert "patterns" in text and "import-captures" in text

@@ -18,9 +18,11 @@ import time
 
 import pytest
 
-from procam.addon import cli, errors
-from procam.addon.cli import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
-from procam.addon.outputs import ProgressBar, progress
+from procam.addon import errors
+from procam.addon.cli import app as cli
+from procam.addon.cli import terminal
+from procam.addon.cli.app import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
+from procam.addon.cli.terminal import ProgressBar, progress
 
 
 def _subcommands() -> dict[str, argparse.ArgumentParser]:
@@ -112,7 +114,7 @@ def test_exit_codes_and_messages(fake_commands, capsys):
 
 def test_cancel_on_interrupt_in_process():
     before = signal.getsignal(signal.SIGINT)  # Python's default, or SIG_IGN when started in the background
-    with cli.cancel_on_interrupt() as cancel:
+    with terminal.cancel_on_interrupt() as cancel:
         assert not cancel()
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.05)
@@ -126,11 +128,11 @@ def test_cancel_on_interrupt_in_process():
 def test_ctrl_c_in_a_real_process_exits_130_without_traceback():
     script = textwrap.dedent("""
         import sys, time
-        from procam.addon import cli
+        from procam.addon.cli import app as cli, terminal
         from procam.addon.errors import Cancelled
 
         def work(args):
-            with cli.cancel_on_interrupt() as cancel:
+            with terminal.cancel_on_interrupt() as cancel:
                 print("ready", flush=True)
                 for _ in range(400):
                     if cancel():

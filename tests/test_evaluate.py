@@ -14,7 +14,7 @@ import types
 import numpy as np
 import pytest
 
-from procam.addon.cli import main
+from procam.addon.cli.app import main
 from procam.addon.errors import CaptureError
 
 
@@ -30,6 +30,7 @@ def env(lab_set, tmp_path_factory):
     from procam.addon.lab.lab import LabTruth
     from procam.addon.stages.calibrate import Calibration
     from procam.addon.stages.warp import Warp
+    from procam.addon.steps import calibrate as calibrate_step
 
     captures_dir, truth_path = lab_set()
     truth = LabTruth.load(truth_path)
@@ -37,9 +38,7 @@ def env(lab_set, tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate")
     cal_dir = root / "cal"
     cal_dir.mkdir()
-    (cal_dir / "calibration.json").write_text(json.dumps(cal.to_dict()))
-    s = cal.surface
-    np.savez_compressed(cal_dir / "surface.npz", vertices=s.vertices, faces=s.faces, uvs=s.uvs, albedo=s.albedo)
+    calibrate_step.write(cal_dir, cal, {}, with_blend=False)
     targets = root / "targets"
     targets.mkdir()
     write_image(targets / "a.png", _target())
@@ -120,7 +119,7 @@ def test_bad_inputs_are_clear_errors(env, capsys):
 
 
 def test_other_capture_set_is_named(env):
-    from procam.addon.stages.evaluate import CompensationInputs, MismatchError
+    from procam.addon.steps.evaluate import CompensationInputs, MismatchError
 
     inputs = CompensationInputs.load(env.comp)
     inputs.doc["capture_set"] = "/elsewhere/captures"
@@ -147,7 +146,7 @@ def test_other_aspect_warns_and_is_recorded(env, capsys):
 
 def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
     """A device that returns a capture of the wrong size on the second target: the first one's results stay."""
-    from procam.addon.commands import compensate as compensate_cmd
+    from procam.addon.steps import evaluate as evaluate_step
     from procam.addon.lab.lab import LabDevice, LabTruth
 
     class Flaky:
@@ -163,7 +162,7 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(compensate_cmd, "open_device", lambda spec: Flaky(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(evaluate_step, "open_device", lambda spec: Flaky(LabTruth.load(env.truth_path)))
     out = env.root / "eval_flaky"
     assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
     assert "camera is" in capsys.readouterr().err
@@ -174,7 +173,7 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
 
 
 def test_check_capture_size():
-    from procam.addon.stages.evaluate import check_capture
+    from procam.addon.stages.metrics import check_capture
 
     assert check_capture(np.zeros((4, 5, 3)), (5, 4)).dtype == np.float32
     with pytest.raises(CaptureError, match="5×4"):
@@ -185,7 +184,7 @@ def test_check_capture_size():
 
 def test_no_w_ablation_uses_an_identity_warp(env):
     from procam.addon.stages.compensate import Compensator
-    from procam.addon.stages.evaluate import without_warp
+    from procam.addon.stages.metrics import without_warp
     from procam.addon.stages.warp import Warp
 
     size = env.cal.rig.projector.input_size

@@ -113,7 +113,7 @@ _INSTALL = """
                                      projector_height=30, surface="plane") == {"FINISHED"}
     mod = sys.modules["bl_ext.user_default.procam"]
     assert mod.__file__.startswith(home), mod.__file__
-    from bl_ext.user_default.procam.addon.rig import blender_rig
+    from bl_ext.user_default.procam.addon.blender import rig as blender_rig
     rig = blender_rig.read_rig(bpy.context.scene)
     from bl_ext.user_default.procam import blender_registration
     help_code = blender_registration.run_cli(["--help"])

@@ -57,7 +57,8 @@ def test_blender_camera_matches_rig_camera(points, bpy_scene):
     from bpy_extras.object_utils import world_to_camera_view
     from mathutils import Vector
 
-    from procam.addon.rig import blender_rig, frames
+    from procam.addon.blender import rig as blender_rig
+    from procam.addon.rig import frames
 
     cam = blender_rig.create_camera(bpy_scene, CAMERA)
     bpy_scene.view_layers.update()

@@ -15,13 +15,35 @@ import pytest
 
 from procam.addon.gap import fit as gap_fit
 from procam.addon.gap.compensation import EffectAdapter
-from procam.addon.gap.data import DiagnosisError, load_gap_data
-from procam.addon.gap.diagnose import diagnose
+from procam.addon.capture.format import CaptureSet
+from procam.addon.gap import data as gap_data
+from procam.addon.gap import evidence as gap_evidence
+from procam.addon.gap.data import DiagnosisError
 from procam.addon.gap.models import MODELS, NAMES, Composite
 from procam.addon.rig.demo import demo_rig
+from procam.addon.steps import calibrate as calibrate_step
+from procam.addon.steps import diagnose as diagnose_step
 
 TINY = dict(scale=0.2, samples=8)
 CANDIDATES = ("response", "black_level", "defocus", "distortion")
+
+
+def diagnose(cal_dir, out, *, candidates=NAMES, **options):
+    """The diagnose step on a calibration folder, with these candidates."""
+    return diagnose_step.run(diagnose_step.DiagnoseOptions(cal_dir, out, effects=",".join(candidates), **options))
+
+
+def _calibration(cal_dir):
+    cal = calibrate_step.read(cal_dir)
+    return cal, CaptureSet.load(cal.capture_dir)
+
+
+def load_gap_data(cal_dir, **options):
+    return gap_data.load_gap_data(*_calibration(cal_dir), **options)
+
+
+def calibration_evidence(cal_dir, **options):
+    return gap_evidence.calibration_evidence(*_calibration(cal_dir), **options)
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +180,7 @@ def test_all_dark_captures_are_refused(clean_case, tmp_path):
 
 
 def test_cli_diagnose_runs_and_rejects_unknown_effects(response_case, tmp_path, capsys):
-    from procam.addon.cli import main
+    from procam.addon.cli.app import main
 
     cal_dir, _, _ = response_case
     assert main(["diagnose", str(cal_dir), "--out", str(tmp_path / "bad"), "--effects", "sparkle"]) == 2
@@ -242,8 +264,6 @@ def absorbed_case(lab_calibration):
 
 
 def test_absorbed_effects_are_found_where_calibration_absorbed_them(absorbed_case, clean_case):
-    from procam.addon.gap.evidence import calibration_evidence
-
     found = calibration_evidence(absorbed_case[0])
     assert all(e.detected for e in found.values()), {n: e.evidence or e.error for n, e in found.items()}
     # lab at strength 0.8: falloff 0.28 at the farthest corner, bias 1.6 cm
@@ -270,10 +290,10 @@ def test_absorbed_effects_rank_first_but_are_not_modelled(absorbed_case, tmp_pat
 def test_a_dark_surface_photo_says_to_turn_the_room_lights_on(clean_case):
     from procam.addon.capture.format import CaptureSet
     from procam.addon.gap.evidence import vignetting_evidence
-    from procam.addon.stages.calibrate import Calibration
+    from procam.addon.steps.calibrate import read as read_calibration
     from procam.addon.stages.pose import surface_view, target_mask
 
-    cal = Calibration.load(clean_case[0])
+    cal = read_calibration(clean_case[0])
     captures = CaptureSet.load(clean_case[1])
 
     class DarkPhoto:

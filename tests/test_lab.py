@@ -17,11 +17,11 @@ bpy = pytest.importorskip("bpy")
 
 from procam.addon.capture.format import CaptureSet  # noqa: E402
 from procam.addon.capture.patterns import checkerboard  # noqa: E402
-from procam.addon.cli import main  # noqa: E402
+from procam.addon.cli.app import main  # noqa: E402
 from procam.addon.errors import LabError, RenderError  # noqa: E402
 from procam.addon.lab.effects import distort_points, parse_effects  # noqa: E402
 from procam.addon.lab.lab import LAB_SCENE_NAME, LabDevice, LabTruth, lab_depth, make_truth, run_lab  # noqa: E402
-from procam.addon.rig import blender_rig  # noqa: E402
+from procam.addon.blender import rig as blender_rig  # noqa: E402
 
 pytestmark = pytest.mark.blender
 

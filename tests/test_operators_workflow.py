@@ -2,19 +2,22 @@
 their poll messages, a cancelled job leaving the scene as it was, and the worker-thread path of the UI."""
 
 import json
-import sys
 import time
-import types
 
 import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")  # before pymeshlab (shared Embree), and the operators need it
 
-from procam.addon import jobs, workflow  # noqa: E402
+from procam.addon import jobs  # noqa: E402
+from procam.addon.native import prepare_worker_libraries  # noqa: E402
+from procam.addon.steps import calibrate as calibrate_step  # noqa: E402
+from procam.addon.steps import compensate as compensate_step  # noqa: E402
+from procam.addon.steps import diagnose as diagnose_step  # noqa: E402
+from procam.addon.steps.stage_c import StageCOptions  # noqa: E402
 from procam.addon.imageio import read_image, write_image  # noqa: E402
-from procam.addon.rig import blender_rig  # noqa: E402
-from procam.addon.stages.calibrate import Calibration  # noqa: E402
+from procam.addon.blender import rig as blender_rig  # noqa: E402
+from procam.addon.steps.calibrate import read as read_calibration  # noqa: E402
 
 TINY = dict(scale=0.15, samples=4)  # camera 96×72, projector 120×90
 
@@ -28,8 +31,9 @@ def tiny(lab_set):
 def calibrated(tiny, tmp_path_factory):
     """A calibration made the way the UI makes it: run_calibration in a worker thread."""
     out = tmp_path_factory.mktemp("ui") / "calibration"
-    workflow.prepare_worker_libraries()  # as the Calibrate operator does before its worker starts
-    job = jobs.Job("calibration", workflow.run_calibration, tiny[0], out).start()
+    prepare_worker_libraries()  # as the Calibrate operator does before its worker starts
+    options = calibrate_step.CalibrateOptions(tiny[0], out, with_blend=False)
+    job = jobs.Job("calibration", calibrate_step.run_view, options).start()
     seen = set()
     while not job.wait(0.05):
         seen.add(round(job.snapshot().fraction, 1))
@@ -61,7 +65,7 @@ def test_threaded_calibration_returns_what_the_scene_shows(calibrated):
     assert (view.folder / "calibration.json").is_file() and not (view.folder / "scene.blend").exists()
     assert {"warp_grid", "pose_mask", "warp_compare_after"} <= set(view.images)
     assert view.images["warp_grid"].shape[:2] == tuple(reversed(view.calibration.warp.size))
-    summary = workflow.calibration_summary(view.folder)
+    summary = calibrate_step.summary(view.folder)
     assert summary.ok and "px" in summary.headline and len(summary.lines) == 4
 
 
@@ -77,7 +81,7 @@ def test_calibrate_operator_moves_the_projector_and_shows_the_textured_surface(r
         bpy.ops.procam.calibrate()
     scene.procam_calibration_dir = str(tmp_path / "cal")
     assert bpy.ops.procam.calibrate() == {"FINISHED"}
-    cal = Calibration.load(tmp_path / "cal")
+    cal = read_calibration(tmp_path / "cal")
     objs = blender_rig.find_rig_objects(scene)
     assert np.allclose(blender_rig.read_projector(scene).camera_from_projector,
                        cal.rig.projector.camera_from_projector, atol=1e-6)
@@ -106,7 +110,7 @@ def test_calibrate_one_stage_at_a_time(registered, tiny, tmp_path):
         bpy.ops.procam.calibrate(stage="POSE")
     scene.procam_depth_offset_given, scene.procam_depth_offset = True, 0.003
     assert bpy.ops.procam.calibrate(stage="SURFACE") == {"FINISHED"}
-    cal = Calibration.load(tmp_path / "cal", complete=False)
+    cal = read_calibration(tmp_path / "cal", complete=False)
     assert cal.missing_stages == ["pose", "warp"]
     assert cal.report["surface_report"]["depth_offset"] == pytest.approx(0.003)
     assert blender_rig.find_rig_objects(scene).surface.name == blender_rig.CALIBRATED_SURFACE_NAME
@@ -118,12 +122,12 @@ def test_calibrate_one_stage_at_a_time(registered, tiny, tmp_path):
     assert bpy.ops.procam.calibrate(stage="SURFACE") == {"FINISHED"}
     assert np.allclose(blender_rig.read_projector(scene).camera_from_projector, placed, atol=1e-6)
     assert bpy.ops.procam.calibrate(stage="POSE") == {"FINISHED"}
-    cal = Calibration.load(tmp_path / "cal", complete=False)
+    cal = read_calibration(tmp_path / "cal", complete=False)
     assert cal.missing_stages == ["warp"]
     assert np.allclose(blender_rig.read_projector(scene).camera_from_projector,
                        cal.rig.projector.camera_from_projector, atol=1e-6)
     assert bpy.ops.procam.calibrate(stage="WARP") == {"FINISHED"}
-    assert not Calibration.load(tmp_path / "cal").missing_stages
+    assert not read_calibration(tmp_path / "cal").missing_stages
     assert "ProCam Calibration warp_grid" in bpy.data.images
 
 
@@ -161,16 +165,16 @@ def test_compensate_preview_and_export(registered, calibrated, targets, tmp_path
     scene.procam_target_index = 0
     assert bpy.ops.procam.remove_target() == {"FINISHED"} and len(scene.procam_targets) == 1
     scene.procam_compensation_mode = "CLOSED"
-    with pytest.raises(RuntimeError, match="closed loop needs a device"):
+    with pytest.raises(RuntimeError, match="needs a device"):
         bpy.ops.procam.compensate()
     scene.procam_compensation_mode = "OPEN"
     scene.procam_iterations = 6
     scene.procam_compensation_dir = str(tmp_path / "comp")
     assert bpy.ops.procam.compensate() == {"FINISHED"}
-    view = workflow.read_compensation(tmp_path / "comp")
+    view = compensate_step.read(tmp_path / "comp")
     assert [t.name for t in view.targets] == ["frame2"] and view.mode == "open-loop"
     assert "ProCam frame2 input" in bpy.data.images and "ProCam frame2 simulated" in bpy.data.images
-    assert workflow.compensation_summary(tmp_path / "comp").ok
+    assert compensate_step.summary(tmp_path / "comp").ok
 
     assert bpy.ops.procam.preview_compensated(target="frame2") == {"FINISHED"}
     shown = blender_rig.projector_image(blender_rig.find_rig_objects(scene).projector)
@@ -210,7 +214,7 @@ def test_compensate_bad_input_changes_nothing(registered, calibrated, tmp_path):
         bpy.ops.procam.compensate()
     (tmp_path / "t.png").write_bytes(b"")
     scene.procam_compensation_mode, scene.procam_device = "CLOSED", "usb:0"
-    with pytest.raises(RuntimeError, match="unknown device kind"):
+    with pytest.raises(RuntimeError, match="the device must be"):
         bpy.ops.procam.compensate()
     assert _scene_state(scene) == before and not (tmp_path / "comp").exists()
 
@@ -222,8 +226,9 @@ def test_closed_loop_in_a_worker_renders_the_lab_on_the_main_thread(bpy_scene, t
     holder = []
     relay = jobs.MainThreadRelay(cancel=lambda: holder[0].cancelled())
     try:
-        job = jobs.Job("compensation", workflow.run_compensation, calibrated.folder, targets[:1], tmp_path / "c",
-                       device=jobs.RelayedDevice(device, relay), device_spec="lab", iterations=4)
+        options = compensate_step.CompensateOptions(calibrated.folder, tuple(targets[:1]), tmp_path / "c",
+                                                    StageCOptions(iterations=4, device=f"lab:{tiny[1]}"))
+        job = jobs.Job("compensation", compensate_step.run, options, device=jobs.RelayedDevice(device, relay))
         holder.append(job)
         job.start()
         pumped, deadline = 0, time.monotonic() + 240
@@ -240,25 +245,22 @@ def test_diagnose_operator_and_cancel_button(registered, calibrated, tmp_path, m
     scene = bpy.context.scene
     scene.procam_calibration_dir = str(calibrated.folder)
     scene.procam_diagnosis_dir = str(tmp_path / "gap")
-    ok, reason = workflow.diagnosis_available()
-    if not ok:
-        with pytest.raises(RuntimeError, match="diagnosis not available"):
-            bpy.ops.procam.diagnose()
 
-    def diagnose(calibration_dir, out_dir, *, force, progress, cancel):  # the engine's interface, a tiny folder
+    def diagnose(options, progress, cancel):  # the step's interface, a tiny folder
         progress("fitting effects", 0.5)
+        out_dir = options.out
         out_dir.mkdir()
         write_image(out_dir / "residual.png", np.zeros((4, 4, 3), np.float32))
         (out_dir / "gap.json").write_text(json.dumps({
-            "residual": {"rmse": 0.03, "psnr": 30.5},
+            "format": "procam-gap", "version": 1, "residual": {"rmse": 0.03, "psnr": 30.5},
             "regions": [{"bbox": [1, 2, 3, 4], "share": 0.6, "description": "concave corner"}],
             "effects": [{"name": "response", "params": {}, "heldout_rmse_before": 0.03,
                          "heldout_rmse_after": 0.02, "confidence": 0.9}],
             "selected": ["response"]}))
 
-    monkeypatch.setitem(sys.modules, "procam.addon.gap.diagnose", types.SimpleNamespace(diagnose=diagnose))
+    monkeypatch.setattr(diagnose_step, "run", diagnose)
     assert bpy.ops.procam.diagnose() == {"FINISHED"}
-    summary = workflow.diagnosis_summary(tmp_path / "gap")
+    summary = diagnose_step.summary(tmp_path / "gap")
     assert summary.ok and summary.data["selected"] == ["response"] and summary.data["maps"] == ["residual.png"]
 
     with pytest.raises(RuntimeError, match="no ProCam job is running"):

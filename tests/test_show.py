@@ -15,10 +15,10 @@ import cv2
 import numpy as np
 import pytest
 
-from procam.addon.cli import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
+from procam.addon.cli.app import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
 from procam.addon.imageio import write_image
-from procam.addon.stages.sequence import (MANIFEST, SequenceError, ShowFolder, frame_digits, frame_name,
-                                          list_frames)
+from procam.addon.steps.layout import frame_name
+from procam.addon.steps.show import MANIFEST, SequenceError, ShowFolder, frame_digits, list_frames
 
 FAST = ["--iterations", "4", "--spp", "1"]
 
@@ -230,12 +230,12 @@ def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys,
     assert not _leftovers(out2)
 
     # A disk that refuses the frame stops the show at once (every frame would fail alike): exit 2, said so.
-    import procam.addon.imageio as imageio
+    import procam.addon.steps.show as show_step
 
     def full_disk(path, image):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(imageio, "write_image", full_disk)
+    monkeypatch.setattr(show_step, "write_image", full_disk)
     out3 = tmp_path / "show3"
     assert main(["show", str(cal_dir), str(seq / "shot_0001.png"), str(seq / "shot_0003.png"), "--out", str(out3),
                  *FAST, "--no-bias"]) == EXIT_USER

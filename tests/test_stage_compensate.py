@@ -353,7 +353,7 @@ def _write_calibration(cal, folder):
 
 
 def test_cli_round_trip(setup, tmp_path, monkeypatch, capsys):
-    from procam.addon.cli import main
+    from procam.addon.cli.app import main
     from procam.addon.imageio import read_image, write_image
 
     if importlib.util.find_spec("procam.addon.stages.warp") is None:  # stage B not merged yet: a stub suffices

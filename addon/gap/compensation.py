@@ -30,8 +30,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
+from ..errors import ProCamError
+from ..stages.compensate import Compensator
 from .models import MODELS, crosstalk_matrix, inverse_camera_curve, light_scale, vignetting_radius
 
 #: Effects compensation inverts (see the module docstring); the others are reported as not used.
@@ -106,8 +109,6 @@ class EffectAdapter:
     def _vignetting_gain(self, p: list[float], shape: tuple[int, ...]) -> np.ndarray:
         r = self._vig_r
         if r.shape != tuple(shape[:2]):
-            import cv2
-
             r = cv2.resize(r, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
         return 1.0 - p[0] * np.power(r, p[1])
 
@@ -138,8 +139,6 @@ class EffectAdapter:
     def compensator(self, calibration: Any, *, bounces: int = 1, spp: int = 4, seed: int = 0) -> Any:
         """The stage-C compensator of the calibration as the effects change it (surface, bounces); keeps its
         simulated white, which the camera-side inverse needs."""
-        from ..stages.compensate import Compensator
-
         comp = Compensator(self.calibration(calibration), bounces=self.bounces if self.bounces is not None
                            else bounces, spp=spp, seed=seed)
         self.white = comp.white()
@@ -217,15 +216,9 @@ class AdaptedDevice:
         return f
 
 
-def load_adapter(gap_dir_or_doc: Any, projector: Any, names: list[str] | None = None) -> EffectAdapter:
-    """The adapter of a diagnosis (``gap.json`` folder or document): the effects it found compensation can invert
+def load_adapter(doc: dict[str, Any], projector: Any, names: list[str] | None = None) -> EffectAdapter:
+    """The adapter of a diagnosis (its ``gap.json`` document): the effects it found compensation can invert
     (``auto``), or ``names`` with their fitted parameters."""
-    import json
-    from pathlib import Path
-
-    doc = gap_dir_or_doc
-    if not isinstance(doc, dict):
-        doc = json.loads((Path(doc) / "gap.json").read_text())
     selected = dict(doc.get("selected_params") or {})
     if names is None:  # what the diagnosis found compensation can invert (older documents: every selected effect)
         params = dict((doc.get("compensation") or {}).get("params", selected))
@@ -235,62 +228,29 @@ def load_adapter(gap_dir_or_doc: Any, projector: Any, names: list[str] | None = 
     return EffectAdapter(params, projector)
 
 
-def compensate_with_effects(calibration: Any, target: np.ndarray, *, area: Any, adapter: EffectAdapter,
-                            device: Any = None, bounces: int = 1, **options: Any) -> Any:
-    """Stage C with the adapter's effects around it (closed loop with ``device``, else open loop).
+def adapter_from_options(effects: str | None, diagnosis: dict[str, Any] | None, projector: Any,
+                         where: str = "the diagnosis") -> EffectAdapter | None:
+    """The adapter for ``--effects auto|NAME,...|none`` with the diagnosis document ``diagnosis`` (``gap.json``).
 
-    Returns the :class:`..stages.compensate.CompensationResult` with ``x_input``
-    and ``x_frame`` replaced by the inputs to send (``g⁻¹`` applied), and the
-    effects used / not used in its report.
+    ``auto`` uses the effects the diagnosis found compensation can invert; names use those effects' fitted
+    parameters (from the selection, else from fitting each alone). Effect models always need a diagnosis:
+    their parameters are fitted there, on the calibration's validation captures. ``where`` names it in messages.
     """
-    from ..capture.format import CaptureSet
-    from ..stages.display_area import fit_target
-
-    comp = adapter.compensator(calibration, bounces=bounces)
-    light_target = adapter.model_target(fit_target(np.asarray(target, np.float32), area), area)
-    if device is None:
-        captures = CaptureSet.load(calibration.capture_dir, verify_images=False)
-        bias = comp.estimate_bias(AdaptedCaptures(captures, adapter))
-        res = comp.run(light_target, area, open_loop_theta=bias, **options)
-    else:
-        res = comp.run(light_target, area, device=AdaptedDevice(device, adapter), **options)
-    report = {**res.report, "effects": {"used": adapter.used, "not_used": adapter.not_used,
-                                        "params": dict(adapter.params)}}
-    return replace(res, x_input=adapter.input_for(res.x_input), x_frame=adapter.frame_to_send(res.x_input),
-                   report=report)
-
-
-def adapter_from_options(effects: str | None, diagnosis: Any, projector: Any) -> EffectAdapter | None:
-    """The adapter for ``--effects auto|NAME,...|none`` with ``--diagnosis DIR`` (a ``procam diagnose`` folder).
-
-    ``auto`` uses the effects the diagnosis selected; names use those effects' fitted parameters
-    (from the selection, else from fitting each alone). Effect models always need a diagnosis:
-    their parameters are fitted there, on the calibration's validation captures.
-    """
-    import json
-    from pathlib import Path
-
-    from ..errors import ProCamError
-
     spec = (effects or "none").strip().lower()
     if spec in ("", "none", "off"):
         return None
     if diagnosis is None:
         raise ProCamError(f"--effects {effects} needs --diagnosis DIR: the folder `procam diagnose CALIB --out DIR` "
                           "wrote, where the effects' parameters were fitted")
-    path = Path(diagnosis) / "gap.json"
-    if not path.is_file():
-        raise ProCamError(f"{diagnosis} is not a diagnosis folder (no gap.json); run procam diagnose first")
-    doc = json.loads(path.read_text())
     if spec == "auto":
-        return load_adapter(doc, projector)
+        return load_adapter(diagnosis, projector)
     names = [n.strip() for n in effects.split(",") if n.strip()]
     unknown = [n for n in names if n not in MODELS]
     if unknown:
         raise ProCamError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(MODELS)}")
-    adapter = load_adapter(doc, projector, names)
+    adapter = load_adapter(diagnosis, projector, names)
     missing = [n for n in names if n not in adapter.params]
     if missing:
-        raise ProCamError(f"the diagnosis in {diagnosis} has no fitted parameters for {', '.join(missing)} "
+        raise ProCamError(f"{where} has no fitted parameters for {', '.join(missing)} "
                           "(it failed to fit or was not a candidate); rerun procam diagnose with it")
     return adapter

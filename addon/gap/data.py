@@ -26,16 +26,17 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet, Entry
-from ..errors import CaptureError, ProCamError
+from ..errors import Cancelled, ProCamError
+from ..progress import Cancel, Progress, quiet
+from ..render.forward import ForwardModel
+from ..stages.calibrate import Calibration
 
-Progress = Callable[[str, float], None]
 
 #: Roughnesses (Blender convention, α = r²) of the glossy-lobe renders the ``glossy`` model interpolates.
 GLOSSY_ROUGHNESS = (0.2, 0.4, 0.6)
@@ -242,22 +243,12 @@ def sample_input(x: np.ndarray, corr: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int = 32, seed: int = 0,
-                  progress: Progress | None = None, cancel: Callable[[], bool] | None = None) -> GapData:
-    """Read a calibration and its capture set and render the model of every pattern the diagnosis uses."""
-    from ..errors import Cancelled
-    from ..render.forward import ForwardModel
-    from ..stages.calibrate import Calibration
+def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", scale: float = 0.5, spp: int = 32,
+                  seed: int = 0, progress: Progress | None = None, cancel: Cancel | None = None) -> GapData:
+    """Render the model of every pattern of the calibration's capture set that the diagnosis uses.
 
-    say = progress or (lambda msg, frac: None)
-    cal = Calibration.load(calibration_dir)
-    if not cal.capture_dir or not Path(cal.capture_dir).is_dir():
-        raise DiagnosisError(f"the capture set {cal.capture_dir!r} that {calibration_dir} was calibrated from is "
-                             "missing; the diagnosis compares the model with those captures")
-    try:
-        captures = CaptureSet.load(cal.capture_dir)
-    except CaptureError as exc:
-        raise DiagnosisError(f"cannot read the calibration's capture set: {exc}") from None
+    ``source`` names the calibration in the report (its folder)."""
+    say = progress or quiet
     _check_levels(captures)
     proj = cal.rig.projector
     x0, y0 = proj.input_offset
@@ -314,6 +305,6 @@ def load_gap_data(calibration_dir: str | Path, *, scale: float = 0.5, spp: int =
                                         pattern_edges(sampled)))
     fit, held = split_patterns(observations)
     return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera, cal.warp,
-                   fit, held, report={"calibration": str(Path(calibration_dir).absolute()),
+                   fit, held, report={"calibration": source,
                                       "capture_set": str(captures.path), "working_size": list(size), "spp": spp,
                                       "patterns": [o.name for o in observations]})

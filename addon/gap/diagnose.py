@@ -1,24 +1,24 @@
-"""The sim-to-real diagnosis of a calibration: where, which effect, how far the gap shrinks (DESIGN.md §7).
+"""The sim-to-real diagnosis of a calibration: where, which effect, how far the gap shrinks.
 
-``diagnose(calibration_dir, out_dir)`` writes ``gap.json``, the residual maps and
-region overlay as PNGs (and the raw maps as EXR), and ``summary.md``, a one-page
-report with the images. Nothing here reads a lab truth file.
+:func:`diagnose` returns the ``gap.json`` document, the residual maps and
+region overlay, and ``summary.md``, a one-page report with the images; the
+diagnose step (``steps/diagnose.py``) writes them. Nothing here reads a lab
+truth file.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from collections.abc import Callable
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
-from ..imageio import write_atomic_bytes, write_image
-from ..outputs import AtomicFolder, jsonable
+from ..capture.format import CaptureSet
+from ..progress import Cancel, Progress, quiet
+from ..stages.calibrate import Calibration
 from .data import GapData, load_gap_data
 from .compensation import INVERTIBLE
 from .evidence import calibration_evidence
@@ -27,14 +27,10 @@ from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, 
 from .models import MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, signature_mask
 from .regions import find_regions, residual_maps
 
-FORMAT = "procam-gap"
-VERSION = 1
-MANIFEST = "gap.json"
 #: The effect explains its gain where its signature says when that share of the squared-error reduction falls
 #: on its signature pixels, and more than their share of the pixels.
 SIGNATURE_ENRICHMENT = 1.2
 
-Progress = Callable[[str, float], None]
 
 #: What calibration absorbs of each effect, so that the validation residual cannot show it. The first three are
 #: looked for where they were absorbed instead (:mod:`.evidence`).
@@ -164,120 +160,118 @@ def _summary(doc: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def diagnose(calibration_dir: str | Path, out_dir: str | Path, *, scale: float = 0.5, spp: int = 32,
-             candidates: tuple[str, ...] = NAMES, min_share: float = MIN_SHARE, force: bool = False,
-             progress: Progress | None = None, cancel: Callable[[], bool] | None = None) -> dict[str, Any]:
-    """Run the diagnosis and write its folder; returns the ``gap.json`` document."""
-    from ..errors import ProCamError
+@dataclass
+class Diagnosis:
+    """What :func:`diagnose` found: the ``gap.json`` document, its images by file name, and ``summary.md``."""
 
-    say = progress or (lambda msg, frac: None)
-    folder = AtomicFolder(out_dir, force=force, what="diagnosis folder",
-                          replaceable=lambda p: (p / MANIFEST).is_file(), error=ProCamError)
-    try:
-        t0 = time.perf_counter()
-        data = load_gap_data(calibration_dir, scale=scale, spp=spp, cancel=cancel,
-                             progress=lambda m, f: say(f"model: {m}", 0.4 * f))
-        t_render = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        # An albedo read from the white capture holds the projector's falloff exactly, so a vignetting model on
-        # top of it can only fit something else (on vedge with crosstalk and glossy it fitted the lobe's
-        # leftovers, and inverting it cost 0.12 dB): it is fitted and shown, but found from the evidence alone.
-        cal_doc = json.loads((Path(calibration_dir) / "calibration.json").read_text())
-        evidence_only = ("vignetting",) if _albedo_from_white(cal_doc) else ()
-        sel = select_effects(data, tuple(c for c in candidates if c not in evidence_only), min_share=min_share,
-                             cancel=cancel, progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
-        for name in (n for n in evidence_only if n in candidates):
-            sel.alone[name] = fit_composite(data, (name,))
-        t_fit = time.perf_counter() - t0
-        inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share)
-        say("evidence of absorbed effects", 0.9)
-        t0 = time.perf_counter()
-        evidence = calibration_evidence(calibration_dir, cancel=cancel, **_linear_light(data, sel))
-        t_evidence = time.perf_counter() - t0
-        found = [n for n, e in evidence.items() if e.detected and n in candidates and n not in sel.selected]
-        base, final = sel.base, sel.final or sel.base
-        effects = []
-        # Selected on the residual first, then found where calibration absorbed them, then the rest by share.
-        ranked = sorted(sel.alone.items(), key=lambda kv: (0 if kv[0] in sel.selected else 1 if kv[0] in found else 2,
-                                                           -kv[1].share_of(base)))
-        for name, f in ranked:
-            if f.error is not None:
-                effects.append({"name": name, "error": f.error, "params": None, "heldout_rmse_before": base.held_rmse,
-                                "heldout_rmse_after": None, "confidence": {"level": "failed"}})
-                continue
-            sig = _signature(data, name, base, f) if name in sel.selected or name == ranked[0][0] else {}
-            effects.append({"name": name, "params": f.params()[name], "heldout_rmse_before": base.held_rmse,
-                            "heldout_rmse_after": f.held_rmse, "heldout_rmse_raw_before": base.held_rmse_raw,
-                            "heldout_rmse_raw_after": f.held_rmse_raw,
-                            "heldout_mse_classes_before": list(base.held_mse_classes),
-                            "heldout_mse_classes_after": list(f.held_mse_classes),
-                            "reduction": f.share_of(base),
-                            "fit_seconds": round(f.seconds, 2), "confidence": _confidence(sel, name, sig)})
-            if name in evidence:
-                effects[-1]["absorbed"] = evidence[name].to_dict()
-                if name in found:
-                    effects[-1]["confidence"] = {**effects[-1]["confidence"], "level": "absorbed by calibration",
-                                                 "evidence": evidence[name].evidence}
-        res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
-        res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
-        cam_full = _camera_full_size(cal_doc)
-        regions = find_regions(data, np.stack([structured(r, data.observations[i].edges)
-                                               for r, i in zip(res_base, data.held_index)]),
-                               cam_full, data.held_index)
-        doc = {"format": FORMAT, "version": VERSION, "calibration": data.report["calibration"],
-               "capture_set": data.report["capture_set"], "working_size": list(data.size),
-               "patterns": {"fit": [data.names[i] for i in data.fit_index],
-                            "held_out": [data.names[i] for i in data.held_index]},
-               "lit_pixels": int(data.mask.sum()),
-               # rmse/psnr: plain simulation vs capture on the held-out patterns; *_structured: without the
-               # pixel noise (what ranking and selection use, see gap/fit.py).
-               "residual": {"rmse": base.held_rmse_raw, "psnr": _psnr(base.held_rmse_raw),
-                            "rmse_structured": base.held_rmse, "psnr_structured": _psnr(base.held_rmse),
-                            "mse_classes": list(base.held_mse_classes)},
-               "residual_after": {"rmse": final.held_rmse_raw, "psnr": _psnr(final.held_rmse_raw),
-                                  "rmse_structured": final.held_rmse, "psnr_structured": _psnr(final.held_rmse),
-                                  "mse_classes": list(final.held_mse_classes)},
-               "smooth_sigma_px": SMOOTH_SIGMA,
-               "mse_classes": ["smooth parts (smoothed residual)", "pattern edges"],
-               "regions": [r.to_dict() for r in regions],
-               "effects": effects,
-               "steps": [{k: v for k, v in s.items()} for s in sel.steps],
-               # selected: on the residual (modelled, fitted jointly: ``selected_params``), then found where
-               # calibration absorbed them (nothing left to model: ``absorbed``).
-               "selected": list(sel.selected) + found,
-               "modelled": list(sel.selected),
-               "absorbed": found,
-               "selected_params": final.params() if sel.selected else {},
-               # what --effects auto inverts around stage C, and why the other selected effects are not
-               "compensation": {"effects": inverted,
-                                "params": {n: v for n, v in final.params().items() if n in inverted},
-                                "left_out": left_out},
-               "evidence": {n: e.to_dict() for n, e in evidence.items()},
-               "min_share": min_share,
-               "what_calibration_absorbs": ABSORBED,
-               "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1),
-                           "evidence": round(t_evidence, 1)}}
-        maps = residual_maps(res_base, data.mask)
-        after = residual_maps(res_final, data.mask)
-        scale_abs = max(float(np.percentile(maps["abs"][data.mask], 99)), 1e-3)
-        doc["map_scale"] = scale_abs
-        tmp = folder.tmp
-        write_atomic_bytes(tmp / MANIFEST, (json.dumps(jsonable(doc), indent=1) + "\n").encode())
-        write_image(tmp / "residual_signed.png", _colour_signed(maps["signed"], scale_abs))
-        write_image(tmp / "residual_abs.png", _heat(maps["abs"].mean(axis=2), scale_abs))
-        write_image(tmp / "residual_abs_rgb.png", np.clip(maps["abs"] / scale_abs, 0, 1))
-        write_image(tmp / "residual_after_abs.png", _heat(after["abs"].mean(axis=2), scale_abs))
-        write_image(tmp / "residual_signed.exr", maps["signed"])
-        write_image(tmp / "residual_abs.exr", maps["abs"])
-        white = data.observations[next(i for i, o in enumerate(data.observations) if o.kind == "white")].capture
-        write_image(tmp / "regions.png", _overlay(white, regions, cam_full))
-        write_atomic_bytes(tmp / "summary.md", _summary(doc).encode())
-    except BaseException:
-        folder.abort()
-        raise
-    folder.commit()
+    doc: dict[str, Any]
+    images: dict[str, np.ndarray]
+    summary: str
+
+
+def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, format: tuple[str, int],
+             scale: float = 0.5, spp: int = 32, candidates: tuple[str, ...] = NAMES, min_share: float = MIN_SHARE,
+             progress: Progress | None = None, cancel: Cancel | None = None) -> Diagnosis:
+    """Diagnose a calibration on its capture set's held-out patterns.
+
+    ``source`` names the calibration in the report (its folder); ``format`` is the document's (tag, version).
+    """
+    say = progress or quiet
+    t0 = time.perf_counter()
+    data = load_gap_data(calibration, captures, source=source, scale=scale, spp=spp, cancel=cancel,
+                         progress=lambda m, f: say(f"model: {m}", 0.4 * f))
+    t_render = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    # An albedo read from the white capture holds the projector's falloff exactly, so a vignetting model on
+    # top of it can only fit something else (on vedge with crosstalk and glossy it fitted the lobe's
+    # leftovers, and inverting it cost 0.12 dB): it is fitted and shown, but found from the evidence alone.
+    evidence_only = ("vignetting",) if _albedo_from_white(calibration) else ()
+    sel = select_effects(data, tuple(c for c in candidates if c not in evidence_only), min_share=min_share,
+                         cancel=cancel, progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
+    for name in (n for n in evidence_only if n in candidates):
+        sel.alone[name] = fit_composite(data, (name,))
+    t_fit = time.perf_counter() - t0
+    inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share)
+    say("evidence of absorbed effects", 0.9)
+    t0 = time.perf_counter()
+    evidence = calibration_evidence(calibration, captures, cancel=cancel, **_linear_light(data, sel))
+    t_evidence = time.perf_counter() - t0
+    found = [n for n, e in evidence.items() if e.detected and n in candidates and n not in sel.selected]
+    base, final = sel.base, sel.final or sel.base
+    effects = []
+    # Selected on the residual first, then found where calibration absorbed them, then the rest by share.
+    ranked = sorted(sel.alone.items(), key=lambda kv: (0 if kv[0] in sel.selected else 1 if kv[0] in found else 2,
+                                                       -kv[1].share_of(base)))
+    for name, f in ranked:
+        if f.error is not None:
+            effects.append({"name": name, "error": f.error, "params": None, "heldout_rmse_before": base.held_rmse,
+                            "heldout_rmse_after": None, "confidence": {"level": "failed"}})
+            continue
+        sig = _signature(data, name, base, f) if name in sel.selected or name == ranked[0][0] else {}
+        effects.append({"name": name, "params": f.params()[name], "heldout_rmse_before": base.held_rmse,
+                        "heldout_rmse_after": f.held_rmse, "heldout_rmse_raw_before": base.held_rmse_raw,
+                        "heldout_rmse_raw_after": f.held_rmse_raw,
+                        "heldout_mse_classes_before": list(base.held_mse_classes),
+                        "heldout_mse_classes_after": list(f.held_mse_classes),
+                        "reduction": f.share_of(base),
+                        "fit_seconds": round(f.seconds, 2), "confidence": _confidence(sel, name, sig)})
+        if name in evidence:
+            effects[-1]["absorbed"] = evidence[name].to_dict()
+            if name in found:
+                effects[-1]["confidence"] = {**effects[-1]["confidence"], "level": "absorbed by calibration",
+                                             "evidence": evidence[name].evidence}
+    res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
+    res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
+    cam_full = calibration.rig.camera.intrinsics.size
+    regions = find_regions(data, np.stack([structured(r, data.observations[i].edges)
+                                           for r, i in zip(res_base, data.held_index)]),
+                           cam_full, data.held_index)
+    doc = {"format": format[0], "version": format[1], "calibration": data.report["calibration"],
+           "capture_set": data.report["capture_set"], "working_size": list(data.size),
+           "patterns": {"fit": [data.names[i] for i in data.fit_index],
+                        "held_out": [data.names[i] for i in data.held_index]},
+           "lit_pixels": int(data.mask.sum()),
+           # rmse/psnr: plain simulation vs capture on the held-out patterns; *_structured: without the
+           # pixel noise (what ranking and selection use, see gap/fit.py).
+           "residual": {"rmse": base.held_rmse_raw, "psnr": _psnr(base.held_rmse_raw),
+                        "rmse_structured": base.held_rmse, "psnr_structured": _psnr(base.held_rmse),
+                        "mse_classes": list(base.held_mse_classes)},
+           "residual_after": {"rmse": final.held_rmse_raw, "psnr": _psnr(final.held_rmse_raw),
+                              "rmse_structured": final.held_rmse, "psnr_structured": _psnr(final.held_rmse),
+                              "mse_classes": list(final.held_mse_classes)},
+           "smooth_sigma_px": SMOOTH_SIGMA,
+           "mse_classes": ["smooth parts (smoothed residual)", "pattern edges"],
+           "regions": [r.to_dict() for r in regions],
+           "effects": effects,
+           "steps": [{k: v for k, v in s.items()} for s in sel.steps],
+           # selected: on the residual (modelled, fitted jointly: ``selected_params``), then found where
+           # calibration absorbed them (nothing left to model: ``absorbed``).
+           "selected": list(sel.selected) + found,
+           "modelled": list(sel.selected),
+           "absorbed": found,
+           "selected_params": final.params() if sel.selected else {},
+           # what --effects auto inverts around stage C, and why the other selected effects are not
+           "compensation": {"effects": inverted,
+                            "params": {n: v for n, v in final.params().items() if n in inverted},
+                            "left_out": left_out},
+           "evidence": {n: e.to_dict() for n, e in evidence.items()},
+           "min_share": min_share,
+           "what_calibration_absorbs": ABSORBED,
+           "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1),
+                       "evidence": round(t_evidence, 1)}}
+    maps = residual_maps(res_base, data.mask)
+    after = residual_maps(res_final, data.mask)
+    scale_abs = max(float(np.percentile(maps["abs"][data.mask], 99)), 1e-3)
+    doc["map_scale"] = scale_abs
+    white = data.observations[next(i for i, o in enumerate(data.observations) if o.kind == "white")].capture
+    images = {"residual_signed.png": _colour_signed(maps["signed"], scale_abs),
+              "residual_abs.png": _heat(maps["abs"].mean(axis=2), scale_abs),
+              "residual_abs_rgb.png": np.clip(maps["abs"] / scale_abs, 0, 1),
+              "residual_after_abs.png": _heat(after["abs"].mean(axis=2), scale_abs),
+              "residual_signed.exr": maps["signed"], "residual_abs.exr": maps["abs"],
+              "regions.png": _overlay(white, regions, cam_full)}
     say("done", 1.0)
-    return doc
+    return Diagnosis(doc, images, _summary(doc))
 
 
 def _linear_light(data: GapData, sel: Selection) -> dict[str, Any]:
@@ -293,12 +287,6 @@ def _linear_light(data: GapData, sel: Selection) -> dict[str, Any]:
     return out
 
 
-def _albedo_from_white(cal_doc: dict[str, Any]) -> bool:
+def _albedo_from_white(calibration: Calibration) -> bool:
     """Whether calibration read the albedo from the white and black captures (its albedo step ran)."""
-    return "albedo" in (cal_doc.get("seconds") or {})
-
-
-def _camera_full_size(cal_doc: dict[str, Any]) -> tuple[int, int]:
-    from ..rig.model import Rig
-
-    return Rig.from_dict(cal_doc["rig"]).camera.intrinsics.size
+    return "albedo" in (calibration.report.get("seconds") or {})

@@ -35,11 +35,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+
+from ..capture.format import CaptureSet
+from ..errors import Cancelled, ProCamError
+from ..progress import Cancel
+from ..stages.calibrate import Calibration
+from ..stages.pose import surface_view, target_mask
 
 #: Vignetting is found when the fitted falloff at the farthest frame corner reaches this share of the light …
 VIGNETTING_MIN_FALLOFF = 0.05
@@ -57,7 +62,6 @@ MAX_PIXELS = 20000
 #: Cosine-weighted directions for the room light's ambient occlusion.
 AO_DIRECTIONS = 128
 
-Cancel = Callable[[], bool]
 Light = Callable[[np.ndarray], np.ndarray]
 
 
@@ -377,17 +381,10 @@ def depth_evidence(captures: Any, cal: Any) -> Evidence:
 
 # ------------------------------------------------------------------ all three
 
-def calibration_evidence(calibration_dir: str | Path, *, light: Light | None = None,
+def calibration_evidence(cal: Calibration, captures: CaptureSet, *, light: Light | None = None,
                          white_extra: np.ndarray | None = None, cancel: Cancel | None = None) -> dict[str, Evidence]:
     """Evidence for ``vignetting``, ``distortion`` and ``depth_noise`` from a calibration and its capture set
     (``light`` and ``white_extra``: what the diagnosis's selected effects say, see :func:`vignetting_evidence`)."""
-    from ..capture.format import CaptureSet
-    from ..errors import Cancelled, ProCamError
-    from ..stages.calibrate import Calibration
-    from ..stages.pose import surface_view, target_mask
-
-    cal = Calibration.load(calibration_dir)
-    captures = CaptureSet.load(cal.capture_dir, verify_images=False)
     view = surface_view(cal.surface, cal.rig.camera.intrinsics)
     mask, _ = target_mask(captures)
     out: dict[str, Evidence] = {}

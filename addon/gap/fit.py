@@ -27,13 +27,13 @@ RMSE is reported beside the structured one.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
+from ..progress import Cancel, Progress
 from ..errors import Cancelled
 from .data import GapData
 from .models import MODELS, NAMES, Composite
@@ -45,7 +45,6 @@ FIT_PIXELS = 8000
 #: Gaussian (pixels of the working image) that separates the structured residual from pixel noise.
 SMOOTH_SIGMA = 1.5
 
-Progress = Callable[[str, float], None]
 
 
 @dataclass
@@ -211,7 +210,7 @@ class Selection:
 
 def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_share: float = MIN_SHARE,
                    max_effects: int = 4, progress: Progress | None = None,
-                   cancel: Callable[[], bool] | None = None) -> Selection:
+                   cancel: Cancel | None = None) -> Selection:
     """Greedy forward selection on held-out RMSE (see the module docstring)."""
     say = progress or (lambda msg, frac: None)
     base = fit_composite(data, ())

@@ -124,7 +124,7 @@ def run_cross_check(rig: Rig, surface: SurfaceMesh, *, bounces: int = 0, samples
     import bpy
 
     from ..render.forward import ForwardModel
-    from ..rig import blender_rig
+    from ..blender import rig as blender_rig
     from .cycles import render_cycles
 
     pw, ph = rig.projector.intrinsics.size

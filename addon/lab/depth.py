@@ -15,7 +15,6 @@ iPad shows ≈ 0.5–1 cm noise at 1 m, which ``depth_noise≈0.3–0.5`` gives.
 
 from __future__ import annotations
 
-import math
 
 import cv2
 import numpy as np
@@ -118,8 +117,3 @@ def sensor_resolution(effects: EffectSet, camera_intrinsics: Intrinsics) -> tupl
         lw = max(2, round(camera_intrinsics.width * 256 / 640))
         lh = max(2, round(camera_intrinsics.height * 192 / 480))
     return lw, lh
-
-
-def depth_std_at(effects: EffectSet, depth_m: float) -> float:
-    """Configured noise standard deviation (metres, before upsampling) at a given depth."""
-    return float(effects["depth_noise"]["std"]) * float(depth_m) if math.isfinite(depth_m) else float("nan")

@@ -228,9 +228,6 @@ class EffectSet:
     def active(self) -> tuple[str, ...]:
         return tuple(e.name for e in self.effects if e.active)
 
-    def is_on(self, name: str) -> bool:
-        return self[name].active
-
     @property
     def spec(self) -> str:
         """A spec string that parses back to this set ("none" when nothing is on)."""

@@ -29,7 +29,6 @@ import os
 import shutil
 import tempfile
 import zlib
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from ..capture.format import WALL_PARAM, CaptureSet, CaptureSetWriter, DepthInfo
 from ..capture.patterns import PatternSpec, calibration_sequence
 from ..errors import CaptureError, LabError
 from ..imageio import write_atomic_bytes
+from ..progress import Cancel, Progress, check, quiet
 from ..rig.demo import demo_rig
 from ..rig.model import Camera, Rig
 from ..surface.mesh import SurfaceMesh
@@ -61,7 +61,6 @@ _SEED_RANGE = 2 ** 31
 ROOM_LIGHT = 0.25
 
 #: ``progress(done, total, message)``: called before each step of :func:`run_lab`.
-Progress = Callable[[int, int, str], None]
 
 
 def rough_pose(pose: np.ndarray, rng: np.random.Generator, offset_m: float = 0.16,
@@ -192,7 +191,7 @@ def load_mesh_file(path: Path) -> SurfaceMesh:
     """A user's ``.obj``/``.ply`` surface (rig frame, metres), with its texture if the file names one."""
     if not path.is_file():
         raise LabError(f"unknown surface {str(path)!r}: not one of {', '.join(SHAPES)} and no such mesh file")
-    from ..surface.reconstruct import import_pymeshlab
+    from ..native import import_pymeshlab
 
     pymeshlab = import_pymeshlab()
     ms = pymeshlab.MeshSet()
@@ -291,7 +290,7 @@ class LabDevice(Device):
     def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None) -> None:
         import bpy
 
-        from ..rig import blender_rig
+        from ..blender import rig as blender_rig
 
         self.truth = truth
         self.projector = truth.rig.projector
@@ -350,7 +349,7 @@ class LabDevice(Device):
         return apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k))
 
     def project(self, frame: np.ndarray) -> np.ndarray:
-        from ..rig import blender_rig
+        from ..blender import rig as blender_rig
 
         self._check_open()
         f = self.check_frame(frame)
@@ -522,7 +521,7 @@ class _NominalDevice(Device):
 
 def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
             graycode: bool = True, validation: bool = True, fast_binary: bool = True, depth_wall: bool = True,
-            progress: Progress | None = None) -> CaptureSet:
+            progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
     """Render a complete calibration capture set into ``out_dir`` and seal the truth at ``truth_path``.
 
     Everything that can be checked is checked before rendering (outputs, the
@@ -531,15 +530,18 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     with it. ``fast_binary`` renders checker and Gray-code frames with
     :func:`binary_samples`. ``depth_wall`` adds the depth sensor's image of a
     flat wall at a known distance (:func:`lab_wall_depth`), from which
-    calibration reads the sensor's bias. ``progress(done, total, message)``
-    reports each step.
+    calibration reads the sensor's bias. ``progress`` reports each capture;
+    ``cancel`` stops between captures and leaves nothing behind.
     """
     out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force)
     nominal = replace(truth.rig.projector, camera_from_projector=truth.nominal_pose)
     seq: list[PatternSpec] = calibration_sequence(truth.rig.projector, graycode=graycode, validation=validation,
                                                   seed=truth.seed)
     total = len(seq) + 2  # + depth + the scene
-    report = progress or (lambda done, n, message: None)
+    say = progress or quiet
+
+    def report(done: int, n: int, message: str) -> None:
+        say(f"{done}/{n} {message}", done / n)
     report(0, total, "depth image")
     depth, depth_info = lab_depth(truth)
     _check_depth(depth, truth)
@@ -556,6 +558,7 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
         with LabDevice(truth) as device:
             shown = _NominalDevice(device, nominal)
             for i, spec in enumerate(seq):
+                check(cancel, "the lab run was cancelled; nothing was written")
                 report(i + 2, total, spec.name)
                 device.samples = binary if spec.kind in BINARY_KINDS else truth.samples
                 frame = None if spec.projector_off else spec.image

@@ -142,15 +142,6 @@ class ForwardModel:
         self._gamma = self._mi.TensorXf(np.repeat(border_smoothing(pw, ph, eps)[..., None], 3, axis=2))
         self.smoothing_eps = float(eps)
 
-    def set_intensity(self, intensity: float) -> None:
-        """Change the projector's brightness (``Projector.intensity``)."""
-        from dataclasses import replace
-
-        proj = replace(self.rig.projector, intensity=float(intensity))  # validates (RigError)
-        self.rig = Rig(self.rig.camera, proj)
-        self.params[f"{EMITTER_ID}.scale"] = float(intensity)
-        self.params.update()
-
     # ------------------------------------------------------------------ rendering
 
     def render(self, frame: np.ndarray, *, seed: int | None = None, spp: int | None = None) -> np.ndarray:

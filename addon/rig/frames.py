@@ -63,11 +63,6 @@ def mitsuba_to_world(camera_from_device: np.ndarray) -> np.ndarray:
     return np.asarray(camera_from_device, dtype=np.float64) @ _CV_TO_MITSUBA_LOCAL
 
 
-def pose_from_mitsuba_to_world(to_world: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`mitsuba_to_world`."""
-    return np.asarray(to_world, dtype=np.float64) @ _CV_TO_MITSUBA_LOCAL
-
-
 def blender_camera_params(intr: Intrinsics) -> dict[str, float | str]:
     """Blender camera data settings (with render resolution = intrinsics size) that reproduce K."""
     if not intr.square_pixels:

@@ -1,32 +1,17 @@
-"""The calibration pipeline: capture set → surface (S_g, S_c) → projector pose (stage A) → warp (stage B).
+"""The calibration pipeline's optimisations: capture set → surface (S_g, S_c) → projector pose (stage A) → warp (stage B).
 
-It writes one calibration folder, atomically (nothing is left behind when a
-stage fails or is cancelled):
-
-``calibration.json``
-    camera and projector models (pose as a 4×4 ``camera_from_projector`` in
-    the rig frame, metres), warp parameters, losses and seconds per stage.
-``surface.npz`` / ``surface.obj`` + ``albedo.png``
-    the reconstructed mesh (rig frame) and its camera-aligned diffuse texture.
-``diagnostics/``
-    mask vs rendered mask, checkerboard capture vs render before/after the warp,
-    the deformed grid of the warp.
-``scene.blend``
-    the rig, the textured surface and those images, to open in Blender.
-
-The albedo is read where the projector reaches, as DESIGN.md §1 advises for a
-dark room: (white − black) divided by the simulated irradiance of the white
-frame once the pose is known; elsewhere the unlit surface photo, scaled to
-match, fills in.
+:func:`calibrate_captures` runs the stages and returns a :class:`Calibration`
+with its diagnostic images; writing and reading the calibration folder is
+``steps/calibrate.py``'s. The albedo is read where the projector reaches, as
+the method advises for a dark room: (white − black) divided by the simulated
+irradiance of the white frame once the pose is known; elsewhere the room-lit
+surface photo, scaled to match, fills in.
 """
 
 from __future__ import annotations
 
-import json
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -34,17 +19,16 @@ import numpy as np
 
 from ..capture.format import CaptureSet
 from ..errors import CalibrationError, ProCamError, SurfaceError
-from ..imageio import read_image, write_atomic_bytes, write_image
-from ..outputs import AtomicFolder
+from ..progress import Cancel, Progress, quiet
+from ..render.forward import ForwardModel
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 from ..surface.reconstruct import reconstruct_surface, wall_depth_offset
+from .pose import estimate_pose
+from .warp import Warp, estimate_warp, grid_image
 
-FORMAT = "procam-calibration"
 #: The calibration stages, in order; each needs the ones before it.
 STAGES = ("surface", "pose", "warp")
-VERSION = 1
-Progress = Callable[[str, float], None]
 
 
 @dataclass
@@ -53,18 +37,9 @@ class Calibration:
 
     rig: Rig
     surface: SurfaceMesh
-    warp: Any  # stages.warp.Warp
+    warp: Warp | None
     capture_dir: str
     report: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"format": FORMAT, "version": VERSION, "capture_set": self.capture_dir,
-                "rig": self.rig.to_dict(),
-                "camera_from_projector": self.rig.projector.camera_from_projector.tolist(),
-                "warp": self.warp.to_dict() if self.warp is not None else None,
-                "surface": {"mesh": "surface.npz", "obj": "surface.obj", "albedo": "albedo.png",
-                            "vertices": int(len(self.surface.vertices)), "faces": int(len(self.surface.faces))},
-                **self.report}
 
     @property
     def stages(self) -> dict[str, str]:
@@ -79,46 +54,6 @@ class Calibration:
     @property
     def missing_stages(self) -> list[str]:
         return [n for n, v in self.stages.items() if v == "not run"]
-
-    @staticmethod
-    def load(folder: str | Path, *, complete: bool = True) -> "Calibration":
-        """Read a calibration folder; with ``complete`` (for compensation, diagnosis, evaluation) one that
-        has not run every stage is refused, saying which to run."""
-        cal = Calibration._read(folder)
-        missing = cal.missing_stages
-        if complete and missing:
-            raise CalibrationError(f"the calibration in {folder} has not run {', '.join(missing)} yet; run "
-                                   f"procam calibrate {cal.capture_dir} --out {folder} --stages {','.join(missing)}")
-        return cal
-
-    @staticmethod
-    def _read(folder: str | Path) -> "Calibration":
-        from .warp import Warp
-
-        folder = Path(folder)
-        path = folder / "calibration.json"
-        if not path.is_file():
-            raise CalibrationError(f"{folder} is not a calibration folder (no calibration.json); run procam calibrate")
-        try:
-            doc = json.loads(path.read_text())
-            if doc.get("format") != FORMAT:
-                raise CalibrationError(f"{path} is not a ProCam calibration")
-            data = np.load(folder / doc["surface"]["mesh"])
-            surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"], name="surface")
-            warp = Warp.from_dict(doc["warp"]) if doc.get("warp") else None
-            report = {k: v for k, v in doc.items() if k not in ("format", "version", "capture_set", "rig",
-                                                                 "camera_from_projector", "warp", "surface")}
-            return Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report)
-        except (OSError, ValueError, KeyError) as exc:
-            raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
-
-
-def _obj_text(mesh: SurfaceMesh) -> str:
-    lines = ["# ProCam surface, rig frame (OpenCV camera frame, metres)", "mtllib surface.mtl", "usemtl albedo"]
-    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in mesh.vertices]
-    lines += [f"vt {u:.6f} {v:.6f}" for u, v in mesh.uvs]
-    lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in mesh.faces]
-    return "\n".join(lines) + "\n"
 
 
 #: A linear camera value at or above this counts as saturated …
@@ -143,8 +78,6 @@ def white_saturation(captures: CaptureSet) -> float:
 
 def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, floor: float = 0.05) -> np.ndarray:
     """Camera-aligned albedo: (white − black) / simulated irradiance of the white frame where lit."""
-    from ..render.forward import ForwardModel
-
     white, black = captures.image("white"), captures.image("black")
     flat = SurfaceMesh(surface.vertices, surface.faces, surface.uvs, np.ones((4, 4, 3), np.float32), surface.name)
     model = ForwardModel(rig, flat, spp=4, smoothing_eps=0.0, clamp=False)
@@ -210,154 +143,112 @@ def stage_plan(stages: str | tuple[str, ...] | list[str] | None) -> tuple[str, .
     return tuple(STAGES[i] for i in idx)
 
 
-def _previous(out_dir: Path, capture_dir: str | Path, needed: tuple[str, ...]) -> "Calibration":
-    """The calibration at ``out_dir`` whose ``needed`` stages a partial run reuses (same capture set)."""
-    if not (out_dir / "calibration.json").is_file():
-        raise CalibrationError(f"running from stage {STAGES[len(needed)]!r} reuses the {', '.join(needed)} of the "
-                               f"calibration in {out_dir}, but there is none; run the earlier stages first "
-                               f"(--stages {','.join(STAGES[:len(needed) + 1])})")
-    prev = Calibration.load(out_dir, complete=False)
-    if Path(prev.capture_dir).resolve() != Path(capture_dir).resolve():
-        raise CalibrationError(f"the calibration in {out_dir} was made from {prev.capture_dir}, not {capture_dir}; "
-                               "run every stage (--stages all) or choose another output folder")
-    missing = [n for n in needed if prev.stages.get(n) not in ("run", "reused")]
-    if missing:
-        raise CalibrationError(f"the calibration in {out_dir} has not run stage(s) {', '.join(missing)}; "
-                               f"run --stages {','.join(STAGES[:len(needed) + 1])}")
-    return prev
+@dataclass
+class CalibrationRun:
+    """What :func:`calibrate_captures` made: the calibration and the diagnostic images of the stages it ran
+    (and of the reused ones, passed in)."""
+
+    calibration: Calibration
+    images: dict[str, np.ndarray]
 
 
-def calibrate(capture_dir: str | Path, out_dir: str | Path, *, init: str = "graycode",
-              initial_pose: np.ndarray | None = None, force: bool = False, with_blend: bool = True,
-              progress: Progress | None = None, cancel: Callable[[], bool] | None = None,
-              seed: int = 0, depth_offset: float | None = None,
-              stages: str | tuple[str, ...] | list[str] | None = None, stage_a: str = "ours") -> Calibration:
-    """Run surface, stage A and stage B on a capture set and write the calibration folder.
+def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, previous: Calibration | None = None,
+                       previous_images: dict[str, np.ndarray] | None = None, init: str = "graycode",
+                       initial_pose: np.ndarray | None = None, seed: int = 0, depth_offset: float | None = None,
+                       stage_a: str = "ours", progress: Progress | None = None,
+                       cancel: Cancel | None = None) -> CalibrationRun:
+    """Run the stages of ``plan`` (:func:`stage_plan`) on a capture set.
 
-    ``depth_offset`` (metres, + = the depth sensor reads too far) overrides
-    the bias read from the capture set's wall depth image (:func:`scene_depth`).
-    ``stages`` (:func:`stage_plan`) runs some stages only: the ones before
-    come from the calibration already at ``out_dir`` (same capture set; it is
-    then replaced, no ``force`` needed), the ones after are left "not run"
-    and the folder cannot be used to compensate until they are.
+    The stages before the plan come from ``previous`` (a calibration of the
+    same capture set), the ones after are left "not run". ``depth_offset``
+    (metres, + = the depth sensor reads too far) overrides the bias read from
+    the capture set's wall depth image (:func:`scene_depth`).
     ``stage_a='paper'`` runs the paper's mask-only stage A (binary mask, Γ,
     plain Adam; :func:`.pose.estimate_pose`) instead of ours, to reproduce
     the paper's pipeline and its ablations.
     """
-    from .pose import estimate_pose
-    from .warp import estimate_warp, grid_image
-
-    say = progress or (lambda msg, frac: None)
-    plan = stage_plan(stages)
-    captures = CaptureSet.load(capture_dir)
+    say = progress or quiet
     for kind in ("white", "black", "checker"):
         if not captures.entries_of(kind):
-            raise CalibrationError(f"the capture set {capture_dir} has no '{kind}' capture; calibration needs "
+            raise CalibrationError(f"the capture set {captures.path} has no '{kind}' capture; calibration needs "
                                    "white, black, checkerboard and depth captures")
     reused = STAGES[:STAGES.index(plan[0])]
-    prev = _previous(Path(out_dir), capture_dir, reused) if reused else None
-    folder = AtomicFolder(out_dir, force=force or prev is not None, what="calibration folder",
-                          replaceable=lambda p: (p / "calibration.json").is_file(), error=CalibrationError)
-    try:
-        seconds: dict[str, float] = dict(prev.report.get("seconds", {})) if prev else {}
-        state = {n: ("reused" if n in reused else "run" if n in plan else "not run") for n in STAGES}
-        report: dict[str, Any] = {k: v for k, v in (prev.report if prev else {}).items()
-                                  if k in ("init", "surface_report", "pose")}
-        saturated = white_saturation(captures)
-        report["white_saturated_share"] = saturated
-        if saturated > SATURATED_WARN_SHARE:
-            report["warnings"] = [
-                f"the white capture {captures.entry('white').file} is saturated on {saturated:.0%} of the lit area "
-                "(a glossy highlight or too long an exposure): the surface's albedo there is too dark; recapture "
-                "with a shorter exposure"]
-            say(f"warning: {report['warnings'][0]}", 0.0)
-        images: dict[str, np.ndarray] = {}
-        if prev is not None:  # the reused stages' diagnostic images travel with them
-            kept = tuple(f"{n}_" for n in reused)
-            for png in sorted((Path(out_dir) / "diagnostics").glob("*.png")):
-                if png.stem.startswith(kept):
-                    images[png.stem] = read_image(png)
+    if reused and previous is None:
+        raise CalibrationError(f"stage {plan[0]!r} reuses the {', '.join(reused)} of an earlier calibration; "
+                               "none was given")
+    prev = previous
+    seconds: dict[str, float] = dict(prev.report.get("seconds", {})) if prev else {}
+    state = {n: ("reused" if n in reused else "run" if n in plan else "not run") for n in STAGES}
+    report: dict[str, Any] = {k: v for k, v in (prev.report if prev else {}).items()
+                              if k in ("init", "surface_report", "pose")}
+    saturated = white_saturation(captures)
+    report["white_saturated_share"] = saturated
+    if saturated > SATURATED_WARN_SHARE:
+        report["warnings"] = [
+            f"the white capture {captures.entry('white').file} is saturated on {saturated:.0%} of the lit area "
+            "(a glossy highlight or too long an exposure): the surface's albedo there is too dark; recapture "
+            "with a shorter exposure"]
+        say(f"warning: {report['warnings'][0]}", 0.0)
+    kept = tuple(f"{n}_" for n in reused)  # the reused stages' diagnostic images travel with them
+    images = {k: v for k, v in (previous_images or {}).items() if k.startswith(kept)} if kept else {}
 
-        if "surface" in plan:
-            t0 = time.perf_counter()
-            say("surface: reconstructing from depth", 0.0)
-            try:
-                depth, offset, offset_source = scene_depth(captures, depth_offset)
-            except ProCamError as exc:
-                raise CalibrationError(f"surface: {exc}") from None
-            mesh, surface_report = reconstruct_surface(depth, captures.camera.intrinsics, captures.image("surface"),
-                                                       depth_offset=offset)
-            seconds["surface"] = time.perf_counter() - t0
-            report["surface_report"] = {**surface_report.to_dict(), "depth_offset_source": offset_source}
-        else:
-            mesh = prev.surface
+    if "surface" in plan:
+        t0 = time.perf_counter()
+        say("surface: reconstructing from depth", 0.0)
+        try:
+            depth, offset, offset_source = scene_depth(captures, depth_offset)
+        except ProCamError as exc:
+            raise CalibrationError(f"surface: {exc}") from None
+        mesh, surface_report = reconstruct_surface(depth, captures.camera.intrinsics, captures.image("surface"),
+                                                   depth_offset=offset)
+        seconds["surface"] = time.perf_counter() - t0
+        report["surface_report"] = {**surface_report.to_dict(), "depth_offset_source": offset_source}
+    else:
+        mesh = prev.surface
 
-        rig = Rig(captures.camera, captures.projector)  # the capture set's nominal pose until stage A runs
-        if "pose" in plan:
-            t0 = time.perf_counter()
-            say("stage A: projector pose", 0.1)
-            pose = estimate_pose(captures, mesh, init=init, initial_pose=initial_pose, cancel=cancel, seed=seed,
-                                 method=stage_a, progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
-            seconds["pose"] = time.perf_counter() - t0
-            rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
-            report.update(init=pose.init, pose=pose.to_dict())
-            images.update({f"pose_{n}": im for n, im in pose.diagnostics.items()})
+    rig = Rig(captures.camera, captures.projector)  # the capture set's nominal pose until stage A runs
+    if "pose" in plan:
+        t0 = time.perf_counter()
+        say("stage A: projector pose", 0.1)
+        pose = estimate_pose(captures, mesh, init=init, initial_pose=initial_pose, cancel=cancel, seed=seed,
+                             method=stage_a, progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
+        seconds["pose"] = time.perf_counter() - t0
+        rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
+        report.update(init=pose.init, pose=pose.to_dict())
+        images.update({f"pose_{n}": im for n, im in pose.diagnostics.items()})
 
-            t0 = time.perf_counter()
-            say("surface: albedo from white − black", 0.5)
-            mesh = replace(mesh, albedo=albedo_from_captures(captures, mesh, rig))
-            seconds["albedo"] = time.perf_counter() - t0
-        elif state["pose"] == "reused":
-            rig = prev.rig
-        else:
-            for k in ("init", "pose"):
-                report.pop(k, None)
-            for k in ("pose", "albedo"):
-                seconds.pop(k, None)
+        t0 = time.perf_counter()
+        say("surface: albedo from white − black", 0.5)
+        mesh = replace(mesh, albedo=albedo_from_captures(captures, mesh, rig))
+        seconds["albedo"] = time.perf_counter() - t0
+    elif state["pose"] == "reused":
+        rig = prev.rig
+    else:
+        for k in ("init", "pose"):
+            report.pop(k, None)
+        for k in ("pose", "albedo"):
+            seconds.pop(k, None)
 
-        warp = None
-        if "warp" in plan:
-            t0 = time.perf_counter()
-            say("stage B: warp", 0.55)
-            fit = estimate_warp(captures, mesh, rig, cancel=cancel, seed=seed,
-                                progress=lambda m, f: say(f"stage B: {m}", 0.55 + 0.4 * f))
-            seconds["warp"] = time.perf_counter() - t0
-            warp = fit.warp
-            report["warp_report"] = {"losses": [float(v) for v in fit.losses[-1:]] if fit.losses else [],
-                                     "corners_before_px": fit.corners_before_px,
-                                     "corners_after_px": fit.corners_after_px}
-            images.update({f"warp_{n}": im for n, im in fit.diagnostics.items()})
-            images["warp_grid"] = grid_image(warp, warp.size)
-        else:
-            seconds.pop("warp", None)
+    warp = None
+    if "warp" in plan:
+        t0 = time.perf_counter()
+        say("stage B: warp", 0.55)
+        fit = estimate_warp(captures, mesh, rig, cancel=cancel, seed=seed,
+                            progress=lambda m, f: say(f"stage B: {m}", 0.55 + 0.45 * f))
+        seconds["warp"] = time.perf_counter() - t0
+        warp = fit.warp
+        report["warp_report"] = {"losses": [float(v) for v in fit.losses[-1:]] if fit.losses else [],
+                                 "corners_before_px": fit.corners_before_px,
+                                 "corners_after_px": fit.corners_after_px}
+        images.update({f"warp_{n}": im for n, im in fit.diagnostics.items()})
+        images["warp_grid"] = grid_image(warp, warp.size)
+    else:
+        seconds.pop("warp", None)
 
-        pose_doc, warp_doc = report.get("pose"), report.get("warp_report")
-        report["losses"] = {"pose": (pose_doc or {}).get("final_loss"),
-                            "warp": ((warp_doc or {}).get("losses") or [None])[-1]}
-        report["stages"] = state
-        report["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
-        cal = Calibration(rig, mesh, warp, str(Path(capture_dir).absolute()), report)
-
-        say("writing the calibration folder", 0.95)
-        tmp = folder.tmp
-        write_atomic_bytes(tmp / "calibration.json", (json.dumps(cal.to_dict(), indent=1) + "\n").encode())
-        import io
-        buf = io.BytesIO()
-        np.savez_compressed(buf, vertices=mesh.vertices, faces=mesh.faces, uvs=mesh.uvs, albedo=mesh.albedo)
-        write_atomic_bytes(tmp / "surface.npz", buf.getvalue())
-        write_image(tmp / "albedo.png", mesh.albedo)
-        write_atomic_bytes(tmp / "surface.mtl", b"newmtl albedo\nKd 1 1 1\nmap_Kd albedo.png\n")
-        write_atomic_bytes(tmp / "surface.obj", _obj_text(mesh).encode())
-        diag = tmp / "diagnostics"
-        diag.mkdir()
-        for name, im in images.items():
-            write_image(diag / f"{name}.png", np.clip(im, 0, 1))
-        if with_blend:
-            from ..rig.blender_file import save_calibration_blend
-            save_calibration_blend(tmp / "scene.blend", rig, mesh, {n: np.clip(i, 0, 1) for n, i in images.items()})
-    except BaseException:
-        folder.abort()
-        raise
-    folder.commit()
-    say("done", 1.0)
-    return cal
+    pose_doc, warp_doc = report.get("pose"), report.get("warp_report")
+    report["losses"] = {"pose": (pose_doc or {}).get("final_loss"),
+                        "warp": ((warp_doc or {}).get("losses") or [None])[-1]}
+    report["stages"] = state
+    report["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
+    cal = Calibration(rig, mesh, warp, str(captures.path.absolute()), report)
+    return CalibrationRun(cal, images)

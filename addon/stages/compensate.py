@@ -88,18 +88,17 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
+from ..progress import Cancel, Progress
 from ..capture.devices import Device
 from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
 from .display_area import DisplayArea, fit_target
 from .metrics import psnr
 
-Progress = Callable[[str, float], None]
 
 #: Defaults of the paper's schedule and of the choices documented above.
 ITERATIONS_Z = 200
@@ -566,7 +565,7 @@ class Compensator:
             schedule: str | Schedule = DEFAULT_SCHEDULE, iterations_z: int | None = None,
             iterations_joint: int | None = None, lr: float | None = None, alpha: float | None = None,
             capture_every: int | None = None, progress: Progress | None = None,
-            cancel: Callable[[], bool] | None = None, open_loop_theta: np.ndarray | BiasModel | None = None,
+            cancel: Cancel | None = None, open_loop_theta: np.ndarray | BiasModel | None = None,
             use_bias: bool = True, init: str = "inverse", theta_init: str = "capture",
             name: str = "target") -> CompensationResult:
         """Stage C for one target; see :func:`compensate`."""
@@ -842,7 +841,7 @@ def compensate(calibration: Any, target: np.ndarray, *, area: DisplayArea, devic
                schedule: str | Schedule = DEFAULT_SCHEDULE, iterations_z: int | None = None,
                iterations_joint: int | None = None, lr: float | None = None, alpha: float | None = None,
                bounces: int = 1, spp: int = 4, capture_every: int | None = None, progress: Progress | None = None,
-               cancel: Callable[[], bool] | None = None, seed: int = 0,
+               cancel: Cancel | None = None, seed: int = 0,
                open_loop_theta: np.ndarray | BiasModel | None = None, use_bias: bool = True,
                init: str = "inverse", theta_init: str = "capture",
                compensator: Compensator | None = None, name: str = "target") -> CompensationResult:

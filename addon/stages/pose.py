@@ -96,13 +96,13 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
 import numpy as np
 
+from ..progress import Cancel, Progress
 from ..capture.format import CaptureSet
 from ..capture.patterns import decode_gray_code_set
 from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
@@ -135,7 +135,6 @@ COARSE_WIDTH = 320
 #: Adam steps between refreshes of the preconditioning metric.
 REFRESH = 25
 
-Progress = Callable[[str, float], None]
 
 
 
@@ -506,7 +505,7 @@ def _whitening(model: Any, frame_t: Any, view: SurfaceView, projector: Projector
 
 def refine_pose_mask(captures: CaptureSet, surface: SurfaceMesh, pose: np.ndarray, target: np.ndarray,
                      phases: list[Phase], *, spp: int = 4, seed: int = 0, progress: Progress | None = None,
-                     progress_span: tuple[float, float] = (0.0, 1.0), cancel: Callable[[], bool] | None = None,
+                     progress_span: tuple[float, float] = (0.0, 1.0), cancel: Cancel | None = None,
                      steps: dict[str, np.ndarray] | None = None, losses: list[float] | None = None,
                      info: dict[str, Any] | None = None, precondition: bool = True) -> np.ndarray:
     """Adam on the pose delta against the target mask through the differentiable render, phase by phase.
@@ -608,7 +607,7 @@ def refine_pose_mask(captures: CaptureSet, surface: SurfaceMesh, pose: np.ndarra
 
 def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "graycode",
                   initial_pose: np.ndarray | None = None, iterations: int | None = None,
-                  progress: Progress | None = None, cancel: Callable[[], bool] | None = None,
+                  progress: Progress | None = None, cancel: Cancel | None = None,
                   seed: int = 0, spp: int = 4, phases: list[Phase] | None = None,
                   target: str | None = None, precondition: bool | None = None,
                   method: str = "ours") -> PoseResult:

@@ -104,19 +104,18 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
+from ..progress import Cancel, Progress
 from ..capture.format import CaptureSet, Entry
 from ..errors import CalibrationError, Cancelled, ImageError, ProCamError
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 
-Progress = Callable[[str, float], None]
 
 DEFAULT_GRID = 8
 #: The paper's per-channel binarisation threshold, applied to the normalised capture (see module notes).
@@ -711,7 +710,7 @@ def _blur(pattern: np.ndarray, sigma: float) -> np.ndarray:
 def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid: int = DEFAULT_GRID,
                   iterations: int = 70, spp: int = 1, learning_rate: float | None = None,
                   bending: float = 10.0, l2: float = 0.1, progress: Progress | None = None,
-                  cancel: Callable[[], bool] | None = None, seed: int = 0) -> WarpResult:
+                  cancel: Cancel | None = None, seed: int = 0) -> WarpResult:
     """Fit M by differentiable rendering against the binarised checkerboard captures, then W (Eq. 7–8).
 
     ``rig`` carries the projector pose from stage A and ``surface`` the

@@ -44,27 +44,12 @@ import cv2
 import numpy as np
 
 from ..errors import SurfaceError
+from ..native import import_pymeshlab
 from ..rig.model import Intrinsics
 from .mesh import SurfaceMesh
 
 #: Largest sensor depth bias (metres) accepted as ``depth_offset``.
 MAX_DEPTH_OFFSET = 0.5
-
-
-def import_pymeshlab():
-    """Import pymeshlab, loading bpy first when it is installed.
-
-    Both bundle Embree; once pymeshlab's is loaded, a later ``import bpy`` in
-    the same process fails ("undefined symbol rtcGetSceneTraversable"), while
-    the other order works. Inside Blender bpy is always first.
-    """
-    try:
-        import bpy  # noqa: F401
-    except ImportError:
-        pass
-    import pymeshlab
-
-    return pymeshlab
 
 
 @dataclass(frozen=True)

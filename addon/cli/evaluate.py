@@ -2,7 +2,7 @@
 
 Reads the folder ``procam compensate`` wrote (``--inputs``), projects each
 target's input and, as a baseline, the uncompensated target through the device,
-and writes a new folder (atomically; replaced only with ``--force``):
+and writes a new folder (``addon/steps/evaluate.py``; replaced only with ``--force``):
 
 ``metrics.json``                  ``{"targets": [{"name", "psnr", "ssim", "uncompensated": {…}, …}],
                                   "mean": {"psnr", "ssim"}, …}``
@@ -18,15 +18,15 @@ kept and ``metrics.json`` records the failure (``"complete": false``).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
-from ..cli import command
+from ..stages.display_area import TARGET_ENCODINGS
+from ..steps.evaluate import EvaluateOptions, run as evaluate
+from .app import command
+from .terminal import run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
-    from ..stages.display_area import TARGET_ENCODINGS
-
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
     p.add_argument("--inputs", type=Path, required=True, help="compensation folder (from procam compensate)")
     p.add_argument("--targets", type=Path, nargs="+", required=True, metavar="TARGET",
@@ -43,47 +43,17 @@ def _configure(p: argparse.ArgumentParser) -> None:
 @command("evaluate", "Project compensated inputs through a device and measure PSNR/SSIM against the targets.",
          _configure)
 def run(args: argparse.Namespace) -> int:
-    from ..imageio import write_atomic_bytes
-    from ..outputs import AtomicFolder, jsonable, progress
-    from ..stages.calibrate import Calibration
-    from ..stages.display_area import load_target
-    from ..stages.evaluate import METRICS, CompensationInputs, evaluate_folder
-    from ..outputs import output_names
-    from .compensate import open_device
-
-    cal = Calibration.load(args.calibration)
-    inputs = CompensationInputs.load(args.inputs)
-    inputs.check_against(cal)
-    names = output_names(args.targets)
-    for name in names:
-        inputs.record(name)  # a target with no compensation fails before anything is read or projected
-    targets = [(name, *load_target(p, encoding=args.target_encoding)) for name, p in zip(names, args.targets)]
-    folder = AtomicFolder(args.out, force=args.force, what="evaluation folder",
-                          replaceable=lambda p: (p / METRICS).is_file())
-    device = None
-    try:
-        device = open_device(args.device)
-        result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=args.calibration,
-                                 classical=args.classical, progress=progress)
-        result.doc["device"] = args.device
-        write_atomic_bytes(folder.tmp / METRICS, (json.dumps(jsonable(result.doc), indent=1) + "\n").encode())
-    except BaseException:
-        folder.abort()
-        raise
-    finally:
-        if device is not None:
-            device.close()
-    folder.commit()
-    for r in result.doc["targets"]:
+    options = EvaluateOptions(args.calibration, args.inputs, tuple(args.targets), args.device, args.out,
+                              classical=args.classical, target_encoding=args.target_encoding, force=args.force)
+    doc = run_step("evaluate", evaluate, options, total=len(options.targets), unit="targets")
+    for r in doc["targets"]:
         if r.get("status") == "done":
             u = r["uncompensated"]
             extra = f", classical {r['classical']['psnr']:.2f} dB" if "classical" in r else ""
             print(f"{r['name']}: PSNR {u['psnr']:.2f} → {r['psnr']:.2f} dB, SSIM {u['ssim']:.3f} → {r['ssim']:.3f} "
                   f"(uncompensated → compensated{extra})")
-    m = result.doc["mean"]
+    m = doc["mean"]
     if m:
-        print(f"mean: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; metrics in {args.out / METRICS}")
-    if result.failure is not None:
-        raise result.failure
+        print(f"mean: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; metrics in {args.out / 'metrics.json'}")
     return 0
 

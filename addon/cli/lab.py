@@ -8,17 +8,17 @@ and writes nothing. Progress goes to stderr, the summary to stdout.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
-from ..cli import command
-from ..errors import LabError
+from ..lab.effects import effect_help
+from ..lab.lab import describe_run
+from ..steps.capture import LabOptions, run_lab
+from .app import command
+from .terminal import progress, run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
-    from ..lab.effects import effect_help
-
     p.add_argument("--surface", default="curve", help="plane, curve, vedge, hedge, or an .obj/.ply file (rig frame, metres)")
     p.add_argument("--out", type=Path, required=True, help="capture set folder to create")
     p.add_argument("--truth", type=Path, default=None,
@@ -39,29 +39,16 @@ def _configure(p: argparse.ArgumentParser) -> None:
 
 @command("lab", "Render a calibration capture set in the virtual lab (Cycles + injected real-world effects).", _configure)
 def run(args: argparse.Namespace) -> int:
-    from ..lab.lab import check_lab_outputs, describe_run, make_truth, run_lab
-    from ..outputs import progress
-
-    if not 0.05 <= args.scale <= 2:
-        raise LabError(f"--scale must lie between 0.05 and 2, got {args.scale}")
-    out = Path(os.path.abspath(args.out))  # normalised, so that "." or "../x" get a proper name
-    truth_path = Path(os.path.abspath(args.truth)) if args.truth else out.with_name(out.name + ".truth.json")
-    check_lab_outputs(out, truth_path, force=args.force)  # before reading any mesh
-    truth = make_truth(args.surface, effects=args.effects, seed=args.seed, samples=args.samples, scale=args.scale)
-    cam, proj = truth.rig.camera.intrinsics.size, truth.rig.projector.intrinsics.size
-    progress(f"lab: surface {truth.surface_source}, effects {truth.effects.spec}, camera {cam[0]}×{cam[1]}, "
-             f"projector {proj[0]}×{proj[1]}, {args.samples} spp")
+    options = LabOptions(args.out, surface=args.surface, effects=args.effects, seed=args.seed, samples=args.samples,
+                         scale=args.scale, graycode=not args.no_graycode, full_binary=args.full_binary,
+                         truth=args.truth, force=args.force)
+    out, truth_path = options.paths()
+    progress(f"lab: {out} ({args.samples} spp)")
     t0 = time.perf_counter()
-
-    def report(done: int, total: int, message: str) -> None:
-        elapsed = time.perf_counter() - t0
-        eta = f", ~{elapsed / done * (total - done):.0f} s left" if 2 < done < total else ""
-        progress(f"lab: {done}/{total} {message} ({elapsed:.0f} s{eta})")
-
-    cs = run_lab(truth, out, truth_path=truth_path, force=args.force, graycode=not args.no_graycode,
-                 fast_binary=not args.full_binary, progress=report)
-    dt = time.perf_counter() - t0
-    print(f"capture set: {out} ({describe_run(cs, dt)}, projector {proj[0]}×{proj[1]}, {args.samples} spp)")
+    cs = run_step("lab", run_lab, options)
+    proj = cs.projector.intrinsics.size
+    print(f"capture set: {out} ({describe_run(cs, time.perf_counter() - t0)}, projector {proj[0]}×{proj[1]}, "
+          f"{args.samples} spp)")
     print(f"sealed truth: {truth_path}")
-    print(f"effects: {truth.effects.spec}")
+    print(f"effects: {args.effects or 'none'}")
     return 0

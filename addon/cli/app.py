@@ -18,17 +18,15 @@ Results go to stdout, progress and errors to stderr.
 from __future__ import annotations
 
 import argparse
-import contextlib
+import importlib
 import os
-import signal
 import sys
 import tempfile
-import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 
-from .errors import Cancelled, ProCamError
+from ..errors import Cancelled, ProCamError
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -72,8 +70,15 @@ def _fill_missing_help(parser: argparse.ArgumentParser) -> None:
             action.help = "(default %(default)s)"
 
 
+#: The modules of this package that define subcommands, in the order ``procam --help`` lists them: the workflow's
+#: steps first. Imported when the parser is built, because each registers itself with :func:`command`.
+COMMAND_MODULES = ("lab", "capture", "calibrate", "compensate", "show", "evaluate", "diagnose", "export", "demo",
+                   "build")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    from . import commands  # noqa: F401  (registers the subcommands)
+    for module in COMMAND_MODULES:
+        importlib.import_module(f"{__package__}.{module}")
 
     parser = argparse.ArgumentParser(prog="procam", description="ProCam: projector compensation by differentiable rendering.",
                                      epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -142,35 +147,6 @@ def _internal_error(name: str, exc: BaseException) -> int:
     print(f"{who}: internal error: {type(exc).__name__}: {exc}\n"
           f"{who}: this is a bug in ProCam; the traceback is in {where}", file=sys.stderr)
     return EXIT_INTERNAL
-
-
-@contextlib.contextmanager
-def cancel_on_interrupt() -> Iterator[Callable[[], bool]]:
-    """Yield ``cancel()`` for stage loops: the first Ctrl-C makes it true, so the running stage stops
-    cleanly at its next step (and raises :class:`Cancelled`); a second Ctrl-C interrupts at once.
-
-    Outside the main thread (a Blender worker) signals cannot be caught: ``cancel()`` stays false there.
-    """
-    hits = [0]
-
-    def handler(signum: int, frame: object) -> None:
-        hits[0] += 1
-        if hits[0] > 1:
-            raise KeyboardInterrupt
-        print("procam: cancelling after the current step (Ctrl-C again to stop at once)", file=sys.stderr,
-              flush=True)
-
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        try:
-            previous = signal.signal(signal.SIGINT, handler)
-        except ValueError:
-            previous = None
-    try:
-        yield lambda: hits[0] > 0
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

@@ -33,8 +33,8 @@ from mathutils import Matrix
 
 from ..errors import ImageError, RigError, SurfaceError
 from ..surface.mesh import SurfaceMesh
-from . import frames
-from .model import Camera, Intrinsics, Projector, Rig
+from ..rig import frames
+from ..rig.model import Camera, Intrinsics, Projector, Rig
 
 PROP = "procam"
 CAMERA_NAME = "ProCam Camera"
@@ -768,28 +768,3 @@ def load_image_file(path: str | Path, name: str | None = None) -> bpy.types.Imag
     if name:
         image.name = name
     return image
-
-
-def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMesh, images: dict[str, np.ndarray],
-                                  *, force: bool = False) -> Path:
-    """``blender_file.save_calibration_blend`` to a temporary name renamed into place; never overwrites unless ``force``."""
-    import os
-
-    from ..imageio import atomic_path
-    from ..outputs import OutputError
-    from .blender_file import save_calibration_blend
-
-    path = Path(path)
-    if path.suffix.lower() != ".blend":
-        raise OutputError(f"{path.name} is not a .blend file name; give a path ending in .blend")
-    if path.exists() and not force:
-        raise OutputError(f"{path} exists; it is only replaced with Replace (force) on")
-    if not path.parent.is_dir():
-        raise OutputError(f"cannot write {path}: folder {path.parent} does not exist")
-    tmp, _ = atomic_path(path)
-    try:
-        save_calibration_blend(tmp, rig, surface, images)
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
-    return path

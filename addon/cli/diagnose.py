@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli import command
-from ..errors import ProCamError
+from ..gap.fit import MIN_SHARE
+from ..gap.models import NAMES
+from ..steps.diagnose import DiagnoseOptions, run as diagnose
+from .app import command
+from .terminal import run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
-    from ..gap.fit import MIN_SHARE
-    from ..gap.models import NAMES
-
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
     p.add_argument("--out", type=Path, required=True, help="diagnosis folder to create (gap.json, maps, summary.md)")
     p.add_argument("--effects", default="all",
@@ -26,36 +26,12 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing diagnosis folder")
 
 
-def parse_candidates(spec: str) -> tuple[str, ...]:
-    from ..gap.models import NAMES
-
-    if spec.strip().lower() in ("all", "auto", ""):
-        return NAMES
-    names = tuple(n.strip() for n in spec.split(",") if n.strip())
-    bad = [n for n in names if n not in NAMES]
-    if bad:
-        raise ProCamError(f"unknown effect model(s) {', '.join(bad)}; known: {', '.join(NAMES)}")
-    return names
-
-
 @command("diagnose", "Sim-to-real diagnosis: residual maps, regions, and which unmodelled effect explains them.",
          _configure)
 def run(args: argparse.Namespace) -> int:
-    from ..gap.diagnose import diagnose
-    from ..outputs import progress
-
-    if not 0.05 <= args.scale <= 1.0:
-        raise ProCamError(f"--scale must be between 0.05 and 1, got {args.scale}")
-    last = [-1.0]
-
-    def say(msg: str, frac: float) -> None:
-        if frac - last[0] >= 0.02 or frac >= 1.0:
-            progress(f"{100 * frac:3.0f}% {msg}")
-            last[0] = frac
-
-    doc = diagnose(args.calibration, args.out, scale=args.scale, spp=args.spp,
-                   candidates=parse_candidates(args.effects), min_share=args.min_share, force=args.force,
-                   progress=say)
+    doc = run_step("diagnose", diagnose, DiagnoseOptions(args.calibration, args.out, effects=args.effects,
+                                                         scale=args.scale, spp=args.spp,
+                                                         min_share=args.min_share, force=args.force))
     res, after = doc["residual"], doc["residual_after"]
     print(f"diagnosis: {args.out}")
     print(f"  held-out residual: RMSE {res['rmse']:.4f} ({res['psnr']:.1f} dB)"

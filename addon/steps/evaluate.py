@@ -1,24 +1,20 @@
-"""Evaluation: project projector inputs through a capture device and measure the camera's view against the target.
+"""The evaluate step: project compensated inputs through a device and measure PSNR/SSIM in the display area.
 
-The paper's Table 2 measure (DESIGN.md §8): the capture is cropped to the
-target display area, the target is fitted to that crop with
-:func:`.display_area.fit_target` (the same pixels stage C saw), and PSNR and
-SSIM come from :mod:`.metrics`. Always next to the baselines of the same run:
-
-* **uncompensated** — the target projected as is, through the warp: the
-  target placed in its area, carried into the projector input by the
-  calibrated geometry (``Compensator.initial_input(how='geometric')``), then
-  ``x = W(·)``;
-* **classical** — :mod:`.classical` (per-pixel colour mixing, Gray-code geometry);
-* the **ablations** of the paper's Fig. 9 — no θ (stage C with
-  ``use_bias=False``) and no W (stage C on the calibration with its warp
-  replaced by the identity, :func:`without_warp`).
-
-:func:`evaluate_folder` is the engine of ``procam evaluate``: it reads what
-``procam compensate`` wrote (``compensation.json`` names each target's
+Reads a compensation folder (``compensation.json`` names each target's
 ``NAME_frame.png`` / ``NAME_input.png`` and its display area), refuses inputs
-made from another capture set, and writes per target a side-by-side image
-(target | uncompensated | compensated | error map) and the captures.
+made from another capture set or rig, projects each target's input and, as a
+baseline, the uncompensated target through the device, and writes a new
+folder (atomically; replaced only with ``force``):
+
+``metrics.json``                   per target PSNR/SSIM compensated, uncompensated [and classical]; the means
+``NAME_comparison.png``            target | uncompensated | compensated [| classical] | error map (area crops)
+``NAME_capture.png``               the camera's view of the compensated input
+``NAME_uncompensated_capture.png`` the camera's view of the uncompensated target
+
+Targets are matched to the compensation by file stem, as the compensate step
+named them. If a target fails during the projections, the finished ones are
+kept and ``metrics.json`` records the failure (``"complete": false``), which
+is then raised.
 """
 
 from __future__ import annotations
@@ -26,23 +22,28 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..capture.devices import Device
-from ..errors import CaptureError, ImageError, ProCamError
-from .display_area import DisplayArea, TargetAspectWarning, fit_target
-from .metrics import error_map, psnr, ssim
+from ..errors import ImageError, ProCamError
+from ..imageio import read_image, write_image
+from ..outputs import AtomicFolder, output_names, write_manifest
+from ..progress import Cancel, Progress, check, quiet
+from ..stages.calibrate import Calibration
+from ..stages.classical import fit_classical
+from ..stages.compensate import Compensator
+from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
+from ..stages.metrics import mean_scores, measure, side_by_side, uncompensated_input
+from . import calibrate as calibrate_step
+from . import layout
+from .stage_c import open_device
+from .summary import Summary, cached, fmt
 
-Progress = Callable[[str], None]
-COMPENSATION_MANIFEST = "compensation.json"
-METRICS = "metrics.json"
-FORMAT = "procam-evaluation"
-VERSION = 1
+KIND = layout.EVALUATION
 
 
 class EvaluationError(ProCamError):
@@ -50,87 +51,26 @@ class EvaluationError(ProCamError):
 
 
 class InputsError(EvaluationError):
-    """A compensation folder (``--inputs``) that is missing, incomplete or unreadable."""
+    """A compensation folder that is missing, incomplete or unreadable."""
 
 
 class MismatchError(EvaluationError):
     """Inputs and calibration (or device) that do not belong together."""
 
 
-# -- measuring one projection --------------------------------------------------------------------
+@dataclass(frozen=True)
+class EvaluateOptions:
+    """What ``procam evaluate`` and the Evaluate button ask for."""
 
-@dataclass
-class Measurement:
-    """One projection through the device: the capture and its quality inside the display area."""
+    calibration: Path
+    inputs: Path  # the compensation folder
+    targets: tuple[Path, ...]
+    device: str  # lab:TRUTH_FILE or folder:CAPTURE_DIR
+    out: Path
+    classical: bool = False
+    target_encoding: str = "auto"
+    force: bool = False
 
-    capture: np.ndarray  # camera size
-    psnr: float
-    ssim: float
-    seconds: float
-
-    def scores(self) -> dict[str, float]:
-        return {"psnr": round(self.psnr, 4), "ssim": round(self.ssim, 5)}
-
-
-def check_capture(image: np.ndarray, camera_size: tuple[int, int]) -> np.ndarray:
-    """A device capture as float32, if it has the camera's size and finite values; else a :class:`CaptureError`."""
-    img = np.asarray(image, dtype=np.float32)
-    cw, ch = camera_size
-    if img.shape != (ch, cw, 3):
-        got = f"{img.shape[1]}×{img.shape[0]}" if img.ndim >= 2 else str(img.shape)
-        raise CaptureError(f"the capture device returned a {got} image (shape {img.shape}), but the calibrated camera "
-                           f"is {cw}×{ch}×3; is the device the rig that was calibrated?")
-    if not np.all(np.isfinite(img)):
-        raise CaptureError("the capture device returned an image with NaN or infinite values")
-    return img
-
-
-def measure(device: Device, frame: np.ndarray, fitted: np.ndarray, area: DisplayArea,
-            camera_size: tuple[int, int]) -> Measurement:
-    """Project ``frame`` (native projector frame), capture, and score the area against ``fitted`` (area size)."""
-    t0 = time.perf_counter()
-    shot = check_capture(device.project(frame), camera_size)
-    crop = area.crop(shot)
-    return Measurement(shot, psnr(crop, fitted), ssim(crop, fitted), time.perf_counter() - t0)
-
-
-def uncompensated_input(compensator: Any, placed: np.ndarray) -> np.ndarray:
-    """The uncompensated baseline's projector input: the camera-size ``placed`` target carried into the
-    projector by the calibrated geometry, as is (no photometric change), then through the warp W."""
-    return compensator.warp_w(compensator.initial_input(placed, how="geometric"))
-
-
-def without_warp(calibration: Any) -> Any:
-    """The calibration with its warp replaced by the identity: the no-W ablation (paper's Fig. 9)."""
-    from .warp import Warp
-
-    return replace(calibration, warp=Warp.identity(calibration.rig.projector.input_size))
-
-
-def side_by_side(target: np.ndarray, uncompensated: np.ndarray, compensated: np.ndarray,
-                 *extra: np.ndarray, gap: int = 4) -> np.ndarray:
-    """Area crops side by side: target | uncompensated | compensated | (extra…) | error map of compensated."""
-    panels = [target, uncompensated, compensated, *extra, error_map(compensated, target)]
-    h = target.shape[0]
-    sep = np.ones((h, gap, 3), np.float32)
-    row: list[np.ndarray] = []
-    for p in panels:
-        if row:
-            row.append(sep)
-        row.append(np.clip(np.asarray(p, np.float32), 0, 1))
-    return np.concatenate(row, axis=1)
-
-
-def mean_scores(rows: list[dict[str, Any]], key: str | None = None) -> dict[str, float] | None:
-    """Mean PSNR/SSIM of ``rows`` (or of ``row[key]``); None when there is none."""
-    vals = [r if key is None else r.get(key) for r in rows]
-    vals = [v for v in vals if v]
-    if not vals:
-        return None
-    return {k: round(float(np.mean([v[k] for v in vals])), 4) for k in ("psnr", "ssim")}
-
-
-# -- the compensation folder ---------------------------------------------------------------------
 
 @dataclass
 class InputRecord:
@@ -154,16 +94,17 @@ class CompensationInputs:
     @staticmethod
     def load(path: str | Path) -> "CompensationInputs":
         root = Path(path)
-        manifest = root / COMPENSATION_MANIFEST
+        manifest = root / layout.COMPENSATION.manifest
         if not root.is_dir():
-            raise InputsError(f"--inputs {root} does not exist; give the folder procam compensate wrote")
+            raise InputsError(f"the compensation folder {root} does not exist; give the folder procam compensate "
+                              "wrote")
         if not manifest.is_file():
-            raise InputsError(f"{root} has no {COMPENSATION_MANIFEST}; give the folder procam compensate wrote")
+            raise InputsError(f"{root} has no {manifest.name}; give the folder procam compensate wrote")
         try:
             doc = json.loads(manifest.read_text())
         except (OSError, ValueError) as exc:
             raise InputsError(f"cannot read {manifest}: {exc}") from None
-        if not isinstance(doc, dict) or doc.get("format") != "procam-compensation":
+        if not isinstance(doc, dict) or doc.get("format") != layout.COMPENSATION.format:
             raise InputsError(f"{manifest} is not a ProCam compensation manifest")
         records: dict[str, InputRecord] = {}
         for r in doc.get("targets") or []:
@@ -194,7 +135,10 @@ class CompensationInputs:
                 "input_size": list(proj.input_size), "input_offset": list(proj.input_offset)}
         have = {"camera_size": doc.get("camera_size"), **(doc.get("projector") or {})}
         for key, value in want.items():
-            if have.get(key) is not None and list(have[key]) != value:
+            if have.get(key) is None:
+                raise InputsError(f"{self.path} does not record the {key.replace('_', ' ')} its inputs are for "
+                                  "(an older ProCam wrote it); run procam compensate again")
+            if list(have[key]) != value:
                 raise MismatchError(f"the inputs in {self.path} are for {key.replace('_', ' ')} {have[key]}, but the "
                                     f"calibration has {value}: they come from another rig or capture set")
         if calibration_dir is not None and doc.get("calibration"):
@@ -212,8 +156,6 @@ class CompensationInputs:
 
     def frame(self, name: str, projector: Any) -> np.ndarray:
         """The native projector frame of a target (from ``NAME_frame.png``, else ``NAME_input.png`` placed)."""
-        from ..imageio import read_image
-
         rec = self.record(name)
         fw, fh = projector.intrinsics.size
         iw, ih = projector.input_size
@@ -235,8 +177,6 @@ class CompensationInputs:
                           "procam compensate again")
 
 
-# -- the engine of procam evaluate ---------------------------------------------------------------
-
 @dataclass
 class EvaluationRun:
     """What :func:`evaluate_folder` measured; ``failure`` is the error that stopped it (finished targets kept)."""
@@ -245,9 +185,10 @@ class EvaluationRun:
     failure: ProCamError | None = None
 
 
-def evaluate_folder(calibration: Any, inputs: CompensationInputs, targets: list[tuple[str, np.ndarray, str]],
-                    device: Device, out: Path, *, calibration_dir: str | Path | None = None,
-                    classical: bool = False, progress: Progress | None = None) -> EvaluationRun:
+def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
+                    targets: list[tuple[str, np.ndarray, str]], device: Device, out: Path, *,
+                    calibration_dir: str | Path | None = None, classical: bool = False,
+                    progress: Progress | None = None, cancel: Cancel | None = None) -> EvaluationRun:
     """Measure each ``(name, target image, note)`` of ``targets`` against its compensated input in ``inputs``.
 
     Writes into the existing folder ``out``: ``NAME_comparison.png`` (target |
@@ -257,10 +198,7 @@ def evaluate_folder(calibration: Any, inputs: CompensationInputs, targets: list[
     Every input is checked before the first projection; a failure during the
     projections stops the run but keeps what was measured.
     """
-    from ..imageio import write_image
-    from .compensate import Compensator
-
-    say = progress or (lambda msg: None)
+    say = progress or quiet
     notes = inputs.check_against(calibration, calibration_dir)
     proj = calibration.rig.projector
     cam_size = calibration.rig.camera.intrinsics.size
@@ -272,17 +210,17 @@ def evaluate_folder(calibration: Any, inputs: CompensationInputs, targets: list[
     comp.check_device(device)
     model = None
     if classical:
-        from ..capture.format import CaptureSet
-        from .classical import fit_classical
-
-        say("classical baseline: fitting the per-pixel colour mixing (flat primaries captured through the device)")
-        model = fit_classical(CaptureSet.load(calibration.capture_dir, verify_images=False), device=device)
+        say("classical baseline: fitting the per-pixel colour mixing (flat primaries captured through the device)",
+            0.0)
+        model = fit_classical(calibrate_step.captures_of(calibration), device=device)
     rows: list[dict[str, Any]] = []
     failure: ProCamError | None = None
     for i, (name, image, note) in enumerate(targets):
         rec = inputs.record(name)
+        files = {k: v.format(name=name) for k, v in layout.EVALUATION_FILES.items()}
         area = rec.area.check(cam_size)
-        say(f"target {i + 1}/{len(targets)}: {name}")
+        check(cancel, "evaluation was cancelled; nothing was written")
+        say(f"target {i + 1}/{len(targets)}: {name}", 0.05 + 0.95 * i / len(targets))
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", TargetAspectWarning)
@@ -299,26 +237,26 @@ def evaluate_folder(calibration: Any, inputs: CompensationInputs, targets: list[
                 cl = measure(device, proj.frame_from_input(x), fitted, area, cam_size)
                 row["classical"] = {**cl.scores(), "seconds": round(seconds, 3)}
                 extra.append(area.crop(cl.capture))
-                write_image(out / f"{name}_classical_input.png", x)
+                write_image(out / files["classical"], x)
         except ProCamError as exc:
             failure = exc
             rows.append({"name": name, "status": "failed", "error": str(exc)})
-            say(f"{name}: failed: {exc}")
+            say(f"{name}: failed: {exc}", 1.0)
             break
         row["warnings"] = [str(w.message) for w in caught]
         for w in row["warnings"]:
-            say(f"warning: {w}")
+            say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / len(targets))
         row["target_encoding"] = note
         row["area"] = area.to_dict()
         row["mode"] = rec.mode
-        row["image"] = f"{name}_comparison.png"
+        row["image"] = files["image"]
         row["status"] = "done"
         write_image(out / row["image"], side_by_side(fitted, area.crop(plain.capture), area.crop(got.capture), *extra))
-        write_image(out / f"{name}_capture.png", got.capture)
-        write_image(out / f"{name}_uncompensated_capture.png", plain.capture)
+        write_image(out / files["capture"], got.capture)
+        write_image(out / files["uncompensated"], plain.capture)
         rows.append(row)
     done = [r for r in rows if r.get("status") == "done"]
-    doc = {"format": FORMAT, "version": VERSION, "inputs": str(inputs.path.absolute()),
+    doc = {"format": KIND.format, "version": KIND.version, "inputs": str(inputs.path.absolute()),
            "calibration": str(Path(calibration_dir).absolute()) if calibration_dir else None,
            "capture_set": calibration.capture_dir, "notes": notes,
            "measure": "PSNR (dB, peak 1) and SSIM (Wang et al. 2004) of the capture inside the display area "
@@ -331,6 +269,65 @@ def evaluate_folder(calibration: Any, inputs: CompensationInputs, targets: list[
     return EvaluationRun(doc, failure)
 
 
-__all__ = ["CompensationInputs", "EvaluationError", "EvaluationRun", "InputRecord", "InputsError", "Measurement",
-           "MismatchError", "check_capture", "evaluate_folder", "mean_scores", "measure", "side_by_side",
-           "uncompensated_input", "without_warp"]
+def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+        device: Device | None = None) -> dict[str, Any]:
+    """Measure every target of ``options`` into a new evaluation folder; returns ``metrics.json``'s document.
+    ``device``: an open device to use instead of opening ``options.device`` (the manifest names the latter)."""
+    say = progress or quiet
+    cal = calibrate_step.read(options.calibration)
+    inputs = CompensationInputs.load(options.inputs)
+    inputs.check_against(cal)
+    names = output_names(options.targets)
+    for name in names:
+        inputs.record(name)  # a target with no compensation fails before anything is read or projected
+    targets = [(name, *load_target(p, encoding=options.target_encoding)) for name, p in zip(names, options.targets)]
+    folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds)
+    owned = device is None
+    try:
+        if owned:
+            device = open_device(options.device)
+            if device is None:
+                raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE or "
+                                      "folder:CAPTURE_DIR")
+        result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
+                                 classical=options.classical, progress=say, cancel=cancel)
+        result.doc["device"] = options.device
+        write_manifest(folder.tmp / KIND.manifest, result.doc)
+    except BaseException:
+        folder.abort()
+        raise
+    finally:
+        if owned and device is not None:
+            device.close()
+    folder.commit()
+    say("done", 1.0)
+    if result.failure is not None:
+        raise result.failure
+    return result.doc
+
+
+def read(folder: str | Path) -> dict[str, Any]:
+    """An evaluation folder's ``metrics.json``; a clear error when the folder holds none."""
+    path = Path(folder) / KIND.manifest
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise EvaluationError(f"{folder} is not an evaluation folder ({exc}); run {KIND.made_by}") from None
+    if not isinstance(doc, dict) or doc.get("format") != KIND.format:
+        raise EvaluationError(f"{path} is not a ProCam evaluation")
+    return doc
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    mean, plain = doc.get("mean") or {}, doc.get("mean_uncompensated") or {}
+    head = (f"PSNR {fmt(plain.get('psnr'), '.2f')} → {fmt(mean.get('psnr'), '.2f')} dB, SSIM "
+            f"{fmt(plain.get('ssim'), '.3f')} → {fmt(mean.get('ssim'), '.3f')} (uncompensated → compensated)")
+    lines = tuple(f"{t['name']}: {fmt(t['uncompensated']['psnr'], '.2f')} → {fmt(t['psnr'], '.2f')} dB"
+                  if t.get("status") == "done" else f"{t.get('name')}: failed — {t.get('error', '')}"
+                  for t in doc.get("targets", []))
+    return Summary(True, head, lines, {"targets": doc.get("targets", [])})
+
+
+def summary(folder: str | Path) -> Summary:
+    """Mean and per-target PSNR/SSIM of an evaluation folder, compensated next to uncompensated."""
+    return cached(KIND, folder, _summary, "run Evaluate or choose an evaluation folder")

@@ -4,14 +4,17 @@ the open Blender file: the datablocks are built in a scratch scene, written with
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import bpy
 import numpy as np
 
 from ..surface.mesh import SurfaceMesh
-from . import blender_rig
-from .model import Rig
+from ..imageio import atomic_path
+from ..outputs import OutputError
+from ..rig.model import Rig
+from . import rig as blender_rig
 
 _COLLECTIONS = ("objects", "meshes", "lights", "cameras", "materials", "images", "node_groups", "scenes", "worlds")
 
@@ -37,3 +40,22 @@ def save_calibration_blend(path: str | Path, rig: Rig, surface: SurfaceMesh, ima
                 except (ReferenceError, RuntimeError):
                     pass
     return Path(path)
+
+
+def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMesh, images: dict[str, np.ndarray],
+                                  *, force: bool = False) -> Path:
+    """:func:`save_calibration_blend` to a temporary name renamed into place; never overwrites unless ``force``."""
+    path = Path(path)
+    if path.suffix.lower() != ".blend":
+        raise OutputError(f"{path.name} is not a .blend file name; give a path ending in .blend")
+    if path.exists() and not force:
+        raise OutputError(f"{path} exists; it is only replaced with Replace (force) on")
+    if not path.parent.is_dir():
+        raise OutputError(f"cannot write {path}: folder {path.parent} does not exist")
+    tmp, _ = atomic_path(path)
+    try:
+        save_calibration_blend(tmp, rig, surface, images)
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    return path

@@ -6,7 +6,7 @@ targets or nothing, four images per target for inspection); ``show`` writes a
 folder that grows frame by frame, resumes after a crash, and holds only what a
 media server plays (``frame_0001.png`` … in the native projector resolution,
 16-bit) plus its manifest ``show.json``. The engine is
-:mod:`procam.addon.stages.sequence`; the stage-C options are the same as
+:mod:`procam.addon.steps.show`; the stage-C options are the same as
 ``compensate``'s.
 
 Exit codes: 0 when every frame is finished (this run or an earlier one), 2 when
@@ -17,11 +17,12 @@ is refused, 130 when cancelled.
 from __future__ import annotations
 
 import argparse
-import contextlib
 from pathlib import Path
 
-from ..cli import command
-from .compensate import add_effect_options, add_schedule_options, check_schedule, open_device, schedule_arguments
+from ..steps.show import SequenceError, ShowOptions, list_frames, run as prepare_show
+from .app import command
+from .compensate import add_effect_options, add_schedule_options, stage_c_options
+from .terminal import run_step
 
 EPILOG = """\
 TARGETS is a folder of images, a numbered pattern (frames/shot_####.png or frames/shot_%04d.png), or a list of
@@ -54,44 +55,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
 @command("show", "Compensate every frame of an image sequence into a numbered 16-bit projector frame sequence "
                  "(resumable).", _configure)
 def run(args: argparse.Namespace) -> int:
-    from ..cli import cancel_on_interrupt
-    from ..outputs import ProgressBar, progress
-    from ..stages.display_area import parse_area
-    from ..stages.sequence import SequenceError, ShowOptions, list_frames, prepare_show
-
-    from ..gap.compensation import adapter_from_options
-    from ..stages.calibrate import Calibration
-
-    check_schedule(args)
-    adapter = adapter_from_options(args.effects, args.diagnosis, Calibration.load(args.calibration).rig.projector)
-    options = ShowOptions(**schedule_arguments(args), spp=args.spp, bounces=args.bounces, seed=args.seed,
-                          area=parse_area(args.area) if args.area else None, target_encoding=args.target_encoding,
-                          use_bias=not args.no_bias)
-    options.check()
-    frames = list_frames(args.targets)
-    progress(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} from {args.targets[0]}"
-             + (" …" if len(args.targets) > 1 else "") + f" → {args.out}")
-    device_spec = None
-    if args.device and not args.no_bias:
-        kind, _, where = args.device.partition(":")
-        device_spec = f"{kind}:{Path(where).absolute()}" if where else args.device
-    with contextlib.ExitStack() as stack:
-        cancel = stack.enter_context(cancel_on_interrupt())
-        device = open_device(args.device) if device_spec else None
-        if device is not None:
-            stack.callback(device.close)
-        bar: list[ProgressBar] = []
-
-        def tick(done: float, total: int, message: str, finished: bool) -> None:
-            if not bar:  # made at the first frame: its clock then measures compensation, not loading
-                bar.append(stack.enter_context(ProgressBar(total, "show", unit="frames")))
-            bar[0].update(done, message, force=finished)
-
-        result = prepare_show(args.calibration, frames, args.out, options, device=device, device_spec=device_spec,
-                              force=args.force, fail_fast=args.fail_fast, on_progress=tick, log=progress,
-                              cancel=cancel, effects=adapter)
-        if bar:
-            bar[0].close()
+    options = ShowOptions(args.calibration, tuple(args.targets), args.out, stage_c_options(args), force=args.force,
+                          fail_fast=args.fail_fast)
+    frames = list_frames(options.targets)  # a bad sequence fails before the bar starts
+    result = run_step("show", prepare_show, options, total=len(frames), unit="frames")
     doc = result.manifest
     done_frames = [e for e in doc["frames"].values() if e.get("status") == "done"]
     psnrs = [e["psnr_model"] for e in done_frames if str(e["number"]) in {str(n) for n in result.done}]

@@ -7,7 +7,7 @@ import importlib.util
 from pathlib import Path
 from types import ModuleType
 
-from ..cli import command
+from .app import command
 from ..errors import ProCamError
 
 _SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "build_extension.py"

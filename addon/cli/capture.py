@@ -10,10 +10,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..cli import command
+from ..capture.devices import load_sequence
 from ..errors import CaptureError, RigError
 from ..imageio import read_image
 from ..rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
+from ..steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
+from .app import command
+from .terminal import run_step
 
 
 def _positive_int(text: str) -> int:
@@ -46,17 +49,16 @@ def _configure_patterns(p: argparse.ArgumentParser) -> None:
 
 @command("patterns", "Export the numbered calibration pattern sequence for your own projection/capture tools.",
          _configure_patterns)
-def run_patterns(args: argparse.Namespace) -> int:
-    from ..capture.devices import export_sequence, load_sequence
-
+def patterns(args: argparse.Namespace) -> int:
     w, h = args.projector_width, args.projector_height
     intr = projector_intrinsics_from_throw(w, h, args.throw_ratio, args.shift_x, args.shift_y)
     if (args.input_width is None) != (args.input_height is None):
         raise RigError("give both --input-width and --input-height, or neither")
     size = (args.input_width, args.input_height) if args.input_width else None
     projector = Projector(intr, input_size=size)
-    out = export_sequence(projector, args.out, checker_size=args.checker, area=args.area, seed=args.seed,
-                          graycode=not args.no_graycode, validation=not args.no_validation, force=args.force)
+    out = run_step("patterns", run_patterns, PatternsOptions(
+        projector, args.out, checker=args.checker, area=args.area, graycode=not args.no_graycode,
+        validation=not args.no_validation, seed=args.seed, force=args.force))
     n = len(load_sequence(out).frames)
     print(f"wrote {n} frames ({w}×{h}) and sequence.json to {out}")
     return 0
@@ -80,9 +82,7 @@ def _configure_import(p: argparse.ArgumentParser) -> None:
 
 @command("import-captures", "Import numbered captures of an exported pattern sequence as a capture set.",
          _configure_import)
-def run_import(args: argparse.Namespace) -> int:
-    from ..capture.devices import import_captures
-
+def import_photographs(args: argparse.Namespace) -> int:
     camera = None
     if (args.camera_width is None) != (args.camera_height is None):
         raise CaptureError("give both --camera-width and --camera-height, or neither")
@@ -96,8 +96,9 @@ def run_import(args: argparse.Namespace) -> int:
         if not (args.depth_native_width and args.depth_native_height):
             raise CaptureError("give both --depth-native-width and --depth-native-height")
         native = (args.depth_native_width, args.depth_native_height)
-    cs = import_captures(args.sequence_dir, args.captures_dir, camera, None, args.out, encoding=args.encoding,
-                         camera_fov=args.camera_fov, depth=depth, depth_native_size=native, force=args.force)
+    cs = run_step("import-captures", run_import, ImportOptions(
+        args.sequence_dir, args.captures_dir, args.out, camera=camera, camera_fov=args.camera_fov,
+        encoding=args.encoding, depth=depth, depth_native_size=native, force=args.force))
     w, h = cs.camera.intrinsics.size
     print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
     return 0

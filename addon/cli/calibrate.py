@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli import command
 from ..errors import CalibrationError
+from ..steps.calibrate import CalibrateOptions, run as calibrate
+from .app import command
+from .terminal import run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
@@ -38,7 +40,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
 def _pose_from_blend(path: Path) -> np.ndarray:
     import bpy
 
-    from ..rig.blender_rig import read_projector
+    from ..blender.rig import read_projector
 
     if not path.is_file():
         raise CalibrationError(f"--blend file not found: {path}")
@@ -51,25 +53,16 @@ def _pose_from_blend(path: Path) -> np.ndarray:
 
 @command("calibrate", "Estimate surface, projector pose and warp from a capture set.", _configure)
 def run(args: argparse.Namespace) -> int:
-    from ..outputs import progress
-    from ..stages.calibrate import calibrate
-
     initial = None
     if args.init == "blender":
         if args.blend is None:
             raise CalibrationError("--init blender needs --blend FILE.blend with a ProCam Projector in it")
         initial = _pose_from_blend(args.blend)
-    last = [-1.0]
-
-    def say(msg: str, frac: float) -> None:
-        if frac - last[0] >= 0.02 or frac >= 1.0:
-            progress(f"{100 * frac:3.0f}% {msg}")
-            last[0] = frac
-
-    cal = calibrate(args.capture_dir, args.out, init="given" if initial is not None else args.init,
-                    initial_pose=initial, force=args.force, with_blend=not args.no_blend_output,
-                    progress=say, seed=args.seed, depth_offset=args.depth_offset, stages=args.stages,
-                    stage_a=args.stage_a)
+    options = CalibrateOptions(args.capture_dir, args.out, init="given" if initial is not None else args.init,
+                               initial_pose=initial, stage_a=args.stage_a, stages=args.stages,
+                               depth_offset=args.depth_offset, with_blend=not args.no_blend_output, seed=args.seed,
+                               force=args.force)
+    cal = run_step("calibrate", calibrate, options)
     r = cal.report
     print(f"calibration: {args.out}")
     sr = r["surface_report"]

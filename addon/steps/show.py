@@ -1,4 +1,4 @@
-"""Show preparation: compensate every frame of a folder or numbered image sequence, resumably.
+"""The show step: compensate every frame of a folder or numbered image sequence into a growing, resumable folder.
 
 A show is a folder that grows one finished frame at a time::
 
@@ -22,41 +22,44 @@ renamed into place, and only then entered in the manifest, so:
 * a target that cannot be read or compensated is recorded as a failure in the
   manifest and the next frames go on (unless ``fail_fast``); a rerun retries it.
 
-One :class:`~.compensate.Compensator` (scene loaded, kernels compiled) serves
-every frame. Two runs on one folder at once are refused (an OS lock on the
+One :class:`.stage_c.StageC` (scene loaded, kernels compiled) serves every
+frame, as it serves the compensate step's targets. Two runs on one folder at once are refused (an OS lock on the
 folder, released by the OS when a process dies).
 """
 
 from __future__ import annotations
 
-import hashlib
+import io
 import json
+from importlib import metadata
 import os
 import re
 import time
-import warnings
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
-from .compensate import DEFAULT_SCHEDULE, BiasModel, Schedule, get_schedule
+from ..imageio import write_atomic_bytes, write_image
+from ..outputs import file_sha256, jsonable, natural_key, write_manifest
+from ..progress import Cancel, Progress, check, quiet
+from ..stages.compensate import BiasModel, Compensator
+from ..stages.display_area import DisplayArea
+from . import calibrate as calibrate_step
+from . import layout
+from .stage_c import StageC, StageCOptions
+from .summary import Summary, cached, fmt
 
-FORMAT = "procam-show"
-VERSION = 1
-MANIFEST = "show.json"
-BIAS_FILE = "open_loop_bias.npz"
-FRAME_PREFIX = "frame_"
+KIND = layout.SHOW
+FORMAT, VERSION, MANIFEST = KIND.format, KIND.version, KIND.manifest
+BIAS_FILE = layout.OPEN_LOOP_BIAS
+FRAME_PREFIX = layout.FRAME_PREFIX
 #: Files taken as frames when a folder is given.
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".npy")
-
-#: ``on_progress(done, total, message, finished)``: ``done`` of the ``total`` frames this run computes
-#: (fractional while one is under way); ``finished`` is true when a frame has just been written or has failed.
-OnProgress = Callable[[float, int, str, bool], None]
-
 
 class SequenceError(ProCamError):
     """A target sequence or show folder that cannot be used as asked."""
@@ -77,10 +80,6 @@ _PRINTF = re.compile(r"%(0?)(\d*)d")
 _TRAILING_DIGITS = re.compile(r"(\d+)$")
 
 
-def _natural_key(path: Path) -> list[Any]:
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
-
-
 def _pattern_regex(name: str) -> re.Pattern[str] | None:
     """A regex for a file-name pattern with one run of ``#`` (Blender) or one ``%0Nd`` (printf); else None."""
     hashes, printf = list(_HASHES.finditer(name)), list(_PRINTF.finditer(name))
@@ -98,7 +97,7 @@ def _pattern_regex(name: str) -> re.Pattern[str] | None:
 
 def _numbered(paths: list[Path]) -> list[SourceFrame]:
     """Frames numbered by the trailing digits of their names when all have distinct ones, else 1, 2, …"""
-    paths = sorted(paths, key=_natural_key)
+    paths = sorted(paths, key=natural_key)
     numbers = [_TRAILING_DIGITS.search(p.stem) for p in paths]
     if all(numbers) and len({int(m.group(1)) for m in numbers}) == len(paths):
         frames = [SourceFrame(int(m.group(1)), p) for m, p in zip(numbers, paths)]
@@ -133,7 +132,7 @@ def list_frames(inputs: Sequence[str | Path]) -> list[SourceFrame]:
         if not folder.is_dir():
             raise SequenceError(f"the folder of the sequence pattern {items[0]} does not exist: {folder}")
         found: dict[int, Path] = {}
-        for p in sorted(folder.iterdir(), key=_natural_key):
+        for p in sorted(folder.iterdir(), key=natural_key):
             m = regex.match(p.name)
             if m and p.is_file():
                 n = int(m.group(1))
@@ -154,74 +153,39 @@ def list_frames(inputs: Sequence[str | Path]) -> list[SourceFrame]:
     return _numbered(items)
 
 
-def frame_name(number: int, digits: int) -> str:
-    """The output file name of frame ``number`` (``frame_0001.png``): zero-padded like media servers expect."""
-    return f"{FRAME_PREFIX}{number:0{digits}d}.png"
-
-
 def frame_digits(frames: Sequence[SourceFrame]) -> int:
     """Zero padding for the output names: 4, or more when the frame numbers need it."""
     return max(4, *(len(str(f.number)) for f in frames)) if frames else 4
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 # -- settings and manifest -----------------------------------------------------------------------
 
 @dataclass(frozen=True)
 class ShowOptions:
-    """How each frame is compensated: the stage-C schedule (by name, with the values given over it) and choices.
+    """What ``procam show`` and the Prepare Show button ask for.
 
-    A schedule value left None is the named schedule's (:data:`~.compensate.SCHEDULES`).
+    ``targets``: one folder, one numbered pattern, or image files (:func:`list_frames`).
     """
 
-    schedule: str = DEFAULT_SCHEDULE
-    iterations_z: int | None = None
-    iterations_joint: int | None = None
-    lr: float | None = None
-    alpha: float | None = None
-    capture_every: int | None = None
-    spp: int = 4
-    bounces: int = 1
-    seed: int = 0
-    area: tuple[int, int, int, int] | None = None  # camera pixels; None: chosen per aspect ratio
-    target_encoding: str = "auto"
-    use_bias: bool = True
-
-    def run_arguments(self) -> dict[str, Any]:
-        """The schedule keywords of :meth:`Compensator.run`."""
-        given = {"iterations_z": self.iterations_z, "iterations_joint": self.iterations_joint, "lr": self.lr,
-                 "alpha": self.alpha, "capture_every": self.capture_every}
-        return {"schedule": self.schedule, **{k: v for k, v in given.items() if v is not None}}
-
-    def resolved(self) -> Schedule:
-        """The schedule every frame runs (a bad value fails here, before any work)."""
-        args = self.run_arguments()
-        return replace(get_schedule(args.pop("schedule")), **args).check()
-
-    def check(self) -> Schedule:
-        for what, v, lo in (("spp", self.spp, 1), ("bounces", self.bounces, 0)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise SequenceError(f"{what} must be a whole number ≥ {lo}, got {v!r}")
-        return self.resolved()
+    calibration: Path
+    targets: tuple[str | Path, ...]
+    out: Path
+    stage_c: StageCOptions = field(default_factory=StageCOptions)
+    force: bool = False
+    #: stop at the first frame that fails instead of going on with the next ones
+    fail_fast: bool = False
 
 
-def settings_of(options: ShowOptions, *, calibration: dict[str, str], device: str | None, mode: str,
-                digits: int) -> dict[str, Any]:
+def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: str, digits: int,
+                effects: dict[str, Any] | None) -> dict[str, Any]:
     """What decides the frames' pixels: two runs with equal settings write the same frames."""
     schedule = asdict(options.resolved())
     if mode != "closed-loop":  # θ's update rule and the capture interval only act in the closed loop
         schedule.update(alpha=None, capture_every=None, reference_spp=None)
     return {"calibration_sha256": calibration["sha256"], "surface_sha256": calibration["surface_sha256"],
-            "device": device, "mode": mode, "schedule": schedule, "spp": options.spp, "bounces": options.bounces,
-            "seed": options.seed, "area": list(options.area) if options.area else "auto",
-            "target_encoding": options.target_encoding, "digits": digits}
+            "device": options.device_spec, "mode": mode, "schedule": schedule, "spp": options.spp,
+            "bounces": options.bounces, "seed": options.seed, "area": list(options.area) if options.area else "auto",
+            "target_encoding": options.target_encoding, "digits": digits, "effects": effects}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
@@ -234,18 +198,6 @@ def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> 
         elif a != b:
             out.append(f"{prefix}{k}: {a!r} → {b!r}")
     return out
-
-
-def calibration_identity(folder: str | Path) -> dict[str, str]:
-    """Path and content hashes of a calibration folder (calibration.json and its surface mesh)."""
-    folder = Path(folder)
-    doc_path = folder / "calibration.json"
-    try:
-        mesh = json.loads(doc_path.read_text()).get("surface", {}).get("mesh", "surface.npz")
-        return {"path": str(folder.absolute()), "sha256": file_sha256(doc_path),
-                "surface_sha256": file_sha256(folder / mesh)}
-    except (OSError, ValueError, AttributeError) as exc:
-        raise SequenceError(f"cannot read the calibration {folder}: {exc}") from None
 
 
 def _now() -> str:
@@ -327,11 +279,8 @@ class ShowFolder:
         return doc
 
     def write(self) -> None:
-        from ..imageio import write_atomic_bytes
-        from ..outputs import jsonable
-
         assert self.doc is not None
-        write_atomic_bytes(self.path / MANIFEST, (json.dumps(jsonable(self.doc), indent=1) + "\n").encode())
+        write_manifest(self.path / MANIFEST, self.doc)
 
     def verified(self, entry: dict[str, Any] | None) -> str | None:
         """None when ``entry`` is a finished frame whose file is intact, else why it must be redone."""
@@ -384,11 +333,6 @@ class ShowResult:
 
 
 def _save_bias(path: Path, bias: BiasModel) -> None:
-    import io
-
-    from ..imageio import write_atomic_bytes
-    from ..outputs import jsonable
-
     buf = io.BytesIO()
     arrays = {"theta": bias.theta} if bias.gain is None else {"theta": bias.theta, "gain": bias.gain}
     np.savez(buf, **arrays, kind=np.array(bias.kind), report=np.array(json.dumps(jsonable(bias.report))))
@@ -405,49 +349,42 @@ def _load_bias(path: Path) -> BiasModel | None:
         return None  # damaged: estimated again
 
 
-def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out_dir: str | Path,
-                 options: ShowOptions, *, device: Any = None, device_spec: str | None = None, force: bool = False,
-                 fail_fast: bool = False, on_progress: OnProgress | None = None,
-                 log: Callable[[str], None] | None = None, cancel: Callable[[], bool] | None = None,
-                 compensator: Any = None, effects: Any = None) -> ShowResult:
-    """Compensate every frame into ``out_dir`` (module doc); resumes a show made with the same settings.
+def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+        device: Device | None = None, compensator: Compensator | None = None) -> ShowResult:
+    """Compensate every frame into ``options.out`` (module doc); resumes a show made with the same settings.
 
-    ``device``: closed loop through it (``device_spec`` names it in the
-    manifest); none: open loop, or no θ with ``options.use_bias=False``.
-    ``compensator``: a loaded :class:`~.compensate.Compensator` to reuse (its
-    spp, bounces and seed must equal the options'). Per-frame failures are
-    recorded and reported in the result (the caller decides the exit code);
-    :class:`~procam.addon.errors.Cancelled` or any unexpected error is recorded
-    in the manifest and raised. ``effects``: a :class:`~..gap.compensation.EffectAdapter` whose diagnosed
-    effect models sit around stage C (part of the settings: a rerun with other effects needs ``force``).
+    ``device``: an open device to use for ``options.stage_c.device`` (else it is
+    opened here). ``compensator``: a loaded :class:`Compensator` to reuse (its
+    spp, bounces and seed must equal the options'). Progress runs over the
+    frames this run computes. Per-frame failures are recorded and reported in
+    the result (the caller decides the exit code);
+    :class:`~procam.addon.errors.Cancelled` or any unexpected error is
+    recorded in the manifest and raised.
     """
-    from .calibrate import Calibration
-    from .display_area import choose_area
-
-    say = log or (lambda msg: None)
-    tick = on_progress or (lambda done, total, msg, finished: None)
-    frames = list(frames)
-    if not frames:
-        raise SequenceError("no target frames to compensate")
+    say = progress or quiet
+    frames = list_frames(options.targets)
     if len({f.number for f in frames}) != len(frames):
         raise SequenceError("two target frames carry the same frame number")
-    schedule = options.check()
-    if device is not None and not device_spec:
-        raise SequenceError("a device needs a name (device_spec) for the manifest")
-    mode = "closed-loop" if device is not None and options.use_bias else "open-loop" if options.use_bias else "none"
-    cal = Calibration.load(calibration_dir)  # says how to make one when the folder is not a calibration
-    ident = calibration_identity(calibration_dir)
+    sc = options.stage_c
+    sc.check()
+    mode = sc.mode
+    cal = calibrate_step.read(options.calibration)  # says how to make one when the folder is not a calibration
+    ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
-    settings = settings_of(options, calibration=ident, device=device_spec if mode == "closed-loop" else None,
-                           mode=mode, digits=digits)
-    settings["effects"] = effects.params if effects is not None else None
-    if effects is not None and compensator is not None:
-        raise SequenceError("a show with effect models builds its own compensator (its scene moves with them)")
-    user_area = None
-    if options.area is not None:
-        user_area = choose_area(cal, aspect=1.0, user=options.area)  # fails now if outside the camera image
+    say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
+    with StageC(cal, sc, device=device, compensator=compensator) as stage:
+        effects = stage.adapter.params if stage.adapter is not None else None
+        settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects)
+        return _run(options, frames, stage, cal, ident, settings, digits, say, cancel)
 
-    folder = ShowFolder(out_dir)
+
+def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: Any, ident: dict[str, str],
+         settings: dict[str, Any], digits: int, say: Progress, cancel: Cancel | None) -> ShowResult:
+    """:func:`run` once the frames, the settings and stage C are ready: the folder's bookkeeping."""
+    force, mode, effects = options.force, stage.options.mode, stage.adapter
+    schedule = stage.schedule
+    log = lambda msg: say(msg, 0.0)  # noqa: E731 — a message between frames, before the frame progress
+    folder = ShowFolder(options.out)
     old = folder.open(force=force)
     t_run = time.perf_counter()
     try:
@@ -479,33 +416,29 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
                         (folder.path / name).unlink(missing_ok=True)
                 (folder.path / BIAS_FILE).unlink(missing_ok=True)
                 if diffs:
-                    say("--force: redoing every frame (settings changed: " + "; ".join(diffs) + ")")
+                    log("--force: redoing every frame (settings changed: " + "; ".join(diffs) + ")")
                 else:
-                    say("--force: redoing every frame")
+                    log("--force: redoing every frame")
         run_no = len(history["runs"]) + 1
         run = {"run": run_no, "started": _now(), "status": "running", "frames": len(frames),
                "done": 0, "skipped": 0, "failed": 0}
         history["runs"].append(run)
-        proj = cal.rig.projector
         folder.doc = {
             "format": FORMAT, "version": VERSION, "procam_version": _procam_version(),
             "calibration": {"path": ident["path"], "sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"],
                             "capture_set": cal.capture_dir},
-            "device": device_spec if mode == "closed-loop" else None, "mode": mode,
+            "device": stage.options.device_spec, "mode": mode,
             "schedule": {"iterations": schedule.iterations_z + schedule.iterations_joint, **settings["schedule"],
-                         "spp": options.spp, "seed": options.seed},
+                         "spp": stage.options.spp, "seed": stage.options.seed},
             # What the simulation f̂ models, and the diagnosed effect models around it (addon/gap).
             "effects": {"direct_light": True,
-                        "interreflection_bounces": effects.bounces if effects is not None and effects.bounces
-                        is not None else options.bounces,
+                        "interreflection_bounces": stage.bounces,
                         "bias": mode if mode != "open-loop" else "open-loop (see open_loop_bias)",
                         "warp": cal.warp is not None,
                         "effect_models": effects.used if effects is not None else [],
                         "not_inverted": effects.not_used if effects is not None else {},
                         "params": effects.params if effects is not None else {}},
-            "projector": {"frame_size": list(proj.intrinsics.size), "input_size": list(proj.input_size),
-                          "input_offset": list(proj.input_offset)},
-            "camera_size": list(cal.rig.camera.intrinsics.size),
+            **stage.rig_record(),
             "frame_pattern": f"{FRAME_PREFIX}{'#' * digits}.png", "frame_format": "PNG, 16-bit RGB, linear",
             "settings": settings, "areas": areas, "frames": frames_doc, "complete": False, **history}
         folder.write()
@@ -519,21 +452,20 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
             else:
                 entry = frames_doc.get(str(f.number))
                 if entry and entry.get("status") == "done":
-                    say(f"frame {f.number}: redoing it ({why})")
+                    log(f"frame {f.number}: redoing it ({why})")
                     frames_doc[str(f.number)] = {**entry, "status": "invalid", "reason": why}
                 todo.append(f)
         run["skipped"] = len(result.skipped)
         if result.skipped:
-            say(f"{len(result.skipped)} of {len(frames)} frames already finished in {folder.path}; skipping them")
+            log(f"{len(result.skipped)} of {len(frames)} frames already finished in {folder.path}; skipping them")
         kept = set(frames_doc) - {str(f.number) for f in frames}
         if kept:
-            say(f"{len(kept)} frame(s) of an earlier run are not in this input; kept as they are")
+            log(f"{len(kept)} frame(s) of an earlier run are not in this input; kept as they are")
 
         try:
             if todo:
-                _run_frames(todo, folder, result, run, options, cal, mode, digits, user_area, device=device,
-                            compensator=compensator, fail_fast=fail_fast, tick=tick, say=say, cancel=cancel,
-                            effects=effects)
+                _run_frames(todo, folder, result, run, stage, digits, fail_fast=options.fail_fast, say=say,
+                            cancel=cancel)
             run["status"] = "complete" if not result.failed else "incomplete"
         except Cancelled as exc:
             run["status"] = "cancelled"
@@ -565,69 +497,31 @@ def prepare_show(calibration_dir: str | Path, frames: Sequence[SourceFrame], out
 
 def _procam_version() -> str:
     try:
-        from importlib.metadata import version
-
-        return version("procam")
-    except Exception:  # inside Blender the extension is not a pip distribution
+        return metadata.version("procam")
+    except metadata.PackageNotFoundError:  # inside Blender the extension is not a pip distribution
         return "unknown"
 
 
 def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult, run: dict[str, Any],
-                options: ShowOptions, cal: Any, mode: str, digits: int, user_area: Any, *, device: Any,
-                compensator: Any, fail_fast: bool, tick: OnProgress, say: Callable[[str], None],
-                cancel: Callable[[], bool] | None, effects: Any = None) -> None:
-    """The frame loop of :func:`prepare_show` (split out to keep the bookkeeping above readable)."""
-    from ..capture.format import CaptureSet
-    from ..imageio import write_image
-    from .compensate import Compensator
-    from .display_area import DisplayArea, TargetAspectWarning, choose_area, fit_target, load_target
-
+                stage: StageC, digits: int, *, fail_fast: bool, say: Progress, cancel: Cancel | None) -> None:
+    """The frame loop of :func:`run` (split out to keep the bookkeeping above readable)."""
     doc = folder.doc
     frames_doc, areas = doc["frames"], doc["areas"]
-    comp = compensator
-    if comp is None:
-        say(f"loading the calibrated scene ({mode})")
-        if effects is None:
-            comp = Compensator(cal, bounces=options.bounces, spp=options.spp, seed=options.seed)
-        else:
-            from ..gap.compensation import AdaptedDevice
-
-            comp = effects.compensator(cal, bounces=options.bounces, spp=options.spp, seed=options.seed)
-            device = AdaptedDevice(device, effects) if device is not None else None
-    elif (comp.bounces, comp.spp, comp.seed) != (options.bounces, options.spp, options.seed):
-        raise SequenceError("the compensator given was made with other bounces/spp/seed than the show's options")
-    try:
-        captures = CaptureSet.load(cal.capture_dir, verify_images=False) if cal.capture_dir else None
-    except ProCamError:
-        captures = None  # a moved capture set: areas then come from --area or the model alone
-    bias = None
-    if mode == "open-loop":
+    stage.areas.update({k: DisplayArea.from_dict(v) for k, v in areas.items()})
+    if stage.options.mode == "open-loop":
         bias_path = folder.path / BIAS_FILE
-        bias = _load_bias(bias_path) if bias_path.is_file() else None
-        if bias is None:
-            say("estimating θ from the validation captures (open loop, once for the whole show)")
-            if effects is not None and captures is not None:
-                from ..gap.compensation import AdaptedCaptures
-
-                bias = comp.estimate_bias(AdaptedCaptures(captures, effects))
-            else:
-                bias = comp.estimate_bias(captures)
-            _save_bias(bias_path, bias)
+        stage.bias = _load_bias(bias_path) if bias_path.is_file() else None
+        if stage.bias is None:
+            say("estimating θ from the validation captures (open loop, once for the whole show)", 0.0)
+            _save_bias(bias_path, stage.estimate_bias())
+        bias = stage.bias
         doc["open_loop_bias"] = {"file": BIAS_FILE, "kind": bias.kind, **bias.report}
 
-    def area_for(img: np.ndarray) -> Any:
-        if user_area is not None:
-            return user_area
-        key = f"{img.shape[1] / img.shape[0]:.4f}"
-        if key not in areas:
-            areas[key] = choose_area(cal, aspect=img.shape[1] / img.shape[0], captures=captures).to_dict()
-        return DisplayArea.from_dict(areas[key])
-
+    n = len(todo)
     for i, f in enumerate(todo):
-        if cancel is not None and cancel():
-            raise Cancelled(f"show cancelled before frame {f.number} ({len(result.done)} frame(s) finished in this run)")
-        name = frame_name(f.number, digits)
-        tick(i, len(todo), f"frame {f.number}: {f.path.name}", False)
+        check(cancel, f"show cancelled before frame {f.number} ({len(result.done)} frame(s) finished in this run)")
+        name = layout.frame_name(f.number, digits)
+        say(f"frame {f.number}: {f.path.name}", i / n)
         t0 = time.perf_counter()
         try:
             try:
@@ -635,17 +529,10 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
                 source["source_sha256"] = file_sha256(f.path)
             except OSError as exc:  # vanished or unreadable since the sequence was listed
                 raise SequenceError(f"cannot read the target {f.path}: {exc.strerror or exc}") from None
-            img, note = load_target(f.path, encoding=options.target_encoding)
-            area = area_for(img)
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", TargetAspectWarning)
-                fitted = fit_target(img, area, what=f"target {f.path.name}")
-                if effects is not None:
-                    fitted = effects.model_target(fitted, area)
-                res = comp.run(fitted, area, device=device, **options.run_arguments(), open_loop_theta=bias,
-                               use_bias=options.use_bias, cancel=cancel, name=f"frame {f.number}",
-                               progress=lambda msg, frac, i=i: tick(i + min(max(frac, 0.0), 0.999), len(todo), msg,
-                                                                     False))
+            img, note = stage.load(f.path)
+            done = stage.compensate(img, name=f"frame {f.number}", what=f"target {f.path.name}", cancel=cancel,
+                                    progress=lambda msg, frac, i=i: say(msg, (i + min(max(frac, 0.0), 0.999)) / n))
+            areas.update({k: a.to_dict() for k, a in stage.areas.items()})
         except Cancelled:
             raise
         except ProCamError as exc:
@@ -656,25 +543,23 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
             doc["failures"].append({"frame": f.number, "source": str(f.path.absolute()), "error": str(exc),
                                     "run": run["run"], "time": _now()})
             folder.write()
-            say(f"frame {f.number} failed: {exc}")
-            tick(i + 1, len(todo), f"frame {f.number}: failed", True)
+            say(f"frame {f.number}: failed: {exc}", (i + 1) / n)
             if fail_fast:
                 raise SequenceError(f"frame {f.number} failed ({exc}); stopped (--fail-fast). Finished frames are "
                                     "kept; fix it and rerun to resume") from None
             continue
         # Outside the per-frame handling above: a full or vanished disk fails every frame alike, so stop here.
         try:
-            frame = res.x_frame if effects is None else effects.frame_to_send(res.x_input)
-            out = write_image(folder.path / name, frame)
+            out = write_image(folder.path / name, done.frame)
         except (OSError, ProCamError) as exc:
             raise SequenceError(f"cannot write frame {f.number} into {folder.path}: {exc}; the finished frames "
                                 "are kept, rerun to resume") from None
-        notes = [str(w.message) for w in caught]
-        for n in notes:
-            say(f"frame {f.number}: warning: {n}")
+        for w in done.warnings:
+            say(f"frame {f.number}: warning: {w}", (i + 1) / n)
+        res = done.result
         entry = {"number": f.number, "file": name, **source, "status": "done",
                  "bytes": out.stat().st_size, "sha256": file_sha256(out),
-                 "mode": res.mode, "area": area.to_dict(), "encoding": note, "warnings": notes,
+                 "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": done.warnings,
                  "psnr_model_start": round(res.report["psnr_simulated_start"], 3),
                  "psnr_model": round(res.report["psnr_simulated"], 3),
                  "loss_first": res.losses[0] if res.losses else None,
@@ -685,10 +570,34 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
         result.done.append(f.number)
         run["done"] = len(result.done)
         folder.write()  # the frame counts as finished from here on
-        tick(i + 1, len(todo), f"frame {f.number}: {res.report['psnr_simulated']:.2f} dB (model), "
-                                   f"{res.seconds:.1f} s", True)
+        say(f"frame {f.number}: {res.report['psnr_simulated']:.2f} dB (model), {res.seconds:.1f} s", (i + 1) / n)
 
 
-__all__ = ["FORMAT", "MANIFEST", "OnProgress", "SequenceError", "ShowFolder", "ShowOptions", "ShowResult",
-           "SourceFrame", "calibration_identity", "file_sha256", "frame_digits", "frame_name", "list_frames",
-           "prepare_show", "settings_of"]
+# -- reading ---------------------------------------------------------------------------------------
+
+def read(folder: str | Path) -> dict[str, Any]:
+    """A show folder's manifest; a clear error when the folder holds no show."""
+    path = Path(folder) / MANIFEST
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SequenceError(f"{folder} is not a show folder ({exc}); give the folder {KIND.made_by} wrote") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise SequenceError(f"{path} is not a ProCam show manifest")
+    return doc
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    frames = [e for e in (doc.get("frames") or {}).values() if isinstance(e, dict)]
+    done = [e for e in frames if e.get("status") == "done"]
+    failed = [e for e in frames if e.get("status") == "failed"]
+    psnr = [float(e["psnr_model"]) for e in done if e.get("psnr_model") is not None]
+    head = (f"{len(done)}/{len(frames)} frames finished ({doc.get('mode')})"
+            + (f", model PSNR {fmt(sum(psnr) / len(psnr), '.2f')} dB mean" if psnr else ""))
+    lines = tuple(f"frame {e.get('number')}: failed — {e.get('error', '')}" for e in failed)
+    return Summary(True, head, lines, {"done": len(done), "failed": len(failed), "complete": doc.get("complete")})
+
+
+def summary(folder: str | Path) -> Summary:
+    """A show folder: frames finished and failed, mean model PSNR."""
+    return cached(KIND, folder, _summary, "run Prepare Show or choose a show folder")

@@ -1,0 +1,263 @@
+"""The calibrate step: a capture set → a calibration folder (surface, projector pose, warp), and its readers.
+
+The folder, written atomically (nothing is left behind when a stage fails or is cancelled):
+
+``calibration.json``
+    camera and projector models (pose as a 4×4 ``camera_from_projector`` in
+    the rig frame, metres), warp parameters, losses and seconds per stage.
+``surface.npz`` / ``surface.obj`` + ``albedo.png``
+    the reconstructed mesh (rig frame) and its camera-aligned diffuse texture.
+``diagnostics/``
+    mask vs rendered mask, checkerboard capture vs render before/after the warp,
+    the deformed grid of the warp.
+``scene.blend`` (``with_blend``)
+    the rig, the textured surface and those images, to open in Blender. The
+    Blender UI leaves it out: the open scene is the .blend there, and bpy must
+    not be driven from the worker thread the UI runs steps in.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..capture.format import CaptureSet
+from ..errors import CalibrationError, ProCamError
+from ..imageio import read_image, write_atomic_bytes, write_image
+from ..outputs import AtomicFolder, file_sha256, write_manifest
+from ..progress import Cancel, Progress, part, quiet
+from ..rig.model import Rig
+from ..stages.calibrate import STAGES, Calibration, calibrate_captures, stage_plan
+from ..stages.warp import Warp, grid_image
+from ..surface.mesh import SurfaceMesh
+from . import layout
+from .summary import Summary, cached, fmt
+
+KIND = layout.CALIBRATION
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """What ``procam calibrate`` and the Calibrate button ask for."""
+
+    capture_dir: Path
+    out: Path
+    #: stage A's start: graycode (Gray-code PnP), nominal (the capture set's pose), given (``initial_pose``)
+    init: str = "graycode"
+    initial_pose: np.ndarray | None = None
+    #: stage A's refinement: ours, or the paper's (binary mask, Γ with ε = 0.01)
+    stage_a: str = "ours"
+    #: a contiguous run of surface,pose,warp; earlier stages come from the calibration already at ``out``
+    stages: str = "all"
+    #: the depth sensor's bias in metres; None: read from the capture set's wall depth image
+    depth_offset: float | None = None
+    with_blend: bool = True
+    seed: int = 0
+    force: bool = False
+
+
+def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> Calibration:
+    """Calibrate the capture set into ``options.out``; returns the calibration written."""
+    say = progress or quiet
+    plan = stage_plan(options.stages)
+    if options.init == "given" and options.initial_pose is None:
+        raise CalibrationError("a given start pose (init 'given') needs the pose itself")
+    captures = CaptureSet.load(options.capture_dir)
+    reused = STAGES[:STAGES.index(plan[0])]
+    previous, images = _previous(Path(options.out), options.capture_dir, reused) if reused else (None, {})
+    folder = AtomicFolder(options.out, force=options.force or previous is not None, what=KIND.what,
+                          replaceable=KIND.holds, error=CalibrationError)
+    try:
+        result = calibrate_captures(captures, plan=plan, previous=previous, previous_images=images,
+                                    init=options.init, initial_pose=options.initial_pose, seed=options.seed,
+                                    depth_offset=options.depth_offset, stage_a=options.stage_a,
+                                    progress=part(say, 0.0, 0.95), cancel=cancel)
+        say("writing the calibration folder", 0.95)
+        write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
+    except BaseException:
+        folder.abort()
+        raise
+    folder.commit()
+    say("done", 1.0)
+    return result.calibration
+
+
+def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = True) -> None:
+    """The files of a calibration folder into the (new, empty) ``folder``."""
+    mesh = cal.surface
+    write_manifest(folder / KIND.manifest, manifest(cal))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, vertices=mesh.vertices, faces=mesh.faces, uvs=mesh.uvs, albedo=mesh.albedo)
+    write_atomic_bytes(folder / layout.SURFACE_NPZ, buf.getvalue())
+    write_image(folder / layout.ALBEDO_PNG, mesh.albedo)
+    write_atomic_bytes(folder / layout.SURFACE_MTL, f"newmtl albedo\nKd 1 1 1\nmap_Kd {layout.ALBEDO_PNG}\n".encode())
+    write_atomic_bytes(folder / layout.SURFACE_OBJ, _obj_text(mesh).encode())
+    diag = folder / layout.DIAGNOSTICS_DIR
+    diag.mkdir()
+    clipped = {name: np.clip(im, 0, 1) for name, im in images.items()}
+    for name, im in clipped.items():
+        write_image(diag / f"{name}.png", im)
+    if with_blend:
+        # bpy is imported only here: a .blend is the one calibration output that needs Blender.
+        from ..blender.blend_file import save_calibration_blend
+
+        save_calibration_blend(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)
+
+
+def manifest(cal: Calibration) -> dict[str, Any]:
+    """``calibration.json`` of a calibration."""
+    return {"format": KIND.format, "version": KIND.version, "capture_set": cal.capture_dir,
+            "rig": cal.rig.to_dict(),
+            "camera_from_projector": cal.rig.projector.camera_from_projector.tolist(),
+            "warp": cal.warp.to_dict() if cal.warp is not None else None,
+            "surface": {"mesh": layout.SURFACE_NPZ, "obj": layout.SURFACE_OBJ, "albedo": layout.ALBEDO_PNG,
+                        "vertices": int(len(cal.surface.vertices)), "faces": int(len(cal.surface.faces))},
+            **cal.report}
+
+
+def _obj_text(mesh: SurfaceMesh) -> str:
+    lines = ["# ProCam surface, rig frame (OpenCV camera frame, metres)", f"mtllib {layout.SURFACE_MTL}",
+             "usemtl albedo"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in mesh.vertices]
+    lines += [f"vt {u:.6f} {v:.6f}" for u, v in mesh.uvs]
+    lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in mesh.faces]
+    return "\n".join(lines) + "\n"
+
+
+def _previous(out: Path, capture_dir: str | Path,
+              needed: tuple[str, ...]) -> tuple[Calibration, dict[str, np.ndarray]]:
+    """The calibration at ``out`` whose ``needed`` stages a partial run reuses (same capture set), with its images."""
+    if not KIND.holds(out):
+        raise CalibrationError(f"running from stage {STAGES[len(needed)]!r} reuses the {', '.join(needed)} of the "
+                               f"calibration in {out}, but there is none; run the earlier stages first "
+                               f"(--stages {','.join(STAGES[:len(needed) + 1])})")
+    prev = read(out, complete=False)
+    if Path(prev.capture_dir).resolve() != Path(capture_dir).resolve():
+        raise CalibrationError(f"the calibration in {out} was made from {prev.capture_dir}, not {capture_dir}; "
+                               "run every stage (--stages all) or choose another output folder")
+    missing = [n for n in needed if prev.stages.get(n) not in ("run", "reused")]
+    if missing:
+        raise CalibrationError(f"the calibration in {out} has not run stage(s) {', '.join(missing)}; "
+                               f"run --stages {','.join(STAGES[:len(needed) + 1])}")
+    return prev, diagnostic_images(out)
+
+
+# -- reading ---------------------------------------------------------------------------------------
+
+def read(folder: str | Path, *, complete: bool = True) -> Calibration:
+    """A calibration folder; with ``complete`` (for compensation, diagnosis, evaluation) one that has not run
+    every stage is refused, saying which to run."""
+    folder = Path(folder)
+    path = folder / KIND.manifest
+    if not path.is_file():
+        raise CalibrationError(f"{folder} is not a calibration folder (no {KIND.manifest}); run {KIND.made_by}")
+    try:
+        doc = json.loads(path.read_text())
+        if doc.get("format") != KIND.format:
+            raise CalibrationError(f"{path} is not a ProCam calibration")
+        data = np.load(folder / doc["surface"]["mesh"])
+        surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"], name="surface")
+        warp = Warp.from_dict(doc["warp"]) if doc.get("warp") else None
+        report = {k: v for k, v in doc.items() if k not in ("format", "version", "capture_set", "rig",
+                                                             "camera_from_projector", "warp", "surface")}
+        cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report)
+    except (OSError, ValueError, KeyError) as exc:
+        raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
+    missing = cal.missing_stages
+    if complete and missing:
+        raise CalibrationError(f"the calibration in {folder} has not run {', '.join(missing)} yet; run "
+                               f"procam calibrate {cal.capture_dir} --out {folder} --stages {','.join(missing)}")
+    return cal
+
+
+def captures_of(cal: Calibration, *, verify_images: bool = False, required: bool = True) -> CaptureSet | None:
+    """The capture set a calibration was made from; None when it moved and ``required`` is false (then the
+    display area must come from the user or the model alone)."""
+    try:
+        return CaptureSet.load(cal.capture_dir, verify_images=verify_images)
+    except ProCamError as exc:
+        if required:
+            raise CalibrationError(f"the capture set {cal.capture_dir!r} this calibration was made from cannot be "
+                                   f"read ({exc}); put it back where it was") from None
+        return None
+
+
+def identity(folder: str | Path) -> dict[str, str]:
+    """Path and content hashes of a calibration folder (its manifest and surface mesh): what made a result."""
+    folder = Path(folder)
+    doc_path = folder / KIND.manifest
+    try:
+        mesh = json.loads(doc_path.read_text()).get("surface", {}).get("mesh", layout.SURFACE_NPZ)
+        return {"path": str(folder.absolute()), "sha256": file_sha256(doc_path),
+                "surface_sha256": file_sha256(folder / mesh)}
+    except (OSError, ValueError, AttributeError) as exc:
+        raise CalibrationError(f"cannot read the calibration {folder}: {exc}") from None
+
+
+def diagnostic_images(folder: str | Path) -> dict[str, np.ndarray]:
+    """The diagnostic images of a calibration folder (``diagnostics/*.png``) by name."""
+    diag = Path(folder) / layout.DIAGNOSTICS_DIR
+    return {p.stem: read_image(p, channels=3) for p in sorted(diag.glob("*.png"))} if diag.is_dir() else {}
+
+
+@dataclass
+class CalibrationView:
+    """A calibration as the scene shows it: the rig, the textured surface, the warp grid and diagnostic images."""
+
+    folder: Path
+    calibration: Calibration
+    images: dict[str, np.ndarray]
+
+
+def read_view(folder: str | Path, progress: Progress | None = None,
+              cancel: Cancel | None = None) -> CalibrationView:
+    """A calibration folder with its diagnostics and the warp's deformed grid, a stage at a time (what is there)."""
+    say = progress or quiet
+    say("reading the calibration", 0.0)
+    cal = read(folder, complete=False)
+    say("reading the diagnostic images", 0.3)
+    images = diagnostic_images(folder)
+    if cal.warp is not None:
+        images["warp_grid"] = np.clip(grid_image(cal.warp, cal.warp.size), 0.0, 1.0).astype(np.float32)
+    say("done", 1.0)
+    return CalibrationView(Path(folder), cal, images)
+
+
+def run_view(options: CalibrateOptions, progress: Progress | None = None,
+             cancel: Cancel | None = None) -> CalibrationView:
+    """:func:`run`, then :func:`read_view` of the folder written: what the Calibrate button shows."""
+    run(options, part(progress, 0.0, 0.95), cancel)
+    return read_view(options.out, part(progress, 0.95, 1.0))
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    sec = doc.get("seconds", {})
+    losses = doc.get("losses", {})
+    surf = doc.get("surface_report", {}) or {}
+    warp = doc.get("warp_report", {}) or {}
+    before, after = warp.get("corners_before_px") or {}, warp.get("corners_after_px") or {}
+    pose = doc.get("pose", {}) or {}
+    position = np.asarray(doc["camera_from_projector"], dtype=float)[:3, 3]
+    lines = (
+        f"Surface: {surf.get('vertices', doc.get('surface', {}).get('vertices', '?'))} vertices, "
+        f"{surf.get('faces', doc.get('surface', {}).get('faces', '?'))} faces ({fmt(sec.get('surface'), '.1f', ' s')})",
+        f"Pose: init {doc.get('init', pose.get('init', '?'))}, loss {fmt(losses.get('pose'), '.4g')} "
+        f"({fmt(sec.get('pose'), '.1f', ' s')})",
+        f"Projector at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) m",
+        f"Warp: corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "
+        f"loss {fmt(losses.get('warp'), '.4g')} ({fmt(sec.get('warp'), '.1f', ' s')})",
+    )
+    head = f"Calibrated: warp corners {fmt(after.get('median'), '.2f')} px"
+    diag = root / layout.DIAGNOSTICS_DIR
+    maps = sorted(p.name for p in diag.glob("*.png")) if diag.is_dir() else []
+    return Summary(True, head, lines, {"diagnostics": maps, "capture_set": doc.get("capture_set", "")})
+
+
+def summary(folder: str | Path) -> Summary:
+    """Key figures of a calibration folder: surface size, pose loss and position, warp corners before → after."""
+    return cached(KIND, folder, _summary, "run Calibrate or choose a calibration folder")

@@ -1,0 +1,130 @@
+"""The capture step: a capture set from the virtual lab, or from photographs of an exported pattern sequence.
+
+Three front doors, each writing one new folder atomically:
+
+* :func:`run_lab` — the lab renders every calibration pattern of a rig on a
+  surface with Cycles and injected effects; the truth is sealed outside the set;
+* :func:`run_patterns` — the numbered pattern frames of a projector, for users
+  who project and photograph with their own tools;
+* :func:`run_import` — those photographs, matched to their frames, as a capture set.
+
+The capture-set format itself (reading, validating, writing) is
+:mod:`..capture.format`'s, which the lab and the import share.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..capture.devices import export_sequence, import_captures, load_sequence
+from ..capture.format import CaptureSet
+from ..errors import LabError
+from ..lab.lab import check_lab_outputs, make_truth, run_lab as render_lab
+from ..progress import Cancel, Progress, quiet
+from ..rig.model import Camera, Projector, Rig
+from ..surface.mesh import SurfaceMesh
+
+
+@dataclass(frozen=True)
+class LabOptions:
+    """What ``procam lab`` and Run Virtual Lab ask for."""
+
+    out: Path
+    #: plane, curve, vedge, hedge, a mesh file (rig frame, metres), or a mesh (Blender's ProCam Surface)
+    surface: str | Path | SurfaceMesh = "curve"
+    #: NAME=STRENGTH[,NAME.PARAM=VALUE…] or 'realistic'
+    effects: str = ""
+    seed: int = 0
+    samples: int = 16
+    #: 1 = camera 640×480, projector 800×600
+    scale: float = 1.0
+    graycode: bool = True
+    #: render checker and Gray-code frames with the full samples too
+    full_binary: bool = False
+    #: sealed truth file outside the capture set (None: OUT.truth.json beside OUT)
+    truth: Path | None = None
+    #: the rig to use instead of the demo rig (Blender's scene rig)
+    rig: Rig | None = None
+    surface_source: str | None = None
+    camera_size: tuple[int, int] = (640, 480)
+    projector_size: tuple[int, int] = (800, 600)
+    force: bool = False
+
+    def paths(self) -> tuple[Path, Path]:
+        """The capture set and the truth file, absolute (so that "." or "../x" get proper names)."""
+        out = Path(os.path.abspath(self.out))
+        truth = Path(os.path.abspath(self.truth)) if self.truth else out.with_name(out.name + ".truth.json")
+        return out, truth
+
+
+def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
+    """Render a calibration capture set in the virtual lab; every argument is checked before the first render."""
+    if not 0.05 <= options.scale <= 2:
+        raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
+    if options.samples < 1:
+        raise LabError(f"samples must be ≥ 1, got {options.samples}")
+    out, truth_path = options.paths()
+    check_lab_outputs(out, truth_path, force=options.force)  # before reading any mesh
+    truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
+                       scale=options.scale, rig=options.rig, surface_source=options.surface_source,
+                       camera_size=options.camera_size, projector_size=options.projector_size)
+    (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
+    return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
+                      fast_binary=not options.full_binary, progress=progress, cancel=cancel)
+
+
+@dataclass(frozen=True)
+class PatternsOptions:
+    """What ``procam patterns`` and Export Patterns ask for."""
+
+    projector: Projector
+    out: Path
+    camera: Camera | None = None
+    checker: int | None = None
+    #: draw patterns inside the projector input, or over the whole frame
+    area: str = "input"
+    graycode: bool = True
+    validation: bool = True
+    seed: int = 0
+    force: bool = False
+
+
+def run_patterns(options: PatternsOptions, progress: Progress | None = None,
+                 cancel: Cancel | None = None) -> Path:
+    """Write the numbered calibration pattern frames and ``sequence.json``; returns the folder."""
+    (progress or quiet)("writing the pattern frames", 0.0)
+    out = export_sequence(options.projector, options.out, checker_size=options.checker, area=options.area,
+                          seed=options.seed, camera=options.camera, graycode=options.graycode,
+                          validation=options.validation, force=options.force)
+    (progress or quiet)(f"{len(load_sequence(out).frames)} frames", 1.0)
+    return out
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    """What ``procam import-captures`` and Import Captures ask for."""
+
+    sequence_dir: Path
+    photos_dir: Path
+    out: Path
+    #: the camera model (size checked against the photographs); None: from the photographs and ``camera_fov``
+    camera: Camera | None = None
+    camera_fov: float = 60.0
+    #: auto: 8-bit files are sRGB, 16-bit/float are linear
+    encoding: str = "auto"
+    depth: np.ndarray | None = None
+    depth_native_size: tuple[int, int] | None = None
+    force: bool = False
+
+
+def run_import(options: ImportOptions, progress: Progress | None = None,
+               cancel: Cancel | None = None) -> CaptureSet:
+    """Turn photographs of an exported pattern sequence into a new capture set."""
+    (progress or quiet)("matching the photographs to their frames", 0.0)
+    return import_captures(options.sequence_dir, options.photos_dir, options.camera, None, options.out,
+                           encoding=options.encoding, camera_fov=options.camera_fov, depth=options.depth,
+                           depth_native_size=options.depth_native_size, force=options.force)

@@ -1,0 +1,220 @@
+"""The compensate step: stage C for each target image into one compensation folder, and its readers.
+
+The folder is written atomically (an existing one is only replaced with
+``force``); for each target ``NAME``:
+
+``NAME_input.png``      the projector input x* = W(z) at the input size (16-bit)
+``NAME_frame.png``      x* placed in the native projector frame (16-bit)
+``NAME_simulated.png``  clip(f̂(z) − θ): what the model expects the camera to see (camera size)
+``NAME_target.png``     the target as fitted to the display area (area size, linear)
+
+and ``compensation.json``: the calibration used (path and content hash), how
+stage C ran (mode, device, schedule, effects), the rig the inputs are for,
+and per target its area, losses and seconds. All targets are read before any
+work starts, so a missing or unreadable one fails at once; if a later target
+fails during its optimisation, the finished ones are kept and the manifest
+records the failure, which is then raised.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..capture.devices import Device
+from ..errors import Cancelled, ImageError, ProCamError
+from ..imageio import write_image
+from ..outputs import AtomicFolder, natural_key, output_names, write_manifest
+from ..progress import Cancel, Progress, check, part, quiet
+from . import calibrate as calibrate_step
+from . import layout
+from .stage_c import StageC, StageCOptions
+from .summary import Summary, cached, fmt
+
+KIND = layout.COMPENSATION
+#: Files taken as targets when a folder of images is given.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".hdr", ".npy")
+
+
+@dataclass(frozen=True)
+class CompensateOptions:
+    """What ``procam compensate`` and the Compensate button ask for."""
+
+    calibration: Path
+    targets: tuple[Path, ...]
+    out: Path
+    stage_c: StageCOptions = field(default_factory=StageCOptions)
+    force: bool = False
+
+
+def target_paths(files: Sequence[str | Path], sequence_dir: str | Path | None = None) -> tuple[Path, ...]:
+    """The target images: the listed files, then the images of ``sequence_dir`` in natural order."""
+    out = [Path(f) for f in files if str(f)]
+    if sequence_dir:
+        folder = Path(sequence_dir)
+        if not folder.is_dir():
+            raise ImageError(f"the target sequence folder {folder} does not exist; choose a folder of images")
+        found = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+                        and not p.name.startswith(".")), key=natural_key)
+        if not found:
+            raise ImageError(f"the target sequence folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        out += found
+    if not out:
+        raise ImageError("no target images: add target files or choose an image sequence folder")
+    return tuple(out)
+
+
+def run(options: CompensateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+        device: Device | None = None) -> "CompensationView":
+    """Compensate every target into ``options.out`` (module doc); ``device`` overrides opening
+    ``options.stage_c.device`` (the manifest still names the latter)."""
+    say = progress or quiet
+    paths = list(options.targets)
+    if not paths:
+        raise ImageError("no target images: add target files or choose an image sequence folder")
+    say("reading the calibration and the targets", 0.0)
+    options.stage_c.check()
+    cal = calibrate_step.read(options.calibration)
+    ident = calibrate_step.identity(options.calibration)
+    with StageC(cal, options.stage_c, device=device, progress=part(say, 0.0, 0.02)) as stage:
+        # Read every target and choose its area first: a bad file or area fails before minutes of work.
+        targets = [stage.load(p) for p in paths]
+        for image, _ in targets:
+            stage.area_for(image)
+        names = output_names(paths)
+        folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds)
+        records: list[dict[str, Any]] = []
+        failure: ProCamError | None = None
+        try:
+            if stage.options.mode == "open-loop":
+                say("estimating θ from the validation captures (open loop)", 0.02)
+                stage.estimate_bias()
+            n = len(paths)
+            for i, ((image, note), name, path) in enumerate(zip(targets, names, paths)):
+                check(cancel, "compensation was cancelled; nothing was written")
+                area = stage.area_for(image)
+                say(f"target {i + 1}/{n}: {name} ({area.width}×{area.height} at {area.x},{area.y})",
+                    0.05 + 0.95 * i / n)
+                try:
+                    done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
+                                            progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
+                                                          f"target {i + 1}/{n} {name}: "))
+                except Cancelled:
+                    raise
+                except ProCamError as exc:
+                    failure = exc
+                    records.append({"name": name, "file": str(path.absolute()), "status": "failed",
+                                    "error": str(exc)})
+                    break
+                for w in done.warnings:
+                    say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / n)
+                files = layout.target_files(name)
+                res = done.result
+                write_image(folder.tmp / files["input"], done.input)
+                write_image(folder.tmp / files["frame"], done.frame)
+                write_image(folder.tmp / files["simulated"], res.simulated)
+                write_image(folder.tmp / files["target"], done.fitted)
+                records.append({"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
+                                "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
+                                "seconds": round(res.seconds, 2), "captures": res.captures,
+                                "loss_first": res.losses[0] if res.losses else None,
+                                "loss_last": res.losses[-1] if res.losses else None,
+                                "losses": [round(v, 7) for v in res.losses],
+                                "psnr_simulated_start": round(float(res.report["psnr_simulated_start"]), 3),
+                                "psnr_simulated": round(float(res.report["psnr_simulated"]), 3)})
+            areas = [r["area"] for r in records if r.get("area")]
+            bias = stage.bias
+            write_manifest(folder.tmp / KIND.manifest, {
+                "format": KIND.format, "version": KIND.version,
+                "calibration": ident["path"], "calibration_sha256": ident["sha256"], "capture_set": cal.capture_dir,
+                **stage.settings(),
+                "open_loop_bias": None if bias is None else {"kind": bias.kind, **bias.report},
+                **stage.rig_record(),
+                "area": areas[0] if areas and all(a == areas[0] for a in areas) else None,
+                "complete": failure is None, "targets": records})
+        except BaseException:
+            folder.abort()
+            raise
+        folder.commit()
+    say("done", 1.0)
+    if failure is not None:
+        raise failure
+    return read(options.out)
+
+
+# -- reading ---------------------------------------------------------------------------------------
+
+@dataclass
+class CompensatedTarget:
+    """One finished target of a compensation folder."""
+
+    name: str
+    input_path: Path
+    frame_path: Path
+    simulated_path: Path
+    psnr_simulated: float
+    seconds: float
+    mode: str
+
+
+@dataclass
+class CompensationView:
+    """A compensation folder: its manifest and finished targets."""
+
+    folder: Path
+    doc: dict[str, Any]
+    targets: list[CompensatedTarget]
+
+    @property
+    def mode(self) -> str | None:
+        mode = self.doc.get("mode")
+        return mode if isinstance(mode, str) else None
+
+
+def read(folder: str | Path) -> CompensationView:
+    """A compensation folder and its finished targets; a clear error when it is not one."""
+    folder = Path(folder)
+    path = folder / KIND.manifest
+    if not folder.is_dir():
+        raise ProCamError(f"the compensation folder {folder} does not exist; give the folder {KIND.made_by} wrote")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ProCamError(f"{folder} is not a compensation folder ({exc}); give the folder {KIND.made_by} "
+                          "wrote") from None
+    if not isinstance(doc, dict) or doc.get("format") != KIND.format:
+        raise ProCamError(f"{path} is not a ProCam compensation manifest")
+    out = []
+    for t in doc.get("targets") or []:
+        if not isinstance(t, dict) or t.get("status") != "done":
+            continue
+        try:
+            out.append(CompensatedTarget(str(t["name"]), folder / t["input"], folder / t["frame"],
+                                         folder / t["simulated"], float(t.get("psnr_simulated", float("nan"))),
+                                         float(t.get("seconds", 0.0)), str(t.get("mode", ""))))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProCamError(f"{path}: a target record is malformed ({exc})") from None
+    return CompensationView(folder, doc, out)
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    targets = [t for t in doc.get("targets", []) if isinstance(t, dict)]
+    done = [t for t in targets if t.get("status") == "done"]
+    lines = []
+    for t in targets:
+        if t.get("status") == "done":
+            lines.append(f"{t['name']}: simulated PSNR {fmt(t.get('psnr_simulated_start'), '.1f')} → "
+                         f"{fmt(t.get('psnr_simulated'), '.1f')} dB, {fmt(t.get('seconds'), '.0f', ' s')}")
+        else:
+            lines.append(f"{t.get('name', '?')}: {t.get('status', '?')} — {t.get('error', '')}")
+    mode = doc.get("mode")
+    head = f"{len(done)}/{len(targets)} targets compensated ({mode if isinstance(mode, str) else 'mixed modes'})"
+    return Summary(True, head, tuple(lines), {"targets": done, "complete": doc.get("complete", True)})
+
+
+def summary(folder: str | Path) -> Summary:
+    """The compensated targets of a folder: names, simulated PSNR before → after, seconds, mode."""
+    return cached(KIND, folder, _summary, "run Compensate or choose a compensation folder")

@@ -1,0 +1,157 @@
+"""The built-in demo end to end, made of the real steps: lab → calibrate → compensate → evaluate → diagnose.
+
+Every stage of the demo is the step a user would run, writing the folder that
+step writes, in place under the demo folder, so that ``procam evaluate``,
+``procam diagnose``, ``procam show`` and Blender read the demo's folders like
+any other:
+
+``captures/`` + ``lab-truth.json``  the lab's capture set of the demo rig (lens-shifted projector) on a built-in
+                                    surface with the ``realistic`` effects, its truth sealed beside it
+``calibration/``                    surface, projector pose (stage A), warp (stage B)
+``cross-check/``                    Cycles vs Mitsuba on the true rig (the foundation check; images)
+``targets/``                        the natural photographs compensated (16-bit, linear)
+``compensation/``                   stage C, closed loop through the lab
+``evaluation/``                     each input projected in the lab, PSNR/SSIM next to the uncompensated target
+``diagnosis/``                      the sim-to-real diagnosis of the calibration (the lab truth is not read)
+``summary.json``                    the figures the demo prints
+
+Default: half resolution (camera 320×240, projector 400×300) so it runs in minutes on 2 cores; ``full`` uses
+the paper's 640×480 / 800×600.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..capture.targets import natural_target
+from ..errors import ProCamError
+from ..imageio import write_image
+from ..lab.crosscheck import run_cross_check
+from ..lab.lab import LabTruth
+from ..outputs import folder_in_place, write_manifest
+from ..progress import Cancel, Progress, part, quiet
+from ..stages.display_area import choose_area
+from . import calibrate, capture, compensate, diagnose, evaluate, layout
+from .stage_c import StageCOptions
+
+KIND = layout.DEMO
+#: The demo's stages and their share of its running time, for progress.
+PLAN = (("lab", 0.15), ("calibrate", 0.05), ("cross-check", 0.02), ("compensate", 0.3), ("evaluate", 0.08),
+        ("diagnose", 0.4))
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    """What ``procam demo`` asks for."""
+
+    out: Path = Path("out/demo")
+    full: bool = False
+    surface: str = "vedge"
+    effects: str = "realistic"
+    targets: tuple[str, ...] = ("city", "forest")
+    schedule: str = "fast"
+    samples: int = 16
+    seed: int = 0
+    force: bool = False
+
+
+def _heat(diff: np.ndarray, scale: float) -> np.ndarray:
+    """Signed difference as a blue–white–red image (|diff| = scale is saturated)."""
+    d = np.clip(diff.mean(axis=2) / scale, -1, 1)
+    out = np.ones(d.shape + (3,), np.float32)
+    out[..., 0] -= np.clip(-d, 0, 1)
+    out[..., 1] -= np.abs(d)
+    out[..., 2] -= np.clip(d, 0, 1)
+    return out
+
+
+def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:
+    """Run the demo into ``options.out`` (module doc); returns the summary it writes to ``summary.json``."""
+    if options.samples < 1:
+        raise ProCamError("samples must be ≥ 1")
+    if not options.targets:
+        raise ProCamError("the demo needs at least one built-in target")
+    say = progress or quiet
+    scale = 1.0 if options.full else 0.5
+    cam, proj = (round(640 * scale), round(480 * scale)), (round(800 * scale), round(600 * scale))
+    summary: dict[str, Any] = {"format": KIND.format, "version": KIND.version,
+                               "resolution": {"camera": cam, "projector": proj}, "surface": options.surface,
+                               "effects": options.effects, "cycles_samples": options.samples, "seed": options.seed}
+    seconds: dict[str, float] = {}
+    spans, start = {}, 0.0
+    for name, share in PLAN:
+        spans[name] = part(say, start, start + share, f"[{name}] ")
+        start += share
+    t_start = time.perf_counter()
+    with folder_in_place(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds) as out:
+        t0 = time.perf_counter()
+        truth_path = out / "lab-truth.json"
+        capture.run_lab(capture.LabOptions(out / "captures", surface=options.surface, effects=options.effects,
+                                           seed=options.seed, samples=options.samples, truth=truth_path,
+                                           camera_size=cam, projector_size=proj), spans["lab"], cancel)
+        truth = LabTruth.load(truth_path)
+        seconds["lab"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        cal = calibrate.run(calibrate.CalibrateOptions(out / "captures", out / "calibration", seed=options.seed),
+                            spans["calibrate"], cancel)
+        seconds["calibrate"] = time.perf_counter() - t0
+        est, true = cal.rig.projector, truth.rig.projector
+        ang = np.degrees(np.arccos(np.clip(est.direction @ true.direction, -1, 1)))
+        summary["calibration"] = {"position_error_cm": 100 * float(np.linalg.norm(est.position - true.position)),
+                                  "direction_error_deg": float(ang), "seconds": cal.report.get("seconds"),
+                                  "warp_corners": cal.report.get("warp_report")}
+
+        t0 = time.perf_counter()
+        spans["cross-check"]("Cycles vs Mitsuba on the true rig, direct light", 0.0)
+        check = run_cross_check(truth.rig, truth.surface, bounces=0, samples=32, spp=32, seed=options.seed)
+        (out / "cross-check").mkdir()
+        for name, img in check.images.items():
+            write_image(out / "cross-check" / f"{name}.png", img)
+        write_image(out / "cross-check" / "difference_white.png",
+                    _heat(check.images["cycles_white"] - check.images["mitsuba_white"], 0.05))
+        summary["cross_renderer"] = check.summary()
+        seconds["cross_check"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        area = choose_area(cal, aspect=4 / 3)
+        (out / "targets").mkdir()
+        targets = tuple(write_image(out / "targets" / f"{name}.png", natural_target(name, area.size))
+                        for name in options.targets)
+        device = f"lab:{truth_path}"
+        view = compensate.run(compensate.CompensateOptions(
+            out / "calibration", targets, out / "compensation",
+            StageCOptions(schedule=options.schedule, seed=options.seed, device=device)), spans["compensate"], cancel)
+        seconds["compensate"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        metrics = evaluate.run(evaluate.EvaluateOptions(out / "calibration", out / "compensation", targets, device,
+                                                        out / "evaluation"), spans["evaluate"], cancel)
+        seconds["evaluate"] = time.perf_counter() - t0
+        rows = [{"name": t["name"], "psnr": t["psnr"], "ssim": t["ssim"],
+                 "uncompensated_psnr": t["uncompensated"]["psnr"], "uncompensated_ssim": t["uncompensated"]["ssim"],
+                 "seconds": next(c.seconds for c in view.targets if c.name == t["name"]), "mode": t["mode"]}
+                for t in metrics["targets"] if t.get("status") == "done"]
+        summary["compensation"] = {"area": view.doc.get("area"), "targets": rows,
+                                   "mean": {k: float(np.mean([r[k] for r in rows]))
+                                            for k in ("psnr", "ssim", "uncompensated_psnr", "uncompensated_ssim")}}
+
+        t0 = time.perf_counter()
+        # 192×144 working images, as scripts/bench_diagnosis.py measured the diagnosis.
+        gap = diagnose.run(diagnose.DiagnoseOptions(out / "calibration", out / "diagnosis",
+                                                    scale=0.3 if options.full else 0.6), spans["diagnose"], cancel)
+        summary["diagnosis"] = {"residual": gap["residual"], "residual_after": gap["residual_after"],
+                                "selected": gap["selected"], "selected_params": gap["selected_params"],
+                                "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
+                                "regions": gap["regions"][:3]}
+        seconds["diagnose"] = time.perf_counter() - t0
+        summary["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
+        summary["seconds_total"] = round(time.perf_counter() - t_start, 1)
+        write_manifest(out / KIND.manifest, summary)
+    say("done", 1.0)
+    return summary

@@ -1,0 +1,132 @@
+"""The diagnose step: where and why the calibrated simulation still differs from the captures, into a folder.
+
+The folder, written atomically: ``gap.json`` (residual, effects ranked and
+selected, regions, evidence of absorbed effects, what ``--effects auto``
+inverts), the residual maps and the region overlay as PNG (the raw maps as
+EXR), and ``summary.md``, a one-page report with the images. The analysis is
+:mod:`..gap.diagnose`'s; this module reads the calibration and its capture
+set and writes what it found.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..errors import ProCamError
+from ..gap.data import DiagnosisError
+from ..gap.diagnose import diagnose
+from ..gap.fit import MIN_SHARE
+from ..gap.models import NAMES
+from ..imageio import write_atomic_bytes, write_image
+from ..outputs import AtomicFolder, write_manifest
+from ..progress import Cancel, Progress, part, quiet
+from . import calibrate as calibrate_step
+from . import layout
+from .summary import Summary, cached, fmt
+
+KIND = layout.DIAGNOSIS
+
+
+@dataclass(frozen=True)
+class DiagnoseOptions:
+    """What ``procam diagnose`` and the Diagnose button ask for."""
+
+    calibration: Path
+    out: Path
+    #: candidate effect models: 'all' or NAME,...
+    effects: str = "all"
+    #: working resolution as a share of the camera image
+    scale: float = 0.5
+    #: samples per pixel of the model renders
+    spp: int = 32
+    #: an effect is selected only if it removes at least this share of the held-out RMSE left
+    min_share: float = MIN_SHARE
+    force: bool = False
+
+    def candidates(self) -> tuple[str, ...]:
+        if self.effects.strip().lower() in ("all", "auto", ""):
+            return NAMES
+        names = tuple(n.strip() for n in self.effects.split(",") if n.strip())
+        bad = [n for n in names if n not in NAMES]
+        if bad:
+            raise ProCamError(f"unknown effect model(s) {', '.join(bad)}; known: {', '.join(NAMES)}")
+        return names
+
+    def check(self) -> None:
+        self.candidates()
+        if not 0.05 <= self.scale <= 1.0:
+            raise ProCamError(f"the working scale must be between 0.05 and 1, got {self.scale}")
+        if self.spp < 1:
+            raise ProCamError(f"spp must be ≥ 1, got {self.spp}")
+
+
+def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:
+    """Diagnose the calibration into ``options.out``; returns the ``gap.json`` document."""
+    say = progress or quiet
+    options.check()
+    cal = calibrate_step.read(options.calibration)
+    try:
+        captures = calibrate_step.captures_of(cal, verify_images=True)
+    except ProCamError as exc:
+        raise DiagnosisError(f"{exc}; the diagnosis compares the model with those captures") from None
+    folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                          error=ProCamError)
+    try:
+        found = diagnose(cal, captures, source=str(Path(options.calibration).absolute()),
+                         format=(KIND.format, KIND.version), scale=options.scale, spp=options.spp,
+                         candidates=options.candidates(), min_share=options.min_share,
+                         progress=part(say, 0.0, 0.98), cancel=cancel)
+        write_manifest(folder.tmp / KIND.manifest, found.doc)
+        for name, image in found.images.items():
+            write_image(folder.tmp / name, image)
+        write_atomic_bytes(folder.tmp / layout.DIAGNOSIS_SUMMARY, found.summary.encode())
+    except BaseException:
+        folder.abort()
+        raise
+    folder.commit()
+    say("done", 1.0)
+    return found.doc
+
+
+def read(folder: str | Path) -> dict[str, Any]:
+    """A diagnosis folder's ``gap.json``; a clear error when the folder holds none."""
+    path = Path(folder) / KIND.manifest
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DiagnosisError(f"{folder} is not a diagnosis folder ({exc}); run {KIND.made_by} first") from None
+    if not isinstance(doc, dict) or doc.get("format") != KIND.format:
+        raise DiagnosisError(f"{path} is not a ProCam diagnosis")
+    return doc
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    residual = doc.get("residual") or {}
+    effects = [e for e in doc.get("effects", []) if isinstance(e, dict) and "name" in e]
+    selected = [str(s) for s in doc.get("selected", [])]
+
+    def gain(e: dict[str, Any]) -> float:
+        try:
+            return float(e.get("heldout_rmse_before")) - float(e.get("heldout_rmse_after"))
+        except (TypeError, ValueError):
+            return float("-inf")
+
+    # Selected in the diagnosis's order (found on the residual, then absorbed by calibration), then by gain.
+    effects.sort(key=lambda e: (0, selected.index(e["name"])) if e["name"] in selected else (1, -gain(e)))
+    regions = [r for r in doc.get("regions", []) if isinstance(r, dict)]
+    regions.sort(key=lambda r: -float(r.get("share", 0) or 0))
+    head = (f"Residual RMSE {fmt(residual.get('rmse'), '.4f')}, PSNR {fmt(residual.get('psnr'), '.1f', ' dB')}; "
+            f"{len(selected)} effect{'s' if len(selected) != 1 else ''} selected"
+            + (f" ({len(doc['absorbed'])} absorbed by calibration)" if doc.get("absorbed") else ""))
+    maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
+    text = layout.DIAGNOSIS_SUMMARY if (root / layout.DIAGNOSIS_SUMMARY).is_file() else None
+    return Summary(True, head, (), {"effects": effects, "selected": selected, "regions": regions, "maps": maps,
+                                    "summary": text})
+
+
+def summary(folder: str | Path) -> Summary:
+    """A diagnosis folder: residual, effects ranked (selected first, then held-out gain), regions, maps."""
+    return cached(KIND, folder, _summary, "run Diagnose or choose a diagnosis folder")

@@ -1,0 +1,77 @@
+"""Every step folder's manifest name, format tag and version, and the files each step writes: one place to look.
+
+A folder is recognised by its manifest; a reader checks the format tag and
+version before trusting anything else in it. Capture sets (``capture.json``)
+and exported pattern sequences (``sequence.json``) are defined with their
+format in :mod:`..capture.format` and :mod:`..capture.devices`, which the lab
+and the import share; they are listed here too so that this page names every
+folder ProCam writes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..capture import devices as sequence_format
+from ..capture import format as capture_format
+
+
+@dataclass(frozen=True)
+class FolderKind:
+    """One kind of step folder: the manifest that marks it and its format tag and version."""
+
+    what: str  # in messages: "calibration folder"
+    manifest: str
+    format: str
+    version: int = 1
+    made_by: str = ""  # the command that writes it, for messages that say what to run
+
+    def holds(self, path: str | Path) -> bool:
+        """Whether ``path`` (a folder) holds this kind's manifest: what ``force`` may replace."""
+        return (Path(path) / self.manifest).is_file()
+
+
+CAPTURES = FolderKind("capture set", capture_format.MANIFEST, capture_format.FORMAT, capture_format.VERSION,
+                      "procam lab / procam import-captures")
+PATTERNS = FolderKind("pattern sequence", sequence_format.SEQUENCE_MANIFEST, sequence_format.SEQUENCE_FORMAT,
+                      sequence_format.SEQUENCE_VERSION, "procam patterns")
+CALIBRATION = FolderKind("calibration folder", "calibration.json", "procam-calibration", 1, "procam calibrate")
+COMPENSATION = FolderKind("compensation folder", "compensation.json", "procam-compensation", 1, "procam compensate")
+SHOW = FolderKind("show folder", "show.json", "procam-show", 1, "procam show")
+EVALUATION = FolderKind("evaluation folder", "metrics.json", "procam-evaluation", 1, "procam evaluate")
+DIAGNOSIS = FolderKind("diagnosis folder", "gap.json", "procam-gap", 1, "procam diagnose")
+FRAMES = FolderKind("projector frame sequence", "frames.json", "procam-frames", 1, "procam export-frames")
+DEMO = FolderKind("demo folder", "summary.json", "procam-demo", 1, "procam demo")
+
+# -- the files inside ------------------------------------------------------------------------------
+
+#: calibration: the mesh (rig frame) and its texture, the same mesh for other tools, diagnostics, the scene.
+SURFACE_NPZ, SURFACE_OBJ, SURFACE_MTL, ALBEDO_PNG = "surface.npz", "surface.obj", "surface.mtl", "albedo.png"
+DIAGNOSTICS_DIR = "diagnostics"
+SCENE_BLEND = "scene.blend"
+
+#: compensation, per target NAME.
+TARGET_FILES = {"input": "{name}_input.png", "frame": "{name}_frame.png", "simulated": "{name}_simulated.png",
+                "target": "{name}_target.png"}
+
+#: show: numbered frames and θ estimated once for the open loop.
+FRAME_PREFIX = "frame_"
+OPEN_LOOP_BIAS = "open_loop_bias.npz"
+
+#: evaluation, per target NAME.
+EVALUATION_FILES = {"image": "{name}_comparison.png", "capture": "{name}_capture.png",
+                    "uncompensated": "{name}_uncompensated_capture.png", "classical": "{name}_classical_input.png"}
+
+#: diagnosis.
+DIAGNOSIS_SUMMARY = "summary.md"
+
+
+def frame_name(number: int, digits: int = 4) -> str:
+    """The file of projector frame ``number`` (``frame_0001.png``): zero-padded as media servers expect."""
+    return f"{FRAME_PREFIX}{number:0{digits}d}.png"
+
+
+def target_files(name: str) -> dict[str, str]:
+    """The files ``procam compensate`` writes for the target ``name``."""
+    return {k: v.format(name=name) for k, v in TARGET_FILES.items()}

@@ -1,0 +1,260 @@
+"""Stage C as the compensate and show steps run it: options, the capture device, and one session for many targets.
+
+Both steps loop over targets with the same per-target work: fit the target to
+its display area, run stage C (closed loop through a device, or open loop
+with θ from the validation captures), and turn the answer into the input and
+the native frame to send. :class:`StageC` holds what the targets share (the
+loaded scene, the device, θ of the open loop, the display area per aspect
+ratio, the diagnosed effect models around stage C) so that each step only
+decides how its folder grows.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..capture.devices import Device, FolderDevice
+from ..errors import CaptureError, ProCamError
+from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options
+from ..lab.lab import LabDevice, LabTruth
+from ..progress import Cancel, Progress
+from ..stages.calibrate import Calibration
+from ..stages.compensate import (DEFAULT_SCHEDULE, BiasModel, CompensationResult, Compensator, Schedule, get_schedule,
+                                 split_iterations)
+from ..stages.display_area import DisplayArea, TargetAspectWarning, choose_area, fit_target, load_target
+from . import calibrate as calibrate_step
+from . import diagnose as diagnose_step
+
+DEVICE_KINDS = ("lab", "folder")
+
+
+@dataclass(frozen=True)
+class StageCOptions:
+    """How stage C runs for every target: the schedule (by name, with the values given over it) and choices.
+
+    A schedule value left None is the named schedule's (``stages.compensate.SCHEDULES``); ``iterations`` is the
+    total, split in the schedule's own ratio.
+    """
+
+    schedule: str = DEFAULT_SCHEDULE
+    iterations: int | None = None
+    lr: float | None = None
+    alpha: float | None = None
+    capture_every: int | None = None
+    spp: int = 4
+    bounces: int = 1
+    seed: int = 0
+    #: display area x, y, width, height in camera pixels; None: chosen per aspect ratio
+    area: tuple[int, int, int, int] | None = None
+    target_encoding: str = "auto"
+    #: False: no θ at all (the ablation)
+    use_bias: bool = True
+    #: closed loop through ``lab:TRUTH_FILE`` or ``folder:CAPTURE_DIR``; None: open loop
+    device: str | None = None
+    #: diagnosed effect models around stage C: 'none', 'auto' or NAME,...; their parameters come from ``diagnosis``
+    effects: str = "none"
+    diagnosis: Path | None = None
+
+    def run_arguments(self) -> dict[str, Any]:
+        """The schedule keywords of :meth:`Compensator.run`: the schedule's name and only the values given."""
+        iterations_z, iterations_joint = split_iterations(self.iterations, self.schedule)
+        given = {"iterations_z": iterations_z, "iterations_joint": iterations_joint, "lr": self.lr,
+                 "alpha": self.alpha, "capture_every": self.capture_every}
+        return {"schedule": self.schedule, **{k: v for k, v in given.items() if v is not None}}
+
+    def resolved(self) -> Schedule:
+        """The schedule every target runs (a bad value fails here, before any work)."""
+        args = self.run_arguments()
+        return replace(get_schedule(args.pop("schedule")), **args).check()
+
+    def check(self) -> Schedule:
+        """Refuse values stage C cannot use, before anything is loaded; returns the resolved schedule."""
+        for what, v, lo in (("spp", self.spp, 1), ("bounces", self.bounces, 0)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ProCamError(f"{what} must be a whole number ≥ {lo}, got {v!r}")
+        if self.capture_every is not None and self.capture_every < 1:
+            raise ProCamError(f"capture every must be ≥ 1, got {self.capture_every}")
+        if self.iterations is not None and self.iterations < 0:
+            raise ProCamError(f"iterations must be ≥ 0, got {self.iterations}")
+        if self.lr is not None and not (0 < self.lr < float("inf")):
+            raise ProCamError(f"the learning rate must be a positive number, got {self.lr}")
+        if self.device is not None:
+            device_kind(self.device)
+        return self.resolved()
+
+    @property
+    def mode(self) -> str:
+        """closed-loop (a device and θ), open-loop (θ from the validation captures) or none (no θ)."""
+        return "closed-loop" if self.device and self.use_bias else "open-loop" if self.use_bias else "none"
+
+    @property
+    def device_spec(self) -> str | None:
+        """The device as the manifest names it: its kind and absolute path (None in the open loop)."""
+        if not self.device or not self.use_bias:
+            return None
+        kind, _, where = self.device.partition(":")
+        return f"{kind}:{Path(where).absolute()}"
+
+
+def effect_adapter(options: StageCOptions, calibration: Calibration) -> EffectAdapter | None:
+    """The diagnosed effect models ``options.effects`` names, with the parameters its diagnosis folder fitted."""
+    wanted = (options.effects or "none").strip().lower() not in ("", "none", "off")
+    doc = diagnose_step.read(options.diagnosis) if wanted and options.diagnosis is not None else None
+    return adapter_from_options(options.effects, doc, calibration.rig.projector,
+                                where=f"the diagnosis in {options.diagnosis}")
+
+
+def device_kind(spec: str) -> str:
+    kind, _, where = spec.partition(":")
+    if not where or kind not in DEVICE_KINDS:
+        raise CaptureError(f"the device must be lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR (replayed "
+                           f"captures), got {spec!r}")
+    return kind
+
+
+def open_device(spec: str | None) -> Device | None:
+    """A capture device from ``lab:TRUTH_FILE`` (the virtual lab) or ``folder:CAPTURE_DIR`` (replayed captures)."""
+    if not spec:
+        return None
+    kind, where = device_kind(spec), spec.partition(":")[2]
+    return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
+
+
+@dataclass
+class TargetResult:
+    """Stage C's answer for one target, as a step writes it."""
+
+    result: CompensationResult
+    fitted: np.ndarray  # the target fitted to the display area (area size)
+    area: DisplayArea
+    input: np.ndarray  # the projector input to send (input size)
+    frame: np.ndarray  # that input in the native projector frame
+    warnings: list[str]
+
+
+class StageC:
+    """One calibration's stage C for a run of targets (module doc). Use as a context manager: closes the device.
+
+    ``device``: an open device to use instead of opening ``options.device``
+    (Blender opens the lab on its main thread and relays to it).
+    ``compensator``: a loaded :class:`Compensator` to reuse (same spp,
+    bounces and seed; not with effect models, whose scene moves with them).
+    """
+
+    def __init__(self, calibration: Calibration, options: StageCOptions, *, device: Device | None = None,
+                 compensator: Compensator | None = None, progress: Progress | None = None) -> None:
+        say = progress or (lambda m, f: None)
+        self.calibration, self.options = calibration, options
+        self.schedule = options.check()
+        self.adapter: EffectAdapter | None = effect_adapter(options, calibration)
+        self.captures = calibrate_step.captures_of(calibration, required=False)
+        self.user_area = choose_area(calibration, aspect=1.0, user=options.area) if options.area else None
+        self.areas: dict[str, DisplayArea] = {}
+        if compensator is not None and self.adapter is not None:
+            raise ProCamError("a run with effect models builds its own compensator (its scene moves with them)")
+        if compensator is not None and (compensator.bounces, compensator.spp, compensator.seed) != \
+                (options.bounces, options.spp, options.seed):
+            raise ProCamError("the compensator given was made with other bounces/spp/seed than the options'")
+        self._owned = device is None
+        self.device = device if device is not None else (open_device(options.device) if options.mode ==
+                                                         "closed-loop" else None)
+        try:
+            say("loading the calibrated scene", 0.0)
+            if compensator is not None:
+                self.compensator = compensator
+            elif self.adapter is None:
+                self.compensator = Compensator(calibration, bounces=options.bounces, spp=options.spp,
+                                               seed=options.seed)
+            else:
+                self.compensator = self.adapter.compensator(calibration, bounces=options.bounces, spp=options.spp,
+                                                            seed=options.seed)
+            self.model_device = self.device
+            if self.adapter is not None and self.device is not None:
+                self.model_device = AdaptedDevice(self.device, self.adapter)
+            self.bias: BiasModel | None = None
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def bounces(self) -> int:
+        return self.compensator.bounces
+
+    def estimate_bias(self) -> BiasModel:
+        """θ of the open loop, from the calibration's validation captures (seen through the effect models)."""
+        captures = self.captures
+        if captures is not None and self.adapter is not None:
+            captures = AdaptedCaptures(captures, self.adapter)
+        self.bias = self.compensator.estimate_bias(captures)
+        return self.bias
+
+    def area_for(self, image: np.ndarray) -> DisplayArea:
+        """The display area of a target: the user's, else the largest the projector covers at its aspect ratio
+        (one render per distinct aspect ratio, kept in :attr:`areas` by the ratio to 4 decimals)."""
+        if self.user_area is not None:
+            return self.user_area
+        aspect = image.shape[1] / image.shape[0]
+        key = f"{aspect:.4f}"
+        if key not in self.areas:
+            self.areas[key] = choose_area(self.calibration, aspect=aspect, captures=self.captures)
+        return self.areas[key]
+
+    def load(self, path: str | Path) -> tuple[np.ndarray, str]:
+        """A target image as stage C reads it (linear light; the note says how it was decoded)."""
+        return load_target(path, encoding=self.options.target_encoding)
+
+    def compensate(self, image: np.ndarray, *, name: str, what: str, progress: Progress | None = None,
+                   cancel: Cancel | None = None) -> TargetResult:
+        """Stage C for one target image; :class:`ProCamError` when this target cannot be compensated."""
+        if self.options.mode == "open-loop" and self.bias is None:
+            self.estimate_bias()
+        area = self.area_for(image)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", TargetAspectWarning)
+            fitted = fit_target(image, area, what=what)
+            model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
+            res = self.compensator.run(model_target, area, device=self.model_device, **self.options.run_arguments(),
+                                       progress=progress, cancel=cancel, open_loop_theta=self.bias,
+                                       use_bias=self.options.use_bias, name=name)
+        if self.adapter is None:
+            x_input, frame = res.x_input, res.x_frame
+        else:
+            x_input, frame = self.adapter.input_for(res.x_input), self.adapter.frame_to_send(res.x_input)
+        return TargetResult(res, fitted, area, x_input, frame, [str(w.message) for w in caught])
+
+    def settings(self) -> dict[str, Any]:
+        """What decides the pixels of every target: the manifest's record of how stage C ran."""
+        o, s = self.options, self.schedule
+        mode = o.mode
+        return {"mode": mode, "device": o.device_spec, "schedule": asdict(s),
+                "iterations": {"total": s.iterations_z + s.iterations_joint, "z": s.iterations_z,
+                               "joint": s.iterations_joint},
+                "lr": s.lr, "capture_every": s.capture_every if mode == "closed-loop" else None,
+                "bounces": self.bounces, "spp": o.spp, "seed": o.seed, "warp": self.calibration.warp is not None,
+                "area_given": list(o.area) if o.area else None, "target_encoding": o.target_encoding,
+                "effects": None if self.adapter is None else {
+                    "diagnosis": str(Path(o.diagnosis).absolute()), "used": self.adapter.used,
+                    "not_inverted": self.adapter.not_used, "params": self.adapter.params}}
+
+    def rig_record(self) -> dict[str, Any]:
+        """The rig the inputs are for, which evaluation checks before projecting them."""
+        proj = self.calibration.rig.projector
+        return {"projector": {"frame_size": list(proj.intrinsics.size), "input_size": list(proj.input_size),
+                              "input_offset": list(proj.input_offset)},
+                "camera_size": list(self.calibration.rig.camera.intrinsics.size)}
+
+    def close(self) -> None:
+        if self._owned and self.device is not None:
+            self.device.close()
+        self.device = None
+
+    def __enter__(self) -> "StageC":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
