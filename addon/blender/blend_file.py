@@ -11,6 +11,7 @@ import bpy
 import numpy as np
 
 from ..surface.mesh import SurfaceMesh
+from ..errors import CalibrationError
 from ..imageio import atomic_path
 from ..outputs import OutputError
 from ..rig.model import Rig
@@ -59,3 +60,15 @@ def save_calibration_blend_atomic(path: str | Path, rig: Rig, surface: SurfaceMe
     finally:
         Path(tmp).unlink(missing_ok=True)
     return path
+
+
+def projector_pose_from_blend(path: str | Path) -> np.ndarray:
+    """The ``camera_from_projector`` pose of the ProCam Projector in a .blend file (opened in this session)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"--blend file not found: {path}")
+    try:
+        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+    except RuntimeError as exc:
+        raise CalibrationError(f"cannot open {path}: {exc}") from None
+    return blender_rig.read_projector(bpy.context.scene).camera_from_projector

@@ -37,27 +37,16 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
 
-def _pose_from_blend(path: Path) -> np.ndarray:
-    import bpy
-
-    from ..blender.rig import read_projector
-
-    if not path.is_file():
-        raise CalibrationError(f"--blend file not found: {path}")
-    try:
-        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
-    except RuntimeError as exc:
-        raise CalibrationError(f"cannot open {path}: {exc}") from None
-    return read_projector(bpy.context.scene).camera_from_projector
-
-
 @command("calibrate", "Estimate surface, projector pose and warp from a capture set.", _configure)
 def run(args: argparse.Namespace) -> int:
     initial = None
     if args.init == "blender":
         if args.blend is None:
             raise CalibrationError("--init blender needs --blend FILE.blend with a ProCam Projector in it")
-        initial = _pose_from_blend(args.blend)
+        # bpy only for --init blender: opening a .blend is the one thing here that needs Blender.
+        from ..blender.blend_file import projector_pose_from_blend
+
+        initial = projector_pose_from_blend(args.blend)
     options = CalibrateOptions(args.capture_dir, args.out, init="given" if initial is not None else args.init,
                                initial_pose=initial, stage_a=args.stage_a, stages=args.stages,
                                depth_offset=args.depth_offset, with_blend=not args.no_blend_output, seed=args.seed,

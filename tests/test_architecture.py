@@ -1,0 +1,131 @@
+"""The house rules, read from the code: no import loop in addon/, bpy only where Blender is the point, one writer
+per step folder.
+
+Every import counts, module-level or inside a function: an import hidden in a
+function still ties two modules together, and a loop through it is still a loop.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ADDON = ROOT / "addon"
+#: Where importing bpy is the point; addon/native.py loads bpy before pymeshlab (shared Embree, see its doc).
+BPY_ALLOWED = ("addon/blender/", "addon/lab/", "operators/", "panels/", "blender_registration.py", "addon/native.py")
+
+
+def _module(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(["procam", *parts])
+
+
+def _imports(path: Path) -> set[str]:
+    """The modules ``path`` imports (absolute names, relative imports resolved; ``from x import y`` gives x.y when
+    y is a module of ours, else x)."""
+    tree = ast.parse(path.read_text(), str(path))
+    here = _module(path).split(".")
+    package = here if path.name == "__init__.py" else here[:-1]
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            name = ".".join([*base, *(node.module.split(".") if node.module else [])])
+            for alias in node.names:
+                out.add(f"{name}.{alias.name}")
+            out.add(name)
+    return out
+
+
+def _graph() -> dict[str, set[str]]:
+    files = {_module(p): p for p in ADDON.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in files.items():
+        graph[name] = {m for m in _imports(path) if m in files and m != name and not name.startswith(m + ".")}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one node (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_cycle_between_files():
+    assert _cycles(_graph()) == []
+
+
+def test_no_import_cycle_between_folders():
+    folders: dict[str, set[str]] = defaultdict(set)
+
+    def folder(m: str) -> str:
+        parts = m.split(".")
+        return ".".join(parts[:3]) if len(parts) > 3 else m  # procam.addon.<folder or module>
+
+    for a, targets in _graph().items():
+        for b in targets:
+            if folder(a) != folder(b):
+                folders[folder(a)].add(folder(b))
+    assert _cycles(dict(folders)) == []
+
+
+def test_bpy_only_where_blender_is_the_point():
+    offenders = []
+    for path in [*ROOT.glob("*.py"), *ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"),
+                 *(ROOT / "panels").rglob("*.py")]:
+        rel = path.relative_to(ROOT).as_posix()
+        if rel.startswith(BPY_ALLOWED):
+            continue
+        if {m for m in _imports(path) if m == "bpy" or m.startswith(("bpy.", "mathutils"))}:
+            offenders.append(rel)
+    assert offenders == []
+
+
+def test_step_folders_are_written_by_steps_only():
+    """Manifests of step folders are named in steps/layout.py alone; nothing outside steps/ spells them."""
+    names = ("calibration.json", "compensation.json", "show.json", "metrics.json", "gap.json", "frames.json")
+    offenders = [f"{p.relative_to(ROOT)}: {n}" for p in [*ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"),
+                                                          *(ROOT / "panels").rglob("*.py")]
+                 if "steps" not in p.relative_to(ADDON if p.is_relative_to(ADDON) else ROOT).parts
+                 for n in names if f'"{n}"' in p.read_text()]
+    assert offenders == []
+
+
+def test_the_graph_reader_sees_a_loop():
+    """The cycle finder is not vacuous: a two-module loop is found."""
+    assert _cycles({"a": {"b"}, "b": {"a"}, "c": {"a"}}) == [["a", "b"]]
