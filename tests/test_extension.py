@@ -35,8 +35,8 @@ def _blender_ext_cli() -> Path | None:
 def test_import_outside_blender_does_not_import_bpy(run_python):
     proc = run_python("""
         import sys
-        import procam, procam.addon.cli
-        procam.addon.cli.build_parser()  # imports every subcommand module
+        import procam, procam.addon.cli.app
+        procam.addon.cli.app.build_parser()  # imports every subcommand module
         heavy = [m for m in ("bpy", "mathutils", "bpy_extras") if m in sys.modules]
         assert not heavy, heavy
     """)
@@ -78,8 +78,8 @@ def test_build_without_wheels_is_small_and_clean(tmp_path):
     with zipfile.ZipFile(path) as zf:
         names = zf.namelist()
         manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
-    for required in ("blender_manifest.toml", "__init__.py", "blender_registration.py", "addon/cli.py",
-                     "addon/rig/blender_rig.py", "addon/lab/cycles.py", "operators/create_rig.py", "panels/rig.py"):
+    for required in ("blender_manifest.toml", "__init__.py", "blender_registration.py", "addon/cli/app.py",
+                     "addon/blender/rig.py", "addon/lab/cycles.py", "operators/create_rig.py", "panels/rig.py"):
         assert required in names
     for name in names:
         assert not name.startswith(("tests/", "scripts/", ".venv/", "wheels/", "dist/")), name

@@ -178,7 +178,7 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
     write_image(gap / "residual.png", np.zeros((4, 4, 3), np.float32))
     (gap / "summary.md").write_text("# Sim-to-real gap\n\nresponse removes 33 %\n")
     (gap / "gap.json").write_text(json.dumps({
-        "residual": {"rmse": 0.031, "psnr": 30.2},
+        "format": "procam-gap", "version": 1, "residual": {"rmse": 0.031, "psnr": 30.2},
         "regions": [{"bbox": [0, 0, 10, 10], "share": 0.55, "description": "projector border"}],
         "effects": [{"name": "vignetting", "params": {}, "heldout_rmse_before": 0.03, "heldout_rmse_after": 0.025,
                      "confidence": 0.7},

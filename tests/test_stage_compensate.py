@@ -346,10 +346,10 @@ def test_compensate_function_and_given_theta(setup, open_loop):
 # -- the command ---------------------------------------------------------------------------------
 
 def _write_calibration(cal, folder):
+    from procam.addon.steps import calibrate as calibrate_step
+
     folder.mkdir()
-    (folder / "calibration.json").write_text(json.dumps(cal.to_dict()))
-    s = cal.surface
-    np.savez_compressed(folder / "surface.npz", vertices=s.vertices, faces=s.faces, uvs=s.uvs, albedo=s.albedo)
+    calibrate_step.write(folder, cal, {}, with_blend=False)
 
 
 def test_cli_round_trip(setup, tmp_path, monkeypatch, capsys):

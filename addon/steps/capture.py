@@ -65,8 +65,6 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     """Render a calibration capture set in the virtual lab; every argument is checked before the first render."""
     if not 0.05 <= options.scale <= 2:
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
-    if options.samples < 1:
-        raise LabError(f"samples must be ≥ 1, got {options.samples}")
     out, truth_path = options.paths()
     check_lab_outputs(out, truth_path, force=options.force)  # before reading any mesh
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
