@@ -18,7 +18,6 @@ records the failure, which is then raised.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -177,16 +176,8 @@ class CompensationView:
 def read(folder: str | Path) -> CompensationView:
     """A compensation folder and its finished targets; a clear error when it is not one."""
     folder = Path(folder)
+    doc = KIND.read(folder)
     path = folder / KIND.manifest
-    if not folder.is_dir():
-        raise ProCamError(f"the compensation folder {folder} does not exist; give the folder {KIND.made_by} wrote")
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ProCamError(f"{folder} is not a compensation folder ({exc}); give the folder {KIND.made_by} "
-                          "wrote") from None
-    if not isinstance(doc, dict) or doc.get("format") != KIND.format:
-        raise ProCamError(f"{path} is not a ProCam compensation manifest")
     out = []
     for t in doc.get("targets") or []:
         if not isinstance(t, dict) or t.get("status") != "done":

@@ -10,7 +10,6 @@ set and writes what it found.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -93,14 +92,7 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
 
 def read(folder: str | Path) -> dict[str, Any]:
     """A diagnosis folder's ``gap.json``; a clear error when the folder holds none."""
-    path = Path(folder) / KIND.manifest
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DiagnosisError(f"{folder} is not a diagnosis folder ({exc}); run {KIND.made_by} first") from None
-    if not isinstance(doc, dict) or doc.get("format") != KIND.format:
-        raise DiagnosisError(f"{path} is not a ProCam diagnosis")
-    return doc
+    return KIND.read(folder, DiagnosisError)
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:

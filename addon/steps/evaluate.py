@@ -308,14 +308,7 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
 
 def read(folder: str | Path) -> dict[str, Any]:
     """An evaluation folder's ``metrics.json``; a clear error when the folder holds none."""
-    path = Path(folder) / KIND.manifest
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise EvaluationError(f"{folder} is not an evaluation folder ({exc}); run {KIND.made_by}") from None
-    if not isinstance(doc, dict) or doc.get("format") != KIND.format:
-        raise EvaluationError(f"{path} is not a ProCam evaluation")
-    return doc
+    return KIND.read(folder, EvaluationError)
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:

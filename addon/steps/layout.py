@@ -10,11 +10,14 @@ folder ProCam writes.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..capture import devices as sequence_format
 from ..capture import format as capture_format
+from ..errors import ProCamError
 
 
 @dataclass(frozen=True)
@@ -26,6 +29,17 @@ class FolderKind:
     format: str
     version: int = 1
     made_by: str = ""  # the command that writes it, for messages that say what to run
+
+    def read(self, folder: str | Path, error: type[ProCamError] = ProCamError) -> dict[str, Any]:
+        """The folder's manifest document, checked for this kind's format; ``error`` says what is wrong."""
+        path = Path(folder) / self.manifest
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise error(f"{folder} is not a {self.what} ({exc}); give the folder {self.made_by} wrote") from None
+        if not isinstance(doc, dict) or doc.get("format") != self.format:
+            raise error(f"{path} is not a ProCam {self.what} manifest")
+        return doc
 
     def holds(self, path: str | Path) -> bool:
         """Whether ``path`` (a folder) holds this kind's manifest: what ``force`` may replace."""

@@ -577,14 +577,7 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
 
 def read(folder: str | Path) -> dict[str, Any]:
     """A show folder's manifest; a clear error when the folder holds no show."""
-    path = Path(folder) / MANIFEST
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise SequenceError(f"{folder} is not a show folder ({exc}); give the folder {KIND.made_by} wrote") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise SequenceError(f"{path} is not a ProCam show manifest")
-    return doc
+    return KIND.read(folder, SequenceError)
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
