@@ -69,9 +69,9 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
                       ) -> dict[str, float] | None:
     """Mean PSNR in the display area, through the lab, open loop: base model vs with the selected effects."""
     from procam.addon.capture.targets import natural_target
-    from procam.addon.gap.compensation import compensate_with_effects, load_adapter
+    from procam.addon.gap.compensation import AdaptedCaptures, load_adapter
     from procam.addon.lab.lab import LabDevice, LabTruth
-    from procam.addon.steps.calibrate import read as read_calibration
+    from procam.addon.steps.calibrate import captures_of, read as read_calibration
     from procam.addon.stages.compensate import Compensator, area_psnr
     from procam.addon.stages.display_area import choose_area, fit_target
 
@@ -80,6 +80,9 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     base = Compensator(cal)
     bias = base.estimate_bias()
     truth = LabTruth.load(truth_path)
+    if adapter.params:  # stage C with the effects around it, as the compensate step runs --effects auto
+        comp_fx = adapter.compensator(cal)
+        bias_fx = comp_fx.estimate_bias(AdaptedCaptures(captures_of(cal), adapter))
 
     def captured(x: np.ndarray, placed: np.ndarray, area, seed: int | None = None) -> float:
         # Each input is the first shot of a device of its own: base and effects see the same sensor and Cycles
@@ -98,9 +101,9 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
         out["base"].append(captured(r0.x_frame, placed, area))
         out["base_again"].append(captured(r0.x_frame, placed, area, seed=truth.seed + 1))
         if adapter.params:
-            r1 = compensate_with_effects(cal, img, area=area, adapter=adapter, iterations_z=iterations,
-                                         iterations_joint=0)
-            out["effects"].append(captured(r1.x_frame, placed, area))
+            r1 = comp_fx.run(adapter.model_target(fit_target(img, area), area), area, open_loop_theta=bias_fx,
+                             iterations_z=iterations, iterations_joint=0)
+            out["effects"].append(captured(adapter.frame_to_send(r1.x_input), placed, area))
         else:
             out["effects"].append(out["base"][-1])
     return {k: float(np.mean(v)) for k, v in out.items()}
