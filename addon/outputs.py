@@ -46,17 +46,7 @@ class AtomicFolder:
         self.error = error
         self.force = force
         self.what = what
-        if self.target.exists():
-            if not self.target.is_dir():
-                raise self.error(f"{self.target} exists and is not a folder; choose another output path")
-            empty = not any(self.target.iterdir())
-            if not empty:
-                if replaceable is not None and not replaceable(self.target):
-                    raise self.error(f"{self.target} exists, is not empty and is not a {what}; "
-                                       "refusing to replace it — choose another output folder")
-                if not force:
-                    raise self.error(f"{self.target} already holds a {what}; it is never overwritten "
-                                       "without --force (force=True)")
+        check_replaceable(self.target, force=force, what=what, replaceable=replaceable, error=error)
         try:
             self.target.parent.mkdir(parents=True, exist_ok=True)
             self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
@@ -71,9 +61,7 @@ class AtomicFolder:
         backup: Path | None = None
         try:
             if self.target.exists():
-                backup = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.old-", dir=self.target.parent))
-                backup.rmdir()  # mkdtemp reserves a unique name; rename needs it free
-                os.replace(self.target, backup)
+                backup = _set_aside(self.target)
             os.replace(self.tmp, self.target)
         except OSError as exc:
             if backup is not None and backup.exists() and not self.target.exists():
@@ -89,6 +77,35 @@ class AtomicFolder:
         if not self.done:
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.done = True
+
+
+def check_replaceable(target: Path, *, force: bool, what: str, replaceable: Callable[[Path], bool] | None = None,
+                      error: type[ProCamError] = OutputError) -> bool:
+    """Refuse an output ``target`` that must not be replaced; True when it holds something ``force`` replaces.
+
+    A file is never replaced, nor a non-empty folder that is not ``replaceable``
+    (user data); a non-empty one that is only with ``force``.
+    """
+    if not target.exists():
+        return False
+    if not target.is_dir():
+        raise error(f"{target} exists and is not a folder; choose another output path")
+    if not any(target.iterdir()):
+        return False
+    if replaceable is not None and not replaceable(target):
+        raise error(f"{target} exists, is not empty and is not a {what}; refusing to replace it — choose another "
+                    "output folder")
+    if not force:
+        raise error(f"{target} already holds a {what}; it is never overwritten without --force (force=True)")
+    return True
+
+
+def _set_aside(target: Path) -> Path:
+    """Rename ``target`` to a hidden unique sibling; returns the sibling."""
+    backup = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+    backup.rmdir()  # mkdtemp reserves a unique name; rename needs it free
+    os.replace(target, backup)
+    return backup
 
 
 @contextlib.contextmanager
@@ -156,15 +173,8 @@ def folder_in_place(path: str | Path, *, force: bool = False, what: str = "resul
     ``replaceable``) and removed once the work succeeds; on failure the partial folder goes and the old one
     comes back."""
     target = Path(path).absolute()
-    backup: Path | None = None
-    if target.exists() and (not target.is_dir() or any(target.iterdir())):
-        if not target.is_dir() or (replaceable is not None and not replaceable(target)):
-            raise OutputError(f"{target} exists and is not a {what}; refusing to replace it — choose another folder")
-        if not force:
-            raise OutputError(f"{target} already holds a {what}; it is never overwritten without --force")
-        backup = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
-        backup.rmdir()
-        os.replace(target, backup)
+    replacing = check_replaceable(target, force=force, what=what, replaceable=replaceable)
+    backup = _set_aside(target) if replacing else None
     try:
         target.mkdir(parents=True, exist_ok=True)
         usual_mode(target)

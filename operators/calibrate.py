@@ -16,7 +16,7 @@ from ..addon.steps import calibrate as calibrate_step
 from ..addon.steps.calibrate import CalibrateOptions, CalibrationView
 from ..addon.steps.layout import CALIBRATION, CAPTURES
 from . import paths
-from .job_operator import JobOperator, job_running_message
+from .job_operator import JobOperator
 
 IMAGE_PREFIX = "ProCam Calibration "
 
@@ -63,19 +63,14 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
         return next(d for k, _, d in STAGE_ITEMS if k == properties.stage) + "; Esc cancels"
 
     @classmethod
-    def poll(cls, context: bpy.types.Context) -> bool:
-        scene = context.scene
-        why = job_running_message()
-        if why is None and paths.existing(scene.procam_capture_dir, CAPTURES.manifest) is None:
-            why = "no capture set: run the virtual lab or choose a capture-set folder in Captures"
-        if why is None and not scene.procam_calibration_dir:
-            why = "choose the calibration folder to write"
-        if why is None and scene.procam_calibration_init == "blender" and \
-                blender_rig.find_rig_objects(scene).projector is None:
-            why = "start pose 'Scene Projector' needs a ProCam Projector in the scene"
-        if why is not None:
-            cls.poll_message_set(why)
-        return why is None
+    def why_not(cls, scene: bpy.types.Scene) -> str | None:
+        if paths.existing(scene.procam_capture_dir, CAPTURES.manifest) is None:
+            return "no capture set: run the virtual lab or choose a capture-set folder in Captures"
+        if not scene.procam_calibration_dir:
+            return "choose the calibration folder to write"
+        if scene.procam_calibration_init == "blender" and blender_rig.find_rig_objects(scene).projector is None:
+            return "start pose 'Scene Projector' needs a ProCam Projector in the scene"
+        return None
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         scene = context.scene

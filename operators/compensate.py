@@ -7,7 +7,9 @@ folder); Preview on Projector puts one compensated frame on the ProCam
 Projector so that a Cycles render shows it on the surface.
 """
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import bpy
 from bpy.props import CollectionProperty, StringProperty
@@ -22,7 +24,7 @@ from ..addon.steps import show as show_step
 from ..addon.steps.layout import CALIBRATION, COMPENSATION
 from ..addon.steps.stage_c import StageCOptions, open_device
 from . import paths
-from .job_operator import JobOperator, job_running_message
+from .job_operator import JobOperator
 
 
 def stage_c_options(scene: bpy.types.Scene) -> StageCOptions:
@@ -45,15 +47,15 @@ def scene_targets(scene: bpy.types.Scene) -> tuple:
     return compensate_step.target_paths(files, folder)
 
 
-def _compensate_poll(scene: bpy.types.Scene, *, device_needed: bool) -> str | None:
-    why = job_running_message()
-    if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
-        why = "no calibration: run Calibrate or choose a calibration folder"
-    if why is None and not (len(scene.procam_targets) or scene.procam_target_folder):
-        why = "no targets: add target images or choose an image sequence folder"
-    if why is None and (device_needed or scene.procam_compensation_mode == "CLOSED") and not scene.procam_device:
-        why = "needs a device: lab:TRUTH_FILE or folder:CAPTURE_DIR"
-    return why
+def _stage_c_why_not(scene: bpy.types.Scene, *, device_needed: bool) -> str | None:
+    """Why a step that runs or measures stage C cannot start: no calibration, no targets, no device it needs."""
+    if paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
+        return "no calibration: run Calibrate or choose a calibration folder"
+    if not (len(scene.procam_targets) or scene.procam_target_folder):
+        return "no targets: add target images or choose an image sequence folder"
+    if (device_needed or scene.procam_compensation_mode == "CLOSED") and not scene.procam_device:
+        return "needs a device: lab:TRUTH_FILE or folder:CAPTURE_DIR"
+    return None
 
 
 class _DeviceJob(JobOperator):
@@ -66,6 +68,12 @@ class _DeviceJob(JobOperator):
         self._device = device = open_device(spec)
         return jobs.RelayedDevice(device, relay) if relay is not None else device
 
+    def stage_c_job(self, name: str, run: Callable[..., object], options: Any,
+                    relay: "jobs.MainThreadRelay | None") -> jobs.Job:
+        """The job of a step that runs stage C (compensate, show) with its device, once its options check."""
+        options.stage_c.check()  # a bad value fails here, before a device is opened
+        return jobs.Job(name, run, options, device=self.open_device(options.stage_c.device_spec, relay))
+
 
 class PROCAM_OT_compensate(_DeviceJob, bpy.types.Operator):
     """Find the projector input for each target (stage C) in the background, open or closed loop; Esc cancels"""
@@ -76,14 +84,11 @@ class PROCAM_OT_compensate(_DeviceJob, bpy.types.Operator):
     step = "compensate"
 
     @classmethod
-    def poll(cls, context: bpy.types.Context) -> bool:
-        scene = context.scene
-        why = _compensate_poll(scene, device_needed=False)
+    def why_not(cls, scene: bpy.types.Scene) -> str | None:
+        why = _stage_c_why_not(scene, device_needed=False)
         if why is None and not scene.procam_compensation_dir:
             why = "choose the results folder to write"
-        if why is not None:
-            cls.poll_message_set(why)
-        return why is None
+        return why
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         scene = context.scene
@@ -91,9 +96,7 @@ class PROCAM_OT_compensate(_DeviceJob, bpy.types.Operator):
             paths.resolve(scene.procam_calibration_dir, "calibration folder"), scene_targets(scene),
             paths.resolve(scene.procam_compensation_dir, "results folder"), stage_c_options(scene),
             force=scene.procam_replace_outputs)
-        options.stage_c.check()  # a bad value fails here, before a device is opened
-        return jobs.Job("compensation", compensate_step.run, options,
-                        device=self.open_device(options.stage_c.device_spec, relay))
+        return self.stage_c_job("compensation", compensate_step.run, options, relay)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         view: compensate_step.CompensationView = result
@@ -114,16 +117,13 @@ class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
     step = "evaluate"
 
     @classmethod
-    def poll(cls, context: bpy.types.Context) -> bool:
-        scene = context.scene
-        why = _compensate_poll(scene, device_needed=True)
+    def why_not(cls, scene: bpy.types.Scene) -> str | None:
+        why = _stage_c_why_not(scene, device_needed=True)
         if why is None and paths.existing(scene.procam_compensation_dir, COMPENSATION.manifest) is None:
             why = "no compensation results: run Compensate or choose a results folder"
         if why is None and not scene.procam_evaluation_dir:
             why = "choose the evaluation folder to write"
-        if why is not None:
-            cls.poll_message_set(why)
-        return why is None
+        return why
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         scene = context.scene
@@ -152,16 +152,13 @@ class PROCAM_OT_prepare_show(_DeviceJob, bpy.types.Operator):
     step = "show"
 
     @classmethod
-    def poll(cls, context: bpy.types.Context) -> bool:
-        scene = context.scene
-        why = _compensate_poll(scene, device_needed=False)
+    def why_not(cls, scene: bpy.types.Scene) -> str | None:
+        why = _stage_c_why_not(scene, device_needed=False)
         if why is None and not scene.procam_target_folder:
             why = "choose the image sequence folder of the show"
         if why is None and not scene.procam_show_dir:
             why = "choose the show folder to write (or resume)"
-        if why is not None:
-            cls.poll_message_set(why)
-        return why is None
+        return why
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         scene = context.scene
@@ -170,8 +167,7 @@ class PROCAM_OT_prepare_show(_DeviceJob, bpy.types.Operator):
             (paths.resolve(scene.procam_target_folder, "image sequence folder"),),
             paths.resolve(scene.procam_show_dir, "show folder"), stage_c_options(scene),
             force=scene.procam_replace_outputs)
-        options.stage_c.check()
-        return jobs.Job("show", show_step.run, options, device=self.open_device(options.stage_c.device_spec, relay))
+        return self.stage_c_job("show", show_step.run, options, relay)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         r: show_step.ShowResult = result

@@ -6,7 +6,7 @@ from ..addon import jobs
 from ..addon.steps import diagnose as diagnose_step
 from ..addon.steps.layout import CALIBRATION
 from . import paths
-from .job_operator import JobOperator, job_running_message
+from .job_operator import JobOperator
 
 
 class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
@@ -19,16 +19,12 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
     step = "diagnose"
 
     @classmethod
-    def poll(cls, context: bpy.types.Context) -> bool:
-        scene = context.scene
-        why = job_running_message()
-        if why is None and paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
-            why = "no calibration: run Calibrate or choose a calibration folder"
-        if why is None and not scene.procam_diagnosis_dir:
-            why = "choose the diagnosis folder to write"
-        if why is not None:
-            cls.poll_message_set(why)
-        return why is None
+    def why_not(cls, scene: bpy.types.Scene) -> str | None:
+        if paths.existing(scene.procam_calibration_dir, CALIBRATION.manifest) is None:
+            return "no calibration: run Calibrate or choose a calibration folder"
+        if not scene.procam_diagnosis_dir:
+            return "choose the diagnosis folder to write"
+        return None
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         scene = context.scene

@@ -27,7 +27,8 @@ def redraw_sidebars(context: bpy.types.Context) -> None:
 
 
 class JobOperator:
-    """Mixin for ``bpy.types.Operator`` subclasses: set ``step`` and implement ``make_job`` and ``apply``."""
+    """Mixin for ``bpy.types.Operator`` subclasses: set ``step`` and implement ``why_not``, ``make_job`` and
+    ``apply``."""
 
     step = ""
     _timer = None
@@ -36,6 +37,11 @@ class JobOperator:
     _device = None
 
     # -- to implement
+
+    @classmethod
+    def why_not(cls, scene: bpy.types.Scene) -> str | None:
+        """Why the step cannot start with the scene's settings (the disabled button's tooltip), else None."""
+        raise NotImplementedError
 
     def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
         """Validate the inputs (raise ProCamError) and build the job; ``relay`` is None when it runs here."""
@@ -46,6 +52,13 @@ class JobOperator:
         raise NotImplementedError
 
     # -- the operator protocol
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        why = job_running_message() or cls.why_not(context.scene)
+        if why is not None:
+            cls.poll_message_set(why)
+        return why is None
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         return self._launch(context, threaded=False)

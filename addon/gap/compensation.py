@@ -228,6 +228,11 @@ def load_adapter(doc: dict[str, Any], projector: Any, names: list[str] | None = 
     return EffectAdapter(params, projector)
 
 
+def effects_wanted(effects: str | None) -> bool:
+    """Whether an ``--effects`` value asks for effect models ('', 'none' and 'off' do not)."""
+    return (effects or "none").strip().lower() not in ("", "none", "off")
+
+
 def adapter_from_options(effects: str | None, diagnosis: dict[str, Any] | None, projector: Any,
                          where: str = "the diagnosis") -> EffectAdapter | None:
     """The adapter for ``--effects auto|NAME,...|none`` with the diagnosis document ``diagnosis`` (``gap.json``).
@@ -236,9 +241,9 @@ def adapter_from_options(effects: str | None, diagnosis: dict[str, Any] | None, 
     parameters (from the selection, else from fitting each alone). Effect models always need a diagnosis:
     their parameters are fitted there, on the calibration's validation captures. ``where`` names it in messages.
     """
-    spec = (effects or "none").strip().lower()
-    if spec in ("", "none", "off"):
+    if not effects_wanted(effects):
         return None
+    spec = effects.strip().lower()
     if diagnosis is None:
         raise ProCamError(f"--effects {effects} needs --diagnosis DIR: the folder `procam diagnose CALIB --out DIR` "
                           "wrote, where the effects' parameters were fitted")

@@ -187,19 +187,20 @@ class EvaluationRun:
 
 def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                     targets: list[tuple[str, np.ndarray, str]], device: Device, out: Path, *,
-                    calibration_dir: str | Path | None = None, classical: bool = False,
-                    progress: Progress | None = None, cancel: Cancel | None = None) -> EvaluationRun:
+                    calibration_dir: str | Path | None = None, notes: list[str] | None = None,
+                    classical: bool = False, progress: Progress | None = None,
+                    cancel: Cancel | None = None) -> EvaluationRun:
     """Measure each ``(name, target image, note)`` of ``targets`` against its compensated input in ``inputs``.
 
     Writes into the existing folder ``out``: ``NAME_comparison.png`` (target |
     uncompensated | compensated [| classical] | error map, area crops),
     ``NAME_capture.png`` (the compensated capture) and
     ``NAME_uncompensated_capture.png``; returns the ``metrics.json`` document.
-    Every input is checked before the first projection; a failure during the
-    projections stops the run but keeps what was measured.
+    ``inputs`` must have passed :meth:`CompensationInputs.check_against` (whose
+    ``notes`` it records); every frame is read before the first projection, and
+    a failure during the projections stops the run but keeps what was measured.
     """
     say = progress or quiet
-    notes = inputs.check_against(calibration, calibration_dir)
     proj = calibration.rig.projector
     cam_size = calibration.rig.camera.intrinsics.size
     if not targets:
@@ -258,7 +259,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     done = [r for r in rows if r.get("status") == "done"]
     doc = {"format": KIND.format, "version": KIND.version, "inputs": str(inputs.path.absolute()),
            "calibration": str(Path(calibration_dir).absolute()) if calibration_dir else None,
-           "capture_set": calibration.capture_dir, "notes": notes,
+           "capture_set": calibration.capture_dir, "notes": notes or [],
            "measure": "PSNR (dB, peak 1) and SSIM (Wang et al. 2004) of the capture inside the display area "
                       "against the target fitted to the area",
            "classical": None if model is None else model.report,
@@ -276,7 +277,7 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     say = progress or quiet
     cal = calibrate_step.read(options.calibration)
     inputs = CompensationInputs.load(options.inputs)
-    inputs.check_against(cal)
+    notes = inputs.check_against(cal, options.calibration)  # inputs of another rig fail before any projection
     names = output_names(options.targets)
     for name in names:
         inputs.record(name)  # a target with no compensation fails before anything is read or projected
@@ -290,7 +291,7 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
                 raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE or "
                                       "folder:CAPTURE_DIR")
         result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
-                                 classical=options.classical, progress=say, cancel=cancel)
+                                 notes=notes, classical=options.classical, progress=say, cancel=cancel)
         result.doc["device"] = options.device
         write_manifest(folder.tmp / KIND.manifest, result.doc)
     except BaseException:

@@ -20,9 +20,9 @@ import numpy as np
 
 from ..capture.devices import Device, FolderDevice
 from ..errors import CaptureError, ProCamError
-from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options
+from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.lab import LabDevice, LabTruth
-from ..progress import Cancel, Progress
+from ..progress import Cancel, Progress, quiet
 from ..stages.calibrate import Calibration
 from ..stages.compensate import (DEFAULT_SCHEDULE, BiasModel, CompensationResult, Compensator, Schedule, get_schedule,
                                  split_iterations)
@@ -103,8 +103,8 @@ class StageCOptions:
 
 def effect_adapter(options: StageCOptions, calibration: Calibration) -> EffectAdapter | None:
     """The diagnosed effect models ``options.effects`` names, with the parameters its diagnosis folder fitted."""
-    wanted = (options.effects or "none").strip().lower() not in ("", "none", "off")
-    doc = diagnose_step.read(options.diagnosis) if wanted and options.diagnosis is not None else None
+    wanted = effects_wanted(options.effects) and options.diagnosis is not None
+    doc = diagnose_step.read(options.diagnosis) if wanted else None
     return adapter_from_options(options.effects, doc, calibration.rig.projector,
                                 where=f"the diagnosis in {options.diagnosis}")
 
@@ -148,7 +148,7 @@ class StageC:
 
     def __init__(self, calibration: Calibration, options: StageCOptions, *, device: Device | None = None,
                  compensator: Compensator | None = None, progress: Progress | None = None) -> None:
-        say = progress or (lambda m, f: None)
+        say = progress or quiet
         self.calibration, self.options = calibration, options
         self.schedule = options.check()
         self.adapter: EffectAdapter | None = effect_adapter(options, calibration)
