@@ -116,6 +116,28 @@ def test_bpy_only_where_blender_is_the_point():
     assert offenders == []
 
 
+#: Why an import of our own may wait inside a function: it loads bpy (Blender's bridge and the Cycles lab), or cv2
+#: where Blender registers the extension (type-checking imports sit at module level). Anything else goes at the top of the file,
+#: where a reader sees what the module depends on.
+LAZY_ALLOWED = ("blender", "cycles", "imageio", "cli.app", "addon.jobs")
+
+
+def test_own_imports_at_module_level():
+    offenders = []
+    for path in [*ROOT.glob("*.py"), *ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"),
+                 *(ROOT / "panels").rglob("*.py")]:
+        tree = ast.parse(path.read_text(), str(path))
+        for func in ast.walk(tree):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(func):
+                if isinstance(node, ast.ImportFrom) and node.level:
+                    names = [".".join(filter(None, (node.module, a.name))) for a in node.names]
+                    if not all(any(word in name for word in LAZY_ALLOWED) for name in names):
+                        offenders.append(f"{path.relative_to(ROOT)}:{node.lineno} {ast.unparse(node)}")
+    assert offenders == []
+
+
 def test_step_folders_are_written_by_steps_only():
     """Manifests of step folders are named in steps/layout.py alone; nothing outside steps/ spells them."""
     names = ("calibration.json", "compensation.json", "show.json", "metrics.json", "gap.json", "frames.json")

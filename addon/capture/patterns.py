@@ -225,6 +225,15 @@ def decode_gray_code_set(captures: "CaptureSet", **thresholds: Any) -> GrayCodeD
 
 # -- validation patterns -------------------------------------------------------------------------
 
+def refine_corners(pattern: np.ndarray, guesses: np.ndarray, window: int) -> np.ndarray:
+    """Sub-pixel corners (N×2, corner convention) of a grey H×W ``pattern`` near ``guesses`` (N×2),
+    with OpenCV's ``cornerSubPix`` and a (2·window+1)² search window."""
+    pts = guesses.astype(np.float32).reshape(-1, 1, 2) - 0.5  # OpenCV: pixel centres on integers
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
+    out = cv2.cornerSubPix(np.ascontiguousarray(pattern, dtype=np.float32), pts, (window, window), (-1, -1), crit)
+    return out.reshape(-1, 2).astype(np.float64) + 0.5
+
+
 def colour_ramp(size: Size, channel: str = "r", axis: str = "x") -> np.ndarray:
     """A ramp from 0 to 1 along ``axis`` in one channel (``r``, ``g``, ``b``) or all (``grey``)."""
     w, h = _check_size(size)

@@ -35,6 +35,7 @@ from ..capture.format import CaptureSet, Entry
 from ..errors import Cancelled, ProCamError
 from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
+from ..render.raycast import first_hits
 from ..stages.calibrate import Calibration
 
 
@@ -210,7 +211,6 @@ def light_paths(calibration: Any, camera: Any
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per working-size camera pixel: real-input position (remap convention), its change per metre of
     depth along the ray, 3-D point, unit ray, and whether the pixel's light comes from the input."""
-    from ..render.raycast import first_hits
 
     w, h = camera.size
     ys, xs = np.mgrid[0:h, 0:w] + 0.5

@@ -41,10 +41,14 @@ import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..errors import Cancelled, ProCamError
+from ..capture.patterns import decode_gray_code_set
+from ..errors import Cancelled, CaptureError, ProCamError, SurfaceError
 from ..progress import Cancel
-from ..stages.calibrate import Calibration
-from ..stages.pose import surface_view, target_mask
+from ..render.backend import mitsuba
+from ..render.scene import surface_mesh
+from ..stages.calibrate import Calibration, SATURATED
+from ..stages.pose import full_white_irradiance, surface_view, target_mask
+from ..surface.reconstruct import wall_depth_offset
 
 #: Vignetting is found when the fitted falloff at the farthest frame corner reaches this share of the light …
 VIGNETTING_MIN_FALLOFF = 0.05
@@ -98,8 +102,6 @@ def _subset(n: int, seed: int = 0) -> np.ndarray:
 def ambient_occlusion(surface: Any, points: np.ndarray, normals: np.ndarray, *, directions: int = AO_DIRECTIONS,
                       seed: int = 0) -> np.ndarray:
     """Share of an even room light each surface point receives (cosine-weighted visibility of the sky)."""
-    from ..render.backend import mitsuba
-    from ..render.scene import surface_mesh
 
     mi = mitsuba()
     scene = mi.load_dict({"type": "scene", "surface": surface_mesh(mi, surface)})
@@ -141,8 +143,6 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *,
     direction meets the camera, near the projector's axis on a surface facing both: its share of the white
     light is a second, free regressor, so that only the falloff it cannot explain counts.
     """
-    from ..stages.calibrate import SATURATED
-    from ..stages.pose import full_white_irradiance
 
     ev = Evidence("vignetting", False, absorbed_by="the albedo estimated from the white capture")
     if not captures.entries_of("surface"):
@@ -260,8 +260,6 @@ def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], theta: np
 
 
 def distortion_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) -> Evidence:
-    from ..capture.patterns import decode_gray_code_set
-    from ..errors import CaptureError
 
     ev = Evidence("distortion", False, absorbed_by="the projector pose (Gray-code PnP) and the stage-B warp")
     if not captures.entries_of("graycode"):
@@ -344,8 +342,6 @@ def depth_evidence(captures: Any, cal: Any) -> Evidence:
     walls = captures.depth_walls()
     report = cal.report.get("surface_report") or {}
     if walls:
-        from ..errors import SurfaceError
-        from ..surface.reconstruct import wall_depth_offset
 
         entry, distance = walls[0]
         wall = captures.depth(name=entry.name).astype(np.float64)

@@ -33,10 +33,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..progress import Cancel, Progress
 from ..errors import Cancelled
+from ..progress import Cancel, Progress
 from .data import GapData
-from .models import MODELS, NAMES, Composite
+from .models import Composite, MODELS, NAMES, describe_params
 
 #: An effect is added only if it removes at least this share of the held-out RMSE still left.
 MIN_SHARE = 0.06
@@ -68,7 +68,6 @@ class Fit:
         return float(max(shares)) if shares else 0.0
 
     def params(self) -> dict[str, dict[str, float]]:
-        from .models import describe_params
 
         comp_slices, i = {}, 0
         for n in (n for n in NAMES if n in self.names):

@@ -16,8 +16,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..capture.patterns import refine_corners
+from ..render.forward import ForwardModel
 from ..rig.model import Rig
-from ..surface.mesh import SurfaceMesh, ray_intersect
+from ..surface.mesh import SurfaceMesh, frame_points_to_camera
 
 
 @dataclass
@@ -59,34 +61,6 @@ def predicted_corners(rig: Rig, surface: SurfaceMesh, square: int, margin: int =
     return frame_points_to_camera(rig, surface, px)
 
 
-def frame_points_to_camera(rig: Rig, surface: SurfaceMesh, px: np.ndarray) -> np.ndarray:
-    """Camera pixels (N×2) of projector-frame points ``px`` (N×2, native frame, corner convention),
-    by ray casting onto the surface; NaN where the ray misses or the camera does not see the hit point."""
-    proj = rig.projector
-    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-    dirs = proj.intrinsics.rays(px) @ proj.camera_from_projector[:3, :3].T
-    t = ray_intersect(surface, proj.position, dirs)
-    pts = proj.position + dirs * t[:, None]
-    cam = rig.camera.intrinsics.project(pts)
-    # Hidden from the camera if the camera ray meets the surface sooner.
-    tc = ray_intersect(surface, np.zeros(3), pts)
-    cam[~np.isfinite(t) | (tc < 0.999)] = np.nan
-    return cam
-
-
-def refine_corners(pattern: np.ndarray, guesses: np.ndarray, window: int) -> np.ndarray:
-    """Sub-pixel corners (N×2, corner convention) of a grey H×W ``pattern`` near ``guesses`` (N×2),
-    with OpenCV's ``cornerSubPix`` and a (2·window+1)² search window."""
-    return _refine(pattern, guesses, window)
-
-
-def _refine(pattern: np.ndarray, guesses: np.ndarray, window: int) -> np.ndarray:
-    pts = guesses.astype(np.float32).reshape(-1, 1, 2) - 0.5  # OpenCV: pixel centres on integers
-    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-    out = cv2.cornerSubPix(np.ascontiguousarray(pattern, dtype=np.float32), pts, (window, window), (-1, -1), crit)
-    return out.reshape(-1, 2).astype(np.float64) + 0.5
-
-
 def _normalised(checker: np.ndarray, white: np.ndarray) -> np.ndarray:
     w = white.mean(axis=2)
     return np.where(w > 1e-4, checker.mean(axis=2) / np.maximum(w, 1e-4), 0.0).clip(0, 1)
@@ -106,7 +80,7 @@ def measure(cycles: dict[str, np.ndarray], mitsuba: dict[str, np.ndarray], guess
     g = guesses[ok]
     ij = np.clip(np.round(g - 0.5).astype(int), 0, [w - 1, h - 1])
     g = g[inner[ij[:, 1], ij[:, 0]]]
-    offsets = np.linalg.norm(_refine(pat_c, g, window) - _refine(pat_m, g, window), axis=1) if len(g) else np.zeros(0)
+    offsets = np.linalg.norm(refine_corners(pat_c, g, window) - refine_corners(pat_m, g, window), axis=1) if len(g) else np.zeros(0)
     solid = cv2.erode(lit.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     c, m = cycles["white"][solid], mitsuba["white"][solid]
     mean_m = float(m.mean()) if m.size else float("nan")
@@ -123,7 +97,6 @@ def run_cross_check(rig: Rig, surface: SurfaceMesh, *, bounces: int = 0, samples
     """
     import bpy
 
-    from ..render.forward import ForwardModel
     from ..blender import rig as blender_rig
     from .cycles import render_cycles
 

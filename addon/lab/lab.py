@@ -36,15 +36,18 @@ from typing import Any
 import numpy as np
 
 from ..capture.devices import Device
-from ..capture.format import WALL_PARAM, CaptureSet, CaptureSetWriter, DepthInfo, is_capture_set, validate_depth
+from ..capture.format import CaptureSet, CaptureSetWriter, DepthInfo, WALL_PARAM, is_capture_set, validate_depth
 from ..capture.patterns import PatternSpec, calibration_sequence
 from ..errors import CaptureError, LabError
-from ..imageio import write_atomic_bytes
+from ..imageio import read_image, write_atomic_bytes
+from ..native import import_pymeshlab
 from ..progress import Cancel, Progress, check, quiet
+from ..render.raycast import depth_map
 from ..rig.demo import demo_rig
 from ..rig.model import Camera, Rig
 from ..surface.mesh import SurfaceMesh
 from ..surface.shapes import SHAPES, builtin_surface
+from .depth import depth_capture, sensor_resolution
 from .effects import EffectSet, apply_camera, apply_projector, camera_render_intrinsics, parse_effects, render_settings
 
 TRUTH_FORMAT = "procam-lab-truth"
@@ -191,7 +194,6 @@ def load_mesh_file(path: Path) -> SurfaceMesh:
     """A user's ``.obj``/``.ply`` surface (rig frame, metres), with its texture if the file names one."""
     if not path.is_file():
         raise LabError(f"unknown surface {str(path)!r}: not one of {', '.join(SHAPES)} and no such mesh file")
-    from ..native import import_pymeshlab
 
     pymeshlab = import_pymeshlab()
     ms = pymeshlab.MeshSet()
@@ -206,7 +208,6 @@ def load_mesh_file(path: Path) -> SurfaceMesh:
     albedo = np.full((4, 4, 3), 0.8, np.float32)
     uvs = np.zeros((len(verts), 2))
     if m.has_wedge_tex_coord() and m.texture_number() > 0:
-        from ..imageio import read_image
         wedge = np.asarray(m.wedge_tex_coord_matrix()).reshape(-1, 3, 2)
         uvs[faces.ravel()] = wedge.reshape(-1, 2)  # one UV per vertex: seams take the last wedge's UV
         tex = path.parent / m.texture(0).name if hasattr(m.texture(0), "name") else None
@@ -226,8 +227,6 @@ def lab_depth(truth: LabTruth, seed: int | None = None) -> tuple[np.ndarray, Dep
 
     Needs no Blender scene (a ray cast); the noise comes from ``(seed, "depth")``.
     """
-    from ..render.raycast import depth_map
-    from .depth import depth_capture, sensor_resolution
 
     k = truth.rig.camera.intrinsics
     rng = _stream(truth.seed if seed is None else seed, zlib.crc32(b"depth"))
@@ -247,9 +246,6 @@ def lab_wall_depth(truth: LabTruth, distance: float = WALL_DISTANCE, seed: int |
     applies the ``depth_noise`` effect exactly as to the scene (noise, bias,
     sensor resolution, lost returns), with its own noise stream.
     """
-    from ..render.raycast import depth_map
-    from ..surface.mesh import SurfaceMesh
-    from .depth import depth_capture
 
     k = truth.rig.camera.intrinsics
     half = 2.0 * distance  # far wider than any camera's field of view

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import RigError
+from ..errors import ImageError, RigError
 
 
 @dataclass(frozen=True)
@@ -212,7 +212,6 @@ class Projector:
         w, h = self.input_size
         img = np.asarray(image, dtype=np.float32)
         if img.shape[:2] != (h, w):
-            from ..errors import ImageError
             raise ImageError(f"projector input must be {w}×{h} pixels, got {img.shape[1]}×{img.shape[0]}")
         fw, fh = self.intrinsics.size
         frame = np.zeros((fh, fw) + img.shape[2:], dtype=np.float32)

@@ -93,9 +93,12 @@ from typing import Any
 
 import numpy as np
 
-from ..progress import Cancel, Progress
 from ..capture.devices import Device
+from ..capture.format import CaptureSet
 from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
+from ..progress import Cancel, Progress
+from ..render.forward import ForwardModel
+from ..render.raycast import first_hits
 from .display_area import DisplayArea, fit_target
 from .metrics import psnr
 
@@ -327,7 +330,6 @@ class Compensator:
 
     def __init__(self, calibration: Any, *, bounces: int = 1, spp: int = 4, seed: int = 0,
                  variant: str | None = None) -> None:
-        from ..render.forward import ForwardModel
 
         if not isinstance(bounces, int) or bounces < 0:
             raise CompensationError(f"bounces must be a whole number ≥ 0, got {bounces!r}")
@@ -365,7 +367,6 @@ class Compensator:
         cw, ch = self.camera_size
         size = (max(2, round(cw * scale)), max(2, round(ch * scale)))
         if size not in self._coarse_models:
-            from ..render.forward import ForwardModel
 
             self._coarse_models[size] = ForwardModel(self.rig, self.calibration.surface, camera_size=size,
                                                      bounces=self.bounces, spp=self.spp, smoothing_eps=0.0,
@@ -377,7 +378,6 @@ class Compensator:
         (built once per window: every target in the same display area reuses its scene and kernels)."""
         key = tuple(int(v) for v in window)
         if key not in self._crop_models:
-            from ..render.forward import ForwardModel
 
             self._crop_models[key] = ForwardModel(self.rig, self.calibration.surface, bounces=self.bounces,
                                                   spp=self.spp, smoothing_eps=0.0, clamp=True, seed=self.seed,
@@ -418,7 +418,6 @@ class Compensator:
         """For each input pixel, the camera pixel (x, y, pixel-centre coordinates) its light lands on, and
         whether the camera sees that surface point (ray cast through the calibrated model)."""
         if self._correspondence is None:
-            from ..render.raycast import first_hits
 
             proj = self.rig.projector
             x0, y0 = proj.input_offset
@@ -497,7 +496,6 @@ class Compensator:
 
     def estimate_bias(self, captures: Any = None, *, ridge: float = 0.05) -> BiasModel:
         """θ for open-loop compensation, from the calibration's white/black/validation captures (module doc)."""
-        from ..capture.format import CaptureSet
 
         if captures is None:
             try:

@@ -32,7 +32,12 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..capture.devices import stored_bit_depth
+from ..capture.format import srgb_to_linear
 from ..errors import ImageError, ProCamError
+from ..imageio import read_image
+from ..render.forward import ForwardModel
+from ..surface.mesh import SurfaceMesh
 
 #: Relative aspect-ratio difference above which fitting a target to an area warns that it is stretched.
 ASPECT_TOLERANCE = 0.01
@@ -155,8 +160,6 @@ def model_coverage(calibration: Any, *, spp: int = 1, level: float = 0.25) -> np
     pixel counts as unlit (irradiance varies ~2× across the footprint with
     distance and incidence; outside it is zero).
     """
-    from ..render.forward import ForwardModel
-    from ..surface.mesh import SurfaceMesh
 
     s = calibration.surface
     flat = SurfaceMesh(s.vertices, s.faces, s.uvs, np.ones((4, 4, 3), np.float32), s.name)
@@ -255,9 +258,6 @@ def load_target(path: str | Path, *, encoding: str = "auto") -> tuple[np.ndarray
     photographs and are linearised; 16-bit and float files are taken as linear.
     Float values above 1 are clipped (a note says so).
     """
-    from ..capture.devices import stored_bit_depth
-    from ..capture.format import srgb_to_linear
-    from ..imageio import read_image
 
     if encoding not in TARGET_ENCODINGS:
         raise ImageError(f"target encoding must be one of {', '.join(TARGET_ENCODINGS)}, got {encoding!r}")

@@ -102,13 +102,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..progress import Cancel, Progress
 from ..capture.format import CaptureSet
 from ..capture.patterns import decode_gray_code_set
 from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
 from ..outputs import jsonable
+from ..progress import Cancel, Progress
+from ..render.backend import mitsuba
+from ..render.forward import ForwardModel
 from ..render.pose import apply_pose_delta
-from ..render.scene import border_smoothing
+from ..render.scene import border_smoothing, surface_mesh
 from ..rig.model import Intrinsics, Projector, Rig
 from ..surface.mesh import SurfaceMesh
 
@@ -278,8 +280,6 @@ class SurfaceView:
 
 def surface_view(surface: SurfaceMesh, camera: Intrinsics) -> SurfaceView:
     """Cast every camera pixel's ray against the surface (Mitsuba's BVH)."""
-    from ..render.backend import mitsuba
-    from ..render.scene import surface_mesh
 
     mi = mitsuba()
     w, h = camera.size
@@ -440,7 +440,6 @@ def _check_pose(pose: np.ndarray, start: np.ndarray, scene_depth: float, where: 
 def _soft_render(model: Any, frame_t: Any, view: SurfaceView, projector: Projector, base: np.ndarray,
                  delta: np.ndarray, seed: int) -> np.ndarray:
     """The soft rendered mask (numpy, no gradient) at ``base`` moved by ``delta``: render ÷ E_ref, clipped at 1."""
-    from ..render.backend import mitsuba
 
     mi = mitsuba()
     import drjit as dr
@@ -453,7 +452,6 @@ def _soft_render(model: Any, frame_t: Any, view: SurfaceView, projector: Project
 
 
 def _frame_tensor(frame: np.ndarray) -> Any:
-    from ..render.backend import mitsuba
 
     return mitsuba().TensorXf(np.repeat(frame[..., None], 3, axis=2))
 
@@ -461,7 +459,6 @@ def _frame_tensor(frame: np.ndarray) -> Any:
 def _soft_render_at(captures: CaptureSet, surface: SurfaceMesh, pose: np.ndarray, *, seed: int,
                     spp: int = 16) -> np.ndarray:
     """The soft rendered mask at full camera resolution with sharp edges (ε = 0): the final check's image."""
-    from ..render.forward import ForwardModel
 
     proj = captures.projector
     white_surface = replace(surface, albedo=np.ones((2, 2, 3), np.float32))
@@ -518,8 +515,6 @@ def refine_pose_mask(captures: CaptureSet, surface: SurfaceMesh, pose: np.ndarra
     given) collect each phase's result, every loss, and each phase's seconds
     and camera size.
     """
-    from ..render.backend import mitsuba
-    from ..render.forward import ForwardModel
 
     mi = mitsuba()
     import drjit as dr

@@ -110,11 +110,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..progress import Cancel, Progress
 from ..capture.format import CaptureSet, Entry
+from ..capture.patterns import refine_corners
 from ..errors import CalibrationError, Cancelled, ImageError, ProCamError
+from ..progress import Cancel, Progress
+from ..render import backend
+from ..render.forward import ForwardModel
 from ..rig.model import Rig
-from ..surface.mesh import SurfaceMesh
+from ..surface.mesh import SurfaceMesh, frame_points_to_camera
 
 
 DEFAULT_GRID = 8
@@ -659,7 +662,6 @@ def measure_corners(capture: np.ndarray, before: np.ndarray, after: np.ndarray, 
     square; the simulation after the warp is searched from the capture's corners, as closely. A corner is
     dropped unless all three are clean checkerboard saddles; ``n`` in the statistics says how many remain.
     """
-    from ..lab.crosscheck import refine_corners
 
     h, w = capture.shape
     g = guesses[np.all(np.isfinite(guesses), axis=1)]
@@ -730,8 +732,6 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
     :class:`Cancelled`. Bad captures raise :class:`CalibrationError`
     naming the file at fault.
     """
-    from ..render import backend
-    from ..render.forward import ForwardModel
 
     t_start = time.perf_counter()
     say = progress or (lambda msg, frac: None)
@@ -854,7 +854,6 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
     capture_grey = board.grey
     before_grey = np.clip(_grey(before), 0.0, 1.0).astype(np.float32)
     after_grey = np.clip(_grey(after), 0.0, 1.0).astype(np.float32)
-    from ..lab.crosscheck import frame_points_to_camera
 
     corners_in = _inner_corners(size, board.square)
     guesses = frame_points_to_camera(model.rig, surface, corners_in + (x0, y0))

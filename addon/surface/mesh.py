@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import SurfaceError
+from ..rig.model import Rig
 
 
 @dataclass(frozen=True)
@@ -76,3 +77,18 @@ def ray_intersect(mesh: SurfaceMesh, origins: np.ndarray, directions: np.ndarray
         hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
         best[start:start + 256] = np.where(hit, t, np.inf).min(axis=1)
     return best
+
+
+def frame_points_to_camera(rig: Rig, surface: SurfaceMesh, px: np.ndarray) -> np.ndarray:
+    """Camera pixels (N×2) of projector-frame points ``px`` (N×2, native frame, corner convention),
+    by ray casting onto the surface; NaN where the ray misses or the camera does not see the hit point."""
+    proj = rig.projector
+    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
+    dirs = proj.intrinsics.rays(px) @ proj.camera_from_projector[:3, :3].T
+    t = ray_intersect(surface, proj.position, dirs)
+    pts = proj.position + dirs * t[:, None]
+    cam = rig.camera.intrinsics.project(pts)
+    # Hidden from the camera if the camera ray meets the surface sooner.
+    tc = ray_intersect(surface, np.zeros(3), pts)
+    cam[~np.isfinite(t) | (tc < 0.999)] = np.nan
+    return cam
