@@ -18,11 +18,14 @@ from .terminal import run_step
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="results folder (default: out/demo)")
     p.add_argument("--full", action="store_true", help="paper resolution: camera 640×480, projector 800×600")
+    p.add_argument("--scale", type=float, default=None,
+                   help="fraction of the paper's resolution (default 0.5, or 1 with --full); e.g. 0.2 for a quick check")
     p.add_argument("--surface", default="vedge", choices=("plane", "curve", "vedge", "hedge"))
     p.add_argument("--effects", default="realistic", help="lab effects (default: realistic)")
     p.add_argument("--targets", default="city,forest", help="built-in targets, comma-separated")
     p.add_argument("--schedule", default="fast", choices=("fast", "paper"),
                    help="stage-C schedule (default fast; 'paper' = the paper's 500 iterations, several times slower)")
+    p.add_argument("--iterations", type=int, default=None, help="stage-C iterations per target (default: the schedule's)")
     p.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel for the lab")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="replace an existing results folder")
@@ -31,9 +34,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
 @command("demo", "Run the built-in demo end to end (lab, calibration, compensation, evaluation, diagnosis).",
          _configure)
 def run(args: argparse.Namespace) -> int:
-    options = DemoOptions(args.out, full=args.full, surface=args.surface, effects=args.effects,
+    options = DemoOptions(args.out, full=args.full, scale=args.scale, surface=args.surface, effects=args.effects,
                           targets=tuple(n.strip() for n in args.targets.split(",") if n.strip()),
-                          schedule=args.schedule, samples=args.samples, seed=args.seed, force=args.force)
+                          schedule=args.schedule, iterations=args.iterations, samples=args.samples, seed=args.seed,
+                          force=args.force)
     summary = run_step("demo", demo, options)
     cam, proj = summary["resolution"]["camera"], summary["resolution"]["projector"]
     c = summary["calibration"]

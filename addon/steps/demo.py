@@ -51,10 +51,14 @@ class DemoOptions:
 
     out: Path = Path("out/demo")
     full: bool = False
+    #: fraction of the paper's resolution; None: 1 with ``full``, else 0.5 (small values make a quick smoke run)
+    scale: float | None = None
     surface: str = "vedge"
     effects: str = "realistic"
     targets: tuple[str, ...] = ("city", "forest")
     schedule: str = "fast"
+    #: stage C's iterations per target; None: the schedule's
+    iterations: int | None = None
     samples: int = 16
     seed: int = 0
     force: bool = False
@@ -76,8 +80,10 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         raise ProCamError("samples must be ≥ 1")
     if not options.targets:
         raise ProCamError("the demo needs at least one built-in target")
+    scale = options.scale if options.scale is not None else (1.0 if options.full else 0.5)
+    if not 0.1 <= scale <= 1.0:
+        raise ProCamError(f"the demo's scale must lie in [0.1, 1] of the paper's resolution, got {scale}")
     say = progress or quiet
-    scale = 1.0 if options.full else 0.5
     cam, proj = (round(640 * scale), round(480 * scale)), (round(800 * scale), round(600 * scale))
     summary: dict[str, Any] = {"format": KIND.format, "version": KIND.version,
                                "resolution": {"camera": cam, "projector": proj}, "surface": options.surface,
@@ -126,7 +132,8 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         device = f"lab:{truth_path}"
         view = compensate.run(compensate.CompensateOptions(
             out / "calibration", targets, out / "compensation",
-            StageCOptions(schedule=options.schedule, seed=options.seed, device=device)), spans["compensate"], cancel)
+            StageCOptions(schedule=options.schedule, iterations=options.iterations, seed=options.seed,
+                          device=device)), spans["compensate"], cancel)
         seconds["compensate"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -144,7 +151,7 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         t0 = time.perf_counter()
         # 192×144 working images, as scripts/bench_diagnosis.py measured the diagnosis.
         gap = diagnose.run(diagnose.DiagnoseOptions(out / "calibration", out / "diagnosis",
-                                                    scale=0.3 if options.full else 0.6), spans["diagnose"], cancel)
+                                                    scale=min(1.0, 0.3 / scale)), spans["diagnose"], cancel)
         summary["diagnosis"] = {"residual": gap["residual"], "residual_after": gap["residual_after"],
                                 "selected": gap["selected"], "selected_params": gap["selected_params"],
                                 "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
