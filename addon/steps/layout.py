@@ -57,6 +57,8 @@ EVALUATION = FolderKind("evaluation folder", "metrics.json", "procam-evaluation"
 DIAGNOSIS = FolderKind("diagnosis folder", "gap.json", "procam-gap", 1, "procam diagnose")
 FRAMES = FolderKind("projector frame sequence", "frames.json", "procam-frames", 1, "procam export-frames")
 DEMO = FolderKind("demo folder", "summary.json", "procam-demo", 1, "procam demo")
+#: not a folder: one JSON file (its default name); camera and projector intrinsics and their relative pose.
+RIG = FolderKind("rig calibration", "rig.json", "procam-rig", 1, "procam calibrate-rig")
 
 # -- the files inside ------------------------------------------------------------------------------
 
