@@ -31,10 +31,11 @@ class PROCAM_OT_create_rig(bpy.types.Operator):
     projector_height: IntProperty(name="Projector Height", default=600, min=0, soft_min=1, subtype="PIXEL")
     throw_ratio: FloatProperty(name="Throw Ratio", description="Distance / image width", default=1.25,
                                soft_min=0.1, soft_max=5.0, precision=3)
+    # Real projectors shift their image by more than its own size (the realdata one by 127 % of its height).
     shift_x: FloatProperty(name="Lens Shift X", description="Image centre right of the lens axis, % of the width",
-                           default=0.0, soft_min=-50.0, soft_max=50.0, subtype="PERCENTAGE")
+                           default=0.0, soft_min=-200.0, soft_max=200.0, subtype="PERCENTAGE")
     shift_y: FloatProperty(name="Lens Shift Y", description="Image centre above the lens axis, % of the height",
-                           default=15.0, soft_min=-50.0, soft_max=50.0, subtype="PERCENTAGE")
+                           default=15.0, soft_min=-200.0, soft_max=200.0, subtype="PERCENTAGE")
     use_explicit_k: BoolProperty(name="Explicit Intrinsics",
                                  description="Give fx, fy, cx, cy in projector pixels instead of throw and shift")
     fx: FloatProperty(name="fx", default=1000.0, subtype="PIXEL")

@@ -112,7 +112,7 @@ def test_spot_cone_and_pyramid_enclose_the_frustum(bpy_scene):
 
 
 def test_spot_size_rejects_frustum_wider_than_180_degrees():
-    # A principal point inside the image keeps every frustum under 180°, so test the guard directly.
+    # Wide lens, principal point far outside the image: the asymmetric frustum reaches past 90° from the axis.
     assert blender_rig.spot_size_for(Intrinsics(100, 100, 1.0, 1.0, 50.0, 50.0)) < math.pi
     with pytest.raises(RigError, match="180"):
         blender_rig.spot_size_for(Intrinsics(100000, 100000, 1e-3, 1e-3, 50000.0, 50000.0))
@@ -288,6 +288,11 @@ def test_operator_create_rig(registered):
     assert result == {"FINISHED"}
     proj = blender_rig.read_rig(scene).projector
     assert (proj.intrinsics.cx, proj.intrinsics.cy) == (40.0, 70.0) and proj.input_size == (100, 80)
+    # A real projector's shift: the image 127 % of its height above the lens axis, and 60 % to the left.
+    assert bpy.ops.procam.create_rig(projector_width=400, projector_height=300, throw_ratio=1.5, shift_x=-60.0,
+                                     shift_y=127.0, camera_width=320, camera_height=240) == {"FINISHED"}
+    expected = projector_intrinsics_from_throw(400, 300, 1.5, -0.6, 1.27)
+    np.testing.assert_allclose(blender_rig.read_rig(scene).projector.intrinsics.matrix, expected.matrix, atol=1e-6)
 
 
 @pytest.mark.parametrize("spec, message", [
@@ -295,7 +300,7 @@ def test_operator_create_rig(registered):
     ({"camera_height": 0}, "height must be a positive"),
     ({"throw_ratio": 0.0}, "throw ratio must be a positive"),
     ({"throw_ratio": -1.0}, "throw ratio must be a positive"),
-    ({"shift_y": 80.0}, "principal point"),
+    ({"shift_y": 800.0}, "principal point"),
     ({"use_explicit_k": True, "cx": 5000.0}, "principal point"),
     ({"intensity": 0.0}, "intensity must be positive"),
     ({"input_width": 5000}, "must be positive and fit"),

@@ -147,3 +147,19 @@ def test_stages_one_at_a_time(calibrated, tmp_path, capsys):
     shutil.copytree(captures, other)
     with pytest.raises(CalibrationError, match="was made from"):
         run_calibration(CalibrateOptions(other, out, stages="warp"))
+
+
+@pytest.mark.parametrize("shift", ["0,127", "-60,-200"])
+def test_a_projector_far_from_its_image_calibrates(tmp_path, shift):
+    """A real projector's lens shift (its principal point 1.27 or 2 image heights outside the frame) goes through
+    the lab, Gray-code PnP, stage A and stage B like the demo's 15 %."""
+    captures, truth_path = tmp_path / "captures", tmp_path / "truth.json"
+    assert main(["lab", "--out", str(captures), "--truth", str(truth_path), "--surface", "curve", "--scale", "0.25",
+                 "--samples", "4", f"--projector-shift={shift}"]) == 0
+    truth = LabTruth.load(truth_path).rig.projector
+    assert truth.intrinsics.shift == pytest.approx(tuple(float(v) / 100 for v in shift.split(",")))
+    cal = run_calibration(CalibrateOptions(captures, tmp_path / "calibration"))
+    est = cal.rig.projector
+    assert est.intrinsics == truth.intrinsics
+    assert np.linalg.norm(est.position - truth.position) < 0.01
+    assert np.degrees(np.arccos(np.clip(est.direction @ truth.direction, -1, 1))) < 0.3

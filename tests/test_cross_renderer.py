@@ -5,7 +5,7 @@ fitted scale (issue 2, item 5)."""
 import numpy as np
 import pytest
 
-from procam.addon.rig.demo import demo_rig
+from procam.addon.rig.demo import demo_projector, demo_rig
 from procam.addon.rig.model import Rig
 from procam.addon.surface.shapes import builtin_surface
 
@@ -35,6 +35,22 @@ def test_cycles_and_mitsuba_agree(rig_and_surface, bounces, intensity_limit):
     assert s["corner_offset_max_px"] < 1.0
     assert check.intensity_rel_diff < intensity_limit
     assert check.lit_pixels > 0.2 * 320 * 240
+
+
+def test_cycles_and_mitsuba_agree_at_a_large_lens_shift():
+    """The realdata projector's shift: image 1.27 heights above the lens axis (principal point far below the frame)."""
+    from procam.addon.lab.crosscheck import run_cross_check
+
+    rig = Rig(demo_rig((320, 240), (400, 300)).camera, demo_projector(400, 300, shift=(0.0, 1.27)))
+    k = rig.projector.intrinsics
+    assert k.cy > k.height * 1.7  # principal point far outside the frame
+    check = run_cross_check(rig, builtin_surface("curve"), bounces=0, samples=64, spp=64)
+    s = check.summary()
+    print(s)
+    assert s["corners"] >= 30
+    assert s["corner_offset_median_px"] < 0.2
+    assert s["corner_offset_max_px"] < 1.0
+    assert check.intensity_rel_diff < 0.01
 
 
 def test_cross_check_detects_a_wrong_projector(rig_and_surface):

@@ -29,11 +29,25 @@ def test_shifted_image_sits_above_the_axis():
     (dict(width=0, height=600, throw_ratio=1.0), "resolution"),
     (dict(width=800, height=600, throw_ratio=0.0), "throw ratio"),
     (dict(width=800, height=600, throw_ratio=-1.0), "throw ratio"),
-    (dict(width=800, height=600, throw_ratio=1.0, shift_y=0.8), "principal point"),
+    (dict(width=800, height=600, throw_ratio=1.0, shift_y=6.0), "principal point"),
+    (dict(width=800, height=600, throw_ratio=1.0, shift_x=-80.0), "principal point"),
 ])
 def test_bad_projector_specs_are_named(kwargs, message):
     with pytest.raises(RigError, match=message):
         projector_intrinsics_from_throw(**kwargs)
+
+
+@pytest.mark.parametrize("shift_x, shift_y", [(0.0, 0.0), (0.0, 0.6), (0.0, 1.27), (0.0, -2.0), (0.6, 0.0),
+                                              (-1.5, 1.27)])
+def test_principal_point_anywhere_a_lens_puts_it(shift_x, shift_y):
+    """Real projectors sit above or below their image: the realdata projector's principal point is at y = 1358 of
+    a 768-high frame (1.27 heights off centre)."""
+    k = projector_intrinsics_from_throw(1024, 768, 3.86, shift_x=shift_x, shift_y=shift_y)
+    assert k.shift == pytest.approx((shift_x, shift_y))
+    assert Intrinsics.from_dict(k.to_dict()) == k
+    assert k.project(k.rays(np.array([[k.cx, k.cy], [0.0, 0.0]]))) == pytest.approx(np.array([[k.cx, k.cy], [0, 0]]))
+    real = Intrinsics(1024, 768, 3953.67, 3893.26, 737.67, 1358.33)  # the published realdata calibration
+    assert real.shift[1] == pytest.approx(1.269, abs=1e-3)  # its image lies 1.27 heights above the lens axis
 
 
 def test_opencv_matrix_shifts_half_a_pixel():

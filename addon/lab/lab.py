@@ -43,7 +43,7 @@ from ..imageio import read_image, write_atomic_bytes
 from ..native import import_pymeshlab
 from ..progress import Cancel, Progress, check, quiet
 from ..render.raycast import depth_map
-from ..rig.demo import demo_rig
+from ..rig.demo import demo_projector, demo_rig
 from ..rig.model import Camera, Rig
 from ..surface.mesh import SurfaceMesh
 from ..surface.shapes import SHAPES, builtin_surface
@@ -160,11 +160,13 @@ def scaled_rig(rig: Rig, scale: float) -> Rig:
 def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | EffectSet | None = None,
                seed: int = 0, samples: int = 16, camera_size: tuple[int, int] = (640, 480),
                projector_size: tuple[int, int] = (800, 600), rig: Rig | None = None, scale: float = 1.0,
-               surface_source: str | None = None) -> LabTruth:
+               surface_source: str | None = None, projector_shift: tuple[float, float] | None = None) -> LabTruth:
     """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
 
-    ``rig`` replaces the demo rig (then ``camera_size``/``projector_size`` are
-    not used); ``scale`` scales either rig's resolutions (:func:`scaled_rig`).
+    ``rig`` replaces the demo rig (then ``camera_size``/``projector_size``/``projector_shift``
+    are not used); ``projector_shift`` (right, up; fractions of the image) gives the demo
+    projector another lens shift, aimed so that its image still lands on the surface;
+    ``scale`` scales either rig's resolutions (:func:`scaled_rig`).
     The nominal projector pose the pipeline gets is the true one disturbed as
     by a person placing it by eye (:func:`rough_pose`). Cheap checks come
     first so that a bad request fails before any mesh is read.
@@ -176,7 +178,10 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
         for what, size in (("camera", camera_size), ("projector", projector_size)):
             if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 2 for v in size):
                 raise LabError(f"{what} size must be (width, height) in whole pixels ≥ 2, got {size!r}")
-        rig = demo_rig(tuple(int(v) for v in camera_size), tuple(int(v) for v in projector_size))
+        cam, proj = tuple(int(v) for v in camera_size), tuple(int(v) for v in projector_size)
+        rig = demo_rig(cam, proj)
+        if projector_shift is not None:
+            rig = Rig(rig.camera, demo_projector(*proj, shift=tuple(float(v) for v in projector_shift)))
     rig = scaled_rig(rig, scale)
     camera_render_intrinsics(effect_set, rig.camera.intrinsics)  # refuses a lens distortion that folds the image
     if isinstance(surface, SurfaceMesh):

@@ -21,18 +21,27 @@ def demo_camera(width: int = CAMERA_SIZE[0], height: int = CAMERA_SIZE[1]) -> Ca
     return Camera(intrinsics_from_fov(CAMERA_SIZE[0], CAMERA_SIZE[1], 58.0).scaled(width, height))
 
 
-def demo_projector(width: int = PROJECTOR_SIZE[0], height: int = PROJECTOR_SIZE[1], intensity: float = 2.5) -> Projector:
-    intr: Intrinsics = projector_intrinsics_from_throw(PROJECTOR_SIZE[0], PROJECTOR_SIZE[1], PROJECTOR_THROW,
-                                                       0.0, PROJECTOR_SHIFT_Y)
-    # Aim so that the *shifted* image centre, not the lens axis, lands on the surface centre.
+def _centre_ray(intr: Intrinsics) -> np.ndarray:
+    return intr.rays(np.array([[intr.width / 2, intr.height / 2]]))[0]
+
+
+def demo_projector(width: int = PROJECTOR_SIZE[0], height: int = PROJECTOR_SIZE[1], intensity: float = 2.5,
+                   shift: tuple[float, float] = (0.0, PROJECTOR_SHIFT_Y)) -> Projector:
+    """The demo projector; ``shift`` (right, up, fractions of the image) changes its lens shift, and it is aimed so
+    that the image still lands on the surface."""
+    intr: Intrinsics = projector_intrinsics_from_throw(PROJECTOR_SIZE[0], PROJECTOR_SIZE[1], PROJECTOR_THROW, *shift)
+    # Aim so that the *shifted* image centre, not the lens axis, lands on the surface centre: move the look-at target
+    # against the centre ray's offset from the axis (its x, y at z = 1).
     pos = np.asarray(PROJECTOR_POSITION)
-    centre_ray = intr.rays(np.array([[intr.width / 2, intr.height / 2]]))[0]
-    axis_to_centre = np.arctan2(-centre_ray[1], 1.0)  # image centre is above the axis
+    centre_ray = _centre_ray(intr)
     aim = np.asarray(SURFACE_CENTRE) - pos
-    dist = np.linalg.norm(aim)
-    # Tilt the look-at target down by the shift angle so the image centre hits SURFACE_CENTRE.
-    target = pos + aim / dist + np.array([0.0, np.tan(axis_to_centre), 0.0])
+    target = pos + aim / np.linalg.norm(aim) - np.array([centre_ray[0], centre_ray[1], 0.0])
     pose = look_at_pose(pos, target)
+    # Light leaves a projector at θ from its axis with intensity ∝ 1/cos³θ (its image plane is lit evenly), so a
+    # larger shift brightens the image; keep the image centre as bright as with the demo's own shift.
+    default = projector_intrinsics_from_throw(PROJECTOR_SIZE[0], PROJECTOR_SIZE[1], PROJECTOR_THROW, 0.0,
+                                              PROJECTOR_SHIFT_Y)
+    intensity *= (np.linalg.norm(_centre_ray(intr)) / np.linalg.norm(_centre_ray(default))) ** -3
     proj = Projector(intr, pose, intensity=intensity, input_size=PROJECTOR_INPUT)
     if (width, height) != PROJECTOR_SIZE:
         proj = proj.scaled(width, height)

@@ -10,7 +10,8 @@ Conventions (see DESIGN.md §3):
   on integers; :meth:`Intrinsics.opencv_matrix` converts (``cx_cv = cx - 0.5``).
   We keep the corner convention because Blender, Mitsuba and texture lookups
   all use it, so only OpenCV calls need the half-pixel shift.
-* A projector's lens shift is nothing but its principal point off centre.
+* A projector's lens shift is nothing but its principal point off centre,
+  anywhere, also far outside the image (up to :data:`MAX_SHIFT` images).
   :func:`projector_intrinsics_from_throw` is the one place that converts the
   spec-sheet form (throw ratio, shift in % of the image) into ``K``.
 * Poses are 4×4 matrices ``camera_from_X`` mapping points of device X's
@@ -26,6 +27,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import ImageError, RigError
+
+
+#: The largest lens shift accepted (principal point's distance from the image centre, in image widths/heights).
+MAX_SHIFT = 5.0
 
 
 @dataclass(frozen=True)
@@ -50,10 +55,15 @@ class Intrinsics:
                 raise RigError(f"intrinsic {name} must be a finite number, got {value!r}")
         if self.fx <= 0 or self.fy <= 0:
             raise RigError(f"focal lengths must be positive (fx={self.fx}, fy={self.fy}); check the throw ratio or K")
-        if not (0.0 <= self.cx <= self.width and 0.0 <= self.cy <= self.height):
+        # A principal point outside the image is normal (a projector above or below its image: the real one in
+        # realdata/ sits 1.27 image heights off centre). Only a shift no lens makes is refused, because it is
+        # almost always a unit mistake (cx in millimetres, a shift in % given as a fraction ×100).
+        off_x, off_y = abs(self.cx - self.width / 2) / self.width, abs(self.cy - self.height / 2) / self.height
+        if max(off_x, off_y) > MAX_SHIFT:
             raise RigError(
-                f"principal point ({self.cx:.1f}, {self.cy:.1f}) lies outside the {self.width}×{self.height} image; "
-                "a lens shift of more than half the image is not supported — check cx, cy or the shift percentages"
+                f"principal point ({self.cx:.1f}, {self.cy:.1f}) lies {off_x:.1f} image widths and {off_y:.1f} "
+                f"image heights from the centre of the {self.width}×{self.height} image; no lens shifts beyond "
+                f"±{MAX_SHIFT:.0%} — check that cx, cy are in pixels of this resolution and the shift in % of the image"
             )
 
     @property

@@ -52,6 +52,8 @@ class LabOptions:
     surface_source: str | None = None
     camera_size: tuple[int, int] = (640, 480)
     projector_size: tuple[int, int] = (800, 600)
+    #: the demo projector's lens shift (right, up; fractions of the image); None: the demo's 15 % up
+    projector_shift: tuple[float, float] | None = None
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -69,7 +71,8 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     check_lab_outputs(out, truth_path, force=options.force)  # before reading any mesh
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
-                       camera_size=options.camera_size, projector_size=options.projector_size)
+                       camera_size=options.camera_size, projector_size=options.projector_size,
+                       projector_shift=options.projector_shift)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
                       fast_binary=not options.full_binary, progress=progress, cancel=cancel)
