@@ -1,0 +1,229 @@
+"""The calibrate-rig step: board poses lit by Gray code → ``rig.json`` (camera, projector, their pose), and readers.
+
+A session folder is one board pose: images named ``PREFIX_NN.EXT`` (``graycode_00.png`` …), numbered from
+0 without gaps, in the projector's order: the Gray code for the projector size in OpenCV's order (each bit
+followed by its inverse, x bits then y bits), then white, then black — the layout of OpenCV's structured-light
+samples and of ``realdata/kamino410-procam-calibration``. Images may be 8- or 16-bit, grey or colour.
+
+The projector size is required: the image count gives only the total number of Gray-code bits
+(``2 × (bits_x + bits_y) + 2`` images), which many sizes share (1024×768, 800×600, 2048×384 all use 20 bits),
+so it never identifies the size; a count that does not fit the size given is refused.
+
+``rig.json`` (:data:`layout.RIG`) is written under a temporary name and renamed into place; an existing one
+is replaced only with ``force``, and a file that is not a rig calibration never. Its intrinsics use the
+project's convention (pixel corners at integers) with OpenCV's matrices beside them, and the projector's pose
+is a 4×4 ``camera_from_projector`` in the camera's OpenCV frame, in the unit of the square size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..capture.patterns import gray_code_bits
+from ..errors import CalibrationError, CaptureError
+from ..imageio import read_image
+from ..outputs import write_manifest
+from ..progress import Cancel, Progress, quiet
+from ..stages.rig_calibration import PoseSource, RigCalibration, calibrate_rig
+from . import layout
+from .summary import Summary, cached, fmt
+
+KIND = layout.RIG
+
+#: Image files a session folder may hold.
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".exr", ".npy")
+_NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<number>\d+)$")
+
+
+@dataclass(frozen=True)
+class RigOptions:
+    """What ``procam calibrate-rig`` asks for."""
+
+    sessions: tuple[Path, ...]  # one folder per board pose
+    out: Path  # the rig.json to write
+    board: tuple[int, int]  # inner corners: per row, rows
+    projector_size: tuple[int, int] | None  # the Gray-code grid (native projector frame), width × height
+    square: float = 1.0  # the square's size; the unit of the translation (1.0: board squares)
+    window: int = 47  # camera pixels on a side of each corner's homography window
+    camera_model: str = "k1k2p1p2"
+    projector_model: str = "k1k2"
+    force: bool = False
+
+
+def expected_count(projector_size: tuple[int, int]) -> int:
+    """Images in a session for this projector: each Gray-code bit and its inverse, then white and black."""
+    bx, by = gray_code_bits(projector_size)
+    return 2 * (bx + by) + 2
+
+
+def session_files(folder: str | Path, projector_size: tuple[int, int]) -> list[Path]:
+    """A session folder's images in order (Gray code …, white, black), checked for gaps and count."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaptureError(f"session folder {folder} does not exist (give one folder of images per board pose)")
+    groups: dict[str, dict[int, Path]] = {}
+    for p in folder.iterdir():
+        m = _NUMBERED.match(p.stem)
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and m:
+            groups.setdefault(m["prefix"] + "\0" + p.suffix.lower(), {})[int(m["number"])] = p
+    if not groups:
+        raise CaptureError(f"{folder} holds no numbered images (expected graycode_00.png, graycode_01.png, …)")
+    if len(groups) > 1:
+        named = [k for k in groups if k.split("\0")[0].rstrip("_-").lower() == "graycode"]
+        if len(named) != 1:
+            kinds = ", ".join(sorted(f"{k.split(chr(0))[0]}NN{k.split(chr(0))[1]}" for k in groups))
+            raise CaptureError(f"{folder} holds several numbered image series ({kinds}); keep one per folder")
+        groups = {named[0]: groups[named[0]]}
+    key, numbered = next(iter(groups.items()))
+    prefix, suffix = key.split("\0")
+    first, last = min(numbered), max(numbered)
+    width = len(next(iter(numbered.values())).stem) - len(prefix)
+    want = expected_count(projector_size)
+    # Numbering may start at 0 or 1; a set with gaps that lacks only some numbers of a complete one is missing them.
+    for start in dict.fromkeys((first, 0, 1)):
+        span = range(start, start + want)
+        missing = [n for n in span if n not in numbered]
+        gaps = [n for n in missing if first < n < last]  # trailing ones look the same as a wrong --projector
+        if gaps and len(numbered) + len(missing) == want and all(n in span for n in numbered):
+            names = ", ".join(f"{prefix}{n:0{width}d}{suffix}" for n in missing[:5])
+            raise CaptureError(f"{folder}: missing image(s) {names}{' …' if len(missing) > 5 else ''}; a "
+                               f"{projector_size[0]}×{projector_size[1]} projector's session has {want} images")
+    if len(numbered) != want or last - first + 1 != want:
+        bx, by = gray_code_bits(projector_size)
+        raise CaptureError(
+            f"{folder} holds {len(numbered)} images ({prefix}{first:0{width}d}{suffix} … "
+            f"{prefix}{last:0{width}d}{suffix}), but a {projector_size[0]}×{projector_size[1]} projector's Gray "
+            f"code has {2 * (bx + by)} images ({bx} x bits and {by} y bits, each with its inverse) plus white and "
+            f"black = {want}; check --projector (the projector's native size the patterns were made for) and that "
+            "no image is missing")
+    return [numbered[n] for n in sorted(numbered)]
+
+
+def _read(path: Path, shape: tuple[int, ...] | None) -> np.ndarray:
+    img = read_image(path, channels=1)
+    if shape is not None and img.shape != shape:
+        raise CaptureError(f"{path} is {img.shape[1]}×{img.shape[0]} but the session's white image is "
+                           f"{shape[1]}×{shape[0]}; every image of a session must come from the same camera")
+    return img
+
+
+def pose_source(folder: Path, files: list[Path]) -> PoseSource:
+    """A pose read on demand; every image checked against the white image's size, naming the file that differs."""
+    white_file, black_file, gray_files = files[-2], files[-1], files[:-2]
+    shape: dict[str, tuple[int, ...]] = {}
+
+    def white() -> np.ndarray:
+        img = _read(white_file, None)
+        shape["white"] = img.shape
+        return img
+
+    return PoseSource(folder.name or str(folder), white, lambda: _read(black_file, shape.get("white")),
+                      lambda: [_read(f, shape.get("white")) for f in gray_files])
+
+
+def _check_out(out: Path, force: bool) -> None:
+    """Refuse an output that must not be replaced, before any work."""
+    if out.is_dir():
+        raise CalibrationError(f"{out} is a folder; give the file to write, e.g. {out / KIND.manifest}")
+    if not out.exists():
+        return
+    if not force:
+        raise CalibrationError(f"{out} already exists; it is never overwritten without --force (force=True)")
+    try:
+        doc = json.loads(out.read_text())
+        ours = isinstance(doc, dict) and doc.get("format") == KIND.format
+    except (OSError, ValueError):
+        ours = False
+    if not ours:
+        raise CalibrationError(f"{out} exists and is not a ProCam rig calibration; refusing to replace it — "
+                               "choose another output file")
+
+
+def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> RigCalibration:
+    """Calibrate the rig from the session folders and write ``options.out``; returns the calibration written."""
+    say = progress or quiet
+    started = time.monotonic()
+    out = Path(options.out)
+    _check_out(out, options.force)
+    if options.projector_size is None:
+        raise CalibrationError("give the projector's native size (--projector WIDTHxHEIGHT): the number of images "
+                               "fixes only the total number of Gray-code bits, which many sizes share")
+    size = (int(options.projector_size[0]), int(options.projector_size[1]))
+    if len(set(Path(s).resolve() for s in options.sessions)) != len(options.sessions):
+        raise CaptureError("the same session folder is given twice; give each board pose once")
+    # Every folder's listing is checked before any image is read: a missing image fails in a second, not after
+    # minutes of decoding.
+    sources = [pose_source(Path(s), session_files(s, size)) for s in options.sessions]
+    names = [s.name for s in sources]
+    if len(set(names)) != len(names):  # a/capture_0 and b/capture_0: name poses by their full path
+        sources = [dataclasses.replace(s, name=str(Path(p))) for s, p in zip(sources, options.sessions)]
+    cal = calibrate_rig(sources, options.board, options.square, size, say, cancel, window=options.window,
+                        camera_model=options.camera_model, projector_model=options.projector_model)
+    doc = {"format": KIND.format, "version": KIND.version,
+           "sessions": [str(Path(s).absolute()) for s in options.sessions],
+           **cal.to_dict(), "seconds": round(time.monotonic() - started, 2)}
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_manifest(out, doc)  # a temporary name in the same folder, renamed into place
+    except OSError as exc:
+        raise CalibrationError(f"cannot write {out}: {exc.strerror or exc}") from None
+    return cal
+
+
+def _path(path: str | Path) -> Path:
+    p = Path(path)
+    return p / KIND.manifest if p.is_dir() else p
+
+
+def read(path: str | Path) -> RigCalibration:
+    """A ``rig.json`` (or the folder holding one)."""
+    p = _path(path)
+    if not p.is_file():
+        raise CalibrationError(f"{p} does not exist; run {KIND.made_by}")
+    try:
+        doc = json.loads(p.read_text())
+        if not isinstance(doc, dict) or doc.get("format") != KIND.format:
+            raise CalibrationError(f"{p} is not a ProCam rig calibration; run {KIND.made_by}")
+        if int(doc.get("version", 0)) > KIND.version:
+            raise CalibrationError(f"{p} was written by a newer ProCam (version {doc['version']}); update ProCam")
+        return RigCalibration.from_dict(doc)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CalibrationError(f"cannot read rig calibration {p}: {exc}") from None
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    rms = doc.get("rms", {})
+    cam, proj = doc.get("camera", {}), doc.get("projector", {})
+    poses = doc.get("poses", [])
+    used = [p["name"] for p in poses if p.get("used")]
+    skipped = [f"{p['name']} ({p.get('reason', '')})" for p in poses if not p.get("used")]
+    position = np.asarray(doc["camera_from_projector"], dtype=float)[:3, 3]
+    lines = (
+        f"Poses: {len(used)} used" + (f", skipped: {'; '.join(skipped)}" if skipped else ""),
+        f"Camera: fx {fmt(cam.get('fx'), '.1f')} fy {fmt(cam.get('fy'), '.1f')} cx {fmt(cam.get('cx'), '.1f')} "
+        f"cy {fmt(cam.get('cy'), '.1f')}, RMS {fmt(rms.get('camera'), '.3f', ' px')}",
+        f"Projector: fx {fmt(proj.get('fx'), '.1f')} fy {fmt(proj.get('fy'), '.1f')} cx {fmt(proj.get('cx'), '.1f')} "
+        f"cy {fmt(proj.get('cy'), '.1f')}, RMS {fmt(rms.get('projector'), '.3f', ' px')}",
+        f"Projector at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) "
+        f"(× square {fmt(doc.get('board', {}).get('square'), '.4g')})",
+    )
+    return Summary(True, f"Rig calibrated: stereo RMS {fmt(rms.get('stereo'), '.3f', ' px')}", lines,
+                   {"used": used, "skipped": skipped})
+
+
+def summary(path: str | Path) -> Summary:
+    """Key figures of a ``rig.json``: poses used and skipped, both devices' K and RMS, the projector's position."""
+    p = _path(path)
+    kind = dataclasses.replace(KIND, manifest=p.name)  # any file name, not only rig.json
+    return cached(kind, p.parent, _summary, f"run {KIND.made_by} or choose a rig.json")
+
+
+__all__ = ["KIND", "RigOptions", "expected_count", "pose_source", "read", "run", "session_files", "summary"]
