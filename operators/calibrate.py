@@ -89,7 +89,8 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
         offset = float(scene.procam_depth_offset) if scene.procam_depth_offset_given else None
         # No scene.blend: the open scene is the .blend here, and bpy must not run in the worker (Export saves one).
         options = CalibrateOptions(captures, out, init=init, initial_pose=initial, stages=stages or "all",
-                                   depth_offset=offset, with_blend=False, force=scene.procam_replace_outputs)
+                                   depth_offset=offset, projector_intrinsics=scene.procam_projector_intrinsics,
+                                   with_blend=False, force=scene.procam_replace_outputs)
         return jobs.Job("calibration", calibrate_step.run_view, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:

@@ -20,6 +20,7 @@ class PROCAM_PT_calibrate(bpy.types.Panel):
         layout.prop(scene, "procam_calibration_dir", text="")
         row = layout.row()
         row.prop(scene, "procam_calibration_init", text="Start")
+        layout.prop(scene, "procam_projector_intrinsics", text="Lens")
         summary = calibrate_step.summary(bpy.path.abspath(scene.procam_calibration_dir))
         done = draw_state(layout, "calibrate", summary)
         row = layout.row(align=True)

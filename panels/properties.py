@@ -13,6 +13,11 @@ class PROCAM_PG_target(bpy.types.PropertyGroup):
 INIT_ITEMS = [("graycode", "Gray Code", "Start stage A from Gray-code correspondences + PnP"),
               ("nominal", "Nominal", "Start stage A from the capture set's nominal projector pose"),
               ("blender", "Scene Projector", "Start stage A from where the ProCam Projector stands in the scene")]
+INTRINSICS_ITEMS = [("spec", "Spec Sheet", "The projector's focal length and principal point as the capture set gives "
+                                         "them (throw ratio and lens shift, or a rig calibration)"),
+                    ("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray "
+                                                "code on a curved or edged surface before finding its pose (kept at "
+                                                "the spec where the surface cannot tell, e.g. a flat wall)")]
 SCHEDULE_ITEMS = [("fast", "Fast", "Fixed-point start, 60 joint iterations, 15 captures: as good as the paper's "
                                    "schedule in a fraction of the time"),
                   ("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ")]
@@ -27,6 +32,7 @@ def scene_properties() -> dict[str, object]:
             name="Calibration", subtype="DIR_PATH",
             description="Calibration folder: Calibrate writes it, Compensate and Diagnose read it"),
         "procam_calibration_init": EnumProperty(name="Start Pose", items=INIT_ITEMS, default="graycode"),
+        "procam_projector_intrinsics": EnumProperty(name="Projector Lens", items=INTRINSICS_ITEMS, default="spec"),
         "procam_depth_offset_given": BoolProperty(
             name="Set Depth Offset",
             description="Give the depth sensor's bias by hand instead of reading it from the capture set's wall "

@@ -163,3 +163,49 @@ def test_a_projector_far_from_its_image_calibrates(tmp_path, shift):
     assert est.intrinsics == truth.intrinsics
     assert np.linalg.norm(est.position - truth.position) < 0.01
     assert np.degrees(np.arccos(np.clip(est.direction @ truth.direction, -1, 1))) < 0.3
+
+
+@pytest.fixture(scope="module")
+def wrong_spec(tmp_path_factory):
+    """Lab sets whose projector spec is 10 % off in focal length and 20 % of the height off in lens shift."""
+    root = tmp_path_factory.mktemp("spec")
+
+    def make(surface: str):
+        captures, truth = root / surface, root / f"{surface}.truth.json"
+        if not captures.exists():
+            assert main(["lab", "--out", str(captures), "--truth", str(truth), "--surface", surface, "--scale", "0.4",
+                         "--samples", "4", "--nominal-error", "10,20"]) == 0
+        return captures, LabTruth.load(truth)
+    return make
+
+
+def test_projector_intrinsics_fitted_without_a_board(wrong_spec, tmp_path):
+    captures, truth = wrong_spec("curve")
+    true_k = truth.rig.projector.intrinsics
+    assert CaptureSet.load(captures).projector.intrinsics.fx == pytest.approx(1.1 * true_k.fx)
+    spec = run_calibration(CalibrateOptions(captures, tmp_path / "spec", with_blend=False))
+    fit = run_calibration(CalibrateOptions(captures, tmp_path / "fit", with_blend=False, projector_intrinsics="fit"))
+    k = fit.rig.projector.intrinsics
+    assert k.fx == pytest.approx(true_k.fx, rel=0.02) and k.fy == pytest.approx(true_k.fy, rel=0.02)
+    assert abs(k.cx - true_k.cx) < 2.0 and abs(k.cy - true_k.cy) < 2.0
+    report = fit.report["projector_intrinsics"]
+    assert report["determined"] == {"focal": True, "principal_point": True}
+    assert report["rms_fitted_px"] < report["rms_nominal_px"]
+    errors = {}
+    for name, cal in (("spec", spec), ("fit", fit)):
+        p, t = cal.rig.projector, truth.rig.projector
+        errors[name] = (np.linalg.norm(p.position - t.position),
+                        np.degrees(np.arccos(np.clip(p.direction @ t.direction, -1, 1))))
+    assert errors["fit"][0] < 0.01 and errors["fit"][1] < 0.3
+    assert errors["spec"][0] > 5 * errors["fit"][0]  # a wrong spec really moves the pose: the fit is what fixes it
+
+
+def test_a_flat_wall_leaves_the_projector_spec_as_it_is(wrong_spec, tmp_path):
+    """One view of a plane cannot separate focal length from distance: the fit says so and keeps the spec."""
+    captures, _ = wrong_spec("plane")
+    fit = run_calibration(CalibrateOptions(captures, tmp_path / "fit", with_blend=False, projector_intrinsics="fit",
+                                           stages="surface,pose"))
+    report = fit.report["projector_intrinsics"]
+    assert report["determined"] == {"focal": False, "principal_point": False}
+    assert fit.rig.projector.intrinsics == CaptureSet.load(captures).projector.intrinsics
+    assert "kept at the spec" in report["summary"]

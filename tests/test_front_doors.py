@@ -73,10 +73,13 @@ def test_every_step_writes_the_same_folder_from_the_command_line_and_from_blende
     captures, truth = cli / "captures", cli / "truth.json"  # one lab set for the steps after it
 
     # calibrate
-    assert main(["calibrate", str(captures), "--out", str(cli / "calibration"), "--no-blend-output"]) == 0
+    assert main(["calibrate", str(captures), "--out", str(cli / "calibration"), "--no-blend-output",
+                 "--projector-intrinsics", "fit"]) == 0
     scene.procam_capture_dir, scene.procam_calibration_dir = str(captures), str(ui / "calibration")
+    scene.procam_projector_intrinsics = "fit"
     assert bpy.ops.procam.calibrate() == {"FINISHED"}
     _same(cli / "calibration", ui / "calibration", "calibration.json", roots)
+    assert "projector_intrinsics" in json.loads((ui / "calibration" / "calibration.json").read_text())
     calibrate.read(ui / "calibration")
     cal = cli / "calibration"  # one calibration for the steps after it (its hash is in their manifests)
 

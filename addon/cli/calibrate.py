@@ -23,6 +23,10 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the "
                         "paper's (binary mask, Γ with ε = 0.01, 200 Adam steps), from the start --init gives "
                         "(--init nominal --stage-a paper reproduces the paper's pipeline)")
+    p.add_argument("--projector-intrinsics", choices=("spec", "fit"), default="spec",
+                   help="the projector's focal length and principal point: as the capture set gives them (spec "
+                        "sheet or rig file; default), or fitted to the Gray code on a curved or edged surface "
+                        "(kept at the spec where the surface cannot tell, e.g. a flat wall)")
     p.add_argument("--blend", type=Path, help="with --init blender: the .blend holding the ProCam Projector")
     p.add_argument("--no-blend-output", action="store_true", help="do not write scene.blend")
     p.add_argument("--stages", default="all", metavar="STAGES",
@@ -49,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         initial = projector_pose_from_blend(args.blend)
     options = CalibrateOptions(args.capture_dir, args.out, init="given" if initial is not None else args.init,
                                initial_pose=initial, stage_a=args.stage_a, stages=args.stages,
+                               projector_intrinsics=args.projector_intrinsics,
                                depth_offset=args.depth_offset, with_blend=not args.no_blend_output, seed=args.seed,
                                force=args.force)
     cal = run_step("calibrate", calibrate, options)
@@ -62,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
               f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']}, stage A: "
               f"{r.get('pose', {}).get('info', {}).get('method', 'ours')})")
+    if "projector_intrinsics" in r:
+        print(f"  projector intrinsics (fitted to the Gray code): {r['projector_intrinsics']['summary']}")
     print("  stages: " + ", ".join(f"{k} {v}" for k, v in cal.stages.items()))
     for w in cal.warnings:
         print(f"  warning: {w}")

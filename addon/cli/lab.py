@@ -32,27 +32,31 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="render checker and Gray-code frames with the full --samples too")
     p.add_argument("--scale", type=float, default=1.0,
                    help="resolution scale: 1 = camera 640×480, projector 800×600 (default); 0.5 halves both")
-    p.add_argument("--projector-shift", type=_shift, default=None, metavar="RIGHT,UP",
+    p.add_argument("--projector-shift", type=_pair, default=None, metavar="RIGHT,UP",
                    help="the demo projector's lens shift in %% of its image (default 0,15; a real projector may sit "
                         "far below its image, e.g. 0,127)")
+    p.add_argument("--nominal-error", type=_pair, default=(0.0, 0.0), metavar="FOCAL,SHIFT",
+                   help="give the pipeline a projector spec that is wrong by FOCAL %% in focal length (throw ratio) "
+                        "and SHIFT %% of the height in vertical lens shift, as a data sheet may be (default 0,0)")
     p.add_argument("--no-graycode", action="store_true", help="skip the Gray-code patterns (faster)")
     p.add_argument("--force", action="store_true", help="replace an existing capture set (and truth) at --out")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
-def _shift(text: str) -> tuple[float, float]:
+def _pair(text: str) -> tuple[float, float]:
     try:
-        right, up = (float(v) / 100.0 for v in text.split(","))
+        a, b = (float(v) / 100.0 for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"lens shift must be RIGHT,UP in % of the image, e.g. 0,127; got {text!r}")
-    return right, up
+        raise argparse.ArgumentTypeError(f"expected two percentages A,B (e.g. 0,127), got {text!r}")
+    return a, b
 
 
 @command("lab", "Render a calibration capture set in the virtual lab (Cycles + injected real-world effects).", _configure)
 def run(args: argparse.Namespace) -> int:
     options = LabOptions(args.out, surface=args.surface, effects=args.effects, seed=args.seed, samples=args.samples,
                          scale=args.scale, graycode=not args.no_graycode, full_binary=args.full_binary,
-                         truth=args.truth, projector_shift=args.projector_shift, force=args.force)
+                         truth=args.truth, projector_shift=args.projector_shift,
+                         nominal_error=args.nominal_error, force=args.force)
     out, truth_path = options.paths()
     progress(f"lab: {out} ({args.samples} spp)")
     t0 = time.perf_counter()

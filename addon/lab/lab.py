@@ -44,7 +44,7 @@ from ..native import import_pymeshlab
 from ..progress import Cancel, Progress, check, quiet
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
-from ..rig.model import Camera, Rig
+from ..rig.model import Camera, Intrinsics, Projector, Rig
 from ..surface.mesh import SurfaceMesh
 from ..surface.shapes import SHAPES, builtin_surface
 from .depth import depth_capture, sensor_resolution
@@ -92,6 +92,15 @@ class LabTruth:
     seed: int
     samples: int
     nominal_pose: np.ndarray
+    #: the projector's spec-sheet intrinsics the pipeline is given; None: the true ones
+    nominal_intrinsics: Intrinsics | None = None
+
+    @property
+    def nominal_projector(self) -> Projector:
+        """The projector as the pipeline is told it is: nominal pose (placed by eye) and nominal intrinsics."""
+        proj = self.rig.projector
+        return replace(proj, intrinsics=self.nominal_intrinsics or proj.intrinsics,
+                       camera_from_projector=np.asarray(self.nominal_pose, dtype=float))
 
     @staticmethod
     def mesh_path(path: str | Path) -> Path:
@@ -112,6 +121,8 @@ class LabTruth:
                "rig": self.rig.to_dict(),
                "camera_from_projector": self.rig.projector.camera_from_projector.tolist(),
                "nominal_camera_from_projector": np.asarray(self.nominal_pose).tolist(),
+               **({"nominal_projector_intrinsics": self.nominal_intrinsics.to_dict()}
+                  if self.nominal_intrinsics is not None else {}),
                "surface": {"source": self.surface_source, "mesh": mesh_path.name, "name": self.surface.name},
                "effects": self.effects.to_dict(), "effects_spec": self.effects.spec,
                "seed": int(self.seed), "samples": int(self.samples)}
@@ -130,7 +141,9 @@ class LabTruth:
                                   name=doc["surface"].get("name", "surface"))
             return LabTruth(Rig.from_dict(doc["rig"]), surface, doc["surface"]["source"],
                             EffectSet.from_dict(doc["effects"]), int(doc["seed"]), int(doc["samples"]),
-                            np.asarray(doc["nominal_camera_from_projector"], dtype=float))
+                            np.asarray(doc["nominal_camera_from_projector"], dtype=float),
+                            Intrinsics.from_dict(doc["nominal_projector_intrinsics"])
+                            if "nominal_projector_intrinsics" in doc else None)
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -160,13 +173,17 @@ def scaled_rig(rig: Rig, scale: float) -> Rig:
 def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | EffectSet | None = None,
                seed: int = 0, samples: int = 16, camera_size: tuple[int, int] = (640, 480),
                projector_size: tuple[int, int] = (800, 600), rig: Rig | None = None, scale: float = 1.0,
-               surface_source: str | None = None, projector_shift: tuple[float, float] | None = None) -> LabTruth:
+               surface_source: str | None = None, projector_shift: tuple[float, float] | None = None,
+               nominal_error: tuple[float, float] = (0.0, 0.0)) -> LabTruth:
     """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
 
     ``rig`` replaces the demo rig (then ``camera_size``/``projector_size``/``projector_shift``
     are not used); ``projector_shift`` (right, up; fractions of the image) gives the demo
     projector another lens shift, aimed so that its image still lands on the surface;
-    ``scale`` scales either rig's resolutions (:func:`scaled_rig`).
+    ``scale`` scales either rig's resolutions (:func:`scaled_rig`). ``nominal_error``
+    (focal length as a fraction, vertical lens shift in image heights) makes the
+    projector's spec-sheet intrinsics the pipeline is given wrong by that much, as
+    a throw ratio and shift read off a data sheet are.
     The nominal projector pose the pipeline gets is the true one disturbed as
     by a person placing it by eye (:func:`rough_pose`). Cheap checks come
     first so that a bad request fails before any mesh is read.
@@ -192,7 +209,12 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
         mesh = load_mesh_file(Path(surface))
         source = surface_source or str(Path(surface).resolve())
     rng = np.random.default_rng(seed + 7919)
-    return LabTruth(rig, mesh, source, effect_set, seed, samples, rough_pose(rig.projector.camera_from_projector, rng))
+    nominal_k = None
+    if any(nominal_error):
+        k, (df, dshift) = rig.projector.intrinsics, (float(v) for v in nominal_error)
+        nominal_k = Intrinsics(k.width, k.height, k.fx * (1 + df), k.fy * (1 + df), k.cx, k.cy + dshift * k.height)
+    return LabTruth(rig, mesh, source, effect_set, seed, samples, rough_pose(rig.projector.camera_from_projector, rng),
+                    nominal_k)
 
 
 def load_mesh_file(path: Path) -> SurfaceMesh:
@@ -535,7 +557,7 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     ``cancel`` stops between captures and leaves nothing behind.
     """
     out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force)
-    nominal = replace(truth.rig.projector, camera_from_projector=truth.nominal_pose)
+    nominal = truth.nominal_projector
     seq: list[PatternSpec] = calibration_sequence(truth.rig.projector, graycode=graycode, validation=validation,
                                                   seed=truth.seed)
     total = len(seq) + 2  # + depth + the scene

@@ -24,11 +24,14 @@ from ..render.forward import ForwardModel
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 from ..surface.reconstruct import reconstruct_surface, wall_depth_offset
-from .pose import estimate_pose
+from .intrinsics import estimate_projector_intrinsics
+from .pose import estimate_pose, surface_view, target_mask
 from .warp import Warp, estimate_warp, grid_image
 
 #: The calibration stages, in order; each needs the ones before it.
 STAGES = ("surface", "pose", "warp")
+#: Where the projector's K comes from: the capture set (spec sheet, or a rig calibration), or a fit to the Gray code.
+PROJECTOR_INTRINSICS = ("spec", "fit")
 
 
 @dataclass
@@ -155,7 +158,7 @@ class CalibrationRun:
 def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, previous: Calibration | None = None,
                        previous_images: dict[str, np.ndarray] | None = None, init: str = "graycode",
                        initial_pose: np.ndarray | None = None, seed: int = 0, depth_offset: float | None = None,
-                       stage_a: str = "ours", progress: Progress | None = None,
+                       stage_a: str = "ours", projector_intrinsics: str = "spec", progress: Progress | None = None,
                        cancel: Cancel | None = None) -> CalibrationRun:
     """Run the stages of ``plan`` (:func:`stage_plan`) on a capture set.
 
@@ -165,8 +168,14 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     the capture set's wall depth image (:func:`scene_depth`).
     ``stage_a='paper'`` runs the paper's mask-only stage A (binary mask, Γ,
     plain Adam; :func:`.pose.estimate_pose`) instead of ours, to reproduce
-    the paper's pipeline and its ablations.
+    the paper's pipeline and its ablations. ``projector_intrinsics='fit'``
+    fits the projector's focal length and principal point to the Gray code
+    before stage A (:mod:`.intrinsics`) and uses them from there on; ``'spec'``
+    keeps the capture set's.
     """
+    if projector_intrinsics not in PROJECTOR_INTRINSICS:
+        raise CalibrationError(f"unknown projector intrinsics {projector_intrinsics!r}; choose one of "
+                               f"{', '.join(PROJECTOR_INTRINSICS)}")
     say = progress or quiet
     for kind in ("white", "black", "checker"):
         if not captures.entries_of(kind):
@@ -180,7 +189,7 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     seconds: dict[str, float] = dict(prev.report.get("seconds", {})) if prev else {}
     state = {n: ("reused" if n in reused else "run" if n in plan else "not run") for n in STAGES}
     report: dict[str, Any] = {k: v for k, v in (prev.report if prev else {}).items()
-                              if k in ("init", "surface_report", "pose")}
+                              if k in ("init", "surface_report", "pose", "projector_intrinsics")}
     saturated = white_saturation(captures)
     report["white_saturated_share"] = saturated
     if saturated > SATURATED_WARN_SHARE:
@@ -206,6 +215,23 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     else:
         mesh = prev.surface
 
+    if "pose" in plan and projector_intrinsics == "fit":
+        t0 = time.perf_counter()
+        say("projector intrinsics: fitting focal length and principal point to the Gray code", 0.1)
+        fit = estimate_projector_intrinsics(captures, surface_view(mesh, captures.camera.intrinsics),
+                                            target_mask(captures)[0], seed=seed)
+        say(f"projector intrinsics: {fit.summary()}", 0.1)
+        report["projector_intrinsics"] = fit.to_dict()
+        # From here on the capture set's projector is the fitted one: stage A, the albedo and stage B all use it.
+        captures = replace(captures, projector=replace(captures.projector, intrinsics=fit.fitted))
+        seconds["intrinsics"] = time.perf_counter() - t0
+    elif "pose" in plan:
+        report.pop("projector_intrinsics", None)
+        seconds.pop("intrinsics", None)
+    elif previous is not None:
+        # The reused pose came with the reused intrinsics.
+        captures = replace(captures, projector=replace(captures.projector,
+                                                       intrinsics=previous.rig.projector.intrinsics))
     rig = Rig(captures.camera, captures.projector)  # the capture set's nominal pose until stage A runs
     if "pose" in plan:
         t0 = time.perf_counter()

@@ -50,6 +50,9 @@ class CalibrateOptions:
     #: stage A's start: graycode (Gray-code PnP), nominal (the capture set's pose), given (``initial_pose``)
     init: str = "graycode"
     initial_pose: np.ndarray | None = None
+    #: the projector's K: 'spec' (the capture set's) or 'fit' (focal length and principal point fitted to the
+    #: Gray code on the surface before stage A; kept at the spec where the data do not determine them)
+    projector_intrinsics: str = "spec"
     #: stage A's refinement: ours, or the paper's (binary mask, Γ with ε = 0.01)
     stage_a: str = "ours"
     #: a contiguous run of surface,pose,warp; earlier stages come from the calibration already at ``out``
@@ -76,6 +79,7 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
         result = calibrate_captures(captures, plan=plan, previous=previous, previous_images=images,
                                     init=options.init, initial_pose=options.initial_pose, seed=options.seed,
                                     depth_offset=options.depth_offset, stage_a=options.stage_a,
+                                    projector_intrinsics=options.projector_intrinsics,
                                     progress=part(say, 0.0, 0.95), cancel=cancel)
         say("writing the calibration folder", 0.95)
         write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)

@@ -54,6 +54,8 @@ class LabOptions:
     projector_size: tuple[int, int] = (800, 600)
     #: the demo projector's lens shift (right, up; fractions of the image); None: the demo's 15 % up
     projector_shift: tuple[float, float] | None = None
+    #: how wrong the projector's spec-sheet intrinsics are: (focal length fraction, vertical shift in image heights)
+    nominal_error: tuple[float, float] = (0.0, 0.0)
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -72,7 +74,7 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
                        camera_size=options.camera_size, projector_size=options.projector_size,
-                       projector_shift=options.projector_shift)
+                       projector_shift=options.projector_shift, nominal_error=options.nominal_error)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
                       fast_binary=not options.full_binary, progress=progress, cancel=cancel)
