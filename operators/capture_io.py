@@ -74,6 +74,10 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
     photos_dir: StringProperty(name="Photographs", subtype="DIR_PATH",
                                description="One photograph per frame, numbered in the same order")
     out_dir: StringProperty(name="New Capture Set", subtype="DIR_PATH", description="Folder to create")
+    rig_file: StringProperty(name="Rig Calibration", subtype="FILE_PATH",
+                             description="Optional rig.json from procam calibrate-rig: calibrated camera and projector "
+                                         "lenses (the camera's distortion is removed from the photographs) and, "
+                                         "when calibrated in metres, the projector's pose")
     force: BoolProperty(name="Replace", default=False, description="Replace an existing capture set there")
 
     @classmethod
@@ -91,14 +95,17 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
             return {"CANCELLED"}
         objs = blender_rig.find_rig_objects(context.scene)
         try:
-            camera = blender_rig.read_camera(context.scene) if objs.camera is not None else None
+            rig = paths.resolve(self.rig_file, "rig calibration") if self.rig_file else None
+            # A rig calibration brings its own camera; the scene's (nominal) one is only used without it.
+            camera = blender_rig.read_camera(context.scene) if objs.camera is not None and rig is None else None
             out = paths.resolve(self.out_dir, "new capture set")
             captures = run_import(ImportOptions(paths.resolve(self.sequence_dir, "pattern sequence"),
                                                 paths.resolve(self.photos_dir, "photographs"), out, camera=camera,
-                                                force=self.force))
+                                                rig=rig, force=self.force))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         context.scene.procam_capture_dir = str(out)
-        self.report({"INFO"}, f"capture set {out}: {len(captures)} images")
+        lens = f", calibrated camera and projector from {rig.name}" if rig is not None else ""
+        self.report({"INFO"}, f"capture set {out}: {len(captures)} images{lens}")
         return {"FINISHED"}

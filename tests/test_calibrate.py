@@ -209,3 +209,20 @@ def test_a_flat_wall_leaves_the_projector_spec_as_it_is(wrong_spec, tmp_path):
     assert report["determined"] == {"focal": False, "principal_point": False}
     assert fit.rig.projector.intrinsics == CaptureSet.load(captures).projector.intrinsics
     assert "kept at the spec" in report["summary"]
+
+
+def test_a_known_pose_from_a_rig_calibration_is_kept(calibrated, tmp_path):
+    """Imported with a metric rig file, the capture set knows the projector's pose: --init nominal keeps it (the
+    mask only checks it), where a rough nominal pose is refined."""
+    captures, truth_path, _, _ = calibrated
+    known = tmp_path / "known"
+    shutil.copytree(captures, known)
+    doc = json.loads((known / "capture.json").read_text())
+    pose = LabTruth.load(truth_path).rig.projector.camera_from_projector
+    doc["projector"]["camera_from_projector"] = pose.tolist()
+    doc["projector_pose_known"] = True
+    (known / "capture.json").write_text(json.dumps(doc))
+    cal = run_calibration(CalibrateOptions(known, tmp_path / "cal", init="nominal", stages="surface,pose",
+                                           with_blend=False))
+    assert np.array_equal(cal.rig.projector.camera_from_projector, pose)
+    assert cal.report["pose"]["info"]["pose_known"] and cal.report["pose"]["info"]["mask_check"]["iou"] > 0.9

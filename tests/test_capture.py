@@ -21,7 +21,7 @@ from procam.addon.capture.patterns import (calibration_sequence, checkerboard, d
 from procam.addon.cli.app import main
 from procam.addon.errors import CaptureError
 from procam.addon.imageio import read_image, write_image
-from procam.addon.rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
+from procam.addon.rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw, look_at_pose
 
 CAM = (64, 48)
 FRAME = (80, 60)
@@ -593,3 +593,69 @@ def test_cli_lists_commands(capsys):
     from procam.addon.cli.app import build_parser
     text = build_parser().format_help()
     assert "patterns" in text and "import-captures" in text
+
+
+def _rig_file(path: Path, camera_size, projector_size, distortion, metric=True) -> Path:
+    """A rig.json as `procam calibrate-rig` writes it, for known lenses and pose."""
+    from procam.addon.outputs import write_manifest
+    from procam.addon.stages.rig_calibration import RigCalibration
+    from procam.addon.steps.layout import RIG
+
+    pose = look_at_pose(np.array([0.2, 0.1, 0.0]), np.array([0.0, 0.0, 1.5]))
+    cam_k = np.array([[70.0, 0, 31.5], [0, 70.0, 23.5], [0, 0, 1]])
+    proj_k = np.array([[100.0, 0, 39.5], [0, 100.0, 80.0], [0, 0, 1]])  # principal point below the frame
+    nan4 = np.full(4, np.nan)
+    cal = RigCalibration((9, 7), 0.03, tuple(camera_size), tuple(projector_size), cam_k, np.asarray(distortion, float),
+                         proj_k, np.zeros(5), pose, 0.2, 0.2, 0.3, nan4, nan4, (), metric=metric)
+    write_manifest(path, {"format": RIG.format, "version": RIG.version, **cal.to_dict()})
+    return path
+
+
+def test_rig_lens_puts_a_point_where_a_pinhole_would(tmp_path):
+    """Undistortion moves a dot from where the distorted lens shows it to where the pinhole K puts it."""
+    from procam.addon.capture.devices import RigLens
+
+    k = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    dist = np.array([-0.25, 0.08, 0.001, -0.002, 0.0])
+    point = np.array([[0.42, -0.3, 1.0]])
+    pinhole = (k @ point[0])[:2] / point[0, 2]
+    seen = cv2.projectPoints(point, np.zeros(3), np.zeros(3), k, dist)[0].reshape(2)
+    assert np.linalg.norm(seen - pinhole) > 10  # the lens really moves it
+    ys, xs = np.mgrid[0:480, 0:640]
+    blob = np.exp(-((xs - seen[0]) ** 2 + (ys - seen[1]) ** 2) / (2 * 2.0 ** 2)).astype(np.float32)
+    out = RigLens((640, 480), k, dist, "test").image(np.repeat(blob[..., None], 3, 2))[..., 0]
+    centre = np.array([(out * xs).sum(), (out * ys).sum()]) / out.sum()
+    assert np.linalg.norm(centre - pinhole) < 0.1
+    half = RigLens((640, 480), k, dist, "test").image(blob[::2, ::2].copy(), nearest=True)  # a half-size depth map
+    assert np.unravel_index(np.argmax(half), half.shape) == pytest.approx(
+        (round((pinhole[1] + 0.5) / 2 - 0.5), round((pinhole[0] + 0.5) / 2 - 0.5)), abs=1)
+
+
+def test_import_with_a_rig_file(tmp_path, capsys):
+    seq = export_sequence(small_projector(), tmp_path / "seq", checker_size=10, graycode=False)
+    caps = shoot_folder(seq, tmp_path / "photos")
+    rig = _rig_file(tmp_path / "rig.json", CAM, FRAME, [-0.2, 0.0, 0.0, 0.0, 0.0])
+    assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "set"), "--rig", str(rig)]) == 0
+    assert "lens distortion removed" in capsys.readouterr().out
+    cs = CaptureSet.load(tmp_path / "set")
+    assert (cs.camera_status, cs.projector_status, cs.projector_pose_known) == ("calibrated", "calibrated", True)
+    assert (cs.camera.intrinsics.fx, cs.camera.intrinsics.cx, cs.camera.intrinsics.cy) == (70.0, 32.0, 24.0)
+    assert cs.projector.intrinsics.cy == 80.5 and cs.projector.input_size == INPUT  # K from the rig, input kept
+    assert np.allclose(cs.projector.camera_from_projector, look_at_pose(np.array([0.2, 0.1, 0.0]),
+                                                                       np.array([0.0, 0.0, 1.5])))
+    plain = import_captures(seq, caps, None, None, tmp_path / "plain")
+    assert not np.allclose(cs.image("checker", phase=0), plain.image("checker", phase=0), atol=1e-3)
+    # The rig's lengths in board squares: its K is used, the pose is left to calibrate.
+    squares = _rig_file(tmp_path / "squares.json", CAM, FRAME, np.zeros(5), metric=False)
+    assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "sq"), "--rig", str(squares)]) == 0
+    sq = CaptureSet.load(tmp_path / "sq")
+    assert not sq.projector_pose_known and np.allclose(sq.projector.camera_from_projector,
+                                                       small_projector().camera_from_projector)
+    assert np.array_equal(sq.image("white"), plain.image("white"))  # no distortion: the photographs as they were
+    capsys.readouterr()
+    # A rig of another projector or camera resolution is refused, naming the file; nothing is written.
+    for name, cam, frame, message in (("p.json", CAM, (160, 120), "calibrates a 160×120 projector"),
+                                      ("c.json", (128, 96), FRAME, "camera resolution is 128×96")):
+        bad = _rig_file(tmp_path / name, cam, frame, np.zeros(5))
+        assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "bad"), "--rig", str(bad)]) == 2
+        assert message in capsys.readouterr().err and not (tmp_path / "bad").exists()

@@ -301,3 +301,15 @@ def test_export_patterns_then_import_captures(registered, tmp_path):
                                           out_dir=str(tmp_path / "set")) == {"FINISHED"}
     assert scene.procam_capture_dir == str(tmp_path / "set")
     assert (tmp_path / "set" / "capture.json").is_file()
+    # With a rig calibration: its lenses and pose, the photographs undistorted.
+    from tests.test_capture import _rig_file
+
+    frame = blender_rig.read_projector(scene).intrinsics.size
+    rig = _rig_file(tmp_path / "rig.json", (w, h), frame, [-0.1, 0.0, 0.0, 0.0, 0.0])
+    assert bpy.ops.procam.import_captures(sequence_dir=str(tmp_path / "seq"), photos_dir=str(photos),
+                                          out_dir=str(tmp_path / "rigged"), rig_file=str(rig)) == {"FINISHED"}
+    from procam.addon.capture.format import CaptureSet
+
+    rigged = CaptureSet.load(tmp_path / "rigged")
+    assert rigged.camera_status == "calibrated" and rigged.projector_pose_known
+    assert rigged.camera.intrinsics.fx == 70.0

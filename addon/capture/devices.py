@@ -304,7 +304,8 @@ def _load_capture(path: Path, encoding: str) -> tuple[np.ndarray, str]:
 def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: Camera | None,
                     projector: Projector | None, out_capture_dir: str | Path, *, encoding: str = "auto",
                     camera_fov: float = 60.0, depth: np.ndarray | None = None,
-                    depth_native_size: tuple[int, int] | None = None, force: bool = False) -> CaptureSet:
+                    depth_native_size: tuple[int, int] | None = None, undistort: RigLens | None = None,
+                    force: bool = False) -> CaptureSet:
     """Turn photographs of an exported sequence into a new capture set.
 
     Captures are matched to frames by name, or else by the number in their names (``list_captures``).
@@ -313,7 +314,10 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     per image (``params.source_encoding``). ``camera`` None builds a nominal
     camera with ``camera_fov`` at the captures' size; ``projector`` None takes
     the one in ``sequence.json``. ``depth`` (metres) is stored with the camera
-    intrinsics scaled to its size. Any bad file raises a
+    intrinsics scaled to its size. ``undistort`` (a calibrated rig's camera
+    lens) removes the camera's lens distortion from every photograph and the
+    depth map, keeping its K, so the capture set is a pinhole camera's; it
+    also marks the camera and projector as calibrated. Any bad file raises a
     :class:`CaptureError` naming it, and nothing is written.
     """
     if encoding not in ENCODINGS:
@@ -338,14 +342,21 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
         depth_info = DepthInfo(camera.intrinsics.scaled(dw, dh), tuple(depth_native_size or (dw, dh)))
     notes = {"device": "folder", "sequence": str(Path(sequence_dir).resolve()),
              "captures": str(Path(captures_dir).resolve()), "encoding": encoding, "camera": camera_note}
-    with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes,
-                          force=force) as writer:
+    status: dict[str, Any] = {}
+    if undistort is not None:
+        notes["camera"] = f"calibrated, lens distortion removed: {undistort.source}"
+        status = {"camera_status": "calibrated", "projector_status": "calibrated",
+                  "projector_pose_known": undistort.pose_known}
+    with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes, force=force,
+                          **status) as writer:
         for i, (frame, path) in enumerate(zip(seq.frames, files)):
             img, enc = (first, first_enc) if i == 0 else _load_capture(path, encoding)
             if (img.shape[1], img.shape[0]) != camera.intrinsics.size:
                 cw, ch = camera.intrinsics.size
                 raise CaptureError(f"capture {path} is {img.shape[1]}×{img.shape[0]} pixels, but the camera "
                                    f"resolution is {cw}×{ch}")
+            if undistort is not None:
+                img = undistort.image(img)
             pattern = None
             if frame["kind"] != "surface":
                 try:
@@ -356,7 +367,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
             writer.add(frame["kind"], img, name=frame["name"], frame=pattern, source=path.name,
                        source_encoding=enc, **params)
         if depth is not None:
-            writer.add_depth(depth)
+            writer.add_depth(undistort.image(depth, nearest=True) if undistort is not None else depth)
     return CaptureSet.load(out_capture_dir, verify_images=False)
 
 
@@ -508,3 +519,29 @@ class LiveDevice(Device):
 __all__ = ["Device", "FolderDevice", "LiveDevice", "SequenceInfo", "capture_sequence", "check_complete",
            "check_display", "export_sequence", "highgui_available", "import_captures", "list_captures",
            "load_sequence", "open_camera", "stored_bit_depth"]
+
+
+@dataclass(frozen=True)
+class RigLens:
+    """A calibrated camera lens to take out of photographs: OpenCV's K (pixel centres) and k1 k2 p1 p2 k3."""
+
+    size: tuple[int, int]  # the camera resolution K belongs to
+    matrix: np.ndarray
+    distortion: np.ndarray
+    source: str  # where it comes from, for the capture set's notes
+    pose_known: bool = False  # the rig file also gives the projector's metric pose
+
+    def image(self, img: np.ndarray, *, nearest: bool = False) -> np.ndarray:
+        """``img`` as a pinhole camera with the same K would see it (pixels from outside the frame are 0).
+
+        A depth map smaller than the photographs (same lens, aligned) gets K scaled to its size."""
+        a = np.asarray(img, dtype=np.float32)
+        h, w = a.shape[:2]
+        sx, sy = w / self.size[0], h / self.size[1]
+        k = self.matrix.astype(np.float64).copy()
+        k[0, 0], k[1, 1] = k[0, 0] * sx, k[1, 1] * sy
+        k[0, 2], k[1, 2] = (k[0, 2] + 0.5) * sx - 0.5, (k[1, 2] + 0.5) * sy - 0.5  # scale about pixel corners
+        mx, my = cv2.initUndistortRectifyMap(k, self.distortion, None, k, (w, h), cv2.CV_32FC1)
+        out = cv2.remap(a, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return out.reshape(a.shape)

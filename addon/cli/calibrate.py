@@ -18,7 +18,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="calibration folder to create")
     p.add_argument("--init", choices=("graycode", "nominal", "blender"), default="graycode",
                    help="starting pose for stage A: Gray-code correspondences + PnP (default), the capture set's "
-                        "nominal projector, or the ProCam Projector placed in a .blend (--blend)")
+                        "nominal projector (kept as it is when it came from a metric rig calibration), or the "
+                        "ProCam Projector placed in a .blend (--blend)")
     p.add_argument("--stage-a", choices=("ours", "paper"), default="ours",
                    help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the "
                         "paper's (binary mask, Γ with ε = 0.01, 200 Adam steps), from the start --init gives "

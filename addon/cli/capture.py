@@ -74,6 +74,10 @@ def _configure_import(p: argparse.ArgumentParser) -> None:
                    help="nominal horizontal field of view of the camera in degrees (default 60)")
     p.add_argument("--encoding", choices=("auto", "srgb", "linear"), default="auto",
                    help="how the captures are encoded; auto: 8-bit files are sRGB, 16-bit/float are linear")
+    p.add_argument("--rig", type=Path, metavar="RIG_JSON",
+                   help="a rig calibration from `procam calibrate-rig`: calibrated camera and projector K, the "
+                        "camera's lens distortion removed from every photograph (and the depth map), the "
+                        "projector's pose when the rig was calibrated with --square in metres")
     p.add_argument("--depth", type=Path, help="depth map in metres (.npy or .exr), aligned with the camera")
     p.add_argument("--depth-native-width", type=_positive_int, help="native depth-sensor width (e.g. 256)")
     p.add_argument("--depth-native-height", type=_positive_int, help="native depth-sensor height (e.g. 192)")
@@ -98,7 +102,10 @@ def import_photographs(args: argparse.Namespace) -> int:
         native = (args.depth_native_width, args.depth_native_height)
     cs = run_step("import-captures", run_import, ImportOptions(
         args.sequence_dir, args.captures_dir, args.out, camera=camera, camera_fov=args.camera_fov,
-        encoding=args.encoding, depth=depth, depth_native_size=native, force=args.force))
+        encoding=args.encoding, depth=depth, depth_native_size=native, rig=args.rig, force=args.force))
     w, h = cs.camera.intrinsics.size
     print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
+    if args.rig is not None:
+        print(f"  camera and projector from {args.rig}: lens distortion removed from the photographs; projector "
+              f"pose {'from the rig (use calibrate --init nominal to keep it)' if cs.projector_pose_known else 'left to calibrate (the rig is in board squares)'}")
     return 0

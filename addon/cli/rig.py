@@ -42,9 +42,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                         "(e.g. graycode_00..41.png for a 1024x768 projector)")
     p.add_argument("--board", type=_pair("board"), required=True, metavar="COLSxROWS",
                    help="the chessboard's inner corners: per row x rows (9x7 and 7x9 both find the same board)")
-    p.add_argument("--square", type=_positive, default=1.0, metavar="METRES",
-                   help="the size of one chessboard square; the projector position comes out in this unit "
-                        "(default 1.0: in board squares)")
+    p.add_argument("--square", type=_positive, default=None, metavar="METRES",
+                   help="the size of one chessboard square in metres, so that the projector's position is metric "
+                        "and import-captures --rig can use it (default: lengths in board squares)")
     p.add_argument("--projector", type=_pair("projector size"), required=True, metavar="WxH",
                    help="the projector's native size the Gray code was made for (required: the image count "
                         "gives only the number of bits, which many sizes share)")
@@ -68,7 +68,8 @@ def _num(value: float | None, spec: str = ".3f") -> str:
 def print_report(cal: RigCalibration, out: Path) -> None:
     """The calibration as a table on stdout."""
     print(f"rig calibration: {out}")
-    print(f"  board {cal.board[0]}x{cal.board[1]} inner corners, square {cal.square:g}; camera "
+    square = f"{cal.square:g} m" if cal.metric else "1 (lengths in squares)"
+    print(f"  board {cal.board[0]}x{cal.board[1]} inner corners, square {square}; camera "
           f"{cal.camera_size[0]}x{cal.camera_size[1]}, projector {cal.projector_size[0]}x{cal.projector_size[1]}")
     head = f"  {'pose':<24} {'used':<5} {'corners':>7} {'decoded':>7} {'share':>6} {'cam RMS':>8} {'proj RMS':>8}"
     print(head)
@@ -90,7 +91,8 @@ def print_report(cal: RigCalibration, out: Path) -> None:
     print("  R (camera → projector, OpenCV):")
     for row in cal.rotation:
         print("    " + " ".join(f"{v:+.6f}" for v in row))
-    print(f"  T (camera → projector, square units): {np.array2string(cal.translation, precision=4)}")
+    print(f"  T (camera → projector, {'m' if cal.metric else 'board squares'}): "
+          f"{np.array2string(cal.translation, precision=4)}")
     print(f"  projector position in the camera frame: {np.array2string(cal.camera_from_projector[:3, 3], precision=4)}")
     for w in cal.warnings:
         print(f"  warning: {w}")

@@ -618,7 +618,8 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     ``init`` picks the start: ``'graycode'`` (PnP on decoded Gray-code
     correspondences), ``'nominal'`` (the capture set's projector pose),
     ``'blender'``/``'given'`` (``initial_pose``, e.g. the projector object an
-    artist placed). ``iterations`` is the number of Adam steps on the mask:
+    artist placed). A nominal pose the capture set marks as known (imported
+    with a metric rig calibration) is kept like a Gray-code one. ``iterations`` is the number of Adam steps on the mask:
     by default 0 after Gray code (the mask then only checks the pose, see the
     module doc for why) and 200 from a rough start (120 coarse + 80 fine).
     ``phases`` overrides the schedule, ``target`` picks the debiased soft
@@ -653,6 +654,7 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     steps: dict[str, np.ndarray] = {}
     info: dict[str, Any] = {"mask_fraction": float(mask.mean()), "method": method}
     cam = captures.camera.intrinsics
+    known = init == "nominal" and captures.projector_pose_known
     if init == "graycode":
         report("stage A: decoding Gray code and solving PnP", 0.0)
         view = surface_view(surface, cam)
@@ -662,6 +664,7 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
         steps["graycode_pnp"] = pose.copy()
     elif init == "nominal":
         pose = captures.projector.camera_from_projector.copy()
+        info["pose_known"] = known
         steps["initial"] = pose.copy()
     else:
         if initial_pose is None:
@@ -677,8 +680,9 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     if iterations is None:
         # After Gray code the mask is a check, not a refinement: measured on lab data, PnP is 2–4 mm off and the
         # mask's own optimum 10–13 mm (module doc), so refining on it only pulls the pose away.
-        iterations = 0 if init == "graycode" else DEFAULT_ITERATIONS
-    rough = init != "graycode"
+        # A pose from a rig calibration (a printed board, sub-pixel corners) is kept the same way.
+        iterations = 0 if init == "graycode" or known else DEFAULT_ITERATIONS
+    rough = not (init == "graycode" or known)
     if phases is None:
         phases = default_phases(int(iterations), rough=rough)
     if precondition is None:

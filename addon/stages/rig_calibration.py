@@ -193,6 +193,8 @@ class RigCalibration:
     stereo_flags: str = "CALIB_FIX_INTRINSIC"
     window: int = 47
     warnings: tuple[str, ...] = ()
+    #: True when ``square`` was given in metres, so that the projector's position is metric
+    metric: bool = False
 
     @property
     def rotation(self) -> np.ndarray:
@@ -216,7 +218,8 @@ class RigCalibration:
         """Plain JSON types: what ``rig.json`` holds besides its format header."""
         return {
             "frame": "camera's OpenCV frame (x right, y down, z forward); lengths in the unit of board.square",
-            "board": {"inner_corners": list(self.board), "square": float(self.square)},
+            "board": {"inner_corners": list(self.board), "square": float(self.square),
+                      "unit": "m" if self.metric else "board square"},
             "camera": _intrinsics_dict(self.camera_size, self.camera_matrix, self.camera_distortion,
                                        self.camera_model, self.camera_std),
             "projector": _intrinsics_dict(self.projector_size, self.projector_matrix, self.projector_distortion,
@@ -258,7 +261,8 @@ class RigCalibration:
             camera_model=models.get(tuple(cam["distortion"].get("estimated", [])), "k1k2p1p2k3"),
             projector_model=models.get(tuple(proj["distortion"].get("estimated", [])), "k1k2p1p2k3"),
             stereo_flags=str(d.get("opencv_stereo", {}).get("flags", "")),
-            window=int(d.get("homography_window", 0)), warnings=tuple(d.get("warnings", [])))
+            window=int(d.get("homography_window", 0)), warnings=tuple(d.get("warnings", [])),
+            metric=d["board"].get("unit") == "m")
 
 
 # -- per pose ----------------------------------------------------------------------------------------

@@ -15,18 +15,20 @@ The capture-set format itself (reading, validating, writing) is
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from ..capture.devices import export_sequence, import_captures, load_sequence
+from ..capture.devices import RigLens, export_sequence, import_captures, load_sequence
 from ..capture.format import CaptureSet
-from ..errors import LabError
+from ..errors import CaptureError, LabError, RigError
 from ..lab.lab import check_lab_outputs, make_truth, run_lab as render_lab
 from ..progress import Cancel, Progress, quiet
-from ..rig.model import Camera, Projector, Rig
+from ..outputs import file_sha256
+from ..rig.model import Camera, Intrinsics, Projector, Rig
 from ..surface.mesh import SurfaceMesh
+from . import rig as rig_step
 
 
 @dataclass(frozen=True)
@@ -121,13 +123,47 @@ class ImportOptions:
     encoding: str = "auto"
     depth: np.ndarray | None = None
     depth_native_size: tuple[int, int] | None = None
+    #: a ``rig.json`` from ``procam calibrate-rig``: calibrated camera and projector K, the camera's lens
+    #: distortion taken out of every photograph, and the projector's pose when the rig is metric
+    rig: Path | None = None
     force: bool = False
+
+
+def rig_models(rig_path: Path, projector: Projector, camera: Camera | None = None
+               ) -> tuple[Camera, Projector, RigLens]:
+    """The camera and projector of a rig calibration, for a sequence shown by ``projector`` (its size and input
+    area are kept; its K, and its pose when the rig's lengths are metres, come from the rig)."""
+    cal = rig_step.read(rig_path)
+    if cal.projector_size != projector.intrinsics.size:
+        raise CaptureError(f"{rig_path} calibrates a {cal.projector_size[0]}×{cal.projector_size[1]} projector, but "
+                           f"the pattern sequence is for {projector.intrinsics.size[0]}×"
+                           f"{projector.intrinsics.size[1]}; calibrate the rig at the projector's native size")
+    if camera is not None and camera.intrinsics.size != cal.camera_size:
+        raise CaptureError(f"{rig_path} calibrates a {cal.camera_size[0]}×{cal.camera_size[1]} camera, but the "
+                           f"camera given is {camera.intrinsics.size[0]}×{camera.intrinsics.size[1]}")
+
+    def k(size: tuple[int, int], m: np.ndarray) -> Intrinsics:
+        return Intrinsics(int(size[0]), int(size[1]), float(m[0, 0]), float(m[1, 1]), float(m[0, 2]) + 0.5,
+                          float(m[1, 2]) + 0.5)
+
+    try:
+        proj = replace(projector, intrinsics=k(cal.projector_size, cal.projector_matrix))
+        if cal.metric:
+            proj = proj.with_pose(cal.camera_from_projector)
+        cam = Camera(k(cal.camera_size, cal.camera_matrix))
+    except RigError as exc:
+        raise CaptureError(f"{rig_path} does not describe a usable rig: {exc}") from None
+    return cam, proj, RigLens(cal.camera_size, cal.camera_matrix, cal.camera_distortion,
+                              f"{Path(rig_path).resolve()} (sha256 {file_sha256(Path(rig_path))[:12]})", cal.metric)
 
 
 def run_import(options: ImportOptions, progress: Progress | None = None,
                cancel: Cancel | None = None) -> CaptureSet:
     """Turn photographs of an exported pattern sequence into a new capture set."""
+    camera, projector, lens = options.camera, None, None
+    if options.rig is not None:
+        camera, projector, lens = rig_models(options.rig, load_sequence(options.sequence_dir).projector, camera)
     (progress or quiet)("matching the photographs to their frames", 0.0)
-    return import_captures(options.sequence_dir, options.photos_dir, options.camera, None, options.out,
+    return import_captures(options.sequence_dir, options.photos_dir, camera, projector, options.out,
                            encoding=options.encoding, camera_fov=options.camera_fov, depth=options.depth,
-                           depth_native_size=options.depth_native_size, force=options.force)
+                           depth_native_size=options.depth_native_size, undistort=lens, force=options.force)

@@ -51,7 +51,8 @@ class RigOptions:
     out: Path  # the rig.json to write
     board: tuple[int, int]  # inner corners: per row, rows
     projector_size: tuple[int, int] | None  # the Gray-code grid (native projector frame), width × height
-    square: float = 1.0  # the square's size; the unit of the translation (1.0: board squares)
+    #: the square's size in metres, which makes the projector's position metric; None: lengths in board squares
+    square: float | None = None
     window: int = 47  # camera pixels on a side of each corner's homography window
     camera_model: str = "k1k2p1p2"
     projector_model: str = "k1k2"
@@ -165,8 +166,9 @@ def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | 
     names = [s.name for s in sources]
     if len(set(names)) != len(names):  # a/capture_0 and b/capture_0: name poses by their full path
         sources = [dataclasses.replace(s, name=str(Path(p))) for s, p in zip(sources, options.sessions)]
-    cal = calibrate_rig(sources, options.board, options.square, size, say, cancel, window=options.window,
+    cal = calibrate_rig(sources, options.board, options.square or 1.0, size, say, cancel, window=options.window,
                         camera_model=options.camera_model, projector_model=options.projector_model)
+    cal = dataclasses.replace(cal, metric=options.square is not None)
     doc = {"format": KIND.format, "version": KIND.version,
            "sessions": [str(Path(s).absolute()) for s in options.sessions],
            **cal.to_dict(), "seconds": round(time.monotonic() - started, 2)}
