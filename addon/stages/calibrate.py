@@ -215,6 +215,7 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     else:
         mesh = prev.surface
 
+    pose_iterations, start_label = None, None  # stage A's default for its start
     if "pose" in plan and projector_intrinsics == "fit":
         t0 = time.perf_counter()
         say("projector intrinsics: fitting focal length and principal point to the Gray code", 0.1)
@@ -224,6 +225,11 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         report["projector_intrinsics"] = fit.to_dict()
         # From here on the capture set's projector is the fitted one: stage A, the albedo and stage B all use it.
         captures = replace(captures, projector=replace(captures.projector, intrinsics=fit.fitted))
+        if fit.camera_from_projector is not None and init == "graycode" and stage_a == "ours":
+            # The fit's pose is Gray-code PnP with the fitted K and the camera's lens in the loop: stage A keeps it
+            # (its mask only checks it), as it keeps plain Gray-code PnP.
+            init, initial_pose, pose_iterations = "given", fit.camera_from_projector, 0
+            start_label = "graycode (with the intrinsics fit)"
         seconds["intrinsics"] = time.perf_counter() - t0
     elif "pose" in plan:
         report.pop("projector_intrinsics", None)
@@ -237,10 +243,11 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         t0 = time.perf_counter()
         say("stage A: projector pose", 0.1)
         pose = estimate_pose(captures, mesh, init=init, initial_pose=initial_pose, cancel=cancel, seed=seed,
-                             method=stage_a, progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
+                             method=stage_a, iterations=pose_iterations,
+                             progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
         seconds["pose"] = time.perf_counter() - t0
         rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
-        report.update(init=pose.init, pose=pose.to_dict())
+        report.update(init=start_label or pose.init, pose=pose.to_dict())
         images.update({f"pose_{n}": im for n, im in pose.diagnostics.items()})
 
         t0 = time.perf_counter()

@@ -29,7 +29,7 @@ is the way to calibrate the camera.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -44,10 +44,14 @@ from .pose import MIN_CORRESPONDENCES, SurfaceView, graycode_correspondences
 FOCAL_STD_MAX = 0.005
 #: Largest standard deviation of the principal point (pixels of the native frame) for it to count as determined.
 CENTRE_STD_MAX_PX = 2.0
+#: Largest standard deviation of the camera's k1 for the camera's distortion to count as determined.
+DISTORTION_STD_MAX = 0.005
 #: Points used in the fit (a random subset of the decoded pixels): enough for sub-pixel statistics, fast to fit.
 FIT_POINTS = 20000
 
-_NO_DISTORTION = (cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+#: Parameter order of the fit: projector f, cx, cy (OpenCV), pose (rvec, tvec), camera k1, k2.
+_NO_LENS = np.arange(9)
+_POSE = np.arange(3, 9)
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,10 @@ class IntrinsicsFit:
     rms_fitted_px: float
     points: int
     inliers: int
+    #: the camera's radial distortion fitted with them: k1, k2, their std, and whether the data determine it
+    camera_distortion: dict[str, Any] = field(default_factory=dict)
+    #: the projector's pose from the same fit (None when the spec is kept): stage A starts and stays there
+    camera_from_projector: np.ndarray | None = None
 
     def summary(self) -> str:
         n, f = self.nominal, self.fitted
@@ -71,90 +79,196 @@ class IntrinsicsFit:
             return (f"kept at the spec (focal {n.fx:.1f} px, principal point ({n.cx:.1f}, {n.cy:.1f})): this surface "
                     f"does not determine the {' and '.join(unknown)} (the data leave {spread}; a flat surface never "
                     "does: use a curved or edged one, or procam calibrate-rig)")
+        lens = self.camera_distortion
+        camera = (f"; camera lens distortion fitted with them: {lens['edge_displacement_px']:+.2f} px at "
+                  f"{lens['edge_radius_px']:.0f} px from the centre (k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f})"
+                  if lens.get("determined") else
+                  "; camera lens distortion not determined by this surface (assumed none)")
         return (f"focal {n.fx:.1f} → {f.fx:.1f} px ({100 * (f.fx / n.fx - 1):+.2f} %), principal point "
-                f"({n.cx:.1f}, {n.cy:.1f}) → ({f.cx:.1f}, {f.cy:.1f}) px ({spread}); reprojection RMS "
+                f"({n.cx:.1f}, {n.cy:.1f}) → ({f.cx:.1f}, {f.cy:.1f}) px ({spread}){camera}; reprojection RMS "
                 f"{self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px")
 
     def to_dict(self) -> dict[str, Any]:
         return {"nominal": self.nominal.to_dict(), "fitted": self.fitted.to_dict(),
                 "std_px": {k: float(v) for k, v in self.std.items()}, "determined": dict(self.determined),
                 "rms_nominal_px": self.rms_nominal_px, "rms_fitted_px": self.rms_fitted_px,
-                "points": self.points, "inliers": self.inliers, "summary": self.summary()}
+                "points": self.points, "inliers": self.inliers, "camera_distortion": dict(self.camera_distortion),
+                "camera_from_projector": None if self.camera_from_projector is None
+                else np.asarray(self.camera_from_projector).tolist(), "summary": self.summary()}
 
 
-def _fit(obj: np.ndarray, img: np.ndarray, k: Intrinsics, flags: int) -> tuple[Intrinsics, np.ndarray, float]:
-    """One calibration of a single non-planar view from ``k``: (intrinsics, std devs of f cx cy, rms px)."""
-    try:
-        rms, km, _, rvecs, tvecs = cv2.calibrateCamera(
-            [obj.astype(np.float32)], [img.astype(np.float32)], k.size, k.opencv_matrix(), np.zeros(5), flags=flags,
-            criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-10))
-    except cv2.error as exc:
-        raise CalibrationError(f"fitting the projector's intrinsics failed in OpenCV: {exc.msg.strip()}") from None
-    fitted = Intrinsics(k.width, k.height, float(km[0, 0]), float(km[1, 1]), float(km[0, 2]) + 0.5,
-                        float(km[1, 2]) + 0.5)
-    return fitted, _std(obj, img, km, rvecs[0], tvecs[0]), float(rms)
+class _GrayCodeView:
+    """Decoded Gray code with the camera's radial lens distortion in the loop.
 
-
-def _std(obj: np.ndarray, img: np.ndarray, km: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    """Standard deviations of (f, cx, cy) with the pose free, from the reprojection Jacobian.
-
-    OpenCV's own (``calibrateCameraExtended``) inverts JᵀJ by SVD, which zeroes
-    the variance along a degenerate direction, so a flat surface would look as
-    if it determined everything; we invert the 9×9 normal matrix ourselves and
-    let a degenerate direction show as a huge deviation.
+    The capture set's depth is a pinhole camera's image (``DepthInfo``'s K), the
+    photographs are the real lens's: a decoded camera pixel sees the surface
+    point on the ray of its *undistorted* position, at the depth found there.
     """
-    proj, jac = cv2.projectPoints(obj, rvec, tvec, km, np.zeros(5))
-    resid = proj.reshape(-1, 2) - img
-    sigma2 = float(np.sum(resid ** 2) / max(1, resid.size - 9))
-    # Columns: rvec 3, tvec 3, fx, fy, cx, cy, distortion…; f moves fx and fy together (aspect ratio fixed).
-    j = np.concatenate([jac[:, :6], (jac[:, 6] * km[0, 0] + jac[:, 7] * km[1, 1])[:, None] / km[0, 0],
-                        jac[:, 8:10]], axis=1)
+
+    def __init__(self, camera_px: np.ndarray, projector_px: np.ndarray, depth: np.ndarray, camera: Intrinsics,
+                 aspect: float) -> None:
+        self.centres = (np.asarray(camera_px, np.float64) - 0.5).reshape(-1, 1, 2)  # OpenCV's pixel centres
+        self.target = np.asarray(projector_px, np.float64)
+        self.depth = np.ascontiguousarray(depth, dtype=np.float32)
+        self.kc = camera.opencv_matrix()
+        self.aspect = aspect
+
+    def points(self, k1: float, k2: float) -> np.ndarray:
+        """N×3 surface points (rig frame) the decoded pixels see through a lens with k1, k2; NaN where none."""
+        crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-12)
+        xn = cv2.undistortPointsIter(self.centres, self.kc, np.array([k1, k2, 0.0, 0.0]), None, None,
+                                     crit).reshape(-1, 2)
+        u = xn[:, 0] * self.kc[0, 0] + self.kc[0, 2]
+        v = xn[:, 1] * self.kc[1, 1] + self.kc[1, 2]
+        z = cv2.remap(self.depth, u.astype(np.float32)[None, :], v.astype(np.float32)[None, :], cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan")).ravel().astype(np.float64)
+        return np.column_stack([xn * z[:, None], z])
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Projector-pixel residuals (2N) for x = f, cx, cy (OpenCV), rvec, tvec, camera k1, k2."""
+        f, cx, cy = x[:3]
+        km = np.array([[f, 0.0, cx], [0.0, f * self.aspect, cy], [0.0, 0.0, 1.0]])
+        pts = self.points(x[9], x[10])
+        ok = np.isfinite(pts[:, 2])
+        proj, _ = cv2.projectPoints(np.where(ok[:, None], pts, 1.0), x[3:6], x[6:9], km, None)
+        r = proj.reshape(-1, 2) - self.target
+        r[~ok] = 0.0  # a point that leaves the surface adds nothing (rare: the set is fixed at the start)
+        return r.ravel()
+
+
+def _levenberg_marquardt(fun, x0: np.ndarray, steps: np.ndarray, free: np.ndarray, iterations: int = 60
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Minimise |fun(x)|² over ``x[free]`` from x0 (forward-difference Jacobian with ``steps``, Marquardt's
+    damping); returns x, the residuals and the Jacobian (free columns) at x."""
+    x = np.asarray(x0, np.float64).copy()
+    r = fun(x)
+    lam = 1e-3
+
+    def jacobian(x: np.ndarray, r: np.ndarray) -> np.ndarray:
+        cols = []
+        for i in free:
+            e = np.zeros_like(x)
+            e[i] = steps[i]
+            cols.append((fun(x + e) - r) / steps[i])
+        return np.column_stack(cols)
+
+    j = jacobian(x, r)
+    for _ in range(iterations):
+        a, g = j.T @ j, j.T @ r
+        improved = False
+        while lam < 1e10:
+            dx = np.zeros_like(x)
+            dx[free] = np.linalg.solve(a + lam * np.diag(np.diag(a) + 1e-300), -g)
+            r_new = fun(x + dx)
+            if r_new @ r_new < r @ r:
+                x, r, lam, improved = x + dx, r_new, lam / 3.0, True
+                break
+            lam *= 4.0
+        if not improved or np.all(np.abs(dx[free]) < 1e-3 * steps[free]):
+            break
+        j = jacobian(x, r)
+    return x, r, j
+
+
+def _covariance_std(j: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Standard deviations of the parameters from the Jacobian (degenerate directions show as huge ones)."""
+    sigma2 = float(r @ r) / max(1, len(r) - j.shape[1])
     normal = j.T @ j
-    scale = np.sqrt(np.diag(normal))
+    scale = np.sqrt(np.maximum(np.diag(normal), 1e-300))
     try:
         cov = np.linalg.inv(normal / np.outer(scale, scale)) / np.outer(scale, scale)
     except np.linalg.LinAlgError:
-        return np.full(3, np.inf)
-    return np.sqrt(np.maximum(np.diag(cov)[6:9], 0.0) * sigma2)
+        return np.full(j.shape[1], np.inf)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0) * sigma2)
 
 
-def _residuals(obj: np.ndarray, img: np.ndarray, k: Intrinsics) -> np.ndarray:
-    """Reprojection error (px) of each point after PnP with ``k`` (the pose refitted for this K)."""
-    km = k.opencv_matrix()
-    ok, rvec, tvec = cv2.solvePnP(obj, img, km, None, flags=cv2.SOLVEPNP_EPNP)
-    if not ok:
-        raise CalibrationError("the Gray-code correspondences admit no projector pose; check the captures")
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, km, None, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, km, None)
-    return np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+def _start_pose(obj: np.ndarray, img: np.ndarray, k: Intrinsics, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A first projector pose with the spec's K (robust: Gray code has decoding outliers; the K may be off, so the
+    inlier threshold is loose)."""
+    cv2.setRNGSeed(int(seed))
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, k.opencv_matrix(), None, iterationsCount=200,
+                                                 reprojectionError=max(2.0, 0.02 * k.width), confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inliers is None or len(inliers) < MIN_CORRESPONDENCES:
+        raise CalibrationError("the Gray-code correspondences admit no projector pose to start the intrinsics fit "
+                               "from; check the captures, or keep the spec (--projector-intrinsics spec)")
+    return np.ravel(rvec), np.ravel(tvec)
+
+
+def _camera_from_projector(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    p_from_c = np.eye(4)
+    p_from_c[:3, :3], p_from_c[:3, 3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0], np.ravel(tvec)
+    pose = np.linalg.inv(p_from_c)
+    pose[3] = (0.0, 0.0, 0.0, 1.0)
+    return pose
+
+
+def _intrinsics(x: np.ndarray, like: Intrinsics, aspect: float) -> Intrinsics:
+    return Intrinsics(like.width, like.height, float(x[0]), float(x[0] * aspect), float(x[1]) + 0.5,
+                      float(x[2]) + 0.5)
+
+
+def _point_rms(r: np.ndarray) -> float:
+    return float(np.sqrt(2.0 * np.mean(r ** 2)))
 
 
 def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *,
                                   seed: int = 0) -> IntrinsicsFit:
-    """Fit the projector's focal length and principal point to the capture set's Gray code (module doc)."""
+    """Fit the projector's focal length and principal point, and the camera's radial distortion, to the capture
+    set's Gray code (module doc)."""
     nominal = captures.projector.intrinsics
-    obj, img, _ = graycode_correspondences(captures, view, mask, max_points=FIT_POINTS, seed=seed)
-    keep = np.ones(len(obj), bool)
-    free = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO | _NO_DISTORTION
-    k = nominal
-    # Two rounds of outlier rejection: a wrong spec leaves residuals of several pixels, so the first threshold is
-    # loose and set by the data (robust spread), the second tight.
+    obj, img, cam_px, _ = graycode_correspondences(captures, view, mask, max_points=FIT_POINTS, seed=seed)
+    depth, camera, aspect = view.points[..., 2], captures.camera.intrinsics, nominal.fy / nominal.fx
+    rvec, tvec = _start_pose(obj, img, nominal, seed)
+    km = nominal.opencv_matrix()
+    x0 = np.concatenate([[km[0, 0], km[0, 2], km[1, 2]], rvec, tvec, [0.0, 0.0]])
+    scale = float(np.nanmedian(np.abs(obj[:, 2])))
+    steps = np.array([1e-4 * km[0, 0], 0.01, 0.01, 1e-6, 1e-6, 1e-6, 1e-6 * scale, 1e-6 * scale, 1e-6 * scale,
+                      1e-5, 1e-5])
+    everything = _GrayCodeView(cam_px, img, depth, camera, aspect)
+    x, keep = x0, np.ones(len(obj), bool)
+    # Two rounds of outlier rejection (decoding errors at pattern edges): a wrong spec leaves residuals of several
+    # pixels, so the first threshold is loose and set by the data (robust spread), the second tight.
     for _ in range(2):
-        k, std, _ = _fit(obj[keep], img[keep], k, free)
-        res = _residuals(obj, img, k)
+        x, _, _ = _levenberg_marquardt(_GrayCodeView(cam_px[keep], img[keep], depth, camera, aspect).residuals,
+                                       x, steps, _NO_LENS)
+        res = np.linalg.norm(everything.residuals(x).reshape(-1, 2), axis=1)
         spread = 1.4826 * np.median(np.abs(res - np.median(res)))
         keep = res < max(1.0, np.median(res) + 4.0 * spread)
         if keep.sum() < MIN_CORRESPONDENCES:
             raise CalibrationError(f"too few consistent Gray-code correspondences in {captures.path} "
-                                   f"({int(keep.sum())}) to fit the projector's intrinsics; use the spec's")
-    k, std, _ = _fit(obj[keep], img[keep], k, free)
-    std_d = {"fx": float(std[0]), "cx": float(std[1]), "cy": float(std[2])}
+                                   f"({int(keep.sum())}) to fit the projector's intrinsics; keep the spec "
+                                   "(--projector-intrinsics spec)")
+    gv = _GrayCodeView(cam_px[keep], img[keep], depth, camera, aspect)
+    _, r_nominal, _ = _levenberg_marquardt(gv.residuals, x0, steps, _POSE)  # the spec's K, its best pose
+    x, r, j = _levenberg_marquardt(gv.residuals, x, steps, _NO_LENS)
+    sd = _covariance_std(j, r)
+    lens: dict[str, Any] = {"k1": 0.0, "k2": 0.0, "std_k1": None, "std_k2": None, "determined": False}
+    # Then the camera's radial distortion with them: the photographs' lens bends the decoded pixels' rays, and a
+    # projector fitted without it takes the bend into its focal length (measured: -2.6 % on the lab's curve with
+    # its realistic k1 = -0.036).
+    x_lens, r_lens, j_lens = _levenberg_marquardt(gv.residuals, x, steps, np.arange(11))
+    sd_lens = _covariance_std(j_lens, r_lens)
+    lens.update(std_k1=float(sd_lens[9]), std_k2=float(sd_lens[10]))
+    if sd_lens[9] < DISTORTION_STD_MAX and np.isfinite(x_lens).all():
+        x, r, sd = x_lens, r_lens, sd_lens
+        # k1 and k2 trade against each other over the lit part of the image; the displacement they give at its
+        # edge is what the data pin down, so that is what the report leads with.
+        xn = (cam_px[keep] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
+        r_max = float(np.sqrt(np.max(np.sum(xn ** 2, axis=1))))
+        shift = r_max * (x[9] * r_max ** 2 + x[10] * r_max ** 4) * camera.fx
+        lens.update(k1=float(x[9]), k2=float(x[10]), determined=True, edge_radius_px=r_max * camera.fx,
+                    edge_displacement_px=float(shift))
+    std_d = {"fx": float(sd[0]), "cx": float(sd[1]), "cy": float(sd[2])}
+    k = _intrinsics(x, nominal, aspect)
     determined = {"focal": std_d["fx"] < FOCAL_STD_MAX * k.fx,
                   "principal_point": max(std_d["cx"], std_d["cy"]) < CENTRE_STD_MAX_PX}
+    pose: np.ndarray | None = _camera_from_projector(x[3:6], x[6:9])
     if not all(determined.values()):
         # Measured on the lab's plane: its principal point looks determined alone, but only given the focal
         # length; fitted with a wrong spec's focal length it moves to compensate it and the pose gets worse than
         # with the spec. So either the data determine both, or the spec stays as it is.
-        k = nominal
-    rms = lambda kk: float(np.sqrt(np.mean(_residuals(obj[keep], img[keep], kk) ** 2)))  # noqa: E731
-    return IntrinsicsFit(nominal, k, std_d, determined, rms(nominal), rms(k), int(len(obj)), int(keep.sum()))
+        k, pose, r = nominal, None, r_nominal
+        lens["determined"] = False
+    return IntrinsicsFit(nominal, k, std_d, determined, _point_rms(r_nominal), _point_rms(r), int(len(obj)),
+                         int(keep.sum()), lens, pose)

@@ -318,9 +318,10 @@ def full_white_irradiance(view: SurfaceView, projector: Projector, pose: np.ndar
 # ------------------------------------------------------------------ Gray code + PnP
 
 def graycode_correspondences(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *, max_points: int = 40000,
-                             seed: int = 0) -> tuple[np.ndarray, np.ndarray, int]:
+                             seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Decoded Gray code lifted to 3-D by the surface: N×3 rig-frame points, N×2 projector pixels (OpenCV's pixel
-    centres), and how many camera pixels decoded on the surface (before picking at most ``max_points``)."""
+    centres), the N×2 camera pixels they were decoded at (centres, corner convention), and how many camera pixels
+    decoded on the surface (before picking at most ``max_points``)."""
     entries = captures.entries_of("graycode")
     if not entries:
         raise CalibrationError(f"capture set {captures.path} holds no Gray-code captures, so init='graycode' "
@@ -338,16 +339,18 @@ def graycode_correspondences(captures: CaptureSet, view: SurfaceView, mask: np.n
             "camera still? Use --init nominal, or capture Gray code again")
     obj = view.points[use]
     img = dec.coords[use].astype(np.float64) - 0.5  # corner convention → OpenCV's pixel centres
+    rows, cols = np.nonzero(use)
+    cam = np.stack([cols, rows], axis=1).astype(np.float64) + 0.5
     if len(obj) > max_points:
         pick = np.random.default_rng(seed).choice(len(obj), max_points, replace=False)
-        obj, img = obj[pick], img[pick]
-    return obj, img, n_use
+        obj, img, cam = obj[pick], img[pick], cam[pick]
+    return obj, img, cam, n_use
 
 
 def graycode_pnp(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *, max_points: int = 40000,
                  seed: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
     """Pose from decoded Gray-code correspondences lifted to 3-D by the surface (PnP with the projector's K)."""
-    obj, img, n_use = graycode_correspondences(captures, view, mask, max_points=max_points, seed=seed)
+    obj, img, _, n_use = graycode_correspondences(captures, view, mask, max_points=max_points, seed=seed)
     proj = captures.projector
     k = proj.intrinsics.opencv_matrix()
     # A projector pixel covers ~1/800 of the frame; Gray code is exact to ±0.5 px, the 3-D points to ~mm.
