@@ -170,17 +170,21 @@ def wrong_spec(tmp_path_factory):
     """Lab sets whose projector spec is 10 % off in focal length and 20 % of the height off in lens shift."""
     root = tmp_path_factory.mktemp("spec")
 
-    def make(surface: str):
-        captures, truth = root / surface, root / f"{surface}.truth.json"
+    def make(surface: str, shift: str = "0,15"):
+        name = f"{surface}-{shift.replace(',', '_')}"
+        captures, truth = root / name, root / f"{name}.truth.json"
         if not captures.exists():
             assert main(["lab", "--out", str(captures), "--truth", str(truth), "--surface", surface, "--scale", "0.4",
-                         "--samples", "4", "--nominal-error", "10,20"]) == 0
+                         "--samples", "4", "--nominal-error", "10,20", "--projector-shift", shift]) == 0
         return captures, LabTruth.load(truth)
     return make
 
 
-def test_projector_intrinsics_fitted_without_a_board(wrong_spec, tmp_path):
-    captures, truth = wrong_spec("curve")
+@pytest.mark.parametrize("shift", ["0,15", "0,127"])
+def test_projector_intrinsics_fitted_without_a_board(wrong_spec, tmp_path, shift):
+    """A spec 10 % off in focal length and 20 % of the height in shift; also with the principal point far below the
+    frame, which OpenCV's own calibration refuses as a start."""
+    captures, truth = wrong_spec("curve", shift)
     true_k = truth.rig.projector.intrinsics
     assert CaptureSet.load(captures).projector.intrinsics.fx == pytest.approx(1.1 * true_k.fx)
     spec = run_calibration(CalibrateOptions(captures, tmp_path / "spec", with_blend=False))
