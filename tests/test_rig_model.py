@@ -47,7 +47,7 @@ def test_principal_point_anywhere_a_lens_puts_it(shift_x, shift_y):
     assert Intrinsics.from_dict(k.to_dict()) == k
     assert k.project(k.rays(np.array([[k.cx, k.cy], [0.0, 0.0]]))) == pytest.approx(np.array([[k.cx, k.cy], [0, 0]]))
     real = Intrinsics(1024, 768, 3953.67, 3893.26, 737.67, 1358.33)  # the published realdata calibration
-    assert real.shift[1] == pytest.approx(1.269, abs=1e-3)  # its image lies 1.27 heights above the lens axis
+    assert real.shift[1] == pytest.approx(1.269, abs=1e-3)  # as published: 1.27 heights above the lens axis
 
 
 def test_opencv_matrix_shifts_half_a_pixel():

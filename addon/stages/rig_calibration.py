@@ -22,13 +22,14 @@ Conventions. Inside this module every pixel coordinate is OpenCV's (pixel
 carries OpenCV matrices and, in :meth:`RigCalibration.to_dict`, also the
 project's convention (pixel *corners* at integers, ``cx = cx_opencv + 0.5``).
 The rig frame is the camera's OpenCV frame; lengths are in the unit of
-``square`` (metres when the square size is given in metres, board squares
-with the default 1.0). ``camera_from_projector`` maps projector-frame points
+``square`` (metres when the square size is given in metres, which
+``metric`` records; board squares with the default 1.0). ``camera_from_projector`` maps projector-frame points
 into the camera frame (the inverse of OpenCV's stereo ``R, T``).
 
-The projector's intrinsics are stored as plain numbers, not as
-:class:`~..rig.model.Intrinsics`: real projectors have principal points far
-outside their frame (DESIGN §9), which that class may refuse.
+The intrinsics are stored as OpenCV matrices with their distortion;
+``steps.capture.rig_models`` turns them into the rig model's
+:class:`~..rig.model.Intrinsics` (which takes principal points far outside
+the frame, as real projectors have) once the photographs are undistorted.
 """
 
 from __future__ import annotations
