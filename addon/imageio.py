@@ -9,6 +9,7 @@ a half-written file under the real name.
 from __future__ import annotations
 
 import os
+import struct
 import tempfile
 from pathlib import Path
 
@@ -96,11 +97,73 @@ def write_image(path: str | Path, image: np.ndarray) -> Path:
     return final
 
 
+#: EXIF orientation (tag 0x0112) → what turns the stored pixels upright, as OpenCV's IMREAD_COLOR does it.
+ORIENTATIONS = {1: "upright", 2: "mirrored left-right", 3: "rotated 180°", 4: "mirrored top-bottom",
+                5: "mirrored along the diagonal", 6: "rotated 90° (camera turned clockwise)",
+                7: "mirrored along the anti-diagonal", 8: "rotated 90° (camera turned anticlockwise)"}
+
+
+def _tiff_orientation(tiff: bytes) -> int:
+    """Orientation (tag 0x0112) in IFD0 of a TIFF structure (an EXIF block); 1 when absent or unreadable."""
+    if len(tiff) < 8 or tiff[:2] not in (b"II", b"MM"):
+        return 1
+    e = "<" if tiff[:2] == b"II" else ">"
+    (ifd,) = struct.unpack(e + "I", tiff[4:8])
+    if ifd + 2 > len(tiff):
+        return 1
+    (n,) = struct.unpack(e + "H", tiff[ifd:ifd + 2])
+    for i in range(n):
+        at = ifd + 2 + 12 * i
+        if at + 12 > len(tiff):
+            break
+        tag, typ, count = struct.unpack(e + "HHI", tiff[at:at + 8])
+        if tag == 0x0112 and typ == 3 and count >= 1:
+            (value,) = struct.unpack(e + "H", tiff[at + 8:at + 10])
+            return value if value in ORIENTATIONS else 1
+    return 1
+
+
+def exif_orientation(path: str | Path) -> int:
+    """The EXIF orientation of a JPEG (1–8, 1 = stored upright; 1 too for other files and JPEGs without EXIF)."""
+    path = Path(path)
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return 1
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 17)  # EXIF (APP1) sits at the start and is at most 64 KiB
+    except OSError:
+        return 1
+    if head[:2] != b"\xff\xd8":
+        return 1
+    at = 2
+    while at + 4 <= len(head) and head[at] == 0xFF:
+        marker = head[at + 1]
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no more metadata
+            break
+        (length,) = struct.unpack(">H", head[at + 2:at + 4])
+        data = head[at + 4:at + 2 + length]
+        if marker == 0xE1 and data[:6] == b"Exif\x00\x00":
+            return _tiff_orientation(data[6:])
+        at += 2 + length
+    return 1
+
+
+def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn stored pixels upright for an EXIF orientation, exactly as OpenCV's ``IMREAD_COLOR`` does."""
+    if orientation in (5, 6, 7, 8):
+        img = np.swapaxes(img, 0, 1)
+    flips = {2: (1,), 3: (0, 1), 4: (0,), 6: (1,), 7: (0, 1), 8: (0,)}.get(orientation, ())
+    for axis in flips:
+        img = np.flip(img, axis=axis)
+    return np.ascontiguousarray(img)
+
+
 def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
     """Read an image as float32 linear values; 8/16-bit files are scaled to [0, 1].
 
     ``channels=3`` returns H×W×3 (grey is repeated), ``1`` returns H×W,
-    ``None`` returns what the file holds.
+    ``None`` returns what the file holds. A JPEG's EXIF orientation is applied
+    (:func:`exif_orientation`), as OpenCV's ``IMREAD_COLOR`` would.
     """
     path = Path(path)
     if not path.is_file():
@@ -114,6 +177,9 @@ def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise ImageError(f"cannot read {path}: not an image or the file is damaged")
+        # IMREAD_UNCHANGED ignores a JPEG's EXIF orientation (IMREAD_COLOR applies it): apply it here, so that a
+        # photograph reads as every viewer shows it, whichever flags read it.
+        raw = apply_orientation(raw, exif_orientation(path))
         if raw.dtype == np.uint8:
             img = raw.astype(np.float32) / 255.0
         elif raw.dtype == np.uint16:

@@ -33,9 +33,12 @@ import cv2
 import numpy as np
 
 from ..errors import CaptureError, ImageError, RigError
-from ..imageio import read_image, write_atomic_bytes, write_image
+from ..imageio import ORIENTATIONS, exif_orientation, read_image, write_atomic_bytes, write_image
+from ..progress import Progress, quiet
 from ..rig.model import Camera, Projector, intrinsics_from_fov
 from ..outputs import AtomicFolder
+from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
+from .exposure import Shot, check_exposure, reduce_image
 from .format import CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
 from .patterns import PatternSpec, calibration_sequence
 
@@ -301,27 +304,86 @@ def _load_capture(path: Path, encoding: str) -> tuple[np.ndarray, str]:
     return img, f"linear {bits}-bit" if bits else "linear"
 
 
+def check_orientations(files: Sequence[Path]) -> int:
+    """The photographs' common EXIF orientation; a photograph turned against the first one is refused by name.
+
+    Phones store pixels as the sensor saw them and record how the phone was
+    held in the EXIF orientation tag, which :func:`read_image` applies. One
+    photograph whose tag differs from the others' was taken with the phone
+    turned (or its orientation sensor flipped): imported as it is, it would lie
+    sideways against the rest of the session.
+    """
+    first = exif_orientation(files[0])
+    for path in files[1:]:
+        o = exif_orientation(path)
+        if o != first:
+            raise CaptureError(
+                f"photograph {path} is {ORIENTATIONS[o]} according to its EXIF orientation, but {files[0].name} is "
+                f"{ORIENTATIONS[first]}: the camera was turned during the session (or its orientation sensor "
+                "flipped). The camera must not move between shots: lock the screen rotation and capture again. If "
+                "the camera did not move and only the tag changed, remove the orientation tag from every photograph "
+                "(e.g. `exiftool -Orientation= -n *.jpg`) and import again")
+    return first
+
+
+def _size_message(path: Path, img: np.ndarray, camera: Camera) -> str:
+    cw, ch = camera.intrinsics.size
+    turned = (img.shape[1], img.shape[0]) == (ch, cw)
+    return (f"capture {path} is {img.shape[1]}×{img.shape[0]} pixels, but the camera resolution is {cw}×{ch}"
+            + ("; the photograph is turned by 90° against the others (rotated after it was taken, or the camera "
+               "was turned): every photograph of a session must be taken, and saved, the same way up" if turned else ""))
+
+
+def _depth_reference(white: np.ndarray | None, black: np.ndarray | None,
+                     surface: np.ndarray | None) -> list[np.ndarray]:
+    """Captures that show the surface's silhouette, for :func:`~.depth_io.find_alignment` to choose from."""
+    refs = []
+    if surface is not None:
+        refs.append(surface)
+    if white is not None:
+        refs.append(np.maximum(white - (black if black is not None else 0.0), 0.0))
+    return refs
+
+
 def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: Camera | None,
                     projector: Projector | None, out_capture_dir: str | Path, *, encoding: str = "auto",
                     camera_fov: float = 60.0, depth: np.ndarray | None = None,
-                    depth_native_size: tuple[int, int] | None = None, undistort: RigLens | None = None,
-                    force: bool = False) -> CaptureSet:
+                    depth_native_size: tuple[int, int] | None = None, depth_path: str | Path | None = None,
+                    depth_units: str = "auto", undistort: RigLens | None = None, check_session: bool = True,
+                    progress: Progress | None = None, force: bool = False) -> CaptureSet:
     """Turn photographs of an exported sequence into a new capture set.
 
     Captures are matched to frames by name, or else by the number in their names (``list_captures``).
     ``encoding='auto'`` treats 8-bit files (JPEG, 8-bit PNG/TIFF) as sRGB and
     linearises them, 16-bit and float files as linear; the choice is recorded
-    per image (``params.source_encoding``). ``camera`` None builds a nominal
-    camera with ``camera_fov`` at the captures' size; ``projector`` None takes
-    the one in ``sequence.json``. ``depth`` (metres) is stored with the camera
-    intrinsics scaled to its size. ``undistort`` (a calibrated rig's camera
-    lens) removes the camera's lens distortion from every photograph and the
-    depth map, keeping its K, so the capture set is a pinhole camera's; it
-    also marks the camera and projector as calibrated. Any bad file raises a
+    per image (``params.source_encoding``). A JPEG's EXIF orientation is
+    applied, and a photograph turned against the others is refused
+    (:func:`check_orientations`). ``camera`` None builds a nominal camera with
+    ``camera_fov`` at the captures' size; ``projector`` None takes the one in
+    ``sequence.json``.
+
+    Depth: ``depth`` (an array in metres) or ``depth_path`` (any format
+    :func:`~.depth_io.read_depth` reads: .npy/.exr metres, 16-bit PNG/TIFF
+    millimetres, a PLY point cloud in the camera frame, projected at
+    ``depth_native_size`` or the camera's size; ``depth_units`` auto/m/mm) is
+    stored with the camera intrinsics scaled to its size. It is checked against
+    the photographs for a shift of a few pixels (:func:`~.depth_io.find_alignment`),
+    which is corrected with a warning or, when ambiguous, refused.
+
+    ``undistort`` (a calibrated rig's camera lens) removes the camera's lens
+    distortion from every photograph and the depth map (not from a projected
+    point cloud, which is a pinhole view already), keeping its K, so the
+    capture set is a pinhole camera's; it also marks the camera and projector
+    as calibrated. ``check_session`` refuses a session whose exposure or white
+    balance changed (:func:`~.exposure.check_exposure`). Warnings go to
+    ``progress`` and into the capture set's notes. Any bad file raises a
     :class:`CaptureError` naming it, and nothing is written.
     """
+    say = progress or quiet
     if encoding not in ENCODINGS:
         raise CaptureError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    if depth is not None and depth_path is not None:
+        raise CaptureError("give a depth array or a depth file, not both")
     seq = load_sequence(sequence_dir)
     projector = projector or seq.projector
     camera = camera or seq.camera
@@ -329,6 +391,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     if len(files) != len(seq.frames):
         raise CaptureError(f"the sequence has {len(seq.frames)} frames but {captures_dir} holds {len(files)} "
                            f"captures ({files[0].name} … {files[-1].name}); one capture per frame is needed")
+    orientation = check_orientations(files)
     first, first_enc = _load_capture(files[0], encoding)
     size = (first.shape[1], first.shape[0])
     if camera is None:
@@ -336,25 +399,37 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
         camera_note = f"nominal: {camera_fov}° horizontal field of view, centred principal point"
     else:
         camera_note = "given"
+    depth_name = "the depth map"
+    reading: DepthReading | None = None
+    if depth_path is not None:
+        reading = read_depth(depth_path, camera.intrinsics, units=depth_units, size=depth_native_size)
+        depth_name = f"depth file {reading.path}"
+        for warning in reading.warnings:
+            say(f"warning: {warning}", 0.0)
+        depth = reading.depth
     depth_info = None
     if depth is not None:
         dh, dw = np.asarray(depth).shape[:2]
         depth_info = DepthInfo(camera.intrinsics.scaled(dw, dh), tuple(depth_native_size or (dw, dh)))
-    notes = {"device": "folder", "sequence": str(Path(sequence_dir).resolve()),
-             "captures": str(Path(captures_dir).resolve()), "encoding": encoding, "camera": camera_note}
+    notes: dict[str, Any] = {"device": "folder", "sequence": str(Path(sequence_dir).resolve()),
+                             "captures": str(Path(captures_dir).resolve()), "encoding": encoding,
+                             "camera": camera_note}
+    if orientation != 1:
+        notes["orientation"] = f"EXIF orientation {orientation} ({ORIENTATIONS[orientation]}) applied to every photograph"
     status: dict[str, Any] = {}
     if undistort is not None:
         notes["camera"] = f"calibrated, lens distortion removed: {undistort.source}"
         status = {"camera_status": "calibrated", "projector_status": "calibrated",
                   "projector_pose_known": undistort.pose_known}
+    shots: list[Shot] = []
+    kept: dict[str, np.ndarray] = {}  # the first white, black and surface photographs, for the depth's alignment
     with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes, force=force,
                           **status) as writer:
         for i, (frame, path) in enumerate(zip(seq.frames, files)):
+            say(f"importing {path.name}", i / len(files))
             img, enc = (first, first_enc) if i == 0 else _load_capture(path, encoding)
             if (img.shape[1], img.shape[0]) != camera.intrinsics.size:
-                cw, ch = camera.intrinsics.size
-                raise CaptureError(f"capture {path} is {img.shape[1]}×{img.shape[0]} pixels, but the camera "
-                                   f"resolution is {cw}×{ch}")
+                raise CaptureError(_size_message(path, img, camera))
             if undistort is not None:
                 img = undistort.image(img)
             pattern = None
@@ -366,9 +441,48 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
             params = dict(frame.get("params") or {})
             writer.add(frame["kind"], img, name=frame["name"], frame=pattern, source=path.name,
                        source_encoding=enc, **params)
+            if frame["kind"] in ("white", "black", "checker", "graycode"):
+                shots.append(Shot(frame["kind"], params, reduce_image(img), path.name))
+            if frame["kind"] in ("white", "black", "surface") and depth is not None:
+                kept.setdefault(frame["kind"], img)
         if depth is not None:
-            writer.add_depth(undistort.image(depth, nearest=True) if undistort is not None else depth)
+            d = np.asarray(depth, dtype=np.float32)
+            if undistort is not None and not (reading is not None and reading.projected):
+                d = undistort.image(d, nearest=True)
+            d = _align(d, kept, depth_name, reading, writer.notes, say)
+            writer.add_depth(d)
+        if check_session:
+            say("checking that exposure and white balance stayed fixed", 1.0)
+            report = check_exposure(shots, where=f"photographs in {Path(captures_dir)}")
+            writer.notes["exposure"] = report.notes()
     return CaptureSet.load(out_capture_dir, verify_images=False)
+
+
+def _align(depth: np.ndarray, kept: dict[str, np.ndarray], name: str, reading: DepthReading | None,
+           notes: dict[str, Any], say: Progress) -> np.ndarray:
+    """The depth map checked (and corrected) for a shift against the photographs; notes["depth"] says what."""
+    info: dict[str, Any] = reading.notes() if reading is not None else {"file": None, "format": "array (metres)"}
+    warnings = list(info.get("warnings", []))
+    refs = _depth_reference(kept.get("white"), kept.get("black"), kept.get("surface"))
+    if refs:
+        found = find_alignment(depth, refs, name=name)
+        info["alignment"] = found.notes()
+        if found.shift != (0, 0):
+            depth = shift_image(depth, found.shift[0], found.shift[1], np.nan)
+            warning = (f"{name} was misaligned with the photographs: shifted by {found.shift[0]:+d}, "
+                       f"{found.shift[1]:+d} depth pixels to match the surface's edges (confidence "
+                       f"{found.confidence:.2f}); register depth to colour in the capture app to avoid this")
+            say(f"warning: {warning}", 1.0)
+            warnings.append(warning)
+        elif not found.checked:
+            warnings.append(f"{name}: alignment with the photographs not checked: {found.reason}")
+    valid = float(np.mean(np.isfinite(depth) & (depth > 0)))
+    if valid < MIN_VALID:
+        raise CaptureError(f"{name} is mostly holes: only {valid:.0%} of its pixels hold a depth (at least "
+                           f"{MIN_VALID:.0%} needed); capture the depth again, or import without it")
+    info["warnings"] = warnings
+    notes["depth"] = info
+    return depth
 
 
 def _frame_key(frame: np.ndarray) -> str:
@@ -517,7 +631,7 @@ class LiveDevice(Device):
 
 
 __all__ = ["Device", "FolderDevice", "LiveDevice", "SequenceInfo", "capture_sequence", "check_complete",
-           "check_display", "export_sequence", "highgui_available", "import_captures", "list_captures",
+           "check_display", "check_orientations", "export_sequence", "highgui_available", "import_captures", "list_captures",
            "load_sequence", "open_camera", "stored_bit_depth"]
 
 

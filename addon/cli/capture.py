@@ -12,7 +12,6 @@ from pathlib import Path
 
 from ..capture.devices import load_sequence
 from ..errors import CaptureError, RigError
-from ..imageio import read_image
 from ..rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
 from ..steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
 from .app import command
@@ -78,9 +77,19 @@ def _configure_import(p: argparse.ArgumentParser) -> None:
                    help="a rig calibration from `procam calibrate-rig`: calibrated camera and projector K, the "
                         "camera's lens distortion removed from every photograph (and the depth map), the "
                         "projector's pose when the rig was calibrated with --square in metres")
-    p.add_argument("--depth", type=Path, help="depth map in metres (.npy or .exr), aligned with the camera")
-    p.add_argument("--depth-native-width", type=_positive_int, help="native depth-sensor width (e.g. 256)")
+    p.add_argument("--depth", type=Path, metavar="FILE",
+                   help="depth of the scene seen from the camera: .npy/.exr in metres, 16-bit .png/.tif in "
+                        "millimetres (0 = no depth; iPhone, RealSense, Azure Kinect), or a .ply point cloud in the "
+                        "camera's OpenCV frame (x right, y down, z forward). A shift of a few pixels against the "
+                        "photographs is found and corrected (with a warning)")
+    p.add_argument("--depth-units", choices=("auto", "m", "mm"), default="auto",
+                   help="units of the depth values; auto (default) detects millimetres given as metres and says so")
+    p.add_argument("--depth-native-width", type=_positive_int,
+                   help="native depth-sensor width (e.g. 256); a .ply point cloud is projected at this size")
     p.add_argument("--depth-native-height", type=_positive_int, help="native depth-sensor height (e.g. 192)")
+    p.add_argument("--no-exposure-check", action="store_true",
+                   help="import even when the photographs' exposure or white balance seems to change during the "
+                        "session (complementary patterns that do not add up to white + black)")
     p.add_argument("--force", action="store_true", help="replace an existing capture set at --out")
 
 
@@ -92,9 +101,6 @@ def import_photographs(args: argparse.Namespace) -> int:
         raise CaptureError("give both --camera-width and --camera-height, or neither")
     if args.camera_width:
         camera = Camera(intrinsics_from_fov(args.camera_width, args.camera_height, args.camera_fov))
-    depth = None
-    if args.depth is not None:
-        depth = read_image(args.depth, channels=1)
     native = None
     if args.depth_native_width or args.depth_native_height:
         if not (args.depth_native_width and args.depth_native_height):
@@ -102,7 +108,8 @@ def import_photographs(args: argparse.Namespace) -> int:
         native = (args.depth_native_width, args.depth_native_height)
     cs = run_step("import-captures", run_import, ImportOptions(
         args.sequence_dir, args.captures_dir, args.out, camera=camera, camera_fov=args.camera_fov,
-        encoding=args.encoding, depth=depth, depth_native_size=native, rig=args.rig, force=args.force))
+        encoding=args.encoding, depth_path=args.depth, depth_units=args.depth_units, depth_native_size=native,
+        rig=args.rig, check_exposure=not args.no_exposure_check, force=args.force))
     w, h = cs.camera.intrinsics.size
     print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
     if args.rig is not None:

@@ -121,11 +121,19 @@ class ImportOptions:
     camera_fov: float = 60.0
     #: auto: 8-bit files are sRGB, 16-bit/float are linear
     encoding: str = "auto"
+    #: a depth map already in memory (metres, aligned with the camera up to a few pixels)
     depth: np.ndarray | None = None
+    #: a depth file: .npy/.exr in metres, 16-bit PNG/TIFF in millimetres, or a PLY point cloud in the camera frame
+    depth_path: Path | None = None
+    #: the depth file's units: auto (detected from its values, with a warning when it converts), m or mm
+    depth_units: str = "auto"
+    #: the depth sensor's native resolution (a point cloud is projected at this size; default the camera's)
     depth_native_size: tuple[int, int] | None = None
     #: a ``rig.json`` from ``procam calibrate-rig``: calibrated camera and projector K, the camera's lens
     #: distortion taken out of every photograph, and the projector's pose when the rig is metric
     rig: Path | None = None
+    #: refuse a session whose exposure or white balance changed between photographs (capture/exposure.py)
+    check_exposure: bool = True
     force: bool = False
 
 
@@ -166,4 +174,6 @@ def run_import(options: ImportOptions, progress: Progress | None = None,
     (progress or quiet)("matching the photographs to their frames", 0.0)
     return import_captures(options.sequence_dir, options.photos_dir, camera, projector, options.out,
                            encoding=options.encoding, camera_fov=options.camera_fov, depth=options.depth,
-                           depth_native_size=options.depth_native_size, undistort=lens, force=options.force)
+                           depth_path=options.depth_path, depth_units=options.depth_units,
+                           depth_native_size=options.depth_native_size, undistort=lens,
+                           check_session=options.check_exposure, progress=progress, force=options.force)
