@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..lab.effects import effect_help
 from ..lab.lab import describe_run
-from ..steps.capture import LabOptions, run_lab
+from ..steps.capture import BoardOptions, LabOptions, run_board, run_lab
 from .app import command
 from .terminal import progress, run_step
 
@@ -66,4 +66,40 @@ def run(args: argparse.Namespace) -> int:
           f"{args.samples} spp)")
     print(f"sealed truth: {truth_path}")
     print(f"effects: {args.effects or 'none'}")
+    return 0
+
+
+def _configure_board(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, required=True, help="folder to create, one pose_NN session folder per pose")
+    p.add_argument("--truth", type=Path, default=None, help="sealed truth file (default: OUT.truth.json beside OUT)")
+    p.add_argument("--board", type=_board, default=(9, 7), metavar="COLSxROWS", help="inner corners (default 9x7)")
+    p.add_argument("--square", type=float, default=0.06, metavar="METRES", help="square size (default 0.06)")
+    p.add_argument("--poses", type=int, default=6, help="board poses (default 6; at least 3)")
+    p.add_argument("--effects", default="", help="lab effects, e.g. distortion=0.5,noise=0.3 (default none)")
+    p.add_argument("--samples", type=int, default=4, help="Cycles samples per pixel (default 4)")
+    p.add_argument("--scale", type=float, default=1.0, help="resolution scale: 1 = camera 640×480, projector 800×600")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="replace board sessions made earlier at --out")
+
+
+def _board(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"board must be COLSxROWS inner corners, e.g. 9x7; got {text!r}")
+    return cols, rows
+
+
+@command("lab-board", "Render chessboard sessions of the demo rig in the virtual lab, for procam calibrate-rig.",
+         _configure_board)
+def run_board_sessions(args: argparse.Namespace) -> int:
+    options = BoardOptions(args.out, board=args.board, square=args.square, poses=args.poses, effects=args.effects,
+                           samples=args.samples, scale=args.scale, seed=args.seed, truth=args.truth, force=args.force)
+    truth = run_step("lab-board", run_board, options)
+    size = truth.rig.projector.intrinsics.size
+    print(f"board sessions: {args.out} ({len(truth.poses)} poses of a {args.board[0]}x{args.board[1]} board, "
+          f"squares {args.square:g} m)")
+    print(f"sealed truth: {args.truth or args.out.with_name(args.out.name + '.truth.json')}")
+    print(f"calibrate them: procam calibrate-rig {args.out}/pose_* --board {args.board[0]}x{args.board[1]} "
+          f"--square {args.square:g} --projector {size[0]}x{size[1]} --out rig.json")
     return 0

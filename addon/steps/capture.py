@@ -23,7 +23,10 @@ import numpy as np
 from ..capture.devices import RigLens, export_sequence, import_captures, load_sequence
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
-from ..lab.lab import check_lab_outputs, make_truth, run_lab as render_lab
+from ..lab.board import BoardTruth, render_board_sessions
+from ..lab.effects import parse_effects
+from ..lab.lab import check_lab_outputs, make_truth, run_lab as render_lab, scaled_rig
+from ..rig.demo import demo_rig
 from ..progress import Cancel, Progress, quiet
 from ..outputs import file_sha256
 from ..rig.model import Camera, Intrinsics, Projector, Rig
@@ -80,6 +83,35 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
                       fast_binary=not options.full_binary, progress=progress, cancel=cancel)
+
+
+@dataclass(frozen=True)
+class BoardOptions:
+    """What ``procam lab-board`` asks for: board sessions of the demo rig for ``procam calibrate-rig``."""
+
+    out: Path
+    board: tuple[int, int] = (9, 7)
+    #: metres
+    square: float = 0.06
+    poses: int = 6
+    effects: str = ""
+    samples: int = 4
+    #: 1 = camera 640×480, projector 800×600
+    scale: float = 1.0
+    seed: int = 0
+    truth: Path | None = None
+    force: bool = False
+
+
+def run_board(options: BoardOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> BoardTruth:
+    """Render the board sessions (``lab/board.py``) and seal their truth beside them."""
+    if not 0.05 <= options.scale <= 2:
+        raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
+    parse_effects(options.effects)  # a bad effect fails before the first render
+    return render_board_sessions(scaled_rig(demo_rig(), options.scale), Path(options.out), board=options.board,
+                                 square=options.square, poses=options.poses, effects=options.effects,
+                                 samples=options.samples, seed=options.seed, truth_path=options.truth,
+                                 force=options.force, progress=progress, cancel=cancel)
 
 
 @dataclass(frozen=True)
