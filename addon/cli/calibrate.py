@@ -38,6 +38,14 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="the depth sensor's constant bias (+ = it reads too far), subtracted from the depth; "
                         "default: read from the capture set's wall depth image (a flat wall at a tape-measured "
                         "distance), else 0")
+    p.add_argument("--surface-from", choices=("auto", "depth", "graycode", "mesh"), default="auto",
+                   help="where the surface comes from: the capture set's depth image, the Gray code triangulated with "
+                        "a calibrated rig (import-captures --rig with a metric rig file), or the mesh of "
+                        "--surface-mesh registered to either (default auto: the mesh if given, else depth if "
+                        "present, else the Gray code when the projector's pose is known)")
+    p.add_argument("--surface-mesh", type=Path, default=None, metavar="FILE",
+                   help="the object's mesh (.obj/.ply, a scan or CAD model in its own frame, metres or "
+                        "millimetres), registered by ICP to the depth or triangulated points and used as the surface")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
@@ -55,14 +63,25 @@ def run(args: argparse.Namespace) -> int:
     options = CalibrateOptions(args.capture_dir, args.out, init="given" if initial is not None else args.init,
                                initial_pose=initial, stage_a=args.stage_a, stages=args.stages,
                                projector_intrinsics=args.projector_intrinsics,
-                               depth_offset=args.depth_offset, with_blend=not args.no_blend_output, seed=args.seed,
+                               depth_offset=args.depth_offset, surface_from=args.surface_from,
+                               surface_mesh=args.surface_mesh, with_blend=not args.no_blend_output, seed=args.seed,
                                force=args.force)
     cal = run_step("calibrate", calibrate, options)
     r = cal.report
     print(f"calibration: {args.out}")
     sr = r["surface_report"]
-    print(f"  surface: {sr['vertices']} vertices, {sr['faces']} faces, depth offset {100 * sr['depth_offset']:+.2f} cm "
-          f"({sr['depth_offset_source']})")
+    source = sr.get("source", "depth")
+    print(f"  surface: {sr['vertices']} vertices, {sr['faces']} faces, from {source}, depth offset "
+          f"{100 * sr.get('depth_offset', 0.0):+.2f} cm ({sr.get('depth_offset_source', 'none')})")
+    if "triangulation" in sr:
+        t = sr["triangulation"]
+        print(f"  triangulated Gray code: {t['points']} points ({t['rejected']} rejected), reprojection "
+              f"{t['reprojection_rms_px']:.2f} px rms, {t['triangulation_angle_deg']:.1f}° between the rays")
+    if "registration" in sr:
+        g = sr["registration"]
+        print(f"  mesh {sr['mesh_file']} registered to the {sr['measured']} points: residual {g['rms_mm']:.2f} mm "
+              f"rms, {g['median_mm']:.2f} mm median, overlap {g['overlap']:.0%}, {g['iterations']} iterations "
+              f"(start: {g['start']})")
     p = cal.rig.projector
     if "init" in r:
         print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "

@@ -12,20 +12,21 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..errors import CalibrationError, ProCamError, SurfaceError
+from ..errors import CalibrationError
 from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
-from ..surface.reconstruct import reconstruct_surface, wall_depth_offset
 from .intrinsics import estimate_projector_intrinsics
 from .pose import estimate_pose, surface_view, target_mask
+from .surface import surface_from_captures
 from .warp import Warp, estimate_warp, grid_image
 
 #: The calibration stages, in order; each needs the ones before it.
@@ -99,32 +100,6 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
     return np.clip(np.where(lit[..., None], albedo, fill), 0.0, 1.0).astype(np.float32)
 
 
-def scene_depth(captures: CaptureSet, depth_offset: float | None = None) -> tuple[np.ndarray, float, str]:
-    """The depth image of the scene, the sensor bias to subtract from it, and where that bias comes from.
-
-    The scene's depth is the one ``depth`` entry without ``wall_distance_m``;
-    entries with it are the sensor's images of a flat wall at that distance,
-    each giving the bias (:func:`wall_depth_offset`, their median when
-    several). A given ``depth_offset`` wins; with neither the bias is 0 and
-    the surface keeps whatever the sensor's bias is (module doc of
-    :mod:`procam.addon.surface.reconstruct`: no image can reveal it).
-    """
-    depth = captures.depth()
-    if depth_offset is not None:
-        return depth, float(depth_offset), "given"
-    walls = captures.depth_walls()
-    if not walls:
-        return depth, 0.0, "none (no wall depth image in the capture set)"
-    offsets = []
-    for e, distance in walls:
-        try:
-            offsets.append(wall_depth_offset(captures.depth(name=e.name), distance))
-        except SurfaceError as exc:
-            raise CalibrationError(f"depth wall image {e.file}: {exc}") from None
-    return depth, float(np.median(offsets)), f"wall depth image{'s' if len(walls) > 1 else ''} " + \
-        ", ".join(f"{e.file} at {distance} m" for e, distance in walls)
-
-
 def stage_plan(stages: str | tuple[str, ...] | list[str] | None) -> tuple[str, ...]:
     """The stages to run, in pipeline order: a contiguous run of :data:`STAGES` (``None``/``'all'``: every one).
 
@@ -158,7 +133,8 @@ class CalibrationRun:
 def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, previous: Calibration | None = None,
                        previous_images: dict[str, np.ndarray] | None = None, init: str = "graycode",
                        initial_pose: np.ndarray | None = None, seed: int = 0, depth_offset: float | None = None,
-                       stage_a: str = "ours", projector_intrinsics: str = "spec", progress: Progress | None = None,
+                       stage_a: str = "ours", projector_intrinsics: str = "spec", surface_from: str = "auto",
+                       surface_mesh: SurfaceMesh | str | Path | None = None, progress: Progress | None = None,
                        cancel: Cancel | None = None) -> CalibrationRun:
     """Run the stages of ``plan`` (:func:`stage_plan`) on a capture set.
 
@@ -171,7 +147,9 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     the paper's pipeline and its ablations. ``projector_intrinsics='fit'``
     fits the projector's focal length and principal point to the Gray code
     before stage A (:mod:`.intrinsics`) and uses them from there on; ``'spec'``
-    keeps the capture set's.
+    keeps the capture set's. ``surface_from`` picks the surface's source
+    (:data:`.surface.SURFACE_SOURCES`, :func:`.surface.surface_from_captures`); ``surface_mesh``
+    is the user's mesh (a file or a mesh in its own frame) for ``'mesh'``.
     """
     if projector_intrinsics not in PROJECTOR_INTRINSICS:
         raise CalibrationError(f"unknown projector intrinsics {projector_intrinsics!r}; choose one of "
@@ -203,15 +181,13 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
 
     if "surface" in plan:
         t0 = time.perf_counter()
-        say("surface: reconstructing from depth", 0.0)
-        try:
-            depth, offset, offset_source = scene_depth(captures, depth_offset)
-        except ProCamError as exc:
-            raise CalibrationError(f"surface: {exc}") from None
-        mesh, surface_report = reconstruct_surface(depth, captures.camera.intrinsics, captures.image("surface"),
-                                                   depth_offset=offset)
+        mesh, report["surface_report"], surface_warnings = surface_from_captures(
+            captures, surface_from, surface_mesh=surface_mesh, depth_offset=depth_offset,
+            pose=initial_pose if init == "given" else None, progress=say)
+        for w in surface_warnings:
+            report.setdefault("warnings", []).append(w)
+            say(f"warning: {w}", 0.0)
         seconds["surface"] = time.perf_counter() - t0
-        report["surface_report"] = {**surface_report.to_dict(), "depth_offset_source": offset_source}
     else:
         mesh = prev.surface
 

@@ -59,6 +59,10 @@ class CalibrateOptions:
     stages: str = "all"
     #: the depth sensor's bias in metres; None: read from the capture set's wall depth image
     depth_offset: float | None = None
+    #: the surface's source: auto (depth if present, else Gray code with a known rig), depth, graycode, mesh
+    surface_from: str = "auto"
+    #: the object's mesh (OBJ/PLY file in its own frame, or a mesh), registered to the measured surface
+    surface_mesh: Path | SurfaceMesh | None = None
     with_blend: bool = True
     seed: int = 0
     force: bool = False
@@ -80,6 +84,7 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
                                     init=options.init, initial_pose=options.initial_pose, seed=options.seed,
                                     depth_offset=options.depth_offset, stage_a=options.stage_a,
                                     projector_intrinsics=options.projector_intrinsics,
+                                    surface_from=options.surface_from, surface_mesh=options.surface_mesh,
                                     progress=part(say, 0.0, 0.95), cancel=cancel)
         say("writing the calibration folder", 0.95)
         write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
