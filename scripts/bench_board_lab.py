@@ -1,7 +1,7 @@
 """procam calibrate-rig against the lab's truth: board sessions rendered with Cycles, calibrated, compared.
 
     .venv/bin/python scripts/bench_board_lab.py [--poses 6] [--scale 1] [--effects distortion=0.5,noise=0.3]
-        [--samples 4] [--square 0.06] [--window 19]
+        [--samples 4] [--square 0.06] [--window 19] [--camera-distortion k1k2p1p2] [--projector-distortion k1k2]
 
 Renders ``--poses`` sessions of a 9×7 chessboard (squares of ``--square`` m) through the demo rig (camera
 640×480 and projector 800×600 at ``--scale`` 1) with the lab's effects, runs the calibrate-rig step on them and
@@ -33,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--samples", type=int, default=4)
     ap.add_argument("--square", type=float, default=0.06)
     ap.add_argument("--window", type=int, default=19)
+    ap.add_argument("--camera-distortion", default="k1k2p1p2")
+    ap.add_argument("--projector-distortion", default="k1k2")
     args = ap.parse_args(argv)
     rig = scaled_rig(demo_rig(), args.scale)
     with tempfile.TemporaryDirectory() as tmp:
@@ -43,10 +45,13 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         sessions = tuple(sorted((Path(tmp) / "sessions").glob("pose_*")))
         cal = rig_step.run(rig_step.RigOptions(sessions, Path(tmp) / "rig.json", (9, 7), rig.projector.intrinsics.size,
-                                               square=args.square, window=args.window))
+                                               square=args.square, window=args.window,
+                                               camera_model=args.camera_distortion,
+                                               projector_model=args.projector_distortion))
         t_cal = time.perf_counter() - t0
     print(f"{args.poses} board poses, camera {rig.camera.intrinsics.size}, projector {rig.projector.intrinsics.size}, "
-          f"effects {args.effects or 'none'}, {args.samples} spp; render {t_render:.0f} s, calibrate-rig {t_cal:.1f} s")
+          f"effects {args.effects or 'none'}, {args.samples} spp; distortion models camera {args.camera_distortion}, "
+          f"projector {args.projector_distortion}; render {t_render:.0f} s, calibrate-rig {t_cal:.1f} s")
     print("| device | fx error | fy error | cx error | cy error | RMS |")
     print("|---|---|---|---|---|---|")
     for name, km, true, rms in (("camera", cal.camera_matrix, truth.rig.camera.intrinsics, cal.camera_rms),

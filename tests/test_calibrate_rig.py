@@ -235,3 +235,29 @@ def test_synthetic_rig_recovers_known_intrinsics():
     assert np.allclose(cal.rotation, R_CP, atol=2e-3)
     assert np.allclose(cal.translation, T_CP, atol=0.1)
     assert cal.stereo_rms < 0.2
+
+
+@pytest.mark.blender
+def test_lab_board_sessions_calibrate_back_to_the_lab_rig(tmp_path, capsys):
+    """procam lab-board renders board sessions of a known rig with Cycles; calibrate-rig finds that rig again.
+    Four poses at half resolution: the bounds are what so few small views allow (the full-resolution figures are
+    scripts/bench_board_lab.py's)."""
+    from procam.addon.lab.board import BoardTruth
+
+    out, rig_file = tmp_path / "board", tmp_path / "rig.json"
+    assert main(["lab-board", "--out", str(out), "--poses", "4", "--scale", "0.5", "--samples", "2"]) == 0
+    assert "procam calibrate-rig" in capsys.readouterr().out
+    sessions = sorted(str(p) for p in out.glob("pose_*"))
+    assert len(sessions) == 4
+    assert len(list(Path(sessions[0]).glob("graycode_*.png"))) == rig_step.expected_count((400, 300))
+    assert main(["calibrate-rig", *sessions, "--board", "9x7", "--square", "0.06", "--projector", "400x300",
+                 "--window", "11", "--out", str(rig_file)]) == 0
+    truth = BoardTruth.load(tmp_path / "board.truth.json")
+    cal = rig_step.read(rig_file)
+    assert cal.metric and cal.stereo_rms < 1.0
+    for km, true in ((cal.camera_matrix, truth.rig.camera.intrinsics),
+                     (cal.projector_matrix, truth.rig.projector.intrinsics)):
+        assert km[0, 0] == pytest.approx(true.fx, rel=0.03)
+        assert abs(km[0, 2] + 0.5 - true.cx) < 8 and abs(km[1, 2] + 0.5 - true.cy) < 8
+    true_pose = truth.rig.projector.camera_from_projector
+    assert np.linalg.norm(cal.camera_from_projector[:3, 3] - true_pose[:3, 3]) < 0.01
