@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import bpy
 
-from .operators.calibrate import PROCAM_OT_calibrate, PROCAM_OT_load_calibration
+from .operators.calibrate import PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_use_selected_surface_mesh
 from .operators.cancel_job import PROCAM_OT_cancel_job
 from .operators.capture_io import PROCAM_OT_export_patterns, PROCAM_OT_import_captures
 from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, PROCAM_OT_evaluate,
@@ -32,7 +32,8 @@ from .panels.rig import PROCAM_PT_rig
 
 OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
              PROCAM_OT_export_patterns, PROCAM_OT_import_captures,
-             PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_add_targets, PROCAM_OT_remove_target,
+             PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_use_selected_surface_mesh,
+             PROCAM_OT_add_targets, PROCAM_OT_remove_target,
              PROCAM_OT_compensate, PROCAM_OT_evaluate, PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
              PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job)
 #: Sidebar panels in workflow order.

@@ -87,14 +87,38 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
             raise CalibrationError(f"the {stages} stage reuses the calibration folder's earlier stages, but it "
                                    "holds no calibration yet; run Surface (or All) first")
         offset = float(scene.procam_depth_offset) if scene.procam_depth_offset_given else None
+        # Read in the main thread: bpy must not run in the worker.
+        mesh = blender_rig.read_mesh_object(scene, scene.procam_surface_mesh) if scene.procam_surface_mesh else None
         # No scene.blend: the open scene is the .blend here, and bpy must not run in the worker (Export saves one).
         options = CalibrateOptions(captures, out, init=init, initial_pose=initial, stages=stages or "all",
                                    depth_offset=offset, projector_intrinsics=scene.procam_projector_intrinsics,
-                                   with_blend=False, force=scene.procam_replace_outputs)
+                                   surface_mesh=mesh, with_blend=False, force=scene.procam_replace_outputs)
         return jobs.Job("calibration", calibrate_step.run_view, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         return apply_view(context, result)
+
+
+class PROCAM_OT_use_selected_surface_mesh(bpy.types.Operator):
+    """Use the selected mesh (a scan or CAD model of the object) as the surface: Calibrate registers it to the
+    measured points"""
+
+    bl_idname = "procam.use_selected_surface_mesh"
+    bl_label = "Use Selected Mesh as Surface"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        obj = context.active_object
+        if obj is None or obj.type != "MESH" or blender_rig.role(obj) is not None:
+            cls.poll_message_set("select a mesh of the object (not a ProCam rig object)")
+            return False
+        return True
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        context.scene.procam_surface_mesh = context.active_object
+        self.report({"INFO"}, f"Calibrate will register {context.active_object.name!r} as the surface")
+        return {"FINISHED"}
 
 
 class PROCAM_OT_load_calibration(bpy.types.Operator):

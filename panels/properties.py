@@ -1,7 +1,8 @@
 """Scene properties of the Calibrate, Compensate, Diagnose and Export steps (registered by ``blender_registration``)."""
 
 import bpy
-from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
 
 
 class PROCAM_PG_target(bpy.types.PropertyGroup):
@@ -33,6 +34,11 @@ def scene_properties() -> dict[str, object]:
             description="Calibration folder: Calibrate writes it, Compensate and Diagnose read it"),
         "procam_calibration_init": EnumProperty(name="Start Pose", items=INIT_ITEMS, default="graycode"),
         "procam_projector_intrinsics": EnumProperty(name="Projector Lens", items=INTRINSICS_ITEMS, default="spec"),
+        "procam_surface_mesh": PointerProperty(
+            name="Surface Mesh", type=bpy.types.Object, poll=lambda _, obj: obj.type == "MESH",
+            description="A mesh of the object (scan or CAD, anywhere in the scene) to register to the measured "
+                        "points and use as the surface; empty: the surface is made from the depth image or the "
+                        "triangulated Gray code"),
         "procam_depth_offset_given": BoolProperty(
             name="Set Depth Offset",
             description="Give the depth sensor's bias by hand instead of reading it from the capture set's wall "

@@ -313,3 +313,32 @@ def test_export_patterns_then_import_captures(registered, tmp_path):
     rigged = CaptureSet.load(tmp_path / "rigged")
     assert rigged.camera_status == "calibrated" and rigged.projector_pose_known
     assert rigged.camera.intrinsics.fx == 70.0
+
+
+def test_calibrate_registers_the_selected_mesh_as_the_surface(registered, tiny, tmp_path):
+    """An artist's model of the object, placed by eye (5 cm and 3° off): Use Selected Mesh, then Calibrate
+    registers it to the measured points and uses it as the surface."""
+    from procam.addon.lab.lab import LabTruth
+    from procam.addon.rig import frames
+
+    scene = bpy.context.scene
+    bpy.ops.procam.create_rig(camera_width=96, camera_height=72, projector_width=120, projector_height=90,
+                              surface="vedge")
+    true = LabTruth.load(tiny[1]).surface
+    a = np.radians(3.0)
+    turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    centre = true.vertices.mean(axis=0)
+    placed = (true.vertices - centre) @ turn.T + centre + (0.05, 0.0, 0.0)
+    mesh = bpy.data.meshes.new("scan")
+    mesh.from_pydata(frames.blender_points(placed).tolist(), [], true.faces.tolist())
+    obj = bpy.data.objects.new("scan", mesh)
+    scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.procam.use_selected_surface_mesh() == {"FINISHED"} and scene.procam_surface_mesh == obj
+    scene.procam_capture_dir = str(tiny[0])
+    scene.procam_calibration_dir = str(tmp_path / "cal")
+    assert bpy.ops.procam.calibrate(stage="SURFACE") == {"FINISHED"}
+    report = read_calibration(tmp_path / "cal", complete=False).report["surface_report"]
+    assert report["source"] == "mesh" and report["measured"] == "depth"
+    assert report["registration"]["rms_mm"] < 5.0
+    scene.procam_surface_mesh = None

@@ -533,10 +533,17 @@ def read_rig(scene: bpy.types.Scene) -> Rig:
 
 def read_surface(scene: bpy.types.Scene) -> SurfaceMesh:
     """The ProCam Surface as a triangulated mesh in the rig frame (modifiers applied), with its albedo."""
-    objs = find_rig_objects(scene)
-    obj = objs.surface
+    obj = find_rig_objects(scene).surface
     if obj is None:
         raise SurfaceError("the scene has no ProCam Surface: select a mesh and use ProCam ▸ Set Surface")
+    return read_mesh_object(scene, obj)
+
+
+def read_mesh_object(scene: bpy.types.Scene, obj: bpy.types.Object) -> SurfaceMesh:
+    """Any mesh object as a triangulated mesh in the rig frame (modifiers applied), with its albedo."""
+    if obj.type != "MESH":
+        raise SurfaceError(f"{obj.name!r} is a {obj.type.lower()}, not a mesh: choose a mesh object")
+    objs = find_rig_objects(scene)
     if bpy.context.scene == scene:
         depsgraph = bpy.context.evaluated_depsgraph_get()
     else:
