@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     from procam.addon.capture.format import CaptureSet
     from procam.addon.lab.lab import LabTruth, make_truth, run_lab
     from procam.addon.rig.model import Rig
-    from procam.addon.stages.calibrate import scene_depth
+    from procam.addon.stages.surface import scene_depth
     from procam.addon.stages.warp import estimate_warp
     from procam.addon.surface.reconstruct import reconstruct_surface
 

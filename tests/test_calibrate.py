@@ -98,7 +98,7 @@ def test_depth_bias_read_from_the_wall_image(calibrated):
     assert bias > 0 and sr["depth_offset"] == pytest.approx(bias, abs=0.002)
     assert sr["depth_offset_source"].startswith("wall depth image depth/wall.npy")
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.stages.calibrate import scene_depth
+    from procam.addon.stages.surface import scene_depth
     cs = CaptureSet.load(captures)
     depth, offset, source = scene_depth(cs, 0.004)
     assert offset == 0.004 and source == "given" and depth.shape == cs.depth_info.intrinsics.size[::-1]
