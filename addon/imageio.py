@@ -158,6 +158,16 @@ def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def unit_float(pixels: np.ndarray) -> np.ndarray:
+    """float32 in [0, 1] from 8- or 16-bit integer pixels (their full range); float pixels as they are."""
+    a = np.asarray(pixels)
+    if a.dtype == np.uint8:
+        return a.astype(np.float32) / 255.0
+    if a.dtype == np.uint16:
+        return a.astype(np.float32) / 65535.0
+    return a.astype(np.float32)
+
+
 def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
     """Read an image as float32 linear values; 8/16-bit files are scaled to [0, 1].
 
@@ -180,13 +190,7 @@ def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
         # IMREAD_UNCHANGED ignores a JPEG's EXIF orientation (IMREAD_COLOR applies it): apply it here, so that a
         # photograph reads as every viewer shows it, whichever flags read it.
         raw = apply_orientation(raw, exif_orientation(path))
-        if raw.dtype == np.uint8:
-            img = raw.astype(np.float32) / 255.0
-        elif raw.dtype == np.uint16:
-            img = raw.astype(np.float32) / 65535.0
-        else:
-            img = raw.astype(np.float32)
-        img = _to_bgr(img)
+        img = _to_bgr(unit_float(raw))
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if channels == 3:

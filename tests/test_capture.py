@@ -21,7 +21,8 @@ from procam.addon.capture.patterns import (calibration_sequence, checkerboard, d
 from procam.addon.cli.app import main
 from procam.addon.errors import CaptureError
 from procam.addon.imageio import read_image, write_image
-from procam.addon.rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw, look_at_pose
+from procam.addon.rig.model import (Camera, Intrinsics, Projector, intrinsics_from_fov, look_at_pose,
+                                    projector_intrinsics_from_throw)
 
 CAM = (64, 48)
 FRAME = (80, 60)
@@ -623,10 +624,10 @@ def test_rig_lens_puts_a_point_where_a_pinhole_would(tmp_path):
     assert np.linalg.norm(seen - pinhole) > 10  # the lens really moves it
     ys, xs = np.mgrid[0:480, 0:640]
     blob = np.exp(-((xs - seen[0]) ** 2 + (ys - seen[1]) ** 2) / (2 * 2.0 ** 2)).astype(np.float32)
-    out = RigLens((640, 480), k, dist, "test").image(np.repeat(blob[..., None], 3, 2))[..., 0]
+    out = RigLens(Intrinsics.from_opencv_matrix(640, 480, k), dist, "test").image(np.repeat(blob[..., None], 3, 2))[..., 0]
     centre = np.array([(out * xs).sum(), (out * ys).sum()]) / out.sum()
     assert np.linalg.norm(centre - pinhole) < 0.1
-    half = RigLens((640, 480), k, dist, "test").image(blob[::2, ::2].copy(), nearest=True)  # a half-size depth map
+    half = RigLens(Intrinsics.from_opencv_matrix(640, 480, k), dist, "test").image(blob[::2, ::2].copy(), nearest=True)  # a half-size depth map
     assert np.unravel_index(np.argmax(half), half.shape) == pytest.approx(
         (round((pinhole[1] + 0.5) / 2 - 0.5), round((pinhole[0] + 0.5) / 2 - 0.5)), abs=1)
 

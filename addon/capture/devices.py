@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import ORIENTATIONS, exif_orientation, read_image, write_atomic_bytes, write_image
 from ..progress import Progress, quiet
-from ..rig.model import Camera, Projector, intrinsics_from_fov
+from ..rig.model import Camera, Intrinsics, Projector, intrinsics_from_fov
 from ..outputs import AtomicFolder
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
@@ -637,10 +637,9 @@ __all__ = ["Device", "FolderDevice", "LiveDevice", "SequenceInfo", "capture_sequ
 
 @dataclass(frozen=True)
 class RigLens:
-    """A calibrated camera lens to take out of photographs: OpenCV's K (pixel centres) and k1 k2 p1 p2 k3."""
+    """A calibrated camera lens to take out of photographs: its pinhole intrinsics and OpenCV's k1 k2 p1 p2 k3."""
 
-    size: tuple[int, int]  # the camera resolution K belongs to
-    matrix: np.ndarray
+    camera: Intrinsics
     distortion: np.ndarray
     source: str  # where it comes from, for the capture set's notes
     pose_known: bool = False  # the rig file also gives the projector's metric pose
@@ -651,10 +650,7 @@ class RigLens:
         A depth map smaller than the photographs (same lens, aligned) gets K scaled to its size."""
         a = np.asarray(img, dtype=np.float32)
         h, w = a.shape[:2]
-        sx, sy = w / self.size[0], h / self.size[1]
-        k = self.matrix.astype(np.float64).copy()
-        k[0, 0], k[1, 1] = k[0, 0] * sx, k[1, 1] * sy
-        k[0, 2], k[1, 2] = (k[0, 2] + 0.5) * sx - 0.5, (k[1, 2] + 0.5) * sy - 0.5  # scale about pixel corners
+        k = self.camera.scaled(w, h).opencv_matrix()
         mx, my = cv2.initUndistortRectifyMap(k, self.distortion, None, k, (w, h), cv2.CV_32FC1)
         out = cv2.remap(a, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -83,6 +83,13 @@ class Intrinsics:
         k[1, 2] -= 0.5
         return k
 
+    @staticmethod
+    def from_opencv_matrix(width: int, height: int, matrix: np.ndarray) -> "Intrinsics":
+        """The inverse of :meth:`opencv_matrix`: a 3×3 K with pixel centres at integers, for this resolution."""
+        m = np.asarray(matrix, dtype=np.float64)
+        return Intrinsics(int(width), int(height), float(m[0, 0]), float(m[1, 1]), float(m[0, 2]) + 0.5,
+                          float(m[1, 2]) + 0.5)
+
     @property
     def square_pixels(self) -> bool:
         return abs(self.fx - self.fy) <= 1e-6 * self.fx

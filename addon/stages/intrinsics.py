@@ -97,6 +97,12 @@ class IntrinsicsFit:
                 else np.asarray(self.camera_from_projector).tolist(), "summary": self.summary()}
 
 
+def _projector_matrix(x: np.ndarray, aspect: float) -> np.ndarray:
+    """The projector's OpenCV K from the fit's parameters (f, cx, cy first; fy = f · aspect)."""
+    f, cx, cy = x[:3]
+    return np.array([[f, 0.0, cx], [0.0, f * aspect, cy], [0.0, 0.0, 1.0]])
+
+
 class _GrayCodeView:
     """Decoded Gray code with the camera's radial lens distortion in the loop.
 
@@ -126,8 +132,7 @@ class _GrayCodeView:
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Projector-pixel residuals (2N) for x = f, cx, cy (OpenCV), rvec, tvec, camera k1, k2."""
-        f, cx, cy = x[:3]
-        km = np.array([[f, 0.0, cx], [0.0, f * self.aspect, cy], [0.0, 0.0, 1.0]])
+        km = _projector_matrix(x, self.aspect)
         pts = self.points(x[9], x[10])
         ok = np.isfinite(pts[:, 2])
         proj, _ = cv2.projectPoints(np.where(ok[:, None], pts, 1.0), x[3:6], x[6:9], km, None)
@@ -203,11 +208,6 @@ def _camera_from_projector(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _intrinsics(x: np.ndarray, like: Intrinsics, aspect: float) -> Intrinsics:
-    return Intrinsics(like.width, like.height, float(x[0]), float(x[0] * aspect), float(x[1]) + 0.5,
-                      float(x[2]) + 0.5)
-
-
 def _point_rms(r: np.ndarray) -> float:
     return float(np.sqrt(2.0 * np.mean(r ** 2)))
 
@@ -260,7 +260,7 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
         lens.update(k1=float(x[9]), k2=float(x[10]), determined=True, edge_radius_px=r_max * camera.fx,
                     edge_displacement_px=float(shift))
     std_d = {"fx": float(sd[0]), "cx": float(sd[1]), "cy": float(sd[2])}
-    k = _intrinsics(x, nominal, aspect)
+    k = Intrinsics.from_opencv_matrix(nominal.width, nominal.height, _projector_matrix(x, aspect))
     determined = {"focal": std_d["fx"] < FOCAL_STD_MAX * k.fx,
                   "principal_point": max(std_d["cx"], std_d["cy"]) < CENTRE_STD_MAX_PX}
     pose: np.ndarray | None = _camera_from_projector(x[3:6], x[6:9])

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..capture.patterns import decode_gray_code, gray_code_bits
 from ..errors import CalibrationError, CaptureError
+from ..imageio import unit_float
 from ..progress import Cancel, Progress, check, quiet
 
 Size = tuple[int, int]
@@ -102,13 +103,7 @@ class PoseSource:
 
 def as_grey(image: np.ndarray) -> np.ndarray:
     """A float32 H×W image in [0, 1] from grey or colour, 8-bit, 16-bit or float input."""
-    a = np.asarray(image)
-    if a.dtype == np.uint8:
-        a = a.astype(np.float32) / 255.0
-    elif a.dtype == np.uint16:
-        a = a.astype(np.float32) / 65535.0
-    else:
-        a = a.astype(np.float32)
+    a = unit_float(image)
     if a.ndim == 3:
         a = a[..., :3].mean(axis=2) if a.shape[2] >= 3 else a[..., 0]
     if a.ndim != 2:

@@ -181,19 +181,14 @@ def rig_models(rig_path: Path, projector: Projector, camera: Camera | None = Non
     if camera is not None and camera.intrinsics.size != cal.camera_size:
         raise CaptureError(f"{rig_path} calibrates a {cal.camera_size[0]}×{cal.camera_size[1]} camera, but the "
                            f"camera given is {camera.intrinsics.size[0]}×{camera.intrinsics.size[1]}")
-
-    def k(size: tuple[int, int], m: np.ndarray) -> Intrinsics:
-        return Intrinsics(int(size[0]), int(size[1]), float(m[0, 0]), float(m[1, 1]), float(m[0, 2]) + 0.5,
-                          float(m[1, 2]) + 0.5)
-
     try:
-        proj = replace(projector, intrinsics=k(cal.projector_size, cal.projector_matrix))
+        proj = replace(projector, intrinsics=Intrinsics.from_opencv_matrix(*cal.projector_size, cal.projector_matrix))
         if cal.metric:
             proj = proj.with_pose(cal.camera_from_projector)
-        cam = Camera(k(cal.camera_size, cal.camera_matrix))
+        cam = Camera(Intrinsics.from_opencv_matrix(*cal.camera_size, cal.camera_matrix))
     except RigError as exc:
         raise CaptureError(f"{rig_path} does not describe a usable rig: {exc}") from None
-    return cam, proj, RigLens(cal.camera_size, cal.camera_matrix, cal.camera_distortion,
+    return cam, proj, RigLens(cam.intrinsics, cal.camera_distortion,
                               f"{Path(rig_path).resolve()} (sha256 {file_sha256(Path(rig_path))[:12]})", cal.metric)
 
 
