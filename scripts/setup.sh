@@ -29,6 +29,13 @@ if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && ! have_llvm; then
   fi
 fi
 
+# The live-loop tests show a real projector window on a virtual X server (Debian's Xvfb).
+if ! command -v Xvfb >/dev/null && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  echo "setup: installing Debian's xvfb for the live-loop tests" >&2
+  apt-get install -y -q xvfb >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q xvfb >/dev/null; } \
+    || echo "setup: could not install xvfb; the live-loop tests will be skipped" >&2
+fi
+
 [ -x .venv/bin/python ] || "$py" -m venv .venv
 stamp=.venv/.procam-setup
 want="$(cat requirements.txt requirements-dev.txt pyproject.toml | sha256sum) $need_karellen"
