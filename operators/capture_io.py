@@ -8,12 +8,20 @@ its capture-set path.
 
 # No `from __future__ import annotations`: Blender reads the property annotations as objects at registration.
 import bpy
-from bpy.props import BoolProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from ..addon.blender import rig as blender_rig
-from ..addon.errors import ProCamError
+from ..addon.errors import CaptureError, ProCamError
 from ..addon.steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
 from . import paths
+
+ENCODING_ITEMS = [("auto", "Auto", "8-bit files are sRGB, 16-bit and float files are linear"),
+                  ("srgb", "sRGB", "The photographs are sRGB-encoded (most cameras' JPEG and 8-bit PNG)"),
+                  ("linear", "Linear", "The photographs hold linear light (RAW developed linear, EXR)")]
+DEPTH_UNITS_ITEMS = [("auto", "Auto", "Detect millimetres given as metres from the values (with a warning when "
+                                      "it converts)"),
+                     ("m", "Metres", "The depth values are metres"),
+                     ("mm", "Millimetres", "The depth values are millimetres")]
 
 
 def _rig_missing(context: bpy.types.Context) -> str:
@@ -78,6 +86,26 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
                              description="Optional rig.json from procam calibrate-rig: calibrated camera and projector "
                                          "lenses (the camera's distortion is removed from the photographs) and, "
                                          "when calibrated in metres, the projector's pose")
+    depth_file: StringProperty(name="Depth", subtype="FILE_PATH",
+                               description="Optional depth of the scene seen from the camera: .npy/.exr in metres, "
+                                           "16-bit .png/.tif in millimetres (0 = no depth), or a .ply point cloud "
+                                           "in the camera's OpenCV frame; a shift of a few pixels against the "
+                                           "photographs is found and corrected (with a warning)")
+    depth_units: EnumProperty(name="Depth Units", items=DEPTH_UNITS_ITEMS, default="auto")
+    depth_native_width: IntProperty(name="Depth Sensor Width", default=0, min=0, subtype="PIXEL",
+                                    description="Native depth-sensor width (e.g. 256): a .ply point cloud is "
+                                                "projected at this size; 0: the camera's")
+    depth_native_height: IntProperty(name="Depth Sensor Height", default=0, min=0, subtype="PIXEL",
+                                     description="Native depth-sensor height (e.g. 192); 0: the camera's")
+    encoding: EnumProperty(name="Encoding", items=ENCODING_ITEMS, default="auto",
+                           description="How the photographs are encoded")
+    camera_fov: FloatProperty(name="Camera Field of View", default=60.0, min=1.0, max=179.0,
+                              description="Nominal horizontal field of view in degrees, used only without a rig "
+                                          "calibration and without a ProCam Camera in the scene")
+    check_exposure: BoolProperty(name="Check Exposure", default=True,
+                                 description="Refuse a session whose exposure or white balance changed between "
+                                             "photographs (complementary patterns that do not add up to white + "
+                                             "black); off: import anyway")
     force: BoolProperty(name="Replace", default=False, description="Replace an existing capture set there")
 
     @classmethod
@@ -87,6 +115,26 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         return context.window_manager.invoke_props_dialog(self, width=420)
 
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        layout.use_property_split = True
+        for name in ("sequence_dir", "photos_dir", "out_dir", "rig_file"):
+            layout.prop(self, name)
+        col = layout.column(align=True)
+        col.prop(self, "depth_file")
+        sub = col.column(align=True)
+        sub.enabled = bool(self.depth_file)
+        sub.prop(self, "depth_units")
+        sub.prop(self, "depth_native_width")
+        sub.prop(self, "depth_native_height")
+        col = layout.column()
+        col.prop(self, "encoding")
+        sub = col.column()
+        sub.enabled = not self.rig_file  # a rig calibration brings its own camera lens
+        sub.prop(self, "camera_fov")
+        col.prop(self, "check_exposure")
+        col.prop(self, "force")
+
     def execute(self, context: bpy.types.Context) -> set[str]:
         missing = [n for n, v in (("pattern sequence", self.sequence_dir), ("photographs", self.photos_dir),
                                   ("new capture set", self.out_dir)) if not v]
@@ -94,18 +142,38 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
             self.report({"ERROR"}, "Choose the " + ", ".join(missing) + " folder(s)")
             return {"CANCELLED"}
         objs = blender_rig.find_rig_objects(context.scene)
+        warnings: list[str] = []
+
+        def progress(message: str, fraction: float) -> None:
+            # The step says what it corrected or converted (depth units, a shifted depth map) as warnings.
+            if message.startswith("warning:"):
+                warnings.append(message.removeprefix("warning:").strip())
+
         try:
             rig = paths.resolve(self.rig_file, "rig calibration") if self.rig_file else None
             # A rig calibration brings its own camera; the scene's (nominal) one is only used without it.
             camera = blender_rig.read_camera(context.scene) if objs.camera is not None and rig is None else None
             out = paths.resolve(self.out_dir, "new capture set")
+            depth = paths.resolve(self.depth_file, "depth file") if self.depth_file else None
+            if bool(self.depth_native_width) != bool(self.depth_native_height):
+                raise CaptureError("give both the depth sensor's width and height, or neither")
+            native = (self.depth_native_width, self.depth_native_height) if self.depth_native_width else None
             captures = run_import(ImportOptions(paths.resolve(self.sequence_dir, "pattern sequence"),
                                                 paths.resolve(self.photos_dir, "photographs"), out, camera=camera,
-                                                rig=rig, force=self.force))
+                                                camera_fov=self.camera_fov, encoding=self.encoding,
+                                                depth_path=depth, depth_units=self.depth_units,
+                                                depth_native_size=native, rig=rig,
+                                                check_exposure=self.check_exposure, force=self.force),
+                                  progress)
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         context.scene.procam_capture_dir = str(out)
         lens = f", calibrated camera and projector from {rig.name}" if rig is not None else ""
-        self.report({"INFO"}, f"capture set {out}: {len(captures)} images{lens}")
+        extra = f", depth from {depth.name} ({self.depth_units})" if depth is not None else ""
+        if not self.check_exposure:
+            extra += ", exposure not checked"
+        for warning in warnings:
+            self.report({"WARNING"}, warning)
+        self.report({"INFO"}, f"capture set {out}: {len(captures)} images{lens}{extra}")
         return {"FINISHED"}

@@ -1,10 +1,13 @@
 """Paths typed into ProCam's folder and file properties, resolved the way Blender does (``//`` = beside the .blend)."""
 
+import fnmatch
+import re
 from pathlib import Path
 
 import bpy
 
 from ..addon.errors import ProCamError
+from ..addon.steps.rig import IMAGE_SUFFIXES
 
 
 def resolve(value: str, what: str) -> Path:
@@ -27,3 +30,30 @@ def existing(value: str, manifest: str) -> Path | None:
         return None
     root = Path(path)
     return root if (root / manifest).is_file() else None
+
+
+_NUMBERED_STEM = re.compile(r"\d+$")
+
+
+def _natural(path: Path) -> list[object]:
+    # pose_2 before pose_10, as a person numbers poses
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", path.name)]
+
+
+def holds_numbered_images(folder: Path) -> bool:
+    """Whether ``folder`` holds images named like a board session's (``graycode_00.png`` …)."""
+    try:
+        return any(p.suffix.lower() in IMAGE_SUFFIXES and _NUMBERED_STEM.search(p.stem) and p.is_file()
+                   for p in folder.iterdir())
+    except OSError:
+        return False
+
+
+def board_sessions(folder: Path, pattern: str = "*") -> list[Path]:
+    """The subfolders of ``folder`` whose names match ``pattern`` (``*``, ``capture_*`` …) and that hold numbered
+    images, in natural order: one board pose each."""
+    try:
+        subs = [p for p in folder.iterdir() if p.is_dir() and fnmatch.fnmatchcase(p.name, pattern or "*")]
+    except OSError:
+        return []
+    return sorted((p for p in subs if holds_numbered_images(p)), key=_natural)

@@ -220,3 +220,38 @@ def test_calibrate_panel_shows_key_figures_of_a_calibration_folder(registered, t
     text = texts(calls)
     assert "2.50 → 0.10 px" in text and "200 faces" in text and "(+0.200, -0.100, +0.050) m" in text
     assert any(c[0] == "operator" and c[1]["operator"] == "procam.show_image" for c in calls)
+
+
+def test_board_calibration_subpanel_draws_its_states(registered, tmp_path):
+    """The Captures panel's Board Calibration: not run (with what to choose), the poses it found, a running job
+    with Cancel."""
+    panel = bpy.types.PROCAM_PT_board
+    assert panel.bl_parent_id == "PROCAM_PT_captures" and panel.bl_category == "ProCam"
+
+    def draw():
+        calls = []
+        panel.draw(type("Drawn", (), {"layout": RecordingLayout(calls)})(), bpy.context)
+        return calls
+
+    calls = draw()
+    assert "Choose the folder of board sessions" in texts(calls) and "Not run" in texts(calls)
+    assert any(c[0] == "operator" and c[1]["operator"] == "procam.calibrate_rig" for c in calls)
+    for name in ("pose_1", "pose_2", "pose_10", "empty"):
+        (tmp_path / name).mkdir()
+        if name != "empty":
+            (tmp_path / name / "graycode_00.png").write_bytes(b"")
+    bpy.context.scene.procam_board_sessions_dir = str(tmp_path)
+    assert "3 board poses: pose_1, pose_2, pose_10" in texts(draw())  # natural order, folders without images left out
+    gate = threading.Event()
+    job = jobs.BOARD.add("calibrate_rig", jobs.Job("rig calibration", lambda *, progress, cancel: (
+        progress("pose_2: decoding the Gray code", 0.3), gate.wait(5)))).start()
+    try:
+        for _ in range(100):
+            if job.snapshot().fraction > 0:
+                break
+            threading.Event().wait(0.01)
+        text = texts(draw())
+        assert "pose_2: decoding the Gray code" in text and "Cancel" in text
+    finally:
+        gate.set()
+        job.wait(5)
