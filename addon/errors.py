@@ -35,6 +35,10 @@ class CalibrationError(ProCamError):
     """A calibration stage cannot proceed from the given captures."""
 
 
+class LiveError(CaptureError):
+    """The live projector window or camera cannot be opened, or behaves in a way captures cannot trust."""
+
+
 class LabError(ProCamError):
     """A bad virtual-lab request: unknown surface or effect, a value out of range."""
 

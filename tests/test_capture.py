@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from procam.addon.capture import devices, patterns
-from procam.addon.capture.devices import (Device, FolderDevice, LiveDevice, capture_sequence, check_display,
-                                          export_sequence, import_captures, load_sequence, open_camera)
+from procam.addon.capture import patterns
+from procam.addon.capture.devices import (Device, FolderDevice, capture_sequence, export_sequence, import_captures,
+                                          load_sequence)
 from procam.addon.capture.format import CaptureSet, DepthInfo, linear_to_srgb, srgb_to_linear
 from procam.addon.capture.patterns import (calibration_sequence, checkerboard, decode_gray_code,
                                            decode_gray_code_set, gray_code_bits, gray_code_layout,
@@ -527,31 +527,6 @@ def test_import_mismatches(tmp_path):
     with pytest.raises(CaptureError, match="sequence.json is missing"):
         import_captures(caps, caps2, None, None, tmp_path / "set")
     assert not (tmp_path / "set").exists()
-
-
-# -- live device ------------------------------------------------------------------------------------
-
-def test_live_device_without_display(monkeypatch):
-    if devices.highgui_available() and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        pytest.skip("this machine has a GUI OpenCV and a display")
-    with pytest.raises(CaptureError, match="no live projector output"):
-        LiveDevice(small_projector(), camera_index=0)
-    monkeypatch.setattr(devices, "highgui_available", lambda: True)
-    monkeypatch.delenv("DISPLAY", raising=False)
-    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    with pytest.raises(CaptureError, match=r"no graphical display \(\$DISPLAY"):
-        check_display()
-
-
-def test_headless_message_says_what_to_install(monkeypatch):
-    monkeypatch.setattr(devices, "highgui_available", lambda: False)
-    with pytest.raises(CaptureError, match="pip install opencv-contrib-python=="):
-        check_display()
-
-
-def test_camera_that_cannot_open():
-    with pytest.raises(CaptureError, match="cannot open camera 57 through OpenCV VideoCapture"):
-        open_camera(57)
 
 
 # -- CLI --------------------------------------------------------------------------------------------

@@ -3,8 +3,8 @@
 The pipeline talks to a :class:`Device` and never knows which one it has:
 
 * the virtual lab (``addon/lab/``) renders the frame with Cycles;
-* :class:`LiveDevice` shows the frame full-screen on the projector's display
-  (OpenCV highgui) and grabs a camera frame (OpenCV ``VideoCapture``);
+* the live device (``addon/live/``) shows the frame in a window on the
+  projector's display and captures it with a camera client;
 * the folder workflow, for users with their own projection/capture tools:
   :func:`export_sequence` writes the numbered pattern frames, the user shows
   and photographs them, :func:`import_captures` turns the photographs into a
@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
 import struct
-import sys
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -525,114 +523,8 @@ class FolderDevice(Device):
         return super().capture_off()
 
 
-# -- live hardware -------------------------------------------------------------------------------
-
-_HEADLESS_HELP = ("this OpenCV has no GUI support (the pip package opencv-contrib-python-headless has none), so it "
-                  "cannot open a full-screen projector window. Replace it in ProCam's Python with the GUI build "
-                  "of the same version: `pip uninstall opencv-contrib-python-headless` then "
-                  f"`pip install opencv-contrib-python=={cv2.__version__}` — or use the folder workflow "
-                  "(`procam patterns` / `procam import-captures`)")
-
-
-def highgui_available() -> bool:
-    """Whether this OpenCV build can open windows (its build information names a GUI backend)."""
-    m = re.search(r"^\s*GUI:\s*(\S+)", cv2.getBuildInformation(), re.MULTILINE)
-    return bool(m) and m.group(1).upper() != "NONE"
-
-
-def check_display() -> None:
-    """Raise a :class:`CaptureError` when no window can be shown on a projector."""
-    if not highgui_available():
-        raise CaptureError(f"no live projector output: {_HEADLESS_HELP}")
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise CaptureError("no live projector output: no graphical display ($DISPLAY and $WAYLAND_DISPLAY are "
-                           "unset; headless machine or SSH session?). Run on the machine the projector is "
-                           "plugged into, inside its desktop session, or use the folder workflow")
-
-
-def open_camera(index: int, size: tuple[int, int] | None = None) -> "cv2.VideoCapture":
-    """Open camera ``index`` with OpenCV, optionally asking for a resolution; a clear error when it fails."""
-    cap = cv2.VideoCapture(int(index))
-    if not cap.isOpened():
-        cap.release()
-        raise CaptureError(f"cannot open camera {index} through OpenCV VideoCapture: no such camera, it is in "
-                           "use by another program, or this user may not access it (on Linux: /dev/video*, "
-                           "group 'video'). Try another --camera index")
-    if size is not None:
-        cap.set(cv2.CAP_PROP_FRAME_WIDTH, int(size[0]))
-        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, int(size[1]))
-    return cap
-
-
-class LiveDevice(Device):
-    """A real projector (full-screen window on its display) and a real camera (OpenCV ``VideoCapture``).
-
-    ``display_origin`` is the top-left of the projector's screen in the
-    desktop's coordinates (e.g. ``(1920, 0)`` for a projector right of a
-    1920-wide monitor): OpenCV cannot pick a monitor, so the window is moved
-    there before it goes full-screen. Frame values go to the framebuffer as
-    8-bit levels without any transfer curve (the projector's own response is
-    what calibration measures); 8-bit camera frames are sRGB-encoded and are
-    linearised (``camera_encoding``).
-    """
-
-    def __init__(self, projector: Projector, camera_index: int = 0, display_origin: tuple[int, int] = (0, 0), *,
-                 camera_size: tuple[int, int] | None = None, settle_s: float = 0.3, average: int = 1,
-                 flush: int = 3, camera_encoding: str = "srgb", window: str = "ProCam projector") -> None:
-        if camera_encoding not in ("srgb", "linear"):
-            raise CaptureError(f"camera encoding must be 'srgb' or 'linear', got {camera_encoding!r}")
-        check_display()
-        self.projector = projector
-        self.settle_s, self.average, self.flush = float(settle_s), max(1, int(average)), max(0, int(flush))
-        self.camera_encoding = camera_encoding
-        self.window = window
-        self._cap = None
-        try:
-            cv2.namedWindow(window, cv2.WINDOW_NORMAL)
-            cv2.moveWindow(window, int(display_origin[0]), int(display_origin[1]))
-            cv2.setWindowProperty(window, cv2.WND_PROP_FULLSCREEN, cv2.WINDOW_FULLSCREEN)
-        except cv2.error as exc:
-            raise CaptureError(f"cannot open the projector window: {exc}") from None
-        try:
-            self._cap = open_camera(camera_index, camera_size)
-        except CaptureError:
-            cv2.destroyWindow(window)
-            raise
-
-    def _grab(self) -> np.ndarray:
-        for _ in range(self.flush):  # drivers queue a few frames; drop those taken before the pattern showed
-            self._cap.grab()
-        acc = None
-        for _ in range(self.average):
-            ok, img = self._cap.read()
-            if not ok or img is None:
-                raise CaptureError("the camera stopped delivering frames")
-            scale = 65535.0 if img.dtype == np.uint16 else 255.0
-            f = img[..., ::-1].astype(np.float32) / scale if img.ndim == 3 else np.repeat(
-                (img.astype(np.float32) / scale)[..., None], 3, axis=2)
-            acc = f if acc is None else acc + f
-        out = acc / self.average
-        return srgb_to_linear(out) if self.camera_encoding == "srgb" else out.astype(np.float32)
-
-    def project(self, frame: np.ndarray) -> np.ndarray:
-        f = self.check_frame(frame)
-        cv2.imshow(self.window, np.round(f[..., ::-1] * 255.0).astype(np.uint8))
-        cv2.waitKey(max(1, int(self.settle_s * 1000)))  # also lets highgui paint the window
-        return self._grab()
-
-    def close(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-        try:
-            cv2.destroyWindow(self.window)
-        except cv2.error:
-            pass
-
-
-__all__ = ["Device", "FolderDevice", "LiveDevice", "SequenceInfo", "capture_sequence", "check_complete",
-           "check_display", "check_orientations", "export_sequence", "highgui_available", "import_captures", "list_captures",
-           "load_sequence", "open_camera", "stored_bit_depth"]
+__all__ = ["Device", "FolderDevice", "SequenceInfo", "capture_sequence", "check_complete", "check_orientations",
+           "export_sequence", "import_captures", "list_captures", "load_sequence", "stored_bit_depth"]
 
 
 @dataclass(frozen=True)

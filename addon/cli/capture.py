@@ -28,7 +28,8 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _configure_patterns(p: argparse.ArgumentParser) -> None:
+def add_projector_options(p: argparse.ArgumentParser) -> None:
+    """The projector as a spec sheet gives it: native size, input area, throw ratio, lens shift."""
     p.add_argument("--projector-width", type=_positive_int, required=True, help="native projector width (px)")
     p.add_argument("--projector-height", type=_positive_int, required=True, help="native projector height (px)")
     p.add_argument("--input-width", type=_positive_int, help="projector input width inside the frame (default: frame)")
@@ -36,12 +37,28 @@ def _configure_patterns(p: argparse.ArgumentParser) -> None:
     p.add_argument("--throw-ratio", type=float, default=1.0, help="nominal throw ratio, distance / width (default 1.0)")
     p.add_argument("--shift-x", type=float, default=0.0, help="nominal lens shift right, fraction of the width")
     p.add_argument("--shift-y", type=float, default=0.0, help="nominal lens shift up, fraction of the height")
+
+
+def projector_from_args(args: argparse.Namespace) -> Projector:
+    intr = projector_intrinsics_from_throw(args.projector_width, args.projector_height, args.throw_ratio,
+                                           args.shift_x, args.shift_y)
+    if (args.input_width is None) != (args.input_height is None):
+        raise RigError("give both --input-width and --input-height, or neither")
+    return Projector(intr, input_size=(args.input_width, args.input_height) if args.input_width else None)
+
+
+def add_pattern_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checker", type=_positive_int, help="checkerboard square size in pixels (default: ~1/12 of the input)")
     p.add_argument("--area", choices=("input", "frame"), default="input",
                    help="draw patterns inside the projector input (default) or over the whole frame")
     p.add_argument("--no-graycode", action="store_true", help="leave out the Gray-code frames")
     p.add_argument("--no-validation", action="store_true", help="leave out the validation frames")
     p.add_argument("--seed", type=int, default=0, help="seed of the random validation patterns")
+
+
+def _configure_patterns(p: argparse.ArgumentParser) -> None:
+    add_projector_options(p)
+    add_pattern_options(p)
     p.add_argument("--out", type=Path, required=True, help="new folder for the numbered frames")
     p.add_argument("--force", action="store_true", help="replace an existing sequence folder at --out")
 
@@ -49,12 +66,8 @@ def _configure_patterns(p: argparse.ArgumentParser) -> None:
 @command("patterns", "Export the numbered calibration pattern sequence for your own projection/capture tools.",
          _configure_patterns)
 def patterns(args: argparse.Namespace) -> int:
-    w, h = args.projector_width, args.projector_height
-    intr = projector_intrinsics_from_throw(w, h, args.throw_ratio, args.shift_x, args.shift_y)
-    if (args.input_width is None) != (args.input_height is None):
-        raise RigError("give both --input-width and --input-height, or neither")
-    size = (args.input_width, args.input_height) if args.input_width else None
-    projector = Projector(intr, input_size=size)
+    projector = projector_from_args(args)
+    w, h = projector.intrinsics.size
     out = run_step("patterns", run_patterns, PatternsOptions(
         projector, args.out, checker=args.checker, area=args.area, graycode=not args.no_graycode,
         validation=not args.no_validation, seed=args.seed, force=args.force))
@@ -63,16 +76,10 @@ def patterns(args: argparse.Namespace) -> int:
     return 0
 
 
-def _configure_import(p: argparse.ArgumentParser) -> None:
-    p.add_argument("sequence_dir", type=Path, help="folder written by `procam patterns`")
-    p.add_argument("captures_dir", type=Path, help="folder of numbered captures (png, jpg, tif, exr), one per frame")
-    p.add_argument("--out", type=Path, required=True, help="new capture-set folder")
-    p.add_argument("--camera-width", type=_positive_int, help="expected capture width (checked)")
-    p.add_argument("--camera-height", type=_positive_int, help="expected capture height (checked)")
+def add_camera_options(p: argparse.ArgumentParser) -> None:
+    """What import-captures and a live capture need beyond the photographs: camera lens, rig file, depth, checks."""
     p.add_argument("--camera-fov", type=float, default=60.0,
                    help="nominal horizontal field of view of the camera in degrees (default 60)")
-    p.add_argument("--encoding", choices=("auto", "srgb", "linear"), default="auto",
-                   help="how the captures are encoded; auto: 8-bit files are sRGB, 16-bit/float are linear")
     p.add_argument("--rig", type=Path, metavar="RIG_JSON",
                    help="a rig calibration from `procam calibrate-rig`: calibrated camera and projector K, the "
                         "camera's lens distortion removed from every photograph (and the depth map), the "
@@ -90,6 +97,25 @@ def _configure_import(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-exposure-check", action="store_true",
                    help="import even when the photographs' exposure or white balance seems to change during the "
                         "session (complementary patterns that do not add up to white + black)")
+
+
+def depth_native_size(args: argparse.Namespace) -> tuple[int, int] | None:
+    if not (args.depth_native_width or args.depth_native_height):
+        return None
+    if not (args.depth_native_width and args.depth_native_height):
+        raise CaptureError("give both --depth-native-width and --depth-native-height")
+    return (args.depth_native_width, args.depth_native_height)
+
+
+def _configure_import(p: argparse.ArgumentParser) -> None:
+    p.add_argument("sequence_dir", type=Path, help="folder written by `procam patterns`")
+    p.add_argument("captures_dir", type=Path, help="folder of numbered captures (png, jpg, tif, exr), one per frame")
+    p.add_argument("--out", type=Path, required=True, help="new capture-set folder")
+    p.add_argument("--camera-width", type=_positive_int, help="expected capture width (checked)")
+    p.add_argument("--camera-height", type=_positive_int, help="expected capture height (checked)")
+    p.add_argument("--encoding", choices=("auto", "srgb", "linear"), default="auto",
+                   help="how the captures are encoded; auto: 8-bit files are sRGB, 16-bit/float are linear")
+    add_camera_options(p)
     p.add_argument("--force", action="store_true", help="replace an existing capture set at --out")
 
 
@@ -101,11 +127,7 @@ def import_photographs(args: argparse.Namespace) -> int:
         raise CaptureError("give both --camera-width and --camera-height, or neither")
     if args.camera_width:
         camera = Camera(intrinsics_from_fov(args.camera_width, args.camera_height, args.camera_fov))
-    native = None
-    if args.depth_native_width or args.depth_native_height:
-        if not (args.depth_native_width and args.depth_native_height):
-            raise CaptureError("give both --depth-native-width and --depth-native-height")
-        native = (args.depth_native_width, args.depth_native_height)
+    native = depth_native_size(args)
     cs = run_step("import-captures", run_import, ImportOptions(
         args.sequence_dir, args.captures_dir, args.out, camera=camera, camera_fov=args.camera_fov,
         encoding=args.encoding, depth_path=args.depth, depth_units=args.depth_units, depth_native_size=native,

@@ -26,7 +26,7 @@ def add_schedule_options(p: argparse.ArgumentParser) -> None:
                 f"{s.capture_interval}")
 
     p.add_argument("--device", default=None,
-                   help="closed loop through lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR; "
+                   help="closed loop through lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or live:camera=SOURCE,display=N; "
                         "without a device θ is estimated from the validation captures (open loop)")
     p.add_argument("--schedule", choices=tuple(SCHEDULES), default=DEFAULT_SCHEDULE,
                    help=f"stage-C schedule (default {DEFAULT_SCHEDULE}; 'paper' = the paper's 200+300 iterations). "

@@ -31,7 +31,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--inputs", type=Path, required=True, help="compensation folder (from procam compensate)")
     p.add_argument("--targets", type=Path, nargs="+", required=True, metavar="TARGET",
                    help="the target images given to procam compensate")
-    p.add_argument("--device", required=True, help="lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR")
+    p.add_argument("--device", required=True, help="lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or live:camera=SOURCE,display=N")
     p.add_argument("--out", type=Path, required=True, help="folder to create for the metrics and images")
     p.add_argument("--classical", action="store_true",
                    help="also measure the classical per-pixel colour-mixing baseline (captures 3 flat primaries)")

@@ -65,7 +65,7 @@ class EvaluateOptions:
     calibration: Path
     inputs: Path  # the compensation folder
     targets: tuple[Path, ...]
-    device: str  # lab:TRUTH_FILE or folder:CAPTURE_DIR
+    device: str  # lab:TRUTH_FILE, folder:CAPTURE_DIR or live:…
     out: Path
     classical: bool = False
     target_encoding: str = "auto"
@@ -286,10 +286,10 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     owned = device is None
     try:
         if owned:
-            device = open_device(options.device)
+            device = open_device(options.device, cal.rig.projector)
             if device is None:
-                raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE or "
-                                      "folder:CAPTURE_DIR")
+                raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE, "
+                                      "folder:CAPTURE_DIR or live:camera=…")
         result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
                                  notes=notes, classical=options.classical, progress=say, cancel=cancel)
         result.doc["device"] = options.device

@@ -22,7 +22,9 @@ from ..capture.devices import Device, FolderDevice
 from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.lab import LabDevice, LabTruth
-from ..progress import Cancel, Progress, quiet
+from ..live.device import LiveDevice, LiveSpec
+from ..progress import Cancel, Progress, part, quiet
+from ..rig.model import Projector
 from ..stages.calibrate import Calibration
 from ..stages.compensate import (DEFAULT_SCHEDULE, BiasModel, CompensationResult, Compensator, Schedule, get_schedule,
                                  split_iterations)
@@ -30,7 +32,7 @@ from ..stages.display_area import DisplayArea, TargetAspectWarning, choose_area,
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
 
-DEVICE_KINDS = ("lab", "folder")
+DEVICE_KINDS = ("lab", "folder", "live")
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,7 @@ class StageCOptions:
     target_encoding: str = "auto"
     #: False: no θ at all (the ablation)
     use_bias: bool = True
-    #: closed loop through ``lab:TRUTH_FILE`` or ``folder:CAPTURE_DIR``; None: open loop
+    #: closed loop through ``lab:TRUTH_FILE``, ``folder:CAPTURE_DIR`` or ``live:camera=…``; None: open loop
     device: str | None = None
     #: diagnosed effect models around stage C: 'none', 'auto' or NAME,...; their parameters come from ``diagnosis``
     effects: str = "none"
@@ -98,7 +100,7 @@ class StageCOptions:
         if not self.device or not self.use_bias:
             return None
         kind, _, where = self.device.partition(":")
-        return f"{kind}:{Path(where).absolute()}"
+        return self.device if kind == "live" else f"{kind}:{Path(where).absolute()}"
 
 
 def effect_adapter(options: StageCOptions, calibration: Calibration) -> EffectAdapter | None:
@@ -112,16 +114,23 @@ def effect_adapter(options: StageCOptions, calibration: Calibration) -> EffectAd
 def device_kind(spec: str) -> str:
     kind, _, where = spec.partition(":")
     if not where or kind not in DEVICE_KINDS:
-        raise CaptureError(f"the device must be lab:TRUTH_FILE (virtual lab) or folder:CAPTURE_DIR (replayed "
-                           f"captures), got {spec!r}")
+        raise CaptureError(f"the device must be lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR (replayed "
+                           f"captures) or live:camera=SOURCE,display=N (a real projector and camera), got {spec!r}")
+    if kind == "live":
+        LiveSpec.parse(spec)
     return kind
 
 
-def open_device(spec: str | None) -> Device | None:
-    """A capture device from ``lab:TRUTH_FILE`` (the virtual lab) or ``folder:CAPTURE_DIR`` (replayed captures)."""
+def open_device(spec: str | None, projector: Projector | None = None, progress: Progress | None = None) -> Device | None:
+    """A capture device from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed captures) or
+    ``live:…`` (the projector window and camera; ``projector`` gives the window its size)."""
     if not spec:
         return None
     kind, where = device_kind(spec), spec.partition(":")[2]
+    if kind == "live":
+        if projector is None:
+            raise CaptureError("a live device needs the calibrated projector to size its window")
+        return LiveDevice(spec, projector, progress=progress)
     return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
 
 
@@ -161,8 +170,9 @@ class StageC:
                 (options.bounces, options.spp, options.seed):
             raise ProCamError("the compensator given was made with other bounces/spp/seed than the options'")
         self._owned = device is None
-        self.device = device if device is not None else (open_device(options.device) if options.mode ==
-                                                         "closed-loop" else None)
+        self.device = device if device is not None else (
+            open_device(options.device, calibration.rig.projector, part(say, 0.0, 0.0, "live device: "))
+            if options.mode == "closed-loop" else None)
         try:
             say("loading the calibrated scene", 0.0)
             if compensator is not None:

@@ -1,0 +1,140 @@
+"""The projector window: a borderless window that shows a frame pixel for pixel on the projector's display.
+
+Why SDL2 through pygame-ce: its wheels carry SDL2 itself on Linux, Windows and
+macOS, so the window needs nothing outside ProCam's own dependencies (OpenCV's
+pip build has no GUI at all), SDL knows every display's index and size, and a
+software surface is blitted 1:1 — no scaling, no colour management, no
+filtering. pygame-ce is the maintained branch of pygame (same import name).
+
+Where the window goes: ``display=N`` covers display N exactly (a borderless
+window of the display's size, centred on it — what "desktop full screen" is,
+without a mode change), and refuses when the display's size is not the
+projector's native frame (the OS would scale); ``position=(x, y)`` puts a
+frame-sized borderless window at desktop coordinates, for set-ups where the
+projector is part of a larger desktop.
+
+Present, then wait: :meth:`ProjectorWindow.show` blits, flips and returns the
+time the flip returned. SDL cannot tell when the projector has actually
+scanned the frame out (vsync, compositor and the projector's own input lag
+differ per machine), so the live device measures the whole chain from this
+time to the camera seeing the change, once, and waits it out on every capture
+(``device.py``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import LiveError
+
+#: SDL_WINDOWPOS_CENTERED_DISPLAY(n) is this mask | n (SDL_video.h).
+_CENTRED_ON_DISPLAY = 0x2FFF0000
+
+
+def _pygame() -> Any:
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    try:
+        import pygame
+    except ImportError as exc:  # pragma: no cover - pygame-ce is a pinned requirement
+        raise LiveError(f"the projector window needs pygame-ce (pip install pygame-ce): {exc}") from None
+    return pygame
+
+
+def _init_video(pygame: Any) -> None:
+    if pygame.display.get_init():
+        return
+    try:
+        pygame.display.init()
+    except pygame.error as exc:
+        raise LiveError(f"no display to open the projector window on ({exc}). Run on the machine the projector "
+                        "is plugged into, inside its desktop session (not over SSH), or use the folder workflow "
+                        "(`procam patterns` / `procam import-captures`)") from None
+
+
+def list_displays() -> list[tuple[int, int, int, float]]:
+    """``(index, width, height, refresh Hz)`` of every display SDL sees (refresh 0 when unknown)."""
+    pygame = _pygame()
+    _init_video(pygame)
+    sizes = pygame.display.get_desktop_sizes()
+    rates = pygame.display.get_desktop_refresh_rates()
+    return [(i, int(w), int(h), float(rates[i]) if i < len(rates) else 0.0) for i, (w, h) in enumerate(sizes)]
+
+
+class ProjectorWindow:
+    """A borderless window of the projector's native size on its display; frames are float H×W×3 in [0, 1]."""
+
+    def __init__(self, size: tuple[int, int], *, display: int | None = None,
+                 position: tuple[int, int] | None = None, title: str = "ProCam projector") -> None:
+        if (display is None) == (position is None):
+            raise LiveError("place the projector window either on a display (display=N) or at a desktop "
+                            "position (position=X:Y), not both or neither")
+        pygame = self._pg = _pygame()
+        _init_video(pygame)
+        self.size = (int(size[0]), int(size[1]))
+        self.refresh_hz = 60.0
+        if display is not None:
+            displays = list_displays()
+            if not 0 <= display < len(displays):
+                raise LiveError(f"there is no display {display}: SDL sees {len(displays)} "
+                                f"({', '.join(f'{i}: {w}×{h}' for i, w, h, _ in displays)})")
+            _, w, h, hz = displays[display]
+            if (w, h) != self.size:
+                raise LiveError(f"display {display} is {w}×{h} but the projector's native frame is "
+                                f"{self.size[0]}×{self.size[1]}: set that display to the projector's native "
+                                "resolution (the OS would otherwise scale every pattern), or choose another display")
+            where = (_CENTRED_ON_DISPLAY | display, _CENTRED_ON_DISPLAY | display)
+            self.refresh_hz = hz or self.refresh_hz
+        else:
+            where = (int(position[0]), int(position[1]))
+        try:
+            self._window = pygame.Window(title, self.size, position=where, borderless=True)
+        except (pygame.error, ValueError) as exc:
+            raise LiveError(f"cannot open the projector window: {exc}") from None
+        self._window.always_on_top = True
+        self._surface = self._window.get_surface()
+        self._buffer = np.zeros((self.size[0], self.size[1], 3), dtype=np.uint8)  # SDL surfaces are x-major
+
+    @property
+    def position(self) -> tuple[int, int]:
+        """The window's top-left in desktop coordinates."""
+        return tuple(int(v) for v in self._window.position)
+
+    def _pump(self) -> None:
+        pygame = self._pg
+        for event in pygame.event.get():
+            if event.type == pygame.QUIT or (event.type == pygame.KEYDOWN and event.key == pygame.K_ESCAPE):
+                raise LiveError("the projector window was closed (Esc): the live session stops here; run the "
+                                "same command again to resume where it stopped")
+
+    def show(self, frame: np.ndarray) -> float:
+        """Show ``frame`` (H×W×3 floats in [0, 1], the native size) and return when the flip returned
+        (``time.perf_counter``). Values become 8-bit levels with no transfer curve."""
+        f = np.asarray(frame)
+        w, h = self.size
+        if f.shape[:2] != (h, w):
+            raise LiveError(f"a projector frame must be {w}×{h}, got {f.shape[1]}×{f.shape[0]}")
+        levels = np.clip(np.rint(f * 255.0), 0, 255).astype(np.uint8)
+        if levels.ndim == 2:
+            levels = levels[..., None]
+        self._buffer[...] = levels.transpose(1, 0, 2)
+        self._pg.surfarray.blit_array(self._surface, self._buffer)
+        self._window.flip()
+        self._pump()
+        return time.perf_counter()
+
+    def frame_period(self) -> float:
+        """One refresh of the display, seconds (60 Hz where SDL does not know)."""
+        return 1.0 / self.refresh_hz
+
+    def close(self) -> None:
+        window, self._window = getattr(self, "_window", None), None
+        if window is not None:
+            window.destroy()
+            self._pg.event.pump()
+
+
+__all__ = ["ProjectorWindow", "list_displays"]

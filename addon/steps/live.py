@@ -1,0 +1,158 @@
+"""The live capture step: the calibration sequence shown on the projector and captured by the camera, resumable.
+
+A session lives in ``OUT.session/`` beside the capture set it will become:
+the exported sequence (``sequence/``, as ``procam patterns`` writes it), one
+photograph per frame as it is captured (``photos/NNNN.png``, 16-bit linear,
+each written atomically) and ``session.json`` (the settings, and what the live
+device measured each time it opened). An interrupted session (Ctrl-C, Esc in
+the projector window, a camera that dropped out) keeps its photographs; the
+same command resumes at the first missing one. When every frame is captured
+the photographs are imported exactly as ``procam import-captures`` imports a
+user's own (depth, rig file, exposure check), the capture set is written and
+the session folder removed.
+
+Why resume through photographs rather than a half-written capture set: a
+capture set is written atomically or not at all (``capture/format.py``), and
+the folder workflow's import already checks what a resumed session most
+risks — a camera whose exposure or white balance changed in between.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..capture.devices import export_sequence, load_sequence
+from ..capture.format import CaptureSet, is_capture_set
+from ..errors import Cancelled, CaptureError
+from ..imageio import read_image, write_atomic_bytes, write_image
+from ..live.device import LiveDevice, LiveSpec
+from ..outputs import check_replaceable
+from ..progress import Cancel, Progress, never, part, quiet
+from ..rig.model import Projector
+from .capture import ImportOptions, run_import
+
+SESSION_FORMAT = "procam-live-session"
+SESSION_MANIFEST = "session.json"
+
+
+@dataclass(frozen=True)
+class LiveCaptureOptions:
+    """What ``procam capture`` asks for: the live device, the pattern sequence, and how to import it."""
+
+    device: str  # live:camera=…,display=…
+    projector: Projector
+    out: Path
+    checker: int | None = None
+    area: str = "input"
+    graycode: bool = True
+    validation: bool = True
+    seed: int = 0
+    camera_fov: float = 60.0
+    depth_path: Path | None = None
+    depth_units: str = "auto"
+    depth_native_size: tuple[int, int] | None = None
+    rig: Path | None = None
+    check_exposure: bool = True
+    force: bool = False
+    #: discard an existing session of other settings instead of refusing
+    restart: bool = False
+
+    @property
+    def session(self) -> Path:
+        return self.out.with_name(self.out.name + ".session")
+
+    def settings(self) -> dict[str, Any]:
+        """What a resumed session must share with the one it continues (the device may differ: a new port…)."""
+        return {"projector": self.projector.to_dict(), "checker": self.checker, "area": self.area,
+                "graycode": self.graycode, "validation": self.validation, "seed": self.seed}
+
+
+def _is_session(path: Path) -> bool:
+    return (path / SESSION_MANIFEST).is_file()
+
+
+def _read_session(path: Path) -> dict[str, Any]:
+    try:
+        doc = json.loads((path / SESSION_MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError(f"cannot read the live session {path / SESSION_MANIFEST}: {exc}; remove {path} or give "
+                           "--restart") from None
+    if not isinstance(doc, dict) or doc.get("format") != SESSION_FORMAT:
+        raise CaptureError(f"{path} is not a live capture session; choose another --out")
+    return doc
+
+
+def _write_session(path: Path, doc: dict[str, Any]) -> None:
+    write_atomic_bytes(path / SESSION_MANIFEST, (json.dumps(doc, indent=1) + "\n").encode())
+
+
+def open_session(options: LiveCaptureOptions) -> tuple[dict[str, Any], int]:
+    """The session folder for ``options``: resumed when it holds the same settings, else made anew.
+
+    Returns its manifest and how many photographs it already holds."""
+    session = options.session
+    if session.exists() and not _is_session(session) and any(session.iterdir()):
+        raise CaptureError(f"{session} exists and is not a live capture session; move it away first")
+    if _is_session(session):
+        doc = _read_session(session)
+        if doc.get("settings") != json.loads(json.dumps(options.settings())):
+            if not options.restart:
+                raise CaptureError(f"{session} holds a live session with other settings (projector, patterns or "
+                                   "seed): give the same settings to resume it, or --restart to discard its "
+                                   f"{len(list((session / 'photos').glob('*.png')))} photographs")
+            shutil.rmtree(session)
+        elif options.restart:
+            shutil.rmtree(session)
+    if not _is_session(session):
+        session.mkdir(parents=True, exist_ok=True)
+        export_sequence(options.projector, session / "sequence", checker_size=options.checker, area=options.area,
+                        seed=options.seed, graycode=options.graycode, validation=options.validation)
+        (session / "photos").mkdir()
+        _write_session(session, {"format": SESSION_FORMAT, "version": 1, "settings": options.settings(),
+                                 "opened": []})
+    doc = _read_session(session)
+    return doc, len(list((session / "photos").glob("*.png")))
+
+
+def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = None,
+                     cancel: Cancel | None = None) -> CaptureSet:
+    """Capture the calibration sequence live (resuming a session of the same settings) into a new capture set."""
+    say, stop = progress or quiet, cancel or never
+    LiveSpec.parse(options.device)  # a bad device string fails before anything is written
+    check_replaceable(options.out, force=options.force, what="capture set", replaceable=is_capture_set,
+                      error=CaptureError)
+    doc, done = open_session(options)
+    session = options.session
+    frames = load_sequence(session / "sequence").frames
+    if done:
+        say(f"resuming the live session in {session}: {done} of {len(frames)} frames already captured", 0.0)
+    missing = [(i, f) for i, f in enumerate(frames) if not (session / "photos" / f"{i:04d}.png").is_file()]
+    if missing:
+        with LiveDevice(options.device, options.projector, progress=part(say, 0.0, 0.1, "live device: "),
+                        check_exposure=options.check_exposure) as device:
+            doc["opened"].append({"device": options.device, **device.report.to_dict()})
+            _write_session(session, doc)
+            for n, (i, frame) in enumerate(missing):
+                if stop():
+                    raise Cancelled(f"live capture stopped after {len(frames) - len(missing) + n} of {len(frames)} "
+                                    f"frames; they are kept in {session}: run the same command to resume")
+                say(f"capturing frame {i + 1}/{len(frames)} ({frame['name']})", 0.1 + 0.8 * n / len(missing))
+                if frame["kind"] == "surface":
+                    shot = device.capture_off()
+                else:
+                    shot = device.project(read_image(session / "sequence" / frame["file"]))
+                write_image(session / "photos" / f"{i:04d}.png", shot)
+    say("importing the photographs (depth, exposure check)", 0.9)
+    captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out,
+                                        camera_fov=options.camera_fov, encoding="linear",
+                                        depth_path=options.depth_path, depth_units=options.depth_units,
+                                        depth_native_size=options.depth_native_size,
+                                        rig=options.rig, check_exposure=options.check_exposure, force=options.force),
+                          part(say, 0.9, 1.0))
+    shutil.rmtree(session, ignore_errors=True)
+    say(f"capture set {options.out}: {len(frames)} frames", 1.0)
+    return captures

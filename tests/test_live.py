@@ -1,0 +1,225 @@
+"""The live loop with real parts: a projector window on a virtual X server (Xvfb), a camera that is a real HTTP
+client (OpenCV VideoCapture) of a loopback MJPEG server filming that window, closed-loop compensation through them."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from procam.addon.capture.format import CaptureSet
+from procam.addon.capture.targets import natural_target
+from procam.addon.cli.app import main
+from procam.addon.errors import Cancelled, CaptureError, LiveError
+from procam.addon.imageio import write_image
+from procam.addon.live.camera import CameraClient, parse_source
+from procam.addon.live.device import LiveDevice, LiveSpec
+from procam.addon.live.loopback import LoopbackCamera, painted_wall
+from procam.addon.live.window import ProjectorWindow, list_displays
+from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
+from procam.addon.steps.live import LiveCaptureOptions, run_live_capture
+
+SCREEN = (800, 600)
+ORIGIN = (40, 30)  # where the projector window sits on the virtual screen
+SIZE = (256, 192)  # projector and camera
+
+
+# -- without a display --------------------------------------------------------------------------------------------
+
+def test_live_spec_parsing():
+    spec = LiveSpec.parse("live:camera=http://127.0.0.1:8080/a,b.mjpg,position=40:30,average=4,encoding=linear")
+    assert spec.camera == "http://127.0.0.1:8080/a,b.mjpg" and spec.position == (40, 30) and spec.display is None
+    assert spec.average == 4 and spec.encoding == "linear" and spec.latency is None
+    spec = LiveSpec.parse("live:camera=0,latency=0.2,noise=0.003,size=1280x720")
+    assert spec.camera == 0 and spec.display == 0 and spec.latency == 0.2 and spec.noise == 0.003
+    assert spec.size == (1280, 720)
+    for bad, message in (("live:display=1", "say which camera"), ("live:camera=0,average=0", "average must be"),
+                         ("live:camera=0,average=2,noise=0.01", "not both"), ("live:camera=0,encoding=hdr", "srgb"),
+                         ("live:camera=0,display=x", "not a number"), ("live:camera=/nonexistent/video9", "neither"),
+                         ("live:camera=0,camera=1", "twice"), ("live:bogus", "key=value")):
+        with pytest.raises(LiveError, match=message):
+            LiveSpec.parse(bad)
+
+
+def test_sources():
+    assert parse_source("2") == 2 and parse_source("rtsp://cam/stream") == "rtsp://cam/stream"
+    with pytest.raises(LiveError, match="cannot open camera 57"):
+        CameraClient(57)
+
+
+def test_no_display_is_a_clear_error(run_python):
+    proc = run_python("""
+        from procam.addon.cli.app import main
+        raise SystemExit(main(["live-check", "--device", "live:camera=0,display=0", "--projector-width", "64",
+                               "--projector-height", "48"]))
+    """, env={"DISPLAY": "", "WAYLAND_DISPLAY": "", "SDL_VIDEODRIVER": "x11"})
+    assert proc.returncode == 2, proc.stderr
+    assert "no display to open the projector window on" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_stage_c_names_the_live_device():
+    from procam.addon.steps.stage_c import device_kind
+    assert device_kind("live:camera=0,display=1") == "live"
+    with pytest.raises(CaptureError, match="live:camera=SOURCE,display=N"):
+        device_kind("webcam:0")
+
+
+# -- on a virtual X server ----------------------------------------------------------------------------------------
+
+def _free_display() -> int:
+    for n in range(90, 200):
+        if not Path(f"/tmp/.X11-unix/X{n}").exists() and not Path(f"/tmp/.X{n}-lock").exists():
+            return n
+    raise RuntimeError("no free X display number")
+
+
+@pytest.fixture(scope="module")
+def xvfb():
+    """A virtual X server for the module; the tests skip, saying why, where it cannot start."""
+    if shutil.which("Xvfb") is None:
+        pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb; scripts/setup.sh does it as root)")
+    n = _free_display()
+    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", f"{SCREEN[0]}x{SCREEN[1]}x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 10
+    while not Path(f"/tmp/.X11-unix/X{n}").exists():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.skip(f"the virtual X server did not start: {proc.stderr.read().decode()[-300:]}")
+        time.sleep(0.05)
+    saved = {k: os.environ.get(k) for k in ("DISPLAY", "SDL_VIDEODRIVER")}
+    os.environ["DISPLAY"], os.environ["SDL_VIDEODRIVER"] = f":{n}", "x11"
+    yield f":{n}"
+    import pygame
+    pygame.display.quit()
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+def _grab(region: tuple[int, int, int, int]) -> np.ndarray:
+    import mss
+    with mss.MSS() as screen:
+        left, top, w, h = region
+        return np.asarray(screen.grab({"left": left, "top": top, "width": w, "height": h}))[..., 2::-1]
+
+
+def test_window_shows_frames_pixel_for_pixel(xvfb):
+    assert list_displays()[0][1:3] == SCREEN
+    frame = np.random.default_rng(1).random((48, 64, 3)).astype(np.float32)
+    window = ProjectorWindow((64, 48), position=(100, 70))
+    try:
+        window.show(frame)
+        time.sleep(0.1)
+        assert window.position == (100, 70)
+        shown = _grab((100, 70, 64, 48))
+        np.testing.assert_array_equal(shown, np.rint(frame * 255).astype(np.uint8))
+    finally:
+        window.close()
+    with pytest.raises(LiveError, match="native resolution"):
+        ProjectorWindow((64, 48), display=0)
+    with pytest.raises(LiveError, match="there is no display 3"):
+        ProjectorWindow(SCREEN, display=3)
+    window = ProjectorWindow(SCREEN, display=0)  # a display of the native size is covered exactly
+    try:
+        assert window.position == (0, 0)
+    finally:
+        window.close()
+
+
+def _projector(size=SIZE) -> Projector:
+    return Projector(projector_intrinsics_from_throw(size[0], size[1], 1.25, 0.0, 0.15))
+
+
+@pytest.mark.parametrize("delay", [0.15])
+def test_latency_is_measured_and_no_capture_shows_the_previous_frame(xvfb, delay):
+    loop, _, _ = painted_wall(SIZE, ORIGIN, delay_s=delay)
+    loop.noise = 0.0
+    with LoopbackCamera(loop) as cam:
+        with LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear",
+                        _projector()) as device:
+            frame = device.report.camera_frame_s
+            measured = sorted(device.report.latencies_s)
+            # The first frame grabbed after the flip is up to one camera frame later; transport adds a little.
+            assert delay <= measured[1] <= delay + frame + 0.03, device.report.lines()
+            lit = loop.gain[..., 1] > 0  # every camera pixel; compare the picture's mean with the level's
+            levels = [0.1, 0.9, 0.2, 0.8, 0.3, 0.7, 0.15, 0.95]
+            seen = []
+            for level in levels:
+                shot = device.project(np.full((SIZE[1], SIZE[0], 3), level, np.float32))
+                seen.append(float(shot[lit].mean()))
+    # The footprint covers a fixed share of the picture: the mean is an affine function of the level, and a
+    # capture that held the previous frame would break the order of these strongly alternating levels.
+    slope, icpt = np.polyfit(levels, seen, 1)
+    residual = np.abs(np.asarray(seen) - (slope * np.asarray(levels) + icpt))
+    assert slope > 0.1 and residual.max() < 0.05 * slope, (levels, seen)
+
+
+def test_auto_exposure_is_refused(xvfb):
+    loop, _, _ = painted_wall(SIZE, ORIGIN, auto_exposure=True)
+    with LoopbackCamera(loop) as cam:
+        with pytest.raises(LiveError, match="exposure is not locked"):
+            LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
+
+
+def test_camera_that_sees_nothing_is_refused(xvfb):
+    loop, _, _ = painted_wall(SIZE, ORIGIN)
+    loop.region = (520, 380, *SIZE)  # films a part of the screen where the window is not
+    with LoopbackCamera(loop) as cam:
+        with pytest.raises(LiveError, match="did not see the projector"):
+            LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
+
+
+def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, capsys):
+    """A whole calibration set captured live (interrupted and resumed), calibrated, and compensated closed loop."""
+    loop, depth, truth = painted_wall(SIZE, ORIGIN, delay_s=0.15)
+    np.save(tmp_path / "depth.npy", depth)
+    target = write_image(tmp_path / "city.png", natural_target("city", (160, 160)))
+    with LoopbackCamera(loop) as cam:
+        device = f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear,average=4"
+        projector = Projector(truth.intrinsics, input_size=truth.input_size)
+        options = LiveCaptureOptions(device, projector, tmp_path / "set", camera_fov=58.0,
+                                     depth_path=tmp_path / "depth.npy")
+        calls = []
+        with pytest.raises(Cancelled, match="run the same command to resume"):
+            run_live_capture(options, cancel=lambda: len(calls) > 10,
+                             progress=lambda m, f: calls.append(m) if m.startswith("capturing") else None)
+        kept = sorted((tmp_path / "set.session" / "photos").glob("*.png"))
+        assert len(kept) == 11 and not (tmp_path / "set").exists()
+        args = ["--device", device, "--projector-width", str(SIZE[0]), "--projector-height", str(SIZE[1]),
+                "--input-width", str(truth.input_size[0]), "--input-height", str(truth.input_size[1]),
+                "--throw-ratio", "1.25", "--shift-y", "0.15"]
+        assert main(["capture", *args, "--seed", "3", "--camera-fov", "58", "--depth", str(tmp_path / "depth.npy"),
+                     "--out", str(tmp_path / "set")]) == 2  # other settings than the session's: refused
+        assert "other settings" in capsys.readouterr().err
+        assert main(["capture", *args, "--camera-fov", "58", "--depth", str(tmp_path / "depth.npy"),
+                     "--out", str(tmp_path / "set")]) == 0
+        err = capsys.readouterr().err
+        assert "resuming the live session" in err and "11 of" in err
+        assert not (tmp_path / "set.session").exists()
+        captures = CaptureSet.load(tmp_path / "set")
+        assert captures.camera.intrinsics.size == SIZE and "exposure" in captures.notes
+
+        assert main(["calibrate", str(tmp_path / "set"), "--out", str(tmp_path / "cal")]) == 0
+        cal = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+        pose = np.asarray(cal["camera_from_projector"])
+        assert np.linalg.norm(pose[:3, 3] - truth.camera_from_projector[:3, 3]) < 0.01
+
+        assert main(["compensate", str(tmp_path / "cal"), str(target), "--device", device, "--iterations", "40",
+                     "--out", str(tmp_path / "comp")]) == 0
+        assert main(["evaluate", str(tmp_path / "cal"), "--inputs", str(tmp_path / "comp"), "--targets", str(target),
+                     "--device", device, "--out", str(tmp_path / "eval")]) == 0
+    metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    city = metrics["targets"][0]
+    assert city["psnr"] >= city["uncompensated"]["psnr"] + 6.0, city
