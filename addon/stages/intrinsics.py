@@ -38,7 +38,7 @@ import numpy as np
 from ..capture.format import CaptureSet
 from ..errors import CalibrationError
 from ..rig.model import Intrinsics
-from .pose import MIN_CORRESPONDENCES, SurfaceView, graycode_correspondences
+from .pose import MIN_CORRESPONDENCES, SurfaceView, graycode_correspondences, pnp_ransac
 
 #: Largest standard deviation of the focal length (share of it) for it to count as determined.
 FOCAL_STD_MAX = 0.005
@@ -190,10 +190,7 @@ def _covariance_std(j: np.ndarray, r: np.ndarray) -> np.ndarray:
 def _start_pose(obj: np.ndarray, img: np.ndarray, k: Intrinsics, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A first projector pose with the spec's K (robust: Gray code has decoding outliers; the K may be off, so the
     inlier threshold is loose)."""
-    cv2.setRNGSeed(int(seed))
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, k.opencv_matrix(), None, iterationsCount=200,
-                                                 reprojectionError=max(2.0, 0.02 * k.width), confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_EPNP)
+    ok, rvec, tvec, inliers = pnp_ransac(obj, img, k.opencv_matrix(), max(2.0, 0.02 * k.width), seed)
     if not ok or inliers is None or len(inliers) < MIN_CORRESPONDENCES:
         raise CalibrationError("the Gray-code correspondences admit no projector pose to start the intrinsics fit "
                                "from; check the captures, or keep the spec (--projector-intrinsics spec)")

@@ -10,7 +10,7 @@ Gray-code correspondences (``init='graycode'``)
     pixel it sees. Casting the camera ray of that pixel against the surface
     lifts it to a 3-D point, so every decoded pixel is a 3-D ↔ projector-pixel
     pair and the pose is a Perspective-n-Point problem, solved with OpenCV
-    (``solvePnPRansac`` with EPnP for a start, then Levenberg–Marquardt on the
+    (``solvePnPRansac`` with EPnP, and IPPE on a plane, for a start, then Levenberg–Marquardt on the
     inliers). This uses tens of thousands of points spread over the whole
     footprint and needs no starting pose.
 
@@ -347,6 +347,39 @@ def graycode_correspondences(captures: CaptureSet, view: SurfaceView, mask: np.n
     return obj, img, cam, n_use
 
 
+#: Points whose thinnest extent is below this share of their widest are a plane to PnP (a wall, a flat screen).
+PLANAR_SHARE = 0.02
+
+
+def pnp_ransac(obj: np.ndarray, img: np.ndarray, k: np.ndarray, thresh: float, seed: int
+               ) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``solvePnPRansac`` with EPnP, and on (near-)planar points also with IPPE; each answer refined by
+    Levenberg–Marquardt on its inliers, and the one that then agrees with more points kept.
+
+    EPnP alone fails on a flat wall: on a planar live capture its RANSAC pose
+    had every point within 1 px, yet refining it settled on the mirror-image
+    pose of the planar PnP ambiguity, which only 2 % of the points agree with.
+    IPPE, made for planes, starts from the right one of the two."""
+    spread = np.linalg.svd(obj - obj.mean(axis=0), compute_uv=False)
+    flags = [cv2.SOLVEPNP_EPNP] + ([cv2.SOLVEPNP_IPPE] if spread[2] < PLANAR_SHARE * spread[0] else [])
+    best: tuple[bool, np.ndarray, np.ndarray, np.ndarray | None] = (False, np.zeros(3), np.zeros(3), None)
+    for flag in flags:
+        cv2.setRNGSeed(int(seed))
+        try:
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, k, None, iterationsCount=200,
+                                                         reprojectionError=thresh, confidence=0.999, flags=flag)
+        except cv2.error:
+            continue
+        if not ok or inliers is None or len(inliers) < 6:
+            continue
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inliers.ravel()], img[inliers.ravel()], k, None, rvec, tvec)
+        resid = np.linalg.norm(cv2.projectPoints(obj, rvec, tvec, k, None)[0].reshape(-1, 2) - img, axis=1)
+        inliers = np.flatnonzero(resid < thresh).reshape(-1, 1)
+        if best[3] is None or len(inliers) > len(best[3]):
+            best = (True, rvec, tvec, inliers)
+    return best
+
+
 def graycode_pnp(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *, max_points: int = 40000,
                  seed: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
     """Pose from decoded Gray-code correspondences lifted to 3-D by the surface (PnP with the projector's K)."""
@@ -355,10 +388,7 @@ def graycode_pnp(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *, m
     k = proj.intrinsics.opencv_matrix()
     # A projector pixel covers ~1/800 of the frame; Gray code is exact to ±0.5 px, the 3-D points to ~mm.
     thresh = max(1.0, 2.0 * proj.intrinsics.width / 800.0)
-    cv2.setRNGSeed(int(seed))
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, k, None, iterationsCount=200,
-                                                 reprojectionError=thresh, confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_EPNP)
+    ok, rvec, tvec, inliers = pnp_ransac(obj, img, k, thresh, seed)
     if not ok or inliers is None or len(inliers) < MIN_CORRESPONDENCES:
         raise CalibrationError(f"PnP on the Gray-code correspondences of {captures.path} found no consistent "
                                "projector pose; check the Gray-code captures and the surface, or use --init nominal")
