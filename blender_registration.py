@@ -19,17 +19,19 @@ from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, 
 from .operators.create_rig import PROCAM_OT_create_rig
 from .operators.diagnose import PROCAM_OT_diagnose
 from .operators.export import PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames
+from .operators.live import PROCAM_OT_live_capture, PROCAM_OT_live_check, PROCAM_OT_live_preview
 from .operators.run_lab import PROCAM_OT_run_lab
 from .operators.set_projector_image import PROCAM_OT_set_projector_image
 from .operators.set_surface import PROCAM_OT_set_surface
 from .operators.show_image import PROCAM_OT_show_image, PROCAM_OT_show_text
-from .panels import board, captures, properties
+from .panels import board, captures, live, properties
 from .panels.board import PROCAM_PT_board
 from .panels.calibrate import PROCAM_PT_calibrate
 from .panels.captures import PROCAM_PT_captures
 from .panels.compensate import PROCAM_PT_compensate, PROCAM_UL_targets
 from .panels.diagnose import PROCAM_PT_diagnose
 from .panels.export import PROCAM_PT_export
+from .panels.live import PROCAM_PT_live
 from .panels.rig import PROCAM_PT_rig
 
 OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
@@ -37,10 +39,11 @@ OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projecto
              PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_use_selected_surface_mesh,
              PROCAM_OT_add_targets, PROCAM_OT_remove_target,
              PROCAM_OT_compensate, PROCAM_OT_evaluate, PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
-             PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job)
+             PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job,
+             PROCAM_OT_live_check, PROCAM_OT_live_preview, PROCAM_OT_live_capture)
 #: Sidebar panels in workflow order (a sub-panel right after its parent, which must be registered first).
-PANELS = (PROCAM_PT_rig, PROCAM_PT_captures, PROCAM_PT_board, PROCAM_PT_calibrate, PROCAM_PT_compensate,
-          PROCAM_PT_diagnose, PROCAM_PT_export)
+PANELS = (PROCAM_PT_rig, PROCAM_PT_captures, PROCAM_PT_board, PROCAM_PT_live, PROCAM_PT_calibrate,
+          PROCAM_PT_compensate, PROCAM_PT_diagnose, PROCAM_PT_export)
 CLASSES = (properties.PROCAM_PG_target, PROCAM_UL_targets, *OPERATORS, *PANELS)
 CLI_COMMAND = "procam"
 
@@ -48,7 +51,8 @@ _cli_handle = None
 
 
 def scene_properties() -> dict[str, object]:
-    return {**captures.scene_properties(), **board.scene_properties(), **properties.scene_properties()}
+    return {**captures.scene_properties(), **board.scene_properties(), **live.scene_properties(),
+            **properties.scene_properties()}
 
 
 def run_cli(argv: Sequence[str]) -> int:

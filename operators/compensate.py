@@ -22,21 +22,29 @@ from ..addon.steps import compensate as compensate_step
 from ..addon.steps import evaluate as evaluate_step
 from ..addon.steps import show as show_step
 from ..addon.steps.layout import CALIBRATION, COMPENSATION
-from ..addon.steps.stage_c import StageCOptions, open_device
+from ..addon.steps.stage_c import StageCOptions, device_kind, open_device
 from . import paths
 from .job_operator import JobOperator
+from .live import WINDOW_NEEDS_MAIN_THREAD, live_device
+
+
+def scene_device(scene: bpy.types.Scene) -> str | None:
+    """The device Compensate's mode names: the Live panel's rig in Live mode, else the Device field (None: empty)."""
+    if scene.procam_compensation_mode == "LIVE":
+        return live_device(scene)
+    return scene.procam_device or None
 
 
 def stage_c_options(scene: bpy.types.Scene) -> StageCOptions:
     """The scene's Compensate settings as the step's options (what ``procam compensate`` takes as flags)."""
-    closed = scene.procam_compensation_mode == "CLOSED"
+    closed = scene.procam_compensation_mode in ("CLOSED", "LIVE")
     effects = scene.procam_effects.strip() or "none"
     diagnosis = None
     if effects.lower() != "none":
         diagnosis = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder (for the effect models)")
     return StageCOptions(schedule=scene.procam_schedule, iterations=scene.procam_iterations or None,
                          seed=scene.procam_seed, area=parse_area(scene.procam_area) if scene.procam_area.strip()
-                         else None, use_bias=scene.procam_use_bias, device=scene.procam_device if closed else None,
+                         else None, use_bias=scene.procam_use_bias, device=scene_device(scene) if closed else None,
                          effects=effects, diagnosis=diagnosis)
 
 
@@ -53,17 +61,25 @@ def _stage_c_why_not(scene: bpy.types.Scene, *, device_needed: bool) -> str | No
         return "no calibration: run Calibrate or choose a calibration folder"
     if not (len(scene.procam_targets) or scene.procam_target_folder):
         return "no targets: add target images or choose an image sequence folder"
-    if (device_needed or scene.procam_compensation_mode == "CLOSED") and not scene.procam_device:
+    if scene.procam_compensation_mode == "LIVE":
+        if not scene.procam_live_camera.strip():
+            return "Live mode needs the camera of the Live panel (its index, device path or URL)"
+    elif (device_needed or scene.procam_compensation_mode == "CLOSED") and not scene.procam_device:
         return "needs a device: lab:TRUTH_FILE or folder:CAPTURE_DIR"
     return None
 
 
 class _DeviceJob(JobOperator):
     """A job that projects through the scene's device: opened here, on the main thread (the lab builds a
-    Blender scene and renders with Cycles), and relayed to from the worker."""
+    Blender scene and renders with Cycles), and relayed to from the worker. A live device is the exception:
+    the step opens it in the job's own thread (the calibrated projector sizes its window, and an SDL window
+    stays with the thread that made it; operators/live.py says why macOS runs it in the foreground)."""
+
+    def in_foreground(self, context: bpy.types.Context) -> bool:
+        return WINDOW_NEEDS_MAIN_THREAD and context.scene.procam_compensation_mode == "LIVE"
 
     def open_device(self, spec: str | None, relay: "jobs.MainThreadRelay | None"):
-        if not spec:
+        if not spec or device_kind(spec) == "live":
             return None
         self._device = device = open_device(spec)
         return jobs.RelayedDevice(device, relay) if relay is not None else device
@@ -130,7 +146,7 @@ class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
         options = evaluate_step.EvaluateOptions(
             paths.resolve(scene.procam_calibration_dir, "calibration folder"),
             paths.resolve(scene.procam_compensation_dir, "results folder"), scene_targets(scene),
-            scene.procam_device, paths.resolve(scene.procam_evaluation_dir, "evaluation folder"),
+            scene_device(scene), paths.resolve(scene.procam_evaluation_dir, "evaluation folder"),
             force=scene.procam_replace_outputs)
         return jobs.Job("evaluation", evaluate_step.run, options, device=self.open_device(options.device, relay))
 

@@ -31,6 +31,8 @@ class JobOperator:
     ``apply``."""
 
     step = ""
+    #: What a cancelled run leaves behind, for the report.
+    cancel_note = "the scene and the output folder are unchanged"
     _timer = None
     _job = None
     _relay = None
@@ -51,6 +53,10 @@ class JobOperator:
         """Write a finished job's result into the scene (main thread); returns the report."""
         raise NotImplementedError
 
+    def in_foreground(self, context: bpy.types.Context) -> bool:
+        """Whether the job must run on the main thread even with a window (a live projector window on macOS)."""
+        return False
+
     # -- the operator protocol
 
     @classmethod
@@ -64,7 +70,8 @@ class JobOperator:
         return self._launch(context, threaded=False)
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        return self._launch(context, threaded=not bpy.app.background and context.window is not None)
+        threaded = not bpy.app.background and context.window is not None and not self.in_foreground(context)
+        return self._launch(context, threaded=threaded)
 
     def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         job = self._job
@@ -154,7 +161,7 @@ class JobOperator:
             self.report({"INFO"}, f"{message} ({snap.seconds:.1f} s)")
             return {"FINISHED"}
         if snap.status == jobs.CANCELLED:
-            self.report({"WARNING"}, f"{job.name} cancelled: the scene and the output folder are unchanged")
+            self.report({"WARNING"}, f"{job.name} cancelled: {self.cancel_note}")
             return {"CANCELLED"}
         self.report({"ERROR"}, snap.error or f"{job.name} failed")
         return {"CANCELLED"}

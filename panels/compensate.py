@@ -23,7 +23,7 @@ class PROCAM_PT_compensate(bpy.types.Panel):
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "ProCam"
-    bl_order = 3
+    bl_order = 4
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
@@ -36,7 +36,10 @@ class PROCAM_PT_compensate(bpy.types.Panel):
         col.operator("procam.remove_target", text="", icon="REMOVE")
         layout.prop(scene, "procam_target_folder")
         layout.prop(scene, "procam_compensation_mode", expand=True)
-        layout.prop(scene, "procam_device")
+        if scene.procam_compensation_mode == "LIVE":  # the closed loop and Evaluate go through the Live panel's rig
+            layout.label(text="Device: the Live panel's projector and camera", icon="LINKED")
+        else:
+            layout.prop(scene, "procam_device")
         row = layout.row(align=True)
         row.prop(scene, "procam_schedule", text="")
         row.prop(scene, "procam_iterations")

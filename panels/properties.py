@@ -23,7 +23,8 @@ SCHEDULE_ITEMS = [("fast", "Fast", "Fixed-point start, 60 joint iterations, 15 c
                                    "schedule in a fraction of the time"),
                   ("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ")]
 MODE_ITEMS = [("OPEN", "Open Loop", "No device: the bias θ comes from the calibration's validation captures"),
-              ("CLOSED", "Closed Loop", "θ from captures of the projector input through the device (lab or folder)")]
+              ("CLOSED", "Closed Loop", "θ from captures of the projector input through the device (lab or folder)"),
+              ("LIVE", "Live", "Closed loop through the real projector and camera of the Live panel")]
 
 
 def scene_properties() -> dict[str, object]:

@@ -1,17 +1,22 @@
-"""Shared pytest fixtures: an empty Blender scene, the extension registered, and fresh-process Python runs."""
+"""Shared pytest fixtures: an empty Blender scene, the extension registered, fresh-process Python runs, and a
+virtual X server for the live loop's projector window."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+#: The virtual screen of the ``xvfb`` fixture (width, height).
+XVFB_SCREEN = (800, 600)
 
 
 @pytest.fixture
@@ -106,3 +111,40 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
         return _LAB_CALIBRATIONS[key], captures_dir, truth_path
 
     return make
+
+
+def _free_display() -> int:
+    for n in range(90, 200):
+        if not Path(f"/tmp/.X11-unix/X{n}").exists() and not Path(f"/tmp/.X{n}-lock").exists():
+            return n
+    raise RuntimeError("no free X display number")
+
+
+@pytest.fixture(scope="module")
+def xvfb():
+    """A virtual X server (:data:`XVFB_SCREEN`) for the module, as DISPLAY with SDL on X11; the tests skip, saying
+    why, where it cannot start."""
+    if shutil.which("Xvfb") is None:
+        pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb; scripts/setup.sh does it as root)")
+    n = _free_display()
+    screen = f"{XVFB_SCREEN[0]}x{XVFB_SCREEN[1]}x24"
+    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", screen, "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 10
+    while not Path(f"/tmp/.X11-unix/X{n}").exists():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.skip(f"the virtual X server did not start: {proc.stderr.read().decode()[-300:]}")
+        time.sleep(0.05)
+    saved = {k: os.environ.get(k) for k in ("DISPLAY", "SDL_VIDEODRIVER")}
+    os.environ["DISPLAY"], os.environ["SDL_VIDEODRIVER"] = f":{n}", "x11"
+    yield f":{n}"
+    import pygame
+    pygame.display.quit()
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    proc.terminate()
+    proc.wait(timeout=10)

@@ -4,10 +4,6 @@ client (OpenCV VideoCapture) of a loopback MJPEG server filming that window, clo
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import socket
-import subprocess
 import time
 from pathlib import Path
 
@@ -25,8 +21,8 @@ from procam.addon.live.loopback import LoopbackCamera, painted_wall
 from procam.addon.live.window import ProjectorWindow, list_displays
 from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
 from procam.addon.steps.live import LiveCaptureOptions, run_live_capture
+from tests.conftest import XVFB_SCREEN as SCREEN  # the screen of the shared xvfb fixture
 
-SCREEN = (800, 600)
 ORIGIN = (40, 30)  # where the projector window sits on the virtual screen
 SIZE = (256, 192)  # projector and camera
 
@@ -72,41 +68,6 @@ def test_stage_c_names_the_live_device():
 
 
 # -- on a virtual X server ----------------------------------------------------------------------------------------
-
-def _free_display() -> int:
-    for n in range(90, 200):
-        if not Path(f"/tmp/.X11-unix/X{n}").exists() and not Path(f"/tmp/.X{n}-lock").exists():
-            return n
-    raise RuntimeError("no free X display number")
-
-
-@pytest.fixture(scope="module")
-def xvfb():
-    """A virtual X server for the module; the tests skip, saying why, where it cannot start."""
-    if shutil.which("Xvfb") is None:
-        pytest.skip("Xvfb is not installed (Debian: apt-get install xvfb; scripts/setup.sh does it as root)")
-    n = _free_display()
-    proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", f"{SCREEN[0]}x{SCREEN[1]}x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 10
-    while not Path(f"/tmp/.X11-unix/X{n}").exists():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            pytest.skip(f"the virtual X server did not start: {proc.stderr.read().decode()[-300:]}")
-        time.sleep(0.05)
-    saved = {k: os.environ.get(k) for k in ("DISPLAY", "SDL_VIDEODRIVER")}
-    os.environ["DISPLAY"], os.environ["SDL_VIDEODRIVER"] = f":{n}", "x11"
-    yield f":{n}"
-    import pygame
-    pygame.display.quit()
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
-    proc.terminate()
-    proc.wait(timeout=10)
-
 
 def _grab(region: tuple[int, int, int, int]) -> np.ndarray:
     import mss

@@ -85,7 +85,7 @@ class RecordingLayout:
         return call
 
 
-PANELS = ("PROCAM_PT_rig", "PROCAM_PT_captures", "PROCAM_PT_calibrate", "PROCAM_PT_compensate",
+PANELS = ("PROCAM_PT_rig", "PROCAM_PT_captures", "PROCAM_PT_live", "PROCAM_PT_calibrate", "PROCAM_PT_compensate",
           "PROCAM_PT_diagnose", "PROCAM_PT_export")
 
 
@@ -131,7 +131,8 @@ def test_every_panel_draws_not_run_state(registered):
     ops = [c[1]["operator"] for calls in drawn.values() for c in calls if c[0] == "operator"]
     assert {"procam.create_rig", "procam.run_lab", "procam.calibrate", "procam.load_calibration", "procam.add_targets",
             "procam.compensate", "procam.diagnose", "procam.export_frames",
-            "procam.export_calibration_blend"} <= set(ops)
+            "procam.export_calibration_blend", "procam.live_check", "procam.live_preview",
+            "procam.live_capture"} <= set(ops)
 
 
 def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
@@ -255,3 +256,34 @@ def test_board_calibration_subpanel_draws_its_states(registered, tmp_path):
     finally:
         gate.set()
         job.wait(5)
+
+
+def test_live_panel_draws_placement_check_report_and_session(registered, tmp_path):
+    """Display or position fields by placement, the last check's measurements, an interrupted session; Compensate's
+    Live mode names the Live panel's rig instead of the Device field."""
+    from procam.addon.live.device import LiveReport
+
+    scene = bpy.context.scene
+
+    def props(calls):
+        return [c[1]["property"] for c in calls if c[0] == "prop"]
+
+    calls = draw_all(bpy.context)["PROCAM_PT_live"]
+    assert "procam_live_display" in props(calls) and "procam_live_position" not in props(calls)
+    assert "Not run" in texts(calls)
+    scene.procam_live_placement = "POSITION"
+    report = LiveReport(0.12, (0.1, 0.12, 0.11), 1 / 30, 0.004, 2, {"exposure": True}, 0.01, 0.0)
+    jobs.BOARD.add("live_check", jobs.Job("live check", lambda *, progress, cancel: ("displays: 0: 800×600",
+                                                                                       report))).run()
+    (tmp_path / "set.session").mkdir()
+    (tmp_path / "set.session" / "session.json").write_text("{}")
+    scene.procam_live_capture_dir = str(tmp_path / "set")
+    drawn = draw_all(bpy.context)
+    calls = drawn["PROCAM_PT_live"]
+    assert "procam_live_position" in props(calls) and "procam_live_display" not in props(calls)
+    text = texts(calls)
+    assert "latency 120 ms" in text and "displays: 0: 800×600" in text and "interrupted session" in text
+    assert "procam_device" in props(drawn["PROCAM_PT_compensate"])
+    scene.procam_compensation_mode = "LIVE"
+    compensate = draw_all(bpy.context)["PROCAM_PT_compensate"]
+    assert "procam_device" not in props(compensate) and "Live panel" in texts(compensate)

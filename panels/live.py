@@ -1,0 +1,124 @@
+"""View3D ▸ Sidebar ▸ ProCam ▸ Live: the real projector and camera (the ``live:…`` device), a check of the rig, a
+camera preview, the calibration set captured live, and where Compensate's Live mode gets its device."""
+
+from pathlib import Path
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, IntVectorProperty, StringProperty
+
+from ..addon import jobs
+from ..addon.steps.live import SESSION_MANIFEST
+from ..addon.steps.summary import Summary
+from .captures import capture_set_status
+from .step_state import draw_state, wrapped
+
+PLACEMENT_ITEMS = [("DISPLAY", "Display", "Cover one display exactly (its size must be the projector's native "
+                                          "size): the projector as its own screen"),
+                   ("POSITION", "Position", "A projector-sized window at desktop coordinates: the projector as part "
+                                            "of a larger desktop")]
+LIVE_ENCODING_ITEMS = [("srgb", "sRGB", "The camera delivers sRGB-encoded 8-bit frames (webcams, network cameras, "
+                                        "phones)"),
+                       ("linear", "Linear", "The camera delivers linear values")]
+
+
+def scene_properties() -> dict[str, object]:
+    """Scene properties this panel shows (registered on ``bpy.types.Scene`` by ``blender_registration``)."""
+    return {
+        "procam_live_camera": StringProperty(
+            name="Camera", default="0",
+            description="The camera: an index (0, 1 …), a device path (/dev/video2) or a URL "
+                        "(http://…/video.mjpg from a network camera or a phone, rtsp://…)"),
+        "procam_live_placement": EnumProperty(name="Window", items=PLACEMENT_ITEMS, default="DISPLAY"),
+        "procam_live_display": IntProperty(
+            name="Display", default=1, min=0, soft_max=8,
+            description="Index of the projector's display (Check Live Rig lists them; 0 is usually the main one)"),
+        "procam_live_position": IntVectorProperty(
+            name="Position", size=2, default=(0, 0), subtype="XYZ",
+            description="Top-left corner of the projector window in desktop pixels"),
+        "procam_live_average": IntProperty(
+            name="Frames Averaged", default=1, min=1, max=64,
+            description="Camera frames averaged per capture: more lowers the camera's noise, each costs one frame"),
+        "procam_live_encoding": EnumProperty(name="Camera Encoding", items=LIVE_ENCODING_ITEMS, default="srgb"),
+        "procam_live_latency_auto": BoolProperty(
+            name="Measure Latency", default=True,
+            description="Measure the time from showing a frame to the camera seeing it when the rig opens (off: "
+                        "use the latency given)"),
+        "procam_live_latency": FloatProperty(
+            name="Latency", default=0.2, min=0.0, max=9.99, step=1, precision=3, subtype="TIME_ABSOLUTE",
+            unit="TIME_ABSOLUTE", description="Seconds from showing a frame to the camera delivering it"),
+        "procam_live_check_exposure": BoolProperty(
+            name="Check Exposure Lock", default=True,
+            description="Refuse a camera whose exposure or white balance still adapts (and check the captured set "
+                        "the same way); off only for a camera known to be locked"),
+        "procam_live_depth_file": StringProperty(
+            name="Depth", subtype="FILE_PATH",
+            description="Optional depth of the scene seen from the camera (as Import Captures takes it), for "
+                        "calibration's surface"),
+        "procam_live_capture_dir": StringProperty(
+            name="Live Capture Set", subtype="DIR_PATH",
+            description="New capture-set folder for Capture Live (an interrupted session waits beside it, in "
+                        "FOLDER.session, and Capture Live resumes it)"),
+    }
+
+
+def check_summary() -> Summary:
+    """The last Check Live Rig's findings (kept on the job board), or what it would tell."""
+    job = jobs.BOARD.get("live_check")
+    if job is not None and job.status == jobs.DONE:
+        displays, report = job.result
+        return Summary(True, "Live rig checked", (displays, *report.lines()))
+    return Summary(False, "Check Live Rig measures latency, noise and the exposure lock")
+
+
+def capture_summary(folder: str) -> Summary:
+    """What the live capture folder holds: a capture set, an interrupted session, or nothing yet."""
+    if not folder:
+        return Summary(False, "Choose the new capture-set folder, then Capture Live")
+    root = Path(bpy.path.abspath(folder).rstrip("/\\"))
+    if (root.with_name(root.name + ".session") / SESSION_MANIFEST).is_file():
+        return Summary(False, f"An interrupted session waits in {root.name}.session: Capture Live resumes it")
+    icon, text = capture_set_status(folder)
+    if icon == "CHECKMARK":
+        return Summary(True, f"Captured: {text}")
+    return Summary(False, "Capture Live shows the calibration patterns and captures each")
+
+
+class PROCAM_PT_live(bpy.types.Panel):
+    bl_idname = "PROCAM_PT_live"
+    bl_label = "Live"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "ProCam"
+    bl_order = 2
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        scene = context.scene
+        layout.prop(scene, "procam_live_camera")
+        layout.prop(scene, "procam_live_placement", expand=True)
+        if scene.procam_live_placement == "DISPLAY":
+            layout.prop(scene, "procam_live_display")
+        else:
+            layout.prop(scene, "procam_live_position")
+        col = layout.column(align=True)
+        col.prop(scene, "procam_live_average")
+        col.prop(scene, "procam_live_encoding", text="")
+        row = col.row(align=True)
+        row.prop(scene, "procam_live_latency_auto")
+        sub = row.row(align=True)
+        sub.enabled = not scene.procam_live_latency_auto
+        sub.prop(scene, "procam_live_latency", text="")
+        col.prop(scene, "procam_live_check_exposure")
+        row = layout.row(align=True)
+        row.operator("procam.live_check", icon="VIEWZOOM")
+        row.operator("procam.live_preview", icon="CAMERA_DATA")
+        draw_state(layout, "live_check", check_summary())
+        layout.separator()
+        layout.prop(scene, "procam_live_capture_dir")
+        layout.prop(scene, "procam_live_depth_file")
+        draw_state(layout, "live_capture", capture_summary(scene.procam_live_capture_dir))
+        col = layout.column(align=True)
+        col.operator("procam.live_capture", icon="REC")
+        col.prop(scene, "procam_replace_outputs")
+        wrapped(layout, "Compensate ▸ Live runs the closed loop through this rig", icon="INFO")
