@@ -162,7 +162,7 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(evaluate_step, "open_device", lambda spec: Flaky(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(evaluate_step, "open_device", lambda spec, projector=None: Flaky(LabTruth.load(env.truth_path)))
     out = env.root / "eval_flaky"
     assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
     assert "camera is" in capsys.readouterr().err
@@ -197,3 +197,32 @@ def test_no_w_ablation_uses_an_identity_warp(env):
     comp = Compensator(ablation, bounces=0, spp=1)
     assert np.array_equal(comp.warp_w(z), z) and np.array_equal(comp.warp_m(z), z)
     assert not np.allclose(Compensator(warped, bounces=0, spp=1).warp_w(z), z)
+
+
+def test_range_auto_on_bright_content(env, capsys):
+    """Bright content clips; ``--range auto`` maps the targets inside what the projector shows, evaluation measures
+    against the mapped targets and reports the range ceiling next to each figure."""
+    from procam.addon.capture.patterns import smooth_random
+    from procam.addon.imageio import write_image
+
+    bright = write_image(env.root / "bright.png", (0.35 + 0.65 * smooth_random((160, 120), 7, 20.0)).astype(np.float32))
+    rows = {}
+    for rng in ("none", "auto"):
+        comp, out = env.root / f"comp-{rng}", env.root / f"eval-{rng}"
+        assert main(["compensate", str(env.cal_dir), str(bright), "--out", str(comp), "--iterations", "4",
+                     "--spp", "1", "--no-bias", "--range", rng]) == 0
+        manifest = json.loads((comp / "compensation.json").read_text())
+        assert main(["evaluate", str(env.cal_dir), "--inputs", str(comp), "--targets", str(bright), "--device",
+                     f"lab:{env.truth_path}", "--out", str(out)]) == 0
+        doc = json.loads((out / "metrics.json").read_text())
+        rows[rng] = (manifest["range"], doc["range"], doc["targets"][0])
+    assert rows["none"][0] is None and rows["none"][1] is None
+    fitted, recorded, row = rows["auto"]
+    assert fitted == recorded and 0 < fitted["gain"] < 1 and fitted["clipped_share"] <= 0.0101
+    plain = rows["none"][2]
+    # The raw bright target lies far outside the range; the mapped one almost inside: the ceiling says so, and the
+    # compensation gets much closer to what it aims at.
+    assert plain["range_ceiling"] < 25 and row["range_ceiling"] > plain["range_ceiling"] + 10
+    assert row["psnr"] > plain["psnr"] + 3 and row["psnr"] <= row["range_ceiling"]
+    assert "range ceiling" in capsys.readouterr().out
+    assert main(["compensate", str(env.cal_dir), str(bright), "--out", str(env.root / "x"), "--range", "2"]) == 2

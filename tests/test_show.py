@@ -274,3 +274,24 @@ def test_show_closed_loop_through_the_lab(lab_calibration, tmp_path, capsys):
     assert main(args) == EXIT_USER
     err = capsys.readouterr().err
     assert "mode: 'closed-loop' → 'open-loop'" in err and "--force" in err
+
+
+def test_show_range_auto_is_one_map_for_the_show(lab_calibration, tmp_path, capsys):
+    """``--range auto`` fits one gain and offset to the show's frames (never per frame), records it in the settings,
+    and a rerun with the same frames resumes under the same map."""
+    from procam.addon.capture.patterns import smooth_random
+
+    cal_dir, _, _ = lab_calibration()
+    seq = tmp_path / "frames"
+    seq.mkdir()
+    for n in (1, 2):
+        write_image(seq / f"shot_{n:04d}.png", (0.35 + 0.65 * smooth_random((160, 120), n, 20.0)).astype(np.float32))
+    out = tmp_path / "show"
+    args = ["show", str(cal_dir), str(seq / "shot_####.png"), "--out", str(out), *FAST, "--range", "auto"]
+    assert main(args) == EXIT_OK
+    rng = _manifest(out)["settings"]["range"]
+    assert 0 < rng["gain"] < 1 and rng["clipped_share"] <= 0.0101
+    assert main(args) == EXIT_OK and _manifest(out)["runs"][-1]["skipped"] == 2
+    # Another map is another show: refused without --force, like any other setting.
+    assert main([*args[:-1], f"{rng['gain'] * 0.9},{rng['offset']}"]) == EXIT_USER
+    assert "range.gain" in capsys.readouterr().err

@@ -47,6 +47,11 @@ def add_schedule_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate on z (default: the schedule's)")
     p.add_argument("--target-encoding", choices=TARGET_ENCODINGS, default="auto",
                    help="auto: 8-bit files are sRGB and are linearised, 16-bit/float are linear")
+    p.add_argument("--range", default="none",
+                   help="what the targets become before compensation: 'auto' fits one gain and offset to all the "
+                        "targets so that at most 1 %% of their values lie outside what the projector shows on this "
+                        "surface (its white and black captures), never dimming targets that fit; 'GAIN,OFFSET' "
+                        "gives them; 'none' (default) keeps the targets as they are")
     p.add_argument("--no-bias", action="store_true", help="no θ at all (ablation): neither captures nor validation")
     p.add_argument("--seed", type=int, default=0)
 
@@ -57,7 +62,7 @@ def stage_c_options(args: argparse.Namespace) -> StageCOptions:
                             capture_every=args.capture_every, spp=args.spp, bounces=args.bounces, seed=args.seed,
                             area=parse_area(args.area) if args.area else None, target_encoding=args.target_encoding,
                             use_bias=not args.no_bias, device=args.device, effects=args.effects,
-                            diagnosis=args.diagnosis)
+                            diagnosis=args.diagnosis, range=args.range)
     options.check()
     return options
 

@@ -51,8 +51,11 @@ def run(args: argparse.Namespace) -> int:
             u = r["uncompensated"]
             extra = f", classical {r['classical']['psnr']:.2f} dB" if "classical" in r else ""
             print(f"{r['name']}: PSNR {u['psnr']:.2f} → {r['psnr']:.2f} dB, SSIM {u['ssim']:.3f} → {r['ssim']:.3f} "
-                  f"(uncompensated → compensated{extra})")
+                  f"(uncompensated → compensated{extra}); range ceiling {r['range_ceiling']:.2f} dB")
     m = doc["mean"]
+    if doc.get("range"):
+        print(f"targets mapped by the compensation's range: {doc['range']['gain']:.3f}·t "
+              f"{doc['range']['offset']:+.3f}")
     if m:
         print(f"mean: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; metrics in {args.out / 'metrics.json'}")
     return 0

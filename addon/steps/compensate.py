@@ -83,6 +83,9 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         targets = [stage.load(p) for p in paths]
         for image, _ in targets:
             stage.area_for(image)
+        if stage.fix_range([image for image, _ in targets]) is not None:
+            r = stage.range_map
+            say(f"range: targets mapped to {r.gain:.3f}·t + {r.offset:+.3f} ({r.rule})", 0.03)
         names = output_names(paths)
         folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds)
         records: list[dict[str, Any]] = []

@@ -38,6 +38,7 @@ from ..stages.classical import fit_classical
 from ..stages.compensate import Compensator
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
 from ..stages.metrics import mean_scores, measure, side_by_side, uncompensated_input
+from ..stages.range import RangeMap, range_ceiling
 from . import calibrate as calibrate_step
 from . import layout
 from .stage_c import open_device
@@ -208,12 +209,15 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     # Read and check everything first: a bad file fails before any projection.
     frames = {name: inputs.frame(name, proj) for name, _, _ in targets}
     comp = Compensator(calibration, bounces=0, spp=4)
+    range_map = RangeMap.from_dict(inputs.doc.get("range"))
+    captures = calibrate_step.captures_of(calibration)
+    white, black = captures.image("white"), captures.image("black")
     comp.check_device(device)
     model = None
     if classical:
         say("classical baseline: fitting the per-pixel colour mixing (flat primaries captured through the device)",
             0.0)
-        model = fit_classical(calibrate_step.captures_of(calibration), device=device)
+        model = fit_classical(captures, device=device)
     rows: list[dict[str, Any]] = []
     failure: ProCamError | None = None
     for i, (name, image, note) in enumerate(targets):
@@ -226,10 +230,13 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", TargetAspectWarning)
                 fitted = fit_target(image, area, what=f"target {name!r}")
+            if range_map is not None:  # the compensation aimed at the mapped target: measure against that
+                fitted = range_map.apply(fitted)
             placed = area.place(fitted, cam_size)
             got = measure(device, frames[name], fitted, area, cam_size)
             plain = measure(device, proj.frame_from_input(uncompensated_input(comp, placed)), fitted, area, cam_size)
-            row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores()}
+            row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
+                                   "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2)}
             extra = []
             if model is not None:
                 t0 = time.perf_counter()
@@ -261,10 +268,14 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
            "calibration": str(Path(calibration_dir).absolute()) if calibration_dir else None,
            "capture_set": calibration.capture_dir, "notes": notes or [],
            "measure": "PSNR (dB, peak 1) and SSIM (Wang et al. 2004) of the capture inside the display area "
-                      "against the target fitted to the area",
+                      "against the target fitted to the area (and mapped by the compensation's range, if any); "
+                      "range_ceiling: PSNR of that target clipped per pixel to the captured [black, white], the "
+                      "best any input could do",
+           "range": None if range_map is None else range_map.to_dict(),
            "classical": None if model is None else model.report,
            "targets": rows, "mean": mean_scores(done),
            "mean_uncompensated": mean_scores(done, "uncompensated"),
+           "mean_range_ceiling": round(float(np.mean([r["range_ceiling"] for r in done])), 2) if done else None,
            "mean_classical": mean_scores(done, "classical") if model is not None else None,
            "complete": failure is None}
     return EvaluationRun(doc, failure)
@@ -316,7 +327,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     mean, plain = doc.get("mean") or {}, doc.get("mean_uncompensated") or {}
     head = (f"PSNR {fmt(plain.get('psnr'), '.2f')} → {fmt(mean.get('psnr'), '.2f')} dB, SSIM "
             f"{fmt(plain.get('ssim'), '.3f')} → {fmt(mean.get('ssim'), '.3f')} (uncompensated → compensated)")
-    lines = tuple(f"{t['name']}: {fmt(t['uncompensated']['psnr'], '.2f')} → {fmt(t['psnr'], '.2f')} dB"
+    lines = tuple(f"{t['name']}: {fmt(t['uncompensated']['psnr'], '.2f')} → {fmt(t['psnr'], '.2f')} dB "
+                  f"(range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB)"
                   if t.get("status") == "done" else f"{t.get('name')}: failed — {t.get('error', '')}"
                   for t in doc.get("targets", []))
     return Summary(True, head, lines, {"targets": doc.get("targets", [])})

@@ -49,6 +49,7 @@ from ..outputs import file_sha256, jsonable, natural_key, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..stages.compensate import BiasModel, Compensator
 from ..stages.display_area import DisplayArea
+from ..stages.range import RangeMap
 from . import calibrate as calibrate_step
 from . import layout
 from .stage_c import StageC, StageCOptions
@@ -60,6 +61,8 @@ BIAS_FILE = layout.OPEN_LOOP_BIAS
 FRAME_PREFIX = layout.FRAME_PREFIX
 #: Files taken as frames when a folder is given.
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".npy")
+#: ``--range auto`` fits the show's gain and offset to at most this many frames, evenly spread.
+RANGE_SAMPLE = 32
 
 class SequenceError(ProCamError):
     """A target sequence or show folder that cannot be used as asked."""
@@ -177,7 +180,7 @@ class ShowOptions:
 
 
 def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: str, digits: int,
-                effects: dict[str, Any] | None) -> dict[str, Any]:
+                effects: dict[str, Any] | None, range_map: RangeMap | None = None) -> dict[str, Any]:
     """What decides the frames' pixels: two runs with equal settings write the same frames."""
     schedule = asdict(options.resolved())
     if mode != "closed-loop":  # θ's update rule and the capture interval only act in the closed loop
@@ -185,7 +188,8 @@ def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: st
     return {"calibration_sha256": calibration["sha256"], "surface_sha256": calibration["surface_sha256"],
             "device": options.device_spec, "mode": mode, "schedule": schedule, "spp": options.spp,
             "bounces": options.bounces, "seed": options.seed, "area": list(options.area) if options.area else "auto",
-            "target_encoding": options.target_encoding, "digits": digits, "effects": effects}
+            "target_encoding": options.target_encoding, "digits": digits, "effects": effects,
+            "range": None if range_map is None else range_map.to_dict()}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
@@ -374,7 +378,13 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
     with StageC(cal, sc, device=device, compensator=compensator) as stage:
         effects = stage.adapter.params if stage.adapter is not None else None
-        settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects)
+        if sc.range == "auto":
+            # One map for the whole show, from an even sample of its frames (a per-frame fit would flicker).
+            sample = frames[::max(1, -(-len(frames) // RANGE_SAMPLE))]
+            say(f"range: fitting one gain and offset to {len(sample)} of the {len(frames)} frames", 0.0)
+            stage.fix_range([stage.load(f.path)[0] for f in sample])
+        settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects,
+                               range_map=stage.range_map)
         return _run(options, frames, stage, cal, ident, settings, digits, say, cancel)
 
 

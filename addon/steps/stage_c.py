@@ -29,6 +29,7 @@ from ..stages.calibrate import Calibration
 from ..stages.compensate import (DEFAULT_SCHEDULE, BiasModel, CompensationResult, Compensator, Schedule, get_schedule,
                                  split_iterations)
 from ..stages.display_area import DisplayArea, TargetAspectWarning, choose_area, fit_target, load_target
+from ..stages.range import RangeError, RangeMap, fit_range, parse_range
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
 
@@ -61,6 +62,9 @@ class StageCOptions:
     #: diagnosed effect models around stage C: 'none', 'auto' or NAME,...; their parameters come from ``diagnosis``
     effects: str = "none"
     diagnosis: Path | None = None
+    #: the show's range map: 'none', 'auto' (one gain and offset fitted to the targets, stages/range.py) or
+    #: 'GAIN,OFFSET'
+    range: str = "none"
 
     def run_arguments(self) -> dict[str, Any]:
         """The schedule keywords of :meth:`Compensator.run`: the schedule's name and only the values given."""
@@ -87,6 +91,7 @@ class StageCOptions:
             raise ProCamError(f"the learning rate must be a positive number, got {self.lr}")
         if self.device is not None:
             device_kind(self.device)
+        parse_range(self.range)
         return self.resolved()
 
     @property
@@ -164,6 +169,9 @@ class StageC:
         self.captures = calibrate_step.captures_of(calibration, required=False)
         self.user_area = choose_area(calibration, aspect=1.0, user=options.area) if options.area else None
         self.areas: dict[str, DisplayArea] = {}
+        given = parse_range(options.range)
+        #: the show's map t → gain·t + offset (None: targets as they are); ``auto`` is fitted by :meth:`fix_range`
+        self.range_map: RangeMap | None = given if isinstance(given, RangeMap) else None
         if compensator is not None and self.adapter is not None:
             raise ProCamError("a run with effect models builds its own compensator (its scene moves with them)")
         if compensator is not None and (compensator.bounces, compensator.spp, compensator.seed) != \
@@ -214,6 +222,27 @@ class StageC:
             self.areas[key] = choose_area(self.calibration, aspect=aspect, captures=self.captures)
         return self.areas[key]
 
+    def fix_range(self, images: list[np.ndarray]) -> RangeMap | None:
+        """With ``--range auto``, fit the show's one gain and offset to ``images`` (all its targets, or an even
+        sample of a long show's frames) against the calibration's white and black captures; else the given map."""
+        if parse_range(self.options.range) != "auto":
+            return self.range_map
+        if self.captures is None:
+            raise RangeError("--range auto needs the white and black captures of the calibration's capture set, "
+                             f"which cannot be read at {self.calibration.capture_dir!r}: put it back, or give "
+                             "--range GAIN,OFFSET")
+        white, black = self.captures.image("white"), self.captures.image("black")
+        fitted, blacks, whites = [], [], []
+        for image in images:
+            area = self.area_for(image)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", TargetAspectWarning)  # said again when the target is compensated
+                fitted.append(fit_target(image, area))
+            blacks.append(area.crop(black))
+            whites.append(area.crop(white))
+        self.range_map = fit_range(fitted, blacks, whites)
+        return self.range_map
+
     def load(self, path: str | Path) -> tuple[np.ndarray, str]:
         """A target image as stage C reads it (linear light; the note says how it was decoded)."""
         return load_target(path, encoding=self.options.target_encoding)
@@ -227,6 +256,8 @@ class StageC:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = fit_target(image, area, what=what)
+            if self.range_map is not None:
+                fitted = self.range_map.apply(fitted)
             model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
             res = self.compensator.run(model_target, area, device=self.model_device, **self.options.run_arguments(),
                                        progress=progress, cancel=cancel, open_loop_theta=self.bias,
@@ -247,6 +278,7 @@ class StageC:
                 "lr": s.lr, "capture_every": s.capture_every if mode == "closed-loop" else None,
                 "bounces": self.bounces, "spp": o.spp, "seed": o.seed, "warp": self.calibration.warp is not None,
                 "area_given": list(o.area) if o.area else None, "target_encoding": o.target_encoding,
+                "range": None if self.range_map is None else self.range_map.to_dict(),
                 "effects": None if self.adapter is None else {
                     "diagnosis": str(Path(o.diagnosis).absolute()), "used": self.adapter.used,
                     "not_inverted": self.adapter.not_used, "params": self.adapter.params}}
