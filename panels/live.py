@@ -117,7 +117,12 @@ class PROCAM_PT_live(bpy.types.Panel):
         layout.separator()
         layout.prop(scene, "procam_live_capture_dir")
         layout.prop(scene, "procam_live_depth_file")
-        draw_state(layout, "live_capture", capture_summary(scene.procam_live_capture_dir))
+        summary = capture_summary(scene.procam_live_capture_dir)
+        draw_state(layout, "live_capture", summary)
+        job = jobs.BOARD.get("live_capture")
+        if job is not None and job.finished and not summary.ok:
+            # After Esc or a failure the photographs so far are kept: say that a rerun resumes them.
+            wrapped(layout, summary.headline, icon="INFO")
         col = layout.column(align=True)
         col.operator("procam.live_capture", icon="REC")
         col.prop(scene, "procam_replace_outputs")

@@ -283,6 +283,10 @@ def test_live_panel_draws_placement_check_report_and_session(registered, tmp_pat
     assert "procam_live_position" in props(calls) and "procam_live_display" not in props(calls)
     text = texts(calls)
     assert "latency 120 ms" in text and "displays: 0: 800×600" in text and "interrupted session" in text
+    job = jobs.BOARD.add("live_capture", jobs.Job("live capture", lambda *, progress, cancel: None))
+    job.cancel()
+    job.run()
+    assert "interrupted session" in texts(draw_all(bpy.context)["PROCAM_PT_live"])  # said after Esc too
     assert "procam_device" in props(drawn["PROCAM_PT_compensate"])
     scene.procam_compensation_mode = "LIVE"
     compensate = draw_all(bpy.context)["PROCAM_PT_compensate"]
