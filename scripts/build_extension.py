@@ -1,49 +1,65 @@
 #!/usr/bin/env python3
-"""Build the ProCam extension zip: ``dist/procam-<version>.zip`` with its dependency wheels inside.
+"""Build the ProCam extension: one zip per platform, ``dist/procam-<version>-<platform>.zip``, with its wheels inside.
 
-Usage: ``python scripts/build_extension.py [--out DIR] [--wheels-cache DIR] [--no-wheels]``
-(also ``procam build-extension``). Standard library only, so it runs with any
-Python 3.11 that has pip.
+Usage: ``python scripts/build_extension.py [--out DIR] [--platform P ...] [--wheels-cache DIR]
+[--no-wheels] [--with-llvm]`` (also ``procam build-extension``). Standard library only; the zips
+are written by Blender's own extension tool, which ships in the bpy wheel (requirements.txt), so
+run it with the Python of the README's set-up.
 
-1. Downloads the wheels of the runtime dependencies that Blender lacks
-   (:data:`WHEEL_PACKAGES`, at the versions pinned in ``requirements.txt``,
-   for CPython 3.11 on manylinux x86-64) into a cache folder, once.
-2. Mirrors them into ``wheels/`` beside the manifest (gitignored), so that a
-   source checkout linked into Blender's extension folder also works.
-3. Rewrites the manifest's ``wheels = [...]`` list to exactly those files.
-4. Zips the manifest, the code and the wheels (no tests, scripts, caches or
-   virtual environment) under a temporary name and renames it into place.
+1. For each platform the manifest supports (``platforms`` in ``blender_manifest.toml``:
+   linux-x64, windows-x64, macos-arm64), downloads the wheels of the runtime dependencies that
+   Blender lacks (:data:`WHEEL_PACKAGES`, at the versions pinned in ``requirements.txt``, for
+   CPython 3.11 and that platform's tags, :data:`PLATFORM_TAGS`) into a cache folder, once. A
+   package without a wheel for a platform stops the build with a message naming both: ProCam
+   cannot run there, so no zip may claim it.
+2. Mirrors this machine's wheels into ``wheels/`` beside the manifest (gitignored), so that a
+   source checkout linked into Blender's extension folder also works (Blender installs only the
+   listed wheels of its own platform, and skips the files that are absent).
+3. Rewrites the manifest's ``wheels = [...]`` list to every platform's files.
+4. Lays out the code (no tests, scripts, caches or virtual environment), the manifest and the
+   wheels in a staging folder and runs ``blender_ext.py build --split-platforms`` on it: Blender's
+   per-platform convention, one zip per platform whose manifest ``[build.generated]`` table names
+   that platform and its wheels only. Blender writes each zip under a temporary name and renames it.
 
-Blender installs the wheels itself when the extension is installed: nothing is
-pip-installed at run time (the largest class of complaints about
-mitsuba-blender).
+Blender installs the wheels itself when the extension is installed: nothing is pip-installed
+at run time (the largest class of complaints about mitsuba-blender).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
+import platform as _platform
 import re
 import shutil
 import subprocess
 import sys
 import tempfile
 import tomllib
-import zipfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = "blender_manifest.toml"
 #: Runtime dependencies shipped as wheels (bpy is Blender itself; Blender ships numpy).
-WHEEL_PACKAGES = ("drjit", "mitsuba", "opencv-contrib-python-headless", "pymeshlab")
+WHEEL_PACKAGES = ("drjit", "mitsuba", "opencv-contrib-python-headless", "pymeshlab", "pygame-ce")
 #: Optional LLVM for Dr.Jit's CPU backend on machines without an LLVM >= 16 (DESIGN.md §4).
+#: PyPI has it for Linux x86-64 only, so it goes into the linux-x64 zip only.
 LLVM_PACKAGE = ("karellen-llvm-core", "23.1.4.post8")
+LLVM_PLATFORM = "linux-x64"
 PYTHON_VERSION = "3.11"
-#: pip's --platform does not imply older manylinux tags when several are wanted, so list them.
-PLATFORMS = ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_27_x86_64",
-             "manylinux_2_17_x86_64", "manylinux2014_x86_64")
+#: pip ``--platform`` tags per Blender platform. pip does not imply older manylinux tags when several are
+#: wanted, so list them; a macOS tag implies the older macOS versions and universal2. macOS 13 because
+#: opencv-contrib-python-headless 4.11 has arm64 wheels for macOS >= 13 only (the others need 11).
+PLATFORM_TAGS: dict[str, tuple[str, ...]] = {
+    "linux-x64": ("manylinux_2_35_x86_64", "manylinux_2_28_x86_64", "manylinux_2_27_x86_64",
+                  "manylinux_2_17_x86_64", "manylinux2014_x86_64"),
+    "windows-x64": ("win_amd64",),
+    "macos-arm64": ("macosx_13_0_arm64",),
+}
 #: What goes into the zip (relative to the repository root).
 INCLUDE = ("__init__.py", "blender_registration.py", "addon", "operators", "panels")
+BLENDER_EXT = "scripts/addons_core/bl_pkg/cli/blender_ext.py"
 _SKIP_DIRS = {"__pycache__", ".pytest_cache", ".mypy_cache"}
 _SKIP_SUFFIXES = {".pyc", ".pyo"}
 
@@ -71,33 +87,75 @@ def pinned_versions(root: Path = ROOT, packages: tuple[str, ...] = WHEEL_PACKAGE
     return {p: pins[_canonical(p)] for p in packages}
 
 
-def _cached_wheel(cache: Path, package: str, version: str) -> Path | None:
-    prefix = f"{_canonical(package)}-{version}-"
-    found = sorted(p for p in cache.glob("*.whl") if p.name.lower().startswith(prefix.lower()))
+def wheel_platforms(filename: str) -> set[str]:
+    """Blender platforms a wheel file serves, from its platform tags (as Blender's own tool reads them)."""
+    found: set[str] = set()
+    for tag in Path(filename).stem.split("-")[-1].split("."):
+        if tag == "any":
+            found |= set(PLATFORM_TAGS)
+        elif "linux" in tag and tag.endswith("x86_64"):
+            found.add("linux-x64")
+        elif tag == "win_amd64":
+            found.add("windows-x64")
+        elif tag.startswith("macosx_") and tag.endswith(("_arm64", "_universal2")):
+            found.add("macos-arm64")
+    return found
+
+
+def this_platform() -> str:
+    """This machine as a Blender platform name (linux-x64, windows-x64, macos-arm64, …)."""
+    system = {"darwin": "macos"}.get(_platform.system().lower(), _platform.system().lower())
+    machine = {"x86_64": "x64", "amd64": "x64", "aarch64": "arm64"}.get(_platform.machine().lower(),
+                                                                        _platform.machine().lower())
+    return f"{system}-{machine}"
+
+
+def _cached_wheel(cache: Path, package: str, version: str, platform: str) -> Path | None:
+    prefix = f"{_canonical(package)}-{version}-".lower()
+    found = sorted(p for p in cache.glob("*.whl")
+                   if p.name.lower().startswith(prefix) and platform in wheel_platforms(p.name))
     return found[-1] if found else None
 
 
-def fetch_wheels(cache: Path, pins: dict[str, str], *, python: str = sys.executable) -> list[Path]:
-    """Wheel files for ``pins`` in ``cache``, downloading the missing ones with pip."""
+def fetch_wheels(cache: Path, pins: dict[str, str], platform: str, *, python: str = sys.executable) -> list[Path]:
+    """Wheel files of ``pins`` for the Blender ``platform`` in ``cache``, downloading the missing ones with pip."""
+    if platform not in PLATFORM_TAGS:
+        raise BuildError(f"unknown platform {platform!r}: ProCam builds for {', '.join(PLATFORM_TAGS)}")
     cache.mkdir(parents=True, exist_ok=True)
-    missing = [f"{p}=={v}" for p, v in pins.items() if _cached_wheel(cache, p, v) is None]
+    missing = [f"{p}=={v}" for p, v in pins.items() if _cached_wheel(cache, p, v, platform) is None]
     if missing:
         cmd = [python, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--disable-pip-version-check",
                "--python-version", PYTHON_VERSION, "-d", str(cache)]
-        for tag in PLATFORMS:
+        for tag in PLATFORM_TAGS[platform]:
             cmd += ["--platform", tag]
-        print(f"build-extension: downloading {', '.join(missing)} into {cache}", file=sys.stderr)
+        print(f"build-extension: downloading {platform} wheels of {', '.join(missing)} into {cache}", file=sys.stderr)
         proc = subprocess.run(cmd + missing, capture_output=True, text=True)
         if proc.returncode != 0:
+            absent = re.search(r"No matching distribution found for (\S+)", proc.stderr)
+            if absent:
+                raise BuildError(
+                    f"PyPI has no Python {PYTHON_VERSION} wheel of {absent.group(1)} for {platform} "
+                    f"({', '.join(PLATFORM_TAGS[platform])}): ProCam cannot run there. Take {platform} out of "
+                    f"'platforms' in {MANIFEST} (or build the others with --platform), or pin a version that has one")
             tail = "\n".join(line for line in proc.stderr.splitlines() if "is ignored" not in line)[-2000:]
             raise BuildError(f"pip could not download the wheels (network or index?):\n{tail}")
     wheels = []
     for p, v in pins.items():
-        w = _cached_wheel(cache, p, v)
+        w = _cached_wheel(cache, p, v, platform)
         if w is None:
-            raise BuildError(f"no Python {PYTHON_VERSION} manylinux x86-64 wheel of {p}=={v} in {cache}")
+            raise BuildError(f"no Python {PYTHON_VERSION} {platform} wheel of {p}=={v} in {cache}")
         wheels.append(w)
     return sorted(wheels, key=lambda w: w.name)
+
+
+def _link(src: Path, dest: Path) -> None:
+    # A hard link costs nothing; across file systems a symbolic link (Blender's tool reads through it); else a copy.
+    for make in (os.link, os.symlink, shutil.copy2):
+        try:
+            make(src, dest)
+            return
+        except OSError:
+            continue
 
 
 def sync_wheels_folder(root: Path, wheels: list[Path]) -> list[Path]:
@@ -136,6 +194,15 @@ def manifest_with_wheels(text: str, wheel_names: list[str]) -> str:
     return text[:at] + new + "\n" + text[at:]
 
 
+def manifest_with_platforms(text: str, platforms: list[str]) -> str:
+    """The manifest text with its ``platforms = [...]`` list replaced."""
+    new = "platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]\n"
+    text, n = re.subn(r"^platforms\s*=\s*\[[^\]]*\]\s*?\n", lambda _: new, text, count=1, flags=re.MULTILINE)
+    if n != 1:
+        raise BuildError(f"{MANIFEST} needs a 'platforms = [...]' list")
+    return text
+
+
 def _write_atomic(path: Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
@@ -164,71 +231,113 @@ def _source_files(root: Path) -> list[Path]:
     return files
 
 
+def blender_ext_tool() -> Path:
+    """Blender's extension command-line tool, from the bpy wheel of this Python (bpy is not imported)."""
+    spec = importlib.util.find_spec("bpy")
+    if spec is not None and spec.submodule_search_locations:
+        found = sorted(Path(spec.submodule_search_locations[0]).glob(f"*/{BLENDER_EXT}"))
+        if found:
+            return found[-1]
+    raise BuildError(f"the zips are written by Blender's extension tool, which ships in the bpy wheel, and {sys.executable} "
+                     "has no bpy: run `procam build-extension` (or this script with .venv/bin/python) after the "
+                     "README's set-up")
+
+
+def _blender_build(tool: Path, stage: Path, out: Path, *, split: bool, output_file: Path | None = None) -> None:
+    cmd = [sys.executable, str(tool), "build", "--source-dir", str(stage)]
+    cmd += ["--output-filepath", str(output_file)] if output_file else ["--output-dir", str(out)]
+    if split:
+        cmd.append("--split-platforms")
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise BuildError(f"Blender's extension build failed:\n{(proc.stdout + proc.stderr)[-2000:]}")
+
+
 def build(out_dir: Path | None = None, *, wheels_cache: Path | None = None, with_wheels: bool = True,
-          with_llvm: bool = False, root: Path = ROOT, update_manifest: bool = True) -> Path:
-    """Build the extension zip and return its path."""
+          with_llvm: bool = False, root: Path = ROOT, update_manifest: bool = True,
+          platforms: list[str] | None = None) -> list[Path]:
+    """Build the extension zips (one per platform; one ``-no-wheels`` zip without wheels) and return their paths."""
     manifest_path = root / MANIFEST
     text = manifest_path.read_text(encoding="utf-8")
     try:
         manifest = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise BuildError(f"{manifest_path} is not valid TOML: {exc}") from None
-    version, ext_id = manifest.get("version"), manifest.get("id")
-    if not version or not ext_id:
-        raise BuildError(f"{manifest_path} needs 'id' and 'version'")
+    version, ext_id, supported = manifest.get("version"), manifest.get("id"), manifest.get("platforms")
+    if not version or not ext_id or not supported:
+        raise BuildError(f"{manifest_path} needs 'id', 'version' and 'platforms'")
+    wanted = list(dict.fromkeys(platforms or supported))
+    unsupported = [p for p in wanted if p not in supported]
+    if unsupported:
+        raise BuildError(f"{', '.join(unsupported)} is not among the platforms of {MANIFEST} ({', '.join(supported)})")
+    tool = blender_ext_tool()
 
-    wheel_files: list[Path] = []
+    by_platform: dict[str, list[Path]] = {}
     if with_wheels:
         cache = Path(wheels_cache or os.environ.get("PROCAM_WHEELS_CACHE") or Path.home() / ".cache" / "procam-wheels")
         pins = pinned_versions(root)
-        if with_llvm:
-            pins[LLVM_PACKAGE[0]] = LLVM_PACKAGE[1]
-        wheel_files = sync_wheels_folder(root, fetch_wheels(cache, pins))
-    names = [w.name for w in wheel_files]
-    zipped_manifest = manifest_with_wheels(text, names)
-    if with_wheels and not with_llvm and update_manifest and zipped_manifest != text:
-        _write_atomic(manifest_path, zipped_manifest.encode("utf-8"))  # keep the committed list true
+        for plat in wanted:
+            plat_pins = dict(pins)
+            if with_llvm and plat == LLVM_PLATFORM:
+                plat_pins[LLVM_PACKAGE[0]] = LLVM_PACKAGE[1]
+            by_platform[plat] = fetch_wheels(cache, plat_pins, plat)
+        if this_platform() in by_platform:
+            sync_wheels_folder(root, by_platform[this_platform()])
+    names = list(dict.fromkeys(w.name for plat in wanted for w in by_platform.get(plat, [])))
+    staged = manifest_with_platforms(manifest_with_wheels(text, names), wanted)
+    if (with_wheels and not with_llvm and update_manifest and set(wanted) == set(supported)
+            and (committed := manifest_with_wheels(text, names)) != text):
+        _write_atomic(manifest_path, committed.encode("utf-8"))  # keep the committed list true
 
     out = Path(out_dir) if out_dir else root / "dist"
     out.mkdir(parents=True, exist_ok=True)
-    suffix = "" if with_wheels else "-no-wheels"
-    target = out / f"{ext_id}-{version}{suffix}.zip"
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".zip", dir=out)
-    os.close(fd)
+    stage = Path(tempfile.mkdtemp(prefix=f".{ext_id}-stage-", dir=out))
     try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-            zf.writestr(MANIFEST, zipped_manifest)
-            for f in _source_files(root):
-                zf.write(f, f.relative_to(root).as_posix())
-            for w in wheel_files:
-                # Wheels are zips already: storing them is as small and much faster.
-                zf.write(w, f"wheels/{w.name}", compress_type=zipfile.ZIP_STORED)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o644 & ~umask)  # mkstemp makes it private; a release zip is an ordinary file
-        os.replace(tmp, target)
+        (stage / MANIFEST).write_text(staged, encoding="utf-8")
+        for f in _source_files(root):
+            dest = stage / f.relative_to(root)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, dest)
+        if with_wheels:
+            (stage / "wheels").mkdir()
+            for plat in wanted:
+                for w in by_platform[plat]:
+                    if not (stage / "wheels" / w.name).exists():
+                        _link(w, stage / "wheels" / w.name)
+            _blender_build(tool, stage, out, split=True)
+            targets = [out / f"{ext_id}-{version}-{p.replace('-', '_')}.zip" for p in wanted]
+        else:
+            targets = [out / f"{ext_id}-{version}-no-wheels.zip"]
+            _blender_build(tool, stage, out, split=False, output_file=targets[0])
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return target
+        shutil.rmtree(stage, ignore_errors=True)
+    missing = [t for t in targets if not t.is_file()]
+    if missing:
+        raise BuildError(f"Blender's extension build did not write {', '.join(map(str, missing))}")
+    return targets
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: dist/ in the source tree)")
+    parser.add_argument("--platform", action="append", default=None, choices=sorted(PLATFORM_TAGS),
+                        help="build only this platform's zip (repeatable; default: every platform in "
+                             f"{MANIFEST})")
     parser.add_argument("--wheels-cache", type=Path, default=None,
                         help="where downloaded wheels are kept between builds "
                              "(default: $PROCAM_WHEELS_CACHE or ~/.cache/procam-wheels)")
     parser.add_argument("--no-wheels", action="store_true",
-                        help="leave the dependency wheels out (a small zip for Blenders that already have them)")
+                        help="one zip without the dependency wheels, for Blenders that already have them")
     parser.add_argument("--with-llvm", action="store_true",
-                        help=f"also ship {LLVM_PACKAGE[0]} (LLVM for Dr.Jit's CPU backend, ~34 MB) for machines "
-                             "without an LLVM >= 16")
+                        help=f"also ship {LLVM_PACKAGE[0]} (LLVM for Dr.Jit's CPU backend, ~34 MB) in the "
+                             f"{LLVM_PLATFORM} zip, for machines without an LLVM >= 16 (PyPI has it for Linux only)")
 
 
-def run(args: argparse.Namespace) -> Path:
-    path = build(args.out, wheels_cache=args.wheels_cache, with_wheels=not args.no_wheels, with_llvm=args.with_llvm)
-    print(f"{path} ({path.stat().st_size / 2**20:.1f} MiB)")
-    return path
+def run(args: argparse.Namespace) -> list[Path]:
+    paths = build(args.out, wheels_cache=args.wheels_cache, with_wheels=not args.no_wheels,
+                  with_llvm=args.with_llvm, platforms=args.platform)
+    for path in paths:
+        print(f"{path} ({path.stat().st_size / 2**20:.1f} MiB)")
+    return paths
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,5 @@
-"""The extension as a user gets it: manifest, zip build, install into a fresh Blender user folder, bpy-free import."""
+"""The extension as a user gets it: manifest, per-platform zips checked by Blender's validator, install into a
+fresh Blender user folder, bpy-free import, and finding LLVM on each platform."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 BLENDER_EXT = "addons_core/bl_pkg/cli/blender_ext.py"
+PLATFORMS = ["linux-x64", "windows-x64", "macos-arm64"]
 
 
 def _build_script():
@@ -47,16 +49,34 @@ def test_manifest_matches_pinned_requirements():
     script = _build_script()
     manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text(encoding="utf-8"))
     assert manifest["schema_version"] == "1.0.0" and manifest["id"] == "procam" and manifest["type"] == "add-on"
-    assert manifest["blender_version_min"] == "4.2.0" and manifest["platforms"] == ["linux-x64"]
-    pins = script.pinned_versions(REPO)
-    listed = {}
+    assert manifest["blender_version_min"] == "4.2.0" and manifest["platforms"] == PLATFORMS
+    assert set(PLATFORMS) == set(script.PLATFORM_TAGS)
+    pins = {script._canonical(p): v for p, v in script.pinned_versions(REPO).items()}
+    assert {"drjit", "mitsuba", "pygame_ce"} <= set(pins)
+    served: dict[str, dict[str, str]] = {p: {} for p in PLATFORMS}
     for wheel in manifest["wheels"]:
         assert wheel.startswith("./wheels/") and wheel.endswith(".whl")
         name, version, python = Path(wheel).name.split("-")[:3]
         assert python in ("cp311", "cp37", "py3"), wheel
-        listed[script._canonical(name)] = version
-    assert listed == {script._canonical(p): v for p, v in pins.items()}
-    assert "bpy" not in listed and "numpy" not in listed  # Blender provides both
+        platforms = script.wheel_platforms(wheel) & set(PLATFORMS)
+        assert platforms, f"{wheel} serves none of the manifest's platforms"
+        for platform in platforms:
+            assert script._canonical(name) not in served[platform], f"two {name} wheels for {platform}"
+            served[platform][script._canonical(name)] = version
+    for platform in PLATFORMS:  # every platform claimed has every pinned package
+        assert served[platform] == pins, platform
+    assert "bpy" not in pins and "numpy" not in pins  # Blender provides both
+
+
+def test_wheel_platforms_read_like_blender():
+    script = _build_script()
+    assert script.wheel_platforms("a-1-cp311-cp311-manylinux_2_27_x86_64.manylinux_2_28_x86_64.whl") == {"linux-x64"}
+    assert script.wheel_platforms("a-1-cp37-abi3-win_amd64.whl") == {"windows-x64"}
+    assert script.wheel_platforms("a-1-cp311-cp311-macosx_13_0_arm64.whl") == {"macos-arm64"}
+    assert script.wheel_platforms("a-1-cp311-cp311-macosx_10_11_universal2.whl") == {"macos-arm64"}
+    assert script.wheel_platforms("a-1-cp311-cp311-macosx_10_9_x86_64.whl") == set()  # Intel Macs: not built
+    assert script.wheel_platforms("a-1-py3-none-any.whl") == set(PLATFORMS)
+    assert script.wheel_platforms("a-1-cp311-cp311-manylinux_2_17_aarch64.whl") == set()
 
 
 def test_manifest_wheel_list_rewrite():
@@ -71,8 +91,10 @@ def test_manifest_wheel_list_rewrite():
 
 
 def test_build_without_wheels_is_small_and_clean(tmp_path):
+    if _blender_ext_cli() is None:
+        pytest.skip("bpy (with Blender's extension tool, which writes the zips) is not installed")
     script = _build_script()
-    path = script.build(tmp_path, with_wheels=False)
+    [path] = script.build(tmp_path, with_wheels=False)
     assert path == tmp_path / "procam-0.1.0-no-wheels.zip"
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # no temporary file left behind
     with zipfile.ZipFile(path) as zf:
@@ -84,17 +106,49 @@ def test_build_without_wheels_is_small_and_clean(tmp_path):
     for name in names:
         assert not name.startswith(("tests/", "scripts/", ".venv/", "wheels/", "dist/")), name
         assert "__pycache__" not in name and not name.endswith(".pyc"), name
-    assert "wheels" not in manifest
+    assert "wheels" not in manifest and manifest["platforms"] == PLATFORMS
+
+
+def test_unknown_or_unclaimed_platform_is_refused(tmp_path):
+    script = _build_script()
+    with pytest.raises(script.BuildError, match="macos-x64 is not among the platforms"):
+        script.build(tmp_path, with_wheels=False, platforms=["macos-x64"])
+    with pytest.raises(script.BuildError, match="unknown platform"):
+        script.fetch_wheels(tmp_path, {"drjit": "1.5.0"}, "linux-arm64")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_platform_without_a_wheel_is_not_built(tmp_path):
+    """karellen-llvm-core has Linux wheels only: asking for its Windows wheel must stop with a reason, not a zip."""
+    script = _build_script()
+    with pytest.raises(script.BuildError) as err:
+        script.fetch_wheels(tmp_path, {script.LLVM_PACKAGE[0]: script.LLVM_PACKAGE[1]}, "windows-x64")
+    if "could not download" in str(err.value):
+        pytest.skip(f"PyPI cannot be reached here: {err.value}")
+    assert "no Python 3.11 wheel of karellen-llvm-core" in str(err.value) and "windows-x64" in str(err.value)
+    assert "cannot run there" in str(err.value)
 
 
 def test_blender_validates_the_manifest(tmp_path, run_python):
     tool = _blender_ext_cli()
     if tool is None:
         pytest.skip("bpy (with Blender's extension tool) is not installed")
-    path = _build_script().build(tmp_path, with_wheels=False)
+    [path] = _build_script().build(tmp_path, with_wheels=False)
+    _validate(path, tool, run_python)
+
+
+def _validate(path: Path, tool: Path, run_python) -> None:
+    """Blender's own validator on an extension zip."""
     proc = run_python(f"import runpy, sys; sys.argv = ['blender_ext', 'validate', {str(path)!r}]; "
                       f"runpy.run_path({str(tool)!r}, run_name='__main__')")
     assert proc.returncode == 0 and "Success" in proc.stdout, proc.stdout + proc.stderr
+
+
+def _zip_manifest(zf: zipfile.ZipFile) -> dict:
+    """The manifest as Blender reads it: a split build's [build.generated] replaces platforms and wheels."""
+    manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    generated = manifest.get("build", {}).get("generated", {})
+    return {**manifest, **{k: generated[k] for k in ("platforms", "wheels") if k in generated}}
 
 
 _INSTALL = """
@@ -136,36 +190,125 @@ def _install(zip_path: Path, home: Path, run_python) -> dict:
 
 def test_install_without_wheels_and_run_operator(tmp_path, run_python):
     pytest.importorskip("bpy")
-    path = _build_script().build(tmp_path / "dist", with_wheels=False)
+    [path] = _build_script().build(tmp_path / "dist", with_wheels=False)
     info = _install(path, tmp_path / "blender", run_python)
     assert info["help"] == 0 and info["camera"] == [32, 24]
     assert {"ProCam Camera", "ProCam Projector", "ProCam Surface"} <= set(info["objects"])
 
 
-def test_build_and_install_with_wheels(tmp_path, run_python):
-    """The release zip: wheels downloaded (cached in ~/.cache/procam-wheels), installed by Blender itself."""
-    pytest.importorskip("bpy")
+@pytest.fixture(scope="module")
+def platform_zips(tmp_path_factory):
+    """The release zips, one per platform, with real wheels (downloaded once into ~/.cache/procam-wheels)."""
+    if _blender_ext_cli() is None:
+        pytest.skip("bpy (with Blender's extension tool, which writes the zips) is not installed")
     script = _build_script()
+    out = tmp_path_factory.mktemp("dist")
     t = time.perf_counter()
     try:
-        path = script.build(tmp_path / "dist", update_manifest=False)
+        paths = script.build(out, update_manifest=False)
     except script.BuildError as exc:
         if "could not download" in str(exc):
             pytest.skip(f"wheels cannot be downloaded here: {exc}")
         raise
     build_s = time.perf_counter() - t
-    size = path.stat().st_size / 2 ** 20
-    with zipfile.ZipFile(path) as zf:
-        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
-        names = set(zf.namelist())
+    yield dict(zip(PLATFORMS, paths)), build_s
+    shutil.rmtree(out, ignore_errors=True)  # ~560 MB: do not leave it to pytest's tmp rotation
+
+
+def test_each_platform_zip_passes_blender_validation(platform_zips, run_python):
+    """One zip per platform (Blender's split convention) holding exactly that platform's pinned wheels."""
+    script = _build_script()
+    zips, build_s = platform_zips
+    pins = {script._canonical(p): v for p, v in script.pinned_versions(REPO).items()}
     committed = tomllib.loads((REPO / "blender_manifest.toml").read_text(encoding="utf-8"))
-    assert manifest["wheels"] == committed["wheels"]
-    assert {w.removeprefix("./") for w in manifest["wheels"]} <= names
+    sizes = []
+    for platform, path in zips.items():
+        assert path.name == f"procam-0.1.0-{platform.replace('-', '_')}.zip"
+        _validate(path, _blender_ext_cli(), run_python)
+        with zipfile.ZipFile(path) as zf:
+            manifest = _zip_manifest(zf)
+            shipped = sorted(n for n in zf.namelist() if n.startswith("wheels/"))
+        assert manifest["platforms"] == [platform]
+        assert sorted(w.removeprefix("./") for w in manifest["wheels"]) == shipped
+        assert set(manifest["wheels"]) <= set(committed["wheels"])
+        packages = {}
+        for wheel in shipped:
+            assert platform in script.wheel_platforms(wheel), (platform, wheel)
+            name, version = Path(wheel).name.split("-")[:2]
+            packages[script._canonical(name)] = version
+        assert packages == pins, platform
+        sizes.append(f"{platform} {path.stat().st_size / 2 ** 20:.0f} MiB")
+    print(f"\nextension zips {', '.join(sizes)}; build {build_s:.1f} s", file=sys.stderr)
+
+
+def test_build_and_install_with_wheels(platform_zips, tmp_path, run_python):
+    """The Linux release zip, installed by Blender itself, registers and runs."""
+    pytest.importorskip("bpy")
+    path = platform_zips[0]["linux-x64"]
     try:
         info = _install(path, tmp_path / "blender", run_python)
     finally:
         shutil.rmtree(tmp_path, ignore_errors=True)  # ~1 GB unpacked: do not leave it to pytest's tmp rotation
-    for package in ("mitsuba", "drjit", "cv2", "pymeshlab"):
+    for package in ("mitsuba", "drjit", "cv2", "pymeshlab", "pygame"):
         assert package in info["packages"], info["packages"]
     assert info["help"] == 0
-    print(f"\nextension zip {size:.0f} MiB, build {build_s:.1f} s, install {info['seconds']:.1f} s", file=sys.stderr)
+    print(f"\nlinux-x64 zip installed in {info['seconds']:.1f} s", file=sys.stderr)
+
+
+# --- LLVM for Dr.Jit's CPU backend, per platform -------------------------------------------------------------
+
+
+def test_llvm_is_found_in_each_platforms_usual_places(tmp_path, monkeypatch):
+    from procam.addon.render import backend
+
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    # Homebrew: opt/llvm links the newest keg; an llvm@15 beside it is refused (backward pass aborts).
+    assert backend.find_llvm("darwin", ["/opt/homebrew/opt/llvm@15/lib/libLLVM.dylib",
+                                        "/opt/homebrew/opt/llvm/lib/libLLVM.dylib"]) == \
+        "/opt/homebrew/opt/llvm/lib/libLLVM.dylib"
+    assert backend.find_llvm("darwin", ["/opt/homebrew/Cellar/llvm/21.1.5/lib/libLLVM.dylib",
+                                        "/opt/homebrew/opt/llvm@18/lib/libLLVM.dylib"]).endswith("21.1.5/lib/libLLVM.dylib")
+    assert backend.find_llvm("darwin", ["/opt/homebrew/opt/llvm@15/lib/libLLVM.dylib"]) is None
+    # Windows: the official installer's LLVM-C.dll (the only name Dr.Jit loads there); a .so is not for Windows.
+    dll = r"C:\Program Files\LLVM\bin\LLVM-C.dll"
+    assert backend.find_llvm("win32", ["/usr/lib/llvm-19/lib/libLLVM.so.1", dll]) == dll
+    assert backend.find_llvm("win32", []) is None
+    # Linux: the newest of the distribution's, never LLVM 15.
+    assert backend.find_llvm("linux", ["/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1",
+                                       "/usr/lib/llvm-19/lib/libLLVM.so.1"]) == "/usr/lib/llvm-19/lib/libLLVM.so.1"
+    # Where the Windows places are: Program Files, Scoop, the PATH.
+    for folder in ("pf/LLVM/bin", "path/bin"):
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "LLVM-C.dll").touch()
+    env = {"ProgramFiles": str(tmp_path / "pf"), "PATH": str(tmp_path / "path" / "bin")}
+    assert backend.llvm_candidates("win32", env) == [str(tmp_path / "pf/LLVM/bin/LLVM-C.dll"),
+                                                     str(tmp_path / "path/bin/LLVM-C.dll")]
+    assert backend.llvm_candidates("win32", {}) == []
+    # What to install, per platform.
+    assert "brew install llvm" in backend.llvm_help("darwin")
+    assert "LLVM-C.dll" in backend.llvm_help("win32") and "llvm-project/releases" in backend.llvm_help("win32")
+    assert "libllvm19" in backend.llvm_help("linux") and "karellen-llvm-core" in backend.llvm_help("linux")
+    assert all("DRJIT_LIBLLVM_PATH" in backend.llvm_help(p) for p in ("linux", "darwin", "win32"))
+
+
+def test_missing_llvm_says_what_to_install(run_python):
+    proc = run_python("""
+        import os, sys
+        from procam.addon.render import backend
+        from procam.addon.errors import RenderError
+        backend.find_llvm = lambda *a, **k: None  # as on a machine without any LLVM
+        try:
+            backend.mitsuba("llvm_ad_rgb")
+        except RenderError as exc:
+            assert "mitsuba" not in sys.modules
+            print(exc)
+        os.environ["DRJIT_LIBLLVM_PATH"] = "/nowhere/libLLVM.so"
+        try:
+            backend.mitsuba("llvm_ad_rgb")
+        except RenderError as exc:
+            print(exc)
+    """, env={"DRJIT_LIBLLVM_PATH": ""})
+    assert proc.returncode == 0, proc.stderr
+    first, second = proc.stdout.strip().splitlines()
+    assert first.startswith("no LLVM ≥ 16 found") and "libllvm19" in first
+    assert "/nowhere/libLLVM.so" in second and "not a file" in second

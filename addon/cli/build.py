@@ -1,4 +1,4 @@
-"""``procam build-extension``: the Blender extension zip with its dependency wheels (scripts/build_extension.py)."""
+"""``procam build-extension``: the Blender extension zips, one per platform with its wheels (scripts/build_extension.py)."""
 
 from __future__ import annotations
 
@@ -30,7 +30,8 @@ def _configure(parser: argparse.ArgumentParser) -> None:
         _build_script().add_arguments(parser)
 
 
-@command("build-extension", "Build the Blender extension zip (dist/procam-<version>.zip) with its wheels", _configure)
+@command("build-extension", "Build the Blender extension zips, one per platform "
+         "(dist/procam-<version>-<platform>.zip) with that platform's wheels", _configure)
 def build_extension(args: argparse.Namespace) -> int:
     script = _build_script()
     try:
