@@ -17,7 +17,7 @@ from procam.addon.errors import Cancelled, CaptureError, LiveError
 from procam.addon.imageio import write_image
 from procam.addon.live.camera import CameraClient, parse_source
 from procam.addon.live.device import LiveDevice, LiveSpec
-from procam.addon.live.loopback import LoopbackCamera, painted_wall
+from procam.addon.live.loopback import LoopbackCamera, LoopbackRig, painted_wall
 from procam.addon.live.window import ProjectorWindow, list_displays
 from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
 from procam.addon.steps.live import LiveCaptureOptions, run_live_capture
@@ -181,6 +181,41 @@ def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, cap
                      "--out", str(tmp_path / "comp")]) == 0
         assert main(["evaluate", str(tmp_path / "cal"), "--inputs", str(tmp_path / "comp"), "--targets", str(target),
                      "--device", device, "--out", str(tmp_path / "eval")]) == 0
+        # A camera at another resolution than the calibration's is refused before any work.
+        other = LoopbackRig((*ORIGIN, *SIZE), (SIZE[0] // 2, SIZE[1] // 2))
+        with LoopbackCamera(other) as small:
+            assert main(["compensate", str(tmp_path / "cal"), str(target), "--device",
+                         f"live:camera={small.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear",
+                         "--out", str(tmp_path / "comp2")]) == 2
+        assert "camera delivers 128×96 frames but the calibration's camera is 256×192" in capsys.readouterr().err
     metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     city = metrics["targets"][0]
     assert city["psnr"] >= city["uncompensated"]["psnr"] + 6.0, city
+
+
+def test_a_stream_that_stops_keeps_the_session_and_resumes(xvfb, tmp_path):
+    size = (160, 120)
+    loop, _, truth = painted_wall(size, ORIGIN)
+    projector = Projector(truth.intrinsics, input_size=truth.input_size)
+
+    def options(url: str) -> LiveCaptureOptions:
+        return LiveCaptureOptions(f"live:camera={url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", projector,
+                                  tmp_path / "set", validation=False, camera_fov=58.0)
+
+    cam = LoopbackCamera(loop)
+    try:
+        def stop_at_sixth(message: str, fraction: float) -> None:
+            if message.startswith("capturing frame 6/"):
+                cam.close()  # the network camera goes away mid-session
+
+        with pytest.raises(LiveError, match="stopped delivering frames|delivered 0 of"):
+            run_live_capture(options(cam.url), progress=stop_at_sixth)
+    finally:
+        cam.close()
+    assert len(list((tmp_path / "set.session" / "photos").glob("*.png"))) == 5
+    assert not (tmp_path / "set").exists()
+    with LoopbackCamera(loop) as again:  # back, on another port: the session resumes at frame 6
+        said = []
+        captures = run_live_capture(options(again.url), progress=lambda m, f: said.append(m))
+    assert any("5 of" in m and "already captured" in m for m in said)
+    assert sum(m.startswith("capturing") for m in said) == len(captures) - 5

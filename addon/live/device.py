@@ -171,6 +171,11 @@ class LiveDevice(Device):
             self.close()
             raise
 
+    @property
+    def camera_size(self) -> tuple[int, int] | None:
+        """The camera's frame size (width, height), checked against a calibration before stage C starts."""
+        return self.camera.size if self.camera is not None else None
+
     # -- capture -------------------------------------------------------------------------------------------------
 
     def _show(self, frame: np.ndarray) -> float:

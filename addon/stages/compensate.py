@@ -491,6 +491,12 @@ class Compensator:
                 f"{proj.input_size[0]}×{proj.input_size[1]} at {proj.input_offset}) is not the calibrated one "
                 f"({mine.intrinsics.width}×{mine.intrinsics.height}, input {mine.input_size[0]}×{mine.input_size[1]} "
                 f"at {mine.input_offset}); calibrate with captures from this device")
+        cam = getattr(device, "camera_size", None)  # known before any capture only for a live camera
+        want = self.rig.camera.intrinsics.size
+        if cam is not None and tuple(cam) != tuple(want):
+            raise CompensationError(f"the device's camera delivers {cam[0]}×{cam[1]} frames but the calibration's "
+                                    f"camera is {want[0]}×{want[1]}: set the camera to the resolution the capture "
+                                    "set was taken at (live: size=WxH), or calibrate with captures from this camera")
 
     # ------------------------------------------------------------------ open-loop bias
 
