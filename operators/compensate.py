@@ -45,7 +45,7 @@ def stage_c_options(scene: bpy.types.Scene) -> StageCOptions:
     return StageCOptions(schedule=scene.procam_schedule, iterations=scene.procam_iterations or None,
                          seed=scene.procam_seed, area=parse_area(scene.procam_area) if scene.procam_area.strip()
                          else None, use_bias=scene.procam_use_bias, device=scene_device(scene) if closed else None,
-                         effects=effects, diagnosis=diagnosis)
+                         effects=effects, diagnosis=diagnosis, range=scene.procam_range.strip() or "none")
 
 
 def scene_targets(scene: bpy.types.Scene) -> tuple:

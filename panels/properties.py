@@ -65,6 +65,11 @@ def scene_properties() -> dict[str, object]:
             name="Effect Models", default="none",
             description="Diagnosed effect models around stage C: 'auto' (those the diagnosis found compensation "
                         "can invert), NAME,... or 'none'; their parameters come from the Diagnosis folder"),
+        "procam_range": StringProperty(
+            name="Range", default="none",
+            description="What the targets become before compensation: 'auto' (one gain and offset for all the "
+                        "targets so at most 1 % of their values lie outside what the projector shows on this surface; "
+                        "targets that fit are never dimmed), 'GAIN,OFFSET', or 'none' (as they are)"),
         "procam_use_bias": BoolProperty(
             name="Bias θ", default=True,
             description="Estimate the per-pixel bias θ (off: the no-θ ablation, neither captures nor validation)"),

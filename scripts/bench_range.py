@@ -1,0 +1,80 @@
+#!/usr/bin/env python3
+"""Bright content and the projector's range: compensation with ``--range none`` against ``--range auto``.
+
+Usage: ``.venv/bin/python scripts/bench_range.py [--surface curve] [--scale 0.5] [--iterations 60] [--work DIR]``
+
+Renders a lab capture set (``realistic`` effects), calibrates it, and
+compensates six natural photographs at full brightness (each scaled so its
+99.5th percentile is 1, the case where compensation clips) closed loop through
+the lab, once as they are and once with ``--range auto``; then evaluates both.
+Prints, per target, the range ceiling (the target clipped per pixel to the
+captured [black, white]: what no input can beat) and the PSNR reached, for
+both, and the show's gain and offset. ``--work DIR`` keeps and reuses every
+folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from procam.addon.capture.targets import DEFAULT_TARGETS, natural_target
+from procam.addon.cli.app import main as procam
+from procam.addon.imageio import write_image
+
+
+def step(args: list[str], done: Path) -> None:
+    if done.exists():
+        return
+    if procam(args) != 0:
+        raise SystemExit(f"procam {args[0]} failed")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--surface", default="curve")
+    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        lab, truth = work / "lab", work / "lab.truth.json"
+        step(["lab", "--surface", args.surface, "--effects", "realistic", "--scale", str(args.scale), "--out",
+              str(lab), "--truth", str(truth)], lab)
+        step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
+        targets = []
+        (work / "targets").mkdir(exist_ok=True)
+        for name in DEFAULT_TARGETS:
+            img = natural_target(name, (400, 300))
+            img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
+            targets.append(str(write_image(work / "targets" / f"{name}.png", img)))
+        rows = {}
+        for rng in ("none", "auto"):
+            comp, ev = work / f"comp-{rng}", work / f"eval-{rng}"
+            step(["compensate", str(work / "cal"), *targets, "--device", f"lab:{truth}", "--iterations",
+                  str(args.iterations), "--range", rng, "--out", str(comp)], comp)
+            step(["evaluate", str(work / "cal"), "--inputs", str(comp), "--targets", *targets, "--device",
+                  f"lab:{truth}", "--out", str(ev)], ev)
+            rows[rng] = json.loads((ev / "metrics.json").read_text())
+        r = rows["auto"]["range"]
+        print(f"\n{args.surface}, scale {args.scale}, {args.iterations} iterations, closed loop; --range auto: "
+              f"{r['gain']:.3f}·t {r['offset']:+.3f} ({100 * r['clipped_share']:.2f} % of the values clipped)\n")
+        print("| Target | none: ceiling | none: uncompensated → ours | auto: ceiling | auto: uncompensated → ours |")
+        print("|---|---|---|---|---|")
+        for a, b in zip(rows["none"]["targets"], rows["auto"]["targets"]):
+            print(f"| {a['name']} | {a['range_ceiling']:.2f} | {a['uncompensated']['psnr']:.2f} → {a['psnr']:.2f} | "
+                  f"{b['range_ceiling']:.2f} | {b['uncompensated']['psnr']:.2f} → {b['psnr']:.2f} |")
+        a, b = rows["none"], rows["auto"]
+        print(f"| mean | {a['mean_range_ceiling']:.2f} | {a['mean_uncompensated']['psnr']:.2f} → "
+              f"{a['mean']['psnr']:.2f} | {b['mean_range_ceiling']:.2f} | {b['mean_uncompensated']['psnr']:.2f} → "
+              f"{b['mean']['psnr']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
