@@ -44,6 +44,8 @@ class Calibration:
     warp: Warp | None
     capture_dir: str
     report: dict[str, Any] = field(default_factory=dict)
+    #: the folder it was read from (None for one in memory): where its precomputed transport operator lies
+    folder: str | None = None
 
     @property
     def stages(self) -> dict[str, str]:

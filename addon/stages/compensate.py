@@ -101,6 +101,7 @@ from ..render.forward import ForwardModel
 from ..render.raycast import first_hits
 from .display_area import DisplayArea, fit_target
 from .metrics import psnr
+from .transport import TransportOperator, build_transport
 
 
 #: Defaults of the paper's schedule and of the choices documented above.
@@ -176,6 +177,9 @@ class Schedule:
     fixed_point_spp: int = 4
     fixed_point_step: float = FIXED_POINT_STEP
     crop: bool = False
+    #: solve on the precomputed light-transport operator instead of rendering (stages/transport.py): then
+    #: ``iterations_z`` solver iterations before the first capture, ``iterations_joint`` spread over ``captures``
+    transport: bool = False
 
     def check(self) -> "Schedule":
         """Self, or a CompensationError naming the first bad value."""
@@ -239,6 +243,8 @@ SCHEDULES: dict[str, Schedule] = {
     "fast": Schedule("fast", iterations_z=0, iterations_joint=150, alpha=None, captures=15, fixed_point=8,
                      fixed_point_joint=2, fixed_point_spp=16, crop=True),
     "paper": Schedule("paper"),
+    "transport": Schedule("transport", iterations_z=20, iterations_joint=30, alpha=None, captures=3,
+                          transport=True),
 }
 DEFAULT_SCHEDULE = "fast"
 
@@ -356,6 +362,7 @@ class Compensator:
         self._white: np.ndarray | None = None
         self._coarse_models: dict[tuple[int, int], Any] = {}
         self._crop_models: dict[tuple[int, int, int, int], Any] = {}
+        self._transport: TransportOperator | None = None
 
     # ------------------------------------------------------------------ helpers
 
@@ -621,6 +628,8 @@ class Compensator:
             raise CompensationError("the open-loop θ does not have the camera's size")
 
         z0 = self.initial_input(placed, bias, init)
+        if sched.transport:
+            return self._run_transport(placed, area, z0, sched, mode, bias, device, say, cancel, name, t_start)
         opt = mi.ad.Adam(lr=float(sched.lr))
         opt["z"] = mi.TensorXf(z0)
         losses: list[float] = []
@@ -822,6 +831,119 @@ class Compensator:
                   "seconds_compute": round(seconds - seconds_device, 2)}
         say(f"{name}: done in {seconds:.1f} s ({seconds - seconds_device:.1f} s without the device)", 1.0)
         return CompensationResult(x_input, self.rig.projector.frame_from_input(x_input), z, theta, simulated, raw,
+                                  placed, area, losses, seconds, mode, captures, report)
+
+    # ------------------------------------------------------------------ stage C on the transport operator
+
+    @property
+    def transport(self) -> TransportOperator:
+        """The light-transport operator ``T`` (stages/transport.py): the one given, else rendered now (once)."""
+        if self._transport is None:
+            self._transport = build_transport(self.calibration, bounces=self.bounces, seed=self.seed,
+                                              variant=self.model.variant)
+        return self._transport
+
+    @transport.setter
+    def transport(self, op: TransportOperator | None) -> None:
+        if op is not None and (op.camera_size != tuple(self.camera_size) or op.input_size != (self.iw, self.ih)):
+            raise CompensationError(f"the transport operator is for a {op.camera_size} camera and {op.input_size} "
+                                    "input, not this calibration's: run procam precompute again")
+        self._transport = op
+
+    def _run_transport(self, placed: np.ndarray, area: DisplayArea, z: np.ndarray, sched: Schedule, mode: str,
+                       bias: BiasModel | None, device: Device | None, say: Progress, cancel: Cancel | None,
+                       name: str, t_start: float) -> CompensationResult:
+        """Stage C as a box-constrained least-squares problem on ``T`` (schedule ``transport``).
+
+        min over 0 ≤ z ≤ 1 of Σ_area ‖g·T z − θ − y_t‖², solved by projected SIRT
+        with Nesterov momentum: each step moves every texel by the back-projected
+        residual, normalised by the operator's row and column sums (what the
+        fixed-point steps of ``fast`` do with renders, here with the exact
+        adjoint, so it converges where blur and indirect light mix texels).
+        Why SIRT rather than CG: the box constraint (a projected method needs no
+        active-set bookkeeping) and the row/column-sum preconditioner that makes
+        a step of 1 safe whatever the overlap of footprints. Closed loop: after
+        each capture θ becomes the residual ``T z − y`` of that capture (Eq. 14
+        clipped) and the solve continues from the same z; Mitsuba renders once
+        at the end, to report what the scene (not the operator) predicts."""
+        op = self.transport
+        mask = area.mask(self.camera_size)
+        rows = np.flatnonzero(mask.ravel())
+        view = op.rows(rows, self.model.variant)
+        gain = np.ones((len(rows), 3), np.float32) if bias is None or bias.gain is None else \
+            bias.gain.reshape(-1, 3)[rows]
+        target = placed.reshape(-1, 3)[rows]
+        theta = np.zeros_like(target) if bias is None else bias.theta.reshape(-1, 3)[rows]
+        row_sums = np.maximum(gain * view.apply(np.ones_like(z)), 1e-3)
+        col_sums = np.maximum(view.adjoint(gain * np.ones_like(target)), 1e-3)
+        losses: list[float] = []
+        captures, seconds_device, done = 0, 0.0, 0
+        total = sched.iterations_z + sched.iterations_joint
+
+        def predicted(z: np.ndarray, theta: np.ndarray) -> np.ndarray:
+            """What the operator says the camera sees (camera size, black outside the area)."""
+            out = np.zeros((self.camera_size[1] * self.camera_size[0], 3), np.float32)
+            out[rows] = np.clip(gain * view.apply(z) - theta, 0.0, 1.0)
+            return out.reshape(self.camera_size[1], self.camera_size[0], 3)
+
+        psnr_start = area_psnr(predicted(z, theta), placed, area)
+
+        def solve(z: np.ndarray, theta: np.ndarray, steps: int) -> np.ndarray:
+            nonlocal done
+            prev, y = z, z
+            for k in range(steps):
+                if cancel is not None and cancel():
+                    raise Cancelled(f"compensation of {name!r} cancelled at solver step {done}")
+                resid = target + theta - gain * view.apply(y)
+                z_new = np.clip(y + view.adjoint(gain * resid / row_sums) / col_sums, 0.0, 1.0).astype(np.float32)
+                y = z_new + (k / (k + 3.0)) * (z_new - prev)
+                prev = z_new
+                done += 1
+                if k % 10 == 0 or k == steps - 1:
+                    value = float(np.mean(resid ** 2))
+                    if not math.isfinite(value):
+                        raise CompensationError(f"the solve of {name!r} diverged (NaN); check the calibration")
+                    losses.append(value)
+                    say(f"{name}: solver step {done}, loss {value:.6f}", done / max(total, 1))
+            return prev
+
+        z = solve(z, theta, sched.iterations_z)
+        if mode == "closed-loop":
+            n_capt = sched.captures or max(1, sched.iterations_joint // sched.capture_interval)
+            per = max(1, sched.iterations_joint // max(n_capt, 1))
+            for c in range(n_capt):
+                x = self.warp_w(z)
+                t_dev = time.perf_counter()
+                y = self._check_capture(device.project(self.rig.projector.frame_from_input(x))).reshape(-1, 3)[rows]
+                seconds_device += time.perf_counter() - t_dev
+                captures += 1
+                f_now = view.apply(z)
+                theta = np.clip(f_now - y, f_now - 1.0, f_now).astype(np.float32)
+                say(f"{name}: capture {captures}", done / max(total, 1))
+                z = solve(z, theta, per)
+        elif sched.iterations_joint:
+            z = solve(z, theta, sched.iterations_joint)
+        raw = self.simulate(z, seed=self.seed * 1_000_003 + 15)
+        if mode == "closed-loop":
+            th = np.zeros((self.camera_size[1] * self.camera_size[0], 3), np.float32)
+            th[rows] = theta
+            th = np.clip(th.reshape(raw.shape), raw - 1.0, raw)
+            simulated = np.clip(raw - th, 0.0, 1.0)
+        else:
+            simulated = self._predict(raw, bias, None)
+            th = raw - simulated
+        x_input = self.warp_w(z)
+        seconds = time.perf_counter() - t_start
+        report = {"schedule": asdict(sched), "solver": "projected SIRT with Nesterov momentum on the transport "
+                  "operator", "iterations": {"z": sched.iterations_z, "joint": done - sched.iterations_z,
+                                             "total": done},
+                  "operator": op.report, "bias": None if bias is None else {"kind": bias.kind, **bias.report},
+                  "psnr_simulated_start": psnr_start, "psnr_operator": area_psnr(predicted(z, theta), placed, area),
+                  "psnr_simulated": area_psnr(simulated, placed, area), "warp": self.warp is not None,
+                  "bounces": self.bounces, "seed": self.seed, "seconds_device": round(seconds_device, 2),
+                  "seconds_compute": round(seconds - seconds_device, 2)}
+        say(f"{name}: done in {seconds:.1f} s ({seconds - seconds_device:.1f} s without the device)", 1.0)
+        return CompensationResult(x_input, self.rig.projector.frame_from_input(x_input), z, th, simulated, raw,
                                   placed, area, losses, seconds, mode, captures, report)
 
     @staticmethod

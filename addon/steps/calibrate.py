@@ -174,7 +174,8 @@ def read(folder: str | Path, *, complete: bool = True) -> Calibration:
         warp = Warp.from_dict(doc["warp"]) if doc.get("warp") else None
         report = {k: v for k, v in doc.items() if k not in ("format", "version", "capture_set", "rig",
                                                              "camera_from_projector", "warp", "surface")}
-        cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report)
+        cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report,
+                          str(folder.absolute()))
     except (OSError, ValueError, KeyError) as exc:
         raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
     missing = cal.missing_stages

@@ -122,6 +122,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                 records.append({"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
                                 "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
                                 "seconds": round(res.seconds, 2), "captures": res.captures,
+                                "seconds_compute": res.report.get("seconds_compute"),
                                 "loss_first": res.losses[0] if res.losses else None,
                                 "loss_last": res.losses[-1] if res.losses else None,
                                 "losses": [round(v, 7) for v in res.losses],

@@ -32,6 +32,7 @@ from ..stages.display_area import DisplayArea, TargetAspectWarning, choose_area,
 from ..stages.range import RangeError, RangeMap, fit_range, parse_range
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
+from . import transport as transport_step
 
 DEVICE_KINDS = ("lab", "folder", "live")
 
@@ -191,6 +192,13 @@ class StageC:
             else:
                 self.compensator = self.adapter.compensator(calibration, bounces=options.bounces, spp=options.spp,
                                                             seed=options.seed)
+            if self.schedule.transport and self.adapter is None:
+                op = transport_step.load(calibration, bounces=options.bounces, seed=options.seed)
+                if op is None:
+                    say("no precomputed transport operator for this calibration: rendering it now (procam "
+                        "precompute stores it once)", 0.0)
+                else:
+                    self.compensator.transport = op
             self.model_device = self.device
             if self.adapter is not None and self.device is not None:
                 self.model_device = AdaptedDevice(self.device, self.adapter)

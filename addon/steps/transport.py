@@ -1,0 +1,85 @@
+"""The precompute step: the light-transport operator of a calibration, stored in the calibration folder.
+
+``procam precompute CALIB`` renders ``T`` (``stages/transport.py``) and writes
+``transport.npz`` (the operator) and ``transport.json`` (what it holds, how
+long it took, and the content hashes of the calibration it belongs to) into
+the calibration folder, each atomically. Stage C's ``transport`` schedule reads
+it when its hashes match the calibration and the compensator's bounces and
+seed, and otherwise renders its own in memory (saying so), because
+compensation never writes into a calibration folder.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import CalibrationError
+from ..imageio import write_atomic_bytes
+from ..progress import Cancel, Progress, quiet
+from ..stages.calibrate import Calibration
+from ..stages.transport import TransportError, TransportOperator, build_transport
+from . import calibrate as calibrate_step
+
+OPERATOR_FILE = "transport.npz"
+REPORT_FILE = "transport.json"
+
+
+@dataclass(frozen=True)
+class PrecomputeOptions:
+    """What ``procam precompute`` asks for."""
+
+    calibration: Path
+    bounces: int = 1
+    seed: int = 0
+    force: bool = False
+
+
+def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Cancel | None = None
+        ) -> dict[str, Any]:
+    """Render and store the operator; returns its report. An operator already there for the same calibration,
+    bounces and seed is kept unless ``force``."""
+    say = progress or quiet
+    folder = Path(options.calibration)
+    cal = calibrate_step.read(folder)
+    ident = calibrate_step.identity(folder)
+    if not options.force and load(cal, bounces=options.bounces, seed=options.seed) is not None:
+        doc = json.loads((folder / REPORT_FILE).read_text())
+        say("the transport operator of this calibration is already there (--force renders it again)", 1.0)
+        return doc
+    op = build_transport(cal, bounces=options.bounces, seed=options.seed, progress=say, cancel=cancel)
+    doc = {**op.report, "calibration_sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"],
+           "file": OPERATOR_FILE}
+    buf = io.BytesIO()
+    np.savez(buf, **op.arrays())
+    write_atomic_bytes(folder / OPERATOR_FILE, buf.getvalue())
+    write_atomic_bytes(folder / REPORT_FILE, (json.dumps(doc, indent=1) + "\n").encode())
+    return doc
+
+
+def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOperator | None:
+    """The stored operator of ``calibration`` when it belongs to it (same hashes, bounces and seed), else None."""
+    if not calibration.folder:
+        return None
+    folder = Path(calibration.folder)
+    if not (folder / OPERATOR_FILE).is_file() or not (folder / REPORT_FILE).is_file():
+        return None
+    try:
+        doc = json.loads((folder / REPORT_FILE).read_text())
+        ident = calibrate_step.identity(folder)
+    except (OSError, ValueError, CalibrationError):
+        return None
+    if (doc.get("calibration_sha256"), doc.get("surface_sha256"), doc.get("bounces"), doc.get("seed")) != \
+            (ident["sha256"], ident["surface_sha256"], bounces, seed):
+        return None
+    try:
+        with np.load(folder / OPERATOR_FILE) as data:
+            return TransportOperator.from_arrays(data, doc)
+    except (OSError, ValueError) as exc:
+        raise TransportError(f"cannot read {folder / OPERATOR_FILE} ({exc}); run procam precompute "
+                             f"{folder} --force") from None

@@ -1,0 +1,90 @@
+"""The light-transport operator: exact direct part, indirect blocks, adjoint, storage, and stage C on it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from procam.addon.cli.app import main
+from procam.addon.render.forward import ForwardModel
+from procam.addon.stages.metrics import psnr
+from procam.addon.stages.transport import build_transport
+from procam.addon.steps import calibrate as calibrate_step
+from procam.addon.steps import transport as transport_step
+
+
+@pytest.fixture(scope="module")
+def operator(lab_calibration):
+    cal_dir, _, truth_path = lab_calibration()
+    cal = calibrate_step.read(cal_dir)
+    return cal, build_transport(cal, spp=16, seed=0), truth_path
+
+
+def _smooth_input(cal, seed: int) -> np.ndarray:
+    from procam.addon.capture.patterns import smooth_random
+
+    iw, ih = cal.rig.projector.input_size
+    return smooth_random((iw, ih), seed, 12.0).astype(np.float32)
+
+
+def test_direct_part_is_the_render_at_its_seed_and_the_whole_is_close_to_mitsuba(operator):
+    cal, op, _ = operator
+    z = _smooth_input(cal, 4)
+    direct = ForwardModel(cal.rig, cal.surface, bounces=0, spp=16, smoothing_eps=0.0, clamp=False, seed=0)
+    assert psnr(op.direct(z), direct.render_input(z, seed=0)) > 60
+    reference = ForwardModel(cal.rig, cal.surface, bounces=1, spp=256, smoothing_eps=0.0, clamp=False, seed=5)
+    ref = reference.render_input(z, seed=5)
+    with_indirect, direct_only = psnr(op.apply(z), ref), psnr(op.direct(z), ref)
+    assert with_indirect > 40 and with_indirect > direct_only + 1.0, (with_indirect, direct_only)
+    assert op.report["pixels_wider_than_spacing"] < 0.01 and op.report["light_dropped"] < 1e-3
+
+
+def test_adjoint(operator):
+    cal, op, _ = operator
+    rng = np.random.default_rng(0)
+    z = rng.random((op.input_size[1], op.input_size[0], 3)).astype(np.float32)
+    r = rng.random((op.camera_size[1], op.camera_size[0], 3)).astype(np.float32)
+    lhs, rhs = float(np.sum(op.apply(z) * r)), float(np.sum(op.adjoint(r) * z))
+    assert lhs == pytest.approx(rhs, rel=1e-4)
+    rows = np.flatnonzero(rng.random(op.camera_size[0] * op.camera_size[1]) < 0.3)
+    view = op.rows(rows)
+    rr = r.reshape(-1, 3)[rows]
+    np.testing.assert_allclose(view.apply(z), op.apply(z).reshape(-1, 3)[rows], rtol=1e-4, atol=1e-5)
+    assert float(np.sum(view.apply(z) * rr)) == pytest.approx(float(np.sum(view.adjoint(rr) * z)), rel=1e-4)
+
+
+def test_precompute_is_stored_and_checked_against_its_calibration(lab_calibration, tmp_path, capsys):
+    cal_dir, _, _ = lab_calibration()
+    mine = tmp_path / "cal"
+    shutil.copytree(cal_dir, mine)
+    assert main(["precompute", str(mine)]) == 0
+    doc = json.loads((mine / "transport.json").read_text())
+    assert doc["bounces"] == 1 and doc["megabytes"] > 0 and "transport operator in" in capsys.readouterr().out
+    cal = calibrate_step.read(mine)
+    assert transport_step.load(cal, bounces=1, seed=0) is not None
+    assert transport_step.load(cal, bounces=0, seed=0) is None  # made for other settings
+    manifest = mine / "calibration.json"
+    manifest.write_text(manifest.read_text().replace('"version"', '"version" ', 1))  # another calibration
+    assert transport_step.load(calibrate_step.read(mine), bounces=1, seed=0) is None
+
+
+@pytest.mark.parametrize("device", [False, True])
+def test_compensate_on_the_operator(operator, lab_calibration, tmp_path, device):
+    """Stage C on the operator, open and closed loop, matches what the camera sees and beats the plain target."""
+    from procam.addon.imageio import write_image
+
+    cal_dir, _, truth_path = lab_calibration()
+    target = write_image(tmp_path / "t.png", (0.05 + 0.4 * _smooth_input(operator[0], 3)[..., ::-1]))
+    out = tmp_path / "comp"
+    args = ["compensate", str(cal_dir), str(target), "--schedule", "transport", "--out", str(out)]
+    assert main(args + (["--device", f"lab:{truth_path}"] if device else [])) == 0
+    rec = json.loads((out / "compensation.json").read_text())["targets"][0]
+    assert rec["mode"] == ("closed-loop" if device else "open-loop")
+    assert rec["captures"] == (3 if device else 0)
+    assert main(["evaluate", str(cal_dir), "--inputs", str(out), "--targets", str(target), "--device",
+                 f"lab:{truth_path}", "--out", str(tmp_path / "eval")]) == 0
+    row = json.loads((tmp_path / "eval" / "metrics.json").read_text())["targets"][0]
+    assert row["psnr"] > row["uncompensated"]["psnr"] + 3, row
