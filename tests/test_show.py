@@ -235,7 +235,7 @@ def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys,
     def full_disk(path, image):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(show_step, "write_image", full_disk)
+    monkeypatch.setattr(show_step, "write_atomic_bytes", full_disk)
     out3 = tmp_path / "show3"
     assert main(["show", str(cal_dir), str(seq / "shot_0001.png"), str(seq / "shot_0003.png"), "--out", str(out3),
                  *FAST, "--no-bias"]) == EXIT_USER
@@ -295,3 +295,103 @@ def test_show_range_auto_is_one_map_for_the_show(lab_calibration, tmp_path, caps
     # Another map is another show: refused without --force, like any other setting.
     assert main([*args[:-1], f"{rng['gain'] * 0.9},{rng['offset']}"]) == EXIT_USER
     assert "range.gain" in capsys.readouterr().err
+
+
+# -- video, warm start, frames on a cluster --------------------------------------------------------
+
+def _video(path: Path, n: int, seed: int = 0) -> Path:
+    """A small MJPG .avi (OpenCV's writer, no codec outside its wheels) of a slowly moving pattern."""
+    from procam.addon.capture.patterns import smooth_random
+
+    base = smooth_random((200, 120), seed, 20.0)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 24, (160, 120))
+    assert writer.isOpened()
+    for i in range(n):
+        img = (0.1 + 0.6 * base[:, 4 * i:4 * i + 160]) * 255
+        writer.write(np.round(img[..., ::-1]).astype(np.uint8))
+    writer.release()
+    return path
+
+
+def _bytes(out: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(out.glob("frame_*.png"))}
+
+
+def test_show_from_a_video_warm_starts_and_resumes_exactly(lab_calibration, tmp_path, capsys):
+    cal_dir, _, _ = lab_calibration()
+    video = _video(tmp_path / "clip.avi", 3)
+    assert [(f.number, f.index) for f in list_frames([video])] == [(1, 0), (2, 1), (3, 2)]
+    out = tmp_path / "show"
+    args = ["show", str(cal_dir), str(video), "--out", str(out), *FAST, "--no-bias", "--chunk", "2"]
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    assert doc["video"]["frames"] == 3 and doc["video"]["source_sha256"] == hashlib.sha256(video.read_bytes()).hexdigest()
+    assert doc["settings"]["warm_start"]["chunk"] == 2
+    # Chunks by frame number {1, 2}, {3}: frame 2 starts from frame 1, frames 1 and 3 start cold.
+    assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, None]
+    assert doc["frames"]["2"]["video_frame"] == 2 and "8-bit video" in doc["frames"]["2"]["encoding"]
+    first = _bytes(out)
+    # Frame 2 redone on resume starts from frame 1 read back from disk: the same bytes as when computed in a run.
+    (out / "frame_0002.png").unlink()
+    assert main(args) == EXIT_OK
+    assert _manifest(out)["runs"][-1]["done"] == 1 and _bytes(out) == first
+    # Cold start is another setting; a changed video is noticed like a changed image.
+    capsys.readouterr()
+    assert main(args + ["--cold-start"]) == EXIT_USER
+    assert "warm_start" in capsys.readouterr().err
+    _video(video, 3, seed=5)
+    assert main(args) == EXIT_USER
+    assert "the video" in capsys.readouterr().err and _bytes(out) == first
+    cold = tmp_path / "cold"
+    assert main(["show", str(cal_dir), str(video), "--out", str(cold), *FAST, "--no-bias", "--cold-start"]) == EXIT_OK
+    doc = _manifest(cold)
+    assert doc["settings"]["warm_start"] is None and all(e["warm_start"] is None for e in doc["frames"].values())
+    assert not _leftovers(out) and not _leftovers(cold)
+
+
+def test_show_on_a_local_two_worker_cluster(lab_calibration, tmp_path, capsys):
+    """Frames as tasks on a local Dask cluster: byte-identical to one process; a cancelled run resumes without
+    redoing finished frames; the closed loop is refused."""
+    import procam.addon.steps.show as show_step
+    from procam.addon.steps.stage_c import StageCOptions
+
+    cal_dir, _, truth = lab_calibration()
+    seq = _frames(tmp_path / "frames", (1, 2, 3))
+    single = tmp_path / "single"
+    base = ["show", str(cal_dir), str(seq), *FAST, "--chunk", "2"]
+    assert main([*base, "--out", str(single)]) == EXIT_OK
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "x"), "--workers", "2", "--device", f"lab:{truth}"]) == EXIT_USER
+    assert "closed loop" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+    # Cancelled as soon as the first frame is written: that frame is kept, the rest is not computed twice.
+    out = tmp_path / "cluster"
+    written: list[str] = []
+    options = show_step.ShowOptions(cal_dir, (seq,), out, StageCOptions(iterations=4, spp=1), chunk=2, workers=2)
+    with pytest.raises(show_step.Cancelled):
+        show_step.run(options, progress=lambda msg, frac: written.append(msg) if "dB (model)" in msg else None,
+                      cancel=lambda: bool(written))
+    doc = _manifest(out)
+    kept = {n for n, e in doc["frames"].items() if e["status"] == "done"}
+    assert doc["runs"][-1]["status"] == "cancelled" and len(kept) >= 1 and not _leftovers(out)
+    before = _mtimes(out)
+    assert main([*base, "--out", str(out), "--workers", "2"]) == EXIT_OK
+    doc = _manifest(out)
+    assert doc["runs"][-1]["skipped"] == len(kept) and doc["runs"][-1]["done"] == 3 - len(kept)
+    assert all(_mtimes(out)[k] == v for k, v in before.items())
+    assert _bytes(out) == _bytes(single) and doc["runs"][-1]["where"] == "local cluster, 2 worker(s)"
+    assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, None]
+
+
+def test_evaluate_reports_the_flicker_of_a_show(lab_calibration, tmp_path):
+    cal_dir, _, truth = lab_calibration()
+    seq = _frames(tmp_path / "frames", (1, 2, 3))
+    show = tmp_path / "show"
+    assert main(["show", str(cal_dir), str(seq), "--out", str(show), *FAST, "--no-bias"]) == EXIT_OK
+    out = tmp_path / "eval"
+    targets = [str(p) for p in sorted(seq.glob("*.png"))]
+    assert main(["evaluate", str(cal_dir), "--inputs", str(show), "--targets", *targets, "--device",
+                 f"lab:{truth}", "--out", str(out)]) == EXIT_OK
+    f = json.loads((out / "metrics.json").read_text())["flicker"]
+    assert f["pairs"] == 2 and f["targets"] > 0 and f["captured"] > 0 and "consecutive" in f["measure"]
+    assert f["excess"] == pytest.approx(f["captured"] - f["targets"], abs=2e-5)

@@ -11,7 +11,9 @@ and writes a new folder (``addon/steps/evaluate.py``; replaced only with ``--for
 ``NAME_uncompensated_capture.png`` the camera's view of the uncompensated target
 
 Targets are matched to the compensation by file stem, as ``procam compensate``
-named them. If a target fails during the projections, the finished ones are
+named them (a show folder: by the stems of the images its frames were made
+from). Two or more targets, in order, also give the sequence's flicker
+(``"flicker"``: captured, targets, excess = captured − targets). If a target fails during the projections, the finished ones are
 kept and ``metrics.json`` records the failure (``"complete": false``).
 """
 
@@ -28,9 +30,11 @@ from .terminal import run_step
 
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
-    p.add_argument("--inputs", type=Path, required=True, help="compensation folder (from procam compensate)")
+    p.add_argument("--inputs", type=Path, required=True,
+                   help="compensation folder (from procam compensate) or show folder (from procam show, images)")
     p.add_argument("--targets", type=Path, nargs="+", required=True, metavar="TARGET",
-                   help="the target images given to procam compensate")
+                   help="the target images given to procam compensate or show; two or more, in order, also give "
+                        "the sequence's flicker")
     p.add_argument("--device", required=True, help="lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or live:camera=SOURCE,display=N")
     p.add_argument("--out", type=Path, required=True, help="folder to create for the metrics and images")
     p.add_argument("--classical", action="store_true",
@@ -56,6 +60,10 @@ def run(args: argparse.Namespace) -> int:
     if doc.get("range"):
         print(f"targets mapped by the compensation's range: {doc['range']['gain']:.3f}·t "
               f"{doc['range']['offset']:+.3f}")
+    if doc.get("flicker"):
+        f = doc["flicker"]
+        print(f"flicker over {f['pairs']} consecutive pair(s): captured {f['captured']:.4f}, targets "
+              f"{f['targets']:.4f} (excess {f['excess']:+.4f}; uncompensated {f['uncompensated']:.4f})")
     if m:
         print(f"mean: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; metrics in {args.out / 'metrics.json'}")
     return 0

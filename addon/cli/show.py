@@ -19,14 +19,21 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..steps.show import SequenceError, ShowOptions, list_frames, run as prepare_show
+from ..steps.show import CHUNK, SequenceError, ShowOptions, list_frames, run as prepare_show
 from .app import command
 from .compensate import add_effect_options, add_schedule_options, stage_c_options
 from .terminal import run_step
 
 EPILOG = """\
-TARGETS is a folder of images, a numbered pattern (frames/shot_####.png or frames/shot_%04d.png), or a list of
-image files. Output frame N is OUT/frame_NNNN.png, numbered like the input frames.
+TARGETS is a folder of images, a numbered pattern (frames/shot_####.png or frames/shot_%04d.png), a list of
+image files, or one video file (.mp4, .mov, .avi, .mkv, …; frames 1…N, 8-bit sRGB like 8-bit images). Output
+frame N is OUT/frame_NNNN.png, numbered like the input frames.
+
+Each frame's stage C starts from the previous frame's answer (warm start), within chunks of --chunk frames by
+frame number (1–24, 25–48, …); --cold-start starts every frame from the target alone. --workers N computes the
+chunks side by side on a local Dask cluster of N processes, --cluster tcp://HOST:8786 on a running Dask cluster
+(its workers must see the calibration and targets at the same paths); the frames are byte-identical to a run in
+this process, which alone writes OUT. The closed loop (--device) runs in this process only.
 
 Rerunning the same command resumes: frames whose file matches the manifest (size and SHA-256) are skipped.
 A rerun with other settings, another calibration, or after a target image changed is refused unless --force,
@@ -48,6 +55,16 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="redo every frame, even finished ones (needed when the settings or targets changed)")
     p.add_argument("--fail-fast", action="store_true",
                    help="stop at the first frame that fails instead of going on with the next ones")
+    p.add_argument("--cold-start", action="store_true",
+                   help="start every frame's stage C from its target alone, not from the previous frame's answer")
+    p.add_argument("--chunk", type=int, default=CHUNK, metavar="N",
+                   help=f"frames per warm-start chunk, by frame number (default {CHUNK}); the first frame of each "
+                        "chunk starts cold, and chunks run side by side with --workers/--cluster")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N",
+                       help="compute the frames on a local cluster of N worker processes (Dask distributed)")
+    where.add_argument("--cluster", metavar="ADDRESS",
+                       help="compute the frames on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786)")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
@@ -56,7 +73,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                  "(resumable).", _configure)
 def run(args: argparse.Namespace) -> int:
     options = ShowOptions(args.calibration, tuple(args.targets), args.out, stage_c_options(args), force=args.force,
-                          fail_fast=args.fail_fast)
+                          fail_fast=args.fail_fast, warm_start=not args.cold_start, chunk=args.chunk,
+                          workers=args.workers, cluster=args.cluster)
+    options.check(options.stage_c.mode)  # a refused cluster request fails before anything is read
     frames = list_frames(options.targets)  # a bad sequence fails before the bar starts
     result = run_step("show", prepare_show, options, total=len(frames), unit="frames")
     doc = result.manifest

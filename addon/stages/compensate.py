@@ -476,6 +476,14 @@ class Compensator:
         ratio = np.where(target > 0, ratio, 0.0)  # outside the area: leave the projector dark
         return np.clip(self.camera_to_input(np.clip(ratio, 0.0, 1.0)), 0.0, 1.0)
 
+    def start_input(self, z: np.ndarray) -> np.ndarray:
+        """A given starting ``z`` (a warm start), checked: input size, finite, clipped to [0, 1]."""
+        a = np.asarray(z, dtype=np.float32)
+        if a.shape != (self.ih, self.iw, 3) or not np.all(np.isfinite(a)):
+            raise CompensationError(f"a starting input must be a finite {self.iw}×{self.ih}×3 image, got shape "
+                                    f"{a.shape}")
+        return np.clip(a, 0.0, 1.0)
+
     def _check_capture(self, y: np.ndarray) -> np.ndarray:
         img = np.asarray(y, dtype=np.float32)
         cw, ch = self.camera_size
@@ -578,8 +586,9 @@ class Compensator:
             capture_every: int | None = None, progress: Progress | None = None,
             cancel: Cancel | None = None, open_loop_theta: np.ndarray | BiasModel | None = None,
             use_bias: bool = True, init: str = "inverse", theta_init: str = "capture",
-            name: str = "target") -> CompensationResult:
-        """Stage C for one target; see :func:`compensate`."""
+            name: str = "target", start: np.ndarray | None = None) -> CompensationResult:
+        """Stage C for one target; see :func:`compensate`. ``start``: the virtual input z to start from (a warm
+        start, e.g. the previous frame's answer) instead of ``init``."""
         mi, dr = self._mi, self._dr
         t_start = time.perf_counter()
         say = progress or (lambda msg, frac: None)
@@ -627,7 +636,7 @@ class Compensator:
         if bias is not None and (bias.theta.shape[:2] != placed.shape[:2]):
             raise CompensationError("the open-loop θ does not have the camera's size")
 
-        z0 = self.initial_input(placed, bias, init)
+        z0 = self.initial_input(placed, bias, init) if start is None else self.start_input(start)
         if sched.transport:
             return self._run_transport(placed, area, z0, sched, mode, bias, device, say, cancel, name, t_start)
         opt = mi.ad.Adam(lr=float(sched.lr))

@@ -15,6 +15,13 @@ Targets are matched to the compensation by file stem, as the compensate step
 named them. If a target fails during the projections, the finished ones are
 kept and ``metrics.json`` records the failure (``"complete": false``), which
 is then raised.
+
+A show folder (``procam show``, image targets) is read like a compensation
+folder, its frames matched by the stems of the images they were made from.
+Given two or more targets in order (a sequence), ``metrics.json`` also holds
+their **flicker** (:func:`flicker`): the mean absolute difference between
+consecutive captures inside the display area, minus that of the targets
+themselves — what compensation adds to the sequence's own change.
 """
 
 from __future__ import annotations
@@ -95,6 +102,8 @@ class CompensationInputs:
     @staticmethod
     def load(path: str | Path) -> "CompensationInputs":
         root = Path(path)
+        if (root / layout.SHOW.manifest).is_file():
+            return CompensationInputs._load_show(root)
         manifest = root / layout.COMPENSATION.manifest
         if not root.is_dir():
             raise InputsError(f"the compensation folder {root} does not exist; give the folder procam compensate "
@@ -119,6 +128,34 @@ class CompensationInputs:
             frame = root / r["frame"] if r.get("frame") else None
             inp = root / r["input"] if r.get("input") else None
             records[name] = InputRecord(name, frame, inp, area, r.get("mode"))
+        return CompensationInputs(root, doc, records)
+
+    @staticmethod
+    def _load_show(root: Path) -> "CompensationInputs":
+        """A show folder's finished frames, named by the stems of their target images."""
+        manifest = root / layout.SHOW.manifest
+        try:
+            show = json.loads(manifest.read_text())
+        except (OSError, ValueError) as exc:
+            raise InputsError(f"cannot read {manifest}: {exc}") from None
+        if not isinstance(show, dict) or show.get("format") != layout.SHOW.format:
+            raise InputsError(f"{manifest} is not a ProCam show manifest")
+        if show.get("video"):
+            raise InputsError(f"{root} was made from a video; evaluate takes image targets (export the frames "
+                              "as images and make the show from them)")
+        cal = show.get("calibration") or {}
+        doc = {"format": layout.COMPENSATION.format, "capture_set": cal.get("capture_set"),
+               "calibration": cal.get("path"), "camera_size": show.get("camera_size"),
+               "projector": show.get("projector"), "range": (show.get("settings") or {}).get("range")}
+        records: dict[str, InputRecord] = {}
+        frames = [e for e in (show.get("frames") or {}).values() if isinstance(e, dict) and e.get("status") == "done"]
+        for e in sorted(frames, key=lambda e: int(e.get("number", 0))):
+            try:
+                name = output_names([str(e["source"])])[0]
+                records[name] = InputRecord(name, root / str(e["file"]), None, DisplayArea.from_dict(e["area"]),
+                                            e.get("mode"))
+            except (KeyError, TypeError, ValueError, ProCamError) as exc:
+                raise InputsError(f"{manifest}: a frame record is malformed ({exc})") from None
         return CompensationInputs(root, doc, records)
 
     def check_against(self, calibration: Any, calibration_dir: str | Path | None = None) -> list[str]:
@@ -178,6 +215,31 @@ class CompensationInputs:
                           "procam compensate again")
 
 
+#: What metrics.json says the flicker is.
+FLICKER_MEASURE = ("flicker: for each pair of consecutive targets (in the order given) with the same display "
+                   "area, the mean absolute difference (linear, 0–1, all channels) between their captures inside "
+                   "the area, averaged over the pairs; 'targets' is the same for the targets fitted to the area "
+                   "(and range-mapped), 'uncompensated' for the captures of the uncompensated targets; 'excess' = "
+                   "captured − targets, which compensation should keep at or below 0")
+
+
+def flicker(rows: list[dict[str, Any]], seen: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+            ) -> dict[str, Any] | None:
+    """The flicker of a sequence (:data:`FLICKER_MEASURE`): ``seen`` holds, by target name, the area crops of
+    (capture, fitted target, uncompensated capture); ``rows`` gives the order and the areas."""
+    pairs: list[tuple[str, str]] = []
+    for a, b in zip(rows, rows[1:]):
+        if a.get("status") == b.get("status") == "done" and a["area"] == b["area"]:
+            pairs.append((a["name"], b["name"]))
+    if not pairs:
+        return None
+    terms = {}
+    for k, what in enumerate(("captured", "targets", "uncompensated")):
+        terms[what] = round(float(np.mean([np.mean(np.abs(seen[b][k] - seen[a][k])) for a, b in pairs])), 5)
+    return {**terms, "excess": round(terms["captured"] - terms["targets"], 5), "pairs": len(pairs),
+            "measure": FLICKER_MEASURE}
+
+
 @dataclass
 class EvaluationRun:
     """What :func:`evaluate_folder` measured; ``failure`` is the error that stopped it (finished targets kept)."""
@@ -219,6 +281,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             0.0)
         model = fit_classical(captures, device=device)
     rows: list[dict[str, Any]] = []
+    seen: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # area crops for the flicker
     failure: ProCamError | None = None
     for i, (name, image, note) in enumerate(targets):
         rec = inputs.record(name)
@@ -262,6 +325,8 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
         write_image(out / row["image"], side_by_side(fitted, area.crop(plain.capture), area.crop(got.capture), *extra))
         write_image(out / files["capture"], got.capture)
         write_image(out / files["uncompensated"], plain.capture)
+        if len(targets) > 1:
+            seen[name] = (area.crop(got.capture), fitted, area.crop(plain.capture))
         rows.append(row)
     done = [r for r in rows if r.get("status") == "done"]
     doc = {"format": KIND.format, "version": KIND.version, "inputs": str(inputs.path.absolute()),
@@ -277,6 +342,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
            "mean_uncompensated": mean_scores(done, "uncompensated"),
            "mean_range_ceiling": round(float(np.mean([r["range_ceiling"] for r in done])), 2) if done else None,
            "mean_classical": mean_scores(done, "classical") if model is not None else None,
+           "flicker": flicker(rows, seen),
            "complete": failure is None}
     return EvaluationRun(doc, failure)
 

@@ -25,10 +25,23 @@ renamed into place, and only then entered in the manifest, so:
 One :class:`.stage_c.StageC` (scene loaded, kernels compiled) serves every
 frame, as it serves the compensate step's targets. Two runs on one folder at once are refused (an OS lock on the
 folder, released by the OS when a process dies).
+
+The targets are image files or the frames of one video file (numbered 1…N;
+its size and SHA-256 are recorded, so a changed video is noticed like a
+changed image). **Warm start** (default): stage C for a frame starts from the
+previous frame's answer, read back from that frame's 16-bit PNG (the bytes the
+folder keeps, so a resumed show computes exactly what a fresh one does;
+:mod:`.show_work`). The sequence is cut into **chunks** of ``chunk`` frames by
+frame number (1–24, 25–48, … by default); the first frame of a chunk starts
+cold, so the chunks are independent and can run side by side on a cluster
+(:mod:`.show_cluster`, ``workers``/``cluster``), and a single process cuts
+them the same way: the frames are byte-identical either way. The process
+running the show is the only writer of the folder.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 from importlib import metadata
@@ -44,14 +57,17 @@ import numpy as np
 
 from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
-from ..imageio import write_atomic_bytes, write_image
+from ..imageio import write_atomic_bytes
 from ..outputs import file_sha256, jsonable, natural_key, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..stages.compensate import BiasModel, Compensator
 from ..stages.display_area import DisplayArea
 from ..stages.range import RangeMap
+from ..video import VideoReader, frame_count, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
+from .show_cluster import Cluster, WorkerContext
+from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
 from .stage_c import StageC, StageCOptions
 from .summary import Summary, cached, fmt
 
@@ -63,6 +79,8 @@ FRAME_PREFIX = layout.FRAME_PREFIX
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".npy")
 #: ``--range auto`` fits the show's gain and offset to at most this many frames, evenly spread.
 RANGE_SAMPLE = 32
+#: Frames per warm-start chunk (by frame number: 1–24, 25–48, …): one second at 24 fps.
+CHUNK = 24
 
 class SequenceError(ProCamError):
     """A target sequence or show folder that cannot be used as asked."""
@@ -72,10 +90,12 @@ class SequenceError(ProCamError):
 
 @dataclass(frozen=True)
 class SourceFrame:
-    """One target image of the sequence and the frame number its output carries."""
+    """One target of the sequence and the frame number its output carries: an image file, or frame ``index``
+    (0-based) of the video file ``path``."""
 
     number: int
     path: Path
+    index: int | None = None
 
 
 _HASHES = re.compile(r"#+")
@@ -114,11 +134,24 @@ def list_frames(inputs: Sequence[str | Path]) -> list[SourceFrame]:
     ``inputs`` is one folder (every image in it: numbered by the digits that end
     their names when those are distinct, else 1, 2, … in natural order), one
     numbered pattern (``frames/shot_####.png`` or ``frames/shot_%04d.png``:
-    numbered by the file names), or a list of image files (numbered like a folder).
+    numbered by the file names), a list of image files (numbered like a folder),
+    or one video file (its frames numbered 1…N).
     """
     items = [Path(p) for p in inputs]
     if not items:
-        raise SequenceError("no target frames given; name a folder, a pattern like frames/shot_####.png, or files")
+        raise SequenceError("no target frames given; name a folder, a pattern like frames/shot_####.png, files, "
+                            "or a video")
+    videos = [p for p in items if is_video(p)]
+    if videos:
+        if len(items) > 1:
+            raise SequenceError("give one video file alone (not with other videos or images); join videos first")
+        if not videos[0].is_file():
+            raise SequenceError(f"video {videos[0]} not found")
+        try:
+            n = frame_count(videos[0])
+        except ProCamError as exc:
+            raise SequenceError(str(exc)) from None
+        return [SourceFrame(i + 1, videos[0], i) for i in range(n)]
     if len(items) == 1 and items[0].is_dir():
         folder = items[0]
         paths = [p for p in folder.iterdir()
@@ -177,10 +210,51 @@ class ShowOptions:
     force: bool = False
     #: stop at the first frame that fails instead of going on with the next ones
     fail_fast: bool = False
+    #: start each frame's stage C from the previous frame's answer (within its chunk); False: every frame cold
+    warm_start: bool = True
+    #: frames per chunk (by frame number); each chunk's first frame starts cold, chunks run side by side
+    chunk: int = CHUNK
+    #: compute on a local cluster of this many worker processes (None: in this process)
+    workers: int | None = None
+    #: compute on the Dask cluster whose scheduler is at this address (tcp://host:8786)
+    cluster: str | None = None
+
+    def check(self, mode: str) -> None:
+        """Refuse a warm-start or cluster request that cannot run, before anything is loaded."""
+        if isinstance(self.chunk, bool) or not isinstance(self.chunk, int) or self.chunk < 1:
+            raise SequenceError(f"the chunk must be a whole number of frames ≥ 1, got {self.chunk!r}")
+        if self.workers is not None and self.cluster:
+            raise SequenceError("give either --workers (a local cluster) or --cluster ADDRESS, not both")
+        if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
+                                         or self.workers < 1):
+            raise SequenceError(f"--workers must be a whole number ≥ 1, got {self.workers!r}")
+        if (self.workers is not None or self.cluster) and mode == "closed-loop":
+            raise SequenceError("the closed loop runs through one physical device (one projector and camera), "
+                                "whose frames cannot be shared out: drop --workers/--cluster, or drop --device "
+                                "for the open loop")
+
+    def warm(self) -> dict[str, Any] | None:
+        """The warm start as the settings record it (it decides the pixels): None for cold starts."""
+        return {"from": "previous frame's 16-bit PNG", "chunk": self.chunk} if self.warm_start else None
+
+
+def chunk_of(number: int, chunk: int) -> int:
+    """The chunk of a frame number: frames 1…chunk are chunk 0, and so on."""
+    return (number - 1) // chunk
+
+
+def warm_from(frames: Sequence[SourceFrame], options: ShowOptions) -> dict[int, int]:
+    """For each frame that is warm-started, the number of the frame it starts from: the one before it in the
+    sequence, when both lie in the same chunk."""
+    if not options.warm_start:
+        return {}
+    return {f.number: p.number for p, f in zip(frames, frames[1:])
+            if chunk_of(p.number, options.chunk) == chunk_of(f.number, options.chunk)}
 
 
 def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: str, digits: int,
-                effects: dict[str, Any] | None, range_map: RangeMap | None = None) -> dict[str, Any]:
+                effects: dict[str, Any] | None, range_map: RangeMap | None = None,
+                warm: dict[str, Any] | None = None) -> dict[str, Any]:
     """What decides the frames' pixels: two runs with equal settings write the same frames."""
     schedule = asdict(options.resolved())
     if mode != "closed-loop":  # θ's update rule and the capture interval only act in the closed loop
@@ -189,7 +263,7 @@ def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: st
             "device": options.device_spec, "mode": mode, "schedule": schedule, "spp": options.spp,
             "bounces": options.bounces, "seed": options.seed, "area": list(options.area) if options.area else "auto",
             "target_encoding": options.target_encoding, "digits": digits, "effects": effects,
-            "range": None if range_map is None else range_map.to_dict()}
+            "range": None if range_map is None else range_map.to_dict(), "warm_start": warm}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
@@ -300,11 +374,6 @@ class ShowFolder:
         return None
 
 
-def _source_record(path: Path) -> dict[str, Any]:
-    st = path.stat()
-    return {"source": str(path.absolute()), "source_bytes": st.st_size, "source_mtime_ns": st.st_mtime_ns}
-
-
 def _source_changed(entry: dict[str, Any], frame: SourceFrame) -> bool:
     """Whether the target of a finished frame changed since (size/time first, the hash only when those differ)."""
     try:
@@ -314,7 +383,7 @@ def _source_changed(entry: dict[str, Any], frame: SourceFrame) -> bool:
     if entry.get("source") == str(frame.path.absolute()) and entry.get("source_bytes") == st.st_size \
             and entry.get("source_mtime_ns") == st.st_mtime_ns:
         return False
-    return file_sha256(frame.path) != entry.get("source_sha256")
+    return source_record(frame.path)["source_sha256"] != entry.get("source_sha256")  # a video: hashed once
 
 
 # -- the run ---------------------------------------------------------------------------------------
@@ -372,6 +441,7 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     sc = options.stage_c
     sc.check()
     mode = sc.mode
+    options.check(mode)
     cal = calibrate_step.read(options.calibration)  # says how to make one when the folder is not a calibration
     ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
@@ -382,10 +452,23 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
             # One map for the whole show, from an even sample of its frames (a per-frame fit would flicker).
             sample = frames[::max(1, -(-len(frames) // RANGE_SAMPLE))]
             say(f"range: fitting one gain and offset to {len(sample)} of the {len(frames)} frames", 0.0)
-            stage.fix_range([stage.load(f.path)[0] for f in sample])
+            readers: dict[Path, VideoReader] = {}
+            try:
+                stage.fix_range([_load(stage, f, readers)[0] for f in sample])
+            finally:
+                for r in readers.values():
+                    r.close()
         settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects,
-                               range_map=stage.range_map)
+                               range_map=stage.range_map, warm=options.warm())
         return _run(options, frames, stage, cal, ident, settings, digits, say, cancel)
+
+
+def _load(stage: StageC, frame: SourceFrame, readers: dict[Path, VideoReader]) -> tuple[np.ndarray, str]:
+    """A target as stage C reads it: an image file, or a frame of a video (readers kept open by path)."""
+    if frame.index is None:
+        return stage.load(frame.path)
+    reader = readers.get(frame.path) or readers.setdefault(frame.path, VideoReader(frame.path))
+    return load_video_frame(reader, frame.index, encoding=stage.options.target_encoding)
 
 
 def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: Any, ident: dict[str, str],
@@ -412,6 +495,10 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                     raise SequenceError(f"{folder.path} holds a show made with other settings ("
                                         + "; ".join(diffs) + "); its finished frames are never overwritten "
                                         "silently: rerun with --force to redo every frame, or choose another --out")
+                if changed and frames[0].index is not None:
+                    raise SequenceError(f"the video {frames[0].path} changed since its frames were compensated into "
+                                        f"{folder.path}; rerun with --force to redo every frame, or choose another "
+                                        "--out")
                 if changed:
                     raise SequenceError(f"the target image of frame(s) {', '.join(sorted(changed, key=int))} changed "
                                         f"since they were compensated into {folder.path}; rerun with --force to "
@@ -431,7 +518,9 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                     log("--force: redoing every frame")
         run_no = len(history["runs"]) + 1
         run = {"run": run_no, "started": _now(), "status": "running", "frames": len(frames),
-               "done": 0, "skipped": 0, "failed": 0}
+               "done": 0, "skipped": 0, "failed": 0,
+               "where": (f"cluster {options.cluster}" if options.cluster else
+                         f"local cluster, {options.workers} worker(s)" if options.workers else "this process")}
         history["runs"].append(run)
         folder.doc = {
             "format": FORMAT, "version": VERSION, "procam_version": _procam_version(),
@@ -451,6 +540,8 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
             **stage.rig_record(),
             "frame_pattern": f"{FRAME_PREFIX}{'#' * digits}.png", "frame_format": "PNG, 16-bit RGB, linear",
             "settings": settings, "areas": areas, "frames": frames_doc, "complete": False, **history}
+        if frames[0].index is not None:  # the video's identity: a changed video is noticed like a changed image
+            folder.doc["video"] = {**source_record(frames[0].path), "frames": len(frames)}
         folder.write()
 
         result = ShowResult(folder.path, total=len(frames))
@@ -474,8 +565,8 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
 
         try:
             if todo:
-                _run_frames(todo, folder, result, run, stage, digits, fail_fast=options.fail_fast, say=say,
-                            cancel=cancel)
+                _run_frames(todo, frames, folder, result, run, stage, digits, options=options, ident=ident,
+                            say=say, cancel=cancel)
             run["status"] = "complete" if not result.failed else "incomplete"
         except Cancelled as exc:
             run["status"] = "cancelled"
@@ -512,9 +603,11 @@ def _procam_version() -> str:
         return "unknown"
 
 
-def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult, run: dict[str, Any],
-                stage: StageC, digits: int, *, fail_fast: bool, say: Progress, cancel: Cancel | None) -> None:
-    """The frame loop of :func:`run` (split out to keep the bookkeeping above readable)."""
+def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: ShowFolder, result: ShowResult,
+                run: dict[str, Any], stage: StageC, digits: int, *, options: ShowOptions, ident: dict[str, str],
+                say: Progress, cancel: Cancel | None) -> None:
+    """The frame loop of :func:`run` (split out to keep the bookkeeping above readable): in this process, or as
+    tasks on a cluster; either way this process alone writes the frames and the manifest, as they finish."""
     doc = folder.doc
     frames_doc, areas = doc["frames"], doc["areas"]
     stage.areas.update({k: DisplayArea.from_dict(v) for k, v in areas.items()})
@@ -527,60 +620,100 @@ def _run_frames(todo: list[SourceFrame], folder: ShowFolder, result: ShowResult,
         bias = stage.bias
         doc["open_loop_bias"] = {"file": BIAS_FILE, "kind": bias.kind, **bias.report}
 
-    n = len(todo)
-    for i, f in enumerate(todo):
-        check(cancel, f"show cancelled before frame {f.number} ({len(result.done)} frame(s) finished in this run)")
-        name = layout.frame_name(f.number, digits)
-        say(f"frame {f.number}: {f.path.name}", i / n)
-        t0 = time.perf_counter()
-        try:
-            try:
-                source = _source_record(f.path)
-                source["source_sha256"] = file_sha256(f.path)
-            except OSError as exc:  # vanished or unreadable since the sequence was listed
-                raise SequenceError(f"cannot read the target {f.path}: {exc.strerror or exc}") from None
-            img, note = stage.load(f.path)
-            done = stage.compensate(img, name=f"frame {f.number}", what=f"target {f.path.name}", cancel=cancel,
-                                    progress=lambda msg, frac, i=i: say(msg, (i + min(max(frac, 0.0), 0.999)) / n))
-            areas.update({k: a.to_dict() for k, a in stage.areas.items()})
-        except Cancelled:
-            raise
-        except ProCamError as exc:
-            result.failed[f.number] = str(exc)
+    prev_of = warm_from(frames, options)
+    jobs = [FrameJob(f.number, f.path, layout.frame_name(f.number, digits), f.index, prev_of.get(f.number))
+            for f in todo]
+    # A frame warm-started from one finished in an earlier run starts from that frame's file, as verified.
+    numbers = {j.number for j in jobs}
+    starts: dict[int, bytes | None] = {}
+    for j in jobs:
+        if j.prev is not None and j.prev not in numbers:
+            entry = frames_doc[str(j.prev)]
+            data = (folder.path / entry["file"]).read_bytes()
+            if hashlib.sha256(data).hexdigest() != entry["sha256"]:
+                raise SequenceError(f"{entry['file']} changed while the show ran; rerun to redo it")
+            starts[j.number] = data
+
+    n = len(jobs)
+    finished = 0
+
+    def record(out: FrameOutcome) -> None:
+        nonlocal finished
+        number, now = out.number, _now()
+        source = str(next(j.path for j in jobs if j.number == number).absolute())
+        if out.error is not None:
+            result.failed[number] = out.error
             run["failed"] = len(result.failed)
-            frames_doc[str(f.number)] = {"number": f.number, "source": str(f.path.absolute()), "status": "failed",
-                                         "error": str(exc), "run": run["run"], "time": _now()}
-            doc["failures"].append({"frame": f.number, "source": str(f.path.absolute()), "error": str(exc),
-                                    "run": run["run"], "time": _now()})
+            frames_doc[str(number)] = {**out.entry, "run": run["run"], "time": now}
+            doc["failures"].append({"frame": number, "source": source, "error": out.error, "run": run["run"],
+                                    "time": now})
             folder.write()
-            say(f"frame {f.number}: failed: {exc}", (i + 1) / n)
-            if fail_fast:
-                raise SequenceError(f"frame {f.number} failed ({exc}); stopped (--fail-fast). Finished frames are "
-                                    "kept; fix it and rerun to resume") from None
-            continue
-        # Outside the per-frame handling above: a full or vanished disk fails every frame alike, so stop here.
+            finished += 1
+            say(f"frame {number}: failed: {out.error}", finished / n)
+            if options.fail_fast:
+                raise SequenceError(f"frame {number} failed ({out.error}); stopped (--fail-fast). Finished frames "
+                                    "are kept; fix it and rerun to resume") from None
+            return
+        # A full or vanished disk fails every frame alike: stop here rather than record failures.
         try:
-            out = write_image(folder.path / name, done.frame)
+            write_atomic_bytes(folder.path / out.entry["file"], out.png)
         except (OSError, ProCamError) as exc:
-            raise SequenceError(f"cannot write frame {f.number} into {folder.path}: {exc}; the finished frames "
+            raise SequenceError(f"cannot write frame {number} into {folder.path}: {exc}; the finished frames "
                                 "are kept, rerun to resume") from None
-        for w in done.warnings:
-            say(f"frame {f.number}: warning: {w}", (i + 1) / n)
-        res = done.result
-        entry = {"number": f.number, "file": name, **source, "status": "done",
-                 "bytes": out.stat().st_size, "sha256": file_sha256(out),
-                 "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": done.warnings,
-                 "psnr_model_start": round(res.report["psnr_simulated_start"], 3),
-                 "psnr_model": round(res.report["psnr_simulated"], 3),
-                 "loss_first": res.losses[0] if res.losses else None,
-                 "loss_last": res.losses[-1] if res.losses else None, "captures": res.captures,
-                 "seconds": round(res.seconds, 2), "seconds_total": round(time.perf_counter() - t0, 2),
-                 "run": run["run"], "time": _now()}
-        frames_doc[str(f.number)] = entry
-        result.done.append(f.number)
+        areas.update(out.areas)
+        finished += 1
+        for w in out.warnings:
+            say(f"frame {number}: warning: {w}", finished / n)
+        frames_doc[str(number)] = {**out.entry, "run": run["run"], "time": now}
+        result.done.append(number)
         run["done"] = len(result.done)
         folder.write()  # the frame counts as finished from here on
-        say(f"frame {f.number}: {res.report['psnr_simulated']:.2f} dB (model), {res.seconds:.1f} s", (i + 1) / n)
+        warm = f", warm from {out.entry['warm_start']}" if out.entry.get("warm_start") is not None else ""
+        say(f"frame {number}: {out.entry['psnr_model']:.2f} dB (model), {out.entry['seconds']:.1f} s{warm}",
+            finished / n)
+
+    if options.workers is not None or options.cluster:
+        _run_on_cluster(jobs, starts, stage, options, ident, areas, record, say, cancel)
+        return
+    readers: dict[Path, VideoReader] = {}
+    last: FrameOutcome | None = None
+    try:
+        for i, job in enumerate(jobs):
+            check(cancel, f"show cancelled before frame {job.number} ({len(result.done)} frame(s) finished in "
+                          "this run)")
+            say(f"frame {job.number}: {job.path.name}" + (f" #{job.index + 1}" if job.index is not None else ""),
+                i / n)
+            start = last.png if last is not None and last.number == job.prev else starts.pop(job.number, None)
+            last = compute_frame(stage, job, start, readers=readers, cancel=cancel,
+                                 progress=lambda msg, frac, i=i: say(msg, (i + min(max(frac, 0.0), 0.999)) / n))
+            record(last)
+    finally:
+        for r in readers.values():
+            r.close()
+
+
+def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage: StageC, options: ShowOptions,
+                    ident: dict[str, str], areas: dict[str, Any], record: Any, say: Progress,
+                    cancel: Cancel | None) -> None:
+    """The frames as tasks on a Dask cluster (:mod:`.show_cluster`); ``record`` writes each as it comes back."""
+    where = f"the cluster at {options.cluster}" if options.cluster else f"a local cluster of {options.workers} worker(s)"
+    say(f"starting {where}", 0.0)
+    cluster = Cluster(workers=options.workers, address=options.cluster)
+    try:
+        say(f"{where}: {cluster.describe}", 0.0)
+        key = hashlib.sha256(json.dumps([ident["sha256"], ident["surface_sha256"], repr(stage.options)])
+                             .encode()).hexdigest()
+        ctx = WorkerContext(key, Path(ident["path"]), stage.options, stage.bias, stage.range_map, dict(areas),
+                            cluster.threads)
+        outcomes = cluster.run(ctx, jobs, starts, poll=lambda: check(cancel, "show cancelled; the finished frames "
+                                                                                "are kept"))
+        try:
+            for out in outcomes:
+                record(out)
+        finally:
+            outcomes.close()  # cancels what is still queued
+    finally:
+        cluster.close()
 
 
 # -- reading ---------------------------------------------------------------------------------------

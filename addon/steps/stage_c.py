@@ -256,8 +256,9 @@ class StageC:
         return load_target(path, encoding=self.options.target_encoding)
 
     def compensate(self, image: np.ndarray, *, name: str, what: str, progress: Progress | None = None,
-                   cancel: Cancel | None = None) -> TargetResult:
-        """Stage C for one target image; :class:`ProCamError` when this target cannot be compensated."""
+                   cancel: Cancel | None = None, start: np.ndarray | None = None) -> TargetResult:
+        """Stage C for one target image; :class:`ProCamError` when this target cannot be compensated.
+        ``start``: the virtual input z to start from (a warm start, :meth:`start_from_frame`)."""
         if self.options.mode == "open-loop" and self.bias is None:
             self.estimate_bias()
         area = self.area_for(image)
@@ -269,12 +270,25 @@ class StageC:
             model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
             res = self.compensator.run(model_target, area, device=self.model_device, **self.options.run_arguments(),
                                        progress=progress, cancel=cancel, open_loop_theta=self.bias,
-                                       use_bias=self.options.use_bias, name=name)
+                                       use_bias=self.options.use_bias, name=name, start=start)
         if self.adapter is None:
             x_input, frame = res.x_input, res.x_frame
         else:
             x_input, frame = self.adapter.input_for(res.x_input), self.adapter.frame_to_send(res.x_input)
         return TargetResult(res, fitted, area, x_input, frame, [str(w.message) for w in caught])
+
+    def start_from_frame(self, frame: np.ndarray) -> np.ndarray:
+        """The virtual input z whose native frame is ``frame`` (as :meth:`compensate` made it): the input area
+        cut out, the effect models' g⁻¹ undone (light = g(input)), the warp undone (z = M(x))."""
+        proj = self.calibration.rig.projector
+        (x0, y0), (w, h) = proj.input_offset, proj.input_size
+        if frame.shape[:2] != tuple(proj.intrinsics.size)[::-1]:
+            raise ProCamError(f"a frame to start from must be {proj.intrinsics.size[0]}×{proj.intrinsics.size[1]}, "
+                              f"got {frame.shape[1]}×{frame.shape[0]}")
+        x = np.asarray(frame[y0:y0 + h, x0:x0 + w, :3], np.float32)
+        if self.adapter is not None:
+            x = np.clip(self.adapter.emitted(x), 0.0, 1.0)
+        return self.compensator.warp_m(x)
 
     def settings(self) -> dict[str, Any]:
         """What decides the pixels of every target: the manifest's record of how stage C ran."""

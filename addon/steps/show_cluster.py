@@ -1,0 +1,176 @@
+"""A show's frames over many processes or machines, on Dask distributed.
+
+Why Dask distributed (not Ray): pure-Python wheels on every platform the
+project runs on, a ``LocalCluster`` of worker processes started from Python
+with no daemon to install, ``Client(address)`` for a real cluster
+(``dask scheduler`` / ``dask worker`` on the machines), and task dependencies
+by passing futures — which is exactly how a warm-started frame waits for the
+one before it.
+
+* Frames are tasks. Frame n's task takes frame n−1's outcome as an argument
+  when it is warm-started from it, so a chunk of frames is a chain and chunks
+  run side by side (the show step cuts the sequence into chunks the same way
+  with or without a cluster, so the frames are byte-identical).
+* Each worker process loads the calibration and the Mitsuba scene once: a
+  worker-side cache of :class:`.stage_c.StageC` keyed by the calibration's
+  hashes and the settings.
+* Workers write nothing; they return each frame's 16-bit PNG bytes and its
+  manifest entry, and the process running ``procam show`` writes them (it
+  alone holds the show folder's lock), so the folder stays atomic and
+  resumable, and no frame is computed twice.
+* Dr.Jit's (and OpenCV's) threads per worker are limited so that workers ×
+  threads does not exceed the machine's cores.
+* Workers read the calibration and the targets by the paths the show names:
+  on a real cluster they must see the same paths (a shared disk).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import ProCamError
+from ..stages.compensate import BiasModel
+from ..stages.display_area import DisplayArea
+from ..stages.range import RangeMap
+from ..video import VideoReader
+from . import calibrate as calibrate_step
+from .show_work import FrameJob, FrameOutcome, compute_frame
+from .stage_c import StageC, StageCOptions
+
+
+class ClusterError(ProCamError):
+    """A cluster that cannot be started, reached or used."""
+
+
+@dataclass(frozen=True)
+class WorkerContext:
+    """What every frame task shares: how to build the worker's stage C, and what the driver fixed for the show."""
+
+    key: str  # calibration hashes and settings: the worker cache's key
+    calibration: Path
+    options: StageCOptions
+    bias: BiasModel | None
+    range_map: RangeMap | None
+    areas: dict[str, Any] = field(default_factory=dict)
+    #: Dr.Jit threads per worker (None: the worker's cores over its task slots)
+    threads: int | None = None
+
+
+_STAGES: dict[str, StageC] = {}
+_READERS: dict[Path, VideoReader] = {}
+
+
+def _stage(ctx: WorkerContext) -> StageC:
+    """This worker's stage C for ``ctx`` (built once per worker process and show settings)."""
+    if ctx.key not in _STAGES:
+        import cv2
+        import drjit as dr
+
+        threads = ctx.threads
+        if threads is None:
+            try:
+                from distributed import get_worker
+
+                slots = get_worker().state.nthreads
+            except (ImportError, ValueError, AttributeError):
+                slots = 1
+            threads = max(1, (os.cpu_count() or 1) // max(1, slots))
+        dr.set_thread_count(threads)
+        cv2.setNumThreads(threads)
+        for old in _STAGES.values():  # one show at a time per worker: free the last one's scene
+            old.close()
+        _STAGES.clear()
+        stage = StageC(calibrate_step.read(ctx.calibration), ctx.options)
+        stage.bias, stage.range_map = ctx.bias, ctx.range_map
+        _STAGES[ctx.key] = stage
+    stage = _STAGES[ctx.key]
+    stage.areas.update({k: DisplayArea.from_dict(v) for k, v in ctx.areas.items() if k not in stage.areas})
+    return stage
+
+
+def remote_frame(ctx: WorkerContext, job: FrameJob, prev: FrameOutcome | bytes | None) -> FrameOutcome:
+    """A frame task: ``prev`` is the outcome of the frame it warm-starts from, that frame's PNG bytes read from
+    the show folder, or None (a cold start)."""
+    start = prev.png if isinstance(prev, FrameOutcome) else prev
+    return compute_frame(_stage(ctx), job, start, readers=_READERS)
+
+
+class Cluster:
+    """A Dask client: on a local cluster of ``workers`` processes started here, or attached to ``address``."""
+
+    def __init__(self, *, workers: int | None = None, address: str | None = None) -> None:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise ClusterError("--workers and --cluster need Dask distributed (pip install -r requirements.txt); "
+                               "it is not installed in this Python") from None
+        self.local = None
+        self.threads: int | None = None
+        try:
+            if address:
+                self.client = Client(address, timeout="20s")
+            else:
+                n = max(1, int(workers or 1))
+                self.threads = max(1, (os.cpu_count() or 1) // n)
+                self.local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                          dashboard_address=None, silence_logs=logging.ERROR)
+                self.client = Client(self.local)
+        except (OSError, TimeoutError, ValueError) as exc:
+            self.close()
+            where = f"the cluster at {address}" if address else "a local cluster"
+            raise ClusterError(f"cannot start or reach {where}: {exc}") from None
+
+    @property
+    def describe(self) -> str:
+        info = self.client.scheduler_info()
+        workers = info.get("workers", {})
+        slots = sum(int(w.get("nthreads", 1)) for w in workers.values())
+        return f"{len(workers)} worker(s), {slots} task slot(s)" + ("" if self.local else f" at {info.get('address')}")
+
+    def run(self, ctx: WorkerContext, jobs: list[FrameJob], starts: dict[int, bytes | None],
+            poll: Callable[[], None]) -> Iterator[FrameOutcome]:
+        """Submit every job (each after the job it warm-starts from, when that one is in ``jobs``) and yield the
+        outcomes as they finish. ``starts``: PNG bytes for jobs whose ``prev`` is not in ``jobs``. ``poll`` is
+        called while waiting (it raises to cancel); on any error the remaining tasks are cancelled."""
+        from distributed import wait
+
+        client = self.client
+        ctx_future = client.scatter(ctx, broadcast=True, hash=False)
+        futures: dict[int, Any] = {}
+        run_id = uuid.uuid4().hex  # keys of this run's tasks: never one of an earlier run still on the cluster
+        for i, job in enumerate(jobs):
+            prev = futures.get(job.prev) if job.prev is not None else None
+            if prev is None:
+                prev = starts.get(job.number)
+            # Earlier frames first: the order a single process would take, and chains never wait on later ones.
+            futures[job.number] = client.submit(remote_frame, ctx_future, job, prev, pure=False,
+                                                key=f"procam-frame-{job.number}-{run_id}",
+                                                priority=len(jobs) - i, retries=0)
+        pending = set(futures.values())
+        try:
+            while pending:
+                poll()
+                try:
+                    done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
+                except TimeoutError:  # nothing finished yet: poll again (a cancel is seen within half a second)
+                    continue
+                for fut in sorted(done, key=lambda f: f.key):
+                    yield fut.result()
+        finally:
+            if pending:
+                client.cancel(list(pending), force=True)
+
+    def close(self) -> None:
+        client = getattr(self, "client", None)
+        if client is not None:
+            client.close()
+            self.client = None
+        if self.local is not None:
+            self.local.close()
+            self.local = None
