@@ -219,3 +219,19 @@ def test_a_stream_that_stops_keeps_the_session_and_resumes(xvfb, tmp_path):
         captures = run_live_capture(options(again.url), progress=lambda m, f: said.append(m))
     assert any("5 of" in m and "already captured" in m for m in said)
     assert sum(m.startswith("capturing") for m in said) == len(captures) - 5
+
+
+def test_esc_in_the_projector_window_stops_and_the_window_is_given_back(xvfb):
+    import pygame
+
+    window = ProjectorWindow((64, 48), position=(100, 70))
+    try:
+        window.show(np.zeros((48, 64, 3), np.float32))
+        pygame.event.post(pygame.event.Event(pygame.KEYDOWN, key=pygame.K_ESCAPE))
+        with pytest.raises(LiveError, match="Esc"):
+            window.show(np.ones((48, 64, 3), np.float32))
+    finally:
+        window.close()
+    time.sleep(0.1)
+    # The screen area is the X root's again (black), not the last white frame.
+    assert _grab((100, 70, 64, 48)).max() == 0

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import CalibrationError
 from ..steps.calibrate import CalibrateOptions, run as calibrate
+from ..steps.transport import PrecomputeOptions, run as precompute
 from .app import command
 from .terminal import run_step
 
@@ -47,6 +48,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="the object's mesh (.obj/.ply, a scan or CAD model in its own frame, metres or "
                         "millimetres), registered by ICP to the depth or triangulated points and used as the surface")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--precompute", action="store_true",
+                   help="also precompute the light-transport operator (procam precompute; ~40 s at 640×480) for "
+                        "compensate --schedule transport")
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
 
@@ -96,4 +100,7 @@ def run(args: argparse.Namespace) -> int:
     if b and a:
         print(f"  warp: checker corners median {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items()))
+    if args.precompute:
+        doc = run_step("precompute", precompute, PrecomputeOptions(args.out, seed=args.seed, force=True))
+        print(f"  transport operator: {doc['megabytes']} MB in {doc['seconds']:.0f} s")
     return 0
