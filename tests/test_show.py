@@ -358,7 +358,8 @@ def test_show_on_a_local_two_worker_cluster(lab_calibration, tmp_path, capsys):
     cal_dir, _, truth = lab_calibration()
     seq = _frames(tmp_path / "frames", (1, 2, 3))
     single = tmp_path / "single"
-    base = ["show", str(cal_dir), str(seq), *FAST, "--chunk", "2"]
+    # 2 spp: several samples per pixel, whose sums are ordered by Dr.Jit's thread count, the same on both sides.
+    base = ["show", str(cal_dir), str(seq), "--iterations", "4", "--spp", "2", "--chunk", "2", "--threads", "1"]
     assert main([*base, "--out", str(single)]) == EXIT_OK
     capsys.readouterr()
     assert main([*base, "--out", str(tmp_path / "x"), "--workers", "2", "--device", f"lab:{truth}"]) == EXIT_USER
@@ -367,7 +368,8 @@ def test_show_on_a_local_two_worker_cluster(lab_calibration, tmp_path, capsys):
     # Cancelled as soon as the first frame is written: that frame is kept, the rest is not computed twice.
     out = tmp_path / "cluster"
     written: list[str] = []
-    options = show_step.ShowOptions(cal_dir, (seq,), out, StageCOptions(iterations=4, spp=1), chunk=2, workers=2)
+    options = show_step.ShowOptions(cal_dir, (seq,), out, StageCOptions(iterations=4, spp=2), chunk=2, workers=2,
+                                    threads=1)
     with pytest.raises(show_step.Cancelled):
         show_step.run(options, progress=lambda msg, frac: written.append(msg) if "dB (model)" in msg else None,
                       cancel=lambda: bool(written))

@@ -33,7 +33,8 @@ Each frame's stage C starts from the previous frame's answer (warm start), withi
 frame number (1–24, 25–48, …); --cold-start starts every frame from the target alone. --workers N computes the
 chunks side by side on a local Dask cluster of N processes, --cluster tcp://HOST:8786 on a running Dask cluster
 (its workers must see the calibration and targets at the same paths); the frames are byte-identical to a run in
-this process, which alone writes OUT. The closed loop (--device) runs in this process only.
+this process with the same --threads (Dr.Jit's thread count orders the samples' sums), and this process alone
+writes OUT. The closed loop (--device) runs in this process only.
 
 Rerunning the same command resumes: frames whose file matches the manifest (size and SHA-256) are skipped.
 A rerun with other settings, another calibration, or after a target image changed is refused unless --force,
@@ -60,6 +61,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=CHUNK, metavar="N",
                    help=f"frames per warm-start chunk, by frame number (default {CHUNK}); the first frame of each "
                         "chunk starts cold, and chunks run side by side with --workers/--cluster")
+    p.add_argument("--threads", type=int, metavar="N",
+                   help="Dr.Jit threads of this process, or of each worker (default: all cores; cores over "
+                        "workers on a local cluster); frames are byte-identical across runs with the same count")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, metavar="N",
                        help="compute the frames on a local cluster of N worker processes (Dask distributed)")
@@ -74,7 +78,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     options = ShowOptions(args.calibration, tuple(args.targets), args.out, stage_c_options(args), force=args.force,
                           fail_fast=args.fail_fast, warm_start=not args.cold_start, chunk=args.chunk,
-                          workers=args.workers, cluster=args.cluster)
+                          workers=args.workers, cluster=args.cluster, threads=args.threads)
     options.check(options.stage_c.mode)  # a refused cluster request fails before anything is read
     frames = list_frames(options.targets)  # a bad sequence fails before the bar starts
     result = run_step("show", prepare_show, options, total=len(frames), unit="frames")

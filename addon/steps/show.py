@@ -29,7 +29,8 @@ folder, released by the OS when a process dies).
 The targets are image files or the frames of one video file (numbered 1…N;
 its size and SHA-256 are recorded, so a changed video is noticed like a
 changed image). **Warm start** (default): stage C for a frame starts from the
-previous frame's answer, read back from that frame's 16-bit PNG (the bytes the
+previous frame's correction (its answer minus its usual start, added to this
+frame's usual start), read back from that frame's 16-bit PNG (the bytes the
 folder keeps, so a resumed show computes exactly what a fresh one does;
 :mod:`.show_work`). The sequence is cut into **chunks** of ``chunk`` frames by
 frame number (1–24, 25–48, … by default); the first frame of a chunk starts
@@ -218,6 +219,10 @@ class ShowOptions:
     workers: int | None = None
     #: compute on the Dask cluster whose scheduler is at this address (tcp://host:8786)
     cluster: str | None = None
+    #: Dr.Jit threads of this process, or of each worker (None: all cores here; cores over workers on a cluster).
+    #: Renders with several samples per pixel add them in an order that depends on the thread count, so runs
+    #: are byte-identical between one process and a cluster when both use the same count.
+    threads: int | None = None
 
     def check(self, mode: str) -> None:
         """Refuse a warm-start or cluster request that cannot run, before anything is loaded."""
@@ -228,6 +233,9 @@ class ShowOptions:
         if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
                                          or self.workers < 1):
             raise SequenceError(f"--workers must be a whole number ≥ 1, got {self.workers!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
+                                         or self.threads < 1):
+            raise SequenceError(f"--threads must be a whole number ≥ 1, got {self.threads!r}")
         if (self.workers is not None or self.cluster) and mode == "closed-loop":
             raise SequenceError("the closed loop runs through one physical device (one projector and camera), "
                                 "whose frames cannot be shared out: drop --workers/--cluster, or drop --device "
@@ -235,7 +243,8 @@ class ShowOptions:
 
     def warm(self) -> dict[str, Any] | None:
         """The warm start as the settings record it (it decides the pixels): None for cold starts."""
-        return {"from": "previous frame's 16-bit PNG", "chunk": self.chunk} if self.warm_start else None
+        return ({"from": "previous frame's correction (its 16-bit PNG minus its own start)", "chunk": self.chunk}
+                if self.warm_start else None)
 
 
 def chunk_of(number: int, chunk: int) -> int:
@@ -446,6 +455,22 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
     say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
+    if options.threads is not None and options.workers is None and not options.cluster:
+        import drjit as dr
+
+        before = dr.thread_count()
+        dr.set_thread_count(options.threads)
+        try:
+            return _prepare(options, frames, sc, mode, cal, ident, digits, say, cancel, device, compensator)
+        finally:
+            dr.set_thread_count(before)
+    return _prepare(options, frames, sc, mode, cal, ident, digits, say, cancel, device, compensator)
+
+
+def _prepare(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions, mode: str, cal: Any,
+             ident: dict[str, str], digits: int, say: Progress, cancel: Cancel | None, device: Device | None,
+             compensator: Compensator | None) -> ShowResult:
+    """:func:`run` once the request is checked: stage C loaded, the range fixed, the settings made."""
     with StageC(cal, sc, device=device, compensator=compensator) as stage:
         effects = stage.adapter.params if stage.adapter is not None else None
         if sc.range == "auto":
@@ -520,7 +545,8 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
         run = {"run": run_no, "started": _now(), "status": "running", "frames": len(frames),
                "done": 0, "skipped": 0, "failed": 0,
                "where": (f"cluster {options.cluster}" if options.cluster else
-                         f"local cluster, {options.workers} worker(s)" if options.workers else "this process")}
+                         f"local cluster, {options.workers} worker(s)" if options.workers else "this process"),
+               "threads": options.threads}
         history["runs"].append(run)
         folder.doc = {
             "format": FORMAT, "version": VERSION, "procam_version": _procam_version(),
@@ -621,8 +647,12 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
         doc["open_loop_bias"] = {"file": BIAS_FILE, "kind": bias.kind, **bias.report}
 
     prev_of = warm_from(frames, options)
-    jobs = [FrameJob(f.number, f.path, layout.frame_name(f.number, digits), f.index, prev_of.get(f.number))
-            for f in todo]
+    by_number = {f.number: f for f in frames}
+    jobs = []
+    for f in todo:
+        p = by_number.get(prev_of.get(f.number, -1))
+        jobs.append(FrameJob(f.number, f.path, layout.frame_name(f.number, digits), f.index,
+                             p.number if p else None, p.path if p else None, p.index if p else None))
     # A frame warm-started from one finished in an earlier run starts from that frame's file, as verified.
     numbers = {j.number for j in jobs}
     starts: dict[int, bytes | None] = {}
@@ -698,7 +728,7 @@ def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage
     """The frames as tasks on a Dask cluster (:mod:`.show_cluster`); ``record`` writes each as it comes back."""
     where = f"the cluster at {options.cluster}" if options.cluster else f"a local cluster of {options.workers} worker(s)"
     say(f"starting {where}", 0.0)
-    cluster = Cluster(workers=options.workers, address=options.cluster)
+    cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads)
     try:
         say(f"{where}: {cluster.describe}", 0.0)
         key = hashlib.sha256(json.dumps([ident["sha256"], ident["surface_sha256"], repr(stage.options)])

@@ -6,6 +6,14 @@ and returns the frame as the bytes of its 16-bit PNG with its manifest entry.
 It writes nothing: the show step is the only writer of the show folder, so a
 frame computed on another machine lands there exactly as one computed here.
 
+What carries over is the previous frame's *correction*: frame n starts from
+its own usual start (the target over the simulated white, mapped into the
+projector) plus frame n−1's answer minus frame n−1's usual start. The
+surface's corrections stay where they are in the projector while the content
+moves; starting from frame n−1's answer as it is starts from the previous
+picture, which on a moving shot is further off than the usual start
+(``scripts/bench_video.py``).
+
 Why the warm start reads the previous frame's PNG bytes and not its float z:
 those bytes are what the show folder keeps (and verifies by SHA-256), so frame
 n starts from exactly the same z whether frame n−1 was computed a moment ago,
@@ -42,6 +50,8 @@ class FrameJob:
     name: str
     index: int | None = None
     prev: int | None = None
+    prev_path: Path | None = None
+    prev_index: int | None = None
 
 
 @dataclass
@@ -89,6 +99,13 @@ def source_record(path: Path) -> dict[str, Any]:
             "source_sha256": _HASHES[key]}
 
 
+def _load(stage: StageC, path: Path, index: int | None, readers: dict[Path, VideoReader]) -> tuple[np.ndarray, str]:
+    if index is None:
+        return stage.load(path)
+    reader = readers.get(path) or readers.setdefault(path, VideoReader(path))
+    return load_video_frame(reader, index, encoding=stage.options.target_encoding)
+
+
 def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers: dict[Path, VideoReader],
                   progress: Progress | None = None, cancel: Cancel | None = None) -> FrameOutcome:
     """Stage C for one frame (module doc). ``start``: the 16-bit PNG bytes of frame ``job.prev`` (None: cold).
@@ -101,13 +118,14 @@ def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers:
             source = source_record(job.path)
         except OSError as exc:  # vanished or unreadable since the sequence was listed
             raise ImageError(f"cannot read the target {job.path}: {exc.strerror or exc}") from None
-        if job.index is None:
-            img, note = stage.load(job.path)
-        else:
-            reader = readers.get(job.path) or readers.setdefault(job.path, VideoReader(job.path))
-            img, note = load_video_frame(reader, job.index, encoding=stage.options.target_encoding)
+        img, note = _load(stage, job.path, job.index, readers)
+        if job.index is not None:
             source["video_frame"] = job.index + 1
-        z0 = None if start is None else stage.start_from_frame(decode_png16(start))
+        z0 = None
+        if start is not None and job.prev_path is not None:
+            before, _ = _load(stage, job.prev_path, job.prev_index, readers)
+            z0 = np.clip(stage.initial_input(img) + stage.start_from_frame(decode_png16(start))
+                         - stage.initial_input(before), 0.0, 1.0)
         done = stage.compensate(img, name=f"frame {job.number}", what=f"target {job.path.name}", cancel=cancel,
                                 progress=say, start=z0)
         png = encode_png16(done.frame)

@@ -277,6 +277,22 @@ class StageC:
             x_input, frame = self.adapter.input_for(res.x_input), self.adapter.frame_to_send(res.x_input)
         return TargetResult(res, fitted, area, x_input, frame, [str(w.message) for w in caught])
 
+    def initial_input(self, image: np.ndarray) -> np.ndarray:
+        """The z stage C starts a target from on its own (its ``inverse`` init, as :meth:`compensate` places the
+        target): with :meth:`start_from_frame`, a warm start carries the previous frame's correction over."""
+        if self.options.mode == "open-loop" and self.bias is None:
+            self.estimate_bias()
+        area = self.area_for(image)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TargetAspectWarning)  # said when the target is compensated
+            fitted = fit_target(image, area)
+            if self.range_map is not None:
+                fitted = self.range_map.apply(fitted)
+            model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
+            placed = area.place(fit_target(model_target, area), self.compensator.camera_size)
+        bias = self.bias if self.options.mode == "open-loop" else None
+        return self.compensator.initial_input(placed, bias)
+
     def start_from_frame(self, frame: np.ndarray) -> np.ndarray:
         """The virtual input z whose native frame is ``frame`` (as :meth:`compensate` made it): the input area
         cut out, the effect models' g⁻¹ undone (light = g(input)), the warp undone (z = M(x))."""
