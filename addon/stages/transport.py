@@ -234,7 +234,9 @@ class TransportRows:
                                         yhi[y] * lw + xhi[x]], axis=1)
             self._low_weight = np.stack([(1 - fy[y]) * (1 - fx[x]), (1 - fy[y]) * fx[x], fy[y] * (1 - fx[x]),
                                          fy[y] * fx[x]], axis=1).astype(np.float32)
-            self._responses = self.op.indirect.reshape(len(self.op.indirect), -1, 3)
+            # (channel, low pixel, block): both directions are then one batched matrix product.
+            self._responses = np.ascontiguousarray(self.op.indirect.reshape(len(self.op.indirect), -1, 3)
+                                                   .transpose(2, 1, 0))
             self._blocks = self.op._block_of().ravel()
             self._block_counts = np.maximum(np.bincount(self._blocks, minlength=len(self.op.indirect)), 1)
 
@@ -243,8 +245,9 @@ class TransportRows:
         flat = self._float(np.ascontiguousarray(z, dtype=np.float32).ravel())
         out = np.asarray(dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)).reshape(-1, 3)
         if len(self.op.indirect):
-            low = np.einsum("bc,bpc->pc", self.op._block_means(z).astype(np.float32), self._responses)
-            out = out + np.einsum("rj,rjc->rc", self._low_weight, low[self._low_index])
+            means = self.op._block_means(z).astype(np.float32)  # (blocks, 3)
+            low = np.matmul(self._responses, means.T[:, :, None])[..., 0].T  # (low pixels, 3)
+            out = out + (self._low_weight[..., None] * low[self._low_index]).sum(axis=1)
         return out
 
     def adjoint(self, r: np.ndarray) -> np.ndarray:
@@ -259,8 +262,9 @@ class TransportRows:
             n_low = self._responses.shape[1]
             idx = self._low_index.ravel()
             low = np.stack([np.bincount(idx, (self._low_weight * np.asarray(r)[:, None, c]).ravel(), n_low)
-                            for c in range(3)], axis=1)
-            per_block = np.einsum("bpc,pc->bc", self._responses, low) / self._block_counts[:, None]
+                            for c in range(3)], axis=0).astype(np.float32)  # (3, low pixels)
+            per_block = np.matmul(self._responses.transpose(0, 2, 1), low[:, :, None])[..., 0].T
+            per_block = per_block / self._block_counts[:, None]
             out = out + per_block[self._blocks].reshape(ih, iw, 3)
         return out.astype(np.float32)
 
