@@ -211,7 +211,12 @@ def test_schedule_rules():
                                                                                                 None)
     assert (paper.fixed_point, paper.fixed_point_joint, paper.crop) == (0, 0, False)
     assert paper.capture_interval == 20 and paper.theta_rate == 0.01
-    assert set(SCHEDULES) == {"fast", "paper"}
+    assert set(SCHEDULES) == {"fast", "paper", "transport"}
+    # Stage C on the light-transport operator: solver steps before the first capture, then spread over 3.
+    transport = get_schedule("transport")
+    assert transport.transport and not fast.transport and not paper.transport
+    assert (transport.iterations_z, transport.iterations_joint, transport.captures) == (20, 30, 3)
+    assert split_iterations(100, "transport") == (40, 60)
     for bad, msg in ((dict(iterations_z=-1), "iterations_z"), (dict(capture_every=0), "capture_every"),
                      (dict(lr_end=0.1), "lr_end"), (dict(coarse=0.01), "coarse"), (dict(spp_z=0), "spp_z"),
                      (dict(captures=0), "captures"), (dict(reference_spp=8), "square"),
