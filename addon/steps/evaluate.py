@@ -91,6 +91,17 @@ class InputRecord:
     mode: str | None = None
 
 
+def _read_manifest(manifest: Path, fmt: str, what: str) -> dict[str, Any]:
+    """A step manifest of format ``fmt``, or an :class:`InputsError` saying what is wrong with it."""
+    try:
+        doc = json.loads(manifest.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputsError(f"cannot read {manifest}: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise InputsError(f"{manifest} is not a ProCam {what} manifest")
+    return doc
+
+
 @dataclass
 class CompensationInputs:
     """What ``procam compensate`` wrote, as evaluation needs it."""
@@ -110,12 +121,7 @@ class CompensationInputs:
                               "wrote")
         if not manifest.is_file():
             raise InputsError(f"{root} has no {manifest.name}; give the folder procam compensate wrote")
-        try:
-            doc = json.loads(manifest.read_text())
-        except (OSError, ValueError) as exc:
-            raise InputsError(f"cannot read {manifest}: {exc}") from None
-        if not isinstance(doc, dict) or doc.get("format") != layout.COMPENSATION.format:
-            raise InputsError(f"{manifest} is not a ProCam compensation manifest")
+        doc = _read_manifest(manifest, layout.COMPENSATION.format, "compensation")
         records: dict[str, InputRecord] = {}
         for r in doc.get("targets") or []:
             if not isinstance(r, dict) or r.get("status") != "done":
@@ -134,12 +140,7 @@ class CompensationInputs:
     def _load_show(root: Path) -> "CompensationInputs":
         """A show folder's finished frames, named by the stems of their target images."""
         manifest = root / layout.SHOW.manifest
-        try:
-            show = json.loads(manifest.read_text())
-        except (OSError, ValueError) as exc:
-            raise InputsError(f"cannot read {manifest}: {exc}") from None
-        if not isinstance(show, dict) or show.get("format") != layout.SHOW.format:
-            raise InputsError(f"{manifest} is not a ProCam show manifest")
+        show = _read_manifest(manifest, layout.SHOW.format, "show")
         if show.get("video"):
             raise InputsError(f"{root} was made from a video; evaluate takes image targets (export the frames "
                               "as images and make the show from them)")
