@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,7 +61,6 @@ class LiveSpec:
     encoding: str = "srgb"
     latency: float | None = None  # None: measured
     size: tuple[int, int] | None = None
-    extra: dict[str, str] = field(default_factory=dict)
 
     @staticmethod
     def parse(text: str) -> "LiveSpec":
