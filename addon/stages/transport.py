@@ -70,6 +70,13 @@ class TransportOperator:
 
     # -- the operator ------------------------------------------------------------------------------------------
 
+    def _block_edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """First input row of each block row and first column of each block column (blocks are contiguous)."""
+        iw, ih = self.input_size
+        bx, by = self.blocks
+        return (np.searchsorted(np.arange(ih) * by // ih, np.arange(by)),
+                np.searchsorted(np.arange(iw) * bx // iw, np.arange(bx)))
+
     def _block_of(self) -> np.ndarray:
         iw, ih = self.input_size
         bx, by = self.blocks
@@ -78,11 +85,20 @@ class TransportOperator:
         return (rows[:, None] * bx + cols[None, :]).astype(np.int64)
 
     def _block_means(self, z: np.ndarray) -> np.ndarray:
-        blocks = self._block_of().ravel()
-        n = self.blocks[0] * self.blocks[1]
-        counts = np.bincount(blocks, minlength=n).astype(np.float64)
-        flat = np.asarray(z, np.float64).reshape(-1, 3)
-        return np.stack([np.bincount(blocks, flat[:, c], n) for c in range(3)], axis=1) / np.maximum(counts, 1)[:, None]
+        """(blocks, 3) mean input of each block, by sums over contiguous row and column runs."""
+        iw, ih = self.input_size
+        rows, cols = self._block_edges()
+        sums = np.add.reduceat(np.add.reduceat(np.asarray(z, np.float64).reshape(ih, iw, 3), rows, axis=0),
+                               cols, axis=1)
+        counts = np.diff(np.append(rows, ih))[:, None] * np.diff(np.append(cols, iw))[None, :]
+        return (sums / counts[..., None]).reshape(-1, 3)
+
+    def _spread(self, per_block: np.ndarray) -> np.ndarray:
+        """(blocks, 3) values → input size, each block's value over its texels."""
+        iw, ih = self.input_size
+        rows, cols = self._block_edges()
+        grid = np.asarray(per_block, np.float32).reshape(len(rows), len(cols), 3)
+        return np.repeat(np.repeat(grid, np.diff(np.append(rows, ih)), axis=0), np.diff(np.append(cols, iw)), axis=1)
 
     def direct(self, z: np.ndarray) -> np.ndarray:
         flat = np.asarray(z, np.float32).reshape(-1, 3)
@@ -127,9 +143,8 @@ class TransportOperator:
         uy, ux = self._upsampling()
         low = np.einsum("yh,yxc,xw->hwc", uy, np.asarray(r, np.float32), ux, optimize=True)
         per_block = np.einsum("bhwc,hwc->bc", self.indirect, low)
-        blocks = self._block_of()
-        counts = np.bincount(blocks.ravel(), minlength=len(self.indirect)).astype(np.float64)
-        return (per_block / np.maximum(counts, 1)[:, None])[blocks.ravel()].reshape(ih, iw, 3).astype(np.float32)
+        counts = np.bincount(self._block_of().ravel(), minlength=len(self.indirect)).astype(np.float64)
+        return self._spread(per_block / np.maximum(counts, 1)[:, None])
 
     def rows(self, rows: np.ndarray, variant: str | None = None) -> "TransportRows":
         """``T`` restricted to some camera pixels (a display area): cheaper, for a solver that looks only there."""
@@ -234,21 +249,25 @@ class TransportRows:
                                         yhi[y] * lw + xhi[x]], axis=1)
             self._low_weight = np.stack([(1 - fy[y]) * (1 - fx[x]), (1 - fy[y]) * fx[x], fy[y] * (1 - fx[x]),
                                          fy[y] * fx[x]], axis=1).astype(np.float32)
+            self._low_src = mi.UInt32((self._low_index[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel()
+                                      .astype(np.uint32))  # (row, channel, tap)
+            self._low_w = mi.Float(np.repeat(self._low_weight[:, None, :], 3, axis=1).ravel())
             # (channel, low pixel, block): both directions are then one batched matrix product.
             self._responses = np.ascontiguousarray(self.op.indirect.reshape(len(self.op.indirect), -1, 3)
                                                    .transpose(2, 1, 0))
-            self._blocks = self.op._block_of().ravel()
-            self._block_counts = np.maximum(np.bincount(self._blocks, minlength=len(self.op.indirect)), 1)
+            self._block_counts = np.maximum(np.bincount(self.op._block_of().ravel(),
+                                                        minlength=len(self.op.indirect)), 1)
 
     def apply(self, z: np.ndarray) -> np.ndarray:
         dr = self._dr
         flat = self._float(np.ascontiguousarray(z, dtype=np.float32).ravel())
-        out = np.asarray(dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)).reshape(-1, 3)
+        out = dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)
         if len(self.op.indirect):
             means = self.op._block_means(z).astype(np.float32)  # (blocks, 3)
             low = np.matmul(self._responses, means.T[:, :, None])[..., 0].T  # (low pixels, 3)
-            out = out + (self._low_weight[..., None] * low[self._low_index]).sum(axis=1)
-        return out
+            out = out + dr.block_sum(dr.gather(self._float, self._float(np.ascontiguousarray(low).ravel()),
+                                               self._low_src) * self._low_w, 4)
+        return np.asarray(out).reshape(-1, 3)
 
     def adjoint(self, r: np.ndarray) -> np.ndarray:
         dr = self._dr
@@ -264,8 +283,7 @@ class TransportRows:
             low = np.stack([np.bincount(idx, (self._low_weight * np.asarray(r)[:, None, c]).ravel(), n_low)
                             for c in range(3)], axis=0).astype(np.float32)  # (3, low pixels)
             per_block = np.matmul(self._responses.transpose(0, 2, 1), low[:, :, None])[..., 0].T
-            per_block = per_block / self._block_counts[:, None]
-            out = out + per_block[self._blocks].reshape(ih, iw, 3)
+            out = out + self.op._spread(per_block / self._block_counts[:, None])
         return out.astype(np.float32)
 
 
