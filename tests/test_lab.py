@@ -432,3 +432,31 @@ def test_operator_reports_a_missing_surface(registered, tmp_path):
     assert bpy.ops.procam.run_lab(out_dir=str(tmp_path / "set"), surface="plane", samples=2, graycode=False,
                                   use_scene_rig=False, scale=0.1) == {"FINISHED"}
     assert CaptureSet.load(tmp_path / "set").camera.intrinsics.size == (64, 48)
+
+
+# --------------------------------------------------------------------------- effects the diagnosis does not model
+
+def test_a_knocked_surface_moves_only_after_the_calibration_patterns(base, frames):
+    moved = replace(base, effects=parse_effects("surface_moved=1"))
+    with LabDevice(base) as plain:
+        ref = plain.project(frames["checker"])
+    with LabDevice(moved) as device:
+        device.phase = "calibration"
+        before = device.project(frames["checker"])
+    with LabDevice(moved) as device:  # a fresh device: same shot number, so the same noise draw
+        device.phase = "validation"
+        after = device.project(frames["checker"])
+    np.testing.assert_array_equal(before, ref)
+    assert np.abs(after - ref).mean() > 0.002  # the edges of the checker land elsewhere
+
+
+def test_a_room_lamp_lights_the_paint_unevenly_and_translucent_paint_spreads_light(shoot, lit):
+    black, lamp = shoot("")["black"], shoot("lamp=1")["black"]
+    extra = (lamp - black).mean(axis=2)[lit]
+    assert extra.mean() > 0.01 and np.percentile(extra, 90) > 2 * np.percentile(extra, 10)
+    half, sss = shoot("")["half"], shoot("subsurface=1")["half"]
+    # the unlit part of the corner next to the lit stripe gets light that entered the surface beside it
+    w = half.shape[1]
+    dark = (half.mean(axis=2) < 0.02) & lit
+    dark[:, : int(0.3 * w)] = False
+    assert sss.mean(axis=2)[dark].mean() > 10 * half.mean(axis=2)[dark].mean() + 1e-4

@@ -21,6 +21,25 @@ Where each effect acts, in the order light meets it:
   16-bit quantisation.
 * ``depth_noise`` acts on the depth map, see :mod:`.depth`.
 
+Beyond the diagnosis's vocabulary the lab has two more families, to test it
+on what it was not built from (each kind's ``cause`` says which diagnosis model
+names its physical cause, ``None`` where none does):
+
+* **other forms of a modelled cause**: ``response_scurve`` (a projector tone
+  curve with toe and shoulder, which no power law fits), ``defocus_depth``
+  (blur growing with |1/d − 1/d_focus| over the surface instead of one blur),
+  ``lamp`` (an off-axis room lamp lighting the painted surface instead of a
+  uniform veil);
+* **causes the diagnosis has no model for**: ``warmup`` (the projector's colour
+  and brightness drift during the session as it warms up), ``surface_moved``
+  (the surface was knocked between the calibration patterns and the validation
+  ones, as between calibration and show), ``subsurface`` (a translucent paint:
+  light spreads under the surface, Cycles' random-walk subsurface scattering).
+
+Time enters through the shot's place in the session (``t`` in [0, 1]) and its
+phase (``calibration`` until the validation patterns start, then
+``validation``; a device used after the session is at ``show``).
+
 Nothing here draws a random number without the ``np.random.Generator`` it is
 given, so a seed reproduces every capture.
 """
@@ -63,6 +82,13 @@ class EffectKind:
     stage: str  # "projector", "render", "camera" or "depth"
     doc: str
     params: tuple[Param, ...]
+    #: The diagnosis model that names this effect's physical cause ("" = its own name; None = none does).
+    cause: str | None = ""
+
+    @property
+    def diagnosis_name(self) -> str | None:
+        """What a correct diagnosis calls this effect (None: it should say "unexplained")."""
+        return self.name if self.cause == "" else self.cause
 
     def param(self, name: str) -> Param:
         for p in self.params:
@@ -152,6 +178,50 @@ _KINDS: tuple[EffectKind, ...] = (
                 Param("width", "px", 8.0, 4096.0, lambda s: 256.0, "native depth width", integer=True),
                 Param("height", "px", 6.0, 4096.0, lambda s: 192.0, "native depth height", integer=True),
                 Param("max_range", "m", 0.5, 50.0, lambda s: 5.0, "no return beyond this depth"))),
+    # ---- other functional forms of modelled causes
+    EffectKind("response_scurve", "projector",
+               "projector tone curve with a toe and a shoulder (a logistic S-curve mixed into the identity): "
+               "dark and bright levels compress, mid levels steepen; no power law fits it",
+               (Param("mix", "", 0.0, 1.0, lambda s: s, "share of the S-curve in out = (1−mix)·in + mix·S(in)"),
+                Param("slope", "", 2.0, 20.0, lambda s: 9.0, "steepness of the logistic at its pivot"),
+                Param("pivot", "", 0.2, 0.8, lambda s: 0.4, "input level of the S-curve's midpoint")),
+               cause="response"),
+    EffectKind("defocus_depth", "projector",
+               "projector focused at one distance: blur σ ∝ |1/d − 1/d_focus| over the surface (thin lens), "
+               "sharp at the focus depth, not one blur everywhere",
+               (Param("sigma_max", "projector px", 0.0, 20.0, lambda s: 4.0 * s,
+                      "blur σ where |1/d − 1/d_focus| is largest over the projected surface"),
+                Param("focus", "", 0.0, 1.0, lambda s: 0.0,
+                      "focus depth as a share of the surface's depth range seen by the projector (0 = nearest)")),
+               cause="defocus"),
+    EffectKind("lamp", "render",
+               "an off-axis room lamp (a point light above and beside the rig) lighting the painted surface: "
+               "ambient light that varies over the surface and follows its paint, not a uniform veil",
+               (Param("power", "camera linear", 0.0, 0.5, lambda s: 0.06 * s,
+                      "lamp light on the brightest part of a white surface (linear camera units)"),
+                Param("side", "m", -3.0, 3.0, lambda s: 1.2, "lamp position to the camera's right"),
+                Param("height", "m", -3.0, 3.0, lambda s: 0.8, "lamp position above the camera")),
+               cause="black_level"),
+    # ---- causes the diagnosis has no model for
+    EffectKind("warmup", "projector",
+               "the projector warms up during the session: its light starts dimmer and bluer-deficient and "
+               "settles (exponentially in session time), so early and late captures disagree",
+               (Param("drift", "", 0.0, 0.5, lambda s: 0.12 * s,
+                      "relative light missing at the session's start (blue; green half, red a quarter)"),
+                Param("tau", "of the session", 0.05, 2.0, lambda s: 0.35, "time constant as a share of the session")),
+               cause=None),
+    EffectKind("surface_moved", "render",
+               "the surface was knocked after the calibration patterns: the validation captures and the show "
+               "see it moved and turned a little",
+               (Param("shift", "m", 0.0, 0.1, lambda s: 0.008 * s, "translation (sideways and back)"),
+                Param("turn", "deg", 0.0, 10.0, lambda s: 1.0 * s, "rotation about the vertical axis")),
+               cause=None),
+    EffectKind("subsurface", "render",
+               "translucent paint: light enters and spreads under the surface before leaving it "
+               "(Cycles random-walk subsurface scattering mixed into the diffuse material)",
+               (Param("weight", "", 0.0, 1.0, lambda s: 0.6 * s, "mix factor of the subsurface BSDF"),
+                Param("radius", "m", 0.0, 0.2, lambda s: 0.04 * s, "mean free path scale")),
+               cause=None),
 )
 
 REGISTRY: dict[str, EffectKind] = {k.name: k for k in _KINDS}
@@ -447,7 +517,8 @@ def _srgb_encode(x: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- projector side
 
 def apply_projector(frame: np.ndarray, effects: EffectSet, projector: Projector,
-                    rng: np.random.Generator | None = None) -> np.ndarray:
+                    rng: np.random.Generator | None = None, *, depth: np.ndarray | None = None,
+                    t: float = 1.0) -> np.ndarray:
     """The light a real projector emits for ``frame`` (its native frame, H×W×3, values in [0, 1]).
 
     Order follows the light: response (electronics/panel) → crosstalk (colour
@@ -458,7 +529,10 @@ def apply_projector(frame: np.ndarray, effects: EffectSet, projector: Projector,
     scales with the frame. Every step maps [0, 1] into [0, 1] (convex mixes,
     gains ≤ 1), so the output stays in the panel's physical range: 1 = the
     projector's full white. ``rng`` is unused today (all projector effects are
-    deterministic) and kept for a uniform signature.
+    deterministic) and kept for a uniform signature. ``depth`` (H×W, metres
+    along the projector's axis, NaN off the surface, any size of the frame's
+    aspect) is what ``defocus_depth`` needs; ``t`` is the shot's place in the
+    session for ``warmup`` (1 = settled).
     """
     del rng
     img = np.clip(_rgb(frame, "projector frame"), 0.0, 1.0)  # a panel cannot show more than white
@@ -473,6 +547,10 @@ def apply_projector(frame: np.ndarray, effects: EffectSet, projector: Projector,
     if e.active:
         g = e["gamma"] * (1.0 + e["spread"] * np.array([1.0, 0.0, -1.0]))
         img = np.power(img, g.astype(np.float32))
+
+    e = effects["response_scurve"]
+    if e.active and e["mix"] > 0:
+        img = (1.0 - np.float32(e["mix"])) * img + np.float32(e["mix"]) * s_curve(img, e["slope"], e["pivot"])
 
     e = effects["crosstalk"]
     if e.active:
@@ -492,7 +570,72 @@ def apply_projector(frame: np.ndarray, effects: EffectSet, projector: Projector,
     if sigma > 0.05:  # below that the PSF is a single pixel
         # light that blurs past the panel edge is lost: the renderer cannot emit outside the frame
         img = cv2.filter2D(img, -1, _psf(sigma, e["disk"]), borderType=cv2.BORDER_CONSTANT)
+
+    e = effects["defocus_depth"]
+    if e.active and e["sigma_max"] > 0:
+        if depth is None:
+            raise LabError("defocus_depth needs the surface's depth seen from the projector (LabDevice gives it)")
+        img = _depth_blur(img, depth_blur_sigma(depth, (w, h), e["sigma_max"] * scale, e["focus"]))
+
+    e = effects["warmup"]
+    if e.active and e["drift"] > 0:
+        img = img * warmup_gain(t, e["drift"], e["tau"])
     return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+def s_curve(x: np.ndarray, slope: float, pivot: float) -> np.ndarray:
+    """A logistic tone curve through (0, 0) and (1, 1): toe below the pivot, shoulder above it."""
+    def f(v: np.ndarray | float) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-slope * (np.asarray(v, np.float32) - pivot)))
+    lo, hi = f(0.0), f(1.0)
+    return ((f(x) - lo) / (hi - lo)).astype(np.float32)
+
+
+def warmup_gain(t: float, drift: float, tau: float) -> np.ndarray:
+    """Per-channel share of the settled light a warming projector gives at session time ``t``."""
+    # lamps and LEDs reach their colour last in the blue: the deficit is largest there
+    deficit = float(drift) * math.exp(-max(float(t), 0.0) / float(tau))
+    return (1.0 - deficit * np.array([0.25, 0.5, 1.0])).astype(np.float32)
+
+
+def depth_blur_sigma(depth: np.ndarray, size: tuple[int, int], sigma_max: float, focus: float) -> np.ndarray:
+    """Blur σ per pixel of a ``size`` frame from the projector-side depth: ∝ |1/d − 1/d_focus| (thin lens)."""
+    w, h = size
+    d = cv2.resize(np.asarray(depth, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+    ok = np.isfinite(d) & (d > 0)
+    if not ok.any():
+        raise LabError("defocus_depth: the projector sees no surface")
+    near, far = float(d[ok].min()), float(d[ok].max())
+    d_focus = near + float(focus) * (far - near)
+    inv = np.abs(1.0 / np.where(ok, d, d_focus) - 1.0 / d_focus)
+    top = float(inv[ok].max())
+    # off the surface nothing is seen; use the nearest surface value so the blur does not step at its outline
+    sigma = np.where(ok, inv / top if top > 0 else 0.0, 0.0) * float(sigma_max)
+    if not ok.all():
+        _, idx = cv2.distanceTransformWithLabels((~ok).astype(np.uint8), cv2.DIST_L2, 5,
+                                                 labelType=cv2.DIST_LABEL_PIXEL)
+        ys, xs = np.nonzero(ok)
+        lut = np.zeros(idx.max() + 1, np.float32)
+        lut[idx[ok]] = sigma[ys, xs]
+        sigma = lut[idx]
+    return sigma.astype(np.float32)
+
+
+def _depth_blur(img: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Spatially varying Gaussian blur: per pixel, interpolate between images blurred at a ladder of σ."""
+    top = float(sigma.max())
+    if top <= 0.05:
+        return img
+    levels = np.linspace(0.0, top, max(3, int(math.ceil(top / 0.75)) + 1))
+    stack = [img] + [cv2.GaussianBlur(img, (0, 0), float(s), borderType=cv2.BORDER_CONSTANT) for s in levels[1:]]
+    pos = np.clip(sigma / (levels[1] - levels[0]), 0, len(levels) - 1 - 1e-6)
+    i = np.floor(pos).astype(int)
+    f = (pos - i)[..., None].astype(np.float32)
+    out = np.zeros_like(img)
+    for k in range(len(levels) - 1):
+        sel = (i == k)[..., None]
+        out += np.where(sel, (1 - f) * stack[k] + f * stack[k + 1], 0.0).astype(np.float32)
+    return out
 
 
 def vignetting_gain(intr: Intrinsics, size: tuple[int, int], falloff: float, exponent: float) -> np.ndarray:
@@ -539,6 +682,14 @@ def render_settings(effects: EffectSet, camera_intrinsics: Intrinsics | None = N
         "glossy_bounces": 1 if (bounces > 0 and gloss["weight"] > 0) else 0,
         "max_bounces": bounces + (1 if (bounces > 0 and gloss["weight"] > 0) else 0),
     }
+    # Only when on, so that a set without them keeps exactly the settings it always had.
+    lamp, moved, sss = effects["lamp"], effects["surface_moved"], effects["subsurface"]
+    if lamp.active and lamp["power"] > 0:
+        out.update(lamp_power=float(lamp["power"]), lamp_position=(float(lamp["side"]), float(lamp["height"])))
+    if moved.active:
+        out.update(surface_shift=float(moved["shift"]), surface_turn_deg=float(moved["turn"]))
+    if sss.active and sss["weight"] > 0:
+        out.update(subsurface_weight=float(sss["weight"]), subsurface_radius=float(sss["radius"]))
     if camera_intrinsics is not None:
         out["camera_margin"] = camera_margin(effects, camera_intrinsics)
     return out
@@ -728,5 +879,5 @@ __all__ = [
     "LabError", "Param", "EffectKind", "Effect", "EffectSet", "REGISTRY", "NAMES", "PRESETS",
     "parse_effects", "effect_help", "apply_projector", "apply_camera", "render_settings",
     "camera_margin", "camera_render_intrinsics", "vignetting_gain", "crosstalk_matrix", "quantise16",
-    "distort_points", "describe",
+    "distort_points", "describe", "s_curve", "warmup_gain", "depth_blur_sigma",
 ]

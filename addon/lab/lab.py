@@ -337,8 +337,27 @@ class LabDevice(Device):
             self._owned = _new_ids(before)
             self.close()
             raise
-        self._owned = _new_ids(before)
         self._light = objs.projector
+        self._surface = objs.surface
+        self._surface_home = objs.surface.matrix_world.copy()
+        #: Where the session is: ``calibration`` and ``validation`` while :func:`run_lab` captures (it sets them),
+        #: ``show`` for any later use; ``session_shots`` makes a shot's number its time for ``warmup``.
+        self.phase = "show"
+        self.session_shots: int | None = None
+        self._projector_depth: np.ndarray | None = None
+        try:
+            if self._settings.get("subsurface_weight", 0.0) > 0:
+                _add_subsurface(objs.surface, self._settings["subsurface_weight"],
+                                self._settings["subsurface_radius"])
+            if truth.effects["defocus_depth"].active:
+                self._projector_depth = projector_depth(truth.surface, truth.rig.projector)
+            if self._settings.get("lamp_power", 0.0) > 0:
+                self._add_lamp(*self._settings["lamp_position"], self._settings["lamp_power"])
+        except BaseException:
+            self._owned = _new_ids(before)
+            self.close()
+            raise
+        self._owned = _new_ids(before)
         # (Cycles' persistent data was measured: no gain here, since a frame's render time is nearly all sampling.)
 
     @property
@@ -354,10 +373,56 @@ class LabDevice(Device):
         if self._scene is None:
             raise LabError("this lab device is closed; open a new LabDevice")
 
+    def _add_lamp(self, side: float, height: float, power: float) -> None:
+        """A point lamp beside and above the camera, its energy set so the lit surface peaks at ``power``."""
+        import bpy
+        from mathutils import Vector
+
+        from .cycles import render_cycles
+
+        cam = self._scene.camera
+        data = bpy.data.lights.new("ProCam Lab Lamp", type="POINT")
+        data.shadow_soft_size = 0.05
+        lamp = bpy.data.objects.new("ProCam Lab Lamp", data)
+        self._scene.collection.objects.link(lamp)
+        # camera-frame offsets to world: Blender cameras look down their -Z with +Y up and +X right
+        rot = cam.matrix_world.to_3x3()
+        lamp.location = cam.matrix_world.translation + rot @ Vector((side, height, 0.0))
+        data.energy = 100.0
+        energy = self._light.data.energy
+        self._light.data.energy = 0.0
+        try:
+            probe = render_cycles(self._scene, samples=4, bounces=0, seed=1)
+        finally:
+            self._light.data.energy = energy
+        top = float(np.percentile(probe.mean(axis=2), 99.5))
+        if top <= 0:
+            raise LabError("the lab lamp does not light the surface the camera sees; move it (lamp.side/height)")
+        data.energy = 100.0 * power / top
+
+    def _place_surface(self) -> None:
+        """The surface where this shot's phase has it (``surface_moved`` knocks it after calibration)."""
+        shift = self._settings.get("surface_shift")
+        if shift is None:
+            return
+        from mathutils import Matrix, Vector
+
+        moved = self.phase != "calibration"
+        home = self._surface_home
+        if moved:
+            centre = home.translation
+            turn = Matrix.Rotation(math.radians(self._settings["surface_turn_deg"]), 4, "Z")
+            move = Matrix.Translation(Vector((shift, shift * 0.5, 0.0)))
+            self._surface.matrix_world = (move @ Matrix.Translation(centre) @ turn @ Matrix.Translation(-centre)
+                                          @ home)
+        else:
+            self._surface.matrix_world = home
+
     def _render(self, room_light: float = 0.0) -> np.ndarray:
         from .cycles import render_cycles
 
         self._check_open()
+        self._place_surface()
         k = self._shots
         self._shots += 1
         seed = int(np.random.SeedSequence([self.seed, k]).generate_state(1)[0]) % _SEED_RANGE
@@ -376,7 +441,9 @@ class LabDevice(Device):
 
         self._check_open()
         f = self.check_frame(frame)
-        blender_rig.set_projector_image(self._light, apply_projector(f, self.effects, self.projector))
+        t = 1.0 if (self.session_shots is None or self.phase == "show") else self._shots / self.session_shots
+        blender_rig.set_projector_image(self._light, apply_projector(f, self.effects, self.projector,
+                                                                     depth=self._projector_depth, t=t))
         return self._render()
 
     def capture_off(self) -> np.ndarray:
@@ -432,6 +499,36 @@ class LabDevice(Device):
                 self.close()
         except Exception:  # noqa: BLE001 — interpreter shutdown: Blender may already be gone
             pass
+
+
+def projector_depth(surface: SurfaceMesh, projector: Projector) -> np.ndarray:
+    """Depth of the surface along the projector's axis at each native frame pixel (metres, NaN off it)."""
+    pose = np.asarray(projector.camera_from_projector, float)
+    r, t = pose[:3, :3], pose[:3, 3]
+    local = replace(surface, vertices=(surface.vertices - t) @ r)  # rig frame → projector frame
+    return depth_map(local, projector.intrinsics)
+
+
+def _add_subsurface(obj: Any, weight: float, radius: float) -> None:
+    """Mix random-walk subsurface scattering (same colour as the paint) into the surface's diffuse material."""
+    tree = obj.active_material.node_tree
+    out = next(n for n in tree.nodes if n.type == "OUTPUT_MATERIAL")
+    diffuse = next(n for n in tree.nodes if n.type == "BSDF_DIFFUSE")
+    sss = tree.nodes.new("ShaderNodeSubsurfaceScattering")
+    sss.falloff = "RANDOM_WALK"
+    sss.inputs["Scale"].default_value = float(radius)
+    sss.inputs["Radius"].default_value = (1.0, 1.0, 1.0)
+    colour = diffuse.inputs["Color"]
+    if colour.is_linked:
+        tree.links.new(colour.links[0].from_socket, sss.inputs["Color"])
+    else:
+        sss.inputs["Color"].default_value = colour.default_value
+    upstream = out.inputs["Surface"].links[0].from_socket
+    mix = tree.nodes.new("ShaderNodeMixShader")
+    mix.inputs["Fac"].default_value = float(weight)
+    tree.links.new(upstream, mix.inputs[1])
+    tree.links.new(sss.outputs[0], mix.inputs[2])
+    tree.links.new(mix.outputs[0], out.inputs["Surface"])
 
 
 def _add_glossy_lobe(obj: Any, weight: float, roughness: float) -> None:
@@ -580,8 +677,11 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     try:
         with LabDevice(truth) as device:
             shown = _NominalDevice(device, nominal)
+            device.phase, device.session_shots = "calibration", len(seq)
             for i, spec in enumerate(seq):
                 check(cancel, "the lab run was cancelled; nothing was written")
+                if spec.kind == "validation":
+                    device.phase = "validation"
                 report(i + 2, total, spec.name)
                 device.samples = binary if spec.kind in BINARY_KINDS else truth.samples
                 frame = None if spec.projector_off else spec.image
