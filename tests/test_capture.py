@@ -349,7 +349,10 @@ def test_calibration_sequence_order():
     kinds = [s.kind for s in seq]
     assert kinds[:5] == ["surface", "black", "white", "checker", "checker"]
     assert kinds[5:5 + 2 * (nx + ny)] == ["graycode"] * (2 * (nx + ny))
-    assert kinds[5 + 2 * (nx + ny):] == ["validation"] * 8
+    assert kinds[5 + 2 * (nx + ny):] == ["validation"] * 9
+    # the session closes with white again, for the diagnosis's check that nothing changed during it
+    assert seq[-1].name == "val_white_end" and seq[-1].params["repeat"] == "white"
+    np.testing.assert_array_equal(seq[-1].image, seq[2].image)
     assert seq[5].params == {"area": "input", "axis": "x", "bit": 0, "inverted": False, "bits": nx, "grid": [60, 60]}
     for s in seq:
         img = s.image
@@ -516,7 +519,7 @@ def test_import_mismatches(tmp_path):
     seq_dir = export_sequence(proj, tmp_path / "seq", checker_size=10, graycode=False)
     caps = shoot_folder(seq_dir, tmp_path / "photos")
     sorted(caps.iterdir())[-1].unlink()
-    with pytest.raises(CaptureError, match=r"the sequence has 13 frames but .* holds 12 captures"):
+    with pytest.raises(CaptureError, match=r"the sequence has 14 frames but .* holds 13 captures"):
         import_captures(seq_dir, caps, None, None, tmp_path / "set")
     caps2 = shoot_folder(seq_dir, tmp_path / "photos2")
     with pytest.raises(CaptureError, match="camera resolution is 32×24"):
@@ -536,7 +539,7 @@ def test_cli_patterns_and_import(tmp_path, capsys):
     args = ["patterns", "--projector-width", "80", "--projector-height", "60", "--input-width", "60",
             "--input-height", "60", "--checker", "10", "--no-graycode", "--out", str(seq)]
     assert main(args) == 0
-    assert "wrote 13 frames" in capsys.readouterr().out
+    assert "wrote 14 frames" in capsys.readouterr().out
     assert main(args) == 2
     assert "never overwritten without --force" in capsys.readouterr().err
     assert main(args + ["--force"]) == 0
@@ -550,8 +553,8 @@ def test_cli_patterns_and_import(tmp_path, capsys):
     out = tmp_path / "set"
     assert main(["import-captures", str(seq), str(caps), "--out", str(out), "--camera-width", "64",
                  "--camera-height", "48"]) == 0
-    assert "13 images, camera 64×48" in capsys.readouterr().out
-    assert len(CaptureSet.load(out)) == 13
+    assert "14 images, camera 64×48" in capsys.readouterr().out
+    assert len(CaptureSet.load(out)) == 14
     assert main(["import-captures", str(seq), str(caps), "--out", str(out)]) == 2
     assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "s2"), "--camera-width", "60",
                  "--camera-height", "48"]) == 2

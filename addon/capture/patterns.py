@@ -7,7 +7,12 @@ projector frame (``Projector.frame_from_input``), because that is what a
 device shows, and lists them in a fixed order:
 
     surface (projector off) · black · white · checkerboard(s) ·
-    Gray code (x bits, then y bits, each followed by its inverse) · validation
+    Gray code (x bits, then y bits, each followed by its inverse) · validation ·
+    white again (``val_white_end``)
+
+The closing white repeats the opening one at the session's end: the diagnosis
+compares the two to tell whether the light drifted (a projector warming up) or
+the surface or camera moved during the session (``addon/gap/session.py``).
 
 Gray code comes from OpenCV's ``structured_light.GrayCodePattern`` so the bit
 order and code are OpenCV's: images ``2k``/``2k+1`` are column bit ``k`` and
@@ -39,6 +44,8 @@ Size = tuple[int, int]
 GREY_LEVELS = (0.25, 0.5, 0.75)
 RAMP_CHANNELS = ("r", "g", "b")
 RANDOM_COUNT = 2
+#: The session's last capture: white again (a validation pattern, and the end of the session-stability check).
+CLOSING_WHITE = "val_white_end"
 _CHANNEL = {"r": 0, "g": 1, "b": 2}
 
 
@@ -354,13 +361,15 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
     if validation:
         for name, params, make in _validation_specs(size, seed, grey_levels, ramp_channels, random_count, 32.0):
             seq.append(PatternSpec(name, "validation", {**base, **params}, place(make)))
+        seq.append(PatternSpec(CLOSING_WHITE, "validation", {**base, "pattern": "grey", "level": 1.0,
+                                                             "repeat": "white"}, place(lambda: white(size))))
     names = [s.name for s in seq]
     if len(set(names)) != len(names):
         raise CaptureError("pattern names in the sequence are not unique (repeated grey levels or checker phases?)")
     return seq
 
 
-__all__ = ["GrayCodeDecoding", "PatternSpec", "black", "calibration_sequence", "checkerboard", "colour_ramp",
+__all__ = ["CLOSING_WHITE", "GrayCodeDecoding", "PatternSpec", "black", "calibration_sequence", "checkerboard", "colour_ramp",
            "decode_gray_code", "decode_gray_code_set", "default_checker_size", "flat", "gray_code_bits",
            "gray_code_layout", "gray_code_pattern", "gray_code_patterns", "smooth_random", "validation_patterns",
            "white"]
