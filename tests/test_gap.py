@@ -65,8 +65,9 @@ def test_withheld_response_is_found_and_outputs_written(response_case, tmp_path)
     first = doc["effects"][0]
     # The model removes most of the residual on patterns it was not fitted on.
     assert first["heldout_rmse_after"] < 0.6 * first["heldout_rmse_before"]
-    gammas = list(first["params"].values())
+    gammas = [first["params"][k] for k in ("gamma_r", "gamma_g", "gamma_b")]
     assert all(1.5 < g < 2.6 for g in gammas), gammas  # lab: 1 + 1.2·0.8 = 1.96 (± spread)
+    assert first["params"]["contrast"] == 0.0  # a power law is reported as one (the S-curve is not freed)
     assert first["confidence"]["level"] in ("high", "medium")
     saved = json.loads((out / "gap.json").read_text())
     assert set(saved) >= {"residual", "regions", "effects", "selected"}

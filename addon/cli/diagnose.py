@@ -39,6 +39,17 @@ def run(args: argparse.Namespace) -> int:
           f"{res['rmse_structured']:.4f} → {after['rmse_structured']:.4f}")
     absorbed = f" ({', '.join(doc['absorbed'])} absorbed by calibration, found from its inputs)" if doc["absorbed"] else ""
     print("  selected: " + (", ".join(doc["selected"]) or "none") + absorbed)
+    if doc["session"]["changed"]:
+        print(f"  the rig changed during the session: {doc['session']['sentence']}")
+    u = doc["unexplained"]
+    if u["detected"]:
+        print(f"  unexplained: the selected effects explain {u['explained_share']:.0%} of the residual above the "
+              f"captures' noise; RMSE {u['unexplained_rmse']:.4f} is left" + (f", most of it {u['where']}"
+                                                                               if u["where"] else ""))
+    elif doc["modelled"]:
+        print(f"  explained: {u['explained_share']:.0%} of the residual above the captures' noise")
+    else:
+        print(f"  left: RMSE {u['unexplained_rmse']:.4f} above the captures' noise, too little to model")
     for e in doc["effects"][:3]:
         if e.get("error"):
             continue

@@ -35,7 +35,8 @@ import numpy as np
 
 from ..errors import ProCamError
 from ..stages.compensate import Compensator
-from .models import MODELS, crosstalk_matrix, inverse_camera_curve, light_scale, vignetting_radius
+from .models import (MODELS, crosstalk_matrix, inverse_camera_curve, inverse_projector_tone, light_scale,
+                     projector_tone, vignetting_radius)
 
 #: Effects compensation inverts (see the module docstring); the others are reported as not used.
 INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "camera_response", "interreflection",
@@ -71,6 +72,14 @@ class EffectAdapter:
     def _p(self, name: str) -> list[float] | None:
         return [float(v) for v in self.params[name].values()] if name in self.params else None
 
+    def _response(self) -> tuple[np.ndarray, float, float] | None:
+        """γ per channel, contrast and pivot (a diagnosis from before the S-curve has γ only)."""
+        if "response" not in self.params:
+            return None
+        r = self.params["response"]
+        gammas = np.array([r["gamma_r"], r["gamma_g"], r["gamma_b"]], np.float32)
+        return gammas, float(r.get("contrast", 0.0)), float(r.get("pivot", 0.5))
+
     @property
     def bounces(self) -> int | None:
         """Indirect bounces stage C should simulate (None: leave the caller's choice)."""
@@ -82,8 +91,8 @@ class EffectAdapter:
     def emitted(self, x: np.ndarray) -> np.ndarray:
         """g(x): the light the projector emits for the input ``x`` (input size, H×W×3)."""
         a = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
-        if (p := self._p("response")) is not None:
-            a = np.power(a, np.array(p, np.float32))
+        if (r := self._response()) is not None:
+            a = projector_tone(a, *r)
         if (p := self._p("crosstalk")) is not None:
             a = a @ crosstalk_matrix(np.array(p)).T
         if (p := self._p("black_level")) is not None:
@@ -102,8 +111,8 @@ class EffectAdapter:
         if (p := self._p("crosstalk")) is not None:
             a = a @ np.linalg.inv(crosstalk_matrix(np.array(p))).T
         a = np.clip(a, 0.0, 1.0)
-        if (p := self._p("response")) is not None:
-            a = np.power(a, 1.0 / np.maximum(np.array(p, np.float32), 1e-3))
+        if (r := self._response()) is not None:
+            a = inverse_projector_tone(a, *r)
         return np.clip(a, 0.0, 1.0).astype(np.float32)
 
     def _vignetting_gain(self, p: list[float], shape: tuple[int, ...]) -> np.ndarray:

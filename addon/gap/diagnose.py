@@ -26,6 +26,8 @@ from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, 
                   select_effects, structured)
 from .models import MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, signature_mask
 from .regions import find_regions, residual_maps
+from .remainder import Remainder, remainder
+from .session import SessionCheck, check_session
 
 #: The effect explains its gain where its signature says when that share of the squared-error reduction falls
 #: on its signature pixels, and more than their share of the pixels.
@@ -85,6 +87,24 @@ def _confidence(sel: Selection, name: str, sig: dict[str, Any]) -> dict[str, Any
     return {**out, "margin": round(margin, 3), "runner_up": runner, "level": level}
 
 
+def _temper_confidence(effects: list[dict[str, Any]], modelled: list[str], session: SessionCheck,
+                       rem: Remainder) -> None:
+    """No effect is named with high confidence when the rig changed during the session (a fitted effect may stand
+    for that change) or when the selected effects leave most of the residual unexplained (it stands for part of
+    something else at most)."""
+    for e in effects:
+        conf = e.get("confidence", {})
+        if e["name"] not in modelled or conf.get("level") not in ("high", "medium"):
+            continue
+        if session.changed:
+            e["confidence"] = {**conf, "level": "low", "why": "the rig changed during the session: "
+                               + session.sentence()}
+        elif rem.detected and conf["level"] == "high":
+            e["confidence"] = {**conf, "level": "medium",
+                               "why": f"the selected effects explain only {rem.explained_share:.0%} of the residual "
+                                      "above the noise"}
+
+
 def _colour_signed(r: np.ndarray, scale: float) -> np.ndarray:
     return np.clip(0.5 + r / (2 * scale), 0, 1)
 
@@ -115,6 +135,14 @@ def _summary(doc: dict[str, Any]) -> str:
              f"{after['rmse_structured']:.4f}.", "",
              "Effects are ranked and selected on the residual without pixel noise (smoothed by "
              f"{doc['smooth_sigma_px']} px except on pattern edges), on patterns they were not fitted on.", "",
+             *([f"**The rig changed during the session:** {doc['session']['sentence']}. Effects fitted to these "
+                "captures may stand for that change: fix it and capture again.", ""]
+               if doc["session"]["changed"] else []),
+             *([f"**Unexplained:** the selected effects explain {doc['unexplained']['explained_share']:.0%} of the "
+                f"residual above the captures' noise (smooth parts); RMSE {doc['unexplained']['unexplained_rmse']:.4f} "
+                "is left that no effect model accounts for"
+                + (f", most of it {doc['unexplained']['where']}" if doc['unexplained']['where'] else "") + ".", ""]
+               if doc["unexplained"]["detected"] else []),
              "**Selected:** " + (", ".join(doc["selected"]) if doc["selected"] else
                                  "none: no effect model removes a significant share of the residual, and calibration "
                                  "absorbed none"), "",
@@ -223,9 +251,17 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
     res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
     cam_full = calibration.rig.camera.intrinsics.size
-    regions = find_regions(data, np.stack([structured(r, data.observations[i].edges)
-                                           for r, i in zip(res_base, data.held_index)]),
-                           cam_full, data.held_index)
+
+    def regions_of(res: np.ndarray) -> list[Any]:
+        return find_regions(data, np.stack([structured(r, data.observations[i].edges)
+                                            for r, i in zip(res, data.held_index)]), cam_full, data.held_index)
+    regions = regions_of(res_base)
+    session = check_session(captures)
+    rem = remainder(data, base, final)
+    left = regions_of(res_final) if rem.detected else []
+    unexplained = {**rem.to_dict(), "where": left[0].description if left else "",
+                   "where_bbox": list(left[0].bbox) if left else None}
+    _temper_confidence(effects, sel.selected, session, rem)
     doc = {"format": format[0], "version": format[1], "calibration": data.report["calibration"],
            "capture_set": data.report["capture_set"], "working_size": list(data.size),
            "patterns": {"fit": [data.names[i] for i in data.fit_index],
@@ -243,6 +279,9 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
            "mse_classes": ["smooth parts (smoothed residual)", "pattern edges"],
            "regions": [r.to_dict() for r in regions],
            "effects": effects,
+           # whether the rig stayed the same during the session, and what the selected effects leave unexplained
+           "session": session.to_dict(),
+           "unexplained": unexplained,
            "steps": [{k: v for k, v in s.items()} for s in sel.steps],
            # selected: on the residual (modelled, fitted jointly: ``selected_params``), then found where
            # calibration absorbed them (nothing left to model: ``absorbed``).

@@ -44,6 +44,9 @@ MIN_SHARE = 0.06
 FIT_PIXELS = 8000
 #: Gaussian (pixels of the working image) that separates the structured residual from pixel noise.
 SMOOTH_SIGMA = 1.5
+#: A model's nested parameters (``EffectModel.nested``) are freed only when that lowers the fit-pattern MSE by
+#: at least this share.
+NESTED_GAIN = 0.05
 
 
 
@@ -134,14 +137,46 @@ def _fit_pixels(data: GapData, seed: int = 0) -> np.ndarray:
 
 def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.ndarray] | None = None,
                   iterations: int = 15) -> Fit:
-    """Fit the composite of ``names`` on the fit patterns (starting from ``start`` where given)."""
-    t0 = time.perf_counter()
+    """Fit the composite of ``names`` on the fit patterns (starting from ``start`` where given).
+
+    Nested parameters (``EffectModel.nested``) are first held at their identity values; they are then freed from
+    that fit's answer and kept only if they lower the fit-pattern MSE by :data:`NESTED_GAIN`.
+    """
     comp = Composite(data, names)
+    held = [comp.slices[n].start + k for n in comp.names for k in MODELS[n].nested]
+    if not held:
+        return _fit_box(data, comp, start)
+    lo, hi = comp.bounds()
+    ident = np.concatenate([np.asarray(MODELS[n].identity, float) for n in comp.names])
+    simple = _fit_box(data, comp, start, pinned=held, iterations=iterations)
+    if simple.error is not None:
+        return simple
+    free = _fit_box(data, comp, {n: v for n, v in zip(comp.names, (simple.theta[comp.slices[n]]
+                                                                   for n in comp.names))},
+                    iterations=iterations, nudge={k: ident[k] + 0.01 * (hi[k] - lo[k]) for k in held})
+    if free.error is None and free.fit_rmse ** 2 < (1.0 - NESTED_GAIN) * simple.fit_rmse ** 2:
+        free.seconds += simple.seconds
+        return free
+    simple.seconds += free.seconds
+    return simple
+
+
+def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None, *, iterations: int = 15,
+             pinned: list[int] | None = None, nudge: dict[int, float] | None = None) -> Fit:
+    """Bounded Levenberg–Marquardt; ``pinned`` parameters stay at their identity values, ``nudge`` moves some
+    starting values (off an identity that another fit left them at)."""
+    t0 = time.perf_counter()
     theta = comp.initial()
     for n, v in (start or {}).items():
         if n in comp.slices:
             theta[comp.slices[n]] = v
     lo, hi = comp.bounds()
+    if pinned:
+        ident = np.concatenate([np.asarray(MODELS[n].identity, float) for n in comp.names])
+        lo, hi = lo.copy(), hi.copy()
+        lo[pinned] = hi[pinned] = ident[pinned]
+    for k, v in (nudge or {}).items():
+        theta[k] = v
     theta = np.clip(theta, lo, hi)
     if comp.size == 0:
         return _scored(comp.names, theta, rmse(comp, theta, data.fit_index, smooth=False), comp, data,
@@ -156,13 +191,14 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
         return (pred - caps).astype(np.float64)
 
     step = 1e-3 * (hi - lo)
+    free = [k for k in range(comp.size) if hi[k] > lo[k]]
     try:
         r = residual(theta)
         cost = float(r @ r)
         lam = 1e-3
         for _ in range(iterations):
-            jac = np.empty((r.size, comp.size))
-            for k in range(comp.size):
+            jac = np.zeros((r.size, comp.size))
+            for k in free:
                 t = theta.copy()
                 # Step inwards at an upper bound so the difference stays inside the box.
                 h = step[k] if theta[k] + step[k] <= hi[k] else -step[k]

@@ -46,14 +46,21 @@ class EffectModel:
     upper: tuple[float, ...]
     signature: str  # where its residual should lie, in words (see ``signature_mask``)
     start: tuple[float, ...] | None = None  # where the fit starts (identity is a saddle for some models)
+    #: Parameters first held at their identity values; freed only if that lowers the fit error (``fit.NESTED_GAIN``)
+    nested: tuple[int, ...] = ()
 
     def initial(self) -> np.ndarray:
         return np.asarray(self.start if self.start is not None else self.identity, float)
 
 
 MODELS: dict[str, EffectModel] = {m.name: m for m in (
-    EffectModel("response", ("gamma_r", "gamma_g", "gamma_b"), (1, 1, 1), (0.3,) * 3, (3.5,) * 3,
-                "mid input levels"),
+    # A power law per channel, then a shared logistic S-curve (toe and shoulder; contrast 0 = none): a power law
+    # alone bends one way everywhere and could not fit a projector whose tone curve has a toe (measured: on the
+    # lab's S-curve response the diagnosis named black level and crosstalk instead). The S-curve is tried only
+    # on top of the power law (``nested``): a mild S with a lower γ mimics a power law, and a plain power law
+    # should be reported as one.
+    EffectModel("response", ("gamma_r", "gamma_g", "gamma_b", "contrast", "pivot"), (1, 1, 1, 0, 0.5),
+                (0.3, 0.3, 0.3, 0, 0.2), (3.5, 3.5, 3.5, 4, 0.8), "mid input levels", nested=(3, 4)),
     EffectModel("crosstalk", ("rg", "rb", "gr", "gb", "br", "bg"), (0,) * 6, (-0.1,) * 6, (0.5,) * 6,
                 "saturated input colours"),
     EffectModel("black_level", ("projector", "ambient_r", "ambient_g", "ambient_b"), (0, 0, 0, 0),
@@ -71,6 +78,35 @@ MODELS: dict[str, EffectModel] = {m.name: m for m in (
                 "at edges of the projected pattern, along the projector–camera baseline"),
 )}
 NAMES: tuple[str, ...] = tuple(MODELS)
+
+
+def projector_tone(a: np.ndarray, gammas: np.ndarray, contrast: float = 0.0, pivot: float = 0.5) -> np.ndarray:
+    """The ``response`` model's curve: ``S(a^γ)``, S a logistic through (0, 0) and (1, 1) (identity at contrast 0).
+
+    The logistic's slope is ``10·√contrast``: the curve departs from the identity in proportion to the square of
+    the slope, so in ``contrast`` it does so linearly, and a fit starting from none can move (no saddle).
+    """
+    y = np.power(np.clip(a, 0.0, 1.0), np.asarray(gammas, np.float32))
+    if contrast <= 1e-6:
+        return y.astype(np.float32)
+    lo, hi = _logistic(0.0, contrast, pivot), _logistic(1.0, contrast, pivot)
+    return ((_logistic(y, contrast, pivot) - lo) / (hi - lo)).astype(np.float32)
+
+
+def inverse_projector_tone(y: np.ndarray, gammas: np.ndarray, contrast: float = 0.0, pivot: float = 0.5
+                           ) -> np.ndarray:
+    """The input whose :func:`projector_tone` is ``y`` (clipped to [0, 1])."""
+    z = np.clip(np.asarray(y, np.float64), 0.0, 1.0)
+    if contrast > 1e-6:
+        lo, hi = _logistic(0.0, contrast, pivot), _logistic(1.0, contrast, pivot)
+        q = np.clip(lo + z * (hi - lo), 1e-12, 1 - 1e-12)
+        z = np.clip(pivot + np.log(q / (1 - q)) / (10.0 * np.sqrt(contrast)), 0.0, 1.0)
+    g = np.maximum(np.asarray(gammas, np.float64), 1e-3)
+    return np.power(z, 1.0 / g).astype(np.float32)
+
+
+def _logistic(v: np.ndarray | float, contrast: float, p: float) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-10.0 * np.sqrt(contrast) * (np.asarray(v, np.float64) - p)))
 
 
 def crosstalk_matrix(p: np.ndarray) -> np.ndarray:
@@ -176,7 +212,8 @@ class Composite:
         moved = corr is not d.corr
         a = sample_input(x, corr) if (moved or x is not obs.x) else obs.sampled
         if "response" in p:
-            a = np.power(np.clip(a, 0.0, 1.0), p["response"].astype(np.float32))
+            r = p["response"]
+            a = projector_tone(a, r[:3], float(r[3]), float(r[4]))
         if "crosstalk" in p:
             a = a @ crosstalk_matrix(p["crosstalk"]).T
         if "black_level" in p:
@@ -292,4 +329,5 @@ def describe_params(name: str, values: np.ndarray) -> dict[str, float]:
     return {p: round(float(v), 5) for p, v in zip(MODELS[name].params, values)}
 
 
-__all__ = ["Composite", "EffectModel", "MODELS", "NAMES", "crosstalk_matrix", "describe_params", "signature_mask"]
+__all__ = ["Composite", "EffectModel", "MODELS", "NAMES", "crosstalk_matrix", "describe_params",
+           "inverse_projector_tone", "projector_tone", "signature_mask"]
