@@ -32,6 +32,10 @@ SINGLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "inte
 #: Pairs injected together. Some pair an effect the calibration absorbs (found from its evidence) with one the
 #: residual shows; interreflection on the plane cannot show (a flat surface has no bounces), so the summary also
 #: counts the pairs whose effects each leave a gap or are found alone.
+#: Other functional forms of modelled causes, and causes the diagnosis has no model for (the lab's registry says
+#: which model names each one's cause: ``EffectKind.diagnosis_name``).
+VARIANTS = ("response_scurve", "defocus_depth", "lamp")
+UNMODELLED = ("warmup", "surface_moved", "subsurface")
 PAIRS = (("response", "defocus"), ("crosstalk", "interreflection"), ("black_level", "glossy"),
          ("camera_response", "depth_noise"), ("response", "black_level"), ("crosstalk", "glossy"),
          ("camera_response", "defocus"), ("vignetting", "glossy"), ("distortion", "response"))
@@ -45,13 +49,22 @@ def _cli(argv: list[str]) -> None:
         raise SystemExit(f"procam {' '.join(argv)} failed with exit code {code}")
 
 
-def case_name(surface: str, effects: tuple[str, ...], seed: int = 0) -> str:
-    return f"{surface}__{'+'.join(effects) or 'none'}" + (f"__seed{seed}" if seed else "")
+def case_name(surface: str, effects: tuple[str, ...], seed: int = 0, strength: float = 0.5) -> str:
+    # strength 0.5 keeps the folder names of the first matrix, so its cases are reused
+    return (f"{surface}__{'+'.join(effects) or 'none'}" + (f"__seed{seed}" if seed else "")
+            + (f"__s{strength:g}" if effects and strength != 0.5 else ""))
+
+
+def cause_of(effect: str) -> str | None:
+    """The diagnosis model that names an injected lab effect's cause (None: the diagnosis has none)."""
+    from procam.addon.lab.effects import REGISTRY
+
+    return REGISTRY[effect].diagnosis_name
 
 
 def run_case(work: Path, surface: str, effects: tuple[str, ...], strength: float, scale: float, samples: int,
              diag_scale: float, seed: int = 0) -> tuple[Path, Path, dict]:
-    name = case_name(surface, effects, seed)
+    name = case_name(surface, effects, seed, strength)
     lab, truth, cal, diag = (work / name / "captures", work / name / "truth.json", work / name / "calibration",
                              work / name / "diagnosis")
     spec = ",".join(f"{e}={strength}" for e in effects) or "none"
@@ -114,11 +127,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, required=True, help="folder for the cases (reused when rerun)")
     ap.add_argument("--out", type=Path, help="write report.json and report.md here")
     ap.add_argument("--surfaces", default="vedge,plane")
-    ap.add_argument("--strength", type=float, default=0.5, help="strength of each injected effect (default 0.5)")
+    ap.add_argument("--strength", default="0.5",
+                    help="strength of each injected effect, or a comma list for the matrix (e.g. 0.25,0.5,1)")
     ap.add_argument("--scale", type=float, default=0.3, help="lab resolution as a share of the demo rig's")
     ap.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel")
     ap.add_argument("--diag-scale", type=float, default=1.0, help="diagnosis working scale of the capture size")
-    ap.add_argument("--cases", default="all", help="'all', or e.g. 'none,response,response+defocus'")
+    ap.add_argument("--cases", default="all",
+                    help="'all' (none, singles, pairs), 'single', 'variants' (other forms of modelled causes), "
+                         "'unmodelled', or a list such as 'none,response,response+defocus'")
     ap.add_argument("--seeds", type=int, default=1,
                     help="lab seeds per case (surface texture and noise; seed 0 keeps the plain case names)")
     ap.add_argument("--targets", type=int, default=2, help="natural targets for the compensation comparison (0: skip)")
@@ -129,20 +145,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.summarise:
         rows = [json.loads(line) for line in args.summarise.read_text().splitlines() if line.startswith("{")]
         # A case logged twice (e.g. seed 0 of --cases none after the full matrix) counts once, as last logged.
-        rows = list({(r["surface"], r.get("seed", 0), tuple(r["injected"])): r for r in rows}.values())
+        rows = list({(r["surface"], r.get("seed", 0), tuple(r["injected"]), r.get("strength", 0.5)): r
+                     for r in rows}.values())
         print(report_markdown(rows, args))
         return 0
 
-    if args.cases == "all":
-        cases = [()] + [(e,) for e in SINGLE] + list(PAIRS)
-    else:
-        cases = [tuple(c.split("+")) if c != "none" else () for c in args.cases.split(",")]
+    families = {"all": [()] + [(e,) for e in SINGLE] + list(PAIRS), "single": [(e,) for e in SINGLE],
+                "variants": [(e,) for e in VARIANTS], "unmodelled": [(e,) for e in UNMODELLED]}
+    cases = []
+    for c in args.cases.split(","):
+        cases += families.get(c) or [tuple(c.split("+")) if c != "none" else ()]
+    strengths = [float(v) for v in args.strength.split(",")]
     targets = ["city", "forest", "interior", "sunrise"][:args.targets]
     rows = []
-    for surface, seed, effects in ((s, k, e) for s in args.surfaces.split(",") for k in range(args.seeds)
-                                   for e in cases):
+    plan = [(s, k, e, st) for s in args.surfaces.split(",") for k in range(args.seeds) for e in cases
+            for st in (strengths if e else strengths[:1])]
+    for surface, seed, effects, strength in plan:
         t0 = time.perf_counter()
-        cal, truth, doc = run_case(args.work, surface, effects, args.strength, args.scale, args.samples,
+        cal, truth, doc = run_case(args.work, surface, effects, strength, args.scale, args.samples,
                                    args.diag_scale, seed)
         ranked = [e["name"] for e in doc["effects"] if not e.get("error")]
         before, after = doc["residual"]["rmse_structured"], doc["residual_after"]["rmse_structured"]
@@ -161,7 +181,9 @@ def main(argv: list[str] | None = None) -> int:
                     shares.append((b - a) / (b - f))
             removed = max(shares) if shares else None
         comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
-        row = {"surface": surface, "seed": seed, "injected": list(effects), "first": ranked[0] if ranked else None,
+        row = {"surface": surface, "seed": seed, "strength": strength, "injected": list(effects),
+               "causes": [cause_of(e) for e in effects], "first": ranked[0] if ranked else None,
+               "unexplained": doc.get("unexplained"), "session_changed": doc.get("session", {}).get("changed"),
                "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before,
                "rmse_after": after, "floor": floor,
                "removed_above_floor": removed, "compensation": comp, "seconds": round(time.perf_counter() - t0, 1),
@@ -190,18 +212,21 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         c = f"{comp['base']:.2f} → {comp['effects']:.2f}" if comp else "–"
         rem = f"{r['removed_above_floor']:.0%}" if r["removed_above_floor"] is not None else "–"
         fl = f"{r['floor']:.4f}" if r["floor"] is not None else "–"
-        where = r["surface"] + (f" (seed {r['seed']})" if r.get("seed") else "")
+        where = r["surface"] + (f" (seed {r['seed']})" if r.get("seed") else "") + (f" at {r['strength']:g}" if r.get("injected") and r.get("strength", 0.5) != 0.5 else "")
         lines.append(f"| {where} | {'+'.join(r['injected']) or 'none'} | {r['first']} | "
                      f"{', '.join(r['selected']) or 'none'} | {r['rmse_before']:.4f} → {r['rmse_after']:.4f} | {fl} | "
                      f"{rem} | {c} | {r['seconds']} |")
-    single = [r for r in rows if len(r["injected"]) == 1]
+    single = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"]) == r["injected"]]
+    variants = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"])[0]
+                not in (None, r["injected"][0])]
+    unmodelled = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"])[0] is None]
     none = [r for r in rows if not r["injected"]]
     pairs = [r for r in rows if len(r["injected"]) == 2]
     lines += ["", "Summary:"]
     # An effect "leaves a gap" on a surface when, injected alone, it lifts the held-out RMSE > 5 % above the
     # no-effect floor; one that does not (absorbed by the calibration, or absent from that surface) cannot be found.
     def key(r: dict, effect: str) -> tuple:
-        return r["surface"], r.get("seed", 0), effect
+        return r["surface"], r.get("seed", 0), effect, r.get("strength", 0.5)
 
     gap = {key(r, r["injected"][0]): r["floor"] is not None and r["rmse_before"] > GAP_MARGIN * r["floor"]
            for r in single}
@@ -221,8 +246,30 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
                      f"{sum(r['first'] == r['injected'][0] for r in hidden)} (found where calibration absorbed it "
                      f"{sum(r['injected'][0] in r.get('absorbed', []) for r in hidden)}), nothing modelled "
                      f"{sum(not (set(r['selected']) - set(r.get('absorbed', []))) for r in hidden)}")
+    if variants:
+        named = sum(r["first"] == r["causes"][0] for r in variants)
+        lines.append(f"- other forms of a modelled cause: the cause ranked first {named}/{len(variants)} ("
+                     + ", ".join(f"{r['surface']} {r['injected'][0]} → {r['first']}"
+                                 + (f" (explains {r['unexplained']['explained_share']:.0%})" if r.get("unexplained")
+                                    else "") for r in variants) + ")")
+    if unmodelled:
+        def wrong_high(r: dict) -> bool:
+            return any(level == "high" for level in r["confidence"].values())
+        said = sum(bool(r.get("session_changed") or (r.get("unexplained") or {}).get("detected"))
+                   for r in unmodelled)
+        lines.append(f"- effects the diagnosis has no model for: no high-confidence name "
+                     f"{sum(not wrong_high(r) for r in unmodelled)}/{len(unmodelled)}; said the rig changed or "
+                     f"left a remainder unexplained {said}/{len(unmodelled)} ("
+                     + ", ".join(f"{r['surface']} {r['injected'][0]}: "
+                                 + ("rig changed" if r.get("session_changed") else
+                                    "unexplained" if (r.get("unexplained") or {}).get("detected") else
+                                    f"selected {', '.join(r['selected']) or 'none'}")
+                                 + (f" [{', '.join(f'{k} {v}' for k, v in r['confidence'].items())}]"
+                                    if r["confidence"] else "") for r in unmodelled) + ")")
     if none:
-        lines.append(f"- no effect: nothing selected {sum(not r['selected'] for r in none)}/{len(none)}")
+        lines.append(f"- no effect: nothing selected {sum(not r['selected'] for r in none)}/{len(none)}; "
+                     f"'unexplained' said {sum(bool((r.get('unexplained') or {}).get('detected')) for r in none)}, "
+                     f"'the rig changed' said {sum(bool(r.get('session_changed')) for r in none)}")
     if pairs:
         both = sum(set(r["injected"]) <= set(r["selected"]) for r in pairs)
         lines.append(f"- two effects: both selected {both}/{len(pairs)}")
