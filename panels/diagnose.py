@@ -24,6 +24,8 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         layout.operator("procam.diagnose", icon="VIEWZOOM")
         if not done:
             return
+        for note in summary.data["notes"]:
+            wrapped(layout.box(), note, icon="INFO")
         selected = set(summary.data["selected"])
         box = layout.box()
         box.label(text="Effects (selected first, as the diagnosis ranks them):")

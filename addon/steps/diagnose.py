@@ -115,8 +115,18 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
             + (f" ({len(doc['absorbed'])} absorbed by calibration)" if doc.get("absorbed") else ""))
     maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
     text = layout.DIAGNOSIS_SUMMARY if (root / layout.DIAGNOSIS_SUMMARY).is_file() else None
+    # What a technician reads first: the plain sentence, a rig that changed, what is left unexplained.
+    notes = [str(doc["headline"])] if doc.get("headline") else []
+    session = doc.get("session") or {}
+    if session.get("changed"):
+        notes.append(f"The rig changed during the session: {session.get('sentence', '')}.")
+    left = doc.get("unexplained") or {}
+    if left.get("detected"):
+        notes.append(f"Unexplained: the selected effects explain {fmt(100 * left.get('explained_share', 0), '.0f')}% "
+                     "of the residual above the noise" + (f"; most of the rest {left['where']}"
+                                                          if left.get("where") else "") + ".")
     return Summary(True, head, (), {"effects": effects, "selected": selected, "regions": regions, "maps": maps,
-                                    "summary": text})
+                                    "summary": text, "notes": notes})
 
 
 def summary(folder: str | Path) -> Summary:
