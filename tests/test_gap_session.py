@@ -69,3 +69,26 @@ def test_unexplained_needs_both_a_large_share_and_a_visible_remainder():
     assert not fitted.detected and fitted.explained_share > 0.9
     tiny = Remainder(0.01, floor, before_mse=2e-6, after_mse=2e-6, edges_before_mse=0, edges_after_mse=0)
     assert not tiny.detected  # nothing above the floor worth a word
+
+
+def _doc(**over):
+    doc = {"session": {"changed": False, "sentence": ""}, "modelled": [], "absorbed": [], "regions": [],
+           "unexplained": {"detected": False, "explained_share": 1.0, "where": "", "unexplained_rmse": 0.0}}
+    return {**doc, **over}
+
+
+def test_the_headline_is_one_sentence_a_technician_can_act_on():
+    from procam.addon.gap.diagnose import headline
+
+    size = (640, 480)
+    assert "nothing to fix" in headline(_doc(), size)
+    bottom = [{"bbox": [200, 380, 240, 90], "share": 0.6}]
+    text = headline(_doc(modelled=["defocus"], regions=bottom), size)
+    assert text.startswith("The projector is out of focus towards the bottom") and "refocus" in text
+    # a small region does not place an effect that covers the image
+    assert "towards" not in headline(_doc(modelled=["defocus"], regions=[{**bottom[0], "share": 0.1}]), size)
+    changed = _doc(modelled=["black_level"], session={"changed": True, "sentence": "the surface moved"})
+    assert "capture again" in headline(changed, size) and "black" not in headline(changed, size)
+    left = {"detected": True, "explained_share": 0.2, "where": "near a surface crease", "unexplained_rmse": 0.004}
+    assert "no model for remains near a surface crease" in headline(_doc(unexplained=left), size)
+    assert "80% of the residual" in headline(_doc(modelled=["response"], unexplained=left), size)

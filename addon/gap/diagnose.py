@@ -105,6 +105,64 @@ def _temper_confidence(effects: list[dict[str, Any]], modelled: list[str], sessi
                                       "above the noise"}
 
 
+#: What a show technician can do about each effect, as the end of one sentence.
+ACTIONS = {
+    "response": "the projector's tone curve is not linear{where}: linearise it in its menu, or compensate with "
+                "--effects auto",
+    "crosstalk": "the projector's colours mix{where}: compensate with --effects auto",
+    "black_level": "light reaches the surface when the projector shows black{where} (room light or the projector's "
+                   "black level): darken the room, or compensate with --effects auto",
+    "vignetting": "the projector's image darkens towards its corners: the albedo holds it, nothing to do",
+    "defocus": "the projector is out of focus{where}: refocus it (ProCam does not pre-sharpen yet)",
+    "interreflection": "light bounces between parts of the surface{where}: compensate with --effects auto, which "
+                       "simulates the bounces",
+    "glossy": "the surface is glossy{where}: a matte finish helps, and lower the camera's exposure where the white "
+              "capture clipped",
+    "camera_response": "the camera applies a tone curve: shoot linear (raw), or compensate with --effects auto",
+    "distortion": "the camera's lens distorts the image: calibrate it with a printed board (procam calibrate-rig)",
+    "depth_noise": "the surface's depth is off: recapture the depth, or take the surface from the Gray code "
+                   "(--surface-from graycode)",
+}
+
+
+def _where(bbox: list[int] | None, size: tuple[int, int]) -> str:
+    """" towards the bottom edge" etc. for a region's box in the camera image ('' when central or unknown)."""
+    if not bbox:
+        return ""
+    x, y, w, h = bbox
+    cx, cy = (x + w / 2) / size[0] - 0.5, (y + h / 2) / size[1] - 0.5
+    if max(abs(cx), abs(cy)) < 0.15 or w * h > 0.5 * size[0] * size[1]:
+        return ""
+    side = ("right" if cx > 0 else "left") if abs(cx) > abs(cy) else ("bottom" if cy > 0 else "top")
+    return f" towards the {side} of the camera image"
+
+
+def headline(doc: dict[str, Any], size: tuple[int, int]) -> str:
+    """One plain sentence a show technician can act on, from the ``gap.json`` document."""
+    session, left = doc["session"], doc["unexplained"]
+    if session["changed"]:
+        return (f"The rig changed during the session ({session['sentence']}): fix that and capture again before "
+                "trusting any effect named here.")
+    tail = ""
+    if left["detected"]:
+        tail = (f"; {1 - left['explained_share']:.0%} of the residual above the noise stays unexplained"
+                + (f", most of it {left['where']}" if left["where"] else ""))
+    if doc["modelled"]:
+        name = doc["modelled"][0]
+        # a place only when one region holds much of the error: a defocus over the whole image is not "left"
+        region = doc["regions"][0]["bbox"] if doc["regions"] and doc["regions"][0]["share"] >= 0.25 else None
+        text = ACTIONS[name].format(where=_where(region, size))
+        return text[0].upper() + text[1:] + tail + "."
+    if left["detected"]:
+        return ("Something ProCam has no model for remains" + (f" {left['where']}" if left["where"] else "")
+                + f" (RMSE {left['unexplained_rmse']:.4f} above the captures' noise): look there for what changed "
+                "or what the surface does that a matte, still surface would not.")
+    if doc["absorbed"]:
+        return (f"Calibration absorbed {', '.join(doc['absorbed'])}; nothing else stands out above the captures' "
+                "noise.")
+    return "The model matches the captures to within their noise: nothing to fix."
+
+
 def _colour_signed(r: np.ndarray, scale: float) -> np.ndarray:
     return np.clip(0.5 + r / (2 * scale), 0, 1)
 
@@ -126,7 +184,7 @@ def _overlay(base: np.ndarray, regions: list[Any], size: tuple[int, int]) -> np.
 
 def _summary(doc: dict[str, Any]) -> str:
     res, after = doc["residual"], doc["residual_after"]
-    lines = ["# ProCam sim-to-real diagnosis", "",
+    lines = ["# ProCam sim-to-real diagnosis", "", f"**{doc['headline']}**", "",
              f"Calibration `{doc['calibration']}`; {len(doc['patterns']['fit'])} patterns fitted, "
              f"{len(doc['patterns']['held_out'])} held out.", "",
              f"**Held-out residual of the calibrated model:** RMSE {res['rmse']:.4f} ({res['psnr']:.1f} dB PSNR); "
@@ -298,6 +356,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
            "what_calibration_absorbs": ABSORBED,
            "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1),
                        "evidence": round(t_evidence, 1)}}
+    doc["headline"] = headline(doc, cam_full)
     maps = residual_maps(res_base, data.mask)
     after = residual_maps(res_final, data.mask)
     scale_abs = max(float(np.percentile(maps["abs"][data.mask], 99)), 1e-3)
