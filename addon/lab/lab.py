@@ -509,10 +509,21 @@ def projector_depth(surface: SurfaceMesh, projector: Projector) -> np.ndarray:
     return depth_map(local, projector.intrinsics)
 
 
-def _add_subsurface(obj: Any, weight: float, radius: float) -> None:
-    """Mix random-walk subsurface scattering (same colour as the paint) into the surface's diffuse material."""
+def _mix_into_surface(obj: Any, node: Any, weight: float) -> None:
+    """Mix ``node``'s shader with ``weight`` into whatever the surface's material outputs now."""
     tree = obj.active_material.node_tree
     out = next(n for n in tree.nodes if n.type == "OUTPUT_MATERIAL")
+    upstream = out.inputs["Surface"].links[0].from_socket
+    mix = tree.nodes.new("ShaderNodeMixShader")
+    mix.inputs["Fac"].default_value = float(weight)
+    tree.links.new(upstream, mix.inputs[1])
+    tree.links.new(node.outputs[0], mix.inputs[2])
+    tree.links.new(mix.outputs[0], out.inputs["Surface"])
+
+
+def _add_subsurface(obj: Any, weight: float, radius: float) -> None:
+    """Mix random-walk subsurface scattering (same colour as the paint) into the surface's material."""
+    tree = obj.active_material.node_tree
     diffuse = next(n for n in tree.nodes if n.type == "BSDF_DIFFUSE")
     sss = tree.nodes.new("ShaderNodeSubsurfaceScattering")
     sss.falloff = "RANDOM_WALK"
@@ -523,27 +534,15 @@ def _add_subsurface(obj: Any, weight: float, radius: float) -> None:
         tree.links.new(colour.links[0].from_socket, sss.inputs["Color"])
     else:
         sss.inputs["Color"].default_value = colour.default_value
-    upstream = out.inputs["Surface"].links[0].from_socket
-    mix = tree.nodes.new("ShaderNodeMixShader")
-    mix.inputs["Fac"].default_value = float(weight)
-    tree.links.new(upstream, mix.inputs[1])
-    tree.links.new(sss.outputs[0], mix.inputs[2])
-    tree.links.new(mix.outputs[0], out.inputs["Surface"])
+    _mix_into_surface(obj, sss, weight)
 
 
 def _add_glossy_lobe(obj: Any, weight: float, roughness: float) -> None:
     """Mix a GGX glossy lobe into the surface's diffuse material (non-Lambertian reflectance)."""
-    tree = obj.active_material.node_tree
-    out = next(n for n in tree.nodes if n.type == "OUTPUT_MATERIAL")
-    diffuse = next(n for n in tree.nodes if n.type == "BSDF_DIFFUSE")
-    glossy = tree.nodes.new("ShaderNodeBsdfGlossy")
+    glossy = obj.active_material.node_tree.nodes.new("ShaderNodeBsdfGlossy")
     glossy.distribution = "GGX"
     glossy.inputs["Roughness"].default_value = float(roughness)
-    mix = tree.nodes.new("ShaderNodeMixShader")
-    mix.inputs["Fac"].default_value = float(weight)
-    tree.links.new(diffuse.outputs[0], mix.inputs[1])
-    tree.links.new(glossy.outputs[0], mix.inputs[2])
-    tree.links.new(mix.outputs[0], out.inputs["Surface"])
+    _mix_into_surface(obj, glossy, weight)
 
 
 # --------------------------------------------------------------------------- a whole capture session
