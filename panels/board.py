@@ -16,6 +16,8 @@ _DISTORTION_HELP = {"none": "No lens distortion", "k1": "Radial k1", "k1k2": "Ra
                     "k1k2p1p2": "Radial k1 k2 and tangential p1 p2",
                     "k1k2p1p2k3": "Radial k1 k2 k3 and tangential p1 p2 (k3 needs many varied poses)"}
 DISTORTION_ITEMS = [(name, name, _DISTORTION_HELP.get(name, name)) for name in DISTORTION_MODELS]
+PROJECTOR_DISTORTION_ITEMS = [("auto", "auto", "None, k1 or k1 k2: whichever the corners support (BIC)"),
+                              *DISTORTION_ITEMS]
 
 
 def scene_properties() -> dict[str, object]:
@@ -49,9 +51,9 @@ def scene_properties() -> dict[str, object]:
             description="Which lens distortion terms to estimate for the camera (k3 is not observable from a few "
                         "poses)"),
         "procam_board_projector_distortion": EnumProperty(
-            name="Projector Distortion", items=DISTORTION_ITEMS, default="k1k2",
-            description="Which lens distortion terms to estimate for the projector (tangential terms trade "
-                        "against its principal point; none for a projector known to be distortion-free)"),
+            name="Projector Distortion", items=PROJECTOR_DISTORTION_ITEMS, default="auto",
+            description="Which lens distortion terms to estimate for the projector (auto: what its corners "
+                        "support; a term fitted where there is no distortion moves the principal point)"),
         "procam_rig_file": StringProperty(
             name="Rig File", subtype="FILE_PATH",
             description="The rig.json that Calibrate Rig writes; Import Captures then uses it"),

@@ -1,7 +1,11 @@
 """procam calibrate-rig against the lab's truth: board sessions rendered with Cycles, calibrated, compared.
 
     .venv/bin/python scripts/bench_board_lab.py [--poses 6] [--scale 1] [--effects distortion=0.5,noise=0.3]
-        [--samples 4] [--square 0.06] [--window 19] [--camera-distortion k1k2p1p2] [--projector-distortion k1k2]
+        [--samples 4] [--square 0.06] [--window 19] [--camera-distortion k1k2p1p2] [--projector-distortion auto]
+        [--sessions DIR]
+
+``--sessions`` calibrates sessions rendered earlier (``procam lab-board --out DIR``, truth in DIR.truth.json; the
+first ``--poses`` of them) instead of rendering new ones.
 
 Renders ``--poses`` sessions of a 9×7 chessboard (squares of ``--square`` m) through the demo rig (camera
 640×480 and projector 800×600 at ``--scale`` 1) with the lab's effects, runs the calibrate-rig step on them and
@@ -19,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from procam.addon.lab.board import render_board_sessions
+from procam.addon.lab.board import BoardTruth, render_board_sessions
 from procam.addon.lab.lab import scaled_rig
 from procam.addon.rig.demo import demo_rig
 from procam.addon.steps import rig as rig_step
@@ -34,16 +38,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--square", type=float, default=0.06)
     ap.add_argument("--window", type=int, default=19)
     ap.add_argument("--camera-distortion", default="k1k2p1p2")
-    ap.add_argument("--projector-distortion", default="k1k2")
+    ap.add_argument("--projector-distortion", default="auto")
+    ap.add_argument("--sessions", type=Path, default=None)
     args = ap.parse_args(argv)
     rig = scaled_rig(demo_rig(), args.scale)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        truth = render_board_sessions(rig, Path(tmp) / "sessions", poses=args.poses, effects=args.effects,
-                                      samples=args.samples, square=args.square)
+        folder = args.sessions or Path(tmp) / "sessions"
+        if args.sessions is None:
+            truth = render_board_sessions(rig, folder, poses=args.poses, effects=args.effects,
+                                          samples=args.samples, square=args.square)
+        else:
+            truth = BoardTruth.load(folder.with_name(folder.name + ".truth.json"))
+            rig = truth.rig
         t_render = time.perf_counter() - t0
         t0 = time.perf_counter()
-        sessions = tuple(sorted((Path(tmp) / "sessions").glob("pose_*")))
+        sessions = tuple(sorted(folder.glob("pose_*")))[:args.poses]
         cal = rig_step.run(rig_step.RigOptions(sessions, Path(tmp) / "rig.json", (9, 7), rig.projector.intrinsics.size,
                                                square=args.square, window=args.window,
                                                camera_model=args.camera_distortion,
@@ -62,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     axis = np.degrees(np.arccos(np.clip(p[:3, 2] @ t[:3, 2], -1, 1)))
     print(f"projector pose: position {1000 * np.linalg.norm(p[:3, 3] - t[:3, 3]):.2f} mm, axis {axis:.3f}°; "
           f"stereo RMS {cal.stereo_rms:.3f} px; camera distortion k1 k2 {np.round(cal.camera_distortion[:2], 4)}")
+    print(f"projector distortion model: {cal.projector_model}" + "".join(
+        f"; {m} RMS {c['rms']:.4f} BIC {c['bic']:.1f}"
+        for m, c in cal.projector_model_choice.get("candidates", {}).items()))
     return 0
 
 

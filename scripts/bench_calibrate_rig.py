@@ -78,6 +78,8 @@ def main(root: Path = REAL) -> int:
     print(f"            published {_k(pub['proj_int'])}")
     print(f"            published/2 {_k(half)[0:]}  (in the 1024×768 Gray-code grid, see below)")
     print(f"proj dist   ours      {cal.projector_distortion}  ({cal.projector_model})")
+    for m, c in cal.projector_model_choice.get("candidates", {}).items():
+        print(f"            model {m:<5} RMS {c['rms']:.3f} px, BIC {c['bic']:.1f}")
     print(f"            published {pub['proj_dist'].ravel()}")
     h = size[1]
     print(f"proj principal point below centre: ours {(cal.projector_matrix[1, 2] - h / 2) / h:.2f} frame heights, "

@@ -105,6 +105,11 @@ def test_real_captures_agree_with_the_published_calibration(real_rig):
     # The projector sits below the camera (+y), mostly beside it rather than in front or behind.
     position = cal.camera_from_projector[:3, 3]
     assert position[1] > 0 and abs(position[1]) > abs(position[2])
+    # The real projector's lens distorts: the default (auto) keeps k1 k2, each term lowering the BIC.
+    choice = cal.projector_model_choice
+    assert cal.projector_model == "k1k2" and choice["chosen"] == "k1k2"
+    bic = [choice["candidates"][m]["bic"] for m in ("none", "k1", "k1k2")]
+    assert bic[0] > bic[1] > bic[2]
     s = rig_step.summary(out)
     assert s.ok and "stereo RMS" in s.headline
 
@@ -261,3 +266,16 @@ def test_lab_board_sessions_calibrate_back_to_the_lab_rig(tmp_path, capsys):
         assert abs(km[0, 2] + 0.5 - true.cx) < 8 and abs(km[1, 2] + 0.5 - true.cy) < 8
     true_pose = truth.rig.projector.camera_from_projector
     assert np.linalg.norm(cal.camera_from_projector[:3, 3] - true_pose[:3, 3]) < 0.01
+
+
+def test_auto_keeps_a_distortion_term_only_when_it_lowers_the_residual_beyond_chance():
+    from procam.addon.stages.rig_calibration import _choose_model
+
+    def fits(*rms):
+        return {m: (r, None, None, None, None, None) for m, r in zip(("none", "k1", "k1k2"), rms)}
+
+    # 378 corners: one coefficient must lower the RSS by about 0.9 % (ln 756 / 756)
+    assert _choose_model(fits(0.2000, 0.1995, 0.1994), 378)[0] == "none"
+    assert _choose_model(fits(0.2000, 0.1900, 0.1899), 378)[0] == "k1"
+    chosen, doc = _choose_model(fits(0.2500, 0.2200, 0.2000), 378)
+    assert chosen == "k1k2" and doc["residuals"] == 756 and set(doc["candidates"]) == {"none", "k1", "k1k2"}

@@ -55,9 +55,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera-distortion", choices=tuple(DISTORTION_MODELS), default="k1k2p1p2",
                    help="which of OpenCV's k1 k2 p1 p2 k3 to estimate for the camera (default k1k2p1p2: k3 is not "
                         "observable from a few poses)")
-    p.add_argument("--projector-distortion", choices=tuple(DISTORTION_MODELS), default="k1k2",
-                   help="the same for the projector (default k1k2: tangential terms trade against its principal "
-                        "point)")
+    p.add_argument("--projector-distortion", choices=("auto", *DISTORTION_MODELS), default="auto",
+                   help="the same for the projector (default auto: none, k1 or k1k2, whichever the corners "
+                        "support by the BIC; a distortion fitted where there is none moves the principal point)")
     p.add_argument("--force", action="store_true", help="replace an existing rig.json")
 
 
@@ -88,6 +88,10 @@ def print_report(cal: RigCalibration, out: Path) -> None:
         print(f"  {name} K (OpenCV, pixel centres): fx {K[0, 0]:.2f} ±{std[0]:.1f}  fy {K[1, 1]:.2f} ±{std[1]:.1f}  "
               f"cx {K[0, 2]:.2f} ±{std[2]:.1f}  cy {K[1, 2]:.2f} ±{std[3]:.1f}")
         print(f"  {name} distortion k1 k2 p1 p2 k3 ({model}): {np.array2string(d, precision=5, suppress_small=True)}")
+    choice = cal.projector_model_choice
+    if choice:
+        print("  projector distortion chosen by " + choice["criterion"] + ": " + ", ".join(
+            f"{m} RMS {c['rms']:.3f} BIC {c['bic']:.1f}" for m, c in choice["candidates"].items()))
     print("  R (camera → projector, OpenCV):")
     for row in cal.rotation:
         print("    " + " ".join(f"{v:+.6f}" for v in row))

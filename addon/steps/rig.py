@@ -55,7 +55,7 @@ class RigOptions:
     square: float | None = None
     window: int = 47  # camera pixels on a side of each corner's homography window
     camera_model: str = "k1k2p1p2"
-    projector_model: str = "k1k2"
+    projector_model: str = "auto"
     force: bool = False
 
 
