@@ -12,9 +12,8 @@ makes the surface as ``procam calibrate``'s surface stage does
                 ``capture.json`` marks the projector's pose known, with the TRUE
                 pose (what ``import-captures --rig`` with a metric rig gives);
 * ``mesh``      the true surface turned 5° and shifted 10 cm, saved as an OBJ and
-                registered to the triangulated points (no depth at all). The lit area
-                does not show the mesh's outline, so a surface that slides into itself
-                there (the hedge, along its crease) is refused as not converging.
+                registered to the triangulated points (no depth at all; the lit area
+                does not show the mesh's outline).
 
 and measures the mean distance to the true surface over the lit area, as
 ``scripts/bench_surface.py`` does (``normal``: the displacement along each
