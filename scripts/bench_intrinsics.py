@@ -2,10 +2,12 @@
 (``fit``), on each lab surface, down to the compensation's PSNR.
 
     .venv/bin/python scripts/bench_intrinsics.py [--surfaces plane,curve,vedge,hedge] [--scale 0.5]
-        [--nominal-error 10,20] [--effects realistic] [--samples 16] [--targets city] [--iterations N]
+        [--nominal-error 10,20] [--camera-fov-error 0] [--effects realistic] [--samples 16] [--targets city]
+        [--iterations N]
 
 For each surface: a lab capture set whose projector spec is wrong by ``--nominal-error`` (focal length %, vertical
-lens shift % of the height), calibrated both ways; focal length (%) and principal point (px) errors, projector
+lens shift % of the height) and whose camera's field of view is ``--camera-fov-error`` degrees off, calibrated
+both ways; focal length (%) and principal point (px) errors, projector
 position (mm) and axis (°) errors against the sealed truth; then closed-loop compensation through the lab of the
 built-in targets with each calibration, and its PSNR (the evaluate step's, inside the display area).
 """
@@ -32,22 +34,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--surfaces", default="plane,curve,vedge,hedge")
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--nominal-error", default="10,20")
+    ap.add_argument("--camera-fov-error", type=float, default=0.0)
     ap.add_argument("--effects", default="realistic")
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--targets", default="city")
     ap.add_argument("--iterations", type=int, default=None)
     args = ap.parse_args(argv)
     error = tuple(float(v) / 100 for v in args.nominal_error.split(","))
-    print(f"spec wrong by {args.nominal_error} (focal %, shift % of height); scale {args.scale:g}, effects "
+    print(f"spec wrong by {args.nominal_error} (focal %, shift % of height), camera FoV {args.camera_fov_error:+g}°; scale {args.scale:g}, effects "
           f"{args.effects or 'none'}, {args.samples} spp; targets {args.targets}, closed loop, fast schedule")
-    print("| surface | K from | focal err % | principal point err px | determined | pose mm | axis ° | PSNR dB |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| surface | K from | focal err % | principal point err px | determined | camera focal err % | pose mm | "
+          "axis ° | PSNR dB |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for surface in args.surfaces.split(","):
         with tempfile.TemporaryDirectory() as tmp:
             root = Path(tmp)
             caps, truth_path = root / "captures", root / "truth.json"
             capture.run_lab(capture.LabOptions(caps, surface=surface, effects=args.effects, samples=args.samples,
-                                               scale=args.scale, truth=truth_path, nominal_error=error))
+                                               scale=args.scale, truth=truth_path, nominal_error=error,
+                                               camera_fov_error=args.camera_fov_error))
             truth = LabTruth.load(truth_path)
             tk, tp = truth.rig.projector.intrinsics, truth.rig.projector
             cals = {m: calibrate.run(calibrate.CalibrateOptions(caps, root / f"cal-{m}", with_blend=False,
@@ -61,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
                 pos = 1000 * float(np.linalg.norm(p.position - tp.position))
                 ang = float(np.degrees(np.arccos(np.clip(p.direction @ tp.direction, -1, 1))))
                 det = (cal.report.get("projector_intrinsics") or {}).get("determined")
+                cam_err = 100 * (cal.rig.camera.intrinsics.fx / truth.rig.camera.intrinsics.fx - 1)
                 device = f"lab:{truth_path}"
                 compensate.run(compensate.CompensateOptions(
                     root / f"cal-{m}", targets, root / f"comp-{m}",
@@ -70,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
                 psnr = np.mean([t["psnr"] for t in metrics["targets"] if t.get("status") == "done"])
                 det_s = "—" if det is None else ", ".join(n for n, v in det.items() if v) or "nothing"
                 print(f"| {surface} | {m} | {100 * (k.fx / tk.fx - 1):+.2f} | "
-                      f"{np.hypot(k.cx - tk.cx, k.cy - tk.cy):.1f} | {det_s} | {pos:.1f} | {ang:.3f} | {psnr:.2f} |",
+                      f"{np.hypot(k.cx - tk.cx, k.cy - tk.cy):.1f} | {det_s} | {cam_err:+.2f} | {pos:.1f} | {ang:.3f} | "
+                      f"{psnr:.2f} |",
                       flush=True)
     return 0
 

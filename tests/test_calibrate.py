@@ -170,12 +170,13 @@ def wrong_spec(tmp_path_factory):
     """Lab sets whose projector spec is 10 % off in focal length and 20 % of the height off in lens shift."""
     root = tmp_path_factory.mktemp("spec")
 
-    def make(surface: str, shift: str = "0,15"):
-        name = f"{surface}-{shift.replace(',', '_')}"
+    def make(surface: str, shift: str = "0,15", camera_fov_error: float = 0.0):
+        name = f"{surface}-{shift.replace(',', '_')}-{camera_fov_error:g}"
         captures, truth = root / name, root / f"{name}.truth.json"
         if not captures.exists():
             assert main(["lab", "--out", str(captures), "--truth", str(truth), "--surface", surface, "--scale", "0.4",
-                         "--samples", "4", "--nominal-error", "10,20", "--projector-shift", shift]) == 0
+                         "--samples", "4", "--nominal-error", "10,20", "--projector-shift", shift,
+                         "--camera-fov-error", str(camera_fov_error)]) == 0
         return captures, LabTruth.load(truth)
     return make
 
@@ -204,6 +205,23 @@ def test_projector_intrinsics_fitted_without_a_board(wrong_spec, tmp_path, shift
     assert errors["spec"][0] > 5 * errors["fit"][0]  # a wrong spec really moves the pose: the fit is what fixes it
 
 
+def test_a_wrong_camera_field_of_view_is_fitted_with_the_projector(wrong_spec, tmp_path):
+    """The camera's FoV 5° off as well (its focal length 9.5 % short): on the curve the Gray code pins the camera's
+    focal length too, and the projector's K and pose come out as with a right camera."""
+    captures, truth = wrong_spec("curve", camera_fov_error=5.0)
+    given = CaptureSet.load(captures).camera.intrinsics
+    assert given.fx < 0.92 * truth.rig.camera.intrinsics.fx
+    fit = run_calibration(CalibrateOptions(captures, tmp_path / "fit", with_blend=False, projector_intrinsics="fit",
+                                           stages="surface,pose"))
+    report = fit.report["projector_intrinsics"]
+    assert report["camera_focal"]["determined"] and "camera focal length fitted" in report["summary"]
+    assert fit.rig.camera.intrinsics.fx == pytest.approx(truth.rig.camera.intrinsics.fx, rel=0.01)
+    assert fit.rig.projector.intrinsics.fx == pytest.approx(truth.rig.projector.intrinsics.fx, rel=0.02)
+    p, t = fit.rig.projector, truth.rig.projector
+    assert np.linalg.norm(p.position - t.position) < 0.01
+    assert np.degrees(np.arccos(np.clip(p.direction @ t.direction, -1, 1))) < 0.3
+
+
 def test_a_flat_wall_leaves_the_projector_spec_as_it_is(wrong_spec, tmp_path):
     """One view of a plane cannot separate focal length from distance: the fit says so and keeps the spec."""
     captures, _ = wrong_spec("plane")
@@ -212,6 +230,8 @@ def test_a_flat_wall_leaves_the_projector_spec_as_it_is(wrong_spec, tmp_path):
     report = fit.report["projector_intrinsics"]
     assert report["determined"] == {"focal": False, "principal_point": False}
     assert fit.rig.projector.intrinsics == CaptureSet.load(captures).projector.intrinsics
+    assert fit.rig.camera.intrinsics == CaptureSet.load(captures).camera.intrinsics
+    assert not report["camera_focal"]["determined"]
     assert "kept at the spec" in report["summary"] and "flat surface" in report["summary"]
 
 

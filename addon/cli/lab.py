@@ -38,6 +38,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nominal-error", type=_pair, default=(0.0, 0.0), metavar="FOCAL,SHIFT",
                    help="give the pipeline a projector spec that is wrong by FOCAL %% in focal length (throw ratio) "
                         "and SHIFT %% of the height in vertical lens shift, as a data sheet may be (default 0,0)")
+    p.add_argument("--camera-fov-error", type=float, default=0.0, metavar="DEGREES",
+                   help="give the pipeline a camera whose horizontal field of view is DEGREES off, as a guessed or "
+                        "spec-sheet FoV may be (default 0)")
     p.add_argument("--no-graycode", action="store_true", help="skip the Gray-code patterns (faster)")
     p.add_argument("--force", action="store_true", help="replace an existing capture set (and truth) at --out")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -56,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     options = LabOptions(args.out, surface=args.surface, effects=args.effects, seed=args.seed, samples=args.samples,
                          scale=args.scale, graycode=not args.no_graycode, full_binary=args.full_binary,
                          truth=args.truth, projector_shift=args.projector_shift,
-                         nominal_error=args.nominal_error, force=args.force)
+                         nominal_error=args.nominal_error,
+                         camera_fov_error=args.camera_fov_error, force=args.force)
     out, truth_path = options.paths()
     progress(f"lab: {out} ({args.samples} spp)")
     t0 = time.perf_counter()

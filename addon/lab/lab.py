@@ -94,6 +94,13 @@ class LabTruth:
     nominal_pose: np.ndarray
     #: the projector's spec-sheet intrinsics the pipeline is given; None: the true ones
     nominal_intrinsics: Intrinsics | None = None
+    #: the camera's intrinsics the pipeline is given (a field of view read off a spec); None: the true ones
+    nominal_camera_intrinsics: Intrinsics | None = None
+
+    @property
+    def nominal_camera(self) -> Camera:
+        """The camera as the pipeline is told it is."""
+        return Camera(self.nominal_camera_intrinsics or self.rig.camera.intrinsics)
 
     @property
     def nominal_projector(self) -> Projector:
@@ -123,6 +130,8 @@ class LabTruth:
                "nominal_camera_from_projector": np.asarray(self.nominal_pose).tolist(),
                **({"nominal_projector_intrinsics": self.nominal_intrinsics.to_dict()}
                   if self.nominal_intrinsics is not None else {}),
+               **({"nominal_camera_intrinsics": self.nominal_camera_intrinsics.to_dict()}
+                  if self.nominal_camera_intrinsics is not None else {}),
                "surface": {"source": self.surface_source, "mesh": mesh_path.name, "name": self.surface.name},
                "effects": self.effects.to_dict(), "effects_spec": self.effects.spec,
                "seed": int(self.seed), "samples": int(self.samples)}
@@ -143,7 +152,9 @@ class LabTruth:
                             EffectSet.from_dict(doc["effects"]), int(doc["seed"]), int(doc["samples"]),
                             np.asarray(doc["nominal_camera_from_projector"], dtype=float),
                             Intrinsics.from_dict(doc["nominal_projector_intrinsics"])
-                            if "nominal_projector_intrinsics" in doc else None)
+                            if "nominal_projector_intrinsics" in doc else None,
+                            Intrinsics.from_dict(doc["nominal_camera_intrinsics"])
+                            if "nominal_camera_intrinsics" in doc else None)
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -174,7 +185,7 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
                seed: int = 0, samples: int = 16, camera_size: tuple[int, int] = (640, 480),
                projector_size: tuple[int, int] = (800, 600), rig: Rig | None = None, scale: float = 1.0,
                surface_source: str | None = None, projector_shift: tuple[float, float] | None = None,
-               nominal_error: tuple[float, float] = (0.0, 0.0)) -> LabTruth:
+               nominal_error: tuple[float, float] = (0.0, 0.0), camera_fov_error: float = 0.0) -> LabTruth:
     """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
 
     ``rig`` replaces the demo rig (then ``camera_size``/``projector_size``/``projector_shift``
@@ -183,7 +194,9 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
     ``scale`` scales either rig's resolutions (:func:`scaled_rig`). ``nominal_error``
     (focal length as a fraction, vertical lens shift in image heights) makes the
     projector's spec-sheet intrinsics the pipeline is given wrong by that much, as
-    a throw ratio and shift read off a data sheet are.
+    a throw ratio and shift read off a data sheet are. ``camera_fov_error``
+    (degrees) does the same to the camera's horizontal field of view: the
+    capture set, its depth image included, then carries that camera.
     The nominal projector pose the pipeline gets is the true one disturbed as
     by a person placing it by eye (:func:`rough_pose`). Cheap checks come
     first so that a bad request fails before any mesh is read.
@@ -213,8 +226,16 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
     if any(nominal_error):
         k, (df, dshift) = rig.projector.intrinsics, (float(v) for v in nominal_error)
         nominal_k = Intrinsics(k.width, k.height, k.fx * (1 + df), k.fy * (1 + df), k.cx, k.cy + dshift * k.height)
+    nominal_cam = None
+    if camera_fov_error:
+        k = rig.camera.intrinsics
+        fov = 2 * math.degrees(math.atan(k.width / (2 * k.fx))) + float(camera_fov_error)
+        if not 1.0 <= fov <= 170.0:
+            raise LabError(f"a camera field of view {camera_fov_error:+g}° off gives {fov:.1f}°; keep it in 1–170°")
+        f = k.width / (2 * math.tan(math.radians(fov) / 2))
+        nominal_cam = Intrinsics(k.width, k.height, f, f * k.fy / k.fx, k.cx, k.cy)
     return LabTruth(rig, mesh, source, effect_set, seed, samples, rough_pose(rig.projector.camera_from_projector, rng),
-                    nominal_k)
+                    nominal_k, nominal_cam)
 
 
 def load_mesh_file(path: Path) -> SurfaceMesh:
@@ -671,7 +692,10 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     report(1, total, "building the lab scene")
     created_dirs = sorted({p for d in (out_dir.parent, truth_path.parent) for p in (d, *d.parents) if not p.exists()},
                           key=lambda p: len(p.parts), reverse=True)
-    writer = CaptureSetWriter(out_dir, truth.rig.camera, nominal, depth_info=depth_info, notes=notes, force=force)
+    if truth.nominal_camera_intrinsics is not None:  # the depth image is unprojected with the camera as given
+        depth_info = DepthInfo(truth.nominal_camera_intrinsics.scaled(*depth_info.intrinsics.size),
+                               depth_info.native_size)
+    writer = CaptureSetWriter(out_dir, truth.nominal_camera, nominal, depth_info=depth_info, notes=notes, force=force)
     tmp_truth: Path | None = None
     try:
         with LabDevice(truth) as device:

@@ -22,7 +22,7 @@ from ..capture.format import CaptureSet
 from ..errors import CalibrationError
 from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
-from ..rig.model import Rig
+from ..rig.model import Camera, Intrinsics, Rig
 from ..surface.mesh import SurfaceMesh
 from .intrinsics import estimate_projector_intrinsics
 from .pose import estimate_pose, surface_view, target_mask
@@ -100,6 +100,15 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
     else:
         fill = np.full_like(photo, np.nanmedian(albedo[lit]) if lit.any() else 0.5)
     return np.clip(np.where(lit[..., None], albedo, fill), 0.0, 1.0).astype(np.float32)
+
+
+def _with_camera(captures: CaptureSet, k: Intrinsics) -> CaptureSet:
+    """The capture set with camera intrinsics ``k`` (its depth image's too, at the depth's own size)."""
+    if k == captures.camera.intrinsics:
+        return captures
+    depth = captures.depth_info
+    return replace(captures, camera=Camera(k), depth_info=None if depth is None else
+                   replace(depth, intrinsics=k.scaled(*depth.intrinsics.size)))
 
 
 def stage_plan(stages: str | tuple[str, ...] | list[str] | None) -> tuple[str, ...]:
@@ -203,6 +212,14 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         report["projector_intrinsics"] = fit.to_dict()
         # From here on the capture set's projector is the fitted one: stage A, the albedo and stage B all use it.
         captures = replace(captures, projector=replace(captures.projector, intrinsics=fit.fitted))
+        camera = fit.camera(captures.camera.intrinsics)
+        if camera is not None:
+            # And its camera: the surface was made with the given K, so it is made again with the fitted one.
+            captures = _with_camera(captures, camera)
+            say("surface: again, with the fitted camera focal length", 0.1)
+            mesh, report["surface_report"], _ = surface_from_captures(
+                captures, surface_from, surface_mesh=surface_mesh, depth_offset=depth_offset,
+                pose=initial_pose if init == "given" else None, progress=say)
         if fit.camera_from_projector is not None and init == "graycode" and stage_a == "ours":
             # The fit's pose is Gray-code PnP with the fitted K and the camera's lens in the loop: stage A keeps it
             # (its mask only checks it), as it keeps plain Gray-code PnP.
@@ -213,9 +230,9 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         report.pop("projector_intrinsics", None)
         seconds.pop("intrinsics", None)
     elif previous is not None:
-        # The reused pose came with the reused intrinsics.
-        captures = replace(captures, projector=replace(captures.projector,
-                                                       intrinsics=previous.rig.projector.intrinsics))
+        # The reused pose came with the reused intrinsics (the camera's too, when they were fitted).
+        captures = replace(_with_camera(captures, previous.rig.camera.intrinsics),
+                           projector=replace(captures.projector, intrinsics=previous.rig.projector.intrinsics))
     rig = Rig(captures.camera, captures.projector)  # the capture set's nominal pose until stage A runs
     if "pose" in plan:
         t0 = time.perf_counter()

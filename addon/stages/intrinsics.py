@@ -21,10 +21,12 @@ spec sheet (throw ratio, lens shift):
   principal point fitted with the focal length held 10 % off put the pose
   15 cm off, against 23 cm with the spec, and lowered the compensation's PSNR).
 
-The camera's intrinsics stay as given: the 3-D points are made with them (the
-depth image is unprojected through the camera's K), so this view cannot tell a
-wrong camera K from a wrong surface. A printed board (``procam calibrate-rig``)
-is the way to calibrate the camera.
+The camera's focal length is fitted with them too, and used only where the
+data determine it (σ below :data:`CAMERA_FOCAL_STD_MAX`): the 3-D points are
+made with it, and a wrong one scales them across the view, which only a
+projector whose axis converges with the camera's can see (see the fit's
+comment). Its principal point stays as given. A printed board
+(``procam calibrate-rig``) is the way to calibrate the camera fully.
 """
 
 from __future__ import annotations
@@ -49,8 +51,13 @@ DISTORTION_STD_MAX = 0.005
 #: Points used in the fit (a random subset of the decoded pixels): enough for sub-pixel statistics, fast to fit.
 FIT_POINTS = 20000
 
-#: Parameter order of the fit: projector f, cx, cy (OpenCV), pose (rvec, tvec), camera k1, k2.
+#: Largest standard deviation of the camera's focal-length factor for it to count as determined.
+CAMERA_FOCAL_STD_MAX = 0.005
+
+#: Parameter order of the fit: projector f, cx, cy (OpenCV), pose (rvec, tvec), camera k1, k2, camera focal factor.
 _NO_LENS = np.arange(9)
+_LENS = np.arange(11)
+_CAMERA_FOCAL = np.arange(12)
 _POSE = np.arange(3, 9)
 
 
@@ -70,6 +77,15 @@ class IntrinsicsFit:
     camera_distortion: dict[str, Any] = field(default_factory=dict)
     #: the projector's pose from the same fit (None when the spec is kept): stage A starts and stays there
     camera_from_projector: np.ndarray | None = None
+    #: the camera's focal length fitted with them: factor on the given one, its std, whether determined
+    camera_focal: dict[str, Any] = field(default_factory=dict)
+
+    def camera(self, given: Intrinsics) -> Intrinsics | None:
+        """The camera's intrinsics with the fitted focal length, or None when the data do not determine it."""
+        if not self.camera_focal.get("determined"):
+            return None
+        g = float(self.camera_focal["factor"])
+        return Intrinsics(given.width, given.height, given.fx * g, given.fy * g, given.cx, given.cy)
 
     def summary(self) -> str:
         n, f = self.nominal, self.fitted
@@ -79,14 +95,21 @@ class IntrinsicsFit:
             return (f"kept at the spec (focal {n.fx:.1f} px, principal point ({n.cx:.1f}, {n.cy:.1f})): this surface "
                     f"does not determine the {' and '.join(unknown)} (the data leave {spread}; a flat surface never "
                     "does: use a curved or edged one, or procam calibrate-rig)")
-        lens = self.camera_distortion
+        lens, cf = self.camera_distortion, self.camera_focal
+        focal = ""
+        if cf:
+            focal = (f"; camera focal length fitted with them: {cf['given_fx']:.1f} → {cf['fitted_fx']:.1f} px "
+                     f"({100 * (cf['factor'] - 1):+.2f} % ±{100 * cf['std']:.2f} %)" if cf.get("determined") else
+                     f"; camera focal length not determined by this surface (±{100 * cf['std']:.1f} %: kept as "
+                     "given; if it is wrong the projector's focal length takes it up, so calibrate the camera "
+                     "with a board)")
         camera = (f"; camera lens distortion fitted with them: {lens['edge_displacement_px']:+.2f} px at "
                   f"{lens['edge_radius_px']:.0f} px from the centre (k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f})"
                   if lens.get("determined") else
                   "; camera lens distortion not determined by this surface (assumed none)")
         return (f"focal {n.fx:.1f} → {f.fx:.1f} px ({100 * (f.fx / n.fx - 1):+.2f} %), principal point "
                 f"({n.cx:.1f}, {n.cy:.1f}) → ({f.cx:.1f}, {f.cy:.1f}) px ({spread}){camera}; reprojection RMS "
-                f"{self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px")
+                f"{self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px{focal}")
 
     def to_dict(self) -> dict[str, Any]:
         return {"nominal": self.nominal.to_dict(), "fitted": self.fitted.to_dict(),
@@ -94,7 +117,8 @@ class IntrinsicsFit:
                 "rms_nominal_px": self.rms_nominal_px, "rms_fitted_px": self.rms_fitted_px,
                 "points": self.points, "inliers": self.inliers, "camera_distortion": dict(self.camera_distortion),
                 "camera_from_projector": None if self.camera_from_projector is None
-                else np.asarray(self.camera_from_projector).tolist(), "summary": self.summary()}
+                else np.asarray(self.camera_from_projector).tolist(), "camera_focal": dict(self.camera_focal),
+                "summary": self.summary()}
 
 
 def _projector_matrix(x: np.ndarray, aspect: float) -> np.ndarray:
@@ -119,21 +143,30 @@ class _GrayCodeView:
         self.kc = camera.opencv_matrix()
         self.aspect = aspect
 
-    def points(self, k1: float, k2: float) -> np.ndarray:
-        """N×3 surface points (rig frame) the decoded pixels see through a lens with k1, k2; NaN where none."""
+    def points(self, k1: float, k2: float, focal: float = 1.0) -> np.ndarray:
+        """N×3 surface points (rig frame) the decoded pixels see through a lens with k1, k2 and the camera's focal
+        length ``focal`` times the given one; NaN where none.
+
+        The depth is looked up at the undistorted pixel, which does not depend on the focal length: the surface
+        was made from the depth with the given K and is seen through the same K, so each pixel keeps its depth.
+        """
         crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-12)
-        xn = cv2.undistortPointsIter(self.centres, self.kc, np.array([k1, k2, 0.0, 0.0]), None, None,
+        kc = self.kc.copy()
+        kc[0, 0] *= focal
+        kc[1, 1] *= focal
+        xn = cv2.undistortPointsIter(self.centres, kc, np.array([k1, k2, 0.0, 0.0]), None, None,
                                      crit).reshape(-1, 2)
-        u = xn[:, 0] * self.kc[0, 0] + self.kc[0, 2]
-        v = xn[:, 1] * self.kc[1, 1] + self.kc[1, 2]
+        u = xn[:, 0] * kc[0, 0] + kc[0, 2]
+        v = xn[:, 1] * kc[1, 1] + kc[1, 2]
         z = cv2.remap(self.depth, u.astype(np.float32)[None, :], v.astype(np.float32)[None, :], cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan")).ravel().astype(np.float64)
         return np.column_stack([xn * z[:, None], z])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        """Projector-pixel residuals (2N) for x = f, cx, cy (OpenCV), rvec, tvec, camera k1, k2."""
+        """Projector-pixel residuals (2N) for x = f, cx, cy (OpenCV), rvec, tvec, camera k1, k2, camera focal
+        factor."""
         km = _projector_matrix(x, self.aspect)
-        pts = self.points(x[9], x[10])
+        pts = self.points(x[9], x[10], x[11])
         ok = np.isfinite(pts[:, 2])
         proj, _ = cv2.projectPoints(np.where(ok[:, None], pts, 1.0), x[3:6], x[6:9], km, None)
         r = proj.reshape(-1, 2) - self.target
@@ -218,10 +251,10 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     depth, camera, aspect = view.points[..., 2], captures.camera.intrinsics, nominal.fy / nominal.fx
     rvec, tvec = _start_pose(obj, img, nominal, seed)
     km = nominal.opencv_matrix()
-    x0 = np.concatenate([[km[0, 0], km[0, 2], km[1, 2]], rvec, tvec, [0.0, 0.0]])
+    x0 = np.concatenate([[km[0, 0], km[0, 2], km[1, 2]], rvec, tvec, [0.0, 0.0, 1.0]])
     scale = float(np.nanmedian(np.abs(obj[:, 2])))
     steps = np.array([1e-4 * km[0, 0], 0.01, 0.01, 1e-6, 1e-6, 1e-6, 1e-6 * scale, 1e-6 * scale, 1e-6 * scale,
-                      1e-5, 1e-5])
+                      1e-5, 1e-5, 1e-5])
     everything = _GrayCodeView(cam_px, img, depth, camera, aspect)
     x, keep = x0, np.ones(len(obj), bool)
     # Two rounds of outlier rejection (decoding errors at pattern edges): a wrong spec leaves residuals of several
@@ -244,7 +277,7 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     # Then the camera's radial distortion with them: the photographs' lens bends the decoded pixels' rays, and a
     # projector fitted without it takes the bend into its focal length (measured: -2.6 % on the lab's curve with
     # its realistic k1 = -0.036).
-    x_lens, r_lens, j_lens = _levenberg_marquardt(gv.residuals, x, steps, np.arange(11))
+    x_lens, r_lens, j_lens = _levenberg_marquardt(gv.residuals, x, steps, _LENS)
     sd_lens = _covariance_std(j_lens, r_lens)
     lens.update(std_k1=float(sd_lens[9]), std_k2=float(sd_lens[10]))
     if sd_lens[9] < DISTORTION_STD_MAX and np.isfinite(x_lens).all():
@@ -256,6 +289,21 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
         shift = r_max * (x[9] * r_max ** 2 + x[10] * r_max ** 4) * camera.fx
         lens.update(k1=float(x[9]), k2=float(x[10]), determined=True, edge_radius_px=r_max * camera.fx,
                     edge_displacement_px=float(shift))
+    # Then the camera's focal length. A wrong one scales the depth's points across the view (X, Y, not Z). For a
+    # projector looking the same way as the camera that is the same as a projector focal length and baseline
+    # scaled by as much (no data can tell them apart); the more the two axes converge, the more it bends the
+    # projector's view of a non-planar surface in ways no pinhole K can take up, which is what pins it here.
+    free = _CAMERA_FOCAL if lens["determined"] else np.r_[_NO_LENS, 11]
+    x_cam, r_cam, j_cam = _levenberg_marquardt(gv.residuals, x, steps, free)
+    sd_cam = _covariance_std(j_cam, r_cam)
+    focal: dict[str, Any] = {"factor": 1.0, "std": float(sd_cam[-1]), "determined": False,
+                             "given_fx": camera.fx}
+    if sd_cam[-1] < CAMERA_FOCAL_STD_MAX and np.isfinite(x_cam).all():
+        x, r, sd = x_cam, r_cam, sd_cam
+        focal.update(factor=float(x[11]), determined=True)
+        if lens["determined"]:
+            lens.update(k1=float(x[9]), k2=float(x[10]))
+    focal["fitted_fx"] = camera.fx * focal["factor"]
     std_d = {"fx": float(sd[0]), "cx": float(sd[1]), "cy": float(sd[2])}
     k = Intrinsics.from_opencv_matrix(nominal.width, nominal.height, _projector_matrix(x, aspect))
     determined = {"focal": std_d["fx"] < FOCAL_STD_MAX * k.fx,
@@ -267,5 +315,6 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
         # with the spec. So either the data determine both, or the spec stays as it is.
         k, pose, r = nominal, None, r_nominal
         lens["determined"] = False
+        focal.update(factor=1.0, determined=False, fitted_fx=camera.fx)
     return IntrinsicsFit(nominal, k, std_d, determined, _point_rms(r_nominal), _point_rms(r), int(len(obj)),
-                         int(keep.sum()), lens, pose)
+                         int(keep.sum()), lens, pose, focal)

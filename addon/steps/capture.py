@@ -61,6 +61,8 @@ class LabOptions:
     projector_shift: tuple[float, float] | None = None
     #: how wrong the projector's spec-sheet intrinsics are: (focal length fraction, vertical shift in image heights)
     nominal_error: tuple[float, float] = (0.0, 0.0)
+    #: how wrong the camera's horizontal field of view is, in degrees
+    camera_fov_error: float = 0.0
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -79,7 +81,8 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
                        camera_size=options.camera_size, projector_size=options.projector_size,
-                       projector_shift=options.projector_shift, nominal_error=options.nominal_error)
+                       projector_shift=options.projector_shift, nominal_error=options.nominal_error,
+                       camera_fov_error=options.camera_fov_error)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
                       fast_binary=not options.full_binary, progress=progress, cancel=cancel)
