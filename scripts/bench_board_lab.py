@@ -59,8 +59,9 @@ def main(argv: list[str] | None = None) -> int:
                                                camera_model=args.camera_distortion,
                                                projector_model=args.projector_distortion))
         t_cal = time.perf_counter() - t0
-    print(f"{args.poses} board poses, camera {rig.camera.intrinsics.size}, projector {rig.projector.intrinsics.size}, "
-          f"effects {args.effects or 'none'}, {args.samples} spp; distortion models camera {args.camera_distortion}, "
+    effects = truth.effects if args.sessions else args.effects
+    print(f"{len(sessions)} board poses, camera {rig.camera.intrinsics.size}, projector {rig.projector.intrinsics.size}, "
+          f"effects {effects or 'none'}, {args.samples} spp; distortion models camera {args.camera_distortion}, "
           f"projector {args.projector_distortion}; render {t_render:.0f} s, calibrate-rig {t_cal:.1f} s")
     print("| device | fx error | fy error | cx error | cy error | RMS |")
     print("|---|---|---|---|---|---|")

@@ -60,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  mean: PSNR {m['uncompensated_psnr']:.2f} → {m['psnr']:.2f} dB (uncompensated → compensated); "
           f"{args.out}/evaluation/ holds the side-by-side images")
     g = summary["diagnosis"]
+    if g.get("headline"):
+        print(f"  diagnosis says: {g['headline']}")
     print(f"  diagnosis: held-out residual RMSE {g['residual']['rmse']:.4f} → {g['residual_after']['rmse']:.4f} "
           f"({g['residual']['psnr']:.1f} → {g['residual_after']['psnr']:.1f} dB) with the selected effects: "
           f"{', '.join(g['selected']) or 'none'} (see {args.out}/diagnosis/summary.md)")

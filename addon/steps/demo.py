@@ -152,7 +152,8 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         # 192×144 working images, as scripts/bench_diagnosis.py measured the diagnosis.
         gap = diagnose.run(diagnose.DiagnoseOptions(out / "calibration", out / "diagnosis",
                                                     scale=min(1.0, 0.3 / scale)), spans["diagnose"], cancel)
-        summary["diagnosis"] = {"residual": gap["residual"], "residual_after": gap["residual_after"],
+        summary["diagnosis"] = {"headline": gap.get("headline", ""), "residual": gap["residual"],
+                                "residual_after": gap["residual_after"],
                                 "selected": gap["selected"], "selected_params": gap["selected_params"],
                                 "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
                                 "regions": gap["regions"][:3]}
