@@ -2,7 +2,7 @@
 
     .venv/bin/python scripts/bench_board_lab.py [--poses 6] [--scale 1] [--effects distortion=0.5,noise=0.3]
         [--samples 4] [--square 0.06] [--window 19] [--camera-distortion k1k2p1p2] [--projector-distortion auto]
-        [--sessions DIR]
+        [--sessions DIR] [--supersample N]
 
 ``--sessions`` calibrates sessions rendered earlier (``procam lab-board --out DIR``, truth in DIR.truth.json; the
 first ``--poses`` of them) instead of rendering new ones.
@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from procam.addon.lab.board import BoardTruth, render_board_sessions
+from procam.addon.lab.effects import parse_effects
 from procam.addon.lab.lab import scaled_rig
 from procam.addon.rig.demo import demo_rig
 from procam.addon.steps import rig as rig_step
@@ -40,14 +41,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--camera-distortion", default="k1k2p1p2")
     ap.add_argument("--projector-distortion", default="auto")
     ap.add_argument("--sessions", type=Path, default=None)
+    ap.add_argument("--supersample", type=int, default=None,
+                    help="as procam lab-board's (default: 2 when the effects distort the camera's lens)")
     args = ap.parse_args(argv)
     rig = scaled_rig(demo_rig(), args.scale)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         folder = args.sessions or Path(tmp) / "sessions"
         if args.sessions is None:
+            ss = args.supersample or (2 if parse_effects(args.effects)["distortion"].active else 1)
             truth = render_board_sessions(rig, folder, poses=args.poses, effects=args.effects,
-                                          samples=args.samples, square=args.square)
+                                          samples=args.samples, square=args.square, supersample=ss)
         else:
             truth = BoardTruth.load(folder.with_name(folder.name + ".truth.json"))
             rig = truth.rig

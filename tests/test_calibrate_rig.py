@@ -250,6 +250,8 @@ def test_lab_board_sessions_calibrate_back_to_the_lab_rig(tmp_path, capsys):
     from procam.addon.lab.board import BoardTruth
 
     out, rig_file = tmp_path / "board", tmp_path / "rig.json"
+    assert main(["lab-board", "--out", str(out), "--poses", "4", "--scale", "0.5", "--samples", "2",
+                 "--supersample", "0"]) == 2 and not out.exists()
     assert main(["lab-board", "--out", str(out), "--poses", "4", "--scale", "0.5", "--samples", "2"]) == 0
     assert "procam calibrate-rig" in capsys.readouterr().out
     sessions = sorted(str(p) for p in out.glob("pose_*"))

@@ -457,3 +457,28 @@ def test_render_side_effects_ask_the_renderer_only_when_on():
                        ("subsurface", {"subsurface_weight", "subsurface_radius"})):
         on = render_settings(parse_effects(f"{name}=0.5"))
         assert set(on) - set(off) == keys and not keys & set(off)
+
+
+def test_a_supersampled_render_is_distorted_at_its_own_resolution_and_averaged_down():
+    """Rendered at 2× with its margin, the image is distorted where it is fine and averaged to the camera's
+    pixels: each output pixel shows what the lens model says, as without supersampling."""
+    from procam.addon.lab.effects import _undistort_normalised, apply_camera, camera_render_intrinsics, parse_effects
+    from procam.addon.rig.model import Intrinsics
+
+    cam = Intrinsics(160, 120, 144.0, 144.0, 80.0, 60.0)
+    eff = parse_effects("distortion=0.5")
+    fine = camera_render_intrinsics(eff, cam)
+    fine = fine.scaled(2 * fine.width, 2 * fine.height)
+    ys, xs = np.mgrid[0:fine.height, 0:fine.width] + 0.5
+    ramp = np.zeros((fine.height, fine.width, 3), np.float32)
+    ramp[..., 0] = 0.5 + 0.3 * (xs - fine.cx) / fine.fx  # normalised pinhole coordinates, encoded in [0, 1]
+    ramp[..., 1] = 0.5 + 0.3 * (ys - fine.cy) / fine.fy
+    out = apply_camera(ramp, eff, cam, None, supersample=2)
+    assert out.shape == (120, 160, 3)
+    v, u = np.mgrid[0:120, 0:160] + 0.5
+    xu, yu = _undistort_normalised((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, eff["distortion"]["k1"],
+                                   eff["distortion"]["k2"])
+    err = np.hypot((out[..., 0] - 0.5) / 0.3 - xu, (out[..., 1] - 0.5) / 0.3 - yu) * cam.fx
+    assert np.median(err) < 0.02 and np.percentile(err[2:-2, 2:-2], 99) < 0.1
+    with pytest.raises(LabError, match="supersampling"):
+        apply_camera(ramp[:-1], eff, cam, None, supersample=2)

@@ -83,6 +83,10 @@ def _configure_board(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, default=4, help="Cycles samples per pixel (default 4)")
     p.add_argument("--scale", type=float, default=1.0, help="resolution scale: 1 = camera 640×480, projector 800×600")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--supersample", type=int, default=None, metavar="N",
+                   help="render the camera at N times its resolution and average down, so that lens distortion "
+                        "resamples finer pixels than the camera's, as a real lens does (default 2 when --effects "
+                        "distort the camera's lens, which costs 4× the rendering; else 1)")
     p.add_argument("--force", action="store_true", help="replace board sessions made earlier at --out")
 
 
@@ -98,7 +102,8 @@ def _board(text: str) -> tuple[int, int]:
          _configure_board)
 def run_board_sessions(args: argparse.Namespace) -> int:
     options = BoardOptions(args.out, board=args.board, square=args.square, poses=args.poses, effects=args.effects,
-                           samples=args.samples, scale=args.scale, seed=args.seed, truth=args.truth, force=args.force)
+                           samples=args.samples, scale=args.scale, seed=args.seed, truth=args.truth, force=args.force,
+                           supersample=args.supersample)
     truth = run_step("lab-board", run_board, options)
     size = truth.rig.projector.intrinsics.size
     print(f"board sessions: {args.out} ({len(truth.poses)} poses of a {args.board[0]}x{args.board[1]} board, "

@@ -114,11 +114,12 @@ class BoardTruth:
 
 def render_board_sessions(rig: Rig, out: Path, *, board: tuple[int, int] = (9, 7), square: float = 0.06,
                           poses: int = 6, effects: str = "", samples: int = 16, seed: int = 0,
-                          truth_path: Path | None = None, force: bool = False, progress: Progress | None = None,
-                          cancel: Cancel | None = None) -> BoardTruth:
+                          truth_path: Path | None = None, force: bool = False, supersample: int = 1,
+                          progress: Progress | None = None, cancel: Cancel | None = None) -> BoardTruth:
     """Render one session folder per board pose into ``out`` (``pose_00/graycode_00.png`` …, Gray code for the
     projector's native frame in OpenCV's order, then white, then black) and seal the truth at ``truth_path``
-    (default: beside ``out``). The folder is written atomically."""
+    (default: beside ``out``). The folder is written atomically. ``supersample`` renders the camera finer and
+    averages down (:func:`.effects.apply_camera`)."""
     say = progress or quiet
     truth_path = Path(truth_path) if truth_path else Path(out).with_name(Path(out).name + ".truth.json")
     size = rig.projector.intrinsics.size
@@ -133,7 +134,7 @@ def render_board_sessions(rig: Rig, out: Path, *, board: tuple[int, int] = (9, 7
                              seed=seed + k, surface_source=f"chessboard {board[0]}x{board[1]}, pose {k}")
             session = folder.tmp / f"pose_{k:02d}"
             session.mkdir()
-            with LabDevice(lab) as device:
+            with LabDevice(lab, supersample=supersample) as device:
                 for i, frame in enumerate(frames):
                     check(cancel, "rendering the board sessions")
                     say(f"pose {k + 1}/{poses}: frame {i + 1}/{len(frames)}", (k * len(frames) + i) /

@@ -331,7 +331,8 @@ class LabDevice(Device):
     manager) to remove its scratch scene.
     """
 
-    def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None) -> None:
+    def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None,
+                 supersample: int = 1) -> None:
         import bpy
 
         from ..blender import rig as blender_rig
@@ -346,6 +347,10 @@ class LabDevice(Device):
         self._shots = 0
         # Lens distortion resamples the image, so render a margin around it (same focal length).
         render_k = camera_render_intrinsics(truth.effects, self.camera.intrinsics)
+        # Supersampling renders finer pixels for the lens to resample (apply_camera's doc).
+        self.supersample = _whole(supersample, "the supersampling", 1)
+        if self.supersample > 1:
+            render_k = render_k.scaled(render_k.width * self.supersample, render_k.height * self.supersample)
         before = _id_snapshot()
         self._images_before = before["images"]
         self._scene = bpy.data.scenes.new(LAB_SCENE_NAME)
@@ -455,7 +460,8 @@ class LabDevice(Device):
             # so the difference (the indirect light) is not much noisier than either render
             direct = render_cycles(self._scene, samples=self.samples, bounces=0, seed=seed, room_light=room_light)
             img = direct + np.float32(gain) * (img - direct)
-        return apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k))
+        return apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k),
+                            supersample=self.supersample)
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         from ..blender import rig as blender_rig

@@ -104,17 +104,25 @@ class BoardOptions:
     seed: int = 0
     truth: Path | None = None
     force: bool = False
+    #: render the camera at this many times its resolution and average down (lens distortion resamples it);
+    #: None: 2 when the effects distort the camera's lens, else 1
+    supersample: int | None = None
 
 
 def run_board(options: BoardOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> BoardTruth:
     """Render the board sessions (``lab/board.py``) and seal their truth beside them."""
     if not 0.05 <= options.scale <= 2:
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
-    parse_effects(options.effects)  # a bad effect fails before the first render
+    effects = parse_effects(options.effects)  # a bad effect fails before the first render
+    supersample = options.supersample if options.supersample is not None else (
+        2 if effects["distortion"].active else 1)
+    if isinstance(supersample, bool) or not isinstance(supersample, int) or not 1 <= supersample <= 4:
+        raise LabError(f"the supersampling must be a whole number from 1 to 4, got {supersample!r}")
     return render_board_sessions(scaled_rig(demo_rig(), options.scale), Path(options.out), board=options.board,
                                  square=options.square, poses=options.poses, effects=options.effects,
                                  samples=options.samples, seed=options.seed, truth_path=options.truth,
-                                 force=options.force, progress=progress, cancel=cancel)
+                                 force=options.force, supersample=supersample, progress=progress,
+                                 cancel=cancel)
 
 
 @dataclass(frozen=True)
