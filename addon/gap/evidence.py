@@ -113,10 +113,16 @@ def ambient_occlusion(surface: Any, points: np.ndarray, normals: np.ndarray, *, 
     t1 = np.cross(n, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(n, t1)
+    # Each point turns the direction set by its own random angle about its normal. With one set for all, every
+    # point of a plane shares the same few directions, and the set's luck becomes that plane's error (measured on
+    # the lab's hedge: its two planes' occlusion 6 % apart with 128 shared directions, equal with 1024, which read
+    # as an 11 % projector falloff); turned per point, the errors differ from point to point and average out.
+    turn = rng.random(len(points))[:, None] * 2 * np.pi
+    c, s = np.cos(turn), np.sin(turn)
     origin = mi.Point3f(*((points + n * 1e-3).T.astype(np.float32)))
     seen = np.zeros(len(points))
     for d in local:
-        dirs = t1 * d[0] + t2 * d[1] + n * d[2]
+        dirs = t1 * (c * d[0] - s * d[1]) + t2 * (s * d[0] + c * d[1]) + n * d[2]
         seen += ~np.array(scene.ray_test(mi.Ray3f(origin, mi.Vector3f(*(dirs.T.astype(np.float32))))), dtype=bool)
     return seen / directions
 
