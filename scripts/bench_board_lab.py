@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from procam.addon.lab.board import BoardTruth, render_board_sessions
-from procam.addon.lab.effects import parse_effects
+from procam.addon.lab.board import BoardTruth, default_supersample, render_board_sessions
 from procam.addon.lab.lab import scaled_rig
 from procam.addon.rig.demo import demo_rig
 from procam.addon.steps import rig as rig_step
@@ -49,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         folder = args.sessions or Path(tmp) / "sessions"
         if args.sessions is None:
-            ss = args.supersample or (2 if parse_effects(args.effects)["distortion"].active else 1)
+            ss = args.supersample if args.supersample is not None else default_supersample(args.effects)
             truth = render_board_sessions(rig, folder, poses=args.poses, effects=args.effects,
                                           samples=args.samples, square=args.square, supersample=ss)
         else:

@@ -25,6 +25,7 @@ from ..outputs import AtomicFolder
 from ..progress import Cancel, Progress, check, quiet
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
+from .effects import parse_effects
 from .lab import LabDevice, make_truth
 
 #: The board's albedo: white paper and printed black (not 0: ink reflects a little).
@@ -110,6 +111,11 @@ class BoardTruth:
                               tuple(np.asarray(p, float) for p in doc["camera_from_board"]), doc["effects"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise LabError(f"cannot read the board sessions' truth {path}: {exc}") from None
+
+
+def default_supersample(effects: str) -> int:
+    """2 when ``effects`` distort the camera's lens (its resampling needs finer pixels, ``apply_camera``), else 1."""
+    return 2 if parse_effects(effects)["distortion"].active else 1
 
 
 def render_board_sessions(rig: Rig, out: Path, *, board: tuple[int, int] = (9, 7), square: float = 0.06,

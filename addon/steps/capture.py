@@ -23,7 +23,7 @@ import numpy as np
 from ..capture.devices import RigLens, export_sequence, import_captures, load_sequence
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
-from ..lab.board import BoardTruth, render_board_sessions
+from ..lab.board import BoardTruth, default_supersample, render_board_sessions
 from ..lab.effects import parse_effects
 from ..lab.lab import check_lab_outputs, make_truth, run_lab as render_lab, scaled_rig
 from ..rig.demo import demo_rig
@@ -113,9 +113,8 @@ def run_board(options: BoardOptions, progress: Progress | None = None, cancel: C
     """Render the board sessions (``lab/board.py``) and seal their truth beside them."""
     if not 0.05 <= options.scale <= 2:
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
-    effects = parse_effects(options.effects)  # a bad effect fails before the first render
-    supersample = options.supersample if options.supersample is not None else (
-        2 if effects["distortion"].active else 1)
+    parse_effects(options.effects)  # a bad effect fails before the first render
+    supersample = options.supersample if options.supersample is not None else default_supersample(options.effects)
     if isinstance(supersample, bool) or not isinstance(supersample, int) or not 1 <= supersample <= 4:
         raise LabError(f"the supersampling must be a whole number from 1 to 4, got {supersample!r}")
     return render_board_sessions(scaled_rig(demo_rig(), options.scale), Path(options.out), board=options.board,
