@@ -14,12 +14,16 @@ around it rather than inside, each where it acts:
 * ``interreflection``: stage C simulates indirect light (3 bounces) instead of
   direct light only;
 * ``depth_noise``: the surface is moved along the camera rays by the fitted
-  smooth depth error.
+  smooth depth error;
+* ``defocus``: the lens blurs the input before anything else, so the input sent
+  is the one in [0, 1] whose blur comes closest to ``g⁻¹(x*)`` (pre-sharpening
+  by projected gradient, :func:`presharpen`): a blur has no exact inverse on a
+  bounded input, but the closest bounded one restores what the range allows.
 
-``defocus``, ``glossy`` and ``distortion`` are diagnosed but not inverted here
-(a blur has no stable inverse on a [0, 1] input, the glossy lobe needs a
-different material in the differentiable scene, and distortion would need the
-display area itself remapped); stage C's θ absorbs what they leave. The result
+``glossy`` and ``distortion`` are diagnosed but not inverted here (the glossy
+lobe needs a different material in the differentiable scene, and distortion
+would need the display area itself remapped); stage C's θ absorbs what they
+leave. The result
 says which effects it used and which it could not. With ``--effects auto`` it
 uses the diagnosis's ``compensation`` list: the selected effects that still help
 without the ones it cannot invert (:func:`.fit.compensation_subset`).
@@ -39,13 +43,38 @@ from .models import (MODELS, crosstalk_matrix, inverse_camera_curve, inverse_pro
                      projector_tone, vignetting_radius)
 
 #: Effects compensation inverts (see the module docstring); the others are reported as not used.
-INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "camera_response", "interreflection",
+INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "camera_response", "interreflection",
               "depth_noise")
-NOT_INVERTED = {"defocus": "a blur has no stable inverse on a [0, 1] input; θ absorbs what it leaves",
-                "glossy": "the glossy lobe is not in the differentiable scene; θ absorbs it",
+NOT_INVERTED = {"glossy": "the glossy lobe is not in the differentiable scene; θ absorbs it",
                 "distortion": "the display area is not remapped; θ absorbs the shift"}
 #: Emitted light below this share of white is treated as the darkest the projector can do.
 _EPS = 1e-4
+#: Projected-gradient steps of :func:`presharpen`, and the blur (input texels) below which it is skipped.
+PRESHARPEN_STEPS = 40
+MIN_DEFOCUS = 0.05
+
+
+def _blur(x: np.ndarray, sigma: float) -> np.ndarray:
+    return cv2.GaussianBlur(x, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+
+
+def presharpen(wanted: np.ndarray, sigma: float, steps: int = PRESHARPEN_STEPS) -> np.ndarray:
+    """The input in [0, 1] whose Gaussian blur (``sigma`` texels) is closest to ``wanted`` (least squares).
+
+    Projected gradient with Nesterov momentum: the blur is symmetric and its gain is at most 1, so a unit step
+    is safe and its adjoint is itself. Started from ``wanted`` itself, so a few steps already sharpen edges.
+    """
+    wanted = np.asarray(wanted, np.float32)
+    if sigma <= MIN_DEFOCUS:
+        return np.clip(wanted, 0.0, 1.0)
+    x = y = np.clip(wanted, 0.0, 1.0)
+    t = 1.0
+    for _ in range(steps):
+        x_new = np.clip(y - _blur(_blur(y, sigma) - wanted, sigma), 0.0, 1.0)
+        t_new = (1.0 + np.sqrt(1.0 + 4.0 * t * t)) / 2.0
+        y = x_new + ((t - 1.0) / t_new) * (x_new - x)
+        x, t = x_new, t_new
+    return x.astype(np.float32)
 
 
 @dataclass
@@ -91,6 +120,8 @@ class EffectAdapter:
     def emitted(self, x: np.ndarray) -> np.ndarray:
         """g(x): the light the projector emits for the input ``x`` (input size, H×W×3)."""
         a = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+        if (p := self._p("defocus")) is not None and p[0] > MIN_DEFOCUS:
+            a = _blur(a, p[0])
         if (r := self._response()) is not None:
             a = projector_tone(a, *r)
         if (p := self._p("crosstalk")) is not None:
@@ -113,6 +144,8 @@ class EffectAdapter:
         a = np.clip(a, 0.0, 1.0)
         if (r := self._response()) is not None:
             a = inverse_projector_tone(a, *r)
+        if (p := self._p("defocus")) is not None:
+            a = presharpen(a, p[0])
         return np.clip(a, 0.0, 1.0).astype(np.float32)
 
     def _vignetting_gain(self, p: list[float], shape: tuple[int, ...]) -> np.ndarray:
