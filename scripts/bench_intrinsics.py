@@ -3,7 +3,7 @@
 
     .venv/bin/python scripts/bench_intrinsics.py [--surfaces plane,curve,vedge,hedge] [--scale 0.5]
         [--nominal-error 10,20] [--camera-fov-error 0] [--effects realistic] [--samples 16] [--targets city]
-        [--iterations N]
+        [--iterations N] [--supersample 1]
 
 For each surface: a lab capture set whose projector spec is wrong by ``--nominal-error`` (focal length %, vertical
 lens shift % of the height) and whose camera's field of view is ``--camera-fov-error`` degrees off, calibrated
@@ -35,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--nominal-error", default="10,20")
     ap.add_argument("--camera-fov-error", type=float, default=0.0)
+    ap.add_argument("--supersample", type=int, default=1, help="as procam lab's")
     ap.add_argument("--effects", default="realistic")
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--targets", default="city")
@@ -52,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
             caps, truth_path = root / "captures", root / "truth.json"
             capture.run_lab(capture.LabOptions(caps, surface=surface, effects=args.effects, samples=args.samples,
                                                scale=args.scale, truth=truth_path, nominal_error=error,
-                                               camera_fov_error=args.camera_fov_error))
+                                               camera_fov_error=args.camera_fov_error,
+                                               supersample=args.supersample))
             truth = LabTruth.load(truth_path)
             tk, tp = truth.rig.projector.intrinsics, truth.rig.projector
             cals = {m: calibrate.run(calibrate.CalibrateOptions(caps, root / f"cal-{m}", with_blend=False,
@@ -67,6 +69,11 @@ def main(argv: list[str] | None = None) -> int:
                 ang = float(np.degrees(np.arccos(np.clip(p.direction @ tp.direction, -1, 1))))
                 det = (cal.report.get("projector_intrinsics") or {}).get("determined")
                 cam_err = 100 * (cal.rig.camera.intrinsics.fx / truth.rig.camera.intrinsics.fx - 1)
+                lens = (cal.report.get("projector_intrinsics") or {}).get("camera_distortion") or {}
+                if lens.get("determined"):
+                    print(f"#   {surface} {m}: camera k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f} (lab: "
+                          f"{truth.effects['distortion']['k1']:+.4f}, {truth.effects['distortion']['k2']:+.4f})",
+                          flush=True)
                 device = f"lab:{truth_path}"
                 compensate.run(compensate.CompensateOptions(
                     root / f"cal-{m}", targets, root / f"comp-{m}",

@@ -300,6 +300,8 @@ def test_cli_writes_set_and_truth_and_reports_progress_on_stderr(cli_set, capsys
     (["--effects", "noise.sigma=9"], "noise.sigma must lie in"),
     (["--samples", "0"], "Cycles samples must be a whole number"),
     (["--scale", "9"], "scale must lie between"),
+    (["--supersample", "0"], "supersampling must be a whole number from 1 to 4"),
+    (["--camera-fov-error", "200"], "keep it in 1–170°"),
 ])
 def test_cli_bad_input_fails_early_and_writes_nothing(tmp_path, capsys, args, message):
     code = main(["lab", "--out", str(tmp_path / "out" / "set"), *SMALL, *args])

@@ -41,6 +41,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera-fov-error", type=float, default=0.0, metavar="DEGREES",
                    help="give the pipeline a camera whose horizontal field of view is DEGREES off, as a guessed or "
                         "spec-sheet FoV may be (default 0)")
+    p.add_argument("--supersample", type=int, default=1, metavar="N",
+                   help="render the camera at N times its resolution and average down, so that lens distortion "
+                        "resamples finer pixels than the camera's, as a real lens does (default 1; 2 costs 4×)")
     p.add_argument("--no-graycode", action="store_true", help="skip the Gray-code patterns (faster)")
     p.add_argument("--force", action="store_true", help="replace an existing capture set (and truth) at --out")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
@@ -60,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
                          scale=args.scale, graycode=not args.no_graycode, full_binary=args.full_binary,
                          truth=args.truth, projector_shift=args.projector_shift,
                          nominal_error=args.nominal_error,
-                         camera_fov_error=args.camera_fov_error, force=args.force)
+                         camera_fov_error=args.camera_fov_error, supersample=args.supersample, force=args.force)
     out, truth_path = options.paths()
     progress(f"lab: {out} ({args.samples} spp)")
     t0 = time.perf_counter()

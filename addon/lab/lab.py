@@ -167,6 +167,13 @@ def _whole(value: Any, what: str, lo: int) -> int:
     return int(value)
 
 
+def check_supersample(value: Any) -> int:
+    """The camera's supersampling (``apply_camera``) as a whole number from 1 to 4, else a :class:`LabError`."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= 4:
+        raise LabError(f"the supersampling must be a whole number from 1 to 4, got {value!r}")
+    return int(value)
+
+
 def scaled_rig(rig: Rig, scale: float) -> Rig:
     """The same rig at ``scale`` times its resolutions (same lenses and pose; at least 8×6 pixels)."""
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0.05 <= scale <= 2:
@@ -348,7 +355,7 @@ class LabDevice(Device):
         # Lens distortion resamples the image, so render a margin around it (same focal length).
         render_k = camera_render_intrinsics(truth.effects, self.camera.intrinsics)
         # Supersampling renders finer pixels for the lens to resample (apply_camera's doc).
-        self.supersample = _whole(supersample, "the supersampling", 1)
+        self.supersample = check_supersample(supersample)
         if self.supersample > 1:
             render_k = render_k.scaled(render_k.width * self.supersample, render_k.height * self.supersample)
         before = _id_snapshot()
@@ -667,7 +674,7 @@ class _NominalDevice(Device):
 
 def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
             graycode: bool = True, validation: bool = True, fast_binary: bool = True, depth_wall: bool = True,
-            progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
+            supersample: int = 1, progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
     """Render a complete calibration capture set into ``out_dir`` and seal the truth at ``truth_path``.
 
     Everything that can be checked is checked before rendering (outputs, the
@@ -704,7 +711,7 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     writer = CaptureSetWriter(out_dir, truth.nominal_camera, nominal, depth_info=depth_info, notes=notes, force=force)
     tmp_truth: Path | None = None
     try:
-        with LabDevice(truth) as device:
+        with LabDevice(truth, supersample=supersample) as device:
             shown = _NominalDevice(device, nominal)
             device.phase, device.session_shots = "calibration", len(seq)
             for i, spec in enumerate(seq):

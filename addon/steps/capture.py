@@ -25,7 +25,7 @@ from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
 from ..lab.effects import parse_effects
-from ..lab.lab import check_lab_outputs, make_truth, run_lab as render_lab, scaled_rig
+from ..lab.lab import check_lab_outputs, check_supersample, make_truth, run_lab as render_lab, scaled_rig
 from ..rig.demo import demo_rig
 from ..progress import Cancel, Progress, quiet
 from ..outputs import file_sha256
@@ -63,6 +63,8 @@ class LabOptions:
     nominal_error: tuple[float, float] = (0.0, 0.0)
     #: how wrong the camera's horizontal field of view is, in degrees
     camera_fov_error: float = 0.0
+    #: render the camera at this many times its resolution and average down (lens distortion resamples it)
+    supersample: int = 1
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -78,6 +80,7 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
     out, truth_path = options.paths()
     check_lab_outputs(out, truth_path, force=options.force)  # before reading any mesh
+    check_supersample(options.supersample)
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
                        camera_size=options.camera_size, projector_size=options.projector_size,
@@ -85,7 +88,8 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
                        camera_fov_error=options.camera_fov_error)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
-                      fast_binary=not options.full_binary, progress=progress, cancel=cancel)
+                      fast_binary=not options.full_binary, supersample=options.supersample, progress=progress,
+                      cancel=cancel)
 
 
 @dataclass(frozen=True)
@@ -114,9 +118,8 @@ def run_board(options: BoardOptions, progress: Progress | None = None, cancel: C
     if not 0.05 <= options.scale <= 2:
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
     parse_effects(options.effects)  # a bad effect fails before the first render
-    supersample = options.supersample if options.supersample is not None else default_supersample(options.effects)
-    if isinstance(supersample, bool) or not isinstance(supersample, int) or not 1 <= supersample <= 4:
-        raise LabError(f"the supersampling must be a whole number from 1 to 4, got {supersample!r}")
+    supersample = check_supersample(options.supersample if options.supersample is not None
+                                    else default_supersample(options.effects))
     return render_board_sessions(scaled_rig(demo_rig(), options.scale), Path(options.out), board=options.board,
                                  square=options.square, poses=options.poses, effects=options.effects,
                                  samples=options.samples, seed=options.seed, truth_path=options.truth,
