@@ -101,7 +101,7 @@ from ..render.forward import ForwardModel
 from ..render.raycast import first_hits
 from .display_area import DisplayArea, fit_target
 from .metrics import psnr
-from .transport import TransportOperator, build_transport
+from .transport import TransportOperator, TransportRows, build_transport
 
 
 #: Defaults of the paper's schedule and of the choices documented above.
@@ -180,6 +180,9 @@ class Schedule:
     #: solve on the precomputed light-transport operator instead of rendering (stages/transport.py): then
     #: ``iterations_z`` solver iterations before the first capture, ``iterations_joint`` spread over ``captures``
     transport: bool = False
+    #: with ``transport``: render the answer once with Mitsuba to report what the scene (not the operator)
+    #: predicts; costs one render, more than the solve itself at full resolution
+    verify: bool = True
 
     def check(self) -> "Schedule":
         """Self, or a CompensationError naming the first bad value."""
@@ -243,8 +246,8 @@ SCHEDULES: dict[str, Schedule] = {
     "fast": Schedule("fast", iterations_z=0, iterations_joint=150, alpha=None, captures=15, fixed_point=8,
                      fixed_point_joint=2, fixed_point_spp=16, crop=True),
     "paper": Schedule("paper"),
-    "transport": Schedule("transport", iterations_z=20, iterations_joint=30, alpha=None, captures=3,
-                          transport=True),
+    "transport": Schedule("transport", iterations_z=15, iterations_joint=15, alpha=None, captures=3,
+                          transport=True, verify=False),
 }
 DEFAULT_SCHEDULE = "fast"
 
@@ -363,6 +366,7 @@ class Compensator:
         self._coarse_models: dict[tuple[int, int], Any] = {}
         self._crop_models: dict[tuple[int, int, int, int], Any] = {}
         self._transport: TransportOperator | None = None
+        self._views: dict[tuple[int, int, int, int], TransportRows] = {}
 
     # ------------------------------------------------------------------ helpers
 
@@ -586,9 +590,11 @@ class Compensator:
             capture_every: int | None = None, progress: Progress | None = None,
             cancel: Cancel | None = None, open_loop_theta: np.ndarray | BiasModel | None = None,
             use_bias: bool = True, init: str = "inverse", theta_init: str = "capture",
-            name: str = "target", start: np.ndarray | None = None) -> CompensationResult:
+            name: str = "target", start: np.ndarray | None = None, verify: bool | None = None
+            ) -> CompensationResult:
         """Stage C for one target; see :func:`compensate`. ``start``: the virtual input z to start from (a warm
-        start, e.g. the previous frame's answer) instead of ``init``."""
+        start, e.g. the previous frame's answer) instead of ``init``. ``verify``: overrides the schedule's
+        ``verify`` (the transport schedule's closing Mitsuba render)."""
         mi, dr = self._mi, self._dr
         t_start = time.perf_counter()
         say = progress or (lambda msg, frac: None)
@@ -638,7 +644,8 @@ class Compensator:
 
         z0 = self.initial_input(placed, bias, init) if start is None else self.start_input(start)
         if sched.transport:
-            return self._run_transport(placed, area, z0, sched, mode, bias, device, say, cancel, name, t_start)
+            return self._run_transport(placed, area, z0, sched, mode, bias, device, say, cancel, name, t_start,
+                                       sched.verify if verify is None else bool(verify))
         opt = mi.ad.Adam(lr=float(sched.lr))
         opt["z"] = mi.TensorXf(z0)
         losses: list[float] = []
@@ -858,10 +865,22 @@ class Compensator:
             raise CompensationError(f"the transport operator is for a {op.camera_size} camera and {op.input_size} "
                                     "input, not this calibration's: run procam precompute again")
         self._transport = op
+        self._views.clear()
+
+    def transport_view(self, area: DisplayArea) -> TransportRows:
+        """``T`` on the display area's camera pixels, built once per area: building it (regrouping the entries
+        by texel for the adjoint) costs as much as a whole solve at full resolution."""
+        key = (area.x, area.y, area.width, area.height)
+        if key not in self._views:
+            if len(self._views) >= 4:  # a show has one area per aspect ratio; keep memory bounded all the same
+                self._views.pop(next(iter(self._views)))
+            rows = np.flatnonzero(area.mask(self.camera_size).ravel())
+            self._views[key] = self.transport.rows(rows, self.model.variant)
+        return self._views[key]
 
     def _run_transport(self, placed: np.ndarray, area: DisplayArea, z: np.ndarray, sched: Schedule, mode: str,
                        bias: BiasModel | None, device: Device | None, say: Progress, cancel: Cancel | None,
-                       name: str, t_start: float) -> CompensationResult:
+                       name: str, t_start: float, verify: bool) -> CompensationResult:
         """Stage C as a box-constrained least-squares problem on ``T`` (schedule ``transport``).
 
         min over 0 ≤ z ≤ 1 of Σ_area ‖g·T z − θ − y_t‖², solved by projected SIRT
@@ -871,40 +890,49 @@ class Compensator:
         adjoint, so it converges where blur and indirect light mix texels).
         Why SIRT rather than CG: the box constraint (a projected method needs no
         active-set bookkeeping) and the row/column-sum preconditioner that makes
-        a step of 1 safe whatever the overlap of footprints. Closed loop: after
-        each capture θ becomes the residual ``T z − y`` of that capture (Eq. 14
-        clipped) and the solve continues from the same z; Mitsuba renders once
-        at the end, to report what the scene (not the operator) predicts."""
-        op = self.transport
-        mask = area.mask(self.camera_size)
-        rows = np.flatnonzero(mask.ravel())
-        view = op.rows(rows, self.model.variant)
+        a step of 1 safe whatever the overlap of footprints. The unknowns are the
+        texels whose direct light reaches the area (``TransportRows``); the
+        others keep their start and reach the area through interreflection only.
+        Closed loop: after each capture θ becomes the residual ``T z − y`` of that
+        capture (Eq. 14 clipped) and the solve continues from the same z. With
+        ``verify`` Mitsuba renders the answer once, to report what the scene
+        (not the operator) predicts; without, the report is the operator's (the
+        display area only)."""
+        view = self.transport_view(area)
+        rows = view.rows
         gain = np.ones((len(rows), 3), np.float32) if bias is None or bias.gain is None else \
             bias.gain.reshape(-1, 3)[rows]
         target = placed.reshape(-1, 3)[rows]
         theta = np.zeros_like(target) if bias is None else bias.theta.reshape(-1, 3)[rows]
-        row_sums = np.maximum(gain * view.apply(np.ones_like(z)), 1e-3)
-        col_sums = np.maximum(view.adjoint(gain * np.ones_like(target)), 1e-3)
+        fixed = view.fixed_sums(z)
+        zc = view.compact(z)
+        row_sums = np.maximum(gain * view.row_ones, 1e-3)
+        col_sums = np.maximum(view.adjoint_compact(gain), 1e-3)
         losses: list[float] = []
         captures, seconds_device, done = 0, 0.0, 0
         total = sched.iterations_z + sched.iterations_joint
+        cw, ch = self.camera_size
 
-        def predicted(z: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        def on_camera(values: np.ndarray) -> np.ndarray:
+            """Rows' values as a camera image, black outside the area."""
+            out = np.zeros((ch * cw, 3), np.float32)
+            out[rows] = values
+            return out.reshape(ch, cw, 3)
+
+        def predicted(zc: np.ndarray, theta: np.ndarray) -> np.ndarray:
             """What the operator says the camera sees (camera size, black outside the area)."""
-            out = np.zeros((self.camera_size[1] * self.camera_size[0], 3), np.float32)
-            out[rows] = np.clip(gain * view.apply(z) - theta, 0.0, 1.0)
-            return out.reshape(self.camera_size[1], self.camera_size[0], 3)
+            return on_camera(np.clip(gain * view.apply_compact(zc, fixed) - theta, 0.0, 1.0))
 
-        psnr_start = area_psnr(predicted(z, theta), placed, area)
+        psnr_start = area_psnr(predicted(zc, theta), placed, area)
 
-        def solve(z: np.ndarray, theta: np.ndarray, steps: int) -> np.ndarray:
+        def solve(zc: np.ndarray, theta: np.ndarray, steps: int) -> np.ndarray:
             nonlocal done
-            prev, y = z, z
+            prev, y = zc, zc
             for k in range(steps):
                 if cancel is not None and cancel():
                     raise Cancelled(f"compensation of {name!r} cancelled at solver step {done}")
-                resid = target + theta - gain * view.apply(y)
-                z_new = np.clip(y + view.adjoint(gain * resid / row_sums) / col_sums, 0.0, 1.0).astype(np.float32)
+                resid = target + theta - gain * view.apply_compact(y, fixed)
+                z_new = np.clip(y + view.adjoint_compact(gain * resid / row_sums) / col_sums, 0.0, 1.0)
                 y = z_new + (k / (k + 3.0)) * (z_new - prev)
                 prev = z_new
                 done += 1
@@ -916,40 +944,50 @@ class Compensator:
                     say(f"{name}: solver step {done}, loss {value:.6f}", done / max(total, 1))
             return prev
 
-        z = solve(z, theta, sched.iterations_z)
+        zc = solve(zc, theta, sched.iterations_z)
         if mode == "closed-loop":
             n_capt = sched.captures or max(1, sched.iterations_joint // sched.capture_interval)
             per = max(1, sched.iterations_joint // max(n_capt, 1))
             for c in range(n_capt):
-                x = self.warp_w(z)
+                x = self.warp_w(view.expand(zc, z))
                 t_dev = time.perf_counter()
                 y = self._check_capture(device.project(self.rig.projector.frame_from_input(x))).reshape(-1, 3)[rows]
                 seconds_device += time.perf_counter() - t_dev
                 captures += 1
-                f_now = view.apply(z)
+                f_now = view.apply_compact(zc, fixed)
                 theta = np.clip(f_now - y, f_now - 1.0, f_now).astype(np.float32)
                 say(f"{name}: capture {captures}", done / max(total, 1))
-                z = solve(z, theta, per)
+                zc = solve(zc, theta, per)
         elif sched.iterations_joint:
-            z = solve(z, theta, sched.iterations_joint)
-        raw = self.simulate(z, seed=self.seed * 1_000_003 + 15)
+            zc = solve(zc, theta, sched.iterations_joint)
+        t_verify = time.perf_counter()
+        operator_raw = view.apply_compact(zc, fixed)
+        z = view.expand(zc, z)
+        agreement = None
+        if verify:
+            raw = self.simulate(z, seed=self.seed * 1_000_003 + 15)
+            agreement = round(min(float(psnr(np.clip(operator_raw, 0.0, 1.0), raw.reshape(-1, 3)[rows])), 99.0), 2)
+        else:
+            raw = on_camera(operator_raw)
         if mode == "closed-loop":
-            th = np.zeros((self.camera_size[1] * self.camera_size[0], 3), np.float32)
-            th[rows] = theta
-            th = np.clip(th.reshape(raw.shape), raw - 1.0, raw)
+            th = np.clip(on_camera(theta), raw - 1.0, raw)
             simulated = np.clip(raw - th, 0.0, 1.0)
         else:
             simulated = self._predict(raw, bias, None)
             th = raw - simulated
+        seconds_verify = time.perf_counter() - t_verify if verify else 0.0
         x_input = self.warp_w(z)
         seconds = time.perf_counter() - t_start
         report = {"schedule": asdict(sched), "solver": "projected SIRT with Nesterov momentum on the transport "
                   "operator", "iterations": {"z": sched.iterations_z, "joint": done - sched.iterations_z,
                                              "total": done},
-                  "operator": op.report, "bias": None if bias is None else {"kind": bias.kind, **bias.report},
-                  "psnr_simulated_start": psnr_start, "psnr_operator": area_psnr(predicted(z, theta), placed, area),
+                  "operator": view.op.report, "texels_solved": int(len(view.texels)),
+                  "bias": None if bias is None else {"kind": bias.kind, **bias.report},
+                  "psnr_simulated_start": psnr_start, "psnr_operator": area_psnr(predicted(zc, theta), placed, area),
                   "psnr_simulated": area_psnr(simulated, placed, area), "warp": self.warp is not None,
-                  "bounces": self.bounces, "seed": self.seed, "seconds_device": round(seconds_device, 2),
+                  "simulated_by": "mitsuba" if verify else "operator",
+                  "operator_vs_mitsuba_psnr": agreement, "bounces": self.bounces, "seed": self.seed,
+                  "seconds_device": round(seconds_device, 2), "seconds_verify": round(seconds_verify, 2),
                   "seconds_compute": round(seconds - seconds_device, 2)}
         say(f"{name}: done in {seconds:.1f} s ({seconds - seconds_device:.1f} s without the device)", 1.0)
         return CompensationResult(x_input, self.rig.projector.frame_from_input(x_input), z, th, simulated, raw,

@@ -83,13 +83,20 @@ class TransportOperator:
         rows, cols = self._block_edges()
         return (np.diff(np.append(rows, ih))[:, None] * np.diff(np.append(cols, iw))[None, :]).ravel()
 
-    def _block_means(self, z: np.ndarray) -> np.ndarray:
-        """(blocks, 3) mean input of each block, by sums over contiguous row and column runs."""
+    def _block_sums(self, z: np.ndarray) -> np.ndarray:
+        """(blocks, 3) sum of the input over each block, by sums over contiguous row and column runs."""
         iw, ih = self.input_size
         rows, cols = self._block_edges()
         sums = np.add.reduceat(np.add.reduceat(np.asarray(z, np.float64).reshape(ih, iw, 3), rows, axis=0),
                                cols, axis=1)
-        return sums.reshape(-1, 3) / self._block_sizes()[:, None]
+        return sums.reshape(-1, 3)
+
+    def block_of(self, texels: np.ndarray) -> np.ndarray:
+        """The indirect block (row-major) of each flat input texel index."""
+        iw, ih = self.input_size
+        bx, by = self.blocks
+        row, col = np.divmod(np.asarray(texels, np.int64), iw)
+        return (row * by // ih) * bx + col * bx // iw
 
     def _spread(self, per_block: np.ndarray) -> np.ndarray:
         """(blocks, 3) values → input size, each block's value over its texels."""
@@ -160,12 +167,21 @@ def _taps(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class TransportRows:
     """``T`` restricted to the camera pixels ``rows`` (flat indices): ``apply`` gives (R, 3), ``adjoint`` takes it.
 
+    A solver works on the *active* texels only (:attr:`texels`: those whose
+    direct light reaches one of the rows), in a compact (A, 3) vector
+    (``compact``/``expand``): the other texels reach the rows through
+    interreflection alone, as part of their block's mean, so their block sums
+    are held fixed (``fixed_sums``). At full resolution a display area's rows see
+    about half the input, and every elementwise step of a solver halves with it.
+    The active texels are ordered by indirect block, so block sums are sums over
+    contiguous runs.
+
     Both directions are Dr.Jit gathers summed in fixed-size blocks: ``apply`` over
     each row's entries, ``adjoint`` over each texel's (the entries regrouped by
     texel once, here), and the indirect part's upsampling over each row's four
     low-resolution neighbours. (10× numpy's speed on 2 cores, measured at 120 000
     rows × 16 entries: 9 ms against 90 ms for numpy's gather alone; an atomic
-    scatter-add adjoint took 31 ms.) Block means and their spreading stay numpy."""
+    scatter-add adjoint took 31 ms.) Block sums and the low-resolution products stay numpy."""
 
     op: TransportOperator
     rows: np.ndarray
@@ -177,76 +193,165 @@ class TransportRows:
         self._dr = dr
         mi = backend.mitsuba(self.variant or backend.default_variant())
         self._float, k = mi.Float, self.op.index.shape[1]
+        iw, ih = self.op.input_size
         index, weight = self.op.index[self.rows], self.op.weight[self.rows]
-        n = len(self.rows)
-        self._k, self._n = k, n
-        # Entries laid out (pixel, channel, entry) so that each output value is a block of k consecutive products.
-        self._src = mi.UInt32((index[:, None, :].astype(np.int64) * 3 + np.arange(3)[None, :, None]).ravel()
-                              .astype(np.uint32))
-        self._w = mi.Float(np.ascontiguousarray(np.transpose(weight, (0, 2, 1))).ravel())
-        # The adjoint as a gather too (atomic scatter-adds were 3× slower): entries regrouped by input texel,
-        # each texel padded to the most entries any texel has, laid out (texel, channel, entry).
+        self._k = k
         flat_w = weight.reshape(-1, 3)
         live = np.flatnonzero(flat_w.max(axis=1) > 0)  # unused entries point at texel 0 with weight 0
         src = index.ravel().astype(np.int64)[live]
-        order = np.argsort(src, kind="stable")
-        texels, starts, counts = np.unique(src[order], return_index=True, return_counts=True)
+        texels = np.unique(src)
+        bx, by = self.op.blocks
+        self._nb = bx * by
+        if self._nb:
+            block = self.op.block_of(texels)
+            order = np.lexsort((texels, block))
+            texels, block = texels[order], block[order]
+            self._block_sizes = self.op._block_sizes().astype(np.float64)
+            counts = np.bincount(block, minlength=self._nb)
+            self._runs = np.flatnonzero(counts)  # blocks holding active texels
+            self._run_starts = (np.cumsum(counts) - counts)[self._runs]
+            self._run_counts = counts[self._runs]
+        #: the active texels (flat input indices), ordered by indirect block
+        self.texels = texels
+        where = np.zeros(iw * ih, np.int64)
+        where[texels] = np.arange(len(texels))
+        compact = where[index]  # unused entries: weight 0, any position
+        # Entries laid out (pixel, channel, entry) so that each output value is a block of k consecutive products.
+        self._src = mi.UInt32((compact[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
+        self._w = mi.Float(np.ascontiguousarray(np.transpose(weight, (0, 2, 1))).ravel())
+        # The adjoint as a gather too (atomic scatter-adds were 3× slower): entries regrouped by active texel,
+        # each padded to the most entries any texel has, laid out (texel, channel, entry).
+        pos = where[src]
+        order = np.argsort(pos, kind="stable")
+        counts = np.bincount(pos, minlength=len(texels))
         kc = int(counts.max()) if len(counts) else 1
-        slot = np.arange(len(order)) - np.repeat(starts, counts)
-        col = np.repeat(np.arange(len(texels)), counts)
+        slot = np.arange(len(order)) - np.repeat(np.cumsum(counts) - counts, counts)
         pixel = np.zeros((len(texels), kc), np.int64)
         w_col = np.zeros((len(texels), kc, 3), np.float32)
-        pixel[col, slot] = live[order] // k
-        w_col[col, slot] = flat_w[live[order]]
-        self._texels, self._kc = texels, kc
+        pixel[pos[order], slot] = live[order] // k
+        w_col[pos[order], slot] = flat_w[live[order]]
+        self._kc = kc
         self._col_src = mi.UInt32((pixel[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
         self._col_w = mi.Float(np.ascontiguousarray(np.transpose(w_col, (0, 2, 1))).ravel())
-        if len(self.op.indirect):
+        if self._nb:
             # Each row's four low-resolution neighbours and their bilinear weights (the upsampling as a gather).
             lh, lw = self.op.indirect.shape[1:3]
             cw, ch = self.op.camera_size
             ylo, yhi, fy = _taps(ch, lh)
             xlo, xhi, fx = _taps(cw, lw)
             y, x = np.divmod(self.rows, cw)
-            self._low_index = np.stack([ylo[y] * lw + xlo[x], ylo[y] * lw + xhi[x], yhi[y] * lw + xlo[x],
-                                        yhi[y] * lw + xhi[x]], axis=1)
-            self._low_weight = np.stack([(1 - fy[y]) * (1 - fx[x]), (1 - fy[y]) * fx[x], fy[y] * (1 - fx[x]),
-                                         fy[y] * fx[x]], axis=1).astype(np.float32)
-            self._low_src = mi.UInt32((self._low_index[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel()
+            low_index = np.stack([ylo[y] * lw + xlo[x], ylo[y] * lw + xhi[x], yhi[y] * lw + xlo[x],
+                                  yhi[y] * lw + xhi[x]], axis=1)
+            low_weight = np.stack([(1 - fy[y]) * (1 - fx[x]), (1 - fy[y]) * fx[x], fy[y] * (1 - fx[x]),
+                                   fy[y] * fx[x]], axis=1).astype(np.float32)
+            # Only the low-resolution pixels the rows read are computed, numbered 0… in ``used``.
+            used, low_index = np.unique(low_index, return_inverse=True)
+            low_index = low_index.reshape(-1, 4)
+            self._low_src = mi.UInt32((low_index[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel()
                                       .astype(np.uint32))  # (row, channel, tap)
-            self._low_w = mi.Float(np.repeat(self._low_weight[:, None, :], 3, axis=1).ravel())
-            # (channel, low pixel, block): both directions are then one batched matrix product.
-            self._responses = np.ascontiguousarray(self.op.indirect.reshape(len(self.op.indirect), -1, 3)
+            self._low_w = mi.Float(np.repeat(low_weight[:, None, :], 3, axis=1).ravel())
+            # The upsampling's adjoint as a gather too: each used low pixel's (row, tap) pairs, padded.
+            flat = low_index.ravel()
+            order = np.argsort(flat, kind="stable")
+            counts = np.bincount(flat, minlength=len(used))
+            kl = int(counts.max())
+            slot = np.arange(len(order)) - np.repeat(np.cumsum(counts) - counts, counts)
+            row_of = np.zeros((len(used), kl), np.int64)
+            w_of = np.zeros((len(used), kl), np.float32)
+            row_of[flat[order], slot] = order // 4
+            w_of[flat[order], slot] = low_weight.ravel()[order]
+            self._kl = kl
+            self._up_src = mi.UInt32((row_of[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
+            self._up_w = mi.Float(np.repeat(w_of[:, None, :], 3, axis=1).ravel())
+            # (channel, used low pixel, block): both directions are then one batched matrix product.
+            self._responses = np.ascontiguousarray(self.op.indirect.reshape(self._nb, -1, 3)[:, used]
                                                    .transpose(2, 1, 0))
-            self._block_counts = self.op._block_sizes()
 
-    def apply(self, z: np.ndarray) -> np.ndarray:
+    # -- the compact vector of active texels -------------------------------------------------------------------
+
+    def compact(self, z: np.ndarray) -> np.ndarray:
+        """(A, 3) values of the active texels of an input-size ``z``."""
+        return np.asarray(z, np.float32).reshape(-1, 3)[self.texels]
+
+    def expand(self, zc: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``z`` (input size) with its active texels replaced by ``zc``."""
+        out = np.array(z, np.float32).reshape(-1, 3)
+        out[self.texels] = zc
+        return out.reshape(np.shape(z))
+
+    def _active_sums(self, zc: np.ndarray) -> np.ndarray:
+        """(blocks, 3) sums of the active texels of each block (runs of the block-ordered compact vector)."""
+        sums = np.zeros((self._nb, 3), np.float64)
+        if len(zc):
+            sums[self._runs] = np.add.reduceat(zc, self._run_starts, axis=0, dtype=np.float64)
+        return sums
+
+    def fixed_sums(self, z: np.ndarray) -> np.ndarray:
+        """(blocks, 3) sums of the *inactive* texels of each block of ``z``: what a solver on the active texels
+        holds fixed. Zero without an indirect part."""
+        if not self._nb:
+            return np.zeros((0, 3))
+        return self.op._block_sums(z) - self._active_sums(self.compact(z))
+
+    @property
+    def row_ones(self) -> np.ndarray:
+        """(R, 3) ``T 1``: each row's light from a white input (SIRT's row sums), computed once."""
+        if getattr(self, "_row_ones", None) is None:
+            iw, ih = self.op.input_size
+            self._row_ones = self.apply(np.ones((ih, iw, 3), np.float32))
+        return self._row_ones
+
+    # -- the operator ------------------------------------------------------------------------------------------
+
+    def apply_compact(self, zc: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
+        """(R, 3) ``T z`` where ``z`` holds ``zc`` on the active texels and block sums ``fixed`` elsewhere
+        (None: zero)."""
         dr = self._dr
-        flat = self._float(np.ascontiguousarray(z, dtype=np.float32).ravel())
+        flat = self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel())
         out = dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)
-        if len(self.op.indirect):
-            means = self.op._block_means(z).astype(np.float32)  # (blocks, 3)
-            low = np.matmul(self._responses, means.T[:, :, None])[..., 0].T  # (low pixels, 3)
+        if self._nb:
+            sums = self._active_sums(zc) if fixed is None else self._active_sums(zc) + fixed
+            means = (sums / self._block_sizes[:, None]).astype(np.float32)
+            # einsum, not matmul: BLAS threads would spin against Dr.Jit's on the same cores (10× slower here).
+            low = np.einsum("cub,bc->uc", self._responses, means)
             out = out + dr.block_sum(dr.gather(self._float, self._float(np.ascontiguousarray(low).ravel()),
                                                self._low_src) * self._low_w, 4)
         return np.asarray(out).reshape(-1, 3)
 
-    def adjoint(self, r: np.ndarray) -> np.ndarray:
+    def _adjoint_parts(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``Tᵀ r`` in two parts: (A, 3) direct light on the active texels, and (blocks, 3) what each texel of a
+        block does through interreflection (None without). Both gathers run as one launch."""
         dr = self._dr
-        iw, ih = self.op.input_size
         values = self._float(np.ascontiguousarray(r, dtype=np.float32).ravel())
-        cols = np.asarray(dr.block_sum(dr.gather(self._float, values, self._col_src) * self._col_w, self._kc))
+        cols = dr.block_sum(dr.gather(self._float, values, self._col_src) * self._col_w, self._kc)
+        if not self._nb:
+            return np.asarray(cols).reshape(-1, 3), None
+        low = dr.block_sum(dr.gather(self._float, values, self._up_src) * self._up_w, self._kl)
+        dr.eval(cols, low)
+        low = np.asarray(low).reshape(-1, 3)
+        per_block = np.einsum("cub,uc->bc", self._responses, low)
+        return np.asarray(cols).reshape(-1, 3), per_block / self._block_sizes[:, None]
+
+    def adjoint_compact(self, r: np.ndarray) -> np.ndarray:
+        """(A, 3) ``Tᵀ r`` on the active texels, for an (R, 3) ``r``."""
+        cols, per_block = self._adjoint_parts(r)
+        if per_block is not None:
+            cols += np.repeat(per_block.astype(np.float32)[self._runs], self._run_counts, axis=0)
+        return cols
+
+    def apply(self, z: np.ndarray) -> np.ndarray:
+        """(R, 3) ``T z`` for an input-size ``z``."""
+        return self.apply_compact(self.compact(z), self.fixed_sums(z))
+
+    def adjoint(self, r: np.ndarray) -> np.ndarray:
+        """``Tᵀ r`` at the input size (every texel; the inactive ones through interreflection alone)."""
+        iw, ih = self.op.input_size
+        cols, per_block = self._adjoint_parts(r)
         out = np.zeros((iw * ih, 3), np.float32)
-        out[self._texels] = cols.reshape(-1, 3)
-        out = out.reshape(ih, iw, 3)
-        if len(self.op.indirect):
-            n_low = self._responses.shape[1]
-            idx = self._low_index.ravel()
-            low = np.stack([np.bincount(idx, (self._low_weight * np.asarray(r)[:, None, c]).ravel(), n_low)
-                            for c in range(3)], axis=0).astype(np.float32)  # (3, low pixels)
-            per_block = np.matmul(self._responses.transpose(0, 2, 1), low[:, :, None])[..., 0].T
-            out = out + self.op._spread(per_block / self._block_counts[:, None])
-        return out.astype(np.float32)
+        if per_block is not None:
+            out += self.op._spread(per_block).reshape(-1, 3)
+        out[self.texels] += cols
+        return out.reshape(ih, iw, 3)
 
 
 # -- building -------------------------------------------------------------------------------------------------

@@ -256,9 +256,11 @@ class StageC:
         return load_target(path, encoding=self.options.target_encoding)
 
     def compensate(self, image: np.ndarray, *, name: str, what: str, progress: Progress | None = None,
-                   cancel: Cancel | None = None, start: np.ndarray | None = None) -> TargetResult:
+                   cancel: Cancel | None = None, start: np.ndarray | None = None,
+                   verify: bool | None = None) -> TargetResult:
         """Stage C for one target image; :class:`ProCamError` when this target cannot be compensated.
-        ``start``: the virtual input z to start from (a warm start, :meth:`start_from_frame`)."""
+        ``start``: the virtual input z to start from (a warm start, :meth:`start_from_frame`). ``verify``: render
+        the answer with Mitsuba after a solve on the transport operator (None: the schedule's choice)."""
         if self.options.mode == "open-loop" and self.bias is None:
             self.estimate_bias()
         area = self.area_for(image)
@@ -270,7 +272,7 @@ class StageC:
             model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
             res = self.compensator.run(model_target, area, device=self.model_device, **self.options.run_arguments(),
                                        progress=progress, cancel=cancel, open_loop_theta=self.bias,
-                                       use_bias=self.options.use_bias, name=name, start=start)
+                                       use_bias=self.options.use_bias, name=name, start=start, verify=verify)
         if self.adapter is None:
             x_input, frame = res.x_input, res.x_frame
         else:
