@@ -4,6 +4,8 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
+from ..addon.stages.compensate import DEFAULT_SCHEDULE
+
 
 class PROCAM_PG_target(bpy.types.PropertyGroup):
     """One target image of the Compensate step."""
@@ -19,8 +21,10 @@ INTRINSICS_ITEMS = [("spec", "Spec Sheet", "The projector's focal length and pri
                     ("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray "
                                                 "code on a curved or edged surface before finding its pose (kept at "
                                                 "the spec where the surface cannot tell, e.g. a flat wall)")]
-SCHEDULE_ITEMS = [("fast", "Fast", "Fixed-point start, 60 joint iterations, 15 captures: as good as the paper's "
-                                   "schedule in a fraction of the time"),
+SCHEDULE_ITEMS = [("transport", "Transport", "Solve on the calibration's precomputed light-transport operator: "
+                                             "no renders, under a second a target, 3 captures in closed loop"),
+                  ("fast", "Fast", "Fixed-point start, 150 joint iterations, 15 captures: renders every step; "
+                                   "no operator needed"),
                   ("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ")]
 MODE_ITEMS = [("OPEN", "Open Loop", "No device: the bias θ comes from the calibration's validation captures"),
               ("CLOSED", "Closed Loop", "θ from captures of the projector input through the device (lab or folder)"),
@@ -80,7 +84,7 @@ def scene_properties() -> dict[str, object]:
         "procam_show_dir": StringProperty(
             name="Show", subtype="DIR_PATH",
             description="Show folder: numbered projector frames of the image sequence, resumable"),
-        "procam_schedule": EnumProperty(name="Schedule", items=SCHEDULE_ITEMS, default="fast"),
+        "procam_schedule": EnumProperty(name="Schedule", items=SCHEDULE_ITEMS, default=DEFAULT_SCHEDULE),
         "procam_iterations": IntProperty(
             name="Iterations", description="Total stage-C Adam iterations (0 = the schedule's own: fast 60, paper "
                                            "200 + 300)", default=0, min=0, soft_max=1000),

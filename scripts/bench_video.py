@@ -2,7 +2,7 @@
 """A small lab show: warm against cold start (seconds per frame, model PSNR, flicker), and a local cluster.
 
 Usage: ``.venv/bin/python scripts/bench_video.py [--frames 8] [--chunk 4] [--iterations 40] [--workers 2]
-[--scale 0.3] [--threads 1] [--work DIR]``
+[--scale 0.3] [--threads 1] [--schedule fast] [--runs warm,cold,cluster] [--no-evaluate] [--work DIR]``
 
 Renders a small lab capture set (``vedge``) and takes its true calibration
 (as the tests do, so only stage C is timed), makes a panning sequence of a
@@ -11,7 +11,11 @@ and compensates it open loop with ``procam show`` three times: warm start in
 this process, ``--cold-start`` in this process, and warm start on a local
 cluster of ``--workers`` processes (whose frames must be byte-identical to the
 first run's: every run uses ``--threads`` Dr.Jit threads per process). Then ``procam evaluate`` projects the warm and cold shows
-through the lab and reports their flicker. Prints one Markdown row per run.
+through the lab and reports their flicker. Prints one Markdown row per run,
+with frames per second (wall, whole ``procam show``). ``--schedule transport``
+precomputes the calibration's light-transport operator first (its seconds are
+printed apart). ``--runs`` picks the runs and ``--no-evaluate`` skips the lab
+evaluation, for throughput on long clips (``--frames 300``).
 ``--work DIR`` keeps the folders (and reuses the lab and the targets).
 """
 
@@ -55,8 +59,12 @@ def _lab(work: Path, scale: float) -> tuple[Path, Path]:
 def _targets(folder: Path, frames: int) -> list[str]:
     """A slow pan over a photograph: frame i is a 320×240 window moved 4 pixels right per frame."""
     folder.mkdir(parents=True, exist_ok=True)
-    wide = natural_target("city", (320 + 4 * frames, 240))
-    return [str(write_image(folder / f"pan_{i + 1:04d}.png", wide[:, 4 * i:4 * i + 320])) for i in range(frames)]
+    paths = [folder / f"pan_{i + 1:04d}.png" for i in range(frames)]
+    if not all(p.is_file() for p in paths):
+        wide = natural_target("city", (320 + 4 * frames, 240))
+        for i, p in enumerate(paths):
+            write_image(p, wide[:, 4 * i:4 * i + 320])
+    return [str(p) for p in paths]
 
 
 def _show(args: list[str], out: Path) -> tuple[float, dict]:
@@ -71,43 +79,67 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--chunk", type=int, default=4)
-    ap.add_argument("--iterations", type=int, default=40)
+    ap.add_argument("--iterations", type=int, help="stage C's iterations per frame (default: the schedule's)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--scale", type=float, default=0.3)
     ap.add_argument("--threads", type=int, default=1, help="Dr.Jit threads per process, the same in every run")
+    ap.add_argument("--schedule", default="fast", help="stage C's schedule (fast, transport, paper)")
+    ap.add_argument("--runs", default="warm,cold,cluster", help="which runs: warm, cold, cluster")
+    ap.add_argument("--no-evaluate", action="store_true", help="skip projecting the shows through the lab")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse the lab and targets")
     args = ap.parse_args()
+    wanted = set(args.runs.split(","))
+    if not wanted or wanted - {"warm", "cold", "cluster"}:
+        raise SystemExit("--runs takes warm, cold and cluster, separated by commas")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         cal, truth = _lab(work, args.scale)
         targets = _targets(work / "targets", args.frames)
-        common = [str(cal), str(work / "targets"), "--iterations", str(args.iterations), "--chunk", str(args.chunk),
+        if args.schedule == "transport":
+            t0 = time.perf_counter()
+            if procam(["precompute", str(cal)]) != 0:
+                raise SystemExit("procam precompute failed")
+            doc = json.loads((cal / "transport.json").read_text())
+            print(f"\noperator: {doc['seconds']} s to precompute, {doc['megabytes']} MB "
+                  f"({time.perf_counter() - t0:.1f} s this run, 0 when it was there)")
+        common = [str(cal), str(work / "targets"), "--schedule", args.schedule, "--chunk", str(args.chunk),
                   "--threads", str(args.threads)]
-        runs = {"warm": _show(common, work / "warm"), "cold": _show([*common, "--cold-start"], work / "cold"),
-                f"warm, {args.workers} workers": _show([*common, "--workers", str(args.workers)], work / "cluster")}
-        same = all((work / "warm" / p.name).read_bytes() == p.read_bytes() for p in (work / "cluster").glob("frame_*"))
+        if args.iterations is not None:
+            common += ["--iterations", str(args.iterations)]
+        runs = {}
+        if "warm" in wanted:
+            runs["warm"] = _show(common, work / "warm")
+        if "cold" in wanted:
+            runs["cold"] = _show([*common, "--cold-start"], work / "cold")
+        if "cluster" in wanted:
+            runs[f"warm, {args.workers} workers"] = _show([*common, "--workers", str(args.workers)], work / "cluster")
+        same = "warm" in runs and "cluster" in wanted and all(
+            (work / "warm" / p.name).read_bytes() == p.read_bytes() for p in (work / "cluster").glob("frame_*"))
         flicker = {}
-        for name in ("warm", "cold"):
+        for name in () if args.no_evaluate else [r for r in ("warm", "cold") if r in runs]:
             ev = work / f"eval-{name}"
             shutil.rmtree(ev, ignore_errors=True)
             if procam(["evaluate", str(cal), "--inputs", str(work / name), "--targets", *targets, "--device",
                        f"lab:{truth}", "--out", str(ev)]) != 0:
                 raise SystemExit("procam evaluate failed")
             flicker[name] = json.loads((ev / "metrics.json").read_text())
-        print(f"\n{args.frames} frames (a 4 px/frame pan), chunks of {args.chunk}, {args.iterations} iterations, open "
-              f"loop, lab scale {args.scale}, {args.threads} Dr.Jit thread(s) per process; cluster frames byte-identical to the warm run: {same}\n")
-        print("| Run | wall s | stage C s/frame | model PSNR start → end (dB) | captured PSNR (dB) | flicker captured "
-              "/ targets / excess |")
-        print("|---|---|---|---|---|---|")
+        iterations = args.iterations if args.iterations is not None else "the schedule's"
+        print(f"\n{args.frames} frames (a 4 px/frame pan), schedule {args.schedule}, chunks of {args.chunk}, "
+              f"{iterations} iterations, open loop, lab scale {args.scale}, {args.threads} Dr.Jit thread(s) per "
+              f"process; cluster frames byte-identical to the warm run: {same}\n")
+        print("| Run | wall s | frames/s | stage C s/frame | model PSNR start → end (dB) | captured PSNR (dB) | "
+              "flicker captured / targets / excess |")
+        print("|---|---|---|---|---|---|---|")
         for name, (wall, doc) in runs.items():
             done = [e for e in doc["frames"].values() if e["status"] == "done"]
             sec = np.mean([e["seconds"] for e in done])
             start, end = np.mean([e["psnr_model_start"] for e in done]), np.mean([e["psnr_model"] for e in done])
             m = flicker.get(name.split(",")[0]) if "workers" not in name else None
             extra = (f"{m['mean']['psnr']:.2f} | {m['flicker']['captured']:.4f} / {m['flicker']['targets']:.4f} / "
-                     f"{m['flicker']['excess']:+.4f}") if m else "(same frames as warm) | "
-            print(f"| {name} | {wall:.1f} | {sec:.2f} | {start:.2f} → {end:.2f} | {extra} |")
+                     f"{m['flicker']['excess']:+.4f}") if m else \
+                ("(same frames as warm) | " if "workers" in name and same else "not evaluated | ")
+            print(f"| {name} | {wall:.1f} | {len(done) / wall:.2f} | {sec:.2f} | {start:.2f} → {end:.2f} | {extra} |")
 
 
 if __name__ == "__main__":

@@ -62,7 +62,7 @@ def setup(lab_set):
 @pytest.fixture(scope="module")
 def open_loop(setup):
     bias = setup.comp.estimate_bias(setup.captures)
-    res = setup.comp.run(_target(), setup.area, iterations_z=ITER_Z, iterations_joint=ITER_JOINT,
+    res = setup.comp.run(_target(), setup.area, schedule="fast", iterations_z=ITER_Z, iterations_joint=ITER_JOINT,
                          open_loop_theta=bias, name="smooth")
     return bias, res
 
@@ -199,7 +199,7 @@ def test_schedule_rules():
     assert Schedule("t", iterations_joint=7, captures=3).capture_interval == 3
     assert (fast.fixed_point, fast.fixed_point_joint, fast.fixed_point_spp, fast.crop, fast.iterations_z) == \
         (8, 2, 16, True, 0)
-    assert get_schedule(DEFAULT_SCHEDULE) is fast
+    assert DEFAULT_SCHEDULE == "transport" and get_schedule(DEFAULT_SCHEDULE) is get_schedule("transport")
     # Splitting a total iteration count follows the schedule: the paper's 200:300, all joint for fast.
     assert split_iterations(100, "paper") == (40, 60) and split_iterations(100, "fast") == (0, 100)
     assert split_iterations(None) == (None, None)
@@ -212,11 +212,14 @@ def test_schedule_rules():
     assert (paper.fixed_point, paper.fixed_point_joint, paper.crop) == (0, 0, False)
     assert paper.capture_interval == 20 and paper.theta_rate == 0.01
     assert set(SCHEDULES) == {"fast", "paper", "transport"}
-    # Stage C on the light-transport operator: solver steps before the first capture, then spread over 3.
+    # Stage C on the light-transport operator: solver steps before the first capture, then 2 after each of 15,
+    # θ moving a third of the way to each new residual as in fast; Mitsuba verifies only when asked.
     transport = get_schedule("transport")
     assert transport.transport and not fast.transport and not paper.transport
-    assert (transport.iterations_z, transport.iterations_joint, transport.captures) == (20, 30, 3)
-    assert split_iterations(100, "transport") == (40, 60)
+    assert (transport.iterations_z, transport.iterations_joint, transport.captures) == (10, 30, 15)
+    assert transport.capture_interval == 2 and 1 - (1 - 2 * transport.theta_rate) ** 2 == pytest.approx(1 - 0.98 ** 20)
+    assert not transport.verify and fast.verify
+    assert split_iterations(100, "transport") == (25, 75)
     for bad, msg in ((dict(iterations_z=-1), "iterations_z"), (dict(capture_every=0), "capture_every"),
                      (dict(lr_end=0.1), "lr_end"), (dict(coarse=0.01), "coarse"), (dict(spp_z=0), "spp_z"),
                      (dict(captures=0), "captures"), (dict(reference_spp=8), "square"),
@@ -342,7 +345,7 @@ def test_bad_inputs_are_clear_errors(setup):
 def test_compensate_function_and_given_theta(setup, open_loop):
     bias, _ = open_loop
     theta = np.zeros_like(bias.theta)
-    res = compensate(setup.cal, _target(), area=setup.area, iterations_z=3, iterations_joint=2,
+    res = compensate(setup.cal, _target(), area=setup.area, schedule="fast", iterations_z=3, iterations_joint=2,
                      open_loop_theta=theta, compensator=setup.comp)
     assert res.mode == "open-loop" and res.report["bias"]["kind"] == "given" and len(res.losses) == 5
     assert isinstance(BiasModel(theta).predict(res.simulated_raw), np.ndarray)
@@ -371,7 +374,7 @@ def test_cli_round_trip(setup, tmp_path, monkeypatch, capsys):
     write_image(tmp_path / "b.png", _target(120, 120) * 0.9)
     out = tmp_path / "out"
     args = ["compensate", str(cal_dir), str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--out", str(out),
-            "--iterations", "6", "--spp", "1", "--seed", "3"]
+            "--iterations", "6", "--spp", "1", "--seed", "3", "--schedule", "fast"]
     assert main(args) == 0
     doc = json.loads((out / "compensation.json").read_text())
     assert doc["mode"] == "open-loop" and doc["complete"] and doc["iterations"] == {"total": 6, "z": 0, "joint": 6}

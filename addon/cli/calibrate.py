@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CalibrationError
 from ..steps.calibrate import CalibrateOptions, run as calibrate
-from ..steps.transport import PrecomputeOptions, run as precompute
+from ..steps.layout import TRANSPORT_JSON
 from .app import command
 from .terminal import run_step
 
@@ -48,9 +49,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="the object's mesh (.obj/.ply, a scan or CAD model in its own frame, metres or "
                         "millimetres), registered by ICP to the depth or triangulated points and used as the surface")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--precompute", action="store_true",
-                   help="also precompute the light-transport operator (procam precompute; ~40 s at 640×480) for "
-                        "compensate --schedule transport")
+    p.add_argument("--precompute", action=argparse.BooleanOptionalAction, default=True,
+                   help="also precompute the light-transport operator into the folder (procam precompute; ~25 s "
+                        "at 640×480), which stage C's default schedule solves on (default on)")
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
 
@@ -69,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
                                projector_intrinsics=args.projector_intrinsics,
                                depth_offset=args.depth_offset, surface_from=args.surface_from,
                                surface_mesh=args.surface_mesh, with_blend=not args.no_blend_output, seed=args.seed,
-                               force=args.force)
+                               precompute=args.precompute, force=args.force)
     cal = run_step("calibrate", calibrate, options)
     r = cal.report
     print(f"calibration: {args.out}")
@@ -100,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
     if b and a:
         print(f"  warp: checker corners median {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items()))
-    if args.precompute:
-        doc = run_step("precompute", precompute, PrecomputeOptions(args.out, seed=args.seed, force=True))
+    operator = Path(args.out) / TRANSPORT_JSON
+    if operator.is_file():
+        doc = json.loads(operator.read_text())
         print(f"  transport operator: {doc['megabytes']} MB in {doc['seconds']:.0f} s")
     return 0

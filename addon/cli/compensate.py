@@ -33,8 +33,9 @@ def add_schedule_options(p: argparse.ArgumentParser) -> None:
                         "--iterations, --lr and --capture-every override its values: " +
                         "; ".join(counts(n) for n in SCHEDULES))
     p.add_argument("--iterations", type=int, default=None,
-                   help="total Adam iterations, split between z alone and z + θ in the schedule's own ratio "
-                        f"(paper: {ITERATIONS_Z}:{ITERATIONS_JOINT}; fast: all joint, after its fixed-point steps; "
+                   help="total iterations, split between z alone and z + θ in the schedule's own ratio "
+                        f"(paper: {ITERATIONS_Z}:{ITERATIONS_JOINT} Adam steps; fast: all joint Adam steps, after "
+                        "its fixed-point steps; transport: solver steps, half of them before the first capture; "
                         "default: the schedule's counts)")
     p.add_argument("--area", default=None,
                    help="display area x,y,width,height in camera pixels (default: the capture set's, else the "

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..stages.compensate import DEFAULT_SCHEDULE, SCHEDULES
 from ..steps.demo import DemoOptions, run as demo
 from .app import command
 from .terminal import run_step
@@ -23,8 +24,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--surface", default="vedge", choices=("plane", "curve", "vedge", "hedge"))
     p.add_argument("--effects", default="realistic", help="lab effects (default: realistic)")
     p.add_argument("--targets", default="city,forest", help="built-in targets, comma-separated")
-    p.add_argument("--schedule", default="fast", choices=("fast", "paper"),
-                   help="stage-C schedule (default fast; 'paper' = the paper's 500 iterations, several times slower)")
+    p.add_argument("--schedule", default=DEFAULT_SCHEDULE, choices=tuple(SCHEDULES),
+                   help=f"stage-C schedule (default {DEFAULT_SCHEDULE}; 'paper' = the paper's 500 iterations, "
+                        "several times slower)")
     p.add_argument("--iterations", type=int, default=None, help="stage-C iterations per target (default: the schedule's)")
     p.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel for the lab")
     p.add_argument("--seed", type=int, default=0)

@@ -205,22 +205,45 @@ def bending_matrix(size: tuple[int, int], grid: int) -> np.ndarray:
     return 0.5 * (e + e.T)
 
 
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` (H×W or H×W×C) at continuous positions (corner convention); 0 outside."""
-    img = np.asarray(image, dtype=np.float32)
-    h, w = img.shape[:2]
+def bilinear_taps(size: tuple[int, int], x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The four (flat index, weight) taps of bilinear samples of a ``size`` = (w, h) image at continuous positions
+    (corner convention), each (4, …) like ``x``; taps outside the image get weight 0."""
+    w, h = size
     u, v = np.asarray(x, dtype=np.float64) - 0.5, np.asarray(y, dtype=np.float64) - 0.5
     i0, j0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
     fu, fv = (u - i0).astype(np.float32), (v - j0).astype(np.float32)
-    out = None
+    index, weight = [], []
     for di, dj, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
         ii, jj = i0 + di, j0 + dj
         ok = (ii >= 0) & (ii < w) & (jj >= 0) & (jj < h)
-        val = img[np.clip(jj, 0, h - 1), np.clip(ii, 0, w - 1)]
-        wt = np.where(ok, wt, 0.0).astype(np.float32)
-        term = val * (wt[..., None] if img.ndim == 3 else wt)
-        out = term if out is None else out + term
+        index.append(np.clip(jj, 0, h - 1) * w + np.clip(ii, 0, w - 1))
+        weight.append(np.where(ok, wt, 0.0).astype(np.float32))
+    return np.stack(index), np.stack(weight)
+
+
+def channel_taps(index: np.ndarray, weight: np.ndarray, channels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Taps from :func:`bilinear_taps` spread over the values of an image with ``channels`` channels, for
+    :func:`sample_taps` (flat gathers are 3× faster than gathering whole pixels)."""
+    shape = index.shape[1:]
+    idx = (index.reshape(4, -1, 1) * channels + np.arange(channels)).reshape(4, -1)
+    return idx, np.repeat(weight.reshape(4, -1), channels, axis=1).reshape((4, *shape, channels))
+
+
+def sample_taps(image: np.ndarray, index: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` (H×W×C, float32) through taps from :func:`channel_taps` with its C."""
+    flat = np.asarray(image, dtype=np.float32).reshape(-1)
+    out = np.take(flat, index[0]).reshape(weight.shape[1:]) * weight[0]
+    for k in range(1, 4):
+        out += np.take(flat, index[k]).reshape(weight.shape[1:]) * weight[k]
     return out
+
+
+def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` (H×W or H×W×C) at continuous positions (corner convention); 0 outside."""
+    img = np.asarray(image, dtype=np.float32)
+    taps = channel_taps(*bilinear_taps((img.shape[1], img.shape[0]), x, y), img.shape[2] if img.ndim == 3 else 1)
+    out = sample_taps(img, *taps)
+    return out if img.ndim == 3 else out[..., 0]
 
 
 # ============================================================================ the warp as data
@@ -255,6 +278,7 @@ class Warp:
             a = a.copy()
             a.setflags(write=False)
             object.__setattr__(self, name, a)
+        object.__setattr__(self, "_taps", {})
 
     def __eq__(self, other: object) -> bool:
         # Exact equality (the generated __eq__ would compare arrays ambiguously).
@@ -313,9 +337,16 @@ class Warp:
         shifts = self.m_shifts if which == "m" else self.w_shifts
         if not np.any(shifts):
             return img.copy()  # exact identity (bilinear sampling at pixel centres would be too, up to rounding)
-        d = self.displacement(which, (w, h))
-        c = pixel_centres((w, h)).reshape(h, w, 2)
-        return sample_bilinear(img, c[..., 0] + d[..., 0], c[..., 1] + d[..., 1])
+        # The taps depend on the warp and the image's shape alone: kept, since stage C warps every capture's input.
+        channels = img.shape[2] if img.ndim == 3 else 1
+        taps = self._taps.get((which, w, h, channels))
+        if taps is None:
+            d = self.displacement(which, (w, h))
+            c = pixel_centres((w, h)).reshape(h, w, 2)
+            taps = self._taps[(which, w, h, channels)] = channel_taps(
+                *bilinear_taps((w, h), c[..., 0] + d[..., 0], c[..., 1] + d[..., 1]), channels)
+        out = sample_taps(img, *taps)
+        return out if img.ndim == 3 else out[..., 0]
 
     def apply_m(self, image: np.ndarray) -> np.ndarray:
         """M(image): the input the *simulation* needs to reproduce what the real projector shows for ``image``."""

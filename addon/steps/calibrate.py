@@ -27,12 +27,13 @@ from typing import Any
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..errors import CalibrationError, ProCamError
+from ..errors import CalibrationError, Cancelled, ProCamError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Rig
 from ..stages.calibrate import STAGES, Calibration, calibrate_captures, stage_plan
+from ..stages.transport import TransportError, build_transport
 from ..stages.warp import Warp, grid_image
 from ..surface.mesh import SurfaceMesh
 from . import layout
@@ -65,6 +66,9 @@ class CalibrateOptions:
     surface_mesh: Path | SurfaceMesh | None = None
     with_blend: bool = True
     seed: int = 0
+    #: also precompute the light-transport operator into the folder (``procam precompute``), when the run ends
+    #: with the last stage: stage C's default schedule solves on it
+    precompute: bool = True
     force: bool = False
 
 
@@ -79,21 +83,55 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     previous, images = _previous(Path(options.out), options.capture_dir, reused) if reused else (None, {})
     folder = AtomicFolder(options.out, force=options.force or previous is not None, what=KIND.what,
                           replaceable=KIND.holds, error=CalibrationError)
+    precompute = options.precompute and plan[-1] == STAGES[-1]
+    share = 0.8 if precompute else 0.95
     try:
         result = calibrate_captures(captures, plan=plan, previous=previous, previous_images=images,
                                     init=options.init, initial_pose=options.initial_pose, seed=options.seed,
                                     depth_offset=options.depth_offset, stage_a=options.stage_a,
                                     projector_intrinsics=options.projector_intrinsics,
                                     surface_from=options.surface_from, surface_mesh=options.surface_mesh,
-                                    progress=part(say, 0.0, 0.95), cancel=cancel)
-        say("writing the calibration folder", 0.95)
+                                    progress=part(say, 0.0, share), cancel=cancel)
+        say("writing the calibration folder", share)
         write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
+        if precompute:
+            _precompute(folder.tmp, options.seed, part(say, share, 1.0, "transport operator: "), cancel)
     except BaseException:
         folder.abort()
         raise
     folder.commit()
     say("done", 1.0)
     return result.calibration
+
+
+def store_transport(folder: str | Path, *, bounces: int = 1, seed: int = 0, progress: Progress | None = None,
+                    cancel: Cancel | None = None) -> dict[str, Any]:
+    """Render the light-transport operator of the calibration in ``folder`` and store it there: ``transport.npz``
+    and ``transport.json`` (what it holds, how long it took, and the content hashes of the calibration it belongs
+    to), each atomically. Returns the record."""
+    folder = Path(folder)
+    op = build_transport(read(folder), bounces=bounces, seed=seed, progress=progress, cancel=cancel)
+    ident = identity(folder)
+    doc = {**op.report, "calibration_sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"],
+           "file": layout.TRANSPORT_NPZ}
+    buf = io.BytesIO()
+    np.savez(buf, **op.arrays())
+    write_atomic_bytes(folder / layout.TRANSPORT_NPZ, buf.getvalue())
+    write_atomic_bytes(folder / layout.TRANSPORT_JSON, (json.dumps(doc, indent=1) + "\n").encode())
+    return doc
+
+
+def _precompute(folder: Path, seed: int, say: Progress, cancel: Cancel | None) -> None:
+    """The transport operator into the calibration folder being written (so it appears with the calibration, or
+    not at all). An operator that cannot be built leaves the calibration standing: compensation says so and
+    renders one when it needs it."""
+    try:
+        store_transport(folder, seed=seed, progress=say, cancel=cancel)
+    except TransportError as exc:
+        if cancel is not None and cancel():
+            raise Cancelled("calibration cancelled while precomputing its transport operator; nothing was "
+                            "written") from None
+        say(f"warning: no transport operator precomputed ({exc})", 1.0)
 
 
 def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = True) -> None:

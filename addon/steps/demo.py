@@ -35,6 +35,7 @@ from ..lab.crosscheck import run_cross_check
 from ..lab.lab import LabTruth
 from ..outputs import folder_in_place, write_manifest
 from ..progress import Cancel, Progress, part, quiet
+from ..stages.compensate import DEFAULT_SCHEDULE
 from ..stages.display_area import choose_area
 from . import calibrate, capture, compensate, diagnose, evaluate, layout
 from .stage_c import StageCOptions
@@ -56,7 +57,7 @@ class DemoOptions:
     surface: str = "vedge"
     effects: str = "realistic"
     targets: tuple[str, ...] = ("city", "forest")
-    schedule: str = "fast"
+    schedule: str = DEFAULT_SCHEDULE
     #: stage C's iterations per target; None: the schedule's
     iterations: int | None = None
     samples: int = 16

@@ -65,6 +65,8 @@ RIG = FolderKind("rig calibration", "rig.json", "procam-rig", 1, "procam calibra
 #: calibration: the mesh (rig frame) and its texture, the same mesh for other tools, diagnostics, the scene.
 SURFACE_NPZ, SURFACE_OBJ, SURFACE_MTL, ALBEDO_PNG = "surface.npz", "surface.obj", "surface.mtl", "albedo.png"
 DIAGNOSTICS_DIR = "diagnostics"
+#: the light-transport operator of a calibration (stages/transport.py) and its record, in the calibration folder
+TRANSPORT_NPZ, TRANSPORT_JSON = "transport.npz", "transport.json"
 SCENE_BLEND = "scene.blend"
 
 #: compensation, per target NAME.

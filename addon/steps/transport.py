@@ -3,7 +3,8 @@
 ``procam precompute CALIB`` renders ``T`` (``stages/transport.py``) and writes
 ``transport.npz`` (the operator) and ``transport.json`` (what it holds, how
 long it took, and the content hashes of the calibration it belongs to) into
-the calibration folder, each atomically. Stage C's ``transport`` schedule reads
+the calibration folder, each atomically (``calibrate.store_transport``, which
+``procam calibrate`` also runs by default). Stage C's ``transport`` schedule reads
 it when its hashes match the calibration and the compensator's bounces and
 seed, and otherwise renders its own in memory (saying so), because
 compensation never writes into a calibration folder.
@@ -11,7 +12,6 @@ compensation never writes into a calibration folder.
 
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,14 +20,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import CalibrationError
-from ..imageio import write_atomic_bytes
 from ..progress import Cancel, Progress, quiet
 from ..stages.calibrate import Calibration
-from ..stages.transport import TransportError, TransportOperator, build_transport
+from ..stages.transport import TransportError, TransportOperator
 from . import calibrate as calibrate_step
-
-OPERATOR_FILE = "transport.npz"
-REPORT_FILE = "transport.json"
+from .layout import TRANSPORT_JSON as REPORT_FILE, TRANSPORT_NPZ as OPERATOR_FILE
 
 
 @dataclass(frozen=True)
@@ -47,19 +44,12 @@ def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Ca
     say = progress or quiet
     folder = Path(options.calibration)
     cal = calibrate_step.read(folder)
-    ident = calibrate_step.identity(folder)
     if not options.force and load(cal, bounces=options.bounces, seed=options.seed) is not None:
         doc = json.loads((folder / REPORT_FILE).read_text())
         say("the transport operator of this calibration is already there (--force renders it again)", 1.0)
         return doc
-    op = build_transport(cal, bounces=options.bounces, seed=options.seed, progress=say, cancel=cancel)
-    doc = {**op.report, "calibration_sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"],
-           "file": OPERATOR_FILE}
-    buf = io.BytesIO()
-    np.savez(buf, **op.arrays())
-    write_atomic_bytes(folder / OPERATOR_FILE, buf.getvalue())
-    write_atomic_bytes(folder / REPORT_FILE, (json.dumps(doc, indent=1) + "\n").encode())
-    return doc
+    return calibrate_step.store_transport(folder, bounces=options.bounces, seed=options.seed, progress=say,
+                                          cancel=cancel)
 
 
 def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOperator | None:
