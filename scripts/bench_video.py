@@ -114,8 +114,8 @@ def main() -> None:
             runs["cold"] = _show([*common, "--cold-start"], work / "cold")
         if "cluster" in wanted:
             runs[f"warm, {args.workers} workers"] = _show([*common, "--workers", str(args.workers)], work / "cluster")
-        same = "warm" in runs and "cluster" in wanted and all(
-            (work / "warm" / p.name).read_bytes() == p.read_bytes() for p in (work / "cluster").glob("frame_*"))
+        same = all((work / "warm" / p.name).read_bytes() == p.read_bytes() for p in (work / "cluster").glob("frame_*")
+                   ) if "warm" in runs and "cluster" in wanted else "not compared"
         flicker = {}
         for name in () if args.no_evaluate else [r for r in ("warm", "cold") if r in runs]:
             ev = work / f"eval-{name}"
@@ -138,7 +138,7 @@ def main() -> None:
             m = flicker.get(name.split(",")[0]) if "workers" not in name else None
             extra = (f"{m['mean']['psnr']:.2f} | {m['flicker']['captured']:.4f} / {m['flicker']['targets']:.4f} / "
                      f"{m['flicker']['excess']:+.4f}") if m else \
-                ("(same frames as warm) | " if "workers" in name and same else "not evaluated | ")
+                ("(same frames as warm) | " if "workers" in name and same is True else "not evaluated | ")
             print(f"| {name} | {wall:.1f} | {len(done) / wall:.2f} | {sec:.2f} | {start:.2f} → {end:.2f} | {extra} |")
 
 

@@ -163,6 +163,15 @@ def _taps(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return lo, np.minimum(lo + 1, n_in - 1), (pos - lo).astype(np.float32)
 
 
+def _regroup(keys: np.ndarray, groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Entries regrouped by key (0 … groups − 1) for a gather padded to the largest group: the entries' order,
+    each ordered entry's key and slot within its group, and that largest group's size (at least 1)."""
+    order = np.argsort(keys, kind="stable")
+    counts = np.bincount(keys, minlength=groups)
+    slot = np.arange(len(order)) - np.repeat(np.cumsum(counts) - counts, counts)
+    return order, keys[order], slot, max(1, int(counts.max(initial=0)))
+
+
 @dataclass
 class TransportRows:
     """``T`` restricted to the camera pixels ``rows`` (flat indices): ``apply`` gives (R, 3), ``adjoint`` takes it.
@@ -221,15 +230,11 @@ class TransportRows:
         self._w = mi.Float(np.ascontiguousarray(np.transpose(weight, (0, 2, 1))).ravel())
         # The adjoint as a gather too (atomic scatter-adds were 3× slower): entries regrouped by active texel,
         # each padded to the most entries any texel has, laid out (texel, channel, entry).
-        pos = where[src]
-        order = np.argsort(pos, kind="stable")
-        counts = np.bincount(pos, minlength=len(texels))
-        kc = int(counts.max()) if len(counts) else 1
-        slot = np.arange(len(order)) - np.repeat(np.cumsum(counts) - counts, counts)
+        order, pos, slot, kc = _regroup(where[src], len(texels))
         pixel = np.zeros((len(texels), kc), np.int64)
         w_col = np.zeros((len(texels), kc, 3), np.float32)
-        pixel[pos[order], slot] = live[order] // k
-        w_col[pos[order], slot] = flat_w[live[order]]
+        pixel[pos, slot] = live[order] // k
+        w_col[pos, slot] = flat_w[live[order]]
         self._kc = kc
         self._col_src = mi.UInt32((pixel[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
         self._col_w = mi.Float(np.ascontiguousarray(np.transpose(w_col, (0, 2, 1))).ravel())
@@ -251,15 +256,11 @@ class TransportRows:
                                       .astype(np.uint32))  # (row, channel, tap)
             self._low_w = mi.Float(np.repeat(low_weight[:, None, :], 3, axis=1).ravel())
             # The upsampling's adjoint as a gather too: each used low pixel's (row, tap) pairs, padded.
-            flat = low_index.ravel()
-            order = np.argsort(flat, kind="stable")
-            counts = np.bincount(flat, minlength=len(used))
-            kl = int(counts.max())
-            slot = np.arange(len(order)) - np.repeat(np.cumsum(counts) - counts, counts)
+            order, low, slot, kl = _regroup(low_index.ravel(), len(used))
             row_of = np.zeros((len(used), kl), np.int64)
             w_of = np.zeros((len(used), kl), np.float32)
-            row_of[flat[order], slot] = order // 4
-            w_of[flat[order], slot] = low_weight.ravel()[order]
+            row_of[low, slot] = order // 4
+            w_of[low, slot] = low_weight.ravel()[order]
             self._kl = kl
             self._up_src = mi.UInt32((row_of[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
             self._up_w = mi.Float(np.repeat(w_of[:, None, :], 3, axis=1).ravel())
