@@ -101,3 +101,26 @@ def test_compensate_on_the_operator(operator, lab_calibration, tmp_path, device)
                  f"lab:{truth_path}", "--out", str(tmp_path / "eval")]) == 0
     for row in json.loads((tmp_path / "eval" / "metrics.json").read_text())["targets"]:
         assert row["psnr"] > row["uncompensated"]["psnr"] + 3, row
+
+
+def test_an_operator_too_large_for_the_memory_is_refused_and_stage_c_renders_instead(lab_calibration, tmp_path,
+                                                                                    capsys, monkeypatch):
+    """Building T needs its lattice entries for every camera pixel at once: where that does not fit, precompute
+    says how much it needs, and compensation falls back to rendering every step (the fast schedule)."""
+    from procam.addon.imageio import write_image
+    from procam.addon.stages import transport as transport_stage
+
+    cal_dir, _, _ = lab_calibration()
+    cal = calibrate_step.read(cal_dir)
+    need = transport_stage.building_bytes(cal.rig.camera.intrinsics.size)
+    assert need > transport_stage.building_bytes(cal.rig.camera.intrinsics.size, spacing=3) > 0
+    monkeypatch.setattr(transport_stage, "free_bytes", lambda: need // 4)
+    mine = tmp_path / "cal"
+    shutil.copytree(cal_dir, mine)
+    assert main(["precompute", str(mine)]) == 2
+    assert "GiB are free" in capsys.readouterr().err and not (mine / "transport.npz").exists()
+    target = write_image(tmp_path / "t.png", 0.05 + 0.4 * _smooth_input(cal, 3)[..., ::-1])
+    assert main(["compensate", str(mine), str(target), "--iterations", "2", "--out", str(tmp_path / "comp")]) == 0
+    assert "renders every step instead (schedule fast)" in capsys.readouterr().err
+    doc = json.loads((tmp_path / "comp" / "compensation.json").read_text())
+    assert doc["schedule"]["name"] == "fast" and doc["targets"][0]["status"] == "done"

@@ -31,6 +31,7 @@ needs ``T z`` and ``Tᵀ r`` only: sparse gathers and scatters, no Mitsuba.
 from __future__ import annotations
 
 import math
+import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -53,6 +54,47 @@ FORMAT, VERSION = "procam-transport", 1
 
 class TransportError(ProCamError):
     """The light-transport operator cannot be built, read or used with this calibration."""
+
+
+class TransportMemoryError(TransportError):
+    """Building the light-transport operator would need more memory than this machine has free."""
+
+
+def building_bytes(camera_size: tuple[int, int], spacing: int = MAX_SPACING, bounces: int = 1, blocks: int = 8,
+                   indirect_scale: float = 0.25) -> int:
+    """The most memory building ``T`` takes: every lattice render's entry for every camera pixel (index and
+    three weights) before the strongest ``MAX_ENTRIES`` are kept, those kept, and the indirect responses."""
+    cw, ch = camera_size
+    pixels = cw * ch
+    direct = pixels * spacing * spacing * 16 + pixels * MAX_ENTRIES * 16
+    low = max(2, round(cw * indirect_scale)) * max(2, round(ch * indirect_scale))
+    return int(direct + (blocks * blocks * low * 12 if bounces else 0))
+
+
+def free_bytes() -> int | None:
+    """Memory this machine can give now (Linux's MemAvailable, else the free pages), None when it cannot say."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(camera_size: tuple[int, int], spacing: int = MAX_SPACING, bounces: int = 1) -> None:
+    """A :class:`TransportMemoryError` saying how much building ``T`` needs when that is more than 80 % of the
+    memory free now."""
+    need, free = building_bytes(camera_size, spacing, bounces), free_bytes()
+    if free is not None and need > 0.8 * free:
+        cw, ch = camera_size
+        raise TransportMemoryError(f"building the light-transport operator of a {cw}×{ch} camera needs about "
+                                   f"{need / 2 ** 30:.1f} GiB and {free / 2 ** 30:.1f} GiB are free: free memory, or "
+                                   "compensate with --schedule fast (renders instead of the operator)")
 
 
 @dataclass
@@ -409,6 +451,7 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = 16, seed: 
     radius = footprint_radius(u)
     r95 = float(np.nanpercentile(radius[lit], 95))
     spacing = int(min(MAX_SPACING, max(MIN_SPACING, math.ceil(2 * r95) + 1)))
+    check_memory(camera_size, spacing, bounces)
     too_wide = float(np.mean(radius[lit] >= spacing / 2.0))
     model = ForwardModel(rig, surface, bounces=0, spp=spp, smoothing_eps=0.0, clamp=False, seed=seed,
                          variant=variant)
@@ -474,4 +517,5 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = 16, seed: 
     return op
 
 
-__all__ = ["TransportError", "TransportOperator", "build_transport", "camera_to_input"]
+__all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "build_transport", "building_bytes",
+           "camera_to_input", "check_memory", "free_bytes"]

@@ -30,6 +30,7 @@ from ..stages.compensate import (DEFAULT_SCHEDULE, BiasModel, CompensationResult
                                  split_iterations)
 from ..stages.display_area import DisplayArea, TargetAspectWarning, choose_area, fit_target, load_target
 from ..stages.range import RangeError, RangeMap, fit_range, parse_range
+from ..stages.transport import TransportMemoryError, check_memory
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
 from . import transport as transport_step
@@ -192,13 +193,21 @@ class StageC:
             else:
                 self.compensator = self.adapter.compensator(calibration, bounces=options.bounces, spp=options.spp,
                                                             seed=options.seed)
-            if self.schedule.transport and self.adapter is None:
-                op = transport_step.load(calibration, bounces=options.bounces, seed=options.seed)
-                if op is None:
-                    say("no precomputed transport operator for this calibration: rendering it now (procam "
-                        "precompute stores it once)", 0.0)
-                else:
+            if self.schedule.transport:
+                # With effect models the operator is the moved scene's, rendered here; else the stored one.
+                op = None if self.adapter is not None else \
+                    transport_step.load(calibration, bounces=options.bounces, seed=options.seed)
+                if op is not None:
                     self.compensator.transport = op
+                else:
+                    try:
+                        check_memory(calibration.rig.camera.intrinsics.size, bounces=options.bounces)
+                        say("no precomputed transport operator for this calibration: rendering it now (procam "
+                            "precompute stores it once)", 0.0)
+                    except TransportMemoryError as exc:
+                        say(f"warning: {exc}; this run renders every step instead (schedule fast)", 0.0)
+                        self.options = replace(options, schedule="fast")
+                        self.schedule = self.options.check()
             self.model_device = self.device
             if self.adapter is not None and self.device is not None:
                 self.model_device = AdaptedDevice(self.device, self.adapter)
