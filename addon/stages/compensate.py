@@ -928,24 +928,25 @@ class Compensator:
             out[rows] = values
             return out.reshape(ch, cw, 3)
 
-        def predicted(zc: np.ndarray, theta: np.ndarray) -> np.ndarray:
-            """What the operator says the camera sees (camera size, black outside the area)."""
-            return on_camera(np.clip(gain * view.apply_compact(zc, fixed) - theta, 0.0, 1.0))
+        def predicted(f: np.ndarray, theta: np.ndarray) -> np.ndarray:
+            """What the operator says the camera sees for ``f = T z`` (camera size, black outside the area)."""
+            return on_camera(np.clip(gain * f - theta, 0.0, 1.0))
 
-        psnr_start = area_psnr(predicted(zc, theta), placed, area)
+        psnr_start = area_psnr(predicted(view.apply_compact(zc, fixed), theta), placed, area)
 
         alpha = sched.theta_rate
 
-        def solve(zc: np.ndarray, theta: np.ndarray, steps: int, residual: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+        def solve(zc: np.ndarray, theta: np.ndarray, steps: int, residual: np.ndarray | None = None,
+                  f_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
             """``steps`` solver steps from ``zc``; with the last capture's ``residual``, θ follows Eq. 10 towards
-            it on every step, then Eq. 14 against the current prediction (as ``fast`` does between captures)."""
+            it on every step, then Eq. 14 against the current prediction (as ``fast`` does between captures).
+            ``f_start``: ``T zc`` when the caller has it already."""
             nonlocal done
             prev, y = zc, zc
             for k in range(steps):
                 if cancel is not None and cancel():
                     raise Cancelled(f"compensation of {name!r} cancelled at solver step {done}")
-                f = view.apply_compact(y, fixed)
+                f = f_start if k == 0 and f_start is not None else view.apply_compact(y, fixed)
                 if residual is not None:
                     theta = np.clip(theta + 2.0 * alpha * (residual - theta), f - 1.0, f)
                 resid = target + theta - gain * f
@@ -980,7 +981,7 @@ class Compensator:
                     # an image that is shifted against the model makes θ chase its own edges.
                     theta = residual
                 say(f"{name}: capture {captures}", done / max(total, 1))
-                zc, theta = solve(zc, theta, per, residual)
+                zc, theta = solve(zc, theta, per, residual, f_now)
         elif sched.iterations_joint:
             zc, theta = solve(zc, theta, sched.iterations_joint)
         t_verify = time.perf_counter()
@@ -1006,7 +1007,8 @@ class Compensator:
                   "iterations": {"z": sched.iterations_z, "joint": done - sched.iterations_z, "total": done},
                   "operator": view.op.report, "texels_solved": int(len(view.texels)),
                   "bias": None if bias is None else {"kind": bias.kind, **bias.report},
-                  "psnr_simulated_start": psnr_start, "psnr_operator": area_psnr(predicted(zc, theta), placed, area),
+                  "psnr_simulated_start": psnr_start,
+                  "psnr_operator": area_psnr(predicted(operator_raw, theta), placed, area),
                   "psnr_simulated": area_psnr(simulated, placed, area), "warp": self.warp is not None,
                   "simulated_by": "mitsuba" if verify else "operator",
                   "operator_vs_mitsuba_psnr": agreement, "bounces": self.bounces, "seed": self.seed,

@@ -247,6 +247,7 @@ class TransportRows:
         iw, ih = self.op.input_size
         index, weight = self.op.index[self.rows], self.op.weight[self.rows]
         self._k = k
+        self._row_ones: np.ndarray | None = None
         flat_w = weight.reshape(-1, 3)
         live = np.flatnonzero(flat_w.max(axis=1) > 0)  # unused entries point at texel 0 with weight 0
         src = index.ravel().astype(np.int64)[live]
@@ -339,7 +340,7 @@ class TransportRows:
     @property
     def row_ones(self) -> np.ndarray:
         """(R, 3) ``T 1``: each row's light from a white input (SIRT's row sums), computed once."""
-        if getattr(self, "_row_ones", None) is None:
+        if self._row_ones is None:
             iw, ih = self.op.input_size
             self._row_ones = self.apply(np.ones((ih, iw, 3), np.float32))
         return self._row_ones

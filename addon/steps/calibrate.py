@@ -95,7 +95,8 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
         say("writing the calibration folder", share)
         write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
         if precompute:
-            _precompute(folder.tmp, options.seed, part(say, share, 1.0, "transport operator: "), cancel)
+            _precompute(folder.tmp, result.calibration, options.seed, part(say, share, 1.0, "transport operator: "),
+                        cancel)
     except BaseException:
         folder.abort()
         raise
@@ -104,13 +105,13 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     return result.calibration
 
 
-def store_transport(folder: str | Path, *, bounces: int = 1, seed: int = 0, progress: Progress | None = None,
-                    cancel: Cancel | None = None) -> dict[str, Any]:
-    """Render the light-transport operator of the calibration in ``folder`` and store it there: ``transport.npz``
-    and ``transport.json`` (what it holds, how long it took, and the content hashes of the calibration it belongs
-    to), each atomically. Returns the record."""
+def store_transport(folder: str | Path, calibration: Calibration, *, bounces: int = 1, seed: int = 0,
+                    progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:
+    """Render the light-transport operator of ``calibration`` (the one written in ``folder``) and store it there:
+    ``transport.npz`` and ``transport.json`` (what it holds, how long it took, and the content hashes of the
+    calibration it belongs to), each atomically. Returns the record."""
     folder = Path(folder)
-    op = build_transport(read(folder), bounces=bounces, seed=seed, progress=progress, cancel=cancel)
+    op = build_transport(calibration, bounces=bounces, seed=seed, progress=progress, cancel=cancel)
     ident = identity(folder)
     doc = {**op.report, "calibration_sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"],
            "file": layout.TRANSPORT_NPZ}
@@ -121,12 +122,12 @@ def store_transport(folder: str | Path, *, bounces: int = 1, seed: int = 0, prog
     return doc
 
 
-def _precompute(folder: Path, seed: int, say: Progress, cancel: Cancel | None) -> None:
+def _precompute(folder: Path, calibration: Calibration, seed: int, say: Progress, cancel: Cancel | None) -> None:
     """The transport operator into the calibration folder being written (so it appears with the calibration, or
     not at all). An operator that cannot be built leaves the calibration standing: compensation says so and
     renders one when it needs it."""
     try:
-        store_transport(folder, seed=seed, progress=say, cancel=cancel)
+        store_transport(folder, calibration, seed=seed, progress=say, cancel=cancel)
     except TransportError as exc:
         if cancel is not None and cancel():
             raise Cancelled("calibration cancelled while precomputing its transport operator; nothing was "

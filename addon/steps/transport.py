@@ -48,7 +48,7 @@ def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Ca
         doc = json.loads((folder / REPORT_FILE).read_text())
         say("the transport operator of this calibration is already there (--force renders it again)", 1.0)
         return doc
-    return calibrate_step.store_transport(folder, bounces=options.bounces, seed=options.seed, progress=say,
+    return calibrate_step.store_transport(folder, cal, bounces=options.bounces, seed=options.seed, progress=say,
                                           cancel=cancel)
 
 
