@@ -36,6 +36,9 @@ SINGLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "inte
 #: which model names each one's cause: ``EffectKind.diagnosis_name``).
 VARIANTS = ("response_scurve", "defocus_depth", "lamp")
 UNMODELLED = ("warmup", "surface_moved", "subsurface")
+#: Effects that act in one place of the surface (a highlight, light bouncing in a crease): the diagnosis's first
+#: region is scored against where the lab truth says each changes the image (``footprint``).
+LOCAL = ("glossy", "interreflection")
 PAIRS = (("response", "defocus"), ("crosstalk", "interreflection"), ("black_level", "glossy"),
          ("camera_response", "depth_noise"), ("response", "black_level"), ("crosstalk", "glossy"),
          ("camera_response", "defocus"), ("vignetting", "glossy"), ("distortion", "response"))
@@ -76,6 +79,50 @@ def run_case(work: Path, surface: str, effects: tuple[str, ...], strength: float
     if not (diag / "gap.json").is_file():
         _cli(["diagnose", str(cal), "--out", str(diag), "--scale", str(diag_scale), "--force"])
     return cal, truth, json.loads((diag / "gap.json").read_text())
+
+
+def footprint(truth_path: Path, effect: str, samples: int = 64) -> np.ndarray:
+    """Where an injected effect changes the white capture, drawn by the diagnosis's own region rule.
+
+    The white input is rendered twice through the lab truth, with and without the effect (pixel noise off,
+    more samples than the captures), and the squared difference goes through ``gap.regions.hot_set``: the
+    compact set holding half of it. Read from the truth, so only this script calls it.
+    """
+    from dataclasses import replace
+
+    from procam.addon.gap.regions import hot_set
+    from procam.addon.lab.lab import LabDevice, LabTruth
+
+    truth = LabTruth.load(truth_path)
+    proj = truth.rig.projector
+    white = proj.frame_from_input(np.ones(proj.input_size[::-1] + (3,), np.float32))
+    shots = []
+    for fx in (truth.effects, truth.effects.with_effect(effect, 0.0)):
+        with LabDevice(replace(truth, effects=fx.with_effect("noise", 0.0)), samples=samples) as device:
+            shots.append(device.project(white).mean(axis=2))
+    lit = shots[1] > 0.08 * float(shots[1].max())
+    return hot_set((shots[0] - shots[1]).astype(np.float64) ** 2, lit)
+
+
+def region_scores(diag: Path, truth_path: Path, effect: str) -> dict:
+    """IoU of the diagnosis's first region, and of its best region of that cause, with the effect's footprint."""
+    import cv2
+
+    labels = cv2.imread(str(diag / "regions_label.png"), cv2.IMREAD_GRAYSCALE)
+    truth = footprint(truth_path, effect)
+    if labels is None:
+        return {"error": "no regions_label.png (diagnosed before regions were saved)"}
+    if truth.shape != labels.shape:
+        truth = cv2.resize(truth.astype(np.uint8), labels.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    regions = json.loads((diag / "gap.json").read_text())["regions"]
+
+    def iou(k: int) -> float:
+        sel = labels == k + 1
+        return float((sel & truth).sum() / max((sel | truth).sum(), 1))
+
+    own = [k for k, r in enumerate(regions) if r.get("cause") == cause_of(effect)]
+    return {"top_cause": regions[0].get("cause") if regions else None, "iou_top": iou(0) if regions else 0.0,
+            "iou_own": max((iou(k) for k in own), default=0.0), "footprint_pixels": int(truth.sum())}
 
 
 def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[str], iterations: int
@@ -139,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="lab seeds per case (surface texture and noise; seed 0 keeps the plain case names)")
     ap.add_argument("--targets", type=int, default=2, help="natural targets for the compensation comparison (0: skip)")
     ap.add_argument("--iterations", type=int, default=60, help="stage-C iterations per target (open loop)")
+    ap.add_argument("--threshold", action="store_true",
+                    help="detection thresholds: per surface and effect, the strengths in rising order until the "
+                         "effect is ranked first (the stronger ones are not run)")
     ap.add_argument("--summarise", type=Path, default=None,
                     help="only print the tables of the case rows (JSON lines) an earlier, interrupted run logged")
     args = ap.parse_args(argv)
@@ -160,7 +210,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     plan = [(s, k, e, st) for s in args.surfaces.split(",") for k in range(args.seeds) for e in cases
             for st in (strengths if e else strengths[:1])]
+    found_at: set[tuple] = set()  # (surface, seed, effects) already ranked first at a lower strength
     for surface, seed, effects, strength in plan:
+        if args.threshold and (surface, seed, effects) in found_at:
+            continue
         t0 = time.perf_counter()
         cal, truth, doc = run_case(args.work, surface, effects, strength, args.scale, args.samples,
                                    args.diag_scale, seed)
@@ -181,16 +234,20 @@ def main(argv: list[str] | None = None) -> int:
                     shares.append((b - a) / (b - f))
             removed = max(shares) if shares else None
         comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
+        local = (region_scores(args.work / case_name(surface, effects, seed, strength) / "diagnosis", truth,
+                               effects[0]) if len(effects) == 1 and effects[0] in LOCAL else None)
         row = {"surface": surface, "seed": seed, "strength": strength, "injected": list(effects),
                "causes": [cause_of(e) for e in effects], "first": ranked[0] if ranked else None,
                "unexplained": doc.get("unexplained"), "session_changed": doc.get("session", {}).get("changed"),
                "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before,
                "rmse_after": after, "floor": floor,
-               "removed_above_floor": removed, "compensation": comp, "seconds": round(time.perf_counter() - t0, 1),
+               "removed_above_floor": removed, "compensation": comp, "regions": local, "seconds": round(time.perf_counter() - t0, 1),
                "confidence": {e["name"]: e["confidence"].get("level") for e in doc["effects"]
                               if e["name"] in doc["selected"]}}
         rows.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
+        if len(effects) == 1 and row["first"] == row["causes"][0]:
+            found_at.add((surface, seed, effects))
     md = report_markdown(rows, args)
     print(md)
     if args.out:
@@ -199,6 +256,30 @@ def main(argv: list[str] | None = None) -> int:
                                                          default=str))
         (args.out / "report.md").write_text(md)
     return 0
+
+
+def thresholds_table(rows: list[dict]) -> list[str]:
+    """Per effect and surface, the smallest strength at which its cause is ranked first in ≥ 90 % of the seeds."""
+    single = [r for r in rows if len(r["injected"]) == 1]
+    if len({r.get("strength", 0.5) for r in single}) < 2:
+        return []
+    surfaces = sorted({r["surface"] for r in single})
+    effects = list(dict.fromkeys(r["injected"][0] for r in single))
+    lines = ["", "Detection threshold: the smallest strength at which the cause is ranked first in ≥ 90 % of the "
+             "seeds (in brackets: named first / seeds at each strength tried; '–' never at the strengths tried):", "",
+             "| effect | " + " | ".join(surfaces) + " |", "|---|" + "---|" * len(surfaces)]
+    for e in effects:
+        cells = []
+        for surface in surfaces:
+            mine = [r for r in single if r["surface"] == surface and r["injected"][0] == e]
+            tried = sorted({r.get("strength", 0.5) for r in mine})
+            hits = {st: (sum(r["first"] == r["causes"][0] for r in mine if r.get("strength", 0.5) == st),
+                         sum(r.get("strength", 0.5) == st for r in mine)) for st in tried}
+            at = next((st for st in tried if hits[st][0] >= 0.9 * hits[st][1]), None)
+            cells.append((f"{at:g}" if at is not None else "–") + " ("
+                         + ", ".join(f"{st:g}: {h}/{n}" for st, (h, n) in hits.items()) + ")" if tried else "")
+        lines.append(f"| {e} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
@@ -222,6 +303,7 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
     unmodelled = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"])[0] is None]
     none = [r for r in rows if not r["injected"]]
     pairs = [r for r in rows if len(r["injected"]) == 2]
+    lines += thresholds_table(rows)
     lines += ["", "Summary:"]
     # An effect "leaves a gap" on a surface when, injected alone, it lifts the held-out RMSE > 5 % above the
     # no-effect floor; one that does not (absorbed by the calibration, or absent from that surface) cannot be found.
@@ -282,6 +364,12 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
                          f"{sum(set(r['injected']) <= set(r['selected']) for r in shows)}/{len(shows)}; where "
                          f"each is found alone (a gap, or absorbed and found): "
                          f"{sum(set(r['injected']) <= set(r['selected']) for r in alone)}/{len(alone)}")
+    local = [r for r in rows if r.get("regions") and "iou_top" in r["regions"]]
+    if local:
+        lines.append(f"- regions of local effects: the first region overlaps the effect's true footprint with IoU "
+                     f"≥ 0.5 in {sum(r['regions']['iou_top'] >= 0.5 for r in local)}/{len(local)} ("
+                     + ", ".join(f"{r['surface']} {r['injected'][0]} {r['strength']:g}: {r['regions']['iou_top']:.2f}"
+                                 f" [{r['regions']['top_cause']}]" for r in local) + ")")
     comp = [r for r in rows if r["compensation"] and r["injected"]]
     if comp:
         gains = [r["compensation"]["effects"] - r["compensation"]["base"] for r in comp]

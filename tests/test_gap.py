@@ -245,13 +245,38 @@ def test_a_region_where_the_white_capture_clipped_is_described_as_such(clean_cas
 
     def described() -> str:
         regions = find_regions(data, residuals, data.size, held)
-        assert len(regions) == 1 and regions[0].share > 0.99
+        assert len(regions) == 1 and regions[0].share > 0.5 and regions[0].mask[block].mean() > 0.9
         return regions[0].description
 
     assert "saturated" not in described()
     data.white.capture[block] = 1.0
     text = described()
     assert "white capture is saturated" in text and "simulation too dark" in text
+
+
+def test_regions_split_the_error_by_cause_and_name_no_place_for_a_global_one(clean_case):
+    """A local cause (a highlight) gets a compact region of its own, ranked by its share; a cause acting over the
+    whole lit area gets one region that names no place; the label image holds the first region's pixels."""
+    from procam.addon.gap.regions import WHOLE, find_regions, label_image
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.percentile(ys, 30)), int(np.percentile(xs, 70))
+    block = (slice(cy - 5, cy + 5), slice(cx - 5, cx + 5))
+    held = data.held_index
+    spot = np.zeros((len(held),) + data.mask.shape + (3,), np.float32)
+    spot[:, block[0], block[1]] = -0.2
+    veil = np.where(data.mask[None, ..., None], np.float32(0.01), np.float32(0.0)) * np.ones_like(spot)
+    base = spot + veil
+    # after each effect alone, the other's part is left; after both, nothing
+    regions = find_regions(data, base, data.size, held, causes={"glossy": veil, "black_level": spot},
+                           remainder=np.zeros_like(base))
+    assert [r.cause for r in regions] == ["glossy", "black_level"]
+    top, spread = regions
+    assert WHOLE not in top.tags and top.mask[block].mean() > 0.75 and top.pixels < 2 * 100
+    assert top.share > spread.share and WHOLE in spread.tags and spread.pixels == int(data.mask.sum())
+    labels = label_image(regions, data.mask.shape, data.size)
+    assert (labels[block] == 1).mean() > 0.75 and set(np.unique(labels)) <= {0, 1, 2}
 
 
 def test_glossy_model_restores_light_lost_where_white_clipped(clean_case):

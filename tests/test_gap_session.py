@@ -82,11 +82,13 @@ def test_the_headline_is_one_sentence_a_technician_can_act_on():
 
     size = (640, 480)
     assert "nothing to fix" in headline(_doc(), size)
-    bottom = [{"bbox": [200, 380, 240, 90], "share": 0.6}]
+    bottom = [{"bbox": [200, 380, 240, 90], "share": 0.6, "cause": "defocus", "tags": []}]
     text = headline(_doc(modelled=["defocus"], regions=bottom), size)
     assert text.startswith("The projector is out of focus towards the bottom") and "refocus" in text
-    # a small region does not place an effect that covers the image
-    assert "towards" not in headline(_doc(modelled=["defocus"], regions=[{**bottom[0], "share": 0.1}]), size)
+    # an effect over the whole lit area, or a place that belongs to another cause, places nothing
+    whole = [{**bottom[0], "tags": ["whole lit area"]}]
+    assert "towards" not in headline(_doc(modelled=["defocus"], regions=whole), size)
+    assert "towards" not in headline(_doc(modelled=["defocus"], regions=[{**bottom[0], "cause": "glossy"}]), size)
     changed = _doc(modelled=["black_level"], session={"changed": True, "sentence": "the surface moved"})
     assert "capture again" in headline(changed, size) and "black" not in headline(changed, size)
     left = {"detected": True, "explained_share": 0.2, "where": "near a surface crease", "unexplained_rmse": 0.004}

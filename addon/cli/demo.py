@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"    absorbed by calibration, found from its inputs: {', '.join(g['absorbed'])}; "
               f"--effects auto would invert: {', '.join(g['compensation']) or 'none'}")
     for k, r in enumerate(g["regions"]):
-        print(f"    region {k + 1}: {r['share']:.0%} of the error, {r['description']}")
+        print(f"    region {k + 1} ({r.get('cause', '?')}): {r['share']:.0%} of the error, {r['description']}")
     print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())
           + f", total {summary['seconds_total']}")
     return 0

@@ -57,6 +57,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {e['name']:<16} alone: RMSE {e['heldout_rmse_after']:.4f} ({e['reduction']:.0%} less), "
               f"confidence {e['confidence']['level']}")
     for k, r in enumerate(doc["regions"][:3]):
-        print(f"  region {k + 1}: {r['share']:.0%} of the error, {r['description']}")
+        print(f"  region {k + 1} ({r.get('cause', '?')}): {r['share']:.0%} of the error, {r['description']}")
     print(f"  summary: {Path(args.out) / 'summary.md'}")
     return 0

@@ -25,7 +25,7 @@ from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, fit_composite, residual_stack,
                   select_effects, structured)
 from .models import MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, signature_mask
-from .regions import find_regions, residual_maps
+from .regions import LEFT_OVER, UNEXPLAINED, WHOLE, find_regions, label_image, residual_maps
 from .remainder import Remainder, remainder
 from .session import SessionCheck, check_session
 
@@ -149,8 +149,10 @@ def headline(doc: dict[str, Any], size: tuple[int, int]) -> str:
                 + (f", most of it {left['where']}" if left["where"] else ""))
     if doc["modelled"]:
         name = doc["modelled"][0]
-        # a place only when one region holds much of the error: a defocus over the whole image is not "left"
-        region = doc["regions"][0]["bbox"] if doc["regions"] and doc["regions"][0]["share"] >= 0.25 else None
+        # a place only when the effect's error gathers in one (its first region): a defocus over the whole image
+        # is not "left"
+        first = next((r for r in doc["regions"] if r.get("cause") == name), None)
+        region = first["bbox"] if first and WHOLE not in first.get("tags", []) else None
         text = ACTIONS[name].format(where=_where(region, size))
         return text[0].upper() + text[1:] + tail + "."
     if left["detected"]:
@@ -177,8 +179,14 @@ def _overlay(base: np.ndarray, regions: list[Any], size: tuple[int, int]) -> np.
     img = (img * 255).astype(np.uint8).copy()
     for k, r in enumerate(regions):
         x, y, w, h = r.bbox
-        cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), (255, 60, 60), 2)
-        cv2.putText(img, f"{k + 1}: {r.share:.0%}", (x + 3, y + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 80), 1)
+        if r.mask is not None and WHOLE not in r.tags:  # the region's outline, not its box
+            sel = cv2.resize(r.mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+            contours, _ = cv2.findContours(sel, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+            cv2.drawContours(img, contours, -1, (255, 60, 60), 2)
+        else:
+            cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), (255, 60, 60), 2)
+        cv2.putText(img, f"{k + 1}: {r.cause} {r.share:.0%}", (x + 3, y + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    (255, 255, 80), 1)
     return img.astype(np.float32) / 255.0
 
 
@@ -237,9 +245,13 @@ def _summary(doc: dict[str, Any]) -> str:
         lines.append(f"| {n} | {'**yes**' if e['detected'] else 'no'} | {e['absorbed_by']} | {what} | "
                      f"{e['params'] or ''} |")
     lines += ["", "## Where", "", "![regions](regions.png) ![residual](residual_abs.png)", "",
-              "| region | bbox (x, y, w, h) | share of squared error | description |", "|---|---|---|---|"]
+              "Each region belongs to one cause: the part of the error a modelled effect removes there, or what "
+              "the selected effects leave (unexplained when above the captures' noise). `regions_label.png` holds "
+              "their pixels (region numbers when read as 8 bits).", "",
+              "| region | cause | bbox (x, y, w, h) | share of squared error | description |", "|---|---|---|---|---|"]
     for k, r in enumerate(doc["regions"]):
-        lines.append(f"| {k + 1} | {tuple(r['bbox'])} | {r['share']:.0%} | {r['description']} |")
+        lines.append(f"| {k + 1} | {r.get('cause', '')} | {tuple(r['bbox'])} | {r['share']:.0%} | "
+                     f"{r['description']} |")
     lines += ["", "Maps: `residual_signed.png` (per channel, grey = 0, ±scale in the JSON), `residual_abs.png`, "
                   "`residual_after_abs.png` (with the selected effects).", "",
               "What calibration absorbs: " + "; ".join(f"**{k}**: {v}" for k, v in ABSORBED.items()), ""]
@@ -310,15 +322,18 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
     cam_full = calibration.rig.camera.intrinsics.size
 
-    def regions_of(res: np.ndarray) -> list[Any]:
-        return find_regions(data, np.stack([structured(r, data.observations[i].edges)
-                                            for r, i in zip(res, data.held_index)]), cam_full, data.held_index)
-    regions = regions_of(res_base)
+    def smooth(res: np.ndarray) -> np.ndarray:
+        return np.stack([structured(r, data.observations[i].edges) for r, i in zip(res, data.held_index)])
     session = check_session(captures)
     rem = remainder(data, base, final)
-    left = regions_of(res_final) if rem.detected else []
-    unexplained = {**rem.to_dict(), "where": left[0].description if left else "",
-                   "where_bbox": list(left[0].bbox) if left else None}
+    # the error split by cause: what each modelled effect removes alone, and what all of them leave
+    causes = {n: smooth(residual_stack(Composite(data, (n,)), sel.alone[n].theta, data.held_index))
+              for n in sel.selected}
+    regions = find_regions(data, smooth(res_base), cam_full, data.held_index, causes=causes,
+                           remainder=smooth(res_final), remainder_cause=UNEXPLAINED if rem.detected else LEFT_OVER)
+    left = next((r for r in regions if r.cause == UNEXPLAINED and WHOLE not in r.tags), None)
+    unexplained = {**rem.to_dict(), "where": left.description if left else "",
+                   "where_bbox": list(left.bbox) if left else None}
     _temper_confidence(effects, sel.selected, session, rem)
     doc = {"format": format[0], "version": format[1], "calibration": data.report["calibration"],
            "capture_set": data.report["capture_set"], "working_size": list(data.size),
@@ -367,7 +382,9 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
               "residual_abs_rgb.png": np.clip(maps["abs"] / scale_abs, 0, 1),
               "residual_after_abs.png": _heat(after["abs"].mean(axis=2), scale_abs),
               "residual_signed.exr": maps["signed"], "residual_abs.exr": maps["abs"],
-              "regions.png": _overlay(white, regions, cam_full)}
+              "regions.png": _overlay(white, regions, cam_full),
+              # 8-bit readers get the region numbers (1 = the first region, 0 = none)
+              "regions_label.png": label_image(regions, data.mask.shape, cam_full).astype(np.float32) / 255.0}
     say("done", 1.0)
     return Diagnosis(doc, images, _summary(doc))
 

@@ -1,19 +1,34 @@
-"""Where the simulation and the captures disagree: residual maps and the regions that hold the error.
+"""Where the simulation and the captures disagree, and which cause each place belongs to.
 
-Regions are found from the data: the per-pixel mean squared residual (over the
-patterns and channels) is thresholded at the level above which the worst pixels
-hold half of the squared error, opened/closed, and split into connected
-components, largest share of the squared error first. Each region is then
-described against what is known about the scene from the calibration alone:
-surface creases, the unlit side of a concave edge, the projector border, a
-saturated white capture (the albedo there is a lower bound), the input levels
-and colour channel that dominate its error, and whether its error comes from
-sharp (binary) or smooth patterns.
+A region is a compact place in the camera image that holds a good share of the
+error, with the cause it belongs to and what lies there. The error is split by
+cause before regions are drawn: for each effect the diagnosis modelled, the
+part of the held-out squared residual that effect's model removes (residual
+before it minus residual after it, per pixel); and what all the selected
+effects leave (the remainder: "unexplained" when :mod:`.remainder` says it is
+above the captures' noise, "left over" when it is not). A residual map taken
+whole mixes causes, and on the demo its top region was the whole projected
+area for every cause at once: nothing a person could act on.
+
+Each cause's map becomes regions by one rule (:func:`hot_set`), also used by
+the lab benchmark to draw an injected effect's true footprint: the map is
+smoothed by the diagnosis's noise scale, the pixels above the level at which
+the worst ones hold half of its sum are kept, closed and opened, and split into
+connected components. A cause whose largest component holds less than
+:data:`GLOBAL_SHARE` of its error acts everywhere (a tone curve, a colour
+mix): it gets one region, the whole lit area, and no place is named for it.
+
+Regions are ranked by their share of the total squared error, and described
+against what the calibration alone knows: surface creases, the unlit side of a
+concave edge, where the projector's mirror reflection falls (the calibrated
+geometry's glossy lobe), a texture edge in the albedo, a depth step, the
+projector border, a saturated white capture, the input levels and colour
+channel that dominate its error, and whether it comes from sharp patterns.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -21,10 +36,21 @@ import numpy as np
 
 from ..stages.calibrate import SATURATED
 from .data import GapData
+from .fit import SMOOTH_SIGMA
 
-#: Regions smaller than this share of the lit pixels are merged into "scattered" error.
+#: Regions smaller than this share of the lit pixels are left out (scattered error).
 MIN_REGION_PIXELS = 0.002
 MAX_REGIONS = 6
+#: A cause whose largest compact region holds less than this share of its error acts over the whole lit area.
+GLOBAL_SHARE = 0.25
+#: A region is described by a property of the place when at least this share of its pixels has it.
+PLACE_SHARE = 0.3
+#: log-albedo change between neighbouring pixels that makes a texture edge (shading on a smooth surface
+#: changes it by well under 1 % a pixel).
+TEXTURE_EDGE = 0.15
+#: relative depth change between neighbouring pixels that makes a depth step (an occlusion boundary, not a slope).
+DEPTH_STEP = 0.05
+UNEXPLAINED, LEFT_OVER, WHOLE = "unexplained", "left over", "whole lit area"
 
 
 @dataclass
@@ -34,9 +60,11 @@ class Region:
     pixels: int
     description: str
     tags: list[str]
+    cause: str = LEFT_OVER  # an effect model's name, UNEXPLAINED or LEFT_OVER
+    mask: np.ndarray | None = field(default=None, repr=False)  # working-size pixels (not saved in gap.json)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"bbox": list(self.bbox), "share": round(self.share, 4), "pixels": self.pixels,
+        return {"bbox": list(self.bbox), "share": round(self.share, 4), "pixels": self.pixels, "cause": self.cause,
                 "description": self.description, "tags": self.tags}
 
 
@@ -54,58 +82,190 @@ def _half_error_threshold(sq: np.ndarray) -> float:
     return float(v[min(int(np.searchsorted(c, 0.5 * c[-1])), len(v) - 1)]) if c[-1] > 0 else float("inf")
 
 
-def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int], pattern_index: list[int]
-                 ) -> list[Region]:
-    """Connected regions of high residual, with what is known about each (see module docstring)."""
+def smoothed(energy: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A per-pixel error map smoothed within the mask (normalised, so the mask's border keeps its level)."""
+    m = mask.astype(np.float32)
+    num = cv2.GaussianBlur(np.where(mask, energy, 0).astype(np.float32), (0, 0), SMOOTH_SIGMA)
+    den = cv2.GaussianBlur(m, (0, 0), SMOOTH_SIGMA)
+    return np.where(mask, num / np.maximum(den, 1e-6), 0.0)
+
+
+def hot_set(energy: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The compact set that holds a map's error (see the module docstring): a boolean image.
+
+    The set is drawn on the RMS (the root of the smoothed squared error), not on the squared error: squared, a
+    peaked effect (a highlight clipped at its centre) puts half its sum in a few central pixels, and the set would
+    be its core rather than the place it covers.
+    """
+    e = np.sqrt(np.maximum(smoothed(energy, mask), 0.0))
+    if not mask.any() or float(e[mask].sum()) <= 0:
+        return np.zeros_like(mask)
+    hot = ((e >= _half_error_threshold(e[mask])) & mask).astype(np.uint8)
+    hot = cv2.morphologyEx(hot, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    return cv2.morphologyEx(hot, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool) & mask
+
+
+def energy_of(residuals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per-pixel squared residual, mean over patterns and channels, zero off the mask."""
+    return np.where(mask, (residuals.astype(np.float64) ** 2).mean(axis=(0, 3)), 0.0)
+
+
+def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int], pattern_index: list[int], *,
+                 causes: dict[str, np.ndarray] | None = None, remainder: np.ndarray | None = None,
+                 remainder_cause: str = LEFT_OVER) -> list[Region]:
+    """Compact regions of the error by cause, largest share first (see the module docstring).
+
+    ``residuals`` is the structured held-out residual of the calibrated model (patterns ``pattern_index``);
+    ``causes`` maps each modelled effect to the residual left after it alone, ``remainder`` is the residual
+    after all of them (default: ``residuals``, nothing modelled), named ``remainder_cause``.
+    """
     mask = data.mask
-    sq = np.where(mask, (residuals ** 2).mean(axis=(0, 3)), 0.0)
-    total = float(sq.sum())
+    total = float(smoothed(energy_of(residuals, mask), mask).sum())
     if total <= 0:
         return []
-    hot = (sq >= _half_error_threshold(sq[mask])) & mask
-    kernel = np.ones((3, 3), np.uint8)
-    hot = cv2.morphologyEx(cv2.morphologyEx(hot.astype(np.uint8), cv2.MORPH_CLOSE, kernel), cv2.MORPH_OPEN, kernel)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(hot, connectivity=8)
+    # What an effect explains is the change its model makes, (after − before)²: the captures' noise cancels
+    # in that difference, where it would not in before² − after².
+    maps = {name: energy_of(after - residuals, mask) for name, after in (causes or {}).items()}
+    # The remainder on the smooth parts only, as remainder.py judges it: pattern edges also hold sub-pixel
+    # misregistration, which on a clean rig outweighs every effect and lies wherever the patterns have edges.
+    left = residuals if remainder is None else remainder
+    edges = [data.observations[i].edges for i in pattern_index]
+    maps[remainder_cause] = energy_of(np.stack([np.where(e[..., None], 0.0, r) if e is not None else r
+                                                for r, e in zip(left, edges)]), mask)
     h, w = mask.shape
     sx, sy = full_size[0] / w, full_size[1] / h
     min_px = max(4, int(MIN_REGION_PIXELS * mask.sum()))
-    regions = []
-    for lab in range(1, count):
-        x, y, bw, bh, area = stats[lab]
-        if area < min_px:
+
+    def parts_of(energy: np.ndarray) -> list[np.ndarray]:
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(hot_set(energy, mask).astype(np.uint8),
+                                                                    connectivity=8)
+        return [labels == k for k in range(1, count) if stats[k, 4] >= min_px]
+
+    place = _Place(data)
+
+    def region(sel: np.ndarray, share: float, cause: str, note: str = "") -> Region:
+        whole = sel is mask
+        ys, xs = np.nonzero(sel)
+        x0, y0 = int(xs.min()), int(ys.min())
+        bbox = (int(x0 * sx), int(y0 * sy), int(round((xs.max() + 1 - x0) * sx)), int(round((ys.max() + 1 - y0) * sy)))
+        tags, words = ([WHOLE], ["over the whole lit area"]) if whole else place.describe(sel)
+        t2, w2 = _error_traits(data, residuals, sel, pattern_index)
+        return Region(bbox, share, int(sel.sum()), ", ".join(words + w2) + note, tags + t2, cause, sel)
+
+    regions, local = [], {}
+    for cause, energy in maps.items():
+        e = smoothed(energy, mask)
+        own = float(e.sum())
+        if own <= 0:
             continue
-        sel = labels == lab
-        tags, words = _describe(data, residuals, sel, pattern_index)
-        regions.append(Region((int(x * sx), int(y * sy), int(round(bw * sx)), int(round(bh * sy))),
-                              float(sq[sel].sum() / total), int(area), words, tags))
-    regions.sort(key=lambda r: -r.share)
+        parts = parts_of(energy)
+        if (not parts or max(float(e[p].sum()) for p in parts) < GLOBAL_SHARE * own
+                or max(int(p.sum()) for p in parts) > 0.5 * int(mask.sum())):
+            regions.append(region(mask, own / total, cause))  # acts everywhere: no place to name
+        else:
+            local[cause] = (energy, e)
+    # The places of all local causes together: a highlight the glossy model fits in its core, with a ring it
+    # leaves to the remainder, is one place with two shares, not two regions.
+    if local:
+        for sel in parts_of(sum(energy for energy, _ in local.values())):
+            part = {c: float(e[sel].sum()) for c, (_, e) in local.items()}
+            here = sum(part.values())
+            if here <= 0:
+                continue
+            # a modelled effect that acts here names the place; the remainder does when none does (at least a
+            # tenth of the error here), or when it is above the noise ("unexplained") and the largest part
+            modelled = {c: v for c, v in part.items() if c != remainder_cause and v >= 0.1 * here}
+            cause = max(part, key=part.get)
+            if modelled and (cause != UNEXPLAINED):
+                cause = max(modelled, key=modelled.get)
+            others = [f"{c} {v / here:.0%}" for c, v in sorted(part.items(), key=lambda kv: -kv[1]) if v >= 0.1 * here]
+            regions.append(region(sel, here / total, cause,
+                                  f"; of the error here: {', '.join(others)}" if len(others) > 1 else ""))
+    # a remainder within the captures' noise over the whole area names nothing: it goes last
+    regions.sort(key=lambda r: (r.cause == LEFT_OVER and WHOLE in r.tags, -r.share))
     return regions[:MAX_REGIONS]
 
 
-def _describe(data: GapData, residuals: np.ndarray, sel: np.ndarray, pattern_index: list[int]
-              ) -> tuple[list[str], str]:
+def label_image(regions: list[Region], shape: tuple[int, int], full_size: tuple[int, int]) -> np.ndarray:
+    """Region k+1's pixels (k in rank order, the first region on top) at the full camera size, 0 elsewhere."""
+    lab = np.zeros(shape, np.uint8)
+    for k in reversed(range(len(regions))):
+        if regions[k].mask is not None:
+            lab[regions[k].mask] = k + 1
+    return cv2.resize(lab, full_size, interpolation=cv2.INTER_NEAREST)
+
+
+class _Place:
+    """What the calibration knows about each pixel's place: its maps, computed once for all regions."""
+
+    def __init__(self, data: GapData) -> None:
+        self.data = data
+        mask = data.mask
+        gain = data.gain.mean(axis=2)
+        log_gain = np.log(np.maximum(gain, 1e-4)).astype(np.float32)
+        grad = np.hypot(cv2.Sobel(log_gain, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(log_gain, cv2.CV_32F, 0, 1, ksize=3))
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        # Sobel's 3×3 kernel weighs a one-pixel step 4×; a crease's shading is a surface property, not texture
+        self.texture = _near(inner & (grad / 4 > TEXTURE_EDGE) & (data.crease < 0.3))
+        valid = np.isfinite(data.points).all(axis=2)
+        depth = np.sqrt((np.where(valid[..., None], data.points, 0.0) ** 2).sum(axis=2)).astype(np.float32)
+        dstep = np.maximum(np.abs(np.diff(depth, axis=0, append=depth[-1:])),
+                           np.abs(np.diff(depth, axis=1, append=depth[:, -1:])))
+        ok = valid & np.roll(valid, -1, 0) & np.roll(valid, -1, 1)
+        self.depth_step = _near(ok & (dstep > DEPTH_STEP * np.maximum(depth, 1e-6)))
+        lobes = data.white.glossy
+        if lobes:
+            lobe = lobes[sorted(lobes)[len(lobes) // 2]].mean(axis=2)
+            self.mirror = hot_set(lobe.astype(np.float64) ** 2, mask)
+        else:
+            self.mirror = np.zeros_like(mask)
+
+    def describe(self, sel: np.ndarray) -> tuple[list[str], list[str]]:
+        data = self.data
+        tags: list[str] = []
+        words: list[str] = []
+        if float(data.crease[sel].mean()) > PLACE_SHARE:
+            tags.append("crease")
+            gain = data.gain.mean(axis=2)
+            near = cv2.dilate(sel.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+            if float(gain[sel].mean()) < 0.8 * float(gain[near & data.mask].mean()):
+                tags.append("unlit side of a concave edge")
+                words.append("on the darker side of a surface crease")
+            else:
+                words.append("near a surface crease")
+        if float(self.mirror[sel].mean()) > 0.5:
+            tags.append("mirror reflection")
+            words.append("where the projector's mirror reflection falls (a highlight on a glossy surface)")
+        if float(self.texture[sel].mean()) > PLACE_SHARE:
+            tags.append("texture edge")
+            words.append("on an edge in the surface's paint")
+        if float(self.depth_step[sel].mean()) > PLACE_SHARE:
+            tags.append("depth step")
+            words.append("at a depth step (an object's outline)")
+        iw, ih = data.projector.input_size
+        c = data.corr[sel]
+        border = np.minimum.reduce([c[:, 0], c[:, 1], iw - 1 - c[:, 0], ih - 1 - c[:, 1]])
+        if float(np.median(border)) < 0.05 * min(iw, ih):
+            tags.append("projector border")
+            words.append("near the border of the projector input")
+        if float((data.white.capture[sel] >= SATURATED).any(axis=1).mean()) > PLACE_SHARE:
+            # The albedo came from the white capture; where that clipped it is a lower bound (stages.calibrate).
+            tags.append("saturated white")
+            words.append("where the white capture is saturated (a highlight or too long an exposure: the albedo "
+                         "read there is too dark)")
+        return tags, words
+
+
+def _near(edge: np.ndarray) -> np.ndarray:
+    """Pixels on or next to a one-pixel-wide edge (a region's boundary rarely sits exactly on it)."""
+    return cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+
+
+def _error_traits(data: GapData, residuals: np.ndarray, sel: np.ndarray, pattern_index: list[int]
+                  ) -> tuple[list[str], list[str]]:
+    """The input levels, pattern kind, colour channel and sign that dominate a region's error."""
     tags: list[str] = []
     words: list[str] = []
-    if float(data.crease[sel].mean()) > 0.3:
-        tags.append("crease")
-        gain = data.gain.mean(axis=2)
-        near = cv2.dilate(sel.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
-        if float(gain[sel].mean()) < 0.8 * float(gain[near & data.mask].mean()):
-            tags.append("unlit side of a concave edge")
-            words.append("on the darker side of a surface crease")
-        else:
-            words.append("near a surface crease")
-    iw, ih = data.projector.input_size
-    c = data.corr[sel]
-    border = np.minimum.reduce([c[:, 0], c[:, 1], iw - 1 - c[:, 0], ih - 1 - c[:, 1]])
-    if float(np.median(border)) < 0.05 * min(iw, ih):
-        tags.append("projector border")
-        words.append("near the border of the projector input")
-    if float((data.white.capture[sel] >= SATURATED).any(axis=1).mean()) > 0.3:
-        # The albedo came from the white capture; where that clipped it is a lower bound (stages.calibrate).
-        tags.append("saturated white")
-        words.append("where the white capture is saturated (a highlight or too long an exposure: the albedo "
-                     "read there is too dark)")
     obs = [data.observations[i] for i in pattern_index]
     per = np.array([float((residuals[k][sel] ** 2).mean()) for k in range(len(obs))])
     levels = np.array([float(o.sampled[sel].mean()) for o in obs])
@@ -133,4 +293,4 @@ def _describe(data: GapData, residuals: np.ndarray, sel: np.ndarray, pattern_ind
         words.append(f"mostly in the {dict(r='red', g='green', b='blue')[name]} channel")
     signed = float(residuals[:, sel].mean())
     words.append("simulation too bright" if signed > 0 else "simulation too dark")
-    return tags, ", ".join(words)
+    return tags, words
