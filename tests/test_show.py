@@ -397,3 +397,39 @@ def test_evaluate_reports_the_flicker_of_a_show(lab_calibration, tmp_path):
     f = json.loads((out / "metrics.json").read_text())["flicker"]
     assert f["pairs"] == 2 and f["targets"] > 0 and f["captured"] > 0 and "consecutive" in f["measure"]
     assert f["excess"] == pytest.approx(f["captured"] - f["targets"], abs=2e-5)
+
+
+def test_evaluate_measures_a_show_made_from_a_video_against_that_video(lab_calibration, tmp_path, capsys):
+    """Each finished frame is measured against the video frame it was made from; the flicker is taken in frame
+    order; another video (by contents) or image targets are refused with what to give instead."""
+    from procam.addon.video import VideoReader, load_video_frame
+
+    cal_dir, _, truth = lab_calibration()
+    video = _video(tmp_path / "clip.avi", 3)
+    show = tmp_path / "show"
+    assert main(["show", str(cal_dir), str(video), "--out", str(show), *FAST, "--no-bias"]) == EXIT_OK
+    out = tmp_path / "eval"
+    evaluate = ["evaluate", str(cal_dir), "--inputs", str(show), "--device", f"lab:{truth}"]
+    assert main(evaluate + ["--targets", str(video), "--out", str(out)]) == EXIT_OK
+    doc = json.loads((out / "metrics.json").read_text())
+    assert [r["name"] for r in doc["targets"]] == ["frame_0001", "frame_0002", "frame_0003"]
+    assert all(r["status"] == "done" and r["psnr"] > r["uncompensated"]["psnr"] for r in doc["targets"])
+    assert doc["flicker"]["pairs"] == 2 and "8-bit video" in doc["targets"][1]["target_encoding"]
+    # frame 2's comparison starts with the video's frame 2 fitted to the area, not frame 1
+    from procam.addon.imageio import read_image
+    from procam.addon.stages.display_area import DisplayArea, fit_target
+
+    area = DisplayArea.from_dict(doc["targets"][1]["area"])
+    with VideoReader(video) as reader:
+        f1, f2 = (fit_target(load_video_frame(reader, i)[0], area) for i in (0, 1))
+    panel = read_image(out / "frame_0002_comparison.png")[:, :f2.shape[1]]
+    assert np.abs(panel - f2).mean() < 0.1 * np.abs(panel - f1).mean()
+    capsys.readouterr()
+    other = _video(tmp_path / "other.avi", 3, seed=7)
+    assert main(evaluate + ["--targets", str(other), "--out", str(tmp_path / "e2")]) == EXIT_USER
+    assert "is not the video" in capsys.readouterr().err
+    img = tmp_path / "f.png"
+    write_image(img, _target(1))
+    assert main(evaluate + ["--targets", str(img), "--out", str(tmp_path / "e3")]) == EXIT_USER
+    assert "give that video" in capsys.readouterr().err
+    assert not (tmp_path / "e2").exists() and not (tmp_path / "e3").exists()

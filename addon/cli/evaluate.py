@@ -31,10 +31,11 @@ from .terminal import run_step
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
     p.add_argument("--inputs", type=Path, required=True,
-                   help="compensation folder (from procam compensate) or show folder (from procam show, images)")
+                   help="compensation folder (from procam compensate) or show folder (from procam show)")
     p.add_argument("--targets", type=Path, nargs="+", required=True, metavar="TARGET",
-                   help="the target images given to procam compensate or show; two or more, in order, also give "
-                        "the sequence's flicker")
+                   help="the target images given to procam compensate or show (for a show made from a video: that "
+                        "video, each finished frame measured); two or more, in order, also give the sequence's "
+                        "flicker")
     p.add_argument("--device", required=True, help="lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or live:camera=SOURCE,display=N")
     p.add_argument("--out", type=Path, required=True, help="folder to create for the metrics and images")
     p.add_argument("--classical", action="store_true",

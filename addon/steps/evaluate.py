@@ -16,8 +16,10 @@ named them. If a target fails during the projections, the finished ones are
 kept and ``metrics.json`` records the failure (``"complete": false``), which
 is then raised.
 
-A show folder (``procam show``, image targets) is read like a compensation
-folder, its frames matched by the stems of the images they were made from.
+A show folder (``procam show``) is read like a compensation folder, its frames
+matched by the stems of the images they were made from; a show made from a
+video is evaluated on that video (``--targets clip.mp4``, checked by its
+hash): each finished frame against the video frame it was made from.
 Given two or more targets in order (a sequence), ``metrics.json`` also holds
 their **flicker** (:func:`flicker`): the mean absolute difference between
 consecutive captures inside the display area, minus that of the targets
@@ -31,7 +33,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -46,8 +48,10 @@ from ..stages.compensate import Compensator
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
 from ..stages.metrics import mean_scores, measure, side_by_side, uncompensated_input
 from ..stages.range import RangeMap, range_ceiling
+from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
+from .show_work import source_record
 from .stage_c import open_device
 from .summary import Summary, cached, fmt
 
@@ -141,18 +145,18 @@ class CompensationInputs:
         """A show folder's finished frames, named by the stems of their target images."""
         manifest = root / layout.SHOW.manifest
         show = _read_manifest(manifest, layout.SHOW.format, "show")
-        if show.get("video"):
-            raise InputsError(f"{root} was made from a video; evaluate takes image targets (export the frames "
-                              "as images and make the show from them)")
+        video = show.get("video") or None
         cal = show.get("calibration") or {}
         doc = {"format": layout.COMPENSATION.format, "capture_set": cal.get("capture_set"),
                "calibration": cal.get("path"), "camera_size": show.get("camera_size"),
-               "projector": show.get("projector"), "range": (show.get("settings") or {}).get("range")}
+               "projector": show.get("projector"), "range": (show.get("settings") or {}).get("range"),
+               "video": video}
         records: dict[str, InputRecord] = {}
         frames = [e for e in (show.get("frames") or {}).values() if isinstance(e, dict) and e.get("status") == "done"]
         for e in sorted(frames, key=lambda e: int(e.get("number", 0))):
             try:
-                name = output_names([str(e["source"])])[0]
+                # a video's frames share one source: they are named by their output files (frame_NNNN)
+                name = Path(str(e["file"])).stem if video else output_names([str(e["source"])])[0]
                 records[name] = InputRecord(name, root / str(e["file"]), None, DisplayArea.from_dict(e["area"]),
                                             e.get("mode"))
             except (KeyError, TypeError, ValueError, ProCamError) as exc:
@@ -224,21 +228,27 @@ FLICKER_MEASURE = ("flicker: for each pair of consecutive targets (in the order 
                    "captured − targets, which compensation should keep at or below 0")
 
 
-def flicker(rows: list[dict[str, Any]], seen: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
-            ) -> dict[str, Any] | None:
-    """The flicker of a sequence (:data:`FLICKER_MEASURE`): ``seen`` holds, by target name, the area crops of
-    (capture, fitted target, uncompensated capture); ``rows`` gives the order and the areas."""
-    pairs: list[tuple[str, str]] = []
-    for a, b in zip(rows, rows[1:]):
-        if a.get("status") == b.get("status") == "done" and a["area"] == b["area"]:
-            pairs.append((a["name"], b["name"]))
-    if not pairs:
-        return None
-    terms = {}
-    for k, what in enumerate(("captured", "targets", "uncompensated")):
-        terms[what] = round(float(np.mean([np.mean(np.abs(seen[b][k] - seen[a][k])) for a, b in pairs])), 5)
-    return {**terms, "excess": round(terms["captured"] - terms["targets"], 5), "pairs": len(pairs),
-            "measure": FLICKER_MEASURE}
+class Flicker:
+    """The flicker of a sequence (:data:`FLICKER_MEASURE`), taken as the targets come: only the previous target's
+    area crops are kept (a minute of video would not fit in memory)."""
+
+    def __init__(self) -> None:
+        self.last: tuple[dict[str, Any], tuple[np.ndarray, ...]] | None = None
+        self.pairs: list[tuple[float, float, float]] = []
+
+    def add(self, row: dict[str, Any], crops: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+        """The next row in order, with its crops (capture, fitted target, uncompensated capture); None: failed."""
+        if crops is not None and self.last is not None and self.last[0]["area"] == row["area"]:
+            self.pairs.append(tuple(float(np.mean(np.abs(b - a))) for a, b in zip(self.last[1], crops)))
+        self.last = (row, crops) if crops is not None else None
+
+    def report(self) -> dict[str, Any] | None:
+        if not self.pairs:
+            return None
+        terms = {what: round(float(np.mean([p[k] for p in self.pairs])), 5)
+                 for k, what in enumerate(("captured", "targets", "uncompensated"))}
+        return {**terms, "excess": round(terms["captured"] - terms["targets"], 5), "pairs": len(self.pairs),
+                "measure": FLICKER_MEASURE}
 
 
 @dataclass
@@ -250,7 +260,7 @@ class EvaluationRun:
 
 
 def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
-                    targets: list[tuple[str, np.ndarray, str]], device: Device, out: Path, *,
+                    targets: "list[tuple[str, np.ndarray, str]] | VideoTargets", device: Device, out: Path, *,
                     calibration_dir: str | Path | None = None, notes: list[str] | None = None,
                     classical: bool = False, progress: Progress | None = None,
                     cancel: Cancel | None = None) -> EvaluationRun:
@@ -269,8 +279,11 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     cam_size = calibration.rig.camera.intrinsics.size
     if not targets:
         raise EvaluationError("no target to evaluate; give at least one with --targets")
-    # Read and check everything first: a bad file fails before any projection.
-    frames = {name: inputs.frame(name, proj) for name, _, _ in targets}
+    # Read and check every input first: a bad file fails before any projection (read again when projected, so
+    # a long show's frames are not all held at once).
+    names = targets.names if isinstance(targets, VideoTargets) else [name for name, _, _ in targets]
+    for name in names:
+        inputs.frame(name, proj)
     comp = Compensator(calibration, bounces=0, spp=4)
     range_map = RangeMap.from_dict(inputs.doc.get("range"))
     captures = calibrate_step.captures_of(calibration)
@@ -282,7 +295,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             0.0)
         model = fit_classical(captures, device=device)
     rows: list[dict[str, Any]] = []
-    seen: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # area crops for the flicker
+    seen = Flicker()
     failure: ProCamError | None = None
     for i, (name, image, note) in enumerate(targets):
         rec = inputs.record(name)
@@ -297,7 +310,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             if range_map is not None:  # the compensation aimed at the mapped target: measure against that
                 fitted = range_map.apply(fitted)
             placed = area.place(fitted, cam_size)
-            got = measure(device, frames[name], fitted, area, cam_size)
+            got = measure(device, inputs.frame(name, proj), fitted, area, cam_size)
             plain = measure(device, proj.frame_from_input(uncompensated_input(comp, placed)), fitted, area, cam_size)
             row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
                                    "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2)}
@@ -313,6 +326,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
         except ProCamError as exc:
             failure = exc
             rows.append({"name": name, "status": "failed", "error": str(exc)})
+            seen.add(rows[-1], None)
             say(f"{name}: failed: {exc}", 1.0)
             break
         row["warnings"] = [str(w.message) for w in caught]
@@ -326,8 +340,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
         write_image(out / row["image"], side_by_side(fitted, area.crop(plain.capture), area.crop(got.capture), *extra))
         write_image(out / files["capture"], got.capture)
         write_image(out / files["uncompensated"], plain.capture)
-        if len(targets) > 1:
-            seen[name] = (area.crop(got.capture), fitted, area.crop(plain.capture))
+        seen.add(row, (area.crop(got.capture), fitted, area.crop(plain.capture)))
         rows.append(row)
     done = [r for r in rows if r.get("status") == "done"]
     doc = {"format": KIND.format, "version": KIND.version, "inputs": str(inputs.path.absolute()),
@@ -343,9 +356,44 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
            "mean_uncompensated": mean_scores(done, "uncompensated"),
            "mean_range_ceiling": round(float(np.mean([r["range_ceiling"] for r in done])), 2) if done else None,
            "mean_classical": mean_scores(done, "classical") if model is not None else None,
-           "flicker": flicker(rows, seen),
+           "flicker": seen.report(),
            "complete": failure is None}
     return EvaluationRun(doc, failure)
+
+
+class VideoTargets:
+    """The finished frames of a show made from a video, as ``(name, target, note)``, decoded when asked for: a
+    minute of full-resolution frames would not fit in memory at once."""
+
+    def __init__(self, path: Path, names: list[str], encoding: str) -> None:
+        self.path, self.names, self.encoding = path, names, encoding
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __iter__(self) -> Iterator[tuple[str, np.ndarray, str]]:
+        with VideoReader(self.path) as reader:
+            for name in self.names:
+                image, note = load_video_frame(reader, int(name.rsplit("_", 1)[1]) - 1, encoding=self.encoding)
+                yield name, image, note
+
+
+def video_targets(inputs: CompensationInputs, given: tuple[Path, ...], encoding: str) -> VideoTargets:
+    """The targets of a show made from a video: every finished frame, read from the video it was made from."""
+    video = inputs.doc["video"]
+    if len(given) != 1 or not is_video(given[0]):
+        raise InputsError(f"{inputs.path} was made from the video {video.get('source')}; give that video as the "
+                          "only target (its finished frames are measured in order)")
+    path = Path(given[0])
+    if not path.is_file():
+        raise InputsError(f"the video {path} does not exist")
+    if source_record(path)["source_sha256"] != video.get("source_sha256"):
+        raise MismatchError(f"{path} is not the video {inputs.path} was made from ({video.get('source')}): its "
+                            "contents differ")
+    names = sorted(inputs.records, key=lambda n: int(n.rsplit("_", 1)[1]))
+    if not names:
+        raise InputsError(f"{inputs.path} has no finished frame to evaluate")
+    return VideoTargets(path, names, encoding)
 
 
 def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
@@ -356,10 +404,14 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     cal = calibrate_step.read(options.calibration)
     inputs = CompensationInputs.load(options.inputs)
     notes = inputs.check_against(cal, options.calibration)  # inputs of another rig fail before any projection
-    names = output_names(options.targets)
-    for name in names:
-        inputs.record(name)  # a target with no compensation fails before anything is read or projected
-    targets = [(name, *load_target(p, encoding=options.target_encoding)) for name, p in zip(names, options.targets)]
+    if inputs.doc.get("video"):
+        targets: Any = video_targets(inputs, options.targets, options.target_encoding)
+    else:
+        names = output_names(options.targets)
+        for name in names:
+            inputs.record(name)  # a target with no compensation fails before anything is read or projected
+        targets = [(name, *load_target(p, encoding=options.target_encoding))
+                   for name, p in zip(names, options.targets)]
     folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds)
     owned = device is None
     try:
