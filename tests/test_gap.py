@@ -121,8 +121,10 @@ def test_adapter_inverts_what_it_models():
                                              "ambient_b": 0.005},
                              "vignetting": {"falloff": 0.3, "exponent": 2.0},
                              "camera_response": {"curve": 0.5},
-                             "glossy": {"weight": 0.2, "roughness": 0.2}}, proj)
-    assert "glossy" in adapter.not_used and "glossy" not in adapter.used
+                             "glossy": {"weight": 0.2, "roughness": 0.2},
+                             "distortion": {"k1": 0.1, "k2": 0.0}}, proj)
+    assert "distortion" in adapter.not_used and "distortion" not in adapter.used and "glossy" in adapter.used
+    assert adapter.glossy_gain() is None  # nothing clipped: the albedo holds the lobe, nothing to divide
     iw, ih = proj.input_size
     rng = np.random.default_rng(0)
     light = rng.uniform(0.2, 0.6, (ih, iw, 3)).astype(np.float32)  # within what the projector can emit
@@ -135,6 +137,43 @@ def test_adapter_inverts_what_it_models():
     curve = lambda a: 0.5 * a + 0.5 * srgb(a)  # noqa: E731
     seen = curve(v + np.array([0.01, 0.01, 0.005], np.float32))
     np.testing.assert_allclose(adapter.camera_to_light(seen, white=curve(w)), v * curve(w) / w, atol=3e-3)
+
+
+def test_glossy_is_inverted_where_the_white_capture_clipped(clean_case):
+    """The diagnosis stores the glossy model's gain where the white clipped; compensation divides the captures
+    and the target by it there (the model is too dark there at every level) and leaves every other pixel."""
+    from procam.addon.gap.compensation import load_adapter
+    from procam.addon.gap.diagnose import _clipped_white_gain
+    from procam.addon.gap.fit import Fit, Selection
+    from procam.addon.stages.calibrate import SATURATED
+    from procam.addon.stages.display_area import DisplayArea
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    data.white.capture[cy - 4:cy + 4, cx - 4:cx + 4] = 1.0
+    fit = Fit(("glossy",), np.array([0.5, 0.4]), 0.0, 0.0, 0.0)
+    sel = Selection(base=fit, alone={"glossy": fit}, selected=["glossy"], final=fit)
+    cam = data.size
+    doc = {"selected_params": {"glossy": {"weight": 0.5, "roughness": 0.4}},
+           "compensation": {"params": {"glossy": {"weight": 0.5, "roughness": 0.4}}},
+           "clipped_white": _clipped_white_gain(data, sel, cam)}
+    assert 0 < len(doc["clipped_white"]["pixels"]) <= 8 * 8 * 3
+    adapter = load_adapter(doc, data.projector)
+    gain = adapter.glossy_gain()
+    assert gain.shape == (cam[1], cam[0], 3) and float(gain[cy, cx].min()) > 1.0
+    far = ~(data.white.capture >= SATURATED).any(axis=2)  # the lab's white may clip elsewhere too
+    assert not far[cy, cx] and far.sum() > 0.5 * far.size
+    assert np.all(gain[far] == 1.0)
+    image = np.full((cam[1], cam[0], 3), 0.5, np.float32)
+    light = adapter.camera_to_light(image)
+    np.testing.assert_allclose(light[cy, cx], 0.5 / gain[cy, cx], rtol=1e-5)
+    assert np.all(light[far] == 0.5)
+    # a target fitted to a display area is divided by the area's crop of the gain
+    area = DisplayArea.from_dict({"x": cx - 10, "y": cy - 10, "width": 20, "height": 20})
+    target = adapter.model_target(np.full((20, 20, 3), 0.5, np.float32), area)
+    np.testing.assert_allclose(target[10, 10], 0.5 / gain[cy, cx], rtol=1e-5)
+    assert target[0, 0].tolist() == [0.5, 0.5, 0.5]
 
 
 def test_defocus_is_inverted_by_presharpening_within_the_input_range():

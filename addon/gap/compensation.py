@@ -20,10 +20,19 @@ around it rather than inside, each where it acts:
   by projected gradient, :func:`presharpen`): a blur has no exact inverse on a
   bounded input, but the closest bounded one restores what the range allows.
 
-``glossy`` and ``distortion`` are diagnosed but not inverted here (the glossy
-lobe needs a different material in the differentiable scene, and distortion
-would need the display area itself remapped); stage C's θ absorbs what they
-leave. The result
+* ``glossy``: the albedo was read from the white capture, which holds the lobe
+  under white; for direct light the lobe sends each camera pixel the same
+  projector texel as the diffuse part, so it is a per-pixel gain the albedo
+  already holds, and rendering the lobe in the differentiable scene would count
+  it twice. What the albedo lacks is the light the white capture clipped in the
+  highlight: there the model is too dark at every level, and stage C would push
+  the input up where the surface is already brighter than it thinks. So the
+  glossy model's gain on those pixels (:meth:`.models.Composite.clipped_white_gain`,
+  stored by the diagnosis) divides the target and the captures, a camera-side
+  correction like the others.
+
+``distortion`` is diagnosed but not inverted here (the display area itself
+would need remapping); stage C's θ absorbs the shift. The result
 says which effects it used and which it could not. With ``--effects auto`` it
 uses the diagnosis's ``compensation`` list: the selected effects that still help
 without the ones it cannot invert (:func:`.fit.compensation_subset`).
@@ -44,9 +53,8 @@ from .models import (MODELS, crosstalk_matrix, inverse_camera_curve, inverse_pro
 
 #: Effects compensation inverts (see the module docstring); the others are reported as not used.
 INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "camera_response", "interreflection",
-              "depth_noise")
-NOT_INVERTED = {"glossy": "the glossy lobe is not in the differentiable scene; θ absorbs it",
-                "distortion": "the display area is not remapped; θ absorbs the shift"}
+              "depth_noise", "glossy")
+NOT_INVERTED = {"distortion": "the display area is not remapped; θ absorbs the shift"}
 #: Emitted light below this share of white is treated as the darkest the projector can do.
 _EPS = 1e-4
 #: Projected-gradient steps of :func:`presharpen`, and the blur (input texels) below which it is skipped.
@@ -87,6 +95,10 @@ class EffectAdapter:
     not_used: dict[str, str] = field(default_factory=dict)
     #: f̂ of a white input at the camera size, from the compensator (``camera_to_light`` needs it for a camera curve).
     white: np.ndarray | None = None
+    #: the glossy model's gain where the white capture clipped, as the diagnosis stored it (``clipped_white`` in
+    #: ``gap.json``: working and camera sizes, and ``[x, y, r, g, b]`` of each pixel whose gain is not 1)
+    clipped_white: dict[str, Any] | None = None
+    _glossy_gain: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         unknown = [n for n in self.params if n not in MODELS]
@@ -156,12 +168,29 @@ class EffectAdapter:
 
     # ------------------------------------------------------------------ camera side
 
-    def camera_to_light(self, image: np.ndarray, white: np.ndarray | None = None) -> np.ndarray:
+    def glossy_gain(self) -> np.ndarray | None:
+        """The glossy model's gain at the camera size where the white capture clipped (None: no glossy model, or
+        nothing clipped)."""
+        if "glossy" not in self.params or not (self.clipped_white or {}).get("pixels"):
+            return None
+        if self._glossy_gain is None:
+            cw = self.clipped_white
+            w, h = cw["working_size"]
+            g = np.ones((h, w, 3), np.float32)
+            px = np.asarray(cw["pixels"], np.float32)
+            g[px[:, 1].astype(int), px[:, 0].astype(int)] = px[:, 2:5]
+            self._glossy_gain = cv2.resize(g, tuple(cw["camera_size"]), interpolation=cv2.INTER_LINEAR)
+        return self._glossy_gain
+
+    def camera_to_light(self, image: np.ndarray, white: np.ndarray | None = None,
+                        gain: np.ndarray | None = None) -> np.ndarray:
         """h⁻¹: a capture (or a target in capture space) in the model's units.
 
         With a camera curve the model's albedo holds the curve at white, so light
         is rescaled by the model's white ``white`` (f̂ of a white input, same size
         as ``image``); without ``white`` the image is assumed to be white-level.
+        The glossy model's gain (``gain``, same size; by default :meth:`glossy_gain`
+        when ``image`` is a whole camera image) divides the light last.
         """
         y = np.asarray(image, np.float32)
         curve = self._p("camera_response")
@@ -174,6 +203,11 @@ class EffectAdapter:
                 white = self.white
             if white is not None:
                 y = y / light_scale(np.asarray(white, np.float32), curve[0])
+        full = self.glossy_gain()
+        if gain is None and full is not None and full.shape == y.shape:
+            gain = full
+        if gain is not None:
+            y = y / gain
         return np.clip(y, 0.0, 1.0).astype(np.float32)
 
     # ------------------------------------------------------------------ stage C around the effects
@@ -188,7 +222,9 @@ class EffectAdapter:
 
     def model_target(self, fitted: np.ndarray, area: Any) -> np.ndarray:
         """A target fitted to the display area, in the units stage C compares with f̂."""
-        return self.camera_to_light(fitted, white=area.crop(self.white) if self.white is not None else None)
+        gain = self.glossy_gain()
+        return self.camera_to_light(fitted, white=area.crop(self.white) if self.white is not None else None,
+                                    gain=area.crop(gain) if gain is not None else None)
 
     def frame_to_send(self, x_input: np.ndarray) -> np.ndarray:
         """The native projector frame to send for stage C's answer ``x*`` (input size)."""
@@ -267,7 +303,7 @@ def load_adapter(doc: dict[str, Any], projector: Any, names: list[str] | None = 
     else:
         fitted = {e["name"]: e["params"] for e in doc.get("effects", []) if e.get("params")}
         params = {n: selected.get(n, fitted.get(n)) for n in names if selected.get(n, fitted.get(n)) is not None}
-    return EffectAdapter(params, projector)
+    return EffectAdapter(params, projector, clipped_white=doc.get("clipped_white"))
 
 
 def effects_wanted(effects: str | None) -> bool:

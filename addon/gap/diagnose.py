@@ -371,6 +371,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
            "what_calibration_absorbs": ABSORBED,
            "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1),
                        "evidence": round(t_evidence, 1)}}
+    doc["clipped_white"] = _clipped_white_gain(data, sel, cam_full)
     doc["headline"] = headline(doc, cam_full)
     maps = residual_maps(res_base, data.mask)
     after = residual_maps(res_final, data.mask)
@@ -387,6 +388,21 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
               "regions_label.png": label_image(regions, data.mask.shape, cam_full).astype(np.float32) / 255.0}
     say("done", 1.0)
     return Diagnosis(doc, images, _summary(doc))
+
+
+def _clipped_white_gain(data: GapData, sel: Selection, camera_size: tuple[int, int]) -> dict[str, Any] | None:
+    """The glossy model's gain where the white capture clipped, for compensation (``gap/compensation.py``):
+    at the parameters fitted with the selected effects, else at those fitted alone; None without a lobe."""
+    fit = sel.final if "glossy" in sel.selected else sel.alone.get("glossy")
+    if fit is None or fit.error is not None:
+        return None
+    weight, rough = fit.params()["glossy"].values()
+    gain = Composite(data, ("glossy",)).clipped_white_gain(float(weight), float(rough))
+    ys, xs = np.nonzero((gain != 1.0).any(axis=2))
+    if not len(xs):
+        return None
+    return {"working_size": list(data.size), "camera_size": list(camera_size),
+            "pixels": [[int(x), int(y), *(round(float(v), 4) for v in gain[y, x])] for x, y in zip(xs, ys)]}
 
 
 def _linear_light(data: GapData, sel: Selection) -> dict[str, Any]:

@@ -259,12 +259,7 @@ class Composite:
             weight, rough = p["glossy"]
             img = img + weight * (glossy_at(obs, float(rough)) - glossy_at(white, float(rough)) * obs.sampled)
             if weight > 0 and self._saturated.any():  # weight 0 is the identity, exactly
-                # Where the white capture clipped, the albedo holds only what the sensor could take, so the
-                # model is too dark at every lower level. The lobe says what white really was: the diffuse
-                # white of the neighbourhood plus the highlight; scale the prediction up to it there.
-                full = self._diffuse_white + weight * glossy_at(white, float(rough))
-                scale = np.maximum(full, d.gain) / np.maximum(d.gain, 1e-3)
-                img = np.where(self._saturated, img * scale, img)
+                img = img * self.clipped_white_gain(float(weight), float(rough))
         if "camera_response" in p:
             # The albedo holds the curve at white: take the image to light with white's scale before the
             # ambient light adds and the curve applies (white-balance gains cancel against the albedo).
@@ -276,6 +271,16 @@ class Composite:
         if "camera_response" in p:
             img = camera_curve(img, float(p["camera_response"][0]))
         return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+    def clipped_white_gain(self, weight: float, rough: float) -> np.ndarray:
+        """The glossy model's camera-side gain (h×w×3): where the white capture clipped, the albedo holds only
+        what the sensor could take, so the model is too dark at every lower level. The lobe says what white
+        really was (the diffuse white of the neighbourhood plus the highlight); 1 elsewhere."""
+        if weight <= 0 or not self._saturated.any():
+            return np.ones_like(self.data.gain)
+        gain = self.data.gain
+        full = self._diffuse_white + weight * glossy_at(self.data.white, rough)
+        return np.where(self._saturated, np.maximum(full, gain) / np.maximum(gain, 1e-3), 1.0).astype(np.float32)
 
     def _distort(self, img: np.ndarray, k1: float, k2: float) -> np.ndarray:
         # The captured pixel at distorted position p shows the scene of the undistorted position:
