@@ -34,7 +34,7 @@ SINGLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "inte
 #: counts the pairs whose effects each leave a gap or are found alone.
 #: Other functional forms of modelled causes, and causes the diagnosis has no model for (the lab's registry says
 #: which model names each one's cause: ``EffectKind.diagnosis_name``).
-VARIANTS = ("response_scurve", "defocus_depth", "lamp")
+VARIANTS = ("response_scurve", "defocus_depth", "lamp", "distortion_tangential")
 UNMODELLED = ("warmup", "surface_moved", "subsurface")
 #: Effects that act in one place of the surface (a highlight, light bouncing in a crease): the diagnosis's first
 #: region is scored against where the lab truth says each changes the image (``footprint``).
@@ -125,9 +125,10 @@ def region_scores(diag: Path, truth_path: Path, effect: str) -> dict:
             "iou_own": max((iou(k) for k in own), default=0.0), "footprint_pixels": int(truth.sum())}
 
 
-def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[str], iterations: int
-                      ) -> dict[str, float] | None:
-    """Mean PSNR in the display area, through the lab, open loop: base model vs with the selected effects."""
+def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[str], iterations: int,
+                      ablate: str | None = None) -> dict[str, float] | None:
+    """Mean PSNR in the display area, through the lab, open loop: base model vs with the selected effects
+    (and, with ``ablate``, with them less that one: ``without``, what inverting it buys)."""
     from procam.addon.capture.targets import natural_target
     from procam.addon.gap.compensation import AdaptedCaptures, load_adapter
     from procam.addon.lab.lab import LabDevice, LabTruth
@@ -153,6 +154,15 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     # base_again: the base input under another noise draw (another lab seed): how far two captures of the same
     # input differ, the scale against which a small difference between separate captures would be read.
     out = {"base": [], "effects": [], "base_again": []}
+    inverted = (doc.get("compensation") or {}).get("params") or {}
+    if ablate in inverted:
+        less = {**doc, "compensation": {**doc["compensation"],
+                                        "params": {n: v for n, v in inverted.items() if n != ablate}}}
+        adapter_less = load_adapter(less, cal.rig.projector)
+        comp_less = adapter_less.compensator(cal) if adapter_less.params else base
+        bias_less = (comp_less.estimate_bias(AdaptedCaptures(captures_of(cal), adapter_less))
+                     if adapter_less.params else bias)
+        out["without"] = []
     for t in targets:
         img = natural_target(t, (400, 300))
         area = choose_area(cal, aspect=4 / 3)
@@ -166,6 +176,13 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
             out["effects"].append(captured(adapter.frame_to_send(r1.x_input), placed, area))
         else:
             out["effects"].append(out["base"][-1])
+        if "without" in out:
+            if adapter_less.params:
+                r2 = comp_less.run(adapter_less.model_target(fit_target(img, area), area), area,
+                                   open_loop_theta=bias_less, iterations_z=iterations, iterations_joint=0)
+                out["without"].append(captured(adapter_less.frame_to_send(r2.x_input), placed, area))
+            else:
+                out["without"].append(out["base"][-1])
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
@@ -186,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="lab seeds per case (surface texture and noise; seed 0 keeps the plain case names)")
     ap.add_argument("--targets", type=int, default=2, help="natural targets for the compensation comparison (0: skip)")
     ap.add_argument("--iterations", type=int, default=60, help="stage-C iterations per target (open loop)")
+    ap.add_argument("--ablate", default=None, metavar="EFFECT",
+                    help="also compensate with the inverted effects less this one (what inverting it buys)")
     ap.add_argument("--threshold", action="store_true",
                     help="detection thresholds: per surface and effect, the strengths in rising order until the "
                          "effect is ranked first (the stronger ones are not run)")
@@ -233,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
                 if b - f > 0.1 * f:
                     shares.append((b - a) / (b - f))
             removed = max(shares) if shares else None
-        comp = compensation_gain(cal, truth, doc, targets, args.iterations) if args.targets else None
+        comp = compensation_gain(cal, truth, doc, targets, args.iterations, args.ablate) if args.targets else None
         local = (region_scores(args.work / case_name(surface, effects, seed, strength) / "diagnosis", truth,
                                effects[0]) if len(effects) == 1 and effects[0] in LOCAL else None)
         row = {"surface": surface, "seed": seed, "strength": strength, "injected": list(effects),
@@ -377,6 +396,12 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         lines.append(f"- compensation with the selected effects: mean gain {np.mean(gains):+.2f} dB where an effect "
                      f"was injected; worse (by > 0.05 dB) in {worse}/{len(comp)} cases; worst "
                      f"{min(gains):+.2f} dB")
+        ablated = [r for r in comp if "without" in r["compensation"]]
+        if ablated:
+            lines.append(f"- inverting {args.ablate} (with the other inverted effects against without it): "
+                         + ", ".join(f"{r['surface']} {'+'.join(r['injected'])} {r['strength']:g}: "
+                                     f"{r['compensation']['without']:.2f} → {r['compensation']['effects']:.2f} dB"
+                                     for r in ablated))
         again = [abs(r["compensation"]["base_again"] - r["compensation"]["base"]) for r in rows
                  if r["compensation"] and "base_again" in r["compensation"]]
         if again:

@@ -20,7 +20,7 @@ from procam.addon.rig.model import Intrinsics, Projector, intrinsics_from_fov
 PROJ = Projector(Intrinsics(200, 150, 240.0, 240.0, 100.0, 75.0), input_size=(150, 150))
 CAM = intrinsics_from_fov(160, 120, 60.0)
 PROJECTOR_SIDE = {"response", "crosstalk", "vignetting", "defocus", "response_scurve", "defocus_depth", "warmup"}
-CAMERA_SIDE = {"camera_response", "distortion", "noise"}
+CAMERA_SIDE = {"camera_response", "distortion", "distortion_tangential", "noise"}
 RENDER_SIDE = {"interreflection", "glossy", "lamp", "surface_moved", "subsurface"}
 
 
@@ -58,7 +58,7 @@ def _slanted_depth(intr: Intrinsics = PROJ.intrinsics) -> np.ndarray:
 def test_registry_names_match_the_design():
     assert NAMES == ("response", "crosstalk", "black_level", "vignetting", "defocus", "interreflection", "glossy",
                      "camera_response", "distortion", "noise", "depth_noise",
-                     "response_scurve", "defocus_depth", "lamp", "warmup", "surface_moved", "subsurface")
+                     "response_scurve", "defocus_depth", "lamp", "distortion_tangential", "warmup", "surface_moved", "subsurface")
 
 
 def test_every_lab_effect_names_a_diagnosis_model_or_none():
@@ -70,6 +70,7 @@ def test_every_lab_effect_names_a_diagnosis_model_or_none():
     assert [k.name for k in REGISTRY.values() if k.diagnosis_name is None] == ["warmup", "surface_moved",
                                                                               "subsurface"]
     assert REGISTRY["defocus_depth"].diagnosis_name == "defocus" and REGISTRY["lamp"].diagnosis_name == "black_level"
+    assert REGISTRY["distortion_tangential"].diagnosis_name == "distortion"
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -251,6 +252,29 @@ def test_distortion_moves_points_radially_and_keeps_the_principal_point():
             cos = moved @ radial / (np.linalg.norm(moved) * np.linalg.norm(radial))
             assert cos < -0.999  # ...inwards along the radius (barrel, k1 < 0)
     assert out[0, 0].min() > 0  # with the render margin, the corners are not black
+
+
+def test_a_decentred_lens_moves_points_as_opencv_says_and_not_radially():
+    """distortion_tangential (p1, p2 beside a small k1): the rendered blobs land where OpenCV's full lens model
+    puts them, and points on a diagonal move partly across their radius (a radial lens cannot do that)."""
+    e = parse_effects("distortion_tangential=1")
+    t = e["distortion_tangential"]
+    k1, k2, p1, p2 = t["k1"], 0.0, t["p1"], t["p2"]
+    pts = np.array([[CAM.cx, CAM.cy], [130.0, 95.0], [25.0, 30.0], [140.0, 20.0]])
+    margin = camera_margin(e, CAM)
+    out = apply_camera(_blob_image(CAM, pts, margin), e, CAM, _rng())
+    expected = distort_points(pts, CAM, e)
+    cv_pts, _ = cv2.projectPoints(np.c_[(pts - [CAM.cx, CAM.cy]) / [CAM.fx, CAM.fy], np.ones(len(pts))],
+                                  np.zeros(3), np.zeros(3), CAM.opencv_matrix(), np.array([k1, k2, p1, p2]))
+    np.testing.assert_allclose(cv_pts.reshape(-1, 2) + 0.5, expected, atol=1e-6)
+    pp = np.array([CAM.cx, CAM.cy])
+    across = []
+    for p, q in zip(pts, expected):
+        assert np.linalg.norm(_centroid(out, q) - q) < 0.1
+        radial, moved = p - pp, q - p
+        if np.linalg.norm(radial) > 1e-9:
+            across.append(abs(radial[0] * moved[1] - radial[1] * moved[0]) / np.linalg.norm(radial))
+    assert max(across) > 0.3  # pixels moved across the radius
 
 
 def test_distortion_rejects_a_camera_image_of_the_wrong_size():

@@ -25,7 +25,7 @@ from ..outputs import AtomicFolder
 from ..progress import Cancel, Progress, check, quiet
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
-from .effects import parse_effects
+from .effects import lens_of, parse_effects
 from .lab import LabDevice, make_truth
 
 #: The board's albedo: white paper and printed black (not 0: ink reflects a little).
@@ -115,7 +115,7 @@ class BoardTruth:
 
 def default_supersample(effects: str) -> int:
     """2 when ``effects`` distort the camera's lens (its resampling needs finer pixels, ``apply_camera``), else 1."""
-    return 2 if parse_effects(effects)["distortion"].active else 1
+    return 2 if lens_of(parse_effects(effects)) is not None else 1
 
 
 def render_board_sessions(rig: Rig, out: Path, *, board: tuple[int, int] = (9, 7), square: float = 0.06,

@@ -29,7 +29,8 @@ names its physical cause, ``None`` where none does):
   curve with toe and shoulder, which no power law fits), ``defocus_depth``
   (blur growing with |1/d − 1/d_focus| over the surface instead of one blur),
   ``lamp`` (an off-axis room lamp lighting the painted surface instead of a
-  uniform veil);
+  uniform veil), ``distortion_tangential`` (a decentred lens: tangential p1, p2
+  beside a mild radial term, where the diagnosis fits radial k1, k2 only);
 * **causes the diagnosis has no model for**: ``warmup`` (the projector's colour
   and brightness drift during the session as it warms up), ``surface_moved``
   (the surface was knocked between the calibration patterns and the validation
@@ -202,6 +203,13 @@ _KINDS: tuple[EffectKind, ...] = (
                 Param("side", "m", -3.0, 3.0, lambda s: 1.2, "lamp position to the camera's right"),
                 Param("height", "m", -3.0, 3.0, lambda s: 0.8, "lamp position above the camera")),
                cause="black_level"),
+    EffectKind("distortion_tangential", "camera",
+               "camera lens with a decentred element: tangential distortion (OpenCV p1, p2) beside a mild radial "
+               "part, which no radial k1, k2 fits",
+               (Param("p1", "", -0.05, 0.05, lambda s: 0.012 * s, "tangential coefficient p1"),
+                Param("p2", "", -0.05, 0.05, lambda s: -0.008 * s, "tangential coefficient p2"),
+                Param("k1", "", -0.3, 0.3, lambda s: -0.03 * s, "radial coefficient of r²")),
+               cause="distortion"),
     # ---- causes the diagnosis has no model for
     EffectKind("warmup", "projector",
                "the projector warms up during the session: its light starts dimmer and bluer-deficient and "
@@ -695,6 +703,47 @@ def render_settings(effects: EffectSet, camera_intrinsics: Intrinsics | None = N
     return out
 
 
+Lens = tuple[float, float, float, float]  # OpenCV k1, k2, p1, p2
+
+
+def lens_of(effects: EffectSet) -> Lens | None:
+    """The camera lens's distortion coefficients from ``distortion`` and ``distortion_tangential`` (None: ideal)."""
+    radial, tangential = effects["distortion"], effects["distortion_tangential"]
+    if not (radial.active or tangential.active):
+        return None
+    k1 = (radial["k1"] if radial.active else 0.0) + (tangential["k1"] if tangential.active else 0.0)
+    k2 = radial["k2"] if radial.active else 0.0
+    p1, p2 = (tangential["p1"], tangential["p2"]) if tangential.active else (0.0, 0.0)
+    return float(k1), float(k2), float(p1), float(p2)
+
+
+def _distort_normalised(x: np.ndarray, y: np.ndarray, lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's lens model (k1, k2, p1, p2) on ideal normalised coordinates."""
+    k1, k2, p1, p2 = lens
+    r2 = x * x + y * y
+    f = 1 + k1 * r2 + k2 * r2 * r2
+    return (x * f + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * f + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+
+def _undistort_lens(xd: np.ndarray, yd: np.ndarray, lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal normalised coordinates that ``lens`` maps onto (xd, yd): the radial Newton solve when it is radial,
+    else fixed-point steps on the full model (as OpenCV's undistortPoints; NaN where they do not settle)."""
+    k1, k2, p1, p2 = lens
+    if p1 == 0.0 and p2 == 0.0:
+        return _undistort_normalised(xd, yd, k1, k2)
+    xu, yu = xd.copy(), yd.copy()
+    for _ in range(50):
+        x2, y2 = _distort_normalised(xu, yu, lens)
+        ex, ey = x2 - xd, y2 - yd
+        xu, yu = xu - ex, yu - ey
+        if max(np.max(np.abs(ex), initial=0.0), np.max(np.abs(ey), initial=0.0)) < 1e-12:
+            break
+    else:
+        bad = np.hypot(ex, ey) > 1e-9
+        xu, yu = np.where(bad, np.nan, xu), np.where(bad, np.nan, yu)
+    return xu, yu
+
+
 def _undistort_normalised(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float) -> tuple[np.ndarray, np.ndarray]:
     """Ideal normalised coordinates whose radial distortion lands on (xd, yd) (Newton on the radius)."""
     rd = np.hypot(xd, yd)
@@ -726,19 +775,30 @@ def _check_monotone(intr: Intrinsics, k1: float, k2: float) -> None:
                        "use a smaller |k1|/|k2|")
 
 
+def _check_lens(intr: Intrinsics, lens: Lens) -> None:
+    _check_monotone(intr, lens[0], lens[1])
+    if lens[2] or lens[3]:
+        u = np.array([0.0, intr.width, 0.0, intr.width])
+        v = np.array([0.0, 0.0, intr.height, intr.height])
+        xu, _ = _undistort_lens((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, lens)
+        if not np.all(np.isfinite(xu)):
+            raise LabError(f"lens distortion {lens} cannot be inverted at this camera's corners; use smaller "
+                           "coefficients")
+
+
 def camera_margin(effects: EffectSet, camera_intrinsics: Intrinsics) -> tuple[int, int]:
     """Pixels to render beyond each side of the camera image (x, y) so distortion finds image everywhere."""
-    e = effects["distortion"]
-    if not e.active:
+    lens = lens_of(effects)
+    if lens is None:
         return (0, 0)
     intr = camera_intrinsics
-    _check_monotone(intr, e["k1"], e["k2"])
+    _check_lens(intr, lens)
     # the extreme ideal positions come from the image border (radial maps are monotone there)
     u = np.concatenate([np.linspace(0, intr.width, 64), np.full(64, intr.width), np.linspace(0, intr.width, 64),
                         np.zeros(64)])
     v = np.concatenate([np.zeros(64), np.linspace(0, intr.height, 64), np.full(64, intr.height),
                         np.linspace(0, intr.height, 64)])
-    xu, yu = _undistort_normalised((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, e["k1"], e["k2"])
+    xu, yu = _undistort_lens((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, lens)
     pu, pv = xu * intr.fx + intr.cx, yu * intr.fy + intr.cy
     mx = max(0.0, -pu.min(), pu.max() - intr.width)
     my = max(0.0, -pv.min(), pv.max() - intr.height)
@@ -812,10 +872,10 @@ def apply_camera(image: np.ndarray, effects: EffectSet, camera_intrinsics: Intri
                 raise LabError(f"ambient image is {amb.shape[1]}×{amb.shape[0]}, the camera image {w}×{h}")
             img = img + np.float32(e["ambient"]) * np.maximum(amb, 0.0) * tint
 
-    e = effects["distortion"]
+    lens = lens_of(effects)
     fine = intr.scaled(intr.width * ss, intr.height * ss) if ss > 1 else intr
-    if e.active:
-        img = _distort(img, fine, (mx * ss, my * ss), e["k1"], e["k2"])
+    if lens is not None:
+        img = _distort(img, fine, (mx * ss, my * ss), lens)
     elif mx or my:
         img = img[my * ss:(my + intr.height) * ss, mx * ss:(mx + intr.width) * ss]
     if ss > 1:
@@ -849,23 +909,22 @@ def quantise16(image: np.ndarray) -> np.ndarray:
     return (np.round(np.clip(image, 0.0, 1.0) * 65535.0) / 65535.0).astype(np.float32)
 
 
-def _distort(img: np.ndarray, intr: Intrinsics, margin: tuple[int, int], k1: float, k2: float) -> np.ndarray:
+def _distort(img: np.ndarray, intr: Intrinsics, margin: tuple[int, int], lens: Lens) -> np.ndarray:
     """Resample an ideal pinhole render into the distorted camera image (camera-sized)."""
-    map_x, map_y = _distortion_maps(intr, margin, k1, k2)
+    map_x, map_y = _distortion_maps(intr, margin, lens)
     return cv2.remap(img, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                      borderValue=(0, 0, 0))
 
 
 @functools.lru_cache(maxsize=8)  # a capture set renders dozens of frames with the same lens
-def _distortion_maps(intr: Intrinsics, margin: tuple[int, int], k1: float, k2: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    _check_monotone(intr, k1, k2)
+def _distortion_maps(intr: Intrinsics, margin: tuple[int, int], lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    _check_lens(intr, lens)
     mx, my = margin
     # output pixel centres in the corner convention, as distorted normalised coordinates
     u = np.arange(intr.width, dtype=np.float64) + 0.5
     v = np.arange(intr.height, dtype=np.float64) + 0.5
     xd, yd = np.meshgrid((u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy)
-    xu, yu = _undistort_normalised(xd, yd, k1, k2)
+    xu, yu = _undistort_lens(xd, yd, lens)
     # remap indexes pixel centres at integers: subtract the half pixel, add the render margin
     map_x = (xu * intr.fx + intr.cx - 0.5 + mx).astype(np.float32)
     map_y = (yu * intr.fy + intr.cy - 0.5 + my).astype(np.float32)
@@ -876,13 +935,13 @@ def _distortion_maps(intr: Intrinsics, margin: tuple[int, int], k1: float, k2: f
 
 def distort_points(points: np.ndarray, camera_intrinsics: Intrinsics, effects: EffectSet) -> np.ndarray:
     """Where ideal pinhole pixel positions (N×2, corner convention) land in the distorted camera image."""
-    e = effects["distortion"]
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    lens = lens_of(effects)
+    if lens is None:
+        return p.copy()
     intr = camera_intrinsics
-    x, y = (p[:, 0] - intr.cx) / intr.fx, (p[:, 1] - intr.cy) / intr.fy
-    r2 = x ** 2 + y ** 2
-    f = 1 + e["k1"] * r2 + e["k2"] * r2 ** 2
-    return np.stack([x * f * intr.fx + intr.cx, y * f * intr.fy + intr.cy], axis=1)
+    x, y = _distort_normalised((p[:, 0] - intr.cx) / intr.fx, (p[:, 1] - intr.cy) / intr.fy, lens)
+    return np.stack([x * intr.fx + intr.cx, y * intr.fy + intr.cy], axis=1)
 
 
 def describe(effects: EffectSet) -> str:
@@ -896,5 +955,5 @@ __all__ = [
     "LabError", "Param", "EffectKind", "Effect", "EffectSet", "REGISTRY", "NAMES", "PRESETS",
     "parse_effects", "effect_help", "apply_projector", "apply_camera", "render_settings",
     "camera_margin", "camera_render_intrinsics", "vignetting_gain", "crosstalk_matrix", "quantise16",
-    "distort_points", "describe", "s_curve", "warmup_gain", "depth_blur_sigma",
+    "distort_points", "describe", "s_curve", "warmup_gain", "depth_blur_sigma", "lens_of",
 ]
