@@ -258,6 +258,9 @@ def main(argv: list[str] | None = None) -> int:
         row = {"surface": surface, "seed": seed, "strength": strength, "injected": list(effects),
                "causes": [cause_of(e) for e in effects], "first": ranked[0] if ranked else None,
                "unexplained": doc.get("unexplained"), "session_changed": doc.get("session", {}).get("changed"),
+               # found where calibration absorbed it: the share of it the diagnosis's own law reaches
+               "model_share": ((doc.get("evidence") or {}).get(cause_of(effects[0]) or "") or {}).get("model_share")
+               if len(effects) == 1 else None,
                "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before,
                "rmse_after": after, "floor": floor,
                "removed_above_floor": removed, "compensation": comp, "regions": local, "seconds": round(time.perf_counter() - t0, 1),
@@ -351,7 +354,9 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         named = sum(r["first"] == r["causes"][0] for r in variants)
         lines.append(f"- other forms of a modelled cause: the cause ranked first {named}/{len(variants)} ("
                      + ", ".join(f"{r['surface']} {r['injected'][0]} → {r['first']}"
-                                 + (f" (explains {r['unexplained']['explained_share']:.0%})" if r.get("unexplained")
+                                 + (f" (its law fits {r['model_share']:.0%})" if r.get("model_share") is not None
+                                    and r["first"] in r.get("absorbed", []) else
+                                    f" (explains {r['unexplained']['explained_share']:.0%})" if r.get("unexplained")
                                     else "") for r in variants) + ")")
     if unmodelled:
         def wrong_high(r: dict) -> bool:

@@ -19,7 +19,9 @@ absorbed:
   too).
 * ``distortion`` (the pose and the stage-B warp hold it): the Gray-code
   correspondences, lifted to 3-D by the calibrated surface, are fitted by the
-  projector pose alone and by the pose plus the camera's radial ``k1, k2``.
+  projector pose alone, by the pose plus the camera's radial ``k1, k2``, and
+  with the tangential ``p1, p2`` too (a decentred lens, which the radial law
+  fits only in part: ``model_share`` says how much).
 * ``depth_noise`` (the wall image removes the bias, the reconstruction smooths
   the noise): read off the depth sensor's image of a flat wall, as the median
   offset and the spread about a fitted plane; without a wall image, the spread
@@ -80,10 +82,13 @@ class Evidence:
     evidence: str = ""  # in words, with the numbers
     absorbed_by: str = ""
     error: str | None = None  # why it could not be measured
+    #: share of ``share`` the diagnosis's own law of the effect reaches (distortion: radial k1, k2 of the lens)
+    model_share: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {"detected": self.detected, "params": self.params, "heldout_share": round(self.share, 4),
-                "evidence": self.evidence, "absorbed_by": self.absorbed_by, "error": self.error}
+                "evidence": self.evidence, "absorbed_by": self.absorbed_by, "error": self.error,
+                "model_share": None if self.model_share is None else round(self.model_share, 3)}
 
 
 def _blocks(xs: np.ndarray, ys: np.ndarray, width: int) -> np.ndarray:
@@ -290,20 +295,25 @@ def distortion_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) ->
     code = dec.coords[ys, xs].astype(np.float64) - 0.5
     p_from_c = np.linalg.inv(proj.camera_from_projector)
     rvec, _ = cv2.Rodrigues(p_from_c[:3, :3])
-    start = np.concatenate([rvec.ravel(), p_from_c[:3, 3], [0.0, 0.0]])
+    start = np.concatenate([rvec.ravel(), p_from_c[:3, 3], [0.0, 0.0, 0.0, 0.0]])
 
     def residual(theta: np.ndarray, sel: np.ndarray) -> np.ndarray:
-        xu = seen[sel]
-        for _ in range(4):  # undistort: x_d = x_u (1 + k1 r_u² + k2 r_u⁴), fixed point
-            r2 = np.sum(xu * xu, axis=1, keepdims=True)
-            xu = seen[sel] / (1 + theta[6] * r2 + theta[7] * r2 * r2)
+        xd = seen[sel]
+        xu = xd
+        p1, p2 = theta[8], theta[9]
+        for _ in range(6):  # undistort OpenCV's x_d = x_u (1 + k1 r² + k2 r⁴) + tangential(p1, p2), fixed point
+            x, y = xu[:, :1], xu[:, 1:]
+            r2 = x * x + y * y
+            tang = np.concatenate([2 * p1 * x * y + p2 * (r2 + 2 * x * x), p1 * (r2 + 2 * y * y) + 2 * p2 * x * y],
+                                  axis=1)
+            xu = (xd - tang) / (1 + theta[6] * r2 + theta[7] * r2 * r2)
         pts = _bilinear(view.points, xu * f + k[:2, 2])
         proj_pts, _ = cv2.projectPoints(np.nan_to_num(pts), theta[:3], theta[3:6], kp, None)
         r = proj_pts.reshape(-1, 2) - code[sel]
         r[~np.isfinite(pts[:, 0])] = 0.0
         return r.ravel()
 
-    steps = np.array([1e-6] * 6 + [1e-4] * 2)
+    steps = np.array([1e-6] * 6 + [1e-4] * 4)
     everything = np.ones(len(xs), bool)
     pose = _levenberg_marquardt(lambda t: residual(t, everything), start, list(range(6)), steps)
     # Decoding errors (defocused stripes, grazing light) are outliers to both laws.
@@ -316,15 +326,25 @@ def distortion_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) ->
         return ev
     mse = {}
     thetas = {}
-    for name, free in (("pose", list(range(6))), ("pose+k", list(range(8)))):
+    # radial k1, k2 (what the diagnosis's distortion model holds), then OpenCV's tangential p1, p2 as well: a
+    # decentred lens that the radial law fits only in part
+    for name, free in (("pose", list(range(6))), ("pose+k", list(range(8))), ("pose+k+p", list(range(10)))):
         thetas[name] = _levenberg_marquardt(lambda t: residual(t, fit), pose, free, steps)
         mse[name] = float(np.mean(residual(thetas[name], held) ** 2)) * 2  # per correspondence (x and y)
-    ev.share = (mse["pose"] - mse["pose+k"]) / mse["pose"] if mse["pose"] > 0 else 0.0
-    ev.params = {"k1": round(float(thetas["pose+k"][6]), 4), "k2": round(float(thetas["pose+k"][7]), 4)}
-    ev.detected = bool(ev.share >= DISTORTION_MIN_SHARE)
-    ev.evidence = (f"camera radial k1, k2 lower the held-out Gray-code reprojection error from "
-                   f"{np.sqrt(mse['pose']):.3f} to {np.sqrt(mse['pose+k']):.3f} projector px ({ev.share:.1%} of its "
-                   f"MSE; found at ≥ {DISTORTION_MIN_SHARE:.1%}; k1 trades with the pose's distance, k2 less)")
+    radial = (mse["pose"] - mse["pose+k"]) / mse["pose"] if mse["pose"] > 0 else 0.0
+    lens = (mse["pose"] - min(mse["pose+k"], mse["pose+k+p"])) / mse["pose"] if mse["pose"] > 0 else 0.0
+    ev.share = lens
+    t = thetas["pose+k+p"] if mse["pose+k+p"] < mse["pose+k"] else thetas["pose+k"]
+    ev.params = {"k1": round(float(thetas["pose+k"][6]), 4), "k2": round(float(thetas["pose+k"][7]), 4),
+                 "p1": round(float(t[8]), 4), "p2": round(float(t[9]), 4)}
+    ev.detected = bool(lens >= DISTORTION_MIN_SHARE)
+    ev.evidence = (f"the camera lens lowers the held-out Gray-code reprojection error from {np.sqrt(mse['pose']):.3f} "
+                   f"to {np.sqrt(mse['pose'] * (1 - lens)):.3f} projector px ({lens:.1%} of its MSE; found at ≥ "
+                   f"{DISTORTION_MIN_SHARE:.1%}); radial k1, k2 alone remove {max(radial, 0.0):.1%}"
+                   + (f", so the radial model fits {max(radial, 0.0) / lens:.0%} of it (a decentred lens: "
+                      "tangential p1, p2)" if lens > 0 and radial < 0.8 * lens and ev.detected else "")
+                   + "; k1 trades with the pose's distance, k2 less")
+    ev.model_share = float(np.clip(radial / lens, 0.0, 1.0)) if lens > 0 else None
     return ev
 
 
