@@ -3,10 +3,11 @@
 A region is a compact place in the camera image that holds a good share of the
 error, with the cause it belongs to and what lies there. The error is split by
 cause before regions are drawn: for each effect the diagnosis modelled, the
-part of the held-out squared residual that effect's model removes (residual
-before it minus residual after it, per pixel); and what all the selected
-effects leave (the remainder: "unexplained" when :mod:`.remainder` says it is
-above the captures' noise, "left over" when it is not). A residual map taken
+change its fitted model makes to the held-out prediction, squared (what it
+explains there, without the captures' noise); and what all the selected
+effects leave on the smooth parts (the remainder: "unexplained" when
+:mod:`.remainder` says it is above the captures' noise, "left over" when it
+is not). A residual map taken
 whole mixes causes, and on the demo its top region was the whole projected
 area for every cause at once: nothing a person could act on.
 
@@ -235,7 +236,7 @@ class _Place:
                 words.append("near a surface crease")
         if float(self.mirror[sel].mean()) > 0.5:
             tags.append("mirror reflection")
-            words.append("where the projector's mirror reflection falls (a highlight on a glossy surface)")
+            words.append("where the projector's mirror reflection falls (a highlight, on a glossy surface)")
         if float(self.texture[sel].mean()) > PLACE_SHARE:
             tags.append("texture edge")
             words.append("on an edge in the surface's paint")
