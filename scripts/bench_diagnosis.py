@@ -86,7 +86,10 @@ def footprint(truth_path: Path, effect: str, samples: int = 64) -> np.ndarray:
 
     The white input is rendered twice through the lab truth, with and without the effect (pixel noise off,
     more samples than the captures), and the squared difference goes through ``gap.regions.hot_set``: the
-    compact set holding half of it. Read from the truth, so only this script calls it.
+    compact set holding half of it. For ``glossy`` the difference is the lobe's own light: the lab mixes
+    the lobe in at weight w, so "with" is (1 − w)·diffuse + w·lobe, and the diffuse light the mix takes away
+    (a per-pixel gain following the paint, which the albedo read from white holds) is not where the
+    highlight is. Read from the truth, so only this script calls it.
     """
     from dataclasses import replace
 
@@ -101,7 +104,8 @@ def footprint(truth_path: Path, effect: str, samples: int = 64) -> np.ndarray:
         with LabDevice(replace(truth, effects=fx.with_effect("noise", 0.0)), samples=samples) as device:
             shots.append(device.project(white).mean(axis=2))
     lit = shots[1] > 0.08 * float(shots[1].max())
-    return hot_set((shots[0] - shots[1]).astype(np.float64) ** 2, lit)
+    keep = 1.0 - truth.effects["glossy"]["weight"] if effect == "glossy" else 1.0
+    return hot_set((shots[0] - keep * shots[1]).astype(np.float64) ** 2, lit)
 
 
 def region_scores(diag: Path, truth_path: Path, effect: str) -> dict:
