@@ -21,7 +21,7 @@ matched by the stems of the images they were made from; a show made from a
 video is evaluated on that video (``--targets clip.mp4``, checked by its
 hash): each finished frame against the video frame it was made from.
 Given two or more targets in order (a sequence), ``metrics.json`` also holds
-their **flicker** (:func:`flicker`): the mean absolute difference between
+their **flicker** (:class:`Flicker`): the mean absolute difference between
 consecutive captures inside the display area, minus that of the targets
 themselves — what compensation adds to the sequence's own change.
 """
