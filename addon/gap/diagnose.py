@@ -185,8 +185,9 @@ def _overlay(base: np.ndarray, regions: list[Any], size: tuple[int, int]) -> np.
             cv2.drawContours(img, contours, -1, (255, 60, 60), 2)
         else:
             cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), (255, 60, 60), 2)
-        cv2.putText(img, f"{k + 1}: {r.cause} {r.share:.0%}", (x + 3, y + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                    (255, 255, 80), 1)
+        # whole-area regions share one box: their labels go one under the other
+        cv2.putText(img, f"{k + 1}: {r.cause} {r.share:.0%}", (x + 3, y + 16 + 14 * k), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.45, (255, 255, 80), 1)
     return img.astype(np.float32) / 255.0
 
 

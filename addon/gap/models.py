@@ -48,6 +48,9 @@ class EffectModel:
     start: tuple[float, ...] | None = None  # where the fit starts (identity is a saddle for some models)
     #: Parameters first held at their identity values; freed only if that lowers the fit error (``fit.NESTED_GAIN``)
     nested: tuple[int, ...] = ()
+    #: Its form acts in places the geometry sets (light carried between surface parts, a highlight), not by input
+    #: level, colour or image position over the whole lit area: only such an effect has a place to point at.
+    local: bool = False
 
     def initial(self) -> np.ndarray:
         return np.asarray(self.start if self.start is not None else self.identity, float)
@@ -69,9 +72,10 @@ MODELS: dict[str, EffectModel] = {m.name: m for m in (
                 start=(0.05, 2)),
     EffectModel("defocus", ("sigma",), (0,), (0,), (12,), "at edges of the projected pattern (high spatial "
                 "frequency)", start=(0.7,)),
-    EffectModel("interreflection", ("gain",), (0,), (0,), (2.5,), "where indirect light is strong (concave parts)"),
+    EffectModel("interreflection", ("gain",), (0,), (0,), (2.5,), "where indirect light is strong (concave parts)",
+                local=True),
     EffectModel("glossy", ("weight", "roughness"), (0, 0.4), (0, GLOSSY_ROUGHNESS[0]), (0.8, GLOSSY_ROUGHNESS[-1]),
-                "where a glossy lobe changes the image (view-dependent highlights)", start=(0.05, 0.4)),
+                "where a glossy lobe changes the image (view-dependent highlights)", start=(0.05, 0.4), local=True),
     EffectModel("camera_response", ("curve",), (0,), (0,), (1,), "mid camera levels", start=(0.1,)),
     EffectModel("distortion", ("k1", "k2"), (0, 0), (-0.4, -0.15), (0.4, 0.15), "near the camera image border"),
     EffectModel("depth_noise", ("offset", "slope_x", "slope_y"), (0, 0, 0), (-0.1,) * 3, (0.1,) * 3,

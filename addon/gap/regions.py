@@ -15,9 +15,12 @@ Each cause's map becomes regions by one rule (:func:`hot_set`), also used by
 the lab benchmark to draw an injected effect's true footprint: the map is
 smoothed by the diagnosis's noise scale, the pixels above the level at which
 the worst ones hold half of its sum are kept, closed and opened, and split into
-connected components. A cause whose largest component holds less than
-:data:`GLOBAL_SHARE` of its error acts everywhere (a tone curve, a colour
-mix): it gets one region, the whole lit area, and no place is named for it.
+connected components. An effect model whose form acts over the whole lit area
+(a tone curve, a colour mix, a black level: ``EffectModel.local`` is False)
+gets one region, the whole lit area, and no place is named for it; so does a
+local cause (interreflection, glossy, the remainder) whose largest component
+holds less than :data:`GLOBAL_SHARE` of its error or covers over half the lit
+area.
 
 Regions are ranked by their share of the total squared error, and described
 against what the calibration alone knows: surface creases, the unlit side of a
@@ -38,6 +41,7 @@ import numpy as np
 from ..stages.calibrate import SATURATED
 from .data import GapData
 from .fit import SMOOTH_SIGMA
+from .models import MODELS
 
 #: Regions smaller than this share of the lit pixels are left out (scattered error).
 MIN_REGION_PIXELS = 0.002
@@ -159,7 +163,10 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
         own = float(e.sum())
         if own <= 0:
             continue
-        parts = parts_of(energy)
+        # An effect whose form acts over the whole lit area (a tone curve, a colour mix, a black level) gets no
+        # place even where its error happens to gather: on the demo the black level's brighter half was drawn
+        # as a blob of 40 % of the lit area. The local ones (and the remainder) get places from the data.
+        parts = parts_of(energy) if cause not in MODELS or MODELS[cause].local else []
         if (not parts or max(float(e[p].sum()) for p in parts) < GLOBAL_SHARE * own
                 or max(int(p.sum()) for p in parts) > 0.5 * int(mask.sum())):
             regions.append(region(mask, own / total, cause))  # acts everywhere: no place to name
@@ -225,7 +232,9 @@ class _Place:
         data = self.data
         tags: list[str] = []
         words: list[str] = []
-        if float(data.crease[sel].mean()) > PLACE_SHARE:
+        # on a crease, or holding one (a region around a crease is wider than the crease line)
+        if float(data.crease[sel].mean()) > PLACE_SHARE or int((data.crease[sel] > 0.5).sum()) >= max(
+                3, 0.01 * int(sel.sum())):
             tags.append("crease")
             gain = data.gain.mean(axis=2)
             near = cv2.dilate(sel.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
