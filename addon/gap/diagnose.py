@@ -22,7 +22,7 @@ from ..stages.calibrate import Calibration
 from .data import GapData, load_gap_data
 from .compensation import INVERTIBLE
 from .evidence import calibration_evidence
-from .fit import (MIN_SHARE, SMOOTH_SIGMA, Fit, Selection, compensation_subset, fit_composite, residual_stack,
+from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
                   select_effects, structured)
 from .models import MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, signature_mask
 from .regions import LEFT_OVER, UNEXPLAINED, WHOLE, find_regions, label_image, residual_maps
@@ -52,15 +52,9 @@ def _psnr(rmse: float) -> float:
     return float("inf") if rmse <= 0 else 20.0 * math.log10(1.0 / rmse)
 
 
-def _signature(data: GapData, name: str, base: Fit, fit: Fit) -> dict[str, Any]:
-    """Where the effect's reduction of squared error falls, against the pixels its signature names."""
-    if fit.error is not None:
-        return {}
-    edges = [data.observations[i].edges for i in data.held_index]
-    b = np.stack([structured(r, e) for r, e in zip(residual_stack(Composite(data, ()), base.theta,
-                                                                   data.held_index), edges)])
-    a = np.stack([structured(r, e) for r, e in zip(residual_stack(Composite(data, fit.names), fit.theta,
-                                                                   data.held_index), edges)])
+def _signature(data: GapData, name: str, b: np.ndarray, a: np.ndarray) -> dict[str, Any]:
+    """Where the effect's reduction of squared error falls, against the pixels its signature names (``b``, ``a``:
+    the structured held-out residuals before the effect and after it alone)."""
     # Only where the effect helps: a model may also shift error around, which is not "explaining" it.
     gain = np.where(data.mask, np.maximum(((b ** 2) - (a ** 2)).mean(axis=3), 0.0), 0.0)
     sig = np.stack([signature_mask(name, data, data.observations[i]) for i in data.held_index]) & data.mask
@@ -301,12 +295,26 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     # Selected on the residual first, then found where calibration absorbed them, then the rest by share.
     ranked = sorted(sel.alone.items(), key=lambda kv: (0 if kv[0] in sel.selected else 1 if kv[0] in found else 2,
                                                        -kv[1].share_of(base)))
+    def smooth(res: np.ndarray) -> np.ndarray:
+        return np.stack([structured(r, data.observations[i].edges) for r, i in zip(res, data.held_index)])
+    res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
+    smooth_base = smooth(res_base)
+    smooth_alone: dict[str, np.ndarray] = {}
+
+    def alone(name: str) -> np.ndarray:
+        """The structured held-out residual after one effect fitted alone (the signature and the regions both
+        read it: computed once)."""
+        if name not in smooth_alone:
+            f = sel.alone[name]
+            smooth_alone[name] = smooth(residual_stack(Composite(data, f.names), f.theta, data.held_index))
+        return smooth_alone[name]
+
     for name, f in ranked:
         if f.error is not None:
             effects.append({"name": name, "error": f.error, "params": None, "heldout_rmse_before": base.held_rmse,
                             "heldout_rmse_after": None, "confidence": {"level": "failed"}})
             continue
-        sig = _signature(data, name, base, f) if name in sel.selected or name == ranked[0][0] else {}
+        sig = _signature(data, name, smooth_base, alone(name)) if name in sel.selected or name == ranked[0][0] else {}
         effects.append({"name": name, "params": f.params()[name], "heldout_rmse_before": base.held_rmse,
                         "heldout_rmse_after": f.held_rmse, "heldout_rmse_raw_before": base.held_rmse_raw,
                         "heldout_rmse_raw_after": f.held_rmse_raw,
@@ -319,18 +327,13 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
             if name in found:
                 effects[-1]["confidence"] = {**effects[-1]["confidence"], "level": "absorbed by calibration",
                                              "evidence": evidence[name].evidence}
-    res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
     res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
     cam_full = calibration.rig.camera.intrinsics.size
-
-    def smooth(res: np.ndarray) -> np.ndarray:
-        return np.stack([structured(r, data.observations[i].edges) for r, i in zip(res, data.held_index)])
     session = check_session(captures)
     rem = remainder(data, base, final)
     # the error split by cause: what each modelled effect removes alone, and what all of them leave
-    causes = {n: smooth(residual_stack(Composite(data, (n,)), sel.alone[n].theta, data.held_index))
-              for n in sel.selected}
-    regions = find_regions(data, smooth(res_base), cam_full, data.held_index, causes=causes,
+    causes = {n: alone(n) for n in sel.selected}
+    regions = find_regions(data, smooth_base, cam_full, data.held_index, causes=causes,
                            remainder=smooth(res_final), remainder_cause=UNEXPLAINED if rem.detected else LEFT_OVER)
     left = next((r for r in regions if r.cause == UNEXPLAINED and WHOLE not in r.tags), None)
     unexplained = {**rem.to_dict(), "where": left.description if left else "",
