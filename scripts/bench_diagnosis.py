@@ -141,13 +141,18 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     from procam.addon.stages.display_area import choose_area, fit_target
 
     cal = read_calibration(cal_dir)
-    adapter = load_adapter(doc, cal.rig.projector)
     base = Compensator(cal)
     bias = base.estimate_bias()
     truth = LabTruth.load(truth_path)
-    if adapter.params:  # stage C with the effects around it, as the compensate step runs --effects auto
-        comp_fx = adapter.compensator(cal)
-        bias_fx = comp_fx.estimate_bias(AdaptedCaptures(captures_of(cal), adapter))
+
+    def around(gap_doc: dict) -> tuple:
+        """Stage C with a diagnosis's inverted effects around it, as the compensate step runs --effects auto:
+        (adapter, compensator, open-loop θ), or None when it inverts nothing."""
+        adapter = load_adapter(gap_doc, cal.rig.projector)
+        if not adapter.params:
+            return None
+        comp = adapter.compensator(cal)
+        return adapter, comp, comp.estimate_bias(AdaptedCaptures(captures_of(cal), adapter))
 
     def captured(x: np.ndarray, placed: np.ndarray, area, seed: int | None = None) -> float:
         # Each input is the first shot of a device of its own: base and effects see the same sensor and Cycles
@@ -158,14 +163,11 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     # base_again: the base input under another noise draw (another lab seed): how far two captures of the same
     # input differ, the scale against which a small difference between separate captures would be read.
     out = {"base": [], "effects": [], "base_again": []}
+    variants = {"effects": around(doc)}
     inverted = (doc.get("compensation") or {}).get("params") or {}
     if ablate in inverted:
-        less = {**doc, "compensation": {**doc["compensation"],
-                                        "params": {n: v for n, v in inverted.items() if n != ablate}}}
-        adapter_less = load_adapter(less, cal.rig.projector)
-        comp_less = adapter_less.compensator(cal) if adapter_less.params else base
-        bias_less = (comp_less.estimate_bias(AdaptedCaptures(captures_of(cal), adapter_less))
-                     if adapter_less.params else bias)
+        variants["without"] = around({**doc, "compensation": {**doc["compensation"], "params": {
+            n: v for n, v in inverted.items() if n != ablate}}})
         out["without"] = []
     for t in targets:
         img = natural_target(t, (400, 300))
@@ -174,19 +176,14 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
         r0 = base.run(img, area, open_loop_theta=bias, iterations_z=iterations, iterations_joint=0)
         out["base"].append(captured(r0.x_frame, placed, area))
         out["base_again"].append(captured(r0.x_frame, placed, area, seed=truth.seed + 1))
-        if adapter.params:
-            r1 = comp_fx.run(adapter.model_target(fit_target(img, area), area), area, open_loop_theta=bias_fx,
-                             iterations_z=iterations, iterations_joint=0)
-            out["effects"].append(captured(adapter.frame_to_send(r1.x_input), placed, area))
-        else:
-            out["effects"].append(out["base"][-1])
-        if "without" in out:
-            if adapter_less.params:
-                r2 = comp_less.run(adapter_less.model_target(fit_target(img, area), area), area,
-                                   open_loop_theta=bias_less, iterations_z=iterations, iterations_joint=0)
-                out["without"].append(captured(adapter_less.frame_to_send(r2.x_input), placed, area))
-            else:
-                out["without"].append(out["base"][-1])
+        for key, v in variants.items():
+            if v is None:
+                out[key].append(out["base"][-1])
+                continue
+            adapter, comp, theta = v
+            r = comp.run(adapter.model_target(fit_target(img, area), area), area, open_loop_theta=theta,
+                         iterations_z=iterations, iterations_joint=0)
+            out[key].append(captured(adapter.frame_to_send(r.x_input), placed, area))
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
