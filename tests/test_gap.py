@@ -318,6 +318,30 @@ def test_regions_split_the_error_by_cause_and_name_no_place_for_a_global_one(cle
     assert (labels[block] == 1).mean() > 0.75 and set(np.unique(labels)) <= {0, 1, 2}
 
 
+def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
+    """What a local model explains can sit in a small core (a highlight's clipped centre) while its light covers a
+    wider patch: the region is the patch the light covers, and holds what the model explains."""
+    from procam.addon.gap.regions import find_regions
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.percentile(ys, 50)), int(np.percentile(xs, 50))
+    yy, xx = np.mgrid[:data.mask.shape[0], :data.mask.shape[1]]
+    patch = ((yy - cy) ** 2 + (xx - cx) ** 2 <= 12 ** 2) & data.mask
+    held = data.held_index
+    base = np.zeros((len(held),) + data.mask.shape + (3,), np.float32)
+    base[:, cy - 2:cy + 3, cx - 2:cx + 3] = 0.3
+    light = np.where(patch, 0.5, 0.0).astype(np.float32)
+    kwargs = dict(causes={"glossy": np.zeros_like(base)}, remainder=np.zeros_like(base))
+    core = find_regions(data, base, data.size, held, **kwargs)[0]
+    placed = find_regions(data, base, data.size, held, lights={"glossy": light}, **kwargs)[0]
+    assert core.cause == placed.cause == "glossy"
+    # the hot set keeps the part of a flat patch holding half its error: most of it, and nothing outside
+    assert core.pixels < 0.2 * patch.sum() and placed.pixels > 0.5 * patch.sum()
+    assert (placed.mask & patch).sum() > 0.95 * placed.pixels
+    assert placed.share > 0.5
+
+
 def test_glossy_model_restores_light_lost_where_white_clipped(clean_case):
     """A highlight that saturated the white capture leaves the albedo too dark there; the glossy model puts
     the lobe's light back there, and only there (weight 0 is still the identity)."""
@@ -417,3 +441,21 @@ def test_ambient_occlusion_treats_the_two_sides_of_a_crease_alike():
     ao = gap_evidence.ambient_occlusion(hedge, centre[inner], normal[inner])
     upper, lower = ao[centre[inner, 1] < 0].mean(), ao[centre[inner, 1] > 0].mean()
     assert 0.5 < upper < 1.0 and abs(upper - lower) < 0.015
+
+
+def test_a_rounded_noisy_crease_is_found_and_flat_parts_are_not():
+    """A reconstructed mesh rounds a fold over a few pixels and adds small bumps: the crease map still marks the
+    fold line and leaves the flat sides and a plane at (nearly) zero."""
+    from procam.addon.gap.data import _crease_map
+
+    h, w = 96, 128
+    x = np.linspace(-1.0, 1.0, w)[None, :].repeat(h, 0)
+    y = np.linspace(-0.75, 0.75, h)[:, None].repeat(w, 1)
+    soft = 3 * 2.0 / w  # rounded over about three pixels
+    z = 3.0 + 0.5 * np.sqrt(x ** 2 + soft ** 2) + np.random.default_rng(0).normal(0, 0.002, (h, w))
+    fold = _crease_map(np.dstack([x, y, z]))
+    flat = _crease_map(np.dstack([x, y, 3.0 + 0.1 * x + 0.05 * y]))
+    centre = fold[20:-20, w // 2 - 2:w // 2 + 2]
+    sides = np.concatenate([fold[20:-20, 12:w // 2 - 12], fold[20:-20, w // 2 + 12:-12]], axis=1)
+    assert centre.mean() > 0.6 and np.percentile(sides, 99) < 0.3
+    assert flat.max() < 0.05

@@ -24,7 +24,8 @@ from .compensation import INVERTIBLE
 from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
                   select_effects, structured)
-from .models import MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, signature_mask
+from .models import (MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, local_light,
+                     signature_mask)
 from .regions import LEFT_OVER, UNEXPLAINED, WHOLE, find_regions, label_image, residual_maps
 from .remainder import Remainder, remainder
 from .session import SessionCheck, check_session
@@ -333,7 +334,8 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     rem = remainder(data, base, final)
     # the error split by cause: what each modelled effect removes alone, and what all of them leave
     causes = {n: alone(n) for n in sel.selected}
-    regions = find_regions(data, smooth_base, cam_full, data.held_index, causes=causes,
+    lights = {n: local_light(n, sel.alone[n].theta, data) for n in sel.selected if MODELS[n].local}
+    regions = find_regions(data, smooth_base, cam_full, data.held_index, causes=causes, lights=lights,
                            remainder=smooth(res_final), remainder_cause=UNEXPLAINED if rem.detected else LEFT_OVER)
     left = next((r for r in regions if r.cause == UNEXPLAINED and WHOLE not in r.tags), None)
     unexplained = {**rem.to_dict(), "where": left.description if left else "",

@@ -326,6 +326,18 @@ def glossy_at(obs: Observation, rough: float) -> np.ndarray:
     return (1 - t) * obs.glossy[r0] + t * obs.glossy[r1]
 
 
+def local_light(name: str, values: np.ndarray, data: GapData) -> np.ndarray:
+    """A local effect model's own light under the white input (h×w, mean over channels), at fitted ``values``:
+    the bounce light or the highlight, where the calibrated geometry puts it."""
+    if name == "interreflection":
+        light = float(values[0]) * data.white.indirect
+    elif name == "glossy":
+        light = float(values[0]) * glossy_at(data.white, float(values[1]))
+    else:
+        raise ValueError(f"{name} is not a local effect model")
+    return light.mean(axis=2)
+
+
 def signature_mask(name: str, data: GapData, obs: Observation) -> np.ndarray:
     """Camera pixels (h×w bool) of one pattern where the effect's residual should lie."""
     a = obs.sampled
@@ -366,4 +378,4 @@ def describe_params(name: str, values: np.ndarray) -> dict[str, float]:
 
 
 __all__ = ["Composite", "EffectModel", "MODELS", "NAMES", "crosstalk_matrix", "describe_params",
-           "inverse_projector_tone", "projector_tone", "signature_mask"]
+           "inverse_projector_tone", "local_light", "projector_tone", "signature_mask"]

@@ -4,7 +4,10 @@ A region is a compact place in the camera image that holds a good share of the
 error, with the cause it belongs to and what lies there. The error is split by
 cause before regions are drawn: for each effect the diagnosis modelled, the
 change its fitted model makes to the held-out prediction, squared (what it
-explains there, without the captures' noise); and what all the selected
+explains there, without the captures' noise; for a local effect, spread over
+where its fitted model puts light under white, from the calibrated geometry:
+the change alone sits in a highlight's clipped core, because the albedo read
+from white holds the lobe everywhere else); and what all the selected
 effects leave on the smooth parts (the remainder: "unexplained" when
 :mod:`.remainder` says it is above the captures' noise, "left over" when it
 is not). A residual map taken
@@ -116,13 +119,14 @@ def energy_of(residuals: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int], pattern_index: list[int], *,
-                 causes: dict[str, np.ndarray] | None = None, remainder: np.ndarray | None = None,
-                 remainder_cause: str = LEFT_OVER) -> list[Region]:
+                 causes: dict[str, np.ndarray] | None = None, lights: dict[str, np.ndarray] | None = None,
+                 remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER) -> list[Region]:
     """Compact regions of the error by cause, largest share first (see the module docstring).
 
     ``residuals`` is the structured held-out residual of the calibrated model (patterns ``pattern_index``);
     ``causes`` maps each modelled effect to the residual left after it alone, ``remainder`` is the residual
-    after all of them (default: ``residuals``, nothing modelled), named ``remainder_cause``.
+    after all of them (default: ``residuals``, nothing modelled), named ``remainder_cause``. ``lights`` maps a
+    local effect among them to its fitted model's own light under white (h×w): where it is placed.
     """
     mask = data.mask
     total = float(smoothed(energy_of(residuals, mask), mask).sum())
@@ -131,6 +135,13 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
     # What an effect explains is the change its model makes, (after − before)²: the captures' noise cancels
     # in that difference, where it would not in before² − after².
     maps = {name: energy_of(after - residuals, mask) for name, after in (causes or {}).items()}
+    # A local effect is placed where its fitted model puts light, carrying what it explains: the change it makes
+    # to the held-out residual gathers where the model's light is least like the albedo's, and for a highlight
+    # that is its clipped core (the albedo read from white already holds the lobe everywhere else).
+    for name, light in (lights or {}).items():
+        own = np.where(mask, light.astype(np.float64) ** 2, 0.0)
+        if name in maps and float(own.sum()) > 0:
+            maps[name] = own * (float(maps[name].sum()) / float(own.sum()))
     # The remainder on the smooth parts only, as remainder.py judges it: pattern edges also hold sub-pixel
     # misregistration, which on a clean rig outweighs every effect and lies wherever the patterns have edges.
     left = residuals if remainder is None else remainder
