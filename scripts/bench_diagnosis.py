@@ -27,6 +27,8 @@ import numpy as np
 
 #: Injected alone, an effect whose held-out RMSE stays within this factor of the no-effect floor leaves no gap.
 GAP_MARGIN = 1.05
+#: An effect matters for compensation from the strength at which it changes the base model's PSNR this much (dB).
+MATTERS_DB = 0.3
 SINGLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "interreflection", "glossy",
           "camera_response", "distortion", "depth_noise")
 #: Pairs injected together. Some pair an effect the calibration absorbs (found from its evidence) with one the
@@ -308,6 +310,40 @@ def thresholds_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def compensation_table(rows: list[dict]) -> list[str]:
+    """Per effect and surface: what the effect costs compensation with the base model (against the no-effect
+    case of the same seed), what the selected effects give back, and the smallest strength changing it by
+    ≥ ``MATTERS_DB``."""
+    none = {(r["surface"], r.get("seed", 0)): r["compensation"]["base"] for r in rows
+            if not r["injected"] and r["compensation"]}
+    single = [r for r in rows if len(r["injected"]) == 1 and r["compensation"]
+              and (r["surface"], r.get("seed", 0)) in none]
+    if not single:
+        return []
+    surfaces = sorted({r["surface"] for r in single})
+    lines = ["", f"Compensation cost: PSNR lost by the base model against the no-effect case (mean over seeds), and "
+             f"what the selected effects give back (cost / gain in dB at each strength; a negative cost: the effect "
+             f"raised it); the strength from which it changes compensation by ≥ {MATTERS_DB} dB ('–' none of those "
+             f"tried):", "",
+             "| effect | " + " | ".join(surfaces) + " |", "|---|" + "---|" * len(surfaces)]
+    for e in dict.fromkeys(r["injected"][0] for r in single):
+        cells = []
+        for surface in surfaces:
+            mine = [r for r in single if r["surface"] == surface and r["injected"][0] == e]
+            at, parts = None, []
+            for st in sorted({r.get("strength", 0.5) for r in mine}):
+                here = [r for r in mine if r.get("strength", 0.5) == st]
+                cost = float(np.mean([none[(r["surface"], r.get("seed", 0))] - r["compensation"]["base"]
+                                      for r in here]))
+                gain = float(np.mean([r["compensation"]["effects"] - r["compensation"]["base"] for r in here]))
+                parts.append(f"{st:g}: {cost:.2f} / {gain:+.2f}")
+                if at is None and abs(cost) >= MATTERS_DB:
+                    at = st
+            cells.append((f"{at:g}" if at is not None else "–") + f" ({'; '.join(parts)})" if parts else "")
+        lines.append(f"| {e} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
     lines = [f"Diagnosis benchmark: lab scale {args.scale}, {args.samples} Cycles spp, strength {args.strength}, "
              f"diagnosis at {args.diag_scale} of the capture size; compensation open loop, {args.iterations} "
@@ -330,6 +366,7 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
     none = [r for r in rows if not r["injected"]]
     pairs = [r for r in rows if len(r["injected"]) == 2]
     lines += thresholds_table(rows)
+    lines += compensation_table(rows)
     lines += ["", "Summary:"]
     # An effect "leaves a gap" on a surface when, injected alone, it lifts the held-out RMSE > 5 % above the
     # no-effect floor; one that does not (absorbed by the calibration, or absent from that surface) cannot be found.
