@@ -321,7 +321,7 @@ def test_regions_split_the_error_by_cause_and_name_no_place_for_a_global_one(cle
 def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
     """What a local model explains can sit in a small core (a highlight's clipped centre) while its light covers a
     wider patch: the region is the patch the light covers, and holds what the model explains."""
-    from procam.addon.gap.regions import find_regions
+    from procam.addon.gap.regions import WHOLE, find_regions
 
     data = load_gap_data(clean_case[0], scale=1.0, spp=4)
     ys, xs = np.nonzero(data.mask)
@@ -340,6 +340,11 @@ def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
     assert core.pixels < 0.2 * patch.sum() and placed.pixels > 0.5 * patch.sum()
     assert (placed.mask & patch).sum() > 0.95 * placed.pixels
     assert placed.share > 0.5
+    # what the model leaves inside the place where it acts is counted there, not made a second region
+    left = find_regions(data, base, data.size, held, lights={"glossy": light}, causes=kwargs["causes"],
+                        remainder=0.5 * base)
+    places = [r for r in left if WHOLE not in r.tags]
+    assert len(places) == 1 and places[0].cause == "glossy" and "left over" in places[0].description
 
 
 def test_glossy_model_restores_light_lost_where_white_clipped(clean_case):

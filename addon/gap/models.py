@@ -328,7 +328,9 @@ def glossy_at(obs: Observation, rough: float) -> np.ndarray:
 
 def local_light(name: str, values: np.ndarray, data: GapData) -> np.ndarray:
     """A local effect model's own light under the white input (h×w, mean over channels), at fitted ``values``:
-    the bounce light or the highlight, where the calibrated geometry puts it."""
+    the bounce light or the highlight, where the calibrated geometry puts it. Not clipped as the sensor would
+    clip it: regions drawn on it matched the lab's footprints (which are clipped) in 10 of 17 cases, on the
+    clipped light in 9, losing the plane's highlight at 0.5 (IoU 0.87 → 0.34)."""
     if name == "interreflection":
         light = float(values[0]) * data.white.indirect
     elif name == "glossy":

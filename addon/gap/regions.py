@@ -164,7 +164,7 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
         ys, xs = np.nonzero(sel)
         x0, y0 = int(xs.min()), int(ys.min())
         bbox = (int(x0 * sx), int(y0 * sy), int(round((xs.max() + 1 - x0) * sx)), int(round((ys.max() + 1 - y0) * sy)))
-        tags, words = ([WHOLE], ["over the whole lit area"]) if whole else place.describe(sel)
+        tags, words = ([WHOLE], ["over the whole lit area"]) if whole else place.describe(sel, cause)
         t2, w2 = _error_traits(data, residuals, sel, pattern_index)
         return Region(bbox, share, int(sel.sum()), ", ".join(words + w2) + note, tags + t2, cause, sel)
 
@@ -183,10 +183,17 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
             regions.append(region(mask, own / total, cause))  # acts everywhere: no place to name
         else:
             local[cause] = (energy, e)
-    # The places of all local causes together: a highlight the glossy model fits in its core, with a ring it
-    # leaves to the remainder, is one place with two shares, not two regions.
+    # Places are drawn where the modelled local effects act, and what they leave is counted there too: a
+    # highlight the glossy model fits, with a clipped core it leaves to the remainder, is one place with two
+    # shares, not two regions. The remainder gets places of its own only outside them.
     if local:
-        for sel in parts_of(sum(energy for energy, _ in local.values())):
+        modelled_maps = [energy for c, (energy, _) in local.items() if c != remainder_cause]
+        sels = parts_of(sum(modelled_maps)) if modelled_maps else []
+        taken = np.logical_or.reduce(sels) if sels else np.zeros_like(mask)
+        if remainder_cause in local:
+            rest = parts_of(np.where(taken, 0.0, local[remainder_cause][0]))
+            sels += [q for q in (p & ~taken for p in rest) if int(q.sum()) >= min_px]
+        for sel in sels:
             part = {c: float(e[sel].sum()) for c, (_, e) in local.items()}
             here = sum(part.values())
             if here <= 0:
@@ -239,7 +246,7 @@ class _Place:
         else:
             self.mirror = np.zeros_like(mask)
 
-    def describe(self, sel: np.ndarray) -> tuple[list[str], list[str]]:
+    def describe(self, sel: np.ndarray, cause: str) -> tuple[list[str], list[str]]:
         data = self.data
         tags: list[str] = []
         words: list[str] = []
@@ -256,7 +263,9 @@ class _Place:
                 words.append("near a surface crease")
         if float(self.mirror[sel].mean()) > 0.5:
             tags.append("mirror reflection")
-            words.append("where the projector's mirror reflection falls (a highlight, on a glossy surface)")
+            # a property of the geometry; it is a highlight only if the surface is glossy
+            words.append("where the projector's mirror reflection falls"
+                         + (" (a highlight, on a glossy surface)" if cause == "glossy" else ""))
         if float(self.texture[sel].mean()) > PLACE_SHARE:
             tags.append("texture edge")
             words.append("on an edge in the surface's paint")
