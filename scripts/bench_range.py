@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Bright content and the projector's range: compensation with ``--range none`` against ``--range auto``.
 
-Usage: ``.venv/bin/python scripts/bench_range.py [--surface curve] [--scale 0.5] [--iterations 60] [--work DIR]``
+Usage: ``.venv/bin/python scripts/bench_range.py [--surface curve] [--scale 0.5] [--iterations 60] [--effects auto]
+[--work DIR]``
 
 Renders a lab capture set (``realistic`` effects), calibrates it, and
 compensates six natural photographs at full brightness (each scaled so its
@@ -9,8 +10,9 @@ compensates six natural photographs at full brightness (each scaled so its
 the lab, once as they are and once with ``--range auto``; then evaluates both.
 Prints, per target, the range ceiling (the target clipped per pixel to the
 captured [black, white]: what no input can beat) and the PSNR reached, for
-both, and the show's gain and offset. ``--work DIR`` keeps and reuses every
-folder.
+both, and the show's gain and offset. ``--effects auto`` diagnoses the
+calibration first and compensates with the effects it selected around stage C.
+``--work DIR`` keeps and reuses every folder.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ def main() -> None:
     ap.add_argument("--surface", default="curve")
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--effects", choices=("none", "auto"), default="none",
+                    help="auto: run procam diagnose and compensate with the effects it selected")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -54,16 +58,21 @@ def main() -> None:
             img = natural_target(name, (400, 300))
             img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
             targets.append(str(write_image(work / "targets" / f"{name}.png", img)))
+        effects, fx = [], ""
+        if args.effects == "auto":
+            step(["diagnose", str(work / "cal"), "--out", str(work / "diagnosis")], work / "diagnosis")
+            effects, fx = ["--effects", "auto", "--diagnosis", str(work / "diagnosis")], "-fx"
         rows = {}
         for rng in ("none", "auto"):
-            comp, ev = work / f"comp-{rng}", work / f"eval-{rng}"
+            comp, ev = work / f"comp-{rng}{fx}", work / f"eval-{rng}{fx}"
             step(["compensate", str(work / "cal"), *targets, "--device", f"lab:{truth}", "--iterations",
-                  str(args.iterations), "--range", rng, "--out", str(comp)], comp)
+                  str(args.iterations), "--range", rng, *effects, "--out", str(comp)], comp)
             step(["evaluate", str(work / "cal"), "--inputs", str(comp), "--targets", *targets, "--device",
                   f"lab:{truth}", "--out", str(ev)], ev)
             rows[rng] = json.loads((ev / "metrics.json").read_text())
         r = rows["auto"]["range"]
-        print(f"\n{args.surface}, scale {args.scale}, {args.iterations} iterations, closed loop; --range auto: "
+        print(f"\n{args.surface}, scale {args.scale}, {args.iterations} iterations, closed loop, --effects "
+              f"{args.effects}; --range auto: "
               f"{r['gain']:.3f}·t {r['offset']:+.3f} ({100 * r['clipped_share']:.2f} % of the values clipped)\n")
         print("| Target | none: ceiling | none: uncompensated → ours | auto: ceiling | auto: uncompensated → ours |")
         print("|---|---|---|---|---|")
