@@ -61,6 +61,26 @@ def test_a_saturated_white_capture_is_reported(calibrated, tmp_path, capsys):
     assert "shorter exposure" in cal.warnings[0]
 
 
+def test_an_albedo_brighter_than_the_simulated_irradiance_is_not_clipped(calibrated, tmp_path):
+    """Read in camera units the albedo exceeds 1 where the camera is brighter than the simulation (a gain, a tone
+    curve): it is kept, so the model is not too dark there; a spike far above the surface's brightest is capped."""
+    from procam.addon.stages.calibrate import ALBEDO_SPIKE, albedo_from_captures
+
+    captures, _, _, cal = calibrated
+    base = albedo_from_captures(CaptureSet.load(captures), cal.surface, cal.rig)
+    bright = tmp_path / "bright"
+    shutil.copytree(captures, bright)
+    brighter = CaptureSet.load(bright, verify_images=False)
+    for kind in ("white", "black"):
+        path = bright / brighter.entry(kind).file
+        write_image(path, np.clip(1.25 * read_image(path), 0, 1))
+    albedo = albedo_from_captures(CaptureSet.load(bright), cal.surface, cal.rig)
+    lit = base.mean(axis=2) > 0.3
+    ratio = np.median(albedo[lit] / base[lit], axis=0)
+    assert np.allclose(ratio, 1.25, atol=0.03) and (albedo[lit] > 1.0).mean() > 0.1
+    assert albedo.max() <= ALBEDO_SPIKE * np.percentile(albedo[lit], 99.9) + 1e-6
+
+
 def test_existing_calibration_is_not_overwritten(calibrated):
     captures, _, out, _ = calibrated
     before = (out / "calibration.json").read_bytes()

@@ -131,7 +131,7 @@ class ForwardModel:
         img = check_image(img, (img.shape[1], img.shape[0]), "the albedo", "give a linear RGB image in [0, 1]")
         if self._albedo_key is None:
             raise RenderError("this forward model's surface is a white glossy lobe; it has no albedo to set")
-        self.params[self._albedo_key] = self._mi.TensorXf(np.clip(img, 0.0, 1.0))
+        self.params[self._albedo_key] = self._mi.TensorXf(np.maximum(img, 0.0))  # may exceed 1 (SurfaceMesh)
         self.params.update()
 
     def set_smoothing(self, eps: float) -> None:

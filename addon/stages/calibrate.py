@@ -82,6 +82,10 @@ def white_saturation(captures: CaptureSet) -> float:
     return float(np.mean((white[lit] >= SATURATED).any(axis=1))) if lit.any() else 0.0
 
 
+#: An albedo texel above this multiple of the lit surface's 99th percentile (per channel) is capped there.
+ALBEDO_SPIKE = 1.5
+
+
 def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, floor: float = 0.05) -> np.ndarray:
     """Camera-aligned albedo: (white − black) / simulated irradiance of the white frame where lit."""
     white, black = captures.image("white"), captures.image("black")
@@ -99,7 +103,13 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
         fill = cv2.GaussianBlur(photo, (0, 0), 2.0) * scale
     else:
         fill = np.full_like(photo, np.nanmedian(albedo[lit]) if lit.any() else 0.5)
-    return np.clip(np.where(lit[..., None], albedo, fill), 0.0, 1.0).astype(np.float32)
+    # Not clipped at 1: in camera units an albedo exceeds 1 where the camera is brighter than the simulated
+    # irradiance (with the lab's camera response at 0.5, 31 % of the lit red albedo did; clipped, the model was
+    # too dark in red at every level and the diagnosis named a projector response instead). Capped per channel
+    # at ALBEDO_SPIKE × the brightest lit percent: above that it is noise where the irradiance is near the floor
+    # (up to 7.9 at the border of the projector's reach), not paint.
+    cap = np.maximum(1.0, ALBEDO_SPIKE * np.nanpercentile(albedo[lit], 99, axis=0)) if lit.any() else 1.0
+    return np.clip(np.where(lit[..., None], albedo, fill), 0.0, cap).astype(np.float32)
 
 
 def _with_camera(captures: CaptureSet, k: Intrinsics) -> CaptureSet:

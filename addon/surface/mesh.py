@@ -21,7 +21,7 @@ class SurfaceMesh:
     vertices: np.ndarray  # N×3 float64, rig frame
     faces: np.ndarray  # M×3 int32, counter-clockwise seen from the camera side
     uvs: np.ndarray  # N×2 float64 in [0, 1]
-    albedo: np.ndarray  # H×W×3 float32, linear, in [0, 1]
+    albedo: np.ndarray  # H×W×3 float32, linear, ≥ 0 (a reflectance ≤ 1, or read in camera units: may exceed 1)
     name: str = "surface"
 
     def __post_init__(self) -> None:
@@ -44,7 +44,9 @@ class SurfaceMesh:
         object.__setattr__(self, "vertices", v)
         object.__setattr__(self, "faces", f.astype(np.int32))
         object.__setattr__(self, "uvs", uv)
-        object.__setattr__(self, "albedo", np.clip(a, 0.0, 1.0))
+        # Not clipped at 1: an albedo read in camera units exceeds 1 where the camera is brighter than the
+        # simulated irradiance (a white-balance gain, a tone curve); clipped, the model was too dark there.
+        object.__setattr__(self, "albedo", np.maximum(a, 0.0))
 
     def face_normals(self) -> np.ndarray:
         p = self.vertices[self.faces]
