@@ -128,7 +128,7 @@ class ForwardModel:
         img = np.asarray(image, dtype=np.float32)
         if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
             raise ImageError(f"an albedo must be an H×W×3 image, got shape {img.shape}")
-        img = check_image(img, (img.shape[1], img.shape[0]), "the albedo", "give a linear RGB image in [0, 1]")
+        img = check_image(img, (img.shape[1], img.shape[0]), "the albedo", "give a linear RGB image (≥ 0)")
         if self._albedo_key is None:
             raise RenderError("this forward model's surface is a white glossy lobe; it has no albedo to set")
         self.params[self._albedo_key] = self._mi.TensorXf(np.maximum(img, 0.0))  # may exceed 1 (SurfaceMesh)
