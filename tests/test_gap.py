@@ -376,6 +376,8 @@ def absorbed_case(lab_calibration):
 
 def test_absorbed_effects_are_found_where_calibration_absorbed_them(absorbed_case, clean_case):
     found = calibration_evidence(absorbed_case[0])
+    assert not found["glossy"].detected  # no lobes given: nothing to fit
+    found.pop("glossy")
     assert all(e.detected for e in found.values()), {n: e.evidence or e.error for n, e in found.items()}
     # lab at strength 0.8: falloff 0.28 at the farthest corner, bias 1.6 cm
     assert found["vignetting"].params["falloff"] == pytest.approx(0.28, abs=0.06)
@@ -383,6 +385,31 @@ def test_absorbed_effects_are_found_where_calibration_absorbed_them(absorbed_cas
     clean = calibration_evidence(clean_case[0])
     assert not any(e.detected for e in clean.values()), {n: e.evidence or e.error for n, e in clean.items()}
     assert clean["vignetting"].params["falloff"] < 0.05
+
+
+def _lobes(cal_dir):
+    """White lobe renders at the evidence's roughnesses, as the diagnosis passes them."""
+    from procam.addon.gap.diagnose import EVIDENCE_ROUGHNESS
+    from procam.addon.gap.models import glossy_at
+
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    return {r: glossy_at(data.white, r) for r in EVIDENCE_ROUGHNESS}
+
+
+def test_a_highlight_the_albedo_absorbed_is_found_and_not_taken_for_vignetting(lab_calibration, clean_case):
+    """A weak lobe on a plane facing the projector brightens the middle of the white capture, which a radial falloff
+    alone reads as vignetting; the lobe rendered from the calibrated geometry explains it instead."""
+    cal_dir = lab_calibration("plane", "glossy=0.25", **TINY)[0]
+    lobes = _lobes(cal_dir)
+    plain = calibration_evidence(cal_dir)
+    found = calibration_evidence(cal_dir, lobes=lobes)
+    assert found["glossy"].detected, found["glossy"].evidence
+    assert found["glossy"].params["weight"] == pytest.approx(0.05, abs=0.02)  # the lab's weight at 0.25
+    assert plain["vignetting"].params["falloff"] > 0.1  # the falloff alone takes the lobe …
+    assert not found["vignetting"].detected, found["vignetting"].evidence  # … but not beside it
+    assert found["vignetting"].params["falloff"] < 0.05
+    clean = calibration_evidence(clean_case[0], lobes=_lobes(clean_case[0]))
+    assert not clean["glossy"].detected and abs(clean["glossy"].params["peak"]) < 0.02, clean["glossy"].evidence
 
 
 def test_absorbed_effects_rank_first_but_are_not_modelled(absorbed_case, tmp_path):
@@ -416,8 +443,8 @@ def test_a_dark_surface_photo_says_to_turn_the_room_lights_on(clean_case):
             return img * 0 if kind == "surface" else img
 
     view = surface_view(cal.surface, cal.rig.camera.intrinsics)
-    ev = vignetting_evidence(DarkPhoto(), cal, view, target_mask(captures)[0])
-    assert not ev.detected and "room lights on" in ev.error
+    for ev in vignetting_evidence(DarkPhoto(), cal, view, target_mask(captures)[0]):
+        assert not ev.detected and "room lights on" in ev.error
 
 
 def test_compensation_inverts_only_what_still_helps_without_the_effects_it_cannot_invert(response_case):

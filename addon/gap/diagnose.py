@@ -35,11 +35,13 @@ from .session import SessionCheck, check_session
 SIGNATURE_ENRICHMENT = 1.2
 
 
-#: What calibration absorbs of each effect, so that the validation residual cannot show it. The first three are
-#: looked for where they were absorbed instead (:mod:`.evidence`).
+#: What calibration absorbs of each effect, so that the validation residual cannot show it. All but the camera
+#: response are looked for where they were absorbed instead (:mod:`.evidence`).
 ABSORBED = {
     "vignetting": "a smooth projector falloff looks exactly like darker surface reflectance in the white capture; "
                   "the albedo holds it, so compensation is not hurt. Found from the room-lit surface photo",
+    "glossy": "a highlight the sensor does not clip looks like brighter paint in the white capture; the albedo holds "
+              "it for this camera position (it moves with the viewpoint). Found from the room-lit surface photo",
     "camera_response": "its white-balance gains are absorbed by the albedo in the same way; only its tone curve "
                        "(mid levels) is visible",
     "distortion": "camera lens distortion moves the projected pattern smoothly in the camera image; the pose and the "
@@ -47,6 +49,10 @@ ABSORBED = {
     "depth_noise": "the wall image removes the depth bias (else the pose absorbs it) and the reconstruction smooths "
                    "the noise; only what remains shows, near creases. Found from the depth sensor's wall image",
 }
+
+
+#: Roughnesses of the lobes the evidence tries (interpolated between the model's renders, :data:`.data.GLOSSY_ROUGHNESS`).
+EVIDENCE_ROUGHNESS = tuple(round(0.2 + 0.05 * i, 2) for i in range(9))
 
 
 def _psnr(rmse: float) -> float:
@@ -421,6 +427,8 @@ def _linear_light(data: GapData, sel: Selection) -> dict[str, Any]:
     if "glossy" in params:
         weight, rough = params["glossy"]["weight"], params["glossy"]["roughness"]
         out["white_extra"] = float(weight) * glossy_at(data.white, float(rough))
+    else:
+        out["lobes"] = {r: glossy_at(data.white, r) for r in EVIDENCE_ROUGHNESS}
     return out
 
 

@@ -1,6 +1,6 @@
 """Evidence for the effects calibration absorbs, read from the calibration's own inputs.
 
-Three of the lab's effects leave almost no residual on the validation patterns,
+Some of the lab's effects leave almost no residual on the validation patterns,
 because a calibration step absorbs them, so the held-out selection of
 :mod:`.fit` cannot see them. A user still needs to know they are there: what a
 calibration absorbed is only right for this rig, and comes back as soon as the
@@ -17,6 +17,10 @@ absorbed:
   first, and a glossy lobe it found is taken out of the white capture (both
   otherwise vary with brightness, which falls off from the projector's axis
   too).
+* ``glossy`` below the sensor's clipping (the white-capture albedo holds it, for
+  this camera position): in the same ratio, a GGX lobe rendered from the
+  calibrated geometry, fitted beside the falloff (the two look alike on a
+  surface facing the projector, see :func:`vignetting_evidence`).
 * ``distortion`` (the pose and the stage-B warp hold it): the Gray-code
   correspondences, lifted to 3-D by the calibrated surface, are fitted by the
   projector pose alone, by the pose plus the camera's radial ``k1, k2``, and
@@ -56,6 +60,11 @@ from ..surface.reconstruct import wall_depth_offset
 VIGNETTING_MIN_FALLOFF = 0.05
 #: … and the radial law removes this share of the held-out spread of the albedo ratio.
 VIGNETTING_MIN_SHARE = 0.10
+#: A highlight is found when the fitted lobe brightens the white capture by this share at its peak (99th
+#: percentile) … (the lab's lobe at 0.25, weight 0.05: 18–24 %; fits on the benchmark's sets without a lobe: < 1 %)
+GLOSSY_MIN_PEAK = 0.05
+#: … and removes this share of the held-out spread of the albedo ratio that the radial falloff leaves.
+GLOSSY_MIN_SHARE = 0.10
 #: A surface photo darker than this (median over the lit pixels, linear) was taken without room light.
 MIN_PHOTO_LEVEL = 0.01
 #: Distortion is found when k1, k2 remove this share of the held-out Gray-code reprojection MSE (whose floor is the
@@ -146,25 +155,36 @@ def _tukey_fit(a: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *, light: Light | None = None,
-                        white_extra: np.ndarray | None = None) -> Evidence:
-    """``light`` takes captured values back to linear light (a fitted camera curve); ``white_extra`` is light the
-    diagnosis's models put in the white capture besides the projector's diffuse light (a glossy lobe).
+                        white_extra: np.ndarray | None = None,
+                        lobes: dict[float, np.ndarray] | None = None) -> tuple[Evidence, Evidence]:
+    """Evidence for ``vignetting`` and for ``glossy``, both read from the albedo ratio.
 
-    What is left of a glossy highlight after ``white_extra`` (its weight is only fitted) peaks where the mirror
-    direction meets the camera, near the projector's axis on a surface facing both: its share of the white
-    light is a second, free regressor, so that only the falloff it cannot explain counts.
+    ``light`` takes captured values back to linear light (a fitted camera curve); ``white_extra`` is light the
+    diagnosis's models put in the white capture besides the projector's diffuse light (a glossy lobe);
+    ``lobes``: white GGX lobe renders at unit weight by roughness (camera size, from the calibrated geometry).
+
+    A highlight peaks where the mirror direction meets the camera, near the projector's axis on a surface facing
+    both, so a radial falloff fitted alone takes it for vignetting (the lab's lobe at weight 0.05 read as a 16–20 %
+    falloff on the curve and the plane). Its share of the white light is a second, free regressor, at the
+    roughness that fits best, so that only the falloff it cannot explain counts; and a lobe that brightens its
+    peak by ≥ :data:`GLOSSY_MIN_PEAK` and explains ≥ :data:`GLOSSY_MIN_SHARE` of what the falloff leaves is a
+    highlight the albedo absorbed. With ``white_extra`` (a lobe the residual found) what is left of it after its
+    fitted weight is the regressor.
     """
 
     ev = Evidence("vignetting", False, absorbed_by="the albedo estimated from the white capture")
+    gl = Evidence("glossy", False, absorbed_by="the albedo estimated from the white capture (for this camera "
+                  "position only: a highlight moves with the viewpoint)")
     if not captures.entries_of("surface"):
-        ev.error = "no photo of the surface (projector off, room lights on) in the capture set"
-        return ev
+        ev.error = gl.error = "no photo of the surface (projector off, room lights on) in the capture set"
+        return ev, gl
     proj = cal.rig.projector
     raw_white = captures.image("white")
     linear = light or (lambda img: img)
     white, black, photo = linear(raw_white), linear(captures.image("black")), linear(captures.image("surface"))
+    size = (white.shape[1], white.shape[0])
     if white_extra is not None:
-        white = white - cv2.resize(white_extra, (white.shape[1], white.shape[0]), interpolation=cv2.INTER_LINEAR)
+        white = white - cv2.resize(white_extra, size, interpolation=cv2.INTER_LINEAR)
     irradiance = full_white_irradiance(view, proj, proj.camera_from_projector)
     # Both images are smoothed a little: the photo is dim, and the ratio need not be sharp.
     lit_light = cv2.GaussianBlur(white - black, (0, 0), 1.5).mean(axis=2)
@@ -172,13 +192,13 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *,
     ok = mask & view.hit & (irradiance > 0) & (raw_white.max(axis=2) < SATURATED)  # clipped white holds no ratio
     ok = cv2.erode(ok.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     if ok.sum() < 500:
-        ev.error = "too few lit surface pixels below saturation"
-        return ev
+        ev.error = gl.error = "too few lit surface pixels below saturation"
+        return ev, gl
     level = float(np.median(room[ok]))
     if level < MIN_PHOTO_LEVEL:
-        ev.error = (f"the surface photo is dark (median {level:.3f} where the projector lights the surface): take it "
-                    "with the room lights on, so that paint can be told from projector falloff")
-        return ev
+        ev.error = gl.error = (f"the surface photo is dark (median {level:.3f} where the projector lights the surface): "
+                               "take it with the room lights on, so that paint can be told from projector falloff")
+        return ev, gl
     ok &= (room > 0.1 * level) & (lit_light > 0)
     ys, xs = np.nonzero(ok)
     pick = _subset(len(xs))
@@ -188,32 +208,50 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *,
     good = ao > 0.05
     ys, xs, pts, ao = ys[good], xs[good], pts[good], ao[good]
     if len(xs) < 500:
-        ev.error = "too few surface pixels lit by both the projector and the room"
-        return ev
+        ev.error = gl.error = "too few surface pixels lit by both the projector and the room"
+        return ev, gl
     # log of (projector light / model irradiance) over (room light / occlusion): the paint cancels.
     y = np.log(lit_light[ys, xs] / irradiance[ys, xs]) - np.log(room[ys, xs] / ao)
-    s = _radius_share(proj, pts)
-    others = [np.ones_like(s)]
-    if white_extra is not None:
-        extra = cv2.resize(white_extra, (white.shape[1], white.shape[0]), interpolation=cv2.INTER_LINEAR).mean(axis=2)
-        others.append(extra[ys, xs] / lit_light[ys, xs])
-    without = np.stack(others, axis=1)
-    with_s = np.concatenate([without, s[:, None]], axis=1)
+    one, s = np.ones(len(xs)), _radius_share(proj, pts)
+    shapes = {None: white_extra} if white_extra is not None else dict(lobes or {})
+    regressors = {r: cv2.resize(img, size, interpolation=cv2.INTER_LINEAR).mean(axis=2)[ys, xs] / lit_light[ys, xs]
+                  for r, img in shapes.items()}
     fit = _blocks(xs, ys, captures.camera.intrinsics.width)
     held = ~fit
-    spread = []
-    for a in (without, with_s):
-        r = y[held] - a[held] @ _tukey_fit(a[fit], y[fit])
-        spread.append(float(np.median(np.abs(r - np.median(r)))))
-    coef = _tukey_fit(with_s[fit], y[fit])
-    ev.share = 1.0 - (spread[1] / spread[0]) ** 2 if spread[0] > 0 else 0.0
+
+    def spread(columns: list[np.ndarray]) -> tuple[float, np.ndarray]:
+        """Held-out spread (median absolute deviation) of the ratio after a robust fit on the other half."""
+        a = np.stack(columns, axis=1)
+        coef = _tukey_fit(a[fit], y[fit])
+        r = y[held] - a[held] @ coef
+        return float(np.median(np.abs(r - np.median(r)))), coef
+
+    flat, _ = spread([one])
+    radial, radial_coef = spread([one, s])
+    # the lobe's roughness: the one that fits best together with the falloff
+    best = min(((spread([one, lobe, s]), r) for r, lobe in regressors.items()), key=lambda v: v[0][0], default=None)
+    if best is None:
+        both, coef, without = radial, radial_coef, flat
+    else:
+        (both, coef), rough = best
+        without, _ = spread([one, regressors[rough]])
+        peak = float(coef[1] * np.percentile(regressors[rough], 99))
+        gl.share = 1.0 - (both / radial) ** 2 if radial > 0 else 0.0
+        gl.params = {"peak": round(peak, 4)} if rough is None else \
+            {"weight": round(float(coef[1]), 4), "roughness": round(float(rough), 2), "peak": round(peak, 4)}
+        gl.detected = bool(white_extra is None and peak >= GLOSSY_MIN_PEAK and gl.share >= GLOSSY_MIN_SHARE)
+        gl.evidence = (f"a projector highlight (GGX lobe at roughness {rough:.2f} from the calibrated geometry) "
+                       if rough is not None else "what is left of the fitted highlight ") + \
+            (f"brightens the white capture by {peak:.1%} at its peak and removes {gl.share:.0%} of the held-out "
+             f"spread the radial falloff leaves (found at ≥ {GLOSSY_MIN_PEAK:.0%} and ≥ {GLOSSY_MIN_SHARE:.0%})")
+    ev.share = 1.0 - (both / without) ** 2 if without > 0 else 0.0
     falloff = float(1.0 - np.exp(coef[-1]))
     ev.params = {"falloff": round(falloff, 4), "exponent": 2.0}
     ev.detected = bool(falloff >= VIGNETTING_MIN_FALLOFF and ev.share >= VIGNETTING_MIN_SHARE)
     ev.evidence = (f"projector light over room light (paint cancels) falls by {falloff:.1%} towards the farthest frame "
                    f"corner; the radial law removes {ev.share:.0%} of its held-out spread "
                    f"(found at ≥ {VIGNETTING_MIN_FALLOFF:.0%} and ≥ {VIGNETTING_MIN_SHARE:.0%})")
-    return ev
+    return ev, gl
 
 
 def _radius_share(proj: Any, points: np.ndarray) -> np.ndarray:
@@ -404,20 +442,21 @@ def depth_evidence(captures: Any, cal: Any) -> Evidence:
 # ------------------------------------------------------------------ all three
 
 def calibration_evidence(cal: Calibration, captures: CaptureSet, *, light: Light | None = None,
-                         white_extra: np.ndarray | None = None, cancel: Cancel | None = None) -> dict[str, Evidence]:
-    """Evidence for ``vignetting``, ``distortion`` and ``depth_noise`` from a calibration and its capture set
-    (``light`` and ``white_extra``: what the diagnosis's selected effects say, see :func:`vignetting_evidence`)."""
+                         white_extra: np.ndarray | None = None, lobes: dict[float, np.ndarray] | None = None,
+                         cancel: Cancel | None = None) -> dict[str, Evidence]:
+    """Evidence for ``vignetting``, ``glossy``, ``distortion`` and ``depth_noise`` from a calibration and its
+    capture set (``light``, ``white_extra`` and ``lobes``: see :func:`vignetting_evidence`)."""
     view = surface_view(cal.surface, cal.rig.camera.intrinsics)
     mask, _ = target_mask(captures)
     out: dict[str, Evidence] = {}
-    for name, run in (("vignetting", lambda: vignetting_evidence(captures, cal, view, mask, light=light,
-                                                                 white_extra=white_extra)),
-                      ("distortion", lambda: distortion_evidence(captures, cal, view, mask)),
-                      ("depth_noise", lambda: depth_evidence(captures, cal))):
+    for names, run in ((("vignetting", "glossy"), lambda: vignetting_evidence(captures, cal, view, mask, light=light,
+                                                                              white_extra=white_extra, lobes=lobes)),
+                       (("distortion",), lambda: (distortion_evidence(captures, cal, view, mask),)),
+                       (("depth_noise",), lambda: (depth_evidence(captures, cal),))):
         if cancel is not None and cancel():
             raise Cancelled("diagnosis cancelled")
         try:
-            out[name] = run()
+            out.update(zip(names, run()))
         except (ProCamError, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-            out[name] = Evidence(name, False, error=f"{type(exc).__name__}: {exc}")
+            out.update((name, Evidence(name, False, error=f"{type(exc).__name__}: {exc}")) for name in names)
     return out
