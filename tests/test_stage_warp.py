@@ -307,3 +307,30 @@ def test_cancel_stops_stage_b(warp_set, tmp_path):
     with pytest.raises(Cancelled, match="cancelled") as err:
         _fit(folder, surface, rig, cancel=lambda: True)
     assert isinstance(err.value, ProCamError)
+
+
+# --------------------------------------------------------------------------- stage B from the Gray code
+
+def test_the_graycode_warp_finds_a_known_shift_and_leaves_a_true_model_alone(lab_set):
+    """Sessions without a checkerboard (OpenCV's sequence) get stage B from the decoded Gray code: with the true
+    rig the warp stays near the identity; with the model's projector 2 texels off it finds the 2 texels."""
+    from dataclasses import replace
+
+    from procam.addon.capture.format import CaptureSet
+    from procam.addon.lab.lab import LabTruth
+    from procam.addon.stages.graycode_warp import warp_from_graycode
+
+    captures_dir, truth_path = lab_set("plane")
+    captures, truth = CaptureSet.load(captures_dir), LabTruth.load(truth_path)
+    rig = truth.rig
+    exact = warp_from_graycode(captures, truth.surface, rig)
+    assert float(np.abs(exact.warp.m_shifts).max()) < 0.5
+    assert exact.corners_after_px["median"] < 0.6  # the decoded texel is whole: ±0.5 in each axis
+    k = rig.projector.intrinsics
+    off = replace(rig, projector=replace(rig.projector, intrinsics=replace(k, cx=k.cx + 2.0)))
+    fit = warp_from_graycode(captures, truth.surface, off)
+    # the model puts every point 2 texels right of the real projector's texel: M takes them back
+    inside = fit.warp.map_m(np.array([[k.width / 2, k.height / 2]]))[0] - np.array([k.width / 2, k.height / 2])
+    assert inside[0] == pytest.approx(-2.0, abs=0.3) and abs(inside[1]) < 0.3
+    assert fit.corners_before_px["median"] > 1.5 and fit.corners_after_px["median"] < 0.6
+    assert fit.inverse_error_px < 0.05

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 import struct
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -106,7 +107,7 @@ def _is_sequence(path: Path) -> bool:
 
 def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: int | None = None,
                     area: str = "input", seed: int = 0, camera: Camera | None = None, graycode: bool = True,
-                    validation: bool = True, force: bool = False) -> Path:
+                    validation: bool = True, layout: str = "procam", force: bool = False) -> Path:
     """Write the numbered pattern frames (``0000_surface.png`` …) and ``sequence.json`` into a new folder.
 
     Frames are native projector resolution, 16-bit PNG, raw projector input
@@ -114,7 +115,8 @@ def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: 
     existing non-empty folder is replaced only with ``force`` and only if it is
     itself an exported sequence.
     """
-    seq = calibration_sequence(projector, checker_size, area=area, graycode=graycode, validation=validation, seed=seed)
+    seq = calibration_sequence(projector, checker_size, area=area, graycode=graycode, validation=validation, seed=seed,
+                               layout=layout)
     folder = AtomicFolder(out_dir, force=force, what="pattern sequence", replaceable=_is_sequence, error=CaptureError)
     try:
         frames = []
@@ -536,14 +538,22 @@ class RigLens:
     source: str  # where it comes from, for the capture set's notes
     pose_known: bool = False  # the rig file also gives the projector's metric pose
 
+    @property
+    def pinhole(self) -> Intrinsics:
+        """The pinhole camera the photographs become: the lens's K with square pixels (f = √(fx·fy)), because the
+        renderer's camera has them; a calibrated fx and fy differ a little (0.05 % on the real board photos)."""
+        f = math.sqrt(self.camera.fx * self.camera.fy)
+        return replace(self.camera, fx=f, fy=f)
+
     def image(self, img: np.ndarray, *, nearest: bool = False) -> np.ndarray:
-        """``img`` as a pinhole camera with the same K would see it (pixels from outside the frame are 0).
+        """``img`` as the :attr:`pinhole` camera would see it (pixels from outside the frame are 0).
 
         A depth map smaller than the photographs (same lens, aligned) gets K scaled to its size."""
         a = np.asarray(img, dtype=np.float32)
         h, w = a.shape[:2]
         k = self.camera.scaled(w, h).opencv_matrix()
-        mx, my = cv2.initUndistortRectifyMap(k, self.distortion, None, k, (w, h), cv2.CV_32FC1)
+        mx, my = cv2.initUndistortRectifyMap(k, self.distortion, None, self.pinhole.scaled(w, h).opencv_matrix(),
+                                             (w, h), cv2.CV_32FC1)
         out = cv2.remap(a, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return out.reshape(a.shape)

@@ -318,20 +318,31 @@ class PatternSpec:
         return self.kind == "surface"
 
 
+#: Pattern orders: ProCam's own, and OpenCV's structured-light session (Gray code, white, black).
+LAYOUTS = ("procam", "opencv")
+
+
 def calibration_sequence(projector: Projector, checker_size: int | None = None, *, area: str = "input",
                          checker_phases: Sequence[int] = (0, 1), graycode: bool = True,
                          validation: bool = True, seed: int = 0, grey_levels: Sequence[float] = GREY_LEVELS,
                          ramp_channels: Sequence[str] = RAMP_CHANNELS,
-                         random_count: int = RANDOM_COUNT) -> list[PatternSpec]:
+                         random_count: int = RANDOM_COUNT, layout: str = "procam") -> list[PatternSpec]:
     """The patterns of a calibration session, in a fixed order, as native projector frames.
 
     ``area="input"`` draws every pattern inside the projector input rectangle
     (the rest of the frame stays black, as during compensation); ``"frame"``
     uses the whole native frame. ``surface`` means the projector is off; a
     device that cannot switch it off shows the (black) frame instead.
+    ``layout="opencv"``: OpenCV's structured-light session instead (its
+    ``GrayCodePattern`` frames, which are ours, then white, then black; no
+    surface photo, no checkerboard), the order of ``procam calibrate-rig``'s
+    board sessions and of many existing captures, then the validation patterns
+    if asked for.
     """
     if area not in ("input", "frame"):
         raise CaptureError(f"pattern area must be 'input' or 'frame', got {area!r}")
+    if layout not in LAYOUTS:
+        raise CaptureError(f"pattern layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
     size = projector.input_size if area == "input" else projector.intrinsics.size
     frame_size = projector.intrinsics.size
     checker_size = default_checker_size(size) if checker_size is None else checker_size
@@ -344,10 +355,11 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
         return lambda: projector.frame_from_input(make())
 
     base = {"area": area}
-    seq = [PatternSpec("surface", "surface", {"projector": "off"}, lambda: black(frame_size)),
-           PatternSpec("black", "black", dict(base), place(lambda: black(size))),
-           PatternSpec("white", "white", dict(base), place(lambda: white(size)))]
-    for ph in checker_phases:
+    dark = PatternSpec("black", "black", dict(base), place(lambda: black(size)))
+    light = PatternSpec("white", "white", dict(base), place(lambda: white(size)))
+    seq = [] if layout == "opencv" else [PatternSpec("surface", "surface", {"projector": "off"}, lambda: black(frame_size)),
+                                         dark, light]
+    for ph in checker_phases if layout == "procam" else ():
         seq.append(PatternSpec(f"checker_s{checker_size}_p{ph}", "checker",
                                {**base, "square": int(checker_size), "phase": int(ph)},
                                place(functools.partial(checkerboard, size, int(checker_size), int(ph)))))
@@ -358,6 +370,8 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
                                    {**base, "axis": axis, "bit": bit, "inverted": inv,
                                     "bits": nx if axis == "x" else ny, "grid": [int(size[0]), int(size[1])]},
                                    place(functools.partial(gray_code_pattern, size, axis, bit, inv))))
+    if layout == "opencv":
+        seq += [light, dark]
     if validation:
         for name, params, make in _validation_specs(size, seed, grey_levels, ramp_channels, random_count, 32.0):
             seq.append(PatternSpec(name, "validation", {**base, **params}, place(make)))
@@ -369,7 +383,7 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
     return seq
 
 
-__all__ = ["CLOSING_WHITE", "GrayCodeDecoding", "PatternSpec", "black", "calibration_sequence", "checkerboard", "colour_ramp",
+__all__ = ["CLOSING_WHITE", "GrayCodeDecoding", "LAYOUTS", "PatternSpec", "black", "calibration_sequence", "checkerboard", "colour_ramp",
            "decode_gray_code", "decode_gray_code_set", "default_checker_size", "flat", "gray_code_bits",
            "gray_code_layout", "gray_code_pattern", "gray_code_patterns", "smooth_random", "validation_patterns",
            "white"]

@@ -99,7 +99,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  warning: {w}")
     b, a = (r.get("warp_report") or {}).get("corners_before_px"), (r.get("warp_report") or {}).get("corners_after_px")
     if b and a:
-        print(f"  warp: checker corners median {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
+        what = ("decoded Gray code against the model, median" if r["warp_report"].get("source") == "graycode"
+                else "checker corners median")
+        print(f"  warp: {what} {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items()))
     operator = Path(args.out) / TRANSPORT_JSON
     if operator.is_file():

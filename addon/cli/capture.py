@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from ..capture.devices import load_sequence
+from ..capture.patterns import LAYOUTS
 from ..errors import CaptureError, RigError
 from ..rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
 from ..steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
@@ -54,6 +55,11 @@ def add_pattern_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-graycode", action="store_true", help="leave out the Gray-code frames")
     p.add_argument("--no-validation", action="store_true", help="leave out the validation frames")
     p.add_argument("--seed", type=int, default=0, help="seed of the random validation patterns")
+    p.add_argument("--layout", choices=LAYOUTS, default="procam",
+                   help="procam (default): surface photo, black, white, checkerboards, Gray code, validation; opencv: "
+                        "OpenCV's structured-light order (Gray code, each bit then its inverse, x then y; then white "
+                        "and black; no surface photo or checkerboard), as procam calibrate-rig's board sessions use: "
+                        "import such photographs with it")
 
 
 def _configure_patterns(p: argparse.ArgumentParser) -> None:
@@ -70,7 +76,7 @@ def patterns(args: argparse.Namespace) -> int:
     w, h = projector.intrinsics.size
     out = run_step("patterns", run_patterns, PatternsOptions(
         projector, args.out, checker=args.checker, area=args.area, graycode=not args.no_graycode,
-        validation=not args.no_validation, seed=args.seed, force=args.force))
+        validation=not args.no_validation, seed=args.seed, layout=args.layout, force=args.force))
     n = len(load_sequence(out).frames)
     print(f"wrote {n} frames ({w}×{h}) and sequence.json to {out}")
     return 0

@@ -124,13 +124,22 @@ def choose_entries(captures: CaptureSet, input_of: Callable[[Entry], np.ndarray]
         if _run_lengths(line) >= MIN_STRIPE_PX:
             chosen.append(e)
     validation = captures.entries_of("validation")
-    if not validation:
+    if not validation and not any(e.kind in ("checker", "graycode") for e in chosen):
         raise DiagnosisError(
-            f"the capture set {captures.path} has no validation captures; the diagnosis needs them to test the "
-            "model on patterns calibration did not use: recapture with validation patterns (procam lab does by "
-            "default; for a real session `procam patterns` exports them: grey levels 0.25/0.5/0.75, red/green/blue "
-            "ramps and smooth random images)")
+            f"the capture set {captures.path} has no validation, checkerboard or Gray-code captures; the diagnosis "
+            "needs patterns to test the model on that calibration did not fit: recapture with validation patterns "
+            "(procam lab does by default; for a real session `procam patterns` exports them: grey levels "
+            "0.25/0.5/0.75, red/green/blue ramps and smooth random images)")
     return chosen + validation
+
+
+#: Effects only grey levels show: on black-and-white patterns they act at stripe edges alone, where a blur fits too.
+LEVEL_EFFECTS = ("response", "camera_response")
+#: What the diagnosis says when a capture set has no validation patterns (OpenCV's sequence: Gray code, white, black).
+NO_VALIDATION = ("the capture set has no validation patterns (grey levels, colour ramps, smooth random images): every "
+                 "other Gray-code or checkerboard pattern is held out instead. Those are black and white, so the "
+                 f"effects only grey levels show ({', '.join(LEVEL_EFFECTS)}) are not tested, and colour mixing is "
+                 "tested on white light only; capture the validation patterns (procam patterns) to test them")
 
 
 def split_patterns(observations: list[Observation]) -> tuple[list[int], list[int]]:
@@ -325,4 +334,5 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
     return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera, cal.warp,
                    fit, held, report={"calibration": source,
                                       "capture_set": str(captures.path), "working_size": list(size), "spp": spp,
-                                      "patterns": [o.name for o in observations]})
+                                      "patterns": [o.name for o in observations],
+                                      "validation": any(o.kind == "validation" for o in observations)})

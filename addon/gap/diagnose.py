@@ -19,7 +19,7 @@ import numpy as np
 from ..capture.format import CaptureSet
 from ..progress import Cancel, Progress, quiet
 from ..stages.calibrate import Calibration
-from .data import GapData, load_gap_data
+from .data import LEVEL_EFFECTS, NO_VALIDATION, GapData, load_gap_data
 from .compensation import INVERTIBLE
 from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
@@ -197,6 +197,7 @@ def _summary(doc: dict[str, Any]) -> str:
     lines = ["# ProCam sim-to-real diagnosis", "", f"**{doc['headline']}**", "",
              f"Calibration `{doc['calibration']}`; {len(doc['patterns']['fit'])} patterns fitted, "
              f"{len(doc['patterns']['held_out'])} held out.", "",
+             *[f"**Warning:** {w}." for w in doc.get("warnings", [])], *([""] if doc.get("warnings") else []),
              f"**Held-out residual of the calibrated model:** RMSE {res['rmse']:.4f} ({res['psnr']:.1f} dB PSNR); "
              f"without pixel noise {res['rmse_structured']:.4f}.",
              f"**With the selected effects:** RMSE {after['rmse']:.4f} ({after['psnr']:.1f} dB); without pixel noise "
@@ -282,6 +283,9 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
                          progress=lambda m, f: say(f"model: {m}", 0.4 * f))
     t_render = time.perf_counter() - t0
     t0 = time.perf_counter()
+    warnings = [] if data.report["validation"] else [NO_VALIDATION]
+    if warnings:
+        candidates = tuple(c for c in candidates if c not in LEVEL_EFFECTS)
     # An albedo read from the white capture holds the projector's falloff exactly, so a vignetting model on
     # top of it can only fit something else (on vedge with crosstalk and glossy it fitted the lobe's
     # leftovers, and inverting it cost 0.12 dB): it is fitted and shown, but found from the evidence alone.
@@ -348,7 +352,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
                    "where_bbox": list(left.bbox) if left else None}
     _temper_confidence(effects, sel.selected, session, rem)
     doc = {"format": format[0], "version": format[1], "calibration": data.report["calibration"],
-           "capture_set": data.report["capture_set"], "working_size": list(data.size),
+           "capture_set": data.report["capture_set"], "working_size": list(data.size), "warnings": warnings,
            "patterns": {"fit": [data.names[i] for i in data.fit_index],
                         "held_out": [data.names[i] for i in data.held_index]},
            "lit_pixels": int(data.mask.sum()),

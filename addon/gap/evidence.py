@@ -405,6 +405,11 @@ def depth_evidence(captures: Any, cal: Any) -> Evidence:
                                                       "reconstruction's smoothing")
     walls = captures.depth_walls()
     report = cal.report.get("surface_report") or {}
+    if not walls and captures.depth_info is None:
+        ev.absorbed_by = ""
+        ev.error = (f"no depth image (the surface came from {report.get('source', 'elsewhere')}): there is no depth "
+                    "sensor whose noise could be read")
+        return ev
     if walls:
 
         entry, distance = walls[0]

@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..errors import ImageError, RigError
@@ -190,6 +191,9 @@ class Projector:
     600×600) inside the native frame (800×600); the rest of the frame is black.
     ``intensity`` scales emitted light: 1 gives an irradiance of π·value on a
     plane 1 m in front of the lens (Mitsuba's ``projector`` with ``scale = 1``).
+    ``lens_distortion``: OpenCV's k1 k2 p1 p2 k3 of the lens when a rig calibration measured them. The renderer's
+    projector is a pinhole, and stage B's warp takes the lens up; only what must see the real projector's pixels
+    before the warp exists (triangulating the Gray code) uses them.
     """
 
     intrinsics: Intrinsics
@@ -197,6 +201,7 @@ class Projector:
     intensity: float = 1.0
     input_size: tuple[int, int] | None = None
     input_offset: tuple[int, int] | None = None
+    lens_distortion: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_from_projector", _as_pose(self.camera_from_projector, "projector pose"))
@@ -214,6 +219,20 @@ class Projector:
             raise RigError(f"projector input {size} at offset {offset} does not fit in the {w}×{h} frame")
         object.__setattr__(self, "input_size", size)
         object.__setattr__(self, "input_offset", offset)
+        if self.lens_distortion is not None:
+            dist = tuple(float(v) for v in self.lens_distortion)
+            if len(dist) not in (4, 5, 8) or not all(math.isfinite(v) for v in dist):
+                raise RigError(f"projector lens distortion must be 4, 5 or 8 finite OpenCV coefficients, got {dist}")
+            object.__setattr__(self, "lens_distortion", dist if any(dist) else None)
+
+    def undistort(self, pixels: np.ndarray) -> np.ndarray:
+        """Native-frame pixels (N×2, corner convention) of the real lens → where the pinhole puts those rays."""
+        p = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        if self.lens_distortion is None:
+            return p.copy()
+        k = self.intrinsics.opencv_matrix()
+        out = cv2.undistortPoints((p - 0.5).reshape(-1, 1, 2), k, np.asarray(self.lens_distortion), P=k)
+        return out.reshape(-1, 2) + 0.5
 
     @property
     def position(self) -> np.ndarray:
@@ -257,7 +276,8 @@ class Projector:
         return {"intrinsics": self.intrinsics.to_dict(),
                 "camera_from_projector": self.camera_from_projector.tolist(),
                 "intensity": float(self.intensity),
-                "input_size": list(self.input_size), "input_offset": list(self.input_offset)}
+                "input_size": list(self.input_size), "input_offset": list(self.input_offset),
+                **({"lens_distortion": list(self.lens_distortion)} if self.lens_distortion else {})}
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "Projector":
@@ -265,7 +285,8 @@ class Projector:
             return Projector(Intrinsics.from_dict(d["intrinsics"]), np.asarray(d["camera_from_projector"], dtype=float),
                              float(d.get("intensity", 1.0)),
                              tuple(d["input_size"]) if d.get("input_size") else None,
-                             tuple(d["input_offset"]) if d.get("input_offset") else None)
+                             tuple(d["input_offset"]) if d.get("input_offset") else None,
+                             tuple(d["lens_distortion"]) if d.get("lens_distortion") else None)
         except KeyError as exc:
             raise RigError(f"projector description lacks {exc}") from None
 

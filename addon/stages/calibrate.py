@@ -27,6 +27,7 @@ from ..surface.mesh import SurfaceMesh
 from .intrinsics import estimate_projector_intrinsics
 from .pose import estimate_pose, surface_view, target_mask
 from .surface import surface_from_captures
+from .graycode_warp import warp_from_graycode
 from .warp import Warp, estimate_warp, grid_image
 
 #: The calibration stages, in order; each needs the ones before it.
@@ -94,8 +95,9 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
     irradiance = model.render(captures.pattern("white"))
     lit = irradiance.mean(axis=2) > floor * max(float(irradiance.mean(axis=2).max()), 1e-9)
     albedo = np.where(lit[..., None], (white - black) / np.maximum(irradiance, 1e-6), np.nan)
-    photo = captures.image("surface")
-    # Outside the projector's reach only the unlit photo is known: scale it to the lit albedo where both exist.
+    # Outside the projector's reach only the unlit photo is known: scale it to the lit albedo where both exist (a
+    # session without the photo, such as OpenCV's sequence, gets the lit albedo's median there).
+    photo = captures.image("surface") if captures.entries_of("surface") else np.zeros_like(white)
     both = lit & (photo.mean(axis=2) > 1e-4)
     if both.sum() > 100:
         scale = np.nanmedian(albedo[both] / np.maximum(photo[both], 1e-6), axis=0)
@@ -176,10 +178,17 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         raise CalibrationError(f"unknown projector intrinsics {projector_intrinsics!r}; choose one of "
                                f"{', '.join(PROJECTOR_INTRINSICS)}")
     say = progress or quiet
-    for kind in ("white", "black", "checker"):
+    for kind in ("white", "black"):
         if not captures.entries_of(kind):
             raise CalibrationError(f"the capture set {captures.path} has no '{kind}' capture; calibration needs "
-                                   "white, black, checkerboard and depth captures")
+                                   "white and black captures, and a checkerboard or Gray code for stage B")
+    # Stage B fits its warp to a projected checkerboard by rendering; a session without one (OpenCV's
+    # structured-light sequence: Gray code, white, black) gets it from the decoded Gray code instead.
+    warp_source = "checker" if captures.entries_of("checker") else "graycode" if captures.entries_of("graycode") \
+        else None
+    if "warp" in plan and warp_source is None:
+        raise CalibrationError(f"the capture set {captures.path} has neither a checkerboard nor Gray-code captures; "
+                               "stage B (warp) needs one of them")
     reused = STAGES[:STAGES.index(plan[0])]
     if reused and previous is None:
         raise CalibrationError(f"stage {plan[0]!r} reuses the {', '.join(reused)} of an earlier calibration; "
@@ -270,12 +279,17 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     warp = None
     if "warp" in plan:
         t0 = time.perf_counter()
-        say("stage B: warp", 0.55)
-        fit = estimate_warp(captures, mesh, rig, cancel=cancel, seed=seed,
-                            progress=lambda m, f: say(f"stage B: {m}", 0.55 + 0.45 * f))
+        if warp_source == "checker":
+            say("stage B: warp", 0.55)
+            fit = estimate_warp(captures, mesh, rig, cancel=cancel, seed=seed,
+                                progress=lambda m, f: say(f"stage B: {m}", 0.55 + 0.45 * f))
+        else:
+            say("stage B: warp from the Gray code (no checkerboard in the capture set)", 0.55)
+            fit = warp_from_graycode(captures, mesh, rig, seed=seed)
         seconds["warp"] = time.perf_counter() - t0
         warp = fit.warp
-        report["warp_report"] = {"losses": [float(v) for v in fit.losses[-1:]] if fit.losses else [],
+        report["warp_report"] = {"source": warp_source,
+                                 "losses": [float(v) for v in fit.losses[-1:]] if fit.losses else [],
                                  "corners_before_px": fit.corners_before_px,
                                  "corners_after_px": fit.corners_after_px}
         images.update({f"warp_{n}": im for n, im in fit.diagnostics.items()})

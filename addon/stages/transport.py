@@ -403,7 +403,11 @@ class TransportRows:
 def camera_to_input(calibration: Any, camera_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Where each camera pixel looks in the projector input (continuous texel coordinates, x and y), and whether
     that surface point is lit by the projector at all (ray cast both ways through the calibrated model)."""
-    rig, surface = calibration.rig, calibration.surface
+    return camera_to_input_of(calibration.rig, calibration.surface, camera_size)
+
+
+def camera_to_input_of(rig: Any, surface: Any, camera_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`camera_to_input` for a rig and surface not yet gathered into a calibration (stage B uses it)."""
     cam = rig.camera.intrinsics.scaled(*camera_size)
     cw, ch = camera_size
     ys, xs = np.mgrid[0:ch, 0:cw] + 0.5
@@ -519,4 +523,4 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = 16, seed: 
 
 
 __all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "build_transport", "building_bytes",
-           "camera_to_input", "check_memory", "free_bytes"]
+           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes"]

@@ -298,7 +298,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
         f"Pose: init {doc.get('init', pose.get('init', '?'))}, loss {fmt(losses.get('pose'), '.4g')} "
         f"({fmt(sec.get('pose'), '.1f', ' s')})",
         f"Projector at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) m",
-        f"Warp: corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "
+        f"Warp{' (from the Gray code)' if warp.get('source') == 'graycode' else ''}: "
+        f"corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "
         f"loss {fmt(losses.get('warp'), '.4g')} ({fmt(sec.get('warp'), '.1f', ' s')})",
     )
     head = f"Calibrated: warp corners {fmt(after.get('median'), '.2f')} px"

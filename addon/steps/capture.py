@@ -140,6 +140,8 @@ class PatternsOptions:
     graycode: bool = True
     validation: bool = True
     seed: int = 0
+    #: procam, or opencv: OpenCV's structured-light order (Gray code, white, black), for sessions captured that way
+    layout: str = "procam"
     force: bool = False
 
 
@@ -149,7 +151,7 @@ def run_patterns(options: PatternsOptions, progress: Progress | None = None,
     (progress or quiet)("writing the pattern frames", 0.0)
     out = export_sequence(options.projector, options.out, checker_size=options.checker, area=options.area,
                           seed=options.seed, camera=options.camera, graycode=options.graycode,
-                          validation=options.validation, force=options.force)
+                          validation=options.validation, layout=options.layout, force=options.force)
     (progress or quiet)(f"{len(load_sequence(out).frames)} frames", 1.0)
     return out
 
@@ -195,14 +197,16 @@ def rig_models(rig_path: Path, projector: Projector, camera: Camera | None = Non
         raise CaptureError(f"{rig_path} calibrates a {cal.camera_size[0]}×{cal.camera_size[1]} camera, but the "
                            f"camera given is {camera.intrinsics.size[0]}×{camera.intrinsics.size[1]}")
     try:
-        proj = replace(projector, intrinsics=Intrinsics.from_opencv_matrix(*cal.projector_size, cal.projector_matrix))
+        proj = replace(projector, intrinsics=Intrinsics.from_opencv_matrix(*cal.projector_size, cal.projector_matrix),
+                       lens_distortion=tuple(float(v) for v in cal.projector_distortion))
         if cal.metric:
             proj = proj.with_pose(cal.camera_from_projector)
-        cam = Camera(Intrinsics.from_opencv_matrix(*cal.camera_size, cal.camera_matrix))
+        lens = RigLens(Intrinsics.from_opencv_matrix(*cal.camera_size, cal.camera_matrix), cal.camera_distortion,
+                       f"{Path(rig_path).resolve()} (sha256 {file_sha256(Path(rig_path))[:12]})", cal.metric)
+        cam = Camera(lens.pinhole)  # what the photographs become once the lens is taken out
     except RigError as exc:
         raise CaptureError(f"{rig_path} does not describe a usable rig: {exc}") from None
-    return cam, proj, RigLens(cam.intrinsics, cal.camera_distortion,
-                              f"{Path(rig_path).resolve()} (sha256 {file_sha256(Path(rig_path))[:12]})", cal.metric)
+    return cam, proj, lens
 
 
 def run_import(options: ImportOptions, progress: Progress | None = None,

@@ -101,7 +101,9 @@ def triangulate_depth(captures: CaptureSet, camera_from_projector: np.ndarray | 
                            f"{MIN_POINTS}); capture it again with the projector on and the camera still")
     rows, cols = np.nonzero(valid)
     cam_rays = cam_k.rays(np.stack([cols, rows], axis=1) + 0.5)  # camera pixel centres, z = 1
-    u = dec.coords[rows, cols].astype(np.float64)  # projector pixels, corner convention
+    # projector pixels, corner convention; where a rig calibration measured the projector's lens, where its pinhole
+    # would put the rays the decoded pixels send (the real-board projector's k1 k2 move them by up to ~20 px)
+    u = captures.projector.undistort(dec.coords[rows, cols].astype(np.float64))
 
     # Projector coordinates of a point t·d on the camera ray: homogeneous K_p (R^T (t d − c)) = t·a − b.
     p_from_c = np.linalg.inv(pose)
