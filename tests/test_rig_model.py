@@ -145,3 +145,18 @@ def test_blender_camera_params_round_trip():
     assert np.allclose(back.matrix, k.matrix)
     with pytest.raises(RigError, match="square"):
         frames.blender_camera_params(Intrinsics(640, 480, 580.0, 590.0, 320.0, 240.0))
+
+
+def test_a_scaled_working_size_keeps_square_pixels():
+    from procam.addon.rig.model import Intrinsics, square_scaled_size
+
+    assert square_scaled_size(320, 240, 0.5) == (160, 120)  # exact sizes are kept
+    assert square_scaled_size(640, 480, 0.3) == (192, 144)
+    # 1280×1024 at 0.1 rounds to 128×102 axis by axis: rows 0.4 % taller than columns, which the renderer refuses
+    w, h = square_scaled_size(1280, 1024, 0.1)
+    assert (w, h) == (130, 104)
+    k = Intrinsics.from_opencv_matrix(1280, 1024, np.array([[3448.0, 0, 640], [0, 3448.0, 512], [0, 0, 1]]))
+    assert k.scaled(w, h).square_pixels
+    for size in ((1279, 1023), (1920, 1080), (1000, 750)):
+        w, h = square_scaled_size(*size, 0.1)
+        assert abs(w - 0.1 * size[0]) <= 0.1 * 0.1 * size[0] and abs(w * size[1] / size[0] - h) <= 0.05

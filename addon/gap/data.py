@@ -36,6 +36,7 @@ from ..errors import Cancelled, ProCamError
 from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
 from ..render.raycast import first_hits
+from ..rig.model import square_scaled_size
 from ..stages.calibrate import Calibration
 
 
@@ -290,7 +291,7 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
 
     entries = choose_entries(captures, input_of)
     cw, ch = cal.rig.camera.intrinsics.size
-    size = (max(16, round(cw * scale)), max(12, round(ch * scale)))
+    size = square_scaled_size(cw, ch, scale, minimum=(16, 12))
     camera = cal.rig.camera.intrinsics.scaled(*size)
     say("light paths", 0.0)
     corr, per_metre, points, rays, inside = light_paths(cal, camera)

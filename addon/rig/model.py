@@ -34,6 +34,23 @@ from ..errors import ImageError, RigError
 MAX_SHIFT = 5.0
 
 
+def square_scaled_size(width: int, height: int, scale: float, *, minimum: tuple[int, int] = (2, 2)
+                       ) -> tuple[int, int]:
+    """The size nearest to ``scale`` × (width, height) whose two axes scale alike, so that a square-pixel camera
+    stays one (the renderer needs it): rounding each axis alone gave 1280×1024 at 0.1 a 128×102 image, whose rows
+    are 0.4 % taller than its columns are wide. Widths within ±10 % of the target are tried: the nearest one whose
+    height is within 0.05 px of the aspect ratio's, else the one that comes closest to it."""
+    target = max(float(minimum[0]), width * scale)
+    best: tuple[bool, float, float, int, int] | None = None
+    for w in range(max(minimum[0], math.floor(0.9 * target)), math.ceil(1.1 * target) + 1):
+        h = max(minimum[1], round(w * height / width))
+        off = abs(w * height / width - h)
+        cand = (off > 0.05, abs(w - target) if off <= 0.05 else off, abs(w - target), w, h)
+        best = cand if best is None or cand[:3] < best[:3] else best
+    assert best is not None
+    return best[3], best[4]
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics in pixels of the native resolution (corner convention)."""

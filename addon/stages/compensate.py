@@ -102,6 +102,7 @@ from ..errors import CalibrationError, Cancelled, CaptureError, ProCamError
 from ..progress import Cancel, Progress
 from ..render.forward import ForwardModel
 from ..render.raycast import first_hits
+from ..rig.model import square_scaled_size
 from .display_area import DisplayArea, fit_target
 from .metrics import psnr
 from .transport import TransportOperator, TransportRows, build_transport
@@ -383,7 +384,7 @@ class Compensator:
         if scale >= 1.0:
             return self.model
         cw, ch = self.camera_size
-        size = (max(2, round(cw * scale)), max(2, round(ch * scale)))
+        size = square_scaled_size(cw, ch, scale)
         if size not in self._coarse_models:
 
             self._coarse_models[size] = ForwardModel(self.rig, self.calibration.surface, camera_size=size,
