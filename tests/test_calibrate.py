@@ -93,12 +93,26 @@ def test_failed_calibration_leaves_nothing(calibrated, tmp_path):
     broken = tmp_path / "broken"
     shutil.copytree(captures, broken)
     doc = json.loads((broken / "capture.json").read_text())
-    doc["images"] = [e for e in doc["images"] if e["kind"] != "checker"]
+    doc["images"] = [e for e in doc["images"] if e["kind"] not in ("checker", "graycode")]
     (broken / "capture.json").write_text(json.dumps(doc))
-    with pytest.raises(CalibrationError, match="checker"):
+    with pytest.raises(CalibrationError, match="neither a checkerboard nor Gray-code"):
         run_calibration(CalibrateOptions(broken, tmp_path / "cal"))
     assert not (tmp_path / "cal").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["broken"]
+
+
+def test_a_session_without_a_checkerboard_gets_its_warp_from_the_gray_code(calibrated, tmp_path):
+    """OpenCV's structured-light sequence has no checkerboard: stage B fits the warp to the decoded Gray code."""
+    captures, _, _, _ = calibrated
+    session = tmp_path / "session"
+    shutil.copytree(captures, session)
+    doc = json.loads((session / "capture.json").read_text())
+    doc["images"] = [e for e in doc["images"] if e["kind"] not in ("checker", "surface")]
+    (session / "capture.json").write_text(json.dumps(doc))
+    run_calibration(CalibrateOptions(session, tmp_path / "cal"))
+    report = json.loads((tmp_path / "cal" / "calibration.json").read_text())["warp_report"]
+    assert report["source"] == "graycode"
+    assert report["corners_after_px"]["median"] < 0.6  # the decoded texel is whole: ±0.5 in each axis
 
 
 def test_metrics():
