@@ -212,14 +212,22 @@ def _calibration_for(cal_dir, captures, tmp_path):
 def test_missing_validation_captures_say_how_to_get_them(clean_case, tmp_path):
     cal_dir, captures, _ = clean_case
 
-    def drop(doc, _):
-        key = "entries" if "entries" in doc else "images"
-        doc[key] = [e for e in doc[key] if e["kind"] != "validation"]
+    def drop(kinds):
+        def edit(doc, _):
+            key = "entries" if "entries" in doc else "images"
+            doc[key] = [e for e in doc[key] if e["kind"] not in kinds]
+        return edit
 
-    _copy_set(captures, tmp_path / "set", drop)
+    # Without validation patterns the Gray code and checkerboards are held out instead, and the report says so.
+    _copy_set(captures, tmp_path / "set", drop(("validation",)))
+    doc = diagnose(_calibration_for(cal_dir, tmp_path / "set", tmp_path), tmp_path / "gap", scale=1.0, spp=4)
+    assert any("no validation patterns" in w for w in doc["warnings"])
+    assert not {"response", "camera_response"} & {e["name"] for e in doc["effects"]}
+    # Without anything to hold out it stops, saying what to capture.
+    _copy_set(captures, tmp_path / "bare", drop(("validation", "graycode", "checker")))
     with pytest.raises(DiagnosisError, match="validation"):
-        diagnose(_calibration_for(cal_dir, tmp_path / "set", tmp_path), tmp_path / "gap", scale=1.0, spp=4)
-    assert not (tmp_path / "gap").exists()
+        diagnose(_calibration_for(cal_dir, tmp_path / "bare", tmp_path / "c2"), tmp_path / "gap2", scale=1.0, spp=4)
+    assert not (tmp_path / "gap2").exists()
 
 
 def test_all_dark_captures_are_refused(clean_case, tmp_path):

@@ -58,3 +58,20 @@ def test_range_ceiling():
     t = np.full((4, 4, 3), 0.3, np.float32)
     t[0] = 0.9  # a quarter of the pixels 0.4 above white
     assert range_ceiling(t, black, white) == pytest.approx(10 * math.log10(1 / (0.25 * 0.4 ** 2)), abs=1e-4)
+
+
+def test_the_gap_to_the_ceiling_is_split_by_whether_the_input_could_give_more():
+    from procam.addon.stages.range import ceiling_gap_at_limit
+
+    black, white = np.full((2, 2, 3), 0.02), np.full((2, 2, 3), 0.8)
+    target = np.full((2, 2, 3), 0.5)
+    target[0, 0] = 0.95  # above white: the ceiling is white there
+    capture = target.copy()
+    capture[0, 0] = 0.7  # 0.1 short of white where the input is at full: the projector's limit
+    capture[1, 1] = 0.45  # 0.05 short where the input could still rise: the solver's
+    seen = np.full((2, 2, 3), 0.5)
+    seen[0, 0] = 1.0
+    share = ceiling_gap_at_limit(target, capture, black, white, seen)
+    # excess at (0,0): 0.25² − 0.15² = 0.04 per channel; at (1,1): 0.05² = 0.0025
+    assert share == pytest.approx(0.04 / 0.0425)
+    assert ceiling_gap_at_limit(target, np.clip(target, black, white), black, white, seen) is None

@@ -56,7 +56,9 @@ def run(args: argparse.Namespace) -> int:
             u = r["uncompensated"]
             extra = f", classical {r['classical']['psnr']:.2f} dB" if "classical" in r else ""
             print(f"{r['name']}: PSNR {u['psnr']:.2f} → {r['psnr']:.2f} dB, SSIM {u['ssim']:.3f} → {r['ssim']:.3f} "
-                  f"(uncompensated → compensated{extra}); range ceiling {r['range_ceiling']:.2f} dB")
+                  f"(uncompensated → compensated{extra}); range ceiling {r['range_ceiling']:.2f} dB"
+                  + (f", {r['ceiling_gap_at_limit']:.0%} of the gap to it where the input is already at its limit"
+                     if r.get("ceiling_gap_at_limit") is not None else ""))
     m = doc["mean"]
     if doc.get("range"):
         print(f"targets mapped by the compensation's range: {doc['range']['gain']:.3f}·t "

@@ -151,4 +151,30 @@ def range_ceiling(target: np.ndarray, black: np.ndarray, white: np.ndarray) -> f
     return CEILING_CAP if mse <= 10 ** (-CEILING_CAP / 10) else 10.0 * math.log10(1.0 / mse)
 
 
-__all__ = ["CLIP_SHARE", "RangeError", "RangeMap", "fit_range", "parse_range", "range_ceiling"]
+#: An input at or above this (at or below :data:`INPUT_ZERO`) where a pixel looks cannot give it more (less).
+INPUT_FULL = 0.99
+INPUT_ZERO = 0.01
+
+
+def ceiling_gap_at_limit(target: np.ndarray, capture: np.ndarray, black: np.ndarray, white: np.ndarray,
+                         seen_input: np.ndarray) -> float | None:
+    """Of what separates a compensated capture from the range ceiling (its squared error beyond the clipped
+    target's), the share at pixels and channels where the projector's input already gives all it can there: the
+    capture is darker than the target with the input the pixel sees (``seen_input``) at full, or brighter with it
+    at zero. No solver pushes further there. The per-pixel ceiling is loose at such pixels: the white capture
+    lights every neighbour and every channel at once, while a target asks for some of them dark, and the
+    projector's blur and colour crosstalk carry that darkness over (the lab's plane: 96 % of the white where its
+    sky is at full input). None when the capture is nowhere worse than the ceiling."""
+    t, c = np.asarray(target, np.float64), np.asarray(capture, np.float64)
+    clipped = np.clip(t, black, np.maximum(white, black))
+    excess = np.maximum((c - t) ** 2 - (clipped - t) ** 2, 0.0)
+    total = float(excess.sum())
+    if total <= 0.0:
+        return None
+    x = np.nan_to_num(np.asarray(seen_input, np.float64), nan=0.5)
+    at_limit = ((c < t) & (x >= INPUT_FULL)) | ((c > t) & (x <= INPUT_ZERO))
+    return float(excess[at_limit].sum()) / total
+
+
+__all__ = ["CLIP_SHARE", "INPUT_FULL", "INPUT_ZERO", "RangeError", "RangeMap", "ceiling_gap_at_limit", "fit_range",
+           "parse_range", "range_ceiling"]

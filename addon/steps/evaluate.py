@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
+import cv2
 import numpy as np
 
 from ..capture.devices import Device
@@ -47,7 +48,8 @@ from ..stages.classical import fit_classical
 from ..stages.compensate import Compensator
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
 from ..stages.metrics import mean_scores, measure, side_by_side, uncompensated_input
-from ..stages.range import RangeMap, range_ceiling
+from ..stages.range import RangeMap, ceiling_gap_at_limit, range_ceiling
+from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
@@ -259,6 +261,17 @@ class EvaluationRun:
     failure: ProCamError | None = None
 
 
+def input_seen(frame: np.ndarray, projector: Any, looks_at: np.ndarray) -> np.ndarray:
+    """Per camera pixel and channel, the projector input where the pixel looks (``looks_at``:
+    :func:`.transport.camera_to_input`, bilinear); NaN where it sees no projector input."""
+    x0, y0 = projector.input_offset
+    w, h = projector.input_size
+    x = np.ascontiguousarray(np.asarray(frame, np.float32)[y0:y0 + h, x0:x0 + w])
+    u = np.nan_to_num(looks_at, nan=-10.0).astype(np.float32) - 0.5  # texel centres on integers for remap
+    v = cv2.remap(x, u[..., 0], u[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    return np.where(np.isfinite(looks_at[..., :1]), v.reshape(*looks_at.shape[:2], -1), np.nan)
+
+
 def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                     targets: "list[tuple[str, np.ndarray, str]] | VideoTargets", device: Device, out: Path, *,
                     calibration_dir: str | Path | None = None, notes: list[str] | None = None,
@@ -288,6 +301,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     range_map = RangeMap.from_dict(inputs.doc.get("range"))
     captures = calibrate_step.captures_of(calibration)
     white, black = captures.image("white"), captures.image("black")
+    looks_at, _ = camera_to_input(calibration, cam_size)
     comp.check_device(device)
     model = None
     if classical:
@@ -310,10 +324,14 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             if range_map is not None:  # the compensation aimed at the mapped target: measure against that
                 fitted = range_map.apply(fitted)
             placed = area.place(fitted, cam_size)
-            got = measure(device, inputs.frame(name, proj), fitted, area, cam_size)
+            frame = inputs.frame(name, proj)
+            got = measure(device, frame, fitted, area, cam_size)
             plain = measure(device, proj.frame_from_input(uncompensated_input(comp, placed)), fitted, area, cam_size)
+            at_limit = ceiling_gap_at_limit(fitted, area.crop(got.capture), area.crop(black), area.crop(white),
+                                            area.crop(input_seen(frame, proj, looks_at)))
             row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
-                                   "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2)}
+                                   "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2),
+                                   "ceiling_gap_at_limit": None if at_limit is None else round(at_limit, 3)}
             extra = []
             if model is not None:
                 t0 = time.perf_counter()
@@ -349,7 +367,9 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
            "measure": "PSNR (dB, peak 1) and SSIM (Wang et al. 2004) of the capture inside the display area "
                       "against the target fitted to the area (and mapped by the compensation's range, if any); "
                       "range_ceiling: PSNR of that target clipped per pixel to the captured [black, white], the "
-                      "best any input could do",
+                      "best any input could do; ceiling_gap_at_limit: of the capture's squared error beyond the "
+                      "clipped target's, the share where the input the pixel sees is already at full (capture too "
+                      "dark) or at zero (too bright), which no solver can push further",
            "range": None if range_map is None else range_map.to_dict(),
            "classical": None if model is None else model.report,
            "targets": rows, "mean": mean_scores(done),
@@ -447,7 +467,9 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     head = (f"PSNR {fmt(plain.get('psnr'), '.2f')} → {fmt(mean.get('psnr'), '.2f')} dB, SSIM "
             f"{fmt(plain.get('ssim'), '.3f')} → {fmt(mean.get('ssim'), '.3f')} (uncompensated → compensated)")
     lines = tuple(f"{t['name']}: {fmt(t['uncompensated']['psnr'], '.2f')} → {fmt(t['psnr'], '.2f')} dB "
-                  f"(range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB)"
+                  f"(range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"
+                  + (f", {t['ceiling_gap_at_limit']:.0%} of the gap to it at the input's limit"
+                     if t.get("ceiling_gap_at_limit") is not None else "") + ")"
                   if t.get("status") == "done" else f"{t.get('name')}: failed — {t.get('error', '')}"
                   for t in doc.get("targets", []))
     return Summary(True, head, lines, {"targets": doc.get("targets", [])})
