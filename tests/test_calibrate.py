@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -88,13 +89,18 @@ def test_existing_calibration_is_not_overwritten(calibrated):
     assert (out / "calibration.json").read_bytes() == before
 
 
+def _copy_without(captures: Path, folder: Path, kinds: tuple[str, ...]) -> Path:
+    """A copy of a capture set whose manifest leaves out the images of ``kinds``."""
+    shutil.copytree(captures, folder)
+    doc = json.loads((folder / "capture.json").read_text())
+    doc["images"] = [e for e in doc["images"] if e["kind"] not in kinds]
+    (folder / "capture.json").write_text(json.dumps(doc))
+    return folder
+
+
 def test_failed_calibration_leaves_nothing(calibrated, tmp_path):
     captures, _, _, _ = calibrated
-    broken = tmp_path / "broken"
-    shutil.copytree(captures, broken)
-    doc = json.loads((broken / "capture.json").read_text())
-    doc["images"] = [e for e in doc["images"] if e["kind"] not in ("checker", "graycode")]
-    (broken / "capture.json").write_text(json.dumps(doc))
+    broken = _copy_without(captures, tmp_path / "broken", ("checker", "graycode"))
     with pytest.raises(CalibrationError, match="neither a checkerboard nor Gray-code"):
         run_calibration(CalibrateOptions(broken, tmp_path / "cal"))
     assert not (tmp_path / "cal").exists()
@@ -104,11 +110,7 @@ def test_failed_calibration_leaves_nothing(calibrated, tmp_path):
 def test_a_session_without_a_checkerboard_gets_its_warp_from_the_gray_code(calibrated, tmp_path):
     """OpenCV's structured-light sequence has no checkerboard: stage B fits the warp to the decoded Gray code."""
     captures, _, _, _ = calibrated
-    session = tmp_path / "session"
-    shutil.copytree(captures, session)
-    doc = json.loads((session / "capture.json").read_text())
-    doc["images"] = [e for e in doc["images"] if e["kind"] not in ("checker", "surface")]
-    (session / "capture.json").write_text(json.dumps(doc))
+    session = _copy_without(captures, tmp_path / "session", ("checker", "surface"))
     run_calibration(CalibrateOptions(session, tmp_path / "cal"))
     report = json.loads((tmp_path / "cal" / "calibration.json").read_text())["warp_report"]
     assert report["source"] == "graycode"
