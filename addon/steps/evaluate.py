@@ -262,8 +262,8 @@ class EvaluationRun:
 
 
 def input_seen(frame: np.ndarray, projector: Any, looks_at: np.ndarray) -> np.ndarray:
-    """Per camera pixel and channel, the projector input where the pixel looks (``looks_at``:
-    :func:`.transport.camera_to_input`, bilinear); NaN where it sees no projector input."""
+    """Per camera pixel and channel, the real projector input where the pixel looks (``looks_at``: texel
+    coordinates of the input, NaN where it sees none; bilinear)."""
     x0, y0 = projector.input_offset
     w, h = projector.input_size
     x = np.ascontiguousarray(np.asarray(frame, np.float32)[y0:y0 + h, x0:x0 + w])
@@ -302,6 +302,9 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     captures = calibrate_step.captures_of(calibration)
     white, black = captures.image("white"), captures.image("black")
     looks_at, _ = camera_to_input(calibration, cam_size)
+    if calibration.warp is not None:  # the model's texel q shows what the real projector puts at φ_M(q)
+        seen = np.isfinite(looks_at[..., 0])
+        looks_at[seen] = calibration.warp.map_m(looks_at[seen])
     comp.check_device(device)
     model = None
     if classical:
