@@ -224,5 +224,7 @@ def test_range_auto_on_bright_content(env, capsys):
     # compensation gets much closer to what it aims at.
     assert plain["range_ceiling"] < 25 and row["range_ceiling"] > plain["range_ceiling"] + 10
     assert row["psnr"] > plain["psnr"] + 3 and row["psnr"] <= row["range_ceiling"]
+    # Far outside the range, most of what separates the capture from the ceiling is where the input is at full.
+    assert plain["ceiling_gap_at_limit"] > 0.5
     assert "range ceiling" in capsys.readouterr().out
     assert main(["compensate", str(env.cal_dir), str(bright), "--out", str(env.root / "x"), "--range", "2"]) == 2
