@@ -355,6 +355,32 @@ def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
     assert len(places) == 1 and places[0].cause == "glossy" and "left over" in places[0].description
 
 
+def test_a_highlight_the_albedo_absorbed_is_a_place_for_what_the_residual_holds_there(clean_case):
+    """Found from the calibration's inputs, a highlight is modelled by nothing; the residual left in it (a thin,
+    spread remainder) is counted in one place where the lobe's light is, and the rest stays a whole-area region."""
+    from procam.addon.gap.regions import WHOLE, find_regions
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.percentile(ys, 50)), int(np.percentile(xs, 50))
+    yy, xx = np.mgrid[:data.mask.shape[0], :data.mask.shape[1]]
+    patch = ((yy - cy) ** 2 + (xx - cx) ** 2 <= 12 ** 2) & data.mask
+    held = data.held_index
+    rng = np.random.default_rng(0)
+    base = (0.02 * rng.standard_normal((len(held),) + data.mask.shape + (3,))).astype(np.float32)
+    base[:, patch] += 0.01
+    light = np.where(patch, 0.5, 0.0).astype(np.float32)
+    plain = find_regions(data, base, data.size, held)
+    regions = find_regions(data, base, data.size, held, absorbed={"glossy": light})
+    places = [r for r in regions if WHOLE not in r.tags]
+    lobe = max(places, key=lambda r: (r.mask & patch).sum())
+    assert (lobe.mask & patch).sum() > 0.9 * lobe.pixels and lobe.pixels > 0.5 * patch.sum()
+    assert lobe.cause == "left over"  # nothing models it: the place holds the remainder's error there
+    assert sum(r.share for r in regions) <= 1.0 + 1e-9
+    # without the lobe's light the thin remainder in the patch is no place of its own
+    assert not any((r.mask & patch).sum() > 0.5 * patch.sum() for r in plain if WHOLE not in r.tags)
+
+
 def test_glossy_model_restores_light_lost_where_white_clipped(clean_case):
     """A highlight that saturated the white capture leaves the albedo too dark there; the glossy model puts
     the lobe's light back there, and only there (weight 0 is still the identity)."""

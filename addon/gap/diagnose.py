@@ -345,15 +345,13 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     # the error split by cause: what each modelled effect removes alone, and what all of them leave
     causes = {n: alone(n) for n in sel.selected}
     lights = {n: local_light(n, sel.alone[n].theta, data) for n in sel.selected if MODELS[n].local}
-    lobe = evidence.get("glossy")
-    if "glossy" in found and lobe is not None and sel.alone["glossy"].error is None:
-        # A highlight the albedo absorbed is placed where the evidence's lobe puts its light: what the residual
-        # still holds there (its clipped core, a lobe the albedo holds only in part) is then counted in that
-        # place, under the remainder's name unless the glossy model removes a tenth of it.
-        causes["glossy"] = alone("glossy")
-        lights["glossy"] = local_light("glossy", np.array([lobe.params["weight"], lobe.params["roughness"]]), data)
+    # A highlight the albedo absorbed is a place too, where the evidence's lobe puts its light: what the residual
+    # still holds there (its clipped core, a lobe the albedo holds only in part) is counted in that place.
+    lobe = evidence["glossy"].params if "glossy" in found else None
+    absorbed = {"glossy": local_light("glossy", np.array([lobe["weight"], lobe["roughness"]]), data)} if lobe else {}
     regions = find_regions(data, smooth_base, cam_full, data.held_index, causes=causes, lights=lights,
-                           remainder=smooth(res_final), remainder_cause=UNEXPLAINED if rem.detected else LEFT_OVER)
+                           remainder=smooth(res_final), remainder_cause=UNEXPLAINED if rem.detected else LEFT_OVER,
+                           absorbed=absorbed)
     left = next((r for r in regions if r.cause == UNEXPLAINED and WHOLE not in r.tags), None)
     unexplained = {**rem.to_dict(), "where": left.description if left else "",
                    "where_bbox": list(left.bbox) if left else None}

@@ -120,13 +120,16 @@ def energy_of(residuals: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int], pattern_index: list[int], *,
                  causes: dict[str, np.ndarray] | None = None, lights: dict[str, np.ndarray] | None = None,
-                 remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER) -> list[Region]:
+                 remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER,
+                 absorbed: dict[str, np.ndarray] | None = None) -> list[Region]:
     """Compact regions of the error by cause, largest share first (see the module docstring).
 
     ``residuals`` is the structured held-out residual of the calibrated model (patterns ``pattern_index``);
     ``causes`` maps each modelled effect to the residual left after it alone, ``remainder`` is the residual
     after all of them (default: ``residuals``, nothing modelled), named ``remainder_cause``. ``lights`` maps a
-    local effect among them to its fitted model's own light under white (h×w): where it is placed.
+    local effect among them to its fitted model's own light under white (h×w): where it is placed. ``absorbed``
+    maps a local effect calibration absorbed (found from its inputs, not modelled) to its light likewise: it
+    explains nothing, but its light is a place, and what the residual holds there is counted in it.
     """
     mask = data.mask
     total = float(smoothed(energy_of(residuals, mask), mask).sum())
@@ -183,11 +186,20 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
             regions.append(region(mask, own / total, cause))  # acts everywhere: no place to name
         else:
             local[cause] = (energy, e)
+    # An absorbed local effect's light is a place of the weight of all the remainder (the remainder's error there
+    # is counted in it); a remainder spread everywhere then keeps the rest as its whole-area region.
+    rest_total = float(maps[remainder_cause].sum())
+    places = [np.where(mask, light.astype(np.float64) ** 2, 0.0) for light in (absorbed or {}).values()]
+    places = [q * (rest_total / float(q.sum())) for q in places if float(q.sum()) > 0 and rest_total > 0]
+    spread_rest = places and remainder_cause not in local and rest_total > 0
+    if spread_rest:  # counted in the places below, and over the whole lit area for what lies outside them
+        local[remainder_cause] = (maps[remainder_cause], smoothed(maps[remainder_cause], mask))
+        regions = [r for r in regions if not (r.cause == remainder_cause and WHOLE in r.tags)]
     # Places are drawn where the modelled local effects act, and what they leave is counted there too: a
     # highlight the glossy model fits, with a clipped core it leaves to the remainder, is one place with two
     # shares, not two regions. The remainder gets places of its own only outside them.
     if local:
-        modelled_maps = [energy for c, (energy, _) in local.items() if c != remainder_cause]
+        modelled_maps = [energy for c, (energy, _) in local.items() if c != remainder_cause] + places
         sels = parts_of(sum(modelled_maps)) if modelled_maps else []
         taken = np.logical_or.reduce(sels) if sels else np.zeros_like(mask)
         if remainder_cause in local:
@@ -207,6 +219,9 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
             others = [f"{c} {v / here:.0%}" for c, v in sorted(part.items(), key=lambda kv: -kv[1]) if v >= 0.1 * here]
             regions.append(region(sel, here / total, cause,
                                   f"; of the error here: {', '.join(others)}" if len(others) > 1 else ""))
+        if spread_rest:
+            covered = np.logical_or.reduce(sels) if sels else np.zeros_like(mask)
+            regions.append(region(mask, float(local[remainder_cause][1][~covered].sum()) / total, remainder_cause))
     # a remainder within the captures' noise over the whole area names nothing: it goes last
     regions.sort(key=lambda r: (r.cause == LEFT_OVER and WHOLE in r.tags, -r.share))
     return regions[:MAX_REGIONS]
