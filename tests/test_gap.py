@@ -326,16 +326,21 @@ def test_regions_split_the_error_by_cause_and_name_no_place_for_a_global_one(cle
     assert (labels[block] == 1).mean() > 0.75 and set(np.unique(labels)) <= {0, 1, 2}
 
 
+def _central_patch(cal_dir, radius: int = 12):
+    """The gap data of a calibration, a disc of lit pixels in the middle of the lit area, and its centre."""
+    data = load_gap_data(cal_dir, scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    cy, cx = int(np.percentile(ys, 50)), int(np.percentile(xs, 50))
+    yy, xx = np.mgrid[:data.mask.shape[0], :data.mask.shape[1]]
+    return data, ((yy - cy) ** 2 + (xx - cx) ** 2 <= radius ** 2) & data.mask, (cy, cx)
+
+
 def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
     """What a local model explains can sit in a small core (a highlight's clipped centre) while its light covers a
     wider patch: the region is the patch the light covers, and holds what the model explains."""
     from procam.addon.gap.regions import WHOLE, find_regions
 
-    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
-    ys, xs = np.nonzero(data.mask)
-    cy, cx = int(np.percentile(ys, 50)), int(np.percentile(xs, 50))
-    yy, xx = np.mgrid[:data.mask.shape[0], :data.mask.shape[1]]
-    patch = ((yy - cy) ** 2 + (xx - cx) ** 2 <= 12 ** 2) & data.mask
+    data, patch, (cy, cx) = _central_patch(clean_case[0])
     held = data.held_index
     base = np.zeros((len(held),) + data.mask.shape + (3,), np.float32)
     base[:, cy - 2:cy + 3, cx - 2:cx + 3] = 0.3
@@ -356,15 +361,11 @@ def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
 
 
 def test_a_highlight_the_albedo_absorbed_is_a_place_for_what_the_residual_holds_there(clean_case):
-    """Found from the calibration's inputs, a highlight is modelled by nothing; the residual left in it (a thin,
-    spread remainder) is counted in one place where the lobe's light is, and the rest stays a whole-area region."""
+    """Found from the calibration's inputs, a highlight is modelled by nothing; the residual left in it (thin, in a
+    noisy remainder, no place of its own) is counted in one place where the lobe's light is."""
     from procam.addon.gap.regions import WHOLE, find_regions
 
-    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
-    ys, xs = np.nonzero(data.mask)
-    cy, cx = int(np.percentile(ys, 50)), int(np.percentile(xs, 50))
-    yy, xx = np.mgrid[:data.mask.shape[0], :data.mask.shape[1]]
-    patch = ((yy - cy) ** 2 + (xx - cx) ** 2 <= 12 ** 2) & data.mask
+    data, patch, _ = _central_patch(clean_case[0])
     held = data.held_index
     rng = np.random.default_rng(0)
     base = (0.02 * rng.standard_normal((len(held),) + data.mask.shape + (3,))).astype(np.float32)
