@@ -41,6 +41,11 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
     directory: StringProperty(name="Folder", subtype="DIR_PATH",
                               description="New folder for the numbered frames and sequence.json")
     force: BoolProperty(name="Replace", default=False, description="Replace an existing exported sequence there")
+    order: EnumProperty(name="Order", default="procam", items=[
+        ("procam", "ProCam", "Surface photo, black, white, checkerboards, Gray code, validation patterns"),
+        ("opencv", "OpenCV Structured Light", "Gray code (each bit then its inverse, x then y), white, black, then "
+                   "the validation patterns: the order of OpenCV's structured-light sessions and of board sessions "
+                   "for Calibrate Rig; import photographs taken that way with this sequence")])
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
@@ -60,7 +65,7 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
         try:
             rig = blender_rig.read_rig(context.scene)
             out = run_patterns(PatternsOptions(rig.projector, paths.resolve(self.directory, "pattern folder"),
-                                               camera=rig.camera, force=self.force))
+                                               camera=rig.camera, layout=self.order, force=self.force))
         except ProCamError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

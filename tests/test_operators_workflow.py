@@ -288,6 +288,11 @@ def test_export_patterns_then_import_captures(registered, tmp_path):
     assert bpy.ops.procam.export_patterns(directory=str(tmp_path / "seq")) == {"FINISHED"}
     frames = sorted((tmp_path / "seq").glob("[0-9]*.png"))
     assert len(frames) > 10 and (tmp_path / "seq" / "sequence.json").is_file()
+    # OpenCV's structured-light order, for sessions captured that way: Gray code first, white and black last
+    assert bpy.ops.procam.export_patterns(directory=str(tmp_path / "seq-cv"), order="opencv") == {"FINISHED"}
+    kinds = [f["kind"] for f in json.loads((tmp_path / "seq-cv" / "sequence.json").read_text())["frames"]]
+    assert kinds[0] == "graycode" and "checker" not in kinds and "surface" not in kinds
+    assert kinds[kinds.index("white") + 1] == "black" and kinds.index("white") > kinds.index("graycode")
     photos = tmp_path / "photos"
     photos.mkdir()
     import cv2
