@@ -222,6 +222,7 @@ def test_missing_validation_captures_say_how_to_get_them(clean_case, tmp_path):
     _copy_set(captures, tmp_path / "set", drop(("validation",)))
     doc = diagnose(_calibration_for(cal_dir, tmp_path / "set", tmp_path), tmp_path / "gap", scale=1.0, spp=4)
     assert any("no validation patterns" in w for w in doc["warnings"])
+    assert any("no validation patterns" in n for n in diagnose_step.summary(tmp_path / "gap").data["notes"])
     assert not {"response", "camera_response"} & {e["name"] for e in doc["effects"]}
     # Without anything to hold out it stops, saying what to capture.
     _copy_set(captures, tmp_path / "bare", drop(("validation", "graycode", "checker")))

@@ -35,6 +35,8 @@ def run(args: argparse.Namespace) -> int:
     res, after = doc["residual"], doc["residual_after"]
     print(f"diagnosis: {args.out}")
     print(f"  {doc['headline']}")
+    for w in doc.get("warnings", []):
+        print(f"  warning: {w}")
     print(f"  held-out residual: RMSE {res['rmse']:.4f} ({res['psnr']:.1f} dB)"
           f" → {after['rmse']:.4f} ({after['psnr']:.1f} dB) with the selected effects; without pixel noise "
           f"{res['rmse_structured']:.4f} → {after['rmse_structured']:.4f}")
