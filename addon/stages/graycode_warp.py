@@ -27,7 +27,8 @@ from ..errors import CalibrationError, CaptureError
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 from .transport import camera_to_input_of
-from .warp import DEFAULT_GRID, Warp, WarpResult, bending_matrix, grid_image, solve_inverse, tps_basis
+from .warp import (DEFAULT_GRID, Warp, WarpResult, bending_matrix, distance_stats, grid_image, solve_inverse,
+                   tps_basis)
 
 #: Pairs the fit uses at most (a fixed random subset of the decoded lit pixels).
 MAX_PAIRS = 60000
@@ -37,13 +38,6 @@ MIN_PAIRS = 500
 OUTLIER_TEXELS = 3.0
 #: Weight of the TPS bending energy (shifts in input texels) against the mean squared pair residual.
 BENDING = 1e-3
-
-
-def _stats(d: np.ndarray) -> dict[str, float]:
-    if d.size == 0:
-        return {"median": float("nan"), "mean": float("nan"), "max": float("nan"), "n": 0}
-    return {"median": round(float(np.median(d)), 4), "mean": round(float(d.mean()), 4),
-            "max": round(float(np.percentile(d, 99)), 4), "n": int(d.size)}
 
 
 def warp_from_graycode(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid: int = DEFAULT_GRID,
@@ -93,8 +87,8 @@ def warp_from_graycode(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, 
     m_shifts = shifts.reshape(grid, grid, 2)
     w_shifts, inverse_err = solve_inverse(m_shifts, size, grid)
     warp = Warp(grid, size, m_shifts, w_shifts)
-    return WarpResult(warp, [float(np.mean(after ** 2))], _stats(before), _stats(after), time.perf_counter() - t0,
-                      {"grid": grid_image(warp, size)}, inverse_err)
+    return WarpResult(warp, [float(np.mean(after ** 2))], distance_stats(before, 99), distance_stats(after, 99),
+                      time.perf_counter() - t0, {"grid": grid_image(warp, size)}, inverse_err)
 
 
 __all__ = ["warp_from_graycode"]

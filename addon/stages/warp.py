@@ -676,11 +676,16 @@ class _Corners:
 
     def stats(self, which: str) -> dict[str, float]:
         other = self.before if which == "before" else self.after
-        d = np.linalg.norm(self.capture - other, axis=1)
-        if d.size == 0:
-            return {"median": float("nan"), "mean": float("nan"), "max": float("nan"), "n": 0}
-        return {"median": round(float(np.median(d)), 4), "mean": round(float(d.mean()), 4),
-                "max": round(float(d.max()), 4), "n": int(d.size)}
+        return distance_stats(np.linalg.norm(self.capture - other, axis=1))
+
+
+def distance_stats(d: np.ndarray, top: float = 100.0) -> dict[str, float]:
+    """Median, mean and largest of distances (px), as stage B reports them; ``top`` < 100: that percentile stands
+    for the largest (decoded Gray code has outliers a checkerboard corner fit does not)."""
+    if d.size == 0:
+        return {"median": float("nan"), "mean": float("nan"), "max": float("nan"), "n": 0}
+    return {"median": round(float(np.median(d)), 4), "mean": round(float(d.mean()), 4),
+            "max": round(float(np.percentile(d, top)), 4), "n": int(d.size)}
 
 
 def measure_corners(capture: np.ndarray, before: np.ndarray, after: np.ndarray, guesses: np.ndarray,
@@ -916,5 +921,6 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
     return result
 
 
-__all__ = ["DEFAULT_GRID", "THRESHOLD", "Warp", "WarpResult", "bending_matrix", "binarise", "estimate_warp",
-           "grid_image", "measure_corners", "normalised_capture", "sample_bilinear", "solve_inverse", "tps_basis"]
+__all__ = ["DEFAULT_GRID", "THRESHOLD", "Warp", "WarpResult", "bending_matrix", "binarise", "distance_stats",
+           "estimate_warp", "grid_image", "measure_corners", "normalised_capture", "sample_bilinear", "solve_inverse",
+           "tps_basis"]
