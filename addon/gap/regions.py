@@ -191,7 +191,7 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
     rest_total = float(maps[remainder_cause].sum())
     places = [np.where(mask, light.astype(np.float64) ** 2, 0.0) for light in (absorbed or {}).values()]
     places = [q * (rest_total / float(q.sum())) for q in places if float(q.sum()) > 0 and rest_total > 0]
-    spread_rest = places and remainder_cause not in local and rest_total > 0
+    spread_rest = bool(places) and remainder_cause not in local
     if spread_rest:  # counted in the places below, and over the whole lit area for what lies outside them
         local[remainder_cause] = (maps[remainder_cause], smoothed(maps[remainder_cause], mask))
         regions = [r for r in regions if not (r.cause == remainder_cause and WHOLE in r.tags)]

@@ -24,10 +24,10 @@ from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
 from ..rig.model import Camera, Intrinsics, Rig
 from ..surface.mesh import SurfaceMesh
+from .graycode_warp import warp_from_graycode
 from .intrinsics import estimate_projector_intrinsics
 from .pose import estimate_pose, surface_view, target_mask
 from .surface import surface_from_captures
-from .graycode_warp import warp_from_graycode
 from .warp import Warp, estimate_warp, grid_image
 
 #: The calibration stages, in order; each needs the ones before it.
