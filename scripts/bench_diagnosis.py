@@ -18,6 +18,7 @@ folders under ``--work`` are reused when complete.
 from __future__ import annotations
 
 import argparse
+import filecmp
 import json
 import sys
 import time
@@ -81,6 +82,32 @@ def run_case(work: Path, surface: str, effects: tuple[str, ...], strength: float
     if not (diag / "gap.json").is_file():
         _cli(["diagnose", str(cal), "--out", str(diag), "--scale", str(diag_scale), "--force"])
     return cal, truth, json.loads((diag / "gap.json").read_text())
+
+
+def same_captures(a: Path, b: Path) -> bool:
+    """True when two capture folders hold byte for byte the same images and depth maps (``capture.json`` aside:
+    it names the injected effects)."""
+    def data(folder: Path) -> list[Path]:
+        return sorted(f.relative_to(folder) for f in folder.rglob("*") if f.is_file() and f.parent != folder)
+
+    names = data(a)
+    return names == data(b) and all(filecmp.cmp(a / n, b / n, shallow=False) for n in names)
+
+
+def changes_nothing(work: Path, surface: str, effects: tuple[str, ...], seed: int, strength: float, scale: float,
+                    samples: int) -> bool:
+    """True when the case's captures are the no-effect case's of the same seed (that lab is rendered if missing):
+    the injected effect has nothing to act on there (bounce light on a flat plane), so no diagnosis can tell the
+    case from one without it and "nothing" is the only right answer."""
+    mine = work / case_name(surface, effects, seed, strength) / "captures"
+    if not effects or not mine.is_dir():  # (a row logged from another work folder: cannot tell)
+        return False
+    none_lab = work / case_name(surface, (), seed) / "captures"
+    if not (none_lab / "capture.json").is_file():
+        _cli(["lab", "--surface", surface, "--effects", "none", "--scale", str(scale), "--samples", str(samples),
+              "--out", str(none_lab), "--truth", str(none_lab.parent / "truth.json"), "--seed", str(seed),
+              "--force"])
+    return same_captures(mine, none_lab)
 
 
 def footprint(truth_path: Path, effect: str, samples: int = 64) -> np.ndarray:
@@ -226,6 +253,11 @@ def main(argv: list[str] | None = None) -> int:
         # A case logged twice (e.g. seed 0 of --cases none after the full matrix) counts once, as last logged.
         rows = list({(r["surface"], r.get("seed", 0), tuple(r["injected"]), r.get("strength", 0.5)): r
                      for r in rows}.values())
+        for r in rows:  # rows logged before the check
+            if "changes_nothing" not in r and len(r["injected"]) == 1:
+                r["changes_nothing"] = changes_nothing(args.work, r["surface"], tuple(r["injected"]),
+                                                       r.get("seed", 0), r.get("strength", 0.5), args.scale,
+                                                       args.samples)
         print(report_markdown(rows, args))
         return 0
 
@@ -272,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
                # found where calibration absorbed it: the share of it the diagnosis's own law reaches
                "model_share": ((doc.get("evidence") or {}).get(cause_of(effects[0]) or "") or {}).get("model_share")
                if len(effects) == 1 else None,
+               "changes_nothing": changes_nothing(args.work, surface, effects, seed, strength, args.scale,
+                                                  args.samples) if len(effects) == 1 else False,
                "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before,
                "rmse_after": after, "floor": floor,
                "removed_above_floor": removed, "compensation": comp, "regions": local, "seconds": round(time.perf_counter() - t0, 1),
@@ -305,6 +339,10 @@ def thresholds_table(rows: list[dict]) -> list[str]:
         cells = []
         for surface in surfaces:
             mine = [r for r in single if r["surface"] == surface and r["injected"][0] == e]
+            if mine and all(r.get("changes_nothing") for r in mine):
+                cells.append("nothing to find (the captures are the no-effect case's)")
+                continue
+            mine = [r for r in mine if not r.get("changes_nothing")]
             tried = sorted({r.get("strength", 0.5) for r in mine})
             hits = {st: (sum(r["first"] == r["causes"][0] for r in mine if r.get("strength", 0.5) == st),
                          sum(r.get("strength", 0.5) == st for r in mine)) for st in tried}
@@ -364,7 +402,11 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         lines.append(f"| {where} | {'+'.join(r['injected']) or 'none'} | {r['first']} | "
                      f"{', '.join(r['selected']) or 'none'} | {r['rmse_before']:.4f} → {r['rmse_after']:.4f} | {fl} | "
                      f"{rem} | {c} | {r['seconds']} |")
-    single = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"]) == r["injected"]]
+    single = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"]) == r["injected"]
+              and not r.get("changes_nothing")]
+    # An injected effect with nothing to act on leaves the captures byte for byte the no-effect case's: scored as
+    # what it is, a no-effect case, not as a miss no diagnosis could avoid.
+    void = [r for r in rows if r.get("changes_nothing")]
     variants = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"])[0]
                 not in (None, r["injected"][0])]
     unmodelled = [r for r in rows if len(r["injected"]) == 1 and r.get("causes", r["injected"])[0] is None]
@@ -418,6 +460,11 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
                                     f"selected {', '.join(r['selected']) or 'none'}")
                                  + (f" [{', '.join(f'{k} {v}' for k, v in r['confidence'].items())}]"
                                     if r["confidence"] else "") for r in unmodelled) + ")")
+    if void:
+        lines.append(f"- injected effects that change no capture ({len(void)}: "
+                     f"{', '.join(sorted({r['surface'] + ' ' + r['injected'][0] for r in void}))}; their captures are "
+                     f"the no-effect case's, byte for byte): nothing selected {sum(not r['selected'] for r in void)}/"
+                     f"{len(void)}")
     if none:
         lines.append(f"- no effect: nothing selected {sum(not r['selected'] for r in none)}/{len(none)}; "
                      f"'unexplained' said {sum(bool((r.get('unexplained') or {}).get('detected')) for r in none)}, "

@@ -527,3 +527,20 @@ def test_a_rounded_noisy_crease_is_found_and_flat_parts_are_not():
     sides = np.concatenate([fold[20:-20, 12:w // 2 - 12], fold[20:-20, w // 2 + 12:-12]], axis=1)
     assert centre.mean() > 0.6 and np.percentile(sides, 99) < 0.3
     assert flat.max() < 0.05
+
+
+def test_the_benchmark_scores_an_effect_with_nothing_to_act_on_as_a_no_effect_case(lab_set):
+    """Bounce light on the flat plane has nothing to bounce off: its captures are the no-effect set's byte for
+    byte, so the diagnosis benchmark counts such a case with the no-effect ones ("nothing" is the only right
+    answer). Depth noise changes only the depth map, and that is a change."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "procam_bench_diagnosis", Path(__file__).resolve().parents[1] / "scripts" / "bench_diagnosis.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    none, _ = lab_set("plane", "", **TINY)
+    assert bench.same_captures(lab_set("plane", "interreflection=1", **TINY)[0], none)
+    assert not bench.same_captures(lab_set("plane", "depth_noise=1", **TINY)[0], none)
+    assert not bench.same_captures(lab_set("vedge", "interreflection=1", **TINY)[0], lab_set("vedge", "", **TINY)[0])
