@@ -493,6 +493,29 @@ def test_compensation_inverts_only_what_still_helps_without_the_effects_it_canno
     assert keep == [] and dropped["response"] == "compensation cannot invert it"
 
 
+def test_an_effect_whose_gain_lies_where_its_form_matters_least_is_reported_not_inverted(response_case):
+    """An ambient black level lifts every pixel alike, so its gain falls on the dark input levels in proportion; one
+    whose gain lies only on the bright ones stands in for another effect: low confidence, and not inverted."""
+    from procam.addon.gap import diagnose as gap_diagnose
+    from procam.addon.gap.models import signature_mask
+
+    data = load_gap_data(response_case[0], scale=1.0, spp=8)
+    dark = np.stack([signature_mask("black_level", data, data.observations[i]) for i in data.held_index])
+    after = np.zeros((*dark.shape, 3))
+    lifted = np.full_like(after, 0.02)
+    assert not gap_diagnose._signature(data, "black_level", lifted, after)["against"]
+    sig = gap_diagnose._signature(data, "black_level", np.where(dark[..., None], 0.0, lifted), after)
+    assert sig["against"] and sig["share_of_reduction"] == 0.0
+    final = gap_fit.fit_composite(data, ("response", "black_level"))
+    sel = gap_fit.Selection(gap_fit.fit_composite(data, ()), {}, selected=["response", "black_level"], final=final,
+                            steps=[{"candidate": "black_level", "ranking": [("black_level", 0.5), ("response", 0.1)]}])
+    conf = gap_diagnose._confidence(sel, "black_level", sig)
+    assert conf["level"] == "low" and "stands in for another effect" in conf["why"]
+    keep, dropped = gap_fit.compensation_subset(data, sel, ("response", "black_level"),
+                                                leave_out={"black_level": conf["why"]})
+    assert keep == ["response"] and dropped["black_level"] == conf["why"]
+
+
 def test_ambient_occlusion_treats_the_two_sides_of_a_crease_alike():
     """The hedge is mirror-symmetric about its crease, so both planes see as much of the room. Each point turns
     the sampled directions its own way: with one direction set shared by every point, a plane's points all

@@ -285,8 +285,8 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
     return sel
 
 
-def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], *,
-                        min_share: float = MIN_SHARE) -> tuple[list[str], dict[str, str]]:
+def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], *, min_share: float = MIN_SHARE,
+                        leave_out: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
     """The selected effects compensation should invert, and why each other selected effect is left out.
 
     Compensation inverts only ``usable`` effects, so its model is f̂ with those
@@ -295,12 +295,14 @@ def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], 
     be wrong without it (on the plane with a glossy surface, a 3 % gamma fitted
     beside the glossy lobe cost 0.18 dB). So the usable effects are eliminated
     backwards on that model: each must still remove ``min_share`` of the
-    held-out error the others leave.
+    held-out error the others leave. ``leave_out`` names effects left out
+    before that, with the reason.
     """
     final = sel.final or sel.base
     params = {n: np.array(list(v.values())) for n, v in final.params().items()} if sel.selected else {}
     dropped = {n: "compensation cannot invert it" for n in sel.selected if n not in usable}
-    keep = [n for n in sel.selected if n in usable]
+    dropped.update((n, why) for n, why in (leave_out or {}).items() if n in sel.selected and n not in dropped)
+    keep = [n for n in sel.selected if n not in dropped]
 
     def scored(names: list[str]) -> Fit:
         comp = Composite(data, tuple(names))
