@@ -142,7 +142,7 @@ def test_adapter_inverts_what_it_models():
 def test_glossy_is_inverted_where_the_white_capture_clipped(clean_case):
     """The diagnosis stores the glossy model's gain where the white clipped; compensation divides the captures
     and the target by it there (the model is too dark there at every level) and leaves every other pixel."""
-    from procam.addon.gap.compensation import load_adapter
+    from procam.addon.gap.compensation import AdaptedCaptures, load_adapter
     from procam.addon.gap.diagnose import _clipped_white_gain
     from procam.addon.gap.fit import Fit, Selection
     from procam.addon.stages.calibrate import SATURATED
@@ -174,6 +174,16 @@ def test_glossy_is_inverted_where_the_white_capture_clipped(clean_case):
     target = adapter.model_target(np.full((20, 20, 3), 0.5, np.float32), area)
     np.testing.assert_allclose(target[10, 10], 0.5 / gain[cy, cx], rtol=1e-5)
     assert target[0, 0].tolist() == [0.5, 0.5, 0.5]
+    # what the camera clipped in the highlight reads as no value for open-loop θ; a clipped value elsewhere agrees
+    # with the albedo read from the same clipped white and is kept
+    class Clipped:
+        path = camera = projector = None
+
+        def image(self, kind, **filters):
+            return np.ones((cam[1], cam[0], 3), np.float32)
+
+    seen = AdaptedCaptures(Clipped(), adapter).image("white")
+    assert np.isnan(seen[cy, cx]).all() and np.isfinite(seen[far]).all()
 
 
 def test_defocus_is_inverted_by_presharpening_within_the_input_range():

@@ -67,6 +67,35 @@ def open_loop(setup):
     return bias, res
 
 
+def test_open_loop_theta_leaves_out_capture_values_given_as_nan(setup):
+    """Seen through a glossy model, what the camera clipped in the highlight comes as NaN (no light can be read
+    back there): θ leaves those values out and stays finite, and every other pixel's θ is unchanged."""
+    class WhiteWithHole:
+        def __init__(self, captures):
+            self._c, self.path, self.camera, self.projector = captures, captures.path, captures.camera, captures.projector
+
+        def entries_of(self, kind):
+            return self._c.entries_of(kind)
+
+        def pattern(self, kind, **filters):
+            return self._c.pattern(kind, **filters)
+
+        def image(self, kind, **filters):
+            img = np.array(self._c.image(kind, **filters))
+            if kind == "white":
+                img[40:50, 60:70] = np.nan
+            return img
+
+    full = setup.comp.estimate_bias(setup.captures)
+    holed = setup.comp.estimate_bias(WhiteWithHole(setup.captures))
+    assert holed.kind == full.kind and np.isfinite(holed.theta).all()
+    assert holed.gain is None or np.isfinite(holed.gain).all()
+    keep = np.ones(full.theta.shape[:2], bool)
+    keep[40:50, 60:70] = False
+    np.testing.assert_allclose(holed.theta[keep], full.theta[keep], atol=1e-6)
+    assert not np.allclose(holed.theta[~keep], full.theta[~keep], atol=1e-4)
+
+
 # -- display area ----------------------------------------------------------------------------------
 
 def test_largest_rectangle_on_a_known_mask():

@@ -47,6 +47,7 @@ import cv2
 import numpy as np
 
 from ..errors import ProCamError
+from ..stages.calibrate import SATURATED
 from ..stages.compensate import Compensator
 from .models import (MODELS, crosstalk_matrix, inverse_camera_curve, inverse_projector_tone, light_scale,
                      projector_tone, vignetting_radius)
@@ -260,7 +261,20 @@ class AdaptedCaptures:
         return self._c.entries_of(kind)
 
     def image(self, kind: str, **filters: Any) -> np.ndarray:
-        return self._a.camera_to_light(self._c.image(kind, **filters))
+        """h⁻¹ of the capture; NaN where the camera clipped it inside the glossy model's highlight.
+
+        There the model's white is the lobe's restored one, and a clipped capture divided by the glossy gain
+        reads darker than it: it had pulled open-loop θ's gain down in the highlight (on a glossy plane at the
+        lab's strength 1 compensation with the lobe lost 0.3 dB to the base model, and 4.5 dB with the lab's
+        true lobe). Elsewhere the albedo was read from the same clipped white, so a clipped value agrees with it
+        and is kept (left out there, θ extrapolated from the dark patterns alone and lost 8 dB).
+        """
+        raw = self._c.image(kind, **filters)
+        light = self._a.camera_to_light(raw)
+        gain = self._a.glossy_gain()
+        if gain is None or gain.shape != raw.shape:
+            return light
+        return np.where((raw >= SATURATED) & (gain != 1.0), np.nan, light).astype(np.float32)
 
     def pattern(self, kind: str, **filters: Any) -> np.ndarray:
         frame = np.array(self._c.pattern(kind, **filters), np.float32)

@@ -561,34 +561,41 @@ class Compensator:
             caps.append(captures.image(e.kind, name=e.name))
         f = np.stack(sims).astype(np.float64)
         c = np.stack(caps).astype(np.float64)
+        # A value given as NaN is left out: captures seen through a glossy model mark so what the camera clipped
+        # in the highlight (``gap.compensation.AdaptedCaptures``).
+        w = np.isfinite(c).astype(np.float64)
+        c = np.where(w > 0, c, 0.0)
         n = len(f)
-        lit = self.white().mean(axis=2) > 1e-3
-        # Mean residual, leave-one-out: θ_{-i} = (Σr − r_i)/(n − 1).
-        r = f - c
-        r_sum = r.sum(axis=0)
-        mean_err = [(r[i] - (r_sum - r[i]) / (n - 1))[lit] for i in range(n)]
+        lit = np.broadcast_to((self.white().mean(axis=2) > 1e-3)[..., None], c.shape[1:])
+        # Mean residual, leave-one-out: θ_{-i} = (Σr − r_i)/(k − 1) over the k unclipped values.
+        r = (f - c) * w
+        r_sum, k_all = r.sum(axis=0), w.sum(axis=0)
+        mean_err = [(r[i] - (r_sum - r[i]) / np.maximum(k_all - w[i], 1))[lit & (w[i] > 0)] for i in range(n)]
         # Affine c = a·f + b per pixel and channel, ridge λ pulling a towards 1; leave-one-out on the sums.
-        sf, sc, sff, sfc = f.sum(0), c.sum(0), (f * f).sum(0), (f * c).sum(0)
+        sf, sc, sff, sfc = (w * f).sum(0), (w * c).sum(0), (w * f * f).sum(0), (w * f * c).sum(0)
 
-        def fit(k: int, sf: np.ndarray, sc: np.ndarray, sff: np.ndarray,
+        def fit(k: np.ndarray, sf: np.ndarray, sc: np.ndarray, sff: np.ndarray,
                 sfc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            k = np.maximum(k, 1e-9)  # (no value left: a = 1, b = 0)
             mf, mc = sf / k, sc / k
             a = (sfc - k * mf * mc + ridge) / (sff - k * mf * mf + ridge)
             return a, mc - a * mf
 
         aff_err = []
         for i in range(n):
-            a, b = fit(n - 1, sf - f[i], sc - c[i], sff - f[i] ** 2, sfc - f[i] * c[i])
-            aff_err.append((np.clip(a * f[i] + b, 0, 1) - c[i])[lit])
+            wi = w[i]
+            a, b = fit(k_all - wi, sf - wi * f[i], sc - wi * c[i], sff - wi * f[i] ** 2, sfc - wi * f[i] * c[i])
+            aff_err.append((np.clip(a * f[i] + b, 0, 1) - c[i])[lit & (wi > 0)])
         rmse_mean = float(np.sqrt(np.mean(np.concatenate(mean_err) ** 2)))
         rmse_aff = float(np.sqrt(np.mean(np.concatenate(aff_err) ** 2)))
-        rmse_zero = float(np.sqrt(np.mean((f - c)[:, lit] ** 2)))
+        rmse_zero = float(np.sqrt(np.mean(r[:, lit][w[:, lit] > 0] ** 2)))  # (r is 0 where clipped)
         report = {"patterns": [e.name for e in entries], "held_out_rmse": {
-            "no_bias": rmse_zero, "mean": rmse_mean, "affine": rmse_aff}}
+            "no_bias": rmse_zero, "mean": rmse_mean, "affine": rmse_aff},
+            "clipped_share": round(float(1.0 - w[:, lit].mean()), 4)}
         if rmse_aff < rmse_mean:
-            a, b = fit(n, sf, sc, sff, sfc)
+            a, b = fit(k_all, sf, sc, sff, sfc)
             return BiasModel((-b).astype(np.float32), a.astype(np.float32), "affine", report)
-        return BiasModel((r_sum / n).astype(np.float32), None, "mean", report)
+        return BiasModel((r_sum / np.maximum(k_all, 1)).astype(np.float32), None, "mean", report)
 
     # ------------------------------------------------------------------ the optimisation
 
