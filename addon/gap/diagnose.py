@@ -20,7 +20,7 @@ from ..capture.format import CaptureSet
 from ..progress import Cancel, Progress, quiet
 from ..stages.calibrate import Calibration
 from .data import LEVEL_EFFECTS, NO_VALIDATION, GapData, load_gap_data
-from .compensation import INVERTIBLE
+from .compensation import HELD_BY_THETA, INVERTIBLE
 from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
                   select_effects, structured)
@@ -354,7 +354,8 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     # black level fitted beside the lobe cost compensation 0.10 dB.
     stand_ins = {e["name"]: _against(e["confidence"]["signature"]) for e in effects
                  if (e["confidence"].get("signature") or {}).get("against") and e["name"] in sel.selected}
-    inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share, leave_out=stand_ins)
+    inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share,
+                                             leave_out={**HELD_BY_THETA, **stand_ins})
     res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
     cam_full = calibration.rig.camera.intrinsics.size
     session = check_session(captures)
