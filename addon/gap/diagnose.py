@@ -125,13 +125,14 @@ ACTIONS = {
                 "--effects auto",
     "crosstalk": "the projector's colours mix{where}: compensate with --effects auto",
     "black_level": "light reaches the surface when the projector shows black{where} (room light or the projector's "
-                   "black level): darken the room, or compensate with --effects auto",
+                   "black level): darken the room; compensation already allows for it, but nothing shows darker",
     "vignetting": "the projector's image darkens towards its corners: the albedo holds it, nothing to do",
-    "defocus": "the projector is out of focus{where}: refocus it (ProCam does not pre-sharpen yet)",
+    "defocus": "the projector is out of focus{where}: refocus it, or compensate with --effects auto, which "
+               "pre-sharpens what the input range allows",
     "interreflection": "light bounces between parts of the surface{where}: compensate with --effects auto, which "
                        "simulates the bounces",
-    "glossy": "the surface is glossy{where}: a matte finish helps, and lower the camera's exposure where the white "
-              "capture clipped",
+    "glossy": "the surface is glossy{where}: a matte finish helps; compensate with --effects auto, which restores "
+              "the light the white capture clipped in the highlight",
     "camera_response": "the camera applies a tone curve: shoot linear (raw), or compensate with --effects auto",
     "distortion": "the camera's lens distorts the image: calibrate it with a printed board (procam calibrate-rig)",
     "depth_noise": "the surface's depth is off: recapture the depth, or take the surface from the Gray code "
