@@ -422,14 +422,16 @@ def test_capture_sequence_and_decode_set(tmp_path):
     err = np.abs(d.coords[ok] - np.stack([dev.u, dev.v], -1)[ok])
     assert ok.sum() > 0.9 * inside.sum() and err.max() < 0.55
     assert not d.valid[(dev.u < x0 - 1) | (dev.u > x0 + INPUT[0] + 1)].any()
-    # Decoded once per set as long as its files stay the same (a calibration asks three times), read-only, and
-    # again when a Gray-code image is retaken.
+    # Decoded once while the files stay the same (a calibration asks up to three times, through capture-set objects
+    # of its own), read-only; again with other thresholds, and when a Gray-code image is retaken.
     assert decode_gray_code_set(CaptureSet.load(cs.path)) is d and not d.coords.flags.writeable
     assert decode_gray_code_set(cs, white_threshold=0.1) is not d
+    kept = decode_gray_code_set(cs)
+    assert decode_gray_code_set(cs) is kept
     first = cs.path / cs.entries_of("graycode")[0].file
     os.utime(first, ns=(first.stat().st_atime_ns, first.stat().st_mtime_ns + 10**9))
     again = decode_gray_code_set(cs)
-    assert again is not d and np.array_equal(again.coords, d.coords, equal_nan=True)
+    assert again is not kept and np.array_equal(again.coords, d.coords, equal_nan=True)
 
 
 # -- folder workflow --------------------------------------------------------------------------------

@@ -272,9 +272,9 @@ class AdaptedCaptures:
 
         There the model's white is the lobe's restored one, and a clipped capture divided by the glossy gain
         reads darker than it: it had pulled open-loop θ's gain down in the highlight (on a glossy plane at the
-        lab's strength 1 compensation with the lobe lost 0.3 dB to the base model, and 4.5 dB with the lab's
-        true lobe). Elsewhere the albedo was read from the same clipped white, so a clipped value agrees with it
-        and is kept (left out there, θ extrapolated from the dark patterns alone and lost 8 dB).
+        lab's strength 1 the lobe's inversion then cost 0.3 dB instead of gaining 6). Elsewhere the albedo was
+        read from the same clipped white, so a clipped value agrees with it and is kept (left out there too, θ
+        extrapolated from the dark patterns alone, far worse).
         """
         raw = self._c.image(kind, **filters)
         light = self._a.camera_to_light(raw)

@@ -567,7 +567,7 @@ class Compensator:
         c = np.where(w > 0, c, 0.0)
         n = len(f)
         lit = np.broadcast_to((self.white().mean(axis=2) > 1e-3)[..., None], c.shape[1:])
-        # Mean residual, leave-one-out: θ_{-i} = (Σr − r_i)/(k − 1) over the k unclipped values.
+        # Mean residual, leave-one-out: θ_{-i} = (Σr − r_i)/(k − 1) over the k values given.
         r = (f - c) * w
         r_sum, k_all = r.sum(axis=0), w.sum(axis=0)
         mean_err = [(r[i] - (r_sum - r[i]) / np.maximum(k_all - w[i], 1))[lit & (w[i] > 0)] for i in range(n)]
@@ -588,10 +588,10 @@ class Compensator:
             aff_err.append((np.clip(a * f[i] + b, 0, 1) - c[i])[lit & (wi > 0)])
         rmse_mean = float(np.sqrt(np.mean(np.concatenate(mean_err) ** 2)))
         rmse_aff = float(np.sqrt(np.mean(np.concatenate(aff_err) ** 2)))
-        rmse_zero = float(np.sqrt(np.mean(r[:, lit][w[:, lit] > 0] ** 2)))  # (r is 0 where clipped)
+        rmse_zero = float(np.sqrt(np.mean(r[:, lit][w[:, lit] > 0] ** 2)))  # (r is 0 where left out)
         report = {"patterns": [e.name for e in entries], "held_out_rmse": {
             "no_bias": rmse_zero, "mean": rmse_mean, "affine": rmse_aff},
-            "clipped_share": round(float(1.0 - w[:, lit].mean()), 4)}
+            "left_out_share": round(float(1.0 - w[:, lit].mean()), 4)}
         if rmse_aff < rmse_mean:
             a, b = fit(k_all, sf, sc, sff, sfc)
             return BiasModel((-b).astype(np.float32), a.astype(np.float32), "affine", report)
