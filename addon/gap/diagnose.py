@@ -355,8 +355,8 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     # black level fitted beside the lobe cost compensation 0.10 dB.
     stand_ins = {e["name"]: _against(e["confidence"]["signature"]) for e in effects
                  if (e["confidence"].get("signature") or {}).get("against") and e["name"] in sel.selected}
-    inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share,
-                                             leave_out={**HELD_BY_THETA, **stand_ins})
+    inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share, leave_out=stand_ins,
+                                             held=HELD_BY_THETA)
     res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
     cam_full = calibration.rig.camera.intrinsics.size
     session = check_session(captures)

@@ -286,7 +286,8 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
 
 
 def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], *, min_share: float = MIN_SHARE,
-                        leave_out: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
+                        leave_out: dict[str, str] | None = None,
+                        held: dict[str, str] | None = None) -> tuple[list[str], dict[str, str]]:
     """The selected effects compensation should invert, and why each other selected effect is left out.
 
     Compensation inverts only ``usable`` effects, so its model is f̂ with those
@@ -296,16 +297,20 @@ def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], 
     beside the glossy lobe cost 0.18 dB). So the usable effects are eliminated
     backwards on that model: each must still remove ``min_share`` of the
     held-out error the others leave. ``leave_out`` names effects left out
-    before that, with the reason.
+    before that, with the reason; ``held`` names effects stage C holds
+    another way (its θ holds a black level): not inverted, but part of the
+    model every candidate is scored on (without the demo's ambient black level
+    in it, its response and crosstalk removed only 0–2 % of what was left).
     """
     final = sel.final or sel.base
     params = {n: np.array(list(v.values())) for n, v in final.params().items()} if sel.selected else {}
     dropped = {n: "compensation cannot invert it" for n in sel.selected if n not in usable}
     dropped.update((n, why) for n, why in (leave_out or {}).items() if n in sel.selected and n not in dropped)
-    keep = [n for n in sel.selected if n not in dropped]
+    held = {n: why for n, why in (held or {}).items() if n in sel.selected and n not in dropped}
+    keep = [n for n in sel.selected if n not in dropped and n not in held]
 
     def scored(names: list[str]) -> Fit:
-        comp = Composite(data, tuple(names))
+        comp = Composite(data, tuple(names) + tuple(held))
         theta = comp.initial()
         for n in comp.names:
             theta[comp.slices[n]] = params[n]
@@ -320,4 +325,4 @@ def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], 
         dropped[weakest] = (f"without the effects compensation cannot invert, it removes only "
                             f"{max(gains[weakest], 0.0):.0%} of the held-out error (< {min_share:.0%})")
         keep.remove(weakest)
-    return keep, dropped
+    return keep, {**dropped, **held}
