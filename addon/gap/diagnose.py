@@ -97,8 +97,8 @@ def _confidence(sel: Selection, name: str, sig: dict[str, Any]) -> dict[str, Any
 
 
 def _against(sig: dict[str, Any]) -> str:
-    return (f"only {sig['share_of_reduction']:.0%} of what it explains lies {sig['where']}, which are "
-            f"{sig['share_of_pixels']:.0%} of the pixels: it stands in for another effect")
+    return (f"only {sig['share_of_reduction']:.0%} of what it explains falls on its signature ({sig['where']}), "
+            f"which is {sig['share_of_pixels']:.0%} of the pixels: it stands in for another effect")
 
 
 def _temper_confidence(effects: list[dict[str, Any]], modelled: list[str], session: SessionCheck,
