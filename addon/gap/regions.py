@@ -53,6 +53,9 @@ MAX_REGIONS = 6
 GLOBAL_SHARE = 0.25
 #: A region is described by a property of the place when at least this share of its pixels has it.
 PLACE_SHARE = 0.3
+#: ... and by a kind of pattern (input level, sharp edges) when its error gathers there this many times the
+#: patterns' own share.
+ENRICHED = 1.3
 #: log-albedo change between neighbouring pixels that makes a texture edge (shading on a smooth surface
 #: changes it by well under 1 % a pixel).
 TEXTURE_EDGE = 0.15
@@ -149,8 +152,8 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
     # misregistration, which on a clean rig outweighs every effect and lies wherever the patterns have edges.
     left = residuals if remainder is None else remainder
     edges = [data.observations[i].edges for i in pattern_index]
-    maps[remainder_cause] = energy_of(np.stack([np.where(e[..., None], 0.0, r) if e is not None else r
-                                                for r, e in zip(left, edges)]), mask)
+    left = np.stack([np.where(e[..., None], 0.0, r) if e is not None else r for r, e in zip(left, edges)])
+    maps[remainder_cause] = energy_of(left, mask)
     h, w = mask.shape
     sx, sy = full_size[0] / w, full_size[1] / h
     min_px = max(4, int(MIN_REGION_PIXELS * mask.sum()))
@@ -162,13 +165,19 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
 
     place = _Place(data)
 
+    # A region's error traits (levels, sharp edges, colour, sign) are read from the error its cause accounts for:
+    # read from the whole residual, every region of the demo said "sharp pattern edges, simulation too dark", which
+    # is the sub-pixel misregistration at edges that lies under every cause.
+    accounted = {name: residuals - after for name, after in (causes or {}).items()}
+    accounted[remainder_cause] = left
+
     def region(sel: np.ndarray, share: float, cause: str, note: str = "") -> Region:
         whole = sel is mask
         ys, xs = np.nonzero(sel)
         x0, y0 = int(xs.min()), int(ys.min())
         bbox = (int(x0 * sx), int(y0 * sy), int(round((xs.max() + 1 - x0) * sx)), int(round((ys.max() + 1 - y0) * sy)))
         tags, words = ([WHOLE], ["over the whole lit area"]) if whole else place.describe(sel, cause)
-        t2, w2 = _error_traits(data, residuals, sel, pattern_index)
+        t2, w2 = _error_traits(data, accounted.get(cause, residuals), sel, pattern_index)
         return Region(bbox, share, int(sel.sum()), ", ".join(words + w2) + note, tags + t2, cause, sel)
 
     regions, local = [], {}
@@ -316,19 +325,18 @@ def _error_traits(data: GapData, residuals: np.ndarray, sel: np.ndarray, pattern
     levels = np.array([float(o.sampled[sel].mean()) for o in obs])
     if per.sum() > 0:
         w = per / per.sum()
-        dark, bright = float(w[levels < 0.2].sum()), float(w[levels > 0.8].sum())
-        if dark > 0.5:
-            tags.append("dark input")
-            words.append("in dark input levels")
-        elif bright > 0.5:
-            tags.append("bright input")
-            words.append("in bright input levels")
-        elif float(w[(levels >= 0.2) & (levels <= 0.8)].sum()) > 0.6:
-            tags.append("mid input")
-            words.append("in mid input levels")
+        # A level names the error only where it gathers more than the patterns' own mix puts there: an error alike
+        # at every level (a room light's) had read "in mid input levels" because most patterns are mid grey.
+        bands = {"dark": levels < 0.2, "bright": levels > 0.8, "mid": (levels >= 0.2) & (levels <= 0.8)}
+        for band, least in (("dark", 0.5), ("bright", 0.5), ("mid", 0.6)):
+            there = float(w[bands[band]].sum())
+            if there > max(least, ENRICHED * float(bands[band].mean())):
+                tags.append(f"{band} input")
+                words.append(f"in {band} input levels")
+                break
         fine = float(w[[o.fine for o in obs]].sum())
         share_fine = sum(o.fine for o in obs) / len(obs)
-        if fine > max(0.6, 1.3 * share_fine):
+        if fine > max(0.6, ENRICHED * share_fine):
             tags.append("high spatial frequency")
             words.append("at high spatial frequency (sharp pattern edges)")
     ch = (residuals[:, sel] ** 2).mean(axis=(0, 1))
