@@ -58,6 +58,9 @@ def test_tps_interpolates_the_control_shifts_and_reproduces_affine_fields():
     ctrl = np.stack(np.meshgrid(np.linspace(0, 120, n), np.linspace(0, 90, n)), -1).reshape(-1, 2)
     warp = Warp(n, size, shifts, np.zeros_like(shifts))
     assert np.allclose(warp.map_m(ctrl) - ctrl, shifts.reshape(-1, 2), atol=1e-8)
+    # the same map for an input at half the resolution: positions and shifts in its own pixels
+    assert np.allclose(warp.map_m(ctrl / 2, (60, 45)), warp.map_m(ctrl) / 2, atol=1e-8)
+    assert np.array_equal(warp.map_m(ctrl, size), warp.map_m(ctrl))
     # An affine field is reproduced everywhere and costs no bending energy.
     affine = np.stack([1.5 + 0.01 * ctrl[:, 0] - 0.02 * ctrl[:, 1], -0.7 + 0.03 * ctrl[:, 1]], 1)
     pts = np.random.default_rng(3).uniform(0, 90, (200, 2))

@@ -227,8 +227,8 @@ def decode_gray_code_set(captures: "CaptureSet", **thresholds: Any) -> GrayCodeD
     if len(areas) != 1:
         raise CaptureError(f"capture set {captures.path}: Gray-code images mix areas {sorted(areas)}")
     area = areas.pop()
-    levels = captures.entries_of("white")[:1] + captures.entries_of("black")[:1] if (
-        captures.entries_of("white") and captures.entries_of("black")) else []
+    whites, blacks = captures.entries_of("white"), captures.entries_of("black")
+    levels = whites[:1] + blacks[:1] if whites and blacks else []
     proj = captures.projector
     size = proj.input_size if area == "input" else proj.intrinsics.size
     offset = proj.input_offset if area == "input" else (0, 0)

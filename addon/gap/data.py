@@ -229,9 +229,8 @@ def _input_position(calibration: Any, points: np.ndarray) -> np.ndarray:
     uv -= np.asarray(proj.input_offset, float)  # frame → input pixels
     if calibration.warp is not None:
         # The model shows z = M(x): its input pixel u carries the real input at φ_M(u).
-        scale = np.asarray(calibration.warp.size) / proj.input_size
         good = np.all(np.isfinite(uv), axis=1)
-        uv[good] = calibration.warp.map_m(uv[good] * scale) / scale
+        uv[good] = calibration.warp.map_m(uv[good], proj.input_size)
     return uv
 
 

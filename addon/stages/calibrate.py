@@ -27,7 +27,7 @@ from ..surface.mesh import SurfaceMesh
 from .graycode_warp import warp_from_graycode
 from .intrinsics import estimate_projector_intrinsics
 from .pose import estimate_pose, surface_view, target_mask
-from .surface import surface_from_captures
+from .surface import surface_from_captures, surface_photo
 from .warp import Warp, estimate_warp, grid_image
 
 #: The calibration stages, in order; each needs the ones before it.
@@ -97,7 +97,8 @@ def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *
     albedo = np.where(lit[..., None], (white - black) / np.maximum(irradiance, 1e-6), np.nan)
     # Outside the projector's reach only the unlit photo is known: scale it to the lit albedo where both exist (a
     # session without the photo, such as OpenCV's sequence, gets the lit albedo's median there).
-    photo = captures.image("surface") if captures.entries_of("surface") else np.zeros_like(white)
+    photo = surface_photo(captures)
+    photo = np.zeros_like(white) if photo is None else photo
     both = lit & (photo.mean(axis=2) > 1e-4)
     if both.sum() > 100:
         scale = np.nanmedian(albedo[both] / np.maximum(photo[both], 1e-6), axis=0)

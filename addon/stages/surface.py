@@ -58,7 +58,7 @@ def _has_depth(captures: CaptureSet) -> bool:
     return any("wall_distance_m" not in e.params for e in captures.entries_of("depth"))
 
 
-def _photo(captures: CaptureSet) -> np.ndarray | None:
+def surface_photo(captures: CaptureSet) -> np.ndarray | None:
     """The surface's first texture: its photo, when the session has one. Only a start: stage A's albedo step
     replaces it by white − black, so a session without the photo (OpenCV's sequence) starts from a grey one."""
     return captures.image("surface") if captures.entries_of("surface") else None
@@ -134,7 +134,7 @@ def surface_from_captures(captures: CaptureSet, source: str = "auto", *,
             min_valid = 0.02
             measured = "graycode"
         if source != "mesh":
-            mesh, rec = reconstruct_surface(depth, cam, _photo(captures), depth_offset=offset,
+            mesh, rec = reconstruct_surface(depth, cam, surface_photo(captures), depth_offset=offset,
                                             min_valid=min_valid)
             return mesh, {**rec.to_dict(), "source": source, **extra}, warnings
         say(f"surface: registering the mesh to the {measured} points", 0.02)
@@ -147,7 +147,7 @@ def surface_from_captures(captures: CaptureSet, source: str = "auto", *,
     except ProCamError as exc:
         raise CalibrationError(f"surface: {exc}") from None
     warnings += reg.warnings
-    mesh = place_mesh(user, reg, cam, _photo(captures), name="registered")
+    mesh = place_mesh(user, reg, cam, surface_photo(captures), name="registered")
     rep = {"source": "mesh", "mesh_file": what, "measured": measured, "registration": reg.report(),
            "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "depth_offset": float(offset), **extra}
     return mesh, rep, warnings

@@ -303,9 +303,13 @@ class Warp:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         return p + tps_basis(p, self.size, self.grid) @ shifts.reshape(-1, 2)
 
-    def map_m(self, points: np.ndarray) -> np.ndarray:
-        """φ_M: where ``apply_m`` samples its input for output positions ``points`` (N×2 input pixels)."""
-        return self._map(self.m_shifts, points)
+    def map_m(self, points: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
+        """φ_M: where ``apply_m`` samples its input for output positions ``points`` (N×2 input pixels; of an input
+        of ``size``, default the warp's own, when the input has another resolution of the same image)."""
+        if size is None or tuple(size) == self.size:
+            return self._map(self.m_shifts, points)
+        scale = np.asarray(self.size, np.float64) / np.asarray(size, np.float64)
+        return self._map(self.m_shifts, np.asarray(points, np.float64).reshape(-1, 2) * scale) / scale
 
     def map_w(self, points: np.ndarray) -> np.ndarray:
         """φ_W: where ``apply_w`` samples its input for output positions ``points`` (N×2 input pixels)."""

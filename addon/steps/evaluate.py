@@ -304,7 +304,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     looks_at, _ = camera_to_input(calibration, cam_size)
     if calibration.warp is not None:  # the model's texel q shows what the real projector puts at φ_M(q)
         seen = np.isfinite(looks_at[..., 0])
-        looks_at[seen] = calibration.warp.map_m(looks_at[seen])
+        looks_at[seen] = calibration.warp.map_m(looks_at[seen], calibration.rig.projector.input_size)
     comp.check_device(device)
     model = None
     if classical:
