@@ -140,7 +140,9 @@ def footprint(truth_path: Path, effect: str, samples: int = 64) -> np.ndarray:
 def region_scores(diag: Path, truth_path: Path, effect: str) -> dict:
     """IoU with the effect's footprint: of the diagnosis's first region, of its best region of the effect's cause,
     and of all the regions of the first region's cause together (light bouncing between the three folds of the
-    curve lands in three bands: one place each, one cause)."""
+    curve lands in three bands: one place each, one cause); and of the first region with the parts of the
+    footprint it lies on (``iou_part``: a footprint in disjoint parts, the hedge's highlight on both planes, cannot
+    be one compact region)."""
     import cv2
 
     labels = cv2.imread(str(diag / "regions_label.png"), cv2.IMREAD_GRAYSCALE)
@@ -157,7 +159,11 @@ def region_scores(diag: Path, truth_path: Path, effect: str) -> dict:
 
     own = [k for k, r in enumerate(regions) if r.get("cause") == cause_of(effect)]
     top = regions[0].get("cause") if regions else None
+    _, parts = cv2.connectedComponents(truth.astype(np.uint8), connectivity=8)
+    first = labels == 1
+    lies_on = np.isin(parts, np.unique(parts[first & truth]))
     return {"top_cause": top, "iou_top": iou([0]) if regions else 0.0,
+            "iou_part": float((first & lies_on).sum() / max((first | lies_on).sum(), 1)),
             "iou_own": max((iou([k]) for k in own), default=0.0),
             "iou_cause": iou([k for k, r in enumerate(regions) if r.get("cause") == top]) if regions else 0.0,
             "footprint_pixels": int(truth.sum())}
@@ -488,9 +494,13 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         lines.append(f"- regions of local effects that leave a gap: the first region overlaps the effect's true "
                      f"footprint with IoU ≥ 0.5 in {sum(r['regions']['iou_top'] >= 0.5 for r in local)}/{len(local)}; "
                      f"the regions of the first one's cause together in "
-                     f"{sum(r['regions'].get('iou_cause', 0) >= 0.5 for r in local)}/{len(local)} ("
+                     f"{sum(r['regions'].get('iou_cause', 0) >= 0.5 for r in local)}/{len(local)}; the first region "
+                     f"with the parts of the footprint it lies on in "
+                     f"{sum(r['regions'].get('iou_part', 0) >= 0.5 for r in local)}/{len(local)} (first / cause's / "
+                     f"part: "
                      + ", ".join(f"{r['surface']} {r['injected'][0]} {r['strength']:g}: {r['regions']['iou_top']:.2f}"
-                                 f" / {r['regions'].get('iou_cause', float('nan')):.2f} [{r['regions']['top_cause']}]"
+                                 f" / {r['regions'].get('iou_cause', float('nan')):.2f}"
+                                 f" / {r['regions'].get('iou_part', float('nan')):.2f} [{r['regions']['top_cause']}]"
                                  for r in local) + ")")
     comp = [r for r in rows if r["compensation"] and r["injected"]]
     if comp:

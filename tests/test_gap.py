@@ -371,6 +371,30 @@ def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
     assert len(places) == 1 and places[0].cause == "glossy" and "left over" in places[0].description
 
 
+def test_a_highlight_is_placed_by_its_light_as_the_camera_saw_it(clean_case):
+    """Where the white capture clipped around the lobe's peak the camera saw a flat patch, not the lobe's sharp
+    peak: the light a region is drawn on is capped at its level at the patch's edge, and the set holding half of
+    it covers the patch; a capture that clipped elsewhere, or nowhere, leaves the light as the model has it."""
+    from procam.addon.gap.models import local_light
+    from procam.addon.gap.regions import hot_set
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    data.white.capture = np.minimum(data.white.capture, 0.5)
+    values = np.array([0.2, 0.3])
+    free = local_light("glossy", values, data)
+    assert np.array_equal(local_light("glossy", values, data), free)  # nothing clipped
+    patch = data.mask & (free >= np.percentile(free[data.mask], 92))
+    far = data.mask & (free <= np.percentile(free[data.mask], 5))
+    data.white.capture[far] = 1.0  # clipped away from the highlight: not the highlight's doing
+    assert np.array_equal(local_light("glossy", values, data), free)
+    data.white.capture[patch] = 1.0
+    seen = local_light("glossy", values, data)
+    assert (seen <= free).all() and np.array_equal(seen[~patch], free[~patch])
+    assert np.ptp(seen[patch]) < 0.2 * np.ptp(free[patch])  # flat where the camera clipped
+    covered = [(hot_set(m.astype(np.float64) ** 2, data.mask) & patch).sum() for m in (free, seen)]
+    assert covered[0] < 0.6 * patch.sum() < 0.9 * patch.sum() < covered[1]
+
+
 def test_a_highlight_the_albedo_absorbed_is_a_place_for_what_the_residual_holds_there(clean_case):
     """Found from the calibration's inputs, a highlight is modelled by nothing; the residual left in it (thin, in a
     noisy remainder, no place of its own) is counted in one place where the lobe's light is."""
