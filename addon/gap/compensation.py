@@ -35,10 +35,11 @@ around it rather than inside, each where it acts:
 would need remapping); stage C's θ absorbs the shift. The result
 says which effects it used and which it could not. With ``--effects auto`` it
 uses the diagnosis's ``compensation`` list: the selected effects that still help
-without the ones it cannot invert (:func:`.fit.compensation_subset`), less a
-black level (θ holds it: :data:`HELD_BY_THETA`) and an effect that stands in
-for another (``gap.diagnose.CONTRA_SIGNATURE``); named with ``--effects``, a
-black level is inverted.
+without the ones it cannot invert (:func:`.fit.compensation_subset`), less
+those stage C already holds (a black level in θ, the first bounce of light in
+its renders: :data:`HELD_BY_STAGE_C`) and an effect that stands in for another
+(``gap.diagnose.CONTRA_SIGNATURE``); named with ``--effects``, those are
+inverted too.
 """
 
 from __future__ import annotations
@@ -59,10 +60,15 @@ from .models import (MODELS, crosstalk_matrix, inverse_camera_curve, inverse_pro
 INVERTIBLE = ("response", "crosstalk", "black_level", "vignetting", "defocus", "camera_response", "interreflection",
               "depth_noise", "glossy")
 NOT_INVERTED = {"distortion": "the display area is not remapped; θ absorbs the shift"}
-#: Effects compensation can invert but ``--effects auto`` leaves to stage C's θ, which already holds them (a
-#: per-pixel offset, open and closed loop): a real black level inverted as well gained nothing on the lab's four
-#: surfaces and lost up to 0.04 dB at strength 1, more than two captures of one input differ.
-HELD_BY_THETA = {"black_level": "stage C's θ already holds a constant offset; inverting it as well gains nothing"}
+#: Effects compensation can invert but ``--effects auto`` leaves to stage C, which already holds them. A black
+#: level: θ is a per-pixel offset (open and closed loop); a real one inverted as well gained nothing on the lab's
+#: four surfaces and lost up to 0.04 dB at strength 1, more than two captures of one input differ. Bounce light:
+#: stage C renders direct light and one bounce; three bounces gained −0.03 to +0.02 dB on the 9 lab sets with
+#: bounce light alone (curve, vedge, hedge; strengths 0.25–1) and −0.02 to −0.00 dB on 6 with a projector
+#: response or colour crosstalk beside it, and cost the operator's indirect part two more bounces.
+HELD_BY_STAGE_C = {
+    "black_level": "stage C's θ already holds a constant offset; inverting it as well gains nothing",
+    "interreflection": "stage C already simulates the first bounce; simulating three gains nothing"}
 #: Emitted light below this share of white is treated as the darkest the projector can do.
 _EPS = 1e-4
 #: Projected-gradient steps of :func:`presharpen`, and the blur (input texels) below which it is skipped.

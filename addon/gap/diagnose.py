@@ -20,7 +20,7 @@ from ..capture.format import CaptureSet
 from ..progress import Cancel, Progress, quiet
 from ..stages.calibrate import Calibration
 from .data import LEVEL_EFFECTS, NO_VALIDATION, GapData, load_gap_data
-from .compensation import HELD_BY_THETA, INVERTIBLE
+from .compensation import HELD_BY_STAGE_C, INVERTIBLE
 from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
                   select_effects, structured)
@@ -129,8 +129,8 @@ ACTIONS = {
     "vignetting": "the projector's image darkens towards its corners: the albedo holds it, nothing to do",
     "defocus": "the projector is out of focus{where}: refocus it, or compensate with --effects auto, which "
                "pre-sharpens what the input range allows",
-    "interreflection": "light bounces between parts of the surface{where}: compensate with --effects auto, which "
-                       "simulates the bounces",
+    "interreflection": "light bounces between parts of the surface{where}: a darker finish on the facing parts "
+                       "reduces it; compensation already simulates the first bounce",
     "glossy": "the surface is glossy{where}: a matte finish helps; compensate with --effects auto, which restores "
               "the light the white capture clipped in the highlight",
     "camera_response": "the camera applies a tone curve: shoot linear (raw), or compensate with --effects auto",
@@ -356,7 +356,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     stand_ins = {e["name"]: _against(e["confidence"]["signature"]) for e in effects
                  if (e["confidence"].get("signature") or {}).get("against") and e["name"] in sel.selected}
     inverted, left_out = compensation_subset(data, sel, INVERTIBLE, min_share=min_share, leave_out=stand_ins,
-                                             held=HELD_BY_THETA)
+                                             held=HELD_BY_STAGE_C)
     res_final = residual_stack(Composite(data, final.names), final.theta, data.held_index)
     cam_full = calibration.rig.camera.intrinsics.size
     session = check_session(captures)
