@@ -60,6 +60,22 @@ def test_range_ceiling():
     assert range_ceiling(t, black, white) == pytest.approx(10 * math.log10(1 / (0.25 * 0.4 ** 2)), abs=1e-4)
 
 
+def test_the_noise_ceiling_adds_the_cameras_noise_to_what_the_range_clips():
+    from procam.addon.stages.range import capture_noise_mse, noise_ceiling
+
+    rng = np.random.default_rng(0)
+    clean = rng.uniform(0.2, 0.6, (64, 64, 3))
+    shots = [clean + rng.normal(0, 0.01, clean.shape) for _ in range(2)]
+    assert capture_noise_mse(*shots) == pytest.approx(0.01 ** 2, rel=0.05)
+    black, white = np.full((4, 4, 3), 0.1), np.full((4, 4, 3), 0.5)
+    inside = np.full((4, 4, 3), 0.3)
+    assert noise_ceiling(inside, black, white, 1e-4) == pytest.approx(40.0)
+    assert noise_ceiling(inside, black, white, 0.0) == CEILING_CAP == range_ceiling(inside, black, white)
+    t = inside.copy()
+    t[0] = 0.9
+    assert noise_ceiling(t, black, white, 1e-4) == pytest.approx(10 * math.log10(1 / (0.25 * 0.4 ** 2 + 1e-4)))
+
+
 def test_the_gap_to_the_ceiling_is_split_by_whether_the_input_could_give_more():
     from procam.addon.stages.range import ceiling_gap_at_limit
 

@@ -42,6 +42,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="also measure the classical per-pixel colour-mixing baseline (captures 3 flat primaries)")
     p.add_argument("--target-encoding", choices=TARGET_ENCODINGS, default="auto",
                    help="auto: 8-bit files are sRGB and are linearised, 16-bit/float are linear")
+    p.add_argument("--no-repeat", dest="repeat", action="store_false",
+                   help="capture each compensated input once (default: twice, for the camera's noise and the noise "
+                        "ceiling, the range ceiling as a capture through that noise can score it)")
     p.add_argument("--force", action="store_true", help="replace an existing evaluation folder at --out")
 
 
@@ -49,7 +52,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
          _configure)
 def run(args: argparse.Namespace) -> int:
     options = EvaluateOptions(args.calibration, args.inputs, tuple(args.targets), args.device, args.out,
-                              classical=args.classical, target_encoding=args.target_encoding, force=args.force)
+                              classical=args.classical, target_encoding=args.target_encoding, force=args.force,
+                              repeat=args.repeat)
     doc = run_step("evaluate", evaluate, options, total=len(options.targets), unit="targets")
     for r in doc["targets"]:
         if r.get("status") == "done":
@@ -57,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
             extra = f", classical {r['classical']['psnr']:.2f} dB" if "classical" in r else ""
             print(f"{r['name']}: PSNR {u['psnr']:.2f} → {r['psnr']:.2f} dB, SSIM {u['ssim']:.3f} → {r['ssim']:.3f} "
                   f"(uncompensated → compensated{extra}); range ceiling {r['range_ceiling']:.2f} dB"
+                  + (f" ({r['noise_ceiling']:.2f} dB through the camera's noise, RMS {r['capture_noise_rmse']:.4f})"
+                     if "noise_ceiling" in r else "")
                   + (f", {r['ceiling_gap_at_limit']:.0%} of the gap to it where the input is already at its limit"
                      if r.get("ceiling_gap_at_limit") is not None else ""))
     m = doc["mean"]

@@ -24,6 +24,11 @@ Given two or more targets in order (a sequence), ``metrics.json`` also holds
 their **flicker** (:class:`Flicker`): the mean absolute difference between
 consecutive captures inside the display area, minus that of the targets
 themselves — what compensation adds to the sequence's own change.
+
+Each compensated input is captured twice (unless ``repeat`` is off): the two
+captures differ by the camera's noise alone, which gives the **noise
+ceiling**, the range ceiling as a capture can score it (see
+:func:`..stages.range.noise_ceiling`). A result is held to that one.
 """
 
 from __future__ import annotations
@@ -47,8 +52,8 @@ from ..stages.calibrate import Calibration
 from ..stages.classical import fit_classical
 from ..stages.compensate import Compensator
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
-from ..stages.metrics import mean_scores, measure, side_by_side, uncompensated_input
-from ..stages.range import RangeMap, ceiling_gap_at_limit, range_ceiling
+from ..stages.metrics import check_capture, mean_scores, measure, side_by_side, uncompensated_input
+from ..stages.range import RangeMap, capture_noise_mse, ceiling_gap_at_limit, noise_ceiling, range_ceiling
 from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
@@ -84,6 +89,7 @@ class EvaluateOptions:
     classical: bool = False
     target_encoding: str = "auto"
     force: bool = False
+    repeat: bool = True  # capture each compensated input twice: the camera's noise, and the noise ceiling
 
 
 @dataclass
@@ -275,7 +281,7 @@ def input_seen(frame: np.ndarray, projector: Any, looks_at: np.ndarray) -> np.nd
 def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                     targets: "list[tuple[str, np.ndarray, str]] | VideoTargets", device: Device, out: Path, *,
                     calibration_dir: str | Path | None = None, notes: list[str] | None = None,
-                    classical: bool = False, progress: Progress | None = None,
+                    classical: bool = False, repeat: bool = True, progress: Progress | None = None,
                     cancel: Cancel | None = None) -> EvaluationRun:
     """Measure each ``(name, target image, note)`` of ``targets`` against its compensated input in ``inputs``.
 
@@ -286,6 +292,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     ``inputs`` must have passed :meth:`CompensationInputs.check_against` (whose
     ``notes`` it records); every frame is read before the first projection, and
     a failure during the projections stops the run but keeps what was measured.
+    ``repeat``: capture each compensated input a second time, for the camera's noise.
     """
     say = progress or quiet
     proj = calibration.rig.projector
@@ -335,6 +342,11 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
                                    "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2),
                                    "ceiling_gap_at_limit": None if at_limit is None else round(at_limit, 3)}
+            if repeat:
+                again = check_capture(device.project(frame), cam_size)
+                noise = capture_noise_mse(area.crop(got.capture), area.crop(again))
+                row["capture_noise_rmse"] = round(noise ** 0.5, 5)
+                row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
             extra = []
             if model is not None:
                 t0 = time.perf_counter()
@@ -372,12 +384,16 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                       "range_ceiling: PSNR of that target clipped per pixel to the captured [black, white], the "
                       "best any input could do; ceiling_gap_at_limit: of the capture's squared error beyond the "
                       "clipped target's, the share where the input the pixel sees is already at full (capture too "
-                      "dark) or at zero (too bright), which no solver can push further",
+                      "dark) or at zero (too bright), which no solver can push further; capture_noise_rmse: the "
+                      "camera's noise, from a second capture of the compensated input; noise_ceiling: the range "
+                      "ceiling as a capture scores it, through that noise",
            "range": None if range_map is None else range_map.to_dict(),
            "classical": None if model is None else model.report,
            "targets": rows, "mean": mean_scores(done),
            "mean_uncompensated": mean_scores(done, "uncompensated"),
            "mean_range_ceiling": round(float(np.mean([r["range_ceiling"] for r in done])), 2) if done else None,
+           "mean_noise_ceiling": (round(float(np.mean([r["noise_ceiling"] for r in done])), 2)
+                                  if done and all("noise_ceiling" in r for r in done) else None),
            "mean_classical": mean_scores(done, "classical") if model is not None else None,
            "flicker": seen.report(),
            "complete": failure is None}
@@ -444,7 +460,8 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
                 raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE, "
                                       "folder:CAPTURE_DIR or live:camera=…")
         result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
-                                 notes=notes, classical=options.classical, progress=say, cancel=cancel)
+                                 notes=notes, classical=options.classical, repeat=options.repeat, progress=say,
+                                 cancel=cancel)
         result.doc["device"] = options.device
         write_manifest(folder.tmp / KIND.manifest, result.doc)
     except BaseException:
@@ -471,6 +488,7 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
             f"{fmt(plain.get('ssim'), '.3f')} → {fmt(mean.get('ssim'), '.3f')} (uncompensated → compensated)")
     lines = tuple(f"{t['name']}: {fmt(t['uncompensated']['psnr'], '.2f')} → {fmt(t['psnr'], '.2f')} dB "
                   f"(range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"
+                  + (f", {fmt(t['noise_ceiling'], '.2f')} dB through the camera's noise" if "noise_ceiling" in t else "")
                   + (f", {t['ceiling_gap_at_limit']:.0%} of the gap to it at the input's limit"
                      if t.get("ceiling_gap_at_limit") is not None else "") + ")"
                   if t.get("status") == "done" else f"{t.get('name')}: failed — {t.get('error', '')}"
