@@ -84,23 +84,24 @@ def main() -> None:
             share = row.get("ceiling_gap_at_limit")
             return "–" if share is None else f"{share:.0%}"
 
+        def ceilings(row: dict, prefix: str = "") -> str:
+            noise = row.get(f"{prefix}noise_ceiling")  # None: evaluated before the noise ceiling (rerun evaluate)
+            return f"{row[prefix + 'range_ceiling']:.2f} / " + ("–" if noise is None else f"{noise:.2f}")
+
         for a, b in zip(rows["none"]["targets"], rows["auto"]["targets"]):
-            print(f"| {a['name']} | {a['range_ceiling']:.2f} / {a['noise_ceiling']:.2f} | "
-                  f"{a['uncompensated']['psnr']:.2f} → {a['psnr']:.2f} | {limit(a)} | "
-                  f"{b['range_ceiling']:.2f} / {b['noise_ceiling']:.2f} | "
-                  f"{b['uncompensated']['psnr']:.2f} → {b['psnr']:.2f} |")
+            print(f"| {a['name']} | {ceilings(a)} | {a['uncompensated']['psnr']:.2f} → {a['psnr']:.2f} | {limit(a)} | "
+                  f"{ceilings(b)} | {b['uncompensated']['psnr']:.2f} → {b['psnr']:.2f} |")
         a, b = rows["none"], rows["auto"]
-        print(f"| mean | {a['mean_range_ceiling']:.2f} / {a['mean_noise_ceiling']:.2f} | "
-              f"{a['mean_uncompensated']['psnr']:.2f} → {a['mean']['psnr']:.2f} | | "
-              f"{b['mean_range_ceiling']:.2f} / {b['mean_noise_ceiling']:.2f} | "
-              f"{b['mean_uncompensated']['psnr']:.2f} → {b['mean']['psnr']:.2f} |")
+        print(f"| mean | {ceilings(a, 'mean_')} | {a['mean_uncompensated']['psnr']:.2f} → {a['mean']['psnr']:.2f} | | "
+              f"{ceilings(b, 'mean_')} | {b['mean_uncompensated']['psnr']:.2f} → {b['mean']['psnr']:.2f} |")
         for name, row in rows.items():
+            if row.get("mean_noise_ceiling") is None:
+                continue
             noise = np.mean([t["capture_noise_rmse"] for t in row["targets"] if t.get("status") == "done"])
             print(f"--range {name}: ours {row['mean']['psnr']:.2f} dB, "
                   f"{row['mean_noise_ceiling'] - row['mean']['psnr']:.2f} dB below the noise ceiling, "
                   f"{row['mean_range_ceiling'] - row['mean']['psnr']:.2f} dB below the range ceiling; "
                   f"camera noise RMS {noise:.4f}")
-
 
 if __name__ == "__main__":
     main()
