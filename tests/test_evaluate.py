@@ -173,6 +173,36 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
     assert doc["mean"]["psnr"] == doc["targets"][0]["psnr"]
 
 
+def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
+    """A device that returns the same image for the same frame (a capture folder replayed, a noiseless simulator)
+    shows no noise; the second capture then measures nothing, and no noise ceiling is claimed."""
+    from procam.addon.steps import evaluate as evaluate_step
+    from procam.addon.lab.lab import LabDevice, LabTruth
+
+    class Replay:
+        def __init__(self, truth):
+            self.inner, self.seen = LabDevice(truth), {}
+            self.projector = self.inner.projector
+
+        def project(self, frame):
+            key = np.ascontiguousarray(frame).tobytes()
+            if key not in self.seen:
+                self.seen[key] = self.inner.project(frame)
+            return self.seen[key].copy()
+
+        def close(self):
+            self.inner.close()
+
+    monkeypatch.setattr(evaluate_step, "open_device",
+                        lambda spec, projector=None: Replay(LabTruth.load(env.truth_path)))
+    out = env.root / "eval_replay"
+    assert _evaluate(env, out, env.targets / "a.png") == 0
+    doc = json.loads((out / "metrics.json").read_text())
+    row = doc["targets"][0]
+    assert "noise_ceiling" not in row and "capture_noise_rmse" not in row and doc["mean_noise_ceiling"] is None
+    assert any("replayed capture" in w for w in row["warnings"]) and "replayed capture" in capsys.readouterr().err
+
+
 def test_check_capture_size():
     from procam.addon.stages.metrics import check_capture
 

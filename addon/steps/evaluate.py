@@ -342,11 +342,16 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
                                    "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2),
                                    "ceiling_gap_at_limit": None if at_limit is None else round(at_limit, 3)}
+            replayed = False
             if repeat:
                 again = check_capture(device.project(frame), cam_size)
-                noise = capture_noise_mse(area.crop(got.capture), area.crop(again))
-                row["capture_noise_rmse"] = round(noise ** 0.5, 5)
-                row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
+                # The same image twice is a replay (a capture folder, a noiseless simulator), not a second shot: a
+                # noise of 0 read from it would make the noise ceiling the range ceiling and claim a perfect camera.
+                replayed = np.array_equal(again, got.capture)
+                if not replayed:
+                    noise = capture_noise_mse(area.crop(got.capture), area.crop(again))
+                    row["capture_noise_rmse"] = round(noise ** 0.5, 5)
+                    row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
             extra = []
             if model is not None:
                 t0 = time.perf_counter()
@@ -362,7 +367,9 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             seen.add(rows[-1], None)
             say(f"{name}: failed: {exc}", 1.0)
             break
-        row["warnings"] = [str(w.message) for w in caught]
+        row["warnings"] = [str(w.message) for w in caught] + (
+            ["the device returned the same image for both captures of the input (a replayed capture): the camera's "
+             "noise cannot be measured, so no noise ceiling is given"] if replayed else [])
         for w in row["warnings"]:
             say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / len(targets))
         row["target_encoding"] = note
