@@ -83,7 +83,9 @@ class Job:
             if fraction == fraction and fraction >= 0:  # NaN or a negative value: fraction unknown, keep the last
                 self._fraction = min(1.0, float(fraction))
         if self._cancel.is_set():
-            raise Cancelled(f"{self.name} was cancelled; nothing was written")
+            # Not "nothing was written": a resumable step (live capture, a show) keeps what it finished, and says so
+            # when it passes this on; an atomic one writes nothing by construction.
+            raise Cancelled(f"{self.name} was cancelled")
 
     def cancelled(self) -> bool:
         """True once a stop was asked for (the engine's ``cancel`` callable)."""

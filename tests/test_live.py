@@ -153,7 +153,8 @@ def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, cap
         options = LiveCaptureOptions(device, projector, tmp_path / "set", camera_fov=58.0,
                                      depth_path=tmp_path / "depth.npy")
         calls = []
-        with pytest.raises(Cancelled, match="run the same command to resume"):
+        stopped = r"11 of \d+ frames are captured and kept in .*run the same command to resume"
+        with pytest.raises(Cancelled, match=stopped):
             run_live_capture(options, cancel=lambda: len(calls) > 10,
                              progress=lambda m, f: calls.append(m) if m.startswith("capturing") else None)
         kept = sorted((tmp_path / "set.session" / "photos").glob("*.png"))

@@ -131,28 +131,34 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     if done:
         say(f"resuming the live session in {session}: {done} of {len(frames)} frames already captured", 0.0)
     missing = [(i, f) for i, f in enumerate(frames) if not (session / "photos" / f"{i:04d}.png").is_file()]
-    if missing:
-        with LiveDevice(options.device, options.projector, progress=part(say, 0.0, 0.1, "live device: "),
-                        check_exposure=options.check_exposure) as device:
-            doc["opened"].append({"device": options.device, **device.report.to_dict()})
-            _write_session(session, doc)
-            for n, (i, frame) in enumerate(missing):
-                if stop():
-                    raise Cancelled(f"live capture stopped after {len(frames) - len(missing) + n} of {len(frames)} "
-                                    f"frames; they are kept in {session}: run the same command to resume")
-                say(f"capturing frame {i + 1}/{len(frames)} ({frame['name']})", 0.1 + 0.8 * n / len(missing))
-                if frame["kind"] == "surface":
-                    shot = device.capture_off()
-                else:
-                    shot = device.project(read_image(session / "sequence" / frame["file"]))
-                write_image(session / "photos" / f"{i:04d}.png", shot)
-    say("importing the photographs (depth, exposure check)", 0.9)
-    captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out,
-                                        camera_fov=options.camera_fov, encoding="linear",
-                                        depth_path=options.depth_path, depth_units=options.depth_units,
-                                        depth_native_size=options.depth_native_size,
-                                        rig=options.rig, check_exposure=options.check_exposure, force=options.force),
-                          part(say, 0.9, 1.0))
+    try:
+        if missing:
+            with LiveDevice(options.device, options.projector, progress=part(say, 0.0, 0.1, "live device: "),
+                            check_exposure=options.check_exposure) as device:
+                doc["opened"].append({"device": options.device, **device.report.to_dict()})
+                _write_session(session, doc)
+                for n, (i, frame) in enumerate(missing):
+                    if stop():
+                        raise Cancelled("live capture was cancelled")
+                    say(f"capturing frame {i + 1}/{len(frames)} ({frame['name']})", 0.1 + 0.8 * n / len(missing))
+                    if frame["kind"] == "surface":
+                        shot = device.capture_off()
+                    else:
+                        shot = device.project(read_image(session / "sequence" / frame["file"]))
+                    write_image(session / "photos" / f"{i:04d}.png", shot)
+        say("importing the photographs (depth, exposure check)", 0.9)
+        captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out,
+                                            camera_fov=options.camera_fov, encoding="linear",
+                                            depth_path=options.depth_path, depth_units=options.depth_units,
+                                            depth_native_size=options.depth_native_size, rig=options.rig,
+                                            check_exposure=options.check_exposure, force=options.force),
+                              part(say, 0.9, 1.0))
+    except Cancelled as exc:
+        # however the stop came (this loop's check, or the job's at a progress report), the photographs taken so
+        # far stay in the session folder, and the same command resumes from them
+        kept = sum((session / "photos" / f"{i:04d}.png").is_file() for i in range(len(frames)))
+        raise Cancelled(f"{exc}: {kept} of {len(frames)} frames are captured and kept in {session}; run the same "
+                        "command to resume") from None
     shutil.rmtree(session, ignore_errors=True)
     say(f"capture set {options.out}: {len(frames)} frames", 1.0)
     return captures
