@@ -110,5 +110,6 @@ def main() -> None:
                   f"{row['mean_range_ceiling'] - row['mean']['psnr']:.2f} dB below the range ceiling; "
                   f"camera noise RMS {noise:.4f}; stage C's own prediction through that noise {predicted:.2f} dB")
 
+
 if __name__ == "__main__":
     main()

@@ -90,6 +90,15 @@ def _write_session(path: Path, doc: dict[str, Any]) -> None:
     write_atomic_bytes(path / SESSION_MANIFEST, (json.dumps(doc, indent=1) + "\n").encode())
 
 
+def _photo(session: Path, i: int) -> Path:
+    """Where frame ``i``'s photograph is kept in a session folder."""
+    return session / "photos" / f"{i:04d}.png"
+
+
+def _photos_taken(session: Path) -> int:
+    return len(list((session / "photos").glob("*.png")))
+
+
 def open_session(options: LiveCaptureOptions) -> tuple[dict[str, Any], int]:
     """The session folder for ``options``: resumed when it holds the same settings, else made anew.
 
@@ -103,7 +112,7 @@ def open_session(options: LiveCaptureOptions) -> tuple[dict[str, Any], int]:
             if not options.restart:
                 raise CaptureError(f"{session} holds a live session with other settings (projector, patterns or "
                                    "seed): give the same settings to resume it, or --restart to discard its "
-                                   f"{len(list((session / 'photos').glob('*.png')))} photographs")
+                                   f"{_photos_taken(session)} photographs")
             shutil.rmtree(session)
         elif options.restart:
             shutil.rmtree(session)
@@ -115,7 +124,7 @@ def open_session(options: LiveCaptureOptions) -> tuple[dict[str, Any], int]:
         _write_session(session, {"format": SESSION_FORMAT, "version": 1, "settings": options.settings(),
                                  "opened": []})
     doc = _read_session(session)
-    return doc, len(list((session / "photos").glob("*.png")))
+    return doc, _photos_taken(session)
 
 
 def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = None,
@@ -130,7 +139,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     frames = load_sequence(session / "sequence").frames
     if done:
         say(f"resuming the live session in {session}: {done} of {len(frames)} frames already captured", 0.0)
-    missing = [(i, f) for i, f in enumerate(frames) if not (session / "photos" / f"{i:04d}.png").is_file()]
+    missing = [(i, f) for i, f in enumerate(frames) if not _photo(session, i).is_file()]
     try:
         if missing:
             with LiveDevice(options.device, options.projector, progress=part(say, 0.0, 0.1, "live device: "),
@@ -145,7 +154,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
                         shot = device.capture_off()
                     else:
                         shot = device.project(read_image(session / "sequence" / frame["file"]))
-                    write_image(session / "photos" / f"{i:04d}.png", shot)
+                    write_image(_photo(session, i), shot)
         say("importing the photographs (depth, exposure check)", 0.9)
         captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out,
                                             camera_fov=options.camera_fov, encoding="linear",
@@ -156,9 +165,8 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     except Cancelled as exc:
         # however the stop came (this loop's check, or the job's at a progress report), the photographs taken so
         # far stay in the session folder, and the same command resumes from them
-        kept = sum((session / "photos" / f"{i:04d}.png").is_file() for i in range(len(frames)))
-        raise Cancelled(f"{exc}: {kept} of {len(frames)} frames are captured and kept in {session}; run the same "
-                        "command to resume") from None
+        raise Cancelled(f"{exc}: {_photos_taken(session)} of {len(frames)} frames are captured and kept in "
+                        f"{session}; run the same command to resume") from None
     shutil.rmtree(session, ignore_errors=True)
     say(f"capture set {options.out}: {len(frames)} frames", 1.0)
     return captures
