@@ -192,6 +192,7 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
         if not adapter.params:
             return None
         comp = adapter.compensator(cal)
+        adapter.blur_in_solve(comp)  # the schedule here is the default, transport
         return adapter, comp, comp.estimate_bias(AdaptedCaptures(captures_of(cal), adapter))
 
     def captured(x: np.ndarray, placed: np.ndarray, area, seed: int | None = None) -> float:

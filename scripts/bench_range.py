@@ -2,7 +2,7 @@
 """Bright content and the projector's range: compensation with ``--range none`` against ``--range auto``.
 
 Usage: ``.venv/bin/python scripts/bench_range.py [--surface curve] [--scale 0.5] [--iterations 60] [--effects auto]
-[--work DIR]``
+[--diagnose-scale 1] [--work DIR]``
 
 Renders a lab capture set (``realistic`` effects), calibrates it, and
 compensates six natural photographs at full brightness (each scaled so its
@@ -45,6 +45,9 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--effects", choices=("none", "auto"), default="none",
                     help="auto: run procam diagnose and compensate with the effects it selected")
+    ap.add_argument("--diagnose-scale", type=float, default=None,
+                    help="with --effects auto: procam diagnose's --scale (default its own); 1 finds a projector "
+                         "blur under a texel that half the camera's resolution does not resolve")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -62,7 +65,8 @@ def main() -> None:
             targets.append(str(write_image(work / "targets" / f"{name}.png", img)))
         effects, fx = [], ""
         if args.effects == "auto":
-            step(["diagnose", str(work / "cal"), "--out", str(work / "diagnosis")], work / "diagnosis")
+            scale = [] if args.diagnose_scale is None else ["--scale", str(args.diagnose_scale)]
+            step(["diagnose", str(work / "cal"), *scale, "--out", str(work / "diagnosis")], work / "diagnosis")
             effects, fx = ["--effects", "auto", "--diagnosis", str(work / "diagnosis")], "-fx"
         rows, sims = {}, {}
         for rng in ("none", "auto"):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -186,7 +187,7 @@ def test_glossy_is_inverted_where_the_white_capture_clipped(clean_case):
     assert np.isnan(seen[cy, cx]).all() and np.isfinite(seen[far]).all()
 
 
-def test_defocus_is_inverted_by_presharpening_within_the_input_range():
+def test_defocus_is_presharpened_within_the_input_range_unless_stage_c_solves_through_it():
     """A blurred projector: the input sent is the bounded one whose blur comes closest to the wanted light, so the
     light that lands is much sharper than sending the wanted image itself, and the input stays in [0, 1]."""
     proj = demo_rig((64, 48), (80, 60)).projector
@@ -201,6 +202,11 @@ def test_defocus_is_inverted_by_presharpening_within_the_input_range():
     # Bounded, a Gaussian's inverse cannot rebuild a sharp edge: the best is about a third less error (measured
     # 0.0238 against 0.0358 after 1000 steps; 40 steps reach 0.0246).
     assert rmse(sent) < 0.75 * rmse(wanted)
+    # On the transport operator the blur goes into stage C's solve instead, whose answer is sent as it is.
+    compensator = SimpleNamespace(input_blur=None)
+    adapter.blur_in_solve(compensator)
+    assert compensator.input_blur == 1.5
+    np.testing.assert_array_equal(adapter.input_for(wanted), wanted)
 
 
 def _copy_set(src, dst, edit):

@@ -15,10 +15,14 @@ around it rather than inside, each where it acts:
   direct light only;
 * ``depth_noise``: the surface is moved along the camera rays by the fitted
   smooth depth error;
-* ``defocus``: the lens blurs the input before anything else, so the input sent
-  is the one in [0, 1] whose blur comes closest to ``g⁻¹(x*)`` (pre-sharpening
-  by projected gradient, :func:`presharpen`): a blur has no exact inverse on a
-  bounded input, but the closest bounded one restores what the range allows.
+* ``defocus``: the lens blurs the light. On the transport operator (the default
+  schedule) the blur goes inside stage C's solve (``T B``, :meth:`EffectAdapter.blur_in_solve`):
+  its bounded answer is sharpened for what the camera resolves, and is sent as
+  it is. With the other schedules, which render every step, the input sent is
+  the one in [0, 1] whose blur comes closest to ``g⁻¹(x*)`` (pre-sharpening by
+  projected gradient, :func:`presharpen`): that matches every texel, detail no
+  camera pixel resolves included, and buys a half to a third of what the solve
+  does (README, "Defocus").
 
 * ``glossy``: the albedo was read from the white capture, which holds the lobe
   under white; for direct light the lobe sends each camera pixel the same
@@ -112,6 +116,9 @@ class EffectAdapter:
     #: the glossy model's gain where the white capture clipped, as the diagnosis stored it (``clipped_white`` in
     #: ``gap.json``: working and camera sizes, and ``[x, y, r, g, b]`` of each pixel whose gain is not 1)
     clipped_white: dict[str, Any] | None = None
+    #: stage C's solve holds the fitted blur (:meth:`blur_in_solve`): the input it answers is the one to send
+    #: before the blur, so :meth:`input_for` does not pre-sharpen it again
+    defocus_in_solver: bool = False
     _glossy_gain: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -136,18 +143,33 @@ class EffectAdapter:
         return gammas, float(r.get("contrast", 0.0)), float(r.get("pivot", 0.5))
 
     @property
+    def defocus(self) -> float | None:
+        """The fitted blur of the projector's lens (input texels), None below :data:`MIN_DEFOCUS` or without."""
+        p = self._p("defocus")
+        return p[0] if p is not None and p[0] > MIN_DEFOCUS else None
+
+    @property
     def bounces(self) -> int | None:
         """Indirect bounces stage C should simulate (None: leave the caller's choice)."""
         p = self._p("interreflection")
         return None if p is None else (3 if p[0] >= 0.25 else 0)
 
+    def blur_in_solve(self, compensator: Any) -> None:
+        """Let ``compensator``'s solve on the transport operator hold the fitted blur (``T B``,
+        ``stages/transport.py`` ``BlurredRows``) instead of pre-sharpening its answer here: it then sharpens for
+        what the camera resolves. For the transport schedule only (the compensator refuses others)."""
+        if self.defocus is not None:
+            compensator.input_blur = self.defocus
+            self.defocus_in_solver = True
+
     # ------------------------------------------------------------------ projector side
 
-    def emitted(self, x: np.ndarray) -> np.ndarray:
-        """g(x): the light the projector emits for the input ``x`` (input size, H×W×3)."""
+    def emitted(self, x: np.ndarray, *, blur: bool = True) -> np.ndarray:
+        """g(x): the light the projector emits for the input ``x`` (input size, H×W×3); ``blur=False``: before
+        the lens's blur."""
         a = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
-        if (p := self._p("defocus")) is not None and p[0] > MIN_DEFOCUS:
-            a = _blur(a, p[0])
+        if blur and (sigma := self.defocus) is not None:
+            a = _blur(a, sigma)
         if (r := self._response()) is not None:
             a = projector_tone(a, *r)
         if (p := self._p("crosstalk")) is not None:
@@ -170,8 +192,8 @@ class EffectAdapter:
         a = np.clip(a, 0.0, 1.0)
         if (r := self._response()) is not None:
             a = inverse_projector_tone(a, *r)
-        if (p := self._p("defocus")) is not None:
-            a = presharpen(a, p[0])
+        if (sigma := self.defocus) is not None and not self.defocus_in_solver:
+            a = presharpen(a, sigma)
         return np.clip(a, 0.0, 1.0).astype(np.float32)
 
     def _vignetting_gain(self, p: list[float], shape: tuple[int, ...]) -> np.ndarray:

@@ -105,7 +105,7 @@ from ..render.raycast import first_hits
 from ..rig.model import square_scaled_size
 from .display_area import DisplayArea, fit_target
 from .metrics import psnr
-from .transport import TransportOperator, TransportRows, build_transport
+from .transport import BlurredRows, TransportOperator, TransportRows, build_transport
 
 
 #: Defaults of the paper's schedule and of the choices documented above.
@@ -374,7 +374,10 @@ class Compensator:
         self._coarse_models: dict[tuple[int, int], Any] = {}
         self._crop_models: dict[tuple[int, int, int, int], Any] = {}
         self._transport: TransportOperator | None = None
-        self._views: dict[tuple[int, int, int, int], TransportRows] = {}
+        self._views: dict[tuple[Any, ...], TransportRows | BlurredRows] = {}
+        #: the projector lens's blur of the input (texels, as the diagnosis fitted it): the transport solve then
+        #: runs through it (:class:`BlurredRows`) and its answer is the input to send before the blur
+        self.input_blur: float | None = None
 
     # ------------------------------------------------------------------ helpers
 
@@ -629,6 +632,9 @@ class Compensator:
                                                    if v is not None or k == "captures"}).check()
         if theta_init not in ("capture", "zero"):
             raise CompensationError(f"theta_init must be 'capture' or 'zero', got {theta_init!r}")
+        if self.input_blur and not sched.transport:
+            raise CompensationError(f"the projector lens's blur is held by the transport schedule only, not by "
+                                    f"{sched.name!r}: compensate with --schedule transport")
         area = area.check(self.camera_size)
         placed = area.place(fit_target(target, area, what=f"target {name!r}"), self.camera_size)
         mask = area.mask(self.camera_size)
@@ -882,15 +888,17 @@ class Compensator:
         self._transport = op
         self._views.clear()
 
-    def transport_view(self, area: DisplayArea) -> TransportRows:
-        """``T`` on the display area's camera pixels, built once per area: building it (regrouping the entries
-        by texel for the adjoint) costs as much as a whole solve at full resolution."""
-        key = (area.x, area.y, area.width, area.height)
+    def transport_view(self, area: DisplayArea) -> TransportRows | BlurredRows:
+        """``T`` on the display area's camera pixels (``T B`` with :attr:`input_blur`), built once per area:
+        building it (regrouping the entries by texel for the adjoint) costs as much as a whole solve at full
+        resolution."""
+        key = (area.x, area.y, area.width, area.height, self.input_blur)
         if key not in self._views:
             if len(self._views) >= 4:  # a show has one area per aspect ratio; keep memory bounded all the same
                 self._views.pop(next(iter(self._views)))
             rows = np.flatnonzero(area.mask(self.camera_size).ravel())
-            self._views[key] = self.transport.rows(rows, self.model.variant)
+            view = self.transport.rows(rows, self.model.variant)
+            self._views[key] = view if not self.input_blur else BlurredRows(view, self.input_blur)
         return self._views[key]
 
     def _run_transport(self, placed: np.ndarray, area: DisplayArea, z: np.ndarray, sched: Schedule, mode: str,
@@ -914,7 +922,8 @@ class Compensator:
         the same z. With
         ``verify`` Mitsuba renders the answer once, to report what the scene
         (not the operator) predicts; without, the report is the operator's (the
-        display area only)."""
+        display area only). With :attr:`input_blur` the operator is ``T B`` and z the input before the lens's
+        blur (:class:`BlurredRows`)."""
         view = self.transport_view(area)
         rows = view.rows
         gain = np.ones((len(rows), 3), np.float32) if bias is None or bias.gain is None else \
@@ -997,7 +1006,8 @@ class Compensator:
         z = view.expand(zc, z)
         agreement = None
         if verify:
-            raw = self.simulate(z, seed=self.seed * 1_000_003 + 15)
+            light = view.blur(z) if isinstance(view, BlurredRows) else z
+            raw = self.simulate(light, seed=self.seed * 1_000_003 + 15)
             agreement = round(min(float(psnr(np.clip(operator_raw, 0.0, 1.0), raw.reshape(-1, 3)[rows])), 99.0), 2)
         else:
             raw = on_camera(operator_raw)
@@ -1013,7 +1023,7 @@ class Compensator:
         report = {"schedule": asdict(sched), "solver": "projected SIRT with Nesterov momentum on the transport "
                   "operator", "alpha": alpha if mode == "closed-loop" else None,
                   "iterations": {"z": sched.iterations_z, "joint": done - sched.iterations_z, "total": done},
-                  "operator": view.op.report, "texels_solved": int(len(view.texels)),
+                  "operator": view.op.report, "texels_solved": int(len(view.texels)), "input_blur": self.input_blur,
                   "bias": None if bias is None else {"kind": bias.kind, **bias.report},
                   "psnr_simulated_start": psnr_start,
                   "psnr_operator": area_psnr(predicted(operator_raw, theta), placed, area),

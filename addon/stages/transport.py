@@ -37,6 +37,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..errors import ProCamError
@@ -396,6 +397,54 @@ class TransportRows:
             out += self.op._spread(per_block).reshape(-1, 3)
         out[self.texels] += cols
         return out.reshape(ih, iw, 3)
+
+
+class BlurredRows:
+    """``T B``: a :class:`TransportRows` after a Gaussian blur of the input (``sigma`` texels: a projector lens out
+    of focus, as the diagnosis fitted it), with the same interface for stage C's solver.
+
+    Why inside the solve rather than pre-sharpening its answer: a camera pixel averages several texels, so the
+    camera sees only the blur's effect at its own resolution; a solve through ``T B`` sharpens for that, within
+    [0, 1], where matching the wanted input texel by texel (what pre-sharpening does) spends the input's range on
+    detail no camera pixel resolves. Every texel is an unknown (a blur carries light from texels the rows do
+    not see directly, so none is held fixed). The blur has zero borders, no light beyond the input's edge, which
+    makes it symmetric: it is its own adjoint."""
+
+    def __init__(self, view: TransportRows, sigma: float) -> None:
+        self.view, self.sigma = view, float(sigma)
+        self.op, self.rows = view.op, view.rows
+        iw, ih = view.op.input_size
+        self._shape = (ih, iw, 3)
+        self.texels = np.arange(iw * ih)
+        self._row_ones: np.ndarray | None = None
+
+    def blur(self, z: np.ndarray) -> np.ndarray:
+        """``B z`` for a compact or input-size ``z`` (input size)."""
+        return cv2.GaussianBlur(np.asarray(z, np.float32).reshape(self._shape), (0, 0), self.sigma,
+                                borderType=cv2.BORDER_CONSTANT)
+
+    def compact(self, z: np.ndarray) -> np.ndarray:
+        return np.array(z, np.float32).reshape(-1, 3)
+
+    def expand(self, zc: np.ndarray, z: np.ndarray) -> np.ndarray:
+        return np.asarray(zc, np.float32).reshape(np.shape(z))
+
+    def fixed_sums(self, z: np.ndarray) -> None:
+        return None
+
+    @property
+    def row_ones(self) -> np.ndarray:
+        if self._row_ones is None:
+            self._row_ones = self.apply_compact(np.ones(self._shape, np.float32))
+        return self._row_ones
+
+    def apply_compact(self, zc: np.ndarray, fixed: None = None) -> np.ndarray:
+        """(R, 3) ``T B z``."""
+        return self.view.apply(self.blur(zc))
+
+    def adjoint_compact(self, r: np.ndarray) -> np.ndarray:
+        """(texels, 3) ``Bᵀ Tᵀ r`` = ``B Tᵀ r``."""
+        return self.blur(self.view.adjoint(r)).reshape(-1, 3)
 
 
 # -- building -------------------------------------------------------------------------------------------------

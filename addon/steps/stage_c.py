@@ -208,6 +208,8 @@ class StageC:
                         say(f"warning: {exc}; this run renders every step instead (schedule fast)", 0.0)
                         self.options = replace(options, schedule="fast")
                         self.schedule = self.options.check()
+            if self.schedule.transport and self.adapter is not None:
+                self.adapter.blur_in_solve(self.compensator)
             self.model_device = self.device
             if self.adapter is not None and self.device is not None:
                 self.model_device = AdaptedDevice(self.device, self.adapter)
@@ -314,7 +316,7 @@ class StageC:
                               f"got {frame.shape[1]}×{frame.shape[0]}")
         x = np.asarray(frame[y0:y0 + h, x0:x0 + w, :3], np.float32)
         if self.adapter is not None:
-            x = np.clip(self.adapter.emitted(x), 0.0, 1.0)
+            x = np.clip(self.adapter.emitted(x, blur=not self.adapter.defocus_in_solver), 0.0, 1.0)
         return self.compensator.warp_m(x)
 
     def settings(self) -> dict[str, Any]:
