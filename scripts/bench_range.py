@@ -2,9 +2,9 @@
 """Bright content and the projector's range: compensation with ``--range none`` against ``--range auto``.
 
 Usage: ``.venv/bin/python scripts/bench_range.py [--surface curve] [--scale 0.5] [--iterations 60] [--effects auto]
-[--diagnose-scale 1] [--work DIR]``
+[--diagnose-scale 1] [--lab-effects realistic,defocus=0] [--work DIR]``
 
-Renders a lab capture set (``realistic`` effects), calibrates it, and
+Renders a lab capture set (``realistic`` effects, or ``--lab-effects``), calibrates it, and
 compensates six natural photographs at full brightness (each scaled so its
 99.5th percentile is 1, the case where compensation clips) closed loop through
 the lab, once as they are and once with ``--range auto``; then evaluates both.
@@ -43,6 +43,8 @@ def main() -> None:
     ap.add_argument("--surface", default="curve")
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--lab-effects", default="realistic",
+                    help="the lab's effects (procam lab --effects), e.g. realistic,defocus=0 to withhold one")
     ap.add_argument("--effects", choices=("none", "auto"), default="none",
                     help="auto: run procam diagnose and compensate with the effects it selected")
     ap.add_argument("--diagnose-scale", type=float, default=None,
@@ -54,7 +56,7 @@ def main() -> None:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         lab, truth = work / "lab", work / "lab.truth.json"
-        step(["lab", "--surface", args.surface, "--effects", "realistic", "--scale", str(args.scale), "--out",
+        step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--scale", str(args.scale), "--out",
               str(lab), "--truth", str(truth)], lab)
         step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
         targets = []
@@ -78,7 +80,8 @@ def main() -> None:
             rows[rng] = json.loads((ev / "metrics.json").read_text())
             sims[rng] = json.loads((comp / "compensation.json").read_text())["targets"]
         r = rows["auto"]["range"]
-        print(f"\n{args.surface}, scale {args.scale}, {args.iterations} iterations, closed loop, --effects "
+        print(f"\n{args.surface}, lab effects {args.lab_effects}, scale {args.scale}, {args.iterations} iterations, "
+              f"closed loop, --effects "
               f"{args.effects}; --range auto: "
               f"{r['gain']:.3f}·t {r['offset']:+.3f} ({100 * r['clipped_share']:.2f} % of the values clipped)\n")
         print("| Target | none: ceiling / with noise | none: uncompensated → ours | none: gap at the input's limit "

@@ -72,6 +72,7 @@ def test_withheld_response_is_found_and_outputs_written(response_case, tmp_path)
     assert first["confidence"]["level"] in ("high", "medium")
     saved = json.loads((out / "gap.json").read_text())
     assert set(saved) >= {"residual", "regions", "effects", "selected"}
+    assert 1.0 < saved["texels_per_pixel"] < 2.0  # the lab rig at the camera's full resolution: 1.8
     assert set(saved["residual"]) >= {"rmse", "psnr"}
     for e in saved["effects"]:
         assert set(e) >= {"name", "params", "heldout_rmse_before", "heldout_rmse_after", "confidence"}
@@ -223,6 +224,21 @@ def _calibration_for(cal_dir, captures, tmp_path):
     doc["capture_set"] = str(captures)
     (cal / "calibration.json").write_text(json.dumps(doc))
     return cal
+
+
+def test_a_working_scale_too_coarse_for_a_texel_blur_is_said_with_the_scale_that_sees_it():
+    from procam.addon.gap.data import texels_per_pixel
+    from procam.addon.gap.diagnose import MAX_TEXELS_PER_PIXEL, _blur_unseen
+
+    ys, xs = np.mgrid[0:40, 0:50].astype(np.float32)
+    corr = np.stack([2.5 * xs + 3.0, 2.5 * ys + 1.0], axis=2)  # 2.5 texels a pixel each way
+    mask = np.ones((40, 50), bool)
+    corr[:, :10] = -10.0  # off the input: not counted
+    assert texels_per_pixel(SimpleNamespace(corr=corr, mask=mask)) == pytest.approx(2.5)
+    assert texels_per_pixel(SimpleNamespace(corr=corr, mask=np.zeros_like(mask))) is None
+    text = _blur_unseen(3.5, 0.5)
+    assert "3.5 projector input texels" in text and "--scale 0.9 looks at 1.9 texels" in text
+    assert 3.5 * 0.5 / 0.9 <= MAX_TEXELS_PER_PIXEL and "a closer camera" in _blur_unseen(2.6, 1.0)
 
 
 def test_missing_validation_captures_say_how_to_get_them(clean_case, tmp_path):

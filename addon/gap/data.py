@@ -264,6 +264,19 @@ def pattern_edges(sampled: np.ndarray, step: float = 0.15) -> np.ndarray:
     return cv2.dilate((g >= step).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
 
 
+def texels_per_pixel(data: "GapData") -> float | None:
+    """How many projector input texels one working pixel spans, across (the median over the lit pixels of the
+    square root of ``corr``'s local Jacobian determinant); None with fewer than 16 lit pixels in a 2×2 block."""
+    c = np.asarray(data.corr, np.float64)
+    ok = data.mask & (c[..., 0] > -5)  # positions off the input are marked −10
+    both = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1]
+    if int(both.sum()) < 16:
+        return None
+    dx = (c[:-1, 1:] - c[:-1, :-1])[both]
+    dy = (c[1:, :-1] - c[:-1, :-1])[both]
+    return float(np.median(np.sqrt(np.abs(dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0]))))
+
+
 def sample_input(x: np.ndarray, corr: np.ndarray) -> np.ndarray:
     """The input image's value at each camera pixel's light path (bilinear; black off the input)."""
     return cv2.remap(np.asarray(x, np.float32), corr[..., 0], corr[..., 1], cv2.INTER_LINEAR,
