@@ -226,19 +226,39 @@ def _calibration_for(cal_dir, captures, tmp_path):
     return cal
 
 
-def test_a_working_scale_too_coarse_for_a_texel_blur_is_said_with_the_scale_that_sees_it():
-    from procam.addon.gap.data import texels_per_pixel
-    from procam.addon.gap.diagnose import MAX_TEXELS_PER_PIXEL, _blur_unseen
+def test_a_working_pixel_coarser_than_two_texels_averages_the_input_over_its_footprint_and_says_so():
+    from procam.addon.gap.data import MAX_TEXELS_PER_PIXEL, footprint_sigma, sample_input, texels_per_pixel
+    from procam.addon.gap.diagnose import _blur_unseen
 
     ys, xs = np.mgrid[0:40, 0:50].astype(np.float32)
-    corr = np.stack([2.5 * xs + 3.0, 2.5 * ys + 1.0], axis=2)  # 2.5 texels a pixel each way
+    corr = np.stack([3.5 * xs + 3.0, 3.5 * ys + 1.0], axis=2)  # 3.5 texels a pixel each way
     mask = np.ones((40, 50), bool)
     corr[:, :10] = -10.0  # off the input: not counted
-    assert texels_per_pixel(SimpleNamespace(corr=corr, mask=mask)) == pytest.approx(2.5)
-    assert texels_per_pixel(SimpleNamespace(corr=corr, mask=np.zeros_like(mask))) is None
+    assert texels_per_pixel(corr, mask) == pytest.approx(3.5)
+    assert texels_per_pixel(corr, np.zeros_like(mask)) is None
+    assert footprint_sigma(1.8) == 0.0 and footprint_sigma(None) == 0.0  # centres, as the bench measured
+    sigma = footprint_sigma(3.5)
+    assert 0.8 < sigma < 1.0
+    # A pattern of single-texel stripes: sampled at centres it aliases into full-contrast stripes at the pixel
+    # grid; averaged over the footprint, as the camera's pixel averages it, it is nearly flat.
+    x = np.zeros((160, 200, 3), np.float32)
+    x[:, ::2] = 1.0
+    lit = corr[:, 10:]
+    assert np.ptp(sample_input(x, lit)[5:-5, 5:-5]) > 0.9
+    assert np.ptp(sample_input(x, lit, sigma)[5:-5, 5:-5]) < 0.1
     text = _blur_unseen(3.5, 0.5)
     assert "3.5 projector input texels" in text and "--scale 0.9 looks at 1.9 texels" in text
     assert 3.5 * 0.5 / 0.9 <= MAX_TEXELS_PER_PIXEL and "a closer camera" in _blur_unseen(2.6, 1.0)
+
+
+def test_a_blur_is_named_at_the_default_half_scale_where_a_pixel_spans_several_texels(lab_calibration, tmp_path):
+    """Projector defocus on the curve was named glossy and interreflection at the default scale, where a working
+    pixel spans 3.5 texels: its change is now measured on the input averaged over the pixel's footprint."""
+    cal_dir, _, _ = lab_calibration("curve", "defocus=0.5", scale=0.3, samples=16)
+    doc = diagnose(cal_dir, tmp_path / "gap", scale=0.5, spp=8)
+    assert doc["texels_per_pixel"] > 2 and doc["effects"][0]["name"] == "defocus", doc["selected"]
+    assert doc["selected"][0] == "defocus" and not {"glossy", "interreflection"} & set(doc["selected"])
+    assert not doc["warnings"]
 
 
 def test_missing_validation_captures_say_how_to_get_them(clean_case, tmp_path):

@@ -19,7 +19,7 @@ import numpy as np
 from ..capture.format import CaptureSet
 from ..progress import Cancel, Progress, quiet
 from ..stages.calibrate import Calibration
-from .data import LEVEL_EFFECTS, NO_VALIDATION, GapData, load_gap_data, texels_per_pixel
+from .data import LEVEL_EFFECTS, MAX_TEXELS_PER_PIXEL, NO_VALIDATION, GapData, load_gap_data
 from .compensation import HELD_BY_STAGE_C, INVERTIBLE
 from .evidence import calibration_evidence
 from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
@@ -58,11 +58,6 @@ ABSORBED = {
 
 #: Roughnesses of the lobes the evidence tries (interpolated between the model's renders, :data:`.data.GLOSSY_ROUGHNESS`).
 EVIDENCE_ROUGHNESS = tuple(round(0.2 + 0.05 * i, 2) for i in range(9))
-
-
-#: Input texels a working pixel may span before a blur of about a texel goes unseen: the lab's realistic plane
-#: (a projector blur of σ 0.9 texels among ten other effects) was found at 1.8 texels a pixel and missed at 3.5.
-MAX_TEXELS_PER_PIXEL = 2.0
 
 
 def _blur_unseen(spans: float, scale: float) -> str:
@@ -324,7 +319,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     for name in (n for n in evidence_only if n in candidates):
         sel.alone[name] = fit_composite(data, (name,))
     t_fit = time.perf_counter() - t0
-    spans = texels_per_pixel(data)
+    spans = data.spans
     if spans is not None and spans > MAX_TEXELS_PER_PIXEL and "defocus" in candidates and \
             "defocus" not in sel.selected:
         warnings.append(_blur_unseen(spans, scale))

@@ -244,7 +244,13 @@ class Composite:
         if "defocus" in p and p["defocus"][0] > 0.05:
             x = cv2.GaussianBlur(x, (0, 0), float(p["defocus"][0]))
         moved = corr is not d.corr
-        a = sample_input(x, corr) if (moved or x is not obs.x) else obs.sampled
+        if x is not obs.x and d.footprint > 0:
+            # A pixel wider than two texels sees the blur's change averaged over its footprint (data.py).
+            plain, averaged = (sample_input(obs.x, corr), sample_input(obs.x, corr, d.footprint)) if moved else \
+                (obs.sampled, obs.averaged)
+            a = plain + sample_input(x, corr, d.footprint) - averaged
+        else:
+            a = sample_input(x, corr) if (moved or x is not obs.x) else obs.sampled
         if "response" in p:
             r = p["response"]
             a = self._tone(a, obs, r) if a is obs.sampled else projector_tone(a, r[:3], float(r[3]), float(r[4]))
