@@ -48,8 +48,8 @@ def main() -> None:
     ap.add_argument("--effects", choices=("none", "auto"), default="none",
                     help="auto: run procam diagnose and compensate with the effects it selected")
     ap.add_argument("--diagnose-scale", type=float, default=None,
-                    help="with --effects auto: procam diagnose's --scale (default its own); 1 finds a projector "
-                         "blur under a texel that half the camera's resolution does not resolve")
+                    help="with --effects auto: procam diagnose's --scale (default its own); 1 looks at every "
+                         "camera pixel, where half scale can miss a projector blur of about a texel")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -81,8 +81,7 @@ def main() -> None:
             sims[rng] = json.loads((comp / "compensation.json").read_text())["targets"]
         r = rows["auto"]["range"]
         print(f"\n{args.surface}, lab effects {args.lab_effects}, scale {args.scale}, {args.iterations} iterations, "
-              f"closed loop, --effects "
-              f"{args.effects}; --range auto: "
+              f"closed loop, --effects {args.effects}; --range auto: "
               f"{r['gain']:.3f}·t {r['offset']:+.3f} ({100 * r['clipped_share']:.2f} % of the values clipped)\n")
         print("| Target | none: ceiling / with noise | none: uncompensated → ours | none: gap at the input's limit "
               "| auto: ceiling / with noise | auto: uncompensated → ours |")

@@ -21,7 +21,7 @@ around it rather than inside, each where it acts:
   it is. With the other schedules, which render every step, the input sent is
   the one in [0, 1] whose blur comes closest to ``g⁻¹(x*)`` (pre-sharpening by
   projected gradient, :func:`presharpen`): that matches every texel, detail no
-  camera pixel resolves included, and buys a half to a third of what the solve
+  camera pixel resolves included, and buys a fifth to two thirds of what the solve
   does (README, "Defocus").
 
 * ``glossy``: the albedo was read from the white capture, which holds the lobe

@@ -376,7 +376,8 @@ class Compensator:
         self._transport: TransportOperator | None = None
         self._views: dict[tuple[Any, ...], TransportRows | BlurredRows] = {}
         #: the projector lens's blur of the input (texels, as the diagnosis fitted it): the transport solve then
-        #: runs through it (:class:`BlurredRows`) and its answer is the input to send before the blur
+        #: runs through it (:class:`BlurredRows`) and its answer is the input to send before the blur. It blurs
+        #: z, not the real input x: the two differ by the stage-B warp, a fraction of a texel.
         self.input_blur: float | None = None
 
     # ------------------------------------------------------------------ helpers
