@@ -320,6 +320,15 @@ def test_cli_diagnose_runs_and_rejects_unknown_effects(response_case, tmp_path, 
     doc = json.loads((tmp_path / "c1" / "compensation.json").read_text())
     assert doc["effects"]["used"] == ["response"]
     assert doc["effects"]["params"]["response"]["gamma_g"] > 1.3
+    assert doc["targets"][0]["input_blur"] is None
+    # A fitted blur is held inside the transport solve, and the record says so.
+    gap = json.loads((tmp_path / "gap" / "gap.json").read_text())
+    gap["compensation"]["params"]["defocus"] = {"sigma": 1.0}
+    shutil.copytree(tmp_path / "gap", tmp_path / "gap_blur")
+    (tmp_path / "gap_blur" / "gap.json").write_text(json.dumps(gap))
+    assert main(base + ["--out", str(tmp_path / "c2"), "--diagnosis", str(tmp_path / "gap_blur")]) == 0
+    doc = json.loads((tmp_path / "c2" / "compensation.json").read_text())
+    assert doc["effects"]["used"] == ["response", "defocus"] and doc["targets"][0]["input_blur"] == 1.0
 
     # The show command takes the same options; the effects are part of its resumable settings.
     (tmp_path / "frames").mkdir()

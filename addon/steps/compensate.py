@@ -129,6 +129,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                                 "seconds_verify": res.report.get("seconds_verify"),
                                 "simulated_by": res.report.get("simulated_by", "mitsuba"),
                                 "operator_vs_mitsuba_psnr": res.report.get("operator_vs_mitsuba_psnr"),
+                                "input_blur": res.report.get("input_blur"),  # the lens's blur held in the solve
                                 "loss_first": res.losses[0] if res.losses else None,
                                 "loss_last": res.losses[-1] if res.losses else None,
                                 "losses": [round(v, 7) for v in res.losses],
