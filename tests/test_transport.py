@@ -12,7 +12,7 @@ from procam.addon.cli.app import main
 from procam.addon.render.forward import ForwardModel
 from procam.addon.stages.metrics import psnr
 from procam.addon.stages.compensate import CompensationError
-from procam.addon.stages.transport import BlurredRows, build_transport
+from procam.addon.stages.transport import BlurredRows, build_transport, lens_blur
 from procam.addon.steps import calibrate as calibrate_step
 from procam.addon.steps import transport as transport_step
 
@@ -102,7 +102,7 @@ def test_a_blurred_projector_is_sharpened_for_what_the_camera_sees(operator):
     zero = np.zeros((ch, cw, 3), np.float32)
 
     def camera(z: np.ndarray) -> np.ndarray:
-        return area.crop(op.apply(BlurredRows(op.rows(np.arange(1)), sigma).blur(z)))
+        return area.crop(op.apply(lens_blur(z, sigma)))
 
     sharp = comp.run(target, area, open_loop_theta=zero, iterations_z=200, iterations_joint=0, verify=False)
     comp.input_blur = sigma

@@ -102,8 +102,12 @@ class GapData:
     fit_index: list[int] = field(default_factory=list)
     held_index: list[int] = field(default_factory=list)
     spans: float | None = None  # input texels a working pixel spans (:func:`texels_per_pixel`)
-    footprint: float = 0.0  # the Gaussian a blur's change is averaged by (:func:`footprint_sigma`; 0: none)
     report: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def footprint(self) -> float:
+        """The Gaussian a blur's change is averaged by (:func:`footprint_sigma`; 0: none)."""
+        return footprint_sigma(self.spans)
 
     @property
     def names(self) -> list[str]:
@@ -379,7 +383,7 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
                                         sample_input(x, corr, footprint) if footprint > 0 else None))
     fit, held = split_patterns(observations)
     return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera, cal.warp,
-                   fit, held, spans, footprint, report={"calibration": source,
+                   fit, held, spans, report={"calibration": source,
                                       "capture_set": str(captures.path), "working_size": list(size), "spp": spp,
                                       "patterns": [o.name for o in observations],
                                       "validation": any(o.kind == "validation" for o in observations)})

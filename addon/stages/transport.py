@@ -399,6 +399,11 @@ class TransportRows:
         return out.reshape(ih, iw, 3)
 
 
+def lens_blur(z: np.ndarray, sigma: float) -> np.ndarray:
+    """An input-size image after a Gaussian lens blur of ``sigma`` texels, with no light beyond its edges."""
+    return cv2.GaussianBlur(np.asarray(z, np.float32), (0, 0), float(sigma), borderType=cv2.BORDER_CONSTANT)
+
+
 class BlurredRows:
     """``T B``: a :class:`TransportRows` after a Gaussian blur of the input (``sigma`` texels: a projector lens out
     of focus, as the diagnosis fitted it), with the same interface for stage C's solver.
@@ -420,8 +425,7 @@ class BlurredRows:
 
     def blur(self, z: np.ndarray) -> np.ndarray:
         """``B z`` for a compact or input-size ``z`` (input size)."""
-        return cv2.GaussianBlur(np.asarray(z, np.float32).reshape(self._shape), (0, 0), self.sigma,
-                                borderType=cv2.BORDER_CONSTANT)
+        return lens_blur(np.asarray(z, np.float32).reshape(self._shape), self.sigma)
 
     def compact(self, z: np.ndarray) -> np.ndarray:
         return np.array(z, np.float32).reshape(-1, 3)

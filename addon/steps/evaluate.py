@@ -337,10 +337,11 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             frame = inputs.frame(name, proj)
             got = measure(device, frame, fitted, area, cam_size)
             plain = measure(device, proj.frame_from_input(uncompensated_input(comp, placed)), fitted, area, cam_size)
-            at_limit = ceiling_gap_at_limit(fitted, area.crop(got.capture), area.crop(black), area.crop(white),
+            seen_black, seen_white, captured = area.crop(black), area.crop(white), area.crop(got.capture)
+            at_limit = ceiling_gap_at_limit(fitted, captured, seen_black, seen_white,
                                             area.crop(input_seen(frame, proj, looks_at)))
             row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
-                                   "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)), 2),
+                                   "range_ceiling": round(range_ceiling(fitted, seen_black, seen_white), 2),
                                    "ceiling_gap_at_limit": None if at_limit is None else round(at_limit, 3)}
             replayed = False
             if repeat:
@@ -349,9 +350,9 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                 # noise of 0 read from it would make the noise ceiling the range ceiling and claim a perfect camera.
                 replayed = np.array_equal(again, got.capture)
                 if not replayed:
-                    noise = capture_noise_mse(area.crop(got.capture), area.crop(again))
+                    noise = capture_noise_mse(captured, area.crop(again))
                     row["capture_noise_rmse"] = round(noise ** 0.5, 5)
-                    row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
+                    row["noise_ceiling"] = round(noise_ceiling(fitted, seen_black, seen_white, noise), 2)
             extra = []
             if model is not None:
                 t0 = time.perf_counter()
