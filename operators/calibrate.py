@@ -17,6 +17,7 @@ from ..addon.steps.calibrate import CalibrateOptions, CalibrationView
 from ..addon.steps.layout import CALIBRATION, CAPTURES
 from . import paths
 from .job_operator import JobOperator
+from .messages import sidebar_text
 
 IMAGE_PREFIX = "ProCam Calibration "
 
@@ -53,6 +54,7 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
     bl_label = "Calibrate"
     bl_options = {"REGISTER", "UNDO"}
     step = "calibrate"
+    option_names = {"--out": "‘Calibration’ folder", "--stages": "‘Stage’"}
 
     stage: EnumProperty(name="Stage", items=STAGE_ITEMS, default="ALL",
                         description="Which stage to run; a single later stage reuses the earlier ones from the "
@@ -141,7 +143,7 @@ class PROCAM_OT_load_calibration(bpy.types.Operator):
             view = calibrate_step.read_view(folder)
             message = apply_view(context, view)
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         self.report({"INFO"}, message)
         return {"FINISHED"}

@@ -26,6 +26,7 @@ from ..addon.steps.stage_c import StageCOptions, device_kind, open_device
 from . import paths
 from .job_operator import JobOperator
 from .live import WINDOW_NEEDS_MAIN_THREAD, live_device
+from .messages import sidebar_text
 
 
 def scene_device(scene: bpy.types.Scene) -> str | None:
@@ -98,6 +99,7 @@ class PROCAM_OT_compensate(_DeviceJob, bpy.types.Operator):
     bl_label = "Compensate"
     bl_options = {"REGISTER", "UNDO"}
     step = "compensate"
+    option_names = {"--out": "‘Results’ folder"}
 
     @classmethod
     def why_not(cls, scene: bpy.types.Scene) -> str | None:
@@ -131,6 +133,7 @@ class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
     bl_label = "Evaluate"
     bl_options = {"REGISTER", "UNDO"}
     step = "evaluate"
+    option_names = {"--out": "‘Evaluation’ folder"}
 
     @classmethod
     def why_not(cls, scene: bpy.types.Scene) -> str | None:
@@ -166,6 +169,7 @@ class PROCAM_OT_prepare_show(_DeviceJob, bpy.types.Operator):
     bl_label = "Prepare Show"
     bl_options = {"REGISTER", "UNDO"}
     step = "show"
+    option_names = {"--out": "‘Show’ folder", "--targets": "‘Image Sequence’"}
 
     @classmethod
     def why_not(cls, scene: bpy.types.Scene) -> str | None:
@@ -290,7 +294,7 @@ class PROCAM_OT_preview_compensated(bpy.types.Operator):
             projector = blender_rig.find_rig_objects(scene).projector
             image = blender_rig.set_projector_image(projector, t.frame_path)
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         self.report({"INFO"}, f"Projector shows the compensated {t.name} ({image.size[0]}×{image.size[1]}); "
                               "render (F12) to preview it on the surface")

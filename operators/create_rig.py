@@ -11,6 +11,7 @@ from ..addon.blender import rig as blender_rig
 from ..addon.rig.demo import demo_rig
 from ..addon.rig.model import Camera, Intrinsics, Projector, Rig, intrinsics_from_fov, projector_intrinsics_from_throw
 from ..addon.surface.shapes import builtin_surface
+from .messages import sidebar_text
 
 _SURFACES = [("NONE", "None", "Keep the scene's surface (or set one later with Set Surface)"),
              ("plane", "Plane", "A flat textured wall"),
@@ -100,7 +101,7 @@ class PROCAM_OT_create_rig(bpy.types.Operator):
             surface = None if self.surface == "NONE" else builtin_surface(self.surface)
             objs = blender_rig.create_rig(context.scene, Rig(camera, projector), surface)
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         extra = f", surface {objs.surface.name!r}" if surface is not None else ""
         self.report({"INFO"}, f"Created {objs.camera.name!r} and {objs.projector.name!r}{extra}")

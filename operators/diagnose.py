@@ -17,6 +17,7 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
     bl_label = "Diagnose"
     bl_options = {"REGISTER", "UNDO"}
     step = "diagnose"
+    option_names = {"--out": "‘Diagnosis’ folder"}
 
     @classmethod
     def why_not(cls, scene: bpy.types.Scene) -> str | None:

@@ -14,6 +14,7 @@ import bpy
 
 from ..addon import jobs
 from ..addon.errors import ProCamError
+from .messages import sidebar_text
 
 #: Seconds between polls of a running job.
 POLL_S = 0.2
@@ -31,6 +32,8 @@ class JobOperator:
     ``apply``."""
 
     step = ""
+    #: How this operator's own fields name the command's options in its messages (:func:`.messages.sidebar_text`).
+    option_names: dict[str, str] = {}
     #: What a cancelled run leaves behind, for the report.
     cancel_note = "the scene and the output folder are unchanged"
     _timer = None
@@ -117,7 +120,7 @@ class JobOperator:
             jobs.BOARD.add(self.step, job)
         except ProCamError as exc:
             self._close_device()
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc), self.option_names))
             return {"CANCELLED"}
         self._job, self._relay = job, relay
         if not threaded:
@@ -156,14 +159,14 @@ class JobOperator:
                 message = self.apply(context, job.result)
             except ProCamError as exc:
                 job.mark_failed(exc)
-                self.report({"ERROR"}, str(exc))
+                self.report({"ERROR"}, sidebar_text(str(exc), self.option_names))
                 return {"CANCELLED"}
             self.report({"INFO"}, f"{message} ({snap.seconds:.1f} s)")
             return {"FINISHED"}
         if snap.status == jobs.CANCELLED:
             self.report({"WARNING"}, f"{job.name} cancelled: {self.cancel_note}")
             return {"CANCELLED"}
-        self.report({"ERROR"}, snap.error or f"{job.name} failed")
+        self.report({"ERROR"}, sidebar_text(snap.error, self.option_names) if snap.error else f"{job.name} failed")
         return {"CANCELLED"}
 
 

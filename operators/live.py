@@ -28,6 +28,7 @@ from ..addon.rig.model import Projector
 from ..addon.steps.live import LiveCaptureOptions, run_live_capture
 from . import paths
 from .job_operator import JobOperator, job_running_message
+from .messages import sidebar_text
 
 #: macOS (Cocoa) refuses windows outside the main thread; elsewhere the job's worker may own the projector window.
 WINDOW_NEEDS_MAIN_THREAD = sys.platform == "darwin"
@@ -137,7 +138,7 @@ class PROCAM_OT_live_preview(bpy.types.Operator):
             linear = srgb_to_linear(frame) if scene.procam_live_encoding == "srgb" else frame
             image = blender_rig.set_image(PREVIEW_IMAGE, linear)
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         shown = 0
         for area in (context.screen.areas if context.screen is not None else ()):
@@ -157,6 +158,7 @@ class PROCAM_OT_live_capture(_LiveJob, bpy.types.Operator):
     bl_label = "Capture Live"
     bl_options = {"REGISTER", "UNDO"}
     step = "live_capture"
+    option_names = {"--out": "‘Live Capture Set’ folder", "--restart": "‘Restart’"}
     cancel_note = "the photographs so far are kept beside the capture-set folder: Capture Live again resumes"
     _out = None  # the capture set being written (a Path), for apply(); no annotation: Blender reads those as properties
 

@@ -17,6 +17,11 @@ from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
 from ..addon.lab.lab import describe_run
 from ..addon.steps.capture import LabOptions, run_lab
+from .messages import sidebar_text
+
+#: The command's options as this operator's dialog names them (its messages come from the shared lab step).
+_OPTION_NAMES = {"--force": "‘Replace’", "--out": "‘Capture Set’ folder", "--truth": "‘Truth File’",
+                 "--effects": "‘Effects’", "--scale": "‘Resolution Scale’", "--samples": "‘Samples’"}
 
 _SURFACES = [("SCENE", "Scene Surface", "The scene's ProCam Surface (set it with Set Surface)"),
              ("plane", "Plane", "A flat textured wall"),
@@ -96,7 +101,7 @@ class PROCAM_OT_run_lab(bpy.types.Operator):
                                  surface_source=source, force=self.force)
             cs = run_lab(options, lambda message, fraction: wm.progress_update(int(100 * fraction)))
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc), _OPTION_NAMES))
             return {"CANCELLED"}
         finally:
             wm.progress_end()

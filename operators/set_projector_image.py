@@ -6,6 +6,7 @@ from bpy.props import BoolProperty, StringProperty
 
 from ..addon.errors import ProCamError
 from ..addon.blender import rig as blender_rig
+from .messages import sidebar_text
 
 
 class PROCAM_OT_set_projector_image(bpy.types.Operator):
@@ -36,7 +37,7 @@ class PROCAM_OT_set_projector_image(bpy.types.Operator):
         try:
             image = blender_rig.set_projector_image(projector, path)
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         self.report({"INFO"}, f"Projector shows {bpy.path.basename(path)} ({image.size[0]}×{image.size[1]})")
         return {"FINISHED"}

@@ -4,6 +4,7 @@ import bpy
 
 from ..addon.errors import ProCamError
 from ..addon.blender import rig as blender_rig
+from .messages import sidebar_text
 
 
 class PROCAM_OT_set_surface(bpy.types.Operator):
@@ -22,7 +23,7 @@ class PROCAM_OT_set_surface(bpy.types.Operator):
         try:
             obj = blender_rig.set_surface(context.scene, context.active_object)
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         self.report({"INFO"}, f"{obj.name!r} is now the ProCam surface ({len(obj.data.polygons)} faces)")
         return {"FINISHED"}

@@ -8,6 +8,7 @@ from bpy.props import StringProperty
 
 from ..addon.errors import ProCamError
 from ..addon.blender import rig as blender_rig
+from .messages import sidebar_text
 
 
 def _show_in_editors(context: bpy.types.Context, editor: str, attribute: str, datablock: bpy.types.ID) -> int:
@@ -44,7 +45,7 @@ class PROCAM_OT_show_image(_ShowFile, bpy.types.Operator):
         try:
             image = blender_rig.load_image_file(path, self.name or f"ProCam {path.stem}")
         except ProCamError as exc:
-            self.report({"ERROR"}, str(exc))
+            self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
         shown = _show_in_editors(context, "IMAGE_EDITOR", "image", image)
         where = f"shown in {shown} Image Editor(s)" if shown else "open an Image Editor to view it"

@@ -93,7 +93,8 @@ def test_calibrate_operator_moves_the_projector_and_shows_the_textured_surface(r
     assert tuple(grid.size) == tuple(cal.warp.size)
     assert "ProCam Calibration pose_mask" in bpy.data.images
     assert jobs.BOARD.get("calibrate").status == jobs.DONE
-    with pytest.raises(RuntimeError, match="never overwritten"):  # an existing calibration is kept
+    # an existing calibration is kept, and the message names the sidebar's field, not the command's option
+    with pytest.raises(RuntimeError, match="never overwritten without ‘Replace Results’$"):
         bpy.ops.procam.calibrate()
     assert jobs.BOARD.get("calibrate").status == jobs.FAILED
 
@@ -186,7 +187,7 @@ def test_compensate_preview_and_export(registered, calibrated, targets, tmp_path
     doc = json.loads((tmp_path / "show" / "frames.json").read_text())
     assert [f["file"] for f in doc["frames"]] == ["frame_0001.png"]
     assert (tmp_path / "show" / "frame_0001.png").read_bytes() == view.targets[0].frame_path.read_bytes()
-    with pytest.raises(RuntimeError, match="already holds"):
+    with pytest.raises(RuntimeError, match="already holds .* without ‘Replace’$"):
         bpy.ops.procam.export_frames(directory=str(tmp_path / "show"))
 
     blend = tmp_path / "cal.blend"

@@ -291,3 +291,19 @@ def test_live_panel_draws_placement_check_report_and_session(registered, tmp_pat
     scene.procam_compensation_mode = "LIVE"
     compensate = draw_all(bpy.context)["PROCAM_PT_compensate"]
     assert "procam_device" not in props(compensate) and "Live panel" in texts(compensate)
+
+
+def test_step_messages_name_the_sidebar_fields_not_the_command_options():
+    """The steps' messages are the command's ("rerun with --force"); the sidebar reports them by its fields, and
+    every field a message may name is one the sidebar has."""
+    from procam.operators.messages import SIDEBAR_NAMES, sidebar_text
+    from procam.panels.properties import scene_properties
+
+    assert sidebar_text("x already holds a calibration; it is never overwritten without --force (force=True)") == \
+        "x already holds a calibration; it is never overwritten without ‘Replace Results’"
+    assert sidebar_text("choose another --out", {"--out": "‘Show’ folder"}) == "choose another ‘Show’ folder"
+    assert sidebar_text("give --workers N") == "give --workers (an option of the procam command) N"
+    assert sidebar_text("a--b and --force-ish stay") == "a--b and --force-ish (an option of the procam command) stay"
+    labels = {getattr(p, "keywords", {}).get("name") for p in scene_properties().values()}
+    for option, text in SIDEBAR_NAMES.items():
+        assert option == "--out" or text.strip("‘’") in labels, (option, text)
