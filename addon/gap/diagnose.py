@@ -331,8 +331,10 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     base, final = sel.base, sel.final or sel.base
     effects = []
     # Selected on the residual first, then found where calibration absorbed them, then the rest by share.
-    ranked = sorted(sel.alone.items(), key=lambda kv: (0 if kv[0] in sel.selected else 1 if kv[0] in found else 2,
-                                                       -kv[1].share_of(base)))
+    # Absorbed effects keep the order ``absorbed`` lists them in: what their models still remove of the residual
+    # is a leftover's share, not their size.
+    ranked = sorted(sel.alone.items(), key=lambda kv: (0, -kv[1].share_of(base)) if kv[0] in sel.selected else
+                    (1, found.index(kv[0])) if kv[0] in found else (2, -kv[1].share_of(base)))
     def smooth(res: np.ndarray) -> np.ndarray:
         return np.stack([structured(r, data.observations[i].edges) for r, i in zip(res, data.held_index)])
     res_base = residual_stack(Composite(data, ()), base.theta, data.held_index)
