@@ -20,21 +20,21 @@ that bounces add dominates) but 16 % (σ = 1 px) to 35 % (σ = 2 px) of the
 smoothed one, and 0.2 % of it on the set without the effect. Because pattern
 edges keep their noise, an effect is scored by the share of the error it removes
 in each class of pixels (smooth parts, pattern edges), whichever is larger.
-Fits use the raw residual (noise does not bias a least-squares fit), under
-Huber's robust loss on the pattern edges (iteratively reweighted least squares,
-its scale re-estimated from the residual's median absolute deviation at every
-step) and the plain quadratic loss elsewhere. Pattern edges hold the
-calibration's sub-pixel misregistration, which no effect model holds and which
-a steep tone curve magnifies: with the lab's full sRGB camera curve the edges
-dominated a plain least-squares fit, which paired a camera curve of 0.65–0.70
-with a projector power law of 0.74–0.79 to flatten the curve's slope there, and
-compensation through that pair lost 2.6 dB against the true curve on the
-vedge. With the edges robust the fit finds the curve at 1.00 and nothing beside
-it. A blur or a distortion, whose change is systematic over every edge, is
-still fitted there (a blur of 1.5 texels: 1.25–1.32 → 1.35–1.39). The smooth
-parts stay quadratic because a local effect's own residuals are large and few:
-robust everywhere, the bounce-light model removed half as much of the curve's
-crease error. The raw RMSE is reported beside the structured one.
+Fits use the raw residual (noise does not bias a least-squares fit) under
+Huber's robust loss (iteratively reweighted least squares, its scale
+re-estimated from the residual's median absolute deviation at every step).
+Pattern edges hold the calibration's sub-pixel misregistration, which no
+effect model holds and which a steep tone curve magnifies: with the lab's full
+sRGB camera curve the edges dominated a plain least-squares fit, which paired
+a camera curve of 0.65–0.70 with a projector power law of 0.74–0.79 to flatten
+the curve's slope there, and compensation through that pair lost 2.6 dB
+against the true curve on the vedge. Under the robust loss the fit finds the
+curve at 1.00 and nothing beside it. A blur or a distortion, whose change is
+systematic over every edge, is still fitted there. The constant is wide
+(:data:`HUBER_K`) because a local effect's own residuals are large and few:
+at the usual 1.345 the bounce-light model removed half as much of the curve's
+crease error as the plain fit. The raw RMSE is reported beside the structured
+one.
 """
 
 from __future__ import annotations
@@ -57,12 +57,12 @@ MIN_SHARE = 0.06
 FIT_PIXELS = 8000
 #: Gaussian (pixels of the working image) that separates the structured residual from pixel noise.
 SMOOTH_SIGMA = 1.5
-#: Huber's constant on pattern edges, on the residual's robust standard deviation (1.4826 × its median absolute
-#: deviation): residuals beyond it weigh in proportion to their size rather than its square (the usual 1.345: 95 %
-#: efficiency on Gaussian noise).
-HUBER_K = 1.345
-#: A model's nested parameters (``EffectModel.nested``) are freed only when that lowers the fit-pattern MSE by
-#: at least this share.
+#: Huber's constant, on the residual's robust standard deviation (1.4826 × its median absolute deviation):
+#: residuals beyond it weigh in proportion to their size rather than its square. Wider than the usual 1.345
+#: (95 % efficiency on Gaussian noise), which took too much weight from a local effect's own residuals.
+HUBER_K = 3.0
+#: A model's nested parameters (``EffectModel.nested``) are freed only when that lowers the fit patterns' robust
+#: mean squared error (:func:`huber_rms` squared) by at least this share.
 NESTED_GAIN = 0.05
 
 
@@ -79,6 +79,7 @@ class Fit:
     error: str | None = None
     held_rmse_raw: float = float("nan")  # the plain simulation-vs-capture RMSE
     held_mse_classes: tuple[float, float] = (float("nan"), float("nan"))  # structured MSE: smooth parts, edges
+    loss_scale: float = 0.0  # the Huber scale ``fit_rmse`` is measured at
 
     def share_of(self, before: "Fit") -> float:
         """Share of ``before``'s held-out error this fit removes: the larger of the two pixel classes."""
@@ -145,18 +146,27 @@ def residual_stack(comp: Composite, theta: np.ndarray, index: list[int]) -> np.n
                      for i in index])
 
 
+def _huber_scale(r: np.ndarray) -> float:
+    return HUBER_K * 1.4826 * float(np.median(np.abs(r - np.median(r))))
+
+
 def huber_root_weights(r: np.ndarray) -> np.ndarray:
     """√ of the IRLS weights of Huber's loss for the residual ``r``: 1 within :data:`HUBER_K` robust standard
     deviations, ``k / |r|`` beyond."""
-    k = HUBER_K * 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    k = _huber_scale(r)
     if k <= 0:
         return np.ones_like(r)
     a = np.abs(r)
     return np.sqrt(np.where(a <= k, 1.0, k / np.maximum(a, 1e-300)))
 
 
-def _edges(obs: Any, mask: np.ndarray) -> np.ndarray:
-    return obs.edges if obs.edges is not None else np.zeros_like(mask)
+def huber_rms(r: np.ndarray, k: float) -> float:
+    """√ of the mean of twice Huber's loss at scale ``k`` (``r²`` within it, ``2k|r| − k²`` beyond): the robust
+    fit's RMSE, comparable between two fits of the same pixels at the same ``k`` (IRLS's weighted squares are not:
+    each fit has its own weights)."""
+    a = np.abs(r)
+    loss = a * a if k <= 0 else np.where(a <= k, a * a, 2 * k * a - k * k)
+    return float(np.sqrt(np.mean(loss))) if r.size else 0.0
 
 
 def _fit_pixels(data: GapData, seed: int = 0) -> np.ndarray:
@@ -171,7 +181,7 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
     """Fit the composite of ``names`` on the fit patterns (starting from ``start`` where given).
 
     Nested parameters (``EffectModel.nested``) are first held at their identity values; they are then freed from
-    that fit's answer and kept only if they lower the fit-pattern MSE by :data:`NESTED_GAIN`.
+    that fit's answer and kept only if they lower the fit patterns' robust MSE by :data:`NESTED_GAIN`.
     """
     comp = Composite(data, names)
     held = [comp.slices[n].start + k for n in comp.names for k in MODELS[n].nested]
@@ -184,7 +194,8 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
         return simple
     free = _fit_box(data, comp, {n: v for n, v in zip(comp.names, (simple.theta[comp.slices[n]]
                                                                    for n in comp.names))},
-                    iterations=iterations, nudge={k: ident[k] + 0.01 * (hi[k] - lo[k]) for k in held})
+                    iterations=iterations, nudge={k: ident[k] + 0.01 * (hi[k] - lo[k]) for k in held},
+                    loss_scale=simple.loss_scale)
     if free.error is None and free.fit_rmse ** 2 < (1.0 - NESTED_GAIN) * simple.fit_rmse ** 2:
         free.seconds += simple.seconds
         return free
@@ -193,9 +204,11 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
 
 
 def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None, *, iterations: int = 15,
-             pinned: list[int] | None = None, nudge: dict[int, float] | None = None) -> Fit:
-    """Bounded Levenberg–Marquardt; ``pinned`` parameters stay at their identity values, ``nudge`` moves some
-    starting values (off an identity that another fit left them at)."""
+             pinned: list[int] | None = None, nudge: dict[int, float] | None = None,
+             loss_scale: float | None = None) -> Fit:
+    """Bounded Levenberg–Marquardt under Huber's loss; ``pinned`` parameters stay at their identity values,
+    ``nudge`` moves some starting values (off an identity that another fit left them at); ``loss_scale``: the Huber
+    scale its ``fit_rmse`` is measured at (default: its own residual's), to compare it with another fit's."""
     t0 = time.perf_counter()
     theta = comp.initial()
     for n, v in (start or {}).items():
@@ -215,10 +228,6 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
     pixels = _fit_pixels(data)
 
     caps = np.concatenate([data.observations[i].capture.reshape(-1, 3)[pixels].ravel() for i in data.fit_index])
-    # The robust loss applies on the patterns' edges, where the misregistration lies; elsewhere the loss stays
-    # quadratic, so a local effect (bounce light in a crease, a highlight) is fitted on its own large residuals.
-    on_edge = np.concatenate([np.repeat(_edges(data.observations[i], data.mask).ravel()[pixels], 3)
-                              for i in data.fit_index])
 
     def plain(t: np.ndarray) -> np.ndarray:
         pred = np.concatenate([comp.predict(t, data.observations[i]).reshape(-1, 3)[pixels].ravel()
@@ -237,7 +246,7 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
         for _ in range(iterations):
             # Reweighted at the current parameters; the step below is accepted on the cost under these weights.
             r = plain(theta)
-            root_w = np.where(on_edge, huber_root_weights(r), 1.0)
+            root_w = huber_root_weights(r)
             r = r * root_w
             cost = float(r @ r)
             jac = np.zeros((r.size, comp.size))
@@ -271,7 +280,11 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
     except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
         return Fit(comp.names, comp.initial(), float("nan"), float("nan"), time.perf_counter() - t0,
                    error=f"{type(exc).__name__}: {exc}")
-    return _scored(comp.names, theta, float(np.sqrt(cost / max(r.size, 1))), comp, data, time.perf_counter() - t0)
+    r = plain(theta)
+    k = _huber_scale(r) if loss_scale is None else loss_scale
+    fit = _scored(comp.names, theta, huber_rms(r, k), comp, data, time.perf_counter() - t0)
+    fit.loss_scale = k
+    return fit
 
 
 @dataclass
