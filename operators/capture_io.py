@@ -14,7 +14,7 @@ from ..addon.blender import rig as blender_rig
 from ..addon.errors import CaptureError, ProCamError
 from ..addon.steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
 from . import paths
-from .messages import sidebar_text
+from .messages import REPLACE_BOX, sidebar_text
 
 ENCODING_ITEMS = [("auto", "Auto", "8-bit files are sRGB, 16-bit and float files are linear"),
                   ("srgb", "sRGB", "The photographs are sRGB-encoded (most cameras' JPEG and 8-bit PNG)"),
@@ -68,7 +68,7 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
             out = run_patterns(PatternsOptions(rig.projector, paths.resolve(self.directory, "pattern folder"),
                                                camera=rig.camera, layout=self.order, force=self.force))
         except ProCamError as exc:
-            self.report({"ERROR"}, sidebar_text(str(exc), {"--force": "‘Replace’", "--out": "‘Folder’"}))
+            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘Folder’"}))
             return {"CANCELLED"}
         frames = len(list(out.glob("[0-9]*.png")))
         self.report({"INFO"}, f"{frames} pattern frames in {out}: show each full screen on the projector, "
@@ -172,8 +172,7 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
                                                 check_exposure=self.check_exposure, force=self.force),
                                   progress)
         except ProCamError as exc:
-            self.report({"ERROR"}, sidebar_text(str(exc), {"--force": "‘Replace’",
-                                                           "--out": "‘New Capture Set’ folder"}))
+            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘New Capture Set’ folder"}))
             return {"CANCELLED"}
         context.scene.procam_capture_dir = str(out)
         lens = f", calibrated camera and projector from {rig.name}" if rig is not None else ""

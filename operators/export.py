@@ -7,7 +7,7 @@ from ..addon.errors import ProCamError
 from ..addon.steps import export as export_step
 from ..addon.steps.layout import CALIBRATION, COMPENSATION
 from . import paths
-from .messages import sidebar_text
+from .messages import REPLACE_BOX, sidebar_text
 
 
 class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
@@ -41,7 +41,7 @@ class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
                 paths.resolve(context.scene.procam_calibration_dir, "calibration folder"),
                 paths.resolve(self.filepath, ".blend file"), force=self.force))
         except ProCamError as exc:
-            self.report({"ERROR"}, sidebar_text(str(exc), {"--force": "‘Replace’", "--out": "‘File’"}))
+            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘File’"}))
             return {"CANCELLED"}
         self.report({"INFO"}, f"Saved the calibration as {out}")
         return {"FINISHED"}
@@ -75,7 +75,7 @@ class PROCAM_OT_export_frames(bpy.types.Operator):
                 paths.resolve(context.scene.procam_compensation_dir, "results folder"),
                 paths.resolve(self.directory, "frame folder"), force=self.force))
         except ProCamError as exc:
-            self.report({"ERROR"}, sidebar_text(str(exc), {"--force": "‘Replace’", "--out": "‘Folder’"}))
+            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘Folder’"}))
             return {"CANCELLED"}
         self.report({"INFO"}, f"Projector frames written to {out}")
         return {"FINISHED"}

@@ -34,6 +34,9 @@ SIDEBAR_NAMES = {
     "--no-bias": "‘Bias θ’",
 }
 
+#: An operator dialog's own "Replace" box (the sidebar's is ‘Replace Results’).
+REPLACE_BOX = {"--force": "‘Replace’"}
+
 _OPTION = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 #: The Python API's keyword beside an option ("--force (force=True)"): the sidebar's field stands for both.
 _KEYWORD = re.compile(r" \(\w+=True\)")

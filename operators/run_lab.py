@@ -17,11 +17,11 @@ from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
 from ..addon.lab.lab import describe_run
 from ..addon.steps.capture import LabOptions, run_lab
-from .messages import sidebar_text
+from .messages import REPLACE_BOX, sidebar_text
 
 #: The command's options as this operator's dialog names them (its messages come from the shared lab step).
-_OPTION_NAMES = {"--force": "‘Replace’", "--out": "‘Capture Set’ folder", "--truth": "‘Truth File’",
-                 "--effects": "‘Effects’", "--scale": "‘Resolution Scale’", "--samples": "‘Samples’"}
+_OPTION_NAMES = REPLACE_BOX | {"--out": "‘Capture Set’ folder", "--truth": "‘Truth File’",
+                               "--effects": "‘Effects’", "--scale": "‘Resolution Scale’", "--samples": "‘Samples’"}
 
 _SURFACES = [("SCENE", "Scene Surface", "The scene's ProCam Surface (set it with Set Surface)"),
              ("plane", "Plane", "A flat textured wall"),
