@@ -115,7 +115,6 @@ def test_identity_parameters_reproduce_the_base_model(response_case):
         np.testing.assert_allclose(comp.predict(theta, obs), np.clip(obs.direct, 0, 1), atol=2e-3)
 
 
-
 def test_a_steep_camera_curve_is_fitted_as_itself_despite_the_pattern_edges(lab_set, tmp_path):
     """The lab's full sRGB camera curve, calibrated by the real stages: the pattern edges hold the warp's sub-pixel
     misregistration, which the curve's slope magnifies. A plain least-squares fit of the curve beside a projector
@@ -130,6 +129,7 @@ def test_a_steep_camera_curve_is_fitted_as_itself_despite_the_pattern_edges(lab_
     params = gap_fit.fit_composite(data, ("response", "camera_response")).params()
     assert params["camera_response"]["curve"] > 0.95, params  # here 0.96
     assert all(abs(params["response"][f"gamma_{c}"] - 1.0) < 0.05 for c in "rgb"), params  # here 0.97–0.98
+
 
 def test_adapter_inverts_what_it_models():
     proj = demo_rig((64, 48), (80, 60)).projector

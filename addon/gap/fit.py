@@ -134,10 +134,10 @@ def scores(comp: Composite, theta: np.ndarray, index: list[int]) -> dict[str, An
 
 
 def _scored(names: tuple[str, ...], theta: np.ndarray, fit_rmse: float, comp: Composite, data: GapData,
-            seconds: float) -> Fit:
+            seconds: float, loss_scale: float = 0.0) -> Fit:
     sc = scores(comp, theta, data.held_index)
     return Fit(names, theta, fit_rmse, sc["structured"], seconds, held_rmse_raw=sc["raw"],
-               held_mse_classes=sc["classes"])
+               held_mse_classes=sc["classes"], loss_scale=loss_scale)
 
 
 def residual_stack(comp: Composite, theta: np.ndarray, index: list[int]) -> np.ndarray:
@@ -234,20 +234,15 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
                                for i in data.fit_index])
         return (pred - caps).astype(np.float64)
 
-    root_w = np.ones(caps.size)  # √ of the Huber weights at the current parameters
-
-    def residual(t: np.ndarray) -> np.ndarray:
-        return plain(t) * root_w
-
     step = 1e-3 * (hi - lo)
     free = [k for k in range(comp.size) if hi[k] > lo[k]]
     try:
         lam = 1e-3
+        at_theta = plain(theta)  # the unweighted residual at the current parameters
         for _ in range(iterations):
             # Reweighted at the current parameters; the step below is accepted on the cost under these weights.
-            r = plain(theta)
-            root_w = huber_root_weights(r)
-            r = r * root_w
+            root_w = huber_root_weights(at_theta)
+            r = at_theta * root_w
             cost = float(r @ r)
             jac = np.zeros((r.size, comp.size))
             for k in free:
@@ -255,7 +250,7 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
                 # Step inwards at an upper bound so the difference stays inside the box.
                 h = step[k] if theta[k] + step[k] <= hi[k] else -step[k]
                 t[k] += h
-                jac[:, k] = (residual(t) - r) / h
+                jac[:, k] = (plain(t) * root_w - r) / h
             jtj, jtr = jac.T @ jac, jac.T @ r
             improved = False
             for _ in range(6):
@@ -265,11 +260,12 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
                 except np.linalg.LinAlgError:
                     delta = -np.linalg.lstsq(a, jtr, rcond=None)[0]
                 cand = np.clip(theta + delta, lo, hi)
-                rc = residual(cand)
+                at_cand = plain(cand)
+                rc = at_cand * root_w
                 c = float(rc @ rc)
                 if np.isfinite(c) and c < cost:
                     shrink = (cost - c) / max(cost, 1e-30)
-                    theta, r, cost, lam = cand, rc, c, max(lam / 3, 1e-7)
+                    theta, at_theta, lam = cand, at_cand, max(lam / 3, 1e-7)
                     improved = True
                     break
                 lam *= 4
@@ -280,11 +276,8 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
     except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
         return Fit(comp.names, comp.initial(), float("nan"), float("nan"), time.perf_counter() - t0,
                    error=f"{type(exc).__name__}: {exc}")
-    r = plain(theta)
-    k = _huber_scale(r) if loss_scale is None else loss_scale
-    fit = _scored(comp.names, theta, huber_rms(r, k), comp, data, time.perf_counter() - t0)
-    fit.loss_scale = k
-    return fit
+    k = _huber_scale(at_theta) if loss_scale is None else loss_scale
+    return _scored(comp.names, theta, huber_rms(at_theta, k), comp, data, time.perf_counter() - t0, k)
 
 
 @dataclass
