@@ -115,6 +115,27 @@ def test_identity_parameters_reproduce_the_base_model(response_case):
         np.testing.assert_allclose(comp.predict(theta, obs), np.clip(obs.direct, 0, 1), atol=2e-3)
 
 
+def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):
+    """A composite keeps the blurred input and the response's curve of the last few parameter values (a fit's
+    finite differences move one parameter at a time); any sequence of parameters predicts what a new composite
+    does, the blur and the curve moved in turn (with a depth error the light paths move and nothing is kept)."""
+    cal_dir, _, _ = response_case
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    obs = [o for o in data.observations if o.fine][:2] + [o for o in data.observations if not o.fine][:1]
+    for names in (("response", "defocus"), ("response", "defocus", "depth_noise")):
+        kept = Composite(data, names)
+        thetas = []
+        for sigma, gamma in [(0.0, 1.0), (1.2, 1.0), (1.2, 1.6), (0.0, 1.6), (1.5, 1.0), (1.2, 1.6), (0.0, 1.0)]:
+            t = kept.initial()
+            t[kept.slices["defocus"].start], t[kept.slices["response"]][:3] = sigma, gamma
+            if "depth_noise" in names:
+                t[kept.slices["depth_noise"].start] = 0.02
+            thetas.append(t)
+        for t in thetas:
+            for o in obs:
+                np.testing.assert_array_equal(kept.predict(t, o), Composite(data, names).predict(t, o))
+
+
 def test_a_steep_camera_curve_is_fitted_as_itself_despite_the_pattern_edges(lab_set, tmp_path):
     """The lab's full sRGB camera curve, calibrated by the real stages: the pattern edges hold the warp's sub-pixel
     misregistration, which the curve's slope magnifies. A plain least-squares fit of the curve beside a projector

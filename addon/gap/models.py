@@ -195,19 +195,47 @@ class Composite:
         self._yn = ((ys - c.cy) / c.fy).astype(np.float32)
         self._vig_r = vignetting_radius(data.projector, data.corr)
         self._saturated, self._diffuse_white = _clipped_white(data)
-        # A fit's finite differences move one parameter at a time: the response's curve and the camera curve's
-        # light scale stay the same for every other column, so the last few are kept (measured: the two took
-        # ~45 % of a demo diagnosis, recomputed for every column).
+        # A fit's finite differences move one parameter at a time: the blurred input, the response's curve and
+        # the camera curve's light scale stay the same for every other column, so the last few are kept
+        # (measured: the two curves took ~45 % of a demo diagnosis, recomputed for every column; the blur,
+        # once it was kept too, most of what a fit with defocus took).
+        self._inputs: dict[float, dict[int, np.ndarray]] = {}
         self._tones: dict[tuple[float, ...], dict[int, np.ndarray]] = {}
         self._scales: dict[float, np.ndarray] = {}
 
-    def _tone(self, a: np.ndarray, obs: Observation, r: np.ndarray) -> np.ndarray:
-        """:func:`projector_tone` of the pattern's sampled input (``a is obs.sampled``), remembered."""
-        per = _recent(self._tones, tuple(float(v) for v in r), dict)
+    def _per_pattern(self, cache: dict, key: Any, obs: Observation, make: Any) -> np.ndarray:
+        per = _recent(cache, key, dict)
         out = per.get(id(obs))
         if out is None:
-            out = per[id(obs)] = projector_tone(a, r[:3], float(r[3]), float(r[4]))
+            out = per[id(obs)] = make()
         return out
+
+    def _input_at(self, obs: Observation, sigma: float, corr: np.ndarray) -> np.ndarray:
+        """The pattern's input at each camera pixel's light path ``corr``, through a lens blur of ``sigma``
+        texels (0: none); remembered on the calibrated light paths."""
+        d = self.data
+
+        def make() -> np.ndarray:
+            moved = corr is not d.corr
+            if sigma <= 0:
+                return sample_input(obs.x, corr) if moved else obs.sampled
+            x = cv2.GaussianBlur(obs.x, (0, 0), sigma)
+            if d.footprint <= 0:
+                return sample_input(x, corr)
+            # A pixel wider than two texels sees the blur's change averaged over its footprint (data.py).
+            plain, averaged = (sample_input(obs.x, corr), sample_input(obs.x, corr, d.footprint)) if moved else \
+                (obs.sampled, obs.averaged)
+            return plain + sample_input(x, corr, d.footprint) - averaged
+
+        return make() if corr is not d.corr else self._per_pattern(self._inputs, sigma, obs, make)
+
+    def _tone(self, a: np.ndarray, obs: Observation, r: np.ndarray, sigma: float | None) -> np.ndarray:
+        """:func:`projector_tone` of the pattern's input ``a`` (from :meth:`_input_at` with a blur of ``sigma``);
+        remembered unless ``sigma`` is None (light paths moved)."""
+        def make() -> np.ndarray:
+            return projector_tone(a, r[:3], float(r[3]), float(r[4]))
+
+        return make() if sigma is None else self._per_pattern(self._tones, (sigma, *map(float, r)), obs, make)
 
     def _light_scale(self, curve: float) -> np.ndarray:
         return _recent(self._scales, curve, lambda: light_scale(self.data.gain, curve))
@@ -240,20 +268,10 @@ class Composite:
         d = self.data
         if corr is None:
             corr = self._corr(p)
-        x = obs.x
-        if "defocus" in p and p["defocus"][0] > 0.05:
-            x = cv2.GaussianBlur(x, (0, 0), float(p["defocus"][0]))
-        moved = corr is not d.corr
-        if x is not obs.x and d.footprint > 0:
-            # A pixel wider than two texels sees the blur's change averaged over its footprint (data.py).
-            plain, averaged = (sample_input(obs.x, corr), sample_input(obs.x, corr, d.footprint)) if moved else \
-                (obs.sampled, obs.averaged)
-            a = plain + sample_input(x, corr, d.footprint) - averaged
-        else:
-            a = sample_input(x, corr) if (moved or x is not obs.x) else obs.sampled
+        sigma = float(p["defocus"][0]) if "defocus" in p and p["defocus"][0] > 0.05 else 0.0
+        a = self._input_at(obs, sigma, corr)
         if "response" in p:
-            r = p["response"]
-            a = self._tone(a, obs, r) if a is obs.sampled else projector_tone(a, r[:3], float(r[3]), float(r[4]))
+            a = self._tone(a, obs, p["response"], sigma if corr is d.corr else None)
         if "crosstalk" in p:
             a = a @ crosstalk_matrix(p["crosstalk"]).T
         if "black_level" in p:
