@@ -73,13 +73,16 @@ class Job:
         self._t1: float | None = None
         self._thread: threading.Thread | None = None
         self.traceback: str | None = None
+        #: How the UI words the engine's progress and error messages (the sidebar names the command's options by
+        #: its own fields); as they are by default.
+        self.wording: Callable[[str], str] = str
 
     # -- called by the engine (any thread)
 
     def progress(self, message: str, fraction: float) -> None:
         """Record progress; raises :class:`Cancelled` once a stop was asked for."""
         with self._lock:
-            self._message = str(message)
+            self._message = self.wording(str(message))
             if fraction == fraction and fraction >= 0:  # NaN or a negative value: fraction unknown, keep the last
                 self._fraction = min(1.0, float(fraction))
         if self._cancel.is_set():
@@ -121,7 +124,7 @@ class Job:
         with self._lock:
             end = self._t1 if self._t1 is not None else time.perf_counter()
             seconds = 0.0 if self._t0 is None else end - self._t0
-            error = str(self._error) if self._error is not None else None
+            error = self.wording(str(self._error)) if self._error is not None else None
             return Snapshot(self.name, self._status, self._message, self._fraction, error, seconds)
 
     def mark_failed(self, error: ProCamError) -> None:

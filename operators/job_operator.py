@@ -10,6 +10,8 @@ on the main thread; the operator's UNDO flag makes that one undo step, and a
 cancelled or failed job changes nothing.
 """
 
+import functools
+
 import bpy
 
 from ..addon import jobs
@@ -117,6 +119,7 @@ class JobOperator:
                 holder.append(job)
             else:
                 job = self.make_job(context, None)
+            job.wording = functools.partial(sidebar_text, names=self.option_names)
             jobs.BOARD.add(self.step, job)
         except ProCamError as exc:
             self._close_device()
@@ -166,7 +169,7 @@ class JobOperator:
         if snap.status == jobs.CANCELLED:
             self.report({"WARNING"}, f"{job.name} cancelled: {self.cancel_note}")
             return {"CANCELLED"}
-        self.report({"ERROR"}, sidebar_text(snap.error, self.option_names) if snap.error else f"{job.name} failed")
+        self.report({"ERROR"}, snap.error or f"{job.name} failed")  # worded for the sidebar (Job.wording)
         return {"CANCELLED"}
 
 

@@ -82,6 +82,22 @@ def test_procam_error_fails_the_job_with_its_message():
     assert snap.fraction == pytest.approx(0.4)
 
 
+def test_the_ui_words_a_jobs_progress_and_error_its_own_way():
+    """The sidebar names the command's options by its fields (operators/messages.py) in progress lines too."""
+    seen = []
+
+    def step(*, progress, cancel):
+        progress("the operator is already there (--force renders it again)", 0.5)
+        seen.append(job.snapshot().message)
+        raise ImageError("x exists; rerun with --force")
+
+    job = jobs.Job("precompute", step)
+    job.wording = lambda text: text.replace("--force", "‘Replace Results’")
+    job.run()
+    assert seen == ["the operator is already there (‘Replace Results’ renders it again)"]
+    assert job.snapshot().error == "x exists; rerun with ‘Replace Results’"
+
+
 def test_a_bug_fails_the_job_with_a_message_and_keeps_the_traceback(capsys):
     def buggy(*, progress, cancel):
         return {}["missing"]
