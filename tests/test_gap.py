@@ -19,6 +19,7 @@ from procam.addon.gap.compensation import EffectAdapter
 from procam.addon.capture.format import CaptureSet
 from procam.addon.gap import data as gap_data
 from procam.addon.gap import evidence as gap_evidence
+from procam.addon.errors import ProCamError
 from procam.addon.gap.data import DiagnosisError
 from procam.addon.gap.models import MODELS, NAMES, Composite
 from procam.addon.rig.demo import demo_rig
@@ -134,6 +135,26 @@ def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):
         for t in thetas:
             for o in obs:
                 np.testing.assert_array_equal(kept.predict(t, o), Composite(data, names).predict(t, o))
+
+
+def test_a_composite_on_some_pixels_predicts_what_the_whole_image_holds_there(response_case):
+    """A fit predicts only the pixels its residual uses (Composite.on_pixels); every model but the lens distortion
+    (which moves the image) gives there what the whole image's prediction holds."""
+    cal_dir, _, _ = response_case
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    names = tuple(n for n in NAMES if n != "distortion")
+    whole = Composite(data, names)
+    lo, hi = whole.bounds()
+    theta = lo + np.random.default_rng(1).uniform(0.2, 0.4, whole.size) * (hi - lo)
+    pixels = np.sort(np.random.default_rng(2).choice(np.flatnonzero(data.mask.ravel()), 300, replace=False))
+    part = whole.on_pixels(pixels)
+    for i in (0, 1, 5, len(data.observations) - 1):
+        got = part.predict(theta, part.data.observations[i])
+        assert got.shape == (len(pixels), 1, 3)
+        want = whole.predict(theta, data.observations[i]).reshape(-1, 3)[pixels]
+        np.testing.assert_allclose(got[:, 0], want, atol=1e-6)
+    with pytest.raises(ValueError, match="distortion"):
+        Composite(data, ("distortion",)).on_pixels(pixels)
 
 
 def test_a_steep_camera_curve_is_fitted_as_itself_despite_the_pattern_edges(lab_set, tmp_path):
@@ -702,3 +723,19 @@ def test_the_benchmark_scores_an_effect_with_nothing_to_act_on_as_a_no_effect_ca
     assert bench.same_captures(lab_set("plane", "interreflection=1", **TINY)[0], none)
     assert not bench.same_captures(lab_set("plane", "depth_noise=1", **TINY)[0], none)
     assert not bench.same_captures(lab_set("vedge", "interreflection=1", **TINY)[0], lab_set("vedge", "", **TINY)[0])
+
+
+def test_a_selection_stopped_at_its_limit_says_what_would_come_next(lab_calibration, tmp_path):
+    """The greedy selection has a limit of rounds (the later ones are the slowest); when it stops there while the
+    runner-up still removed enough, the report says so and how to try it, and a higher limit selects it."""
+    cal_dir = lab_calibration("plane", "response=0.4,black_level=1,black_level.ambient=0.12", **TINY)[0]
+    both = ("response", "black_level")
+    one = diagnose(cal_dir, tmp_path / "one", candidates=both, scale=1.0, spp=8, max_effects=1)
+    assert len(one["modelled"]) == 1 and one["max_effects"] == 1
+    runner_up = next(n for n in both if n not in one["modelled"])
+    assert any(f"limit of 1 effect, and {runner_up} still removed" in w and "--max-effects 2" in w
+               for w in one["warnings"]), one["warnings"]
+    two = diagnose(cal_dir, tmp_path / "two", candidates=both, scale=1.0, spp=8, max_effects=2)
+    assert sorted(two["modelled"]) == sorted(both) and not any("its limit" in w for w in two["warnings"])
+    with pytest.raises(ProCamError, match="--max-effects must be a whole number"):
+        diagnose(cal_dir, tmp_path / "none", candidates=both, max_effects=0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..gap.fit import MIN_SHARE
+from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import NAMES
 from ..steps.diagnose import DiagnoseOptions, run as diagnose
 from .app import command
@@ -23,6 +23,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-share", type=float, default=MIN_SHARE,
                    help=f"an effect is selected only if it removes at least this share of the held-out RMSE "
                         f"left (default {MIN_SHARE})")
+    p.add_argument("--max-effects", type=int, default=MAX_EFFECTS,
+                   help=f"effects selected at most: rounds of the greedy selection, each slower than the last "
+                        f"(default {MAX_EFFECTS})")
     p.add_argument("--force", action="store_true", help="replace an existing diagnosis folder")
 
 
@@ -31,7 +34,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     doc = run_step("diagnose", diagnose, DiagnoseOptions(args.calibration, args.out, effects=args.effects,
                                                          scale=args.scale, spp=args.spp,
-                                                         min_share=args.min_share, force=args.force))
+                                                         min_share=args.min_share, max_effects=args.max_effects,
+                                                         force=args.force))
     res, after = doc["residual"], doc["residual_after"]
     print(f"diagnosis: {args.out}")
     print(f"  {doc['headline']}")

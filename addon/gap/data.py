@@ -30,7 +30,7 @@ Only the capture set and the calibration are read; never a lab truth file.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -82,6 +82,13 @@ class Observation:
         """Binary patterns with sharp edges (checker, Gray code): where blur and misregistration show."""
         return self.kind in ("checker", "graycode")
 
+    def on_pixels(self, pixels: np.ndarray) -> "Observation":
+        """This pattern at some working pixels only (:func:`column`); the input stays whole."""
+        return replace(self, capture=column(self.capture, pixels), direct=column(self.direct, pixels),
+                       indirect=column(self.indirect, pixels), sampled=column(self.sampled, pixels),
+                       glossy={r: column(g, pixels) for r, g in self.glossy.items()},
+                       edges=column(self.edges, pixels), averaged=column(self.averaged, pixels))
+
 
 @dataclass
 class GapData:
@@ -117,6 +124,26 @@ class GapData:
     def white(self) -> Observation:
         """The white pattern: calibration estimated the albedo from it."""
         return next(o for o in self.observations if o.kind == "white")
+
+    def on_pixels(self, pixels: np.ndarray) -> "GapData":
+        """These data at some working pixels only (flat indices into the working image), each a row of a
+        one-pixel-wide image: what a fit's per-pixel models need, at a fraction of the whole image's cost.
+        Anything spatial (smoothing, regions, a lens distortion) needs the whole image."""
+        def col(a: np.ndarray) -> np.ndarray:
+            return column(a, pixels)
+
+        return replace(self, observations=[o.on_pixels(pixels) for o in self.observations], size=(1, len(pixels)),
+                       mask=col(self.mask), gain=col(self.gain), corr=col(self.corr),
+                       corr_per_metre=col(self.corr_per_metre), points=col(self.points), rays=col(self.rays),
+                       crease=col(self.crease))
+
+
+def column(a: np.ndarray | None, pixels: np.ndarray) -> np.ndarray | None:
+    """A per-pixel image (h×w or h×w×c) at the flat indices ``pixels``, as a one-pixel-wide image (n×1[×c])."""
+    if a is None:
+        return None
+    h, w = a.shape[:2]
+    return a.reshape(h * w, 1, *a.shape[2:])[pixels]
 
 
 def _run_lengths(row: np.ndarray) -> int:

@@ -22,7 +22,7 @@ from ..stages.calibrate import Calibration
 from .data import LEVEL_EFFECTS, MAX_TEXELS_PER_PIXEL, NO_VALIDATION, GapData, load_gap_data
 from .compensation import HELD_BY_STAGE_C, INVERTIBLE
 from .evidence import calibration_evidence
-from .fit import (MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
+from .fit import (MAX_EFFECTS, MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
                   select_effects, structured)
 from .models import (MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, local_light,
                      signature_mask)
@@ -68,6 +68,12 @@ def _blur_unseen(spans: float, scale: float) -> str:
         return text + "; the camera's own pixels are that coarse: a closer camera or a longer lens would show it"
     better = min(1.0, math.ceil(20 * scale * spans / MAX_TEXELS_PER_PIXEL) / 20)
     return text + f"; --scale {better:g} looks at {spans * scale / better:.1f} texels a pixel (slower)"
+
+
+def _at_the_limit(max_effects: int, runner_up: str, share: float) -> str:
+    """The warning for a selection that stopped at its limit while another effect still removed enough."""
+    return (f"the selection stopped at its limit of {max_effects} effect{'s' * (max_effects != 1)}, and {runner_up} still removed {share:.0%} "
+            f"of what was left in the last round: --max-effects {max_effects + 1} would try it (slower)")
 
 
 def _psnr(rmse: float) -> float:
@@ -296,7 +302,7 @@ class Diagnosis:
 
 def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, format: tuple[str, int],
              scale: float = 0.5, spp: int = 32, candidates: tuple[str, ...] = NAMES, min_share: float = MIN_SHARE,
-             progress: Progress | None = None, cancel: Cancel | None = None) -> Diagnosis:
+             max_effects: int = MAX_EFFECTS, progress: Progress | None = None, cancel: Cancel | None = None) -> Diagnosis:
     """Diagnose a calibration on its capture set's held-out patterns.
 
     ``source`` names the calibration in the report (its folder); ``format`` is the document's (tag, version).
@@ -315,13 +321,18 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     # leftovers, and inverting it cost 0.12 dB): it is fitted and shown, but found from the evidence alone.
     evidence_only = ("vignetting",) if _albedo_from_white(calibration) else ()
     sel = select_effects(data, tuple(c for c in candidates if c not in evidence_only), min_share=min_share,
-                         cancel=cancel, progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
+                         max_effects=max_effects, cancel=cancel,
+                         progress=lambda m, f: say(f"effects: {m}", 0.4 + 0.5 * f))
+    next_up = sel.steps[-1]["ranking"][1] if len(sel.selected) == max_effects and sel.steps and \
+        len(sel.steps[-1]["ranking"]) > 1 and sel.steps[-1]["ranking"][1][1] >= min_share else None
+    if next_up is not None:
+        warnings.append(_at_the_limit(max_effects, *next_up))
     for name in (n for n in evidence_only if n in candidates):
         sel.alone[name] = fit_composite(data, (name,))
     t_fit = time.perf_counter() - t0
     spans = data.spans
     if spans is not None and spans > MAX_TEXELS_PER_PIXEL and "defocus" in candidates and \
-            "defocus" not in sel.selected:
+            "defocus" not in sel.selected and (next_up is None or next_up[0] != "defocus"):  # (seen, left out)
         warnings.append(_blur_unseen(spans, scale))
     say("evidence of absorbed effects", 0.9)
     t0 = time.perf_counter()
@@ -424,7 +435,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
                             "params": {n: v for n, v in final.params().items() if n in inverted},
                             "left_out": left_out},
            "evidence": {n: e.to_dict() for n, e in evidence.items()},
-           "min_share": min_share,
+           "min_share": min_share, "max_effects": max_effects,
            "what_calibration_absorbs": ABSORBED,
            "seconds": {"render": round(t_render, 1), "fit": round(t_fit, 1),
                        "evidence": round(t_evidence, 1)}}

@@ -53,6 +53,9 @@ from .models import Composite, MODELS, NAMES, describe_params
 
 #: An effect is added only if it removes at least this share of the held-out RMSE still left.
 MIN_SHARE = 0.06
+#: Rounds of the greedy selection (effects selected at most): each round fits every candidate left on top of
+#: those selected, and the later rounds' fits are the slowest (on the demo four rounds took 105 s, six 220 s).
+MAX_EFFECTS = 4
 #: Camera pixels per pattern the fit uses (a fixed random subset of the lit ones; scoring uses all).
 FIT_PIXELS = 8000
 #: Gaussian (pixels of the working image) that separates the structured residual from pixel noise.
@@ -228,10 +231,14 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
     pixels = _fit_pixels(data)
 
     caps = np.concatenate([data.observations[i].capture.reshape(-1, 3)[pixels].ravel() for i in data.fit_index])
+    sub = comp.on_pixels(pixels) if "distortion" not in comp.names else None
 
     def plain(t: np.ndarray) -> np.ndarray:
-        pred = np.concatenate([comp.predict(t, data.observations[i]).reshape(-1, 3)[pixels].ravel()
-                               for i in data.fit_index])
+        if sub is not None:
+            pred = np.concatenate([sub.predict(t, sub.data.observations[i]).ravel() for i in data.fit_index])
+        else:
+            pred = np.concatenate([comp.predict(t, data.observations[i]).reshape(-1, 3)[pixels].ravel()
+                                   for i in data.fit_index])
         return (pred - caps).astype(np.float64)
 
     step = 1e-3 * (hi - lo)
@@ -293,7 +300,7 @@ class Selection:
 
 
 def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_share: float = MIN_SHARE,
-                   max_effects: int = 4, progress: Progress | None = None,
+                   max_effects: int = MAX_EFFECTS, progress: Progress | None = None,
                    cancel: Cancel | None = None) -> Selection:
     """Greedy forward selection on held-out RMSE (see the module docstring)."""
     say = progress or (lambda msg, frac: None)

@@ -22,6 +22,7 @@ floor the diagnosis cannot remove). Parameters are plain floats with bounds; the
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +30,7 @@ import cv2
 import numpy as np
 
 from ..stages.calibrate import SATURATED
-from .data import GLOSSY_ROUGHNESS, GapData, Observation, sample_input
+from .data import GLOSSY_ROUGHNESS, GapData, Observation, column, sample_input
 
 #: Width (share of the working image width) over which the diffuse white is carried into clipped highlights.
 FILL_SIGMA = 0.04
@@ -202,6 +203,19 @@ class Composite:
         self._inputs: dict[float, dict[int, np.ndarray]] = {}
         self._tones: dict[tuple[float, ...], dict[int, np.ndarray]] = {}
         self._scales: dict[float, np.ndarray] = {}
+
+    def on_pixels(self, pixels: np.ndarray) -> "Composite":
+        """This composite at some working pixels only (:meth:`GapData.on_pixels`; predictions n×1×3): a fit's
+        residual uses 8,000 pixels a pattern (:data:`fit.FIT_PIXELS`), and predicting the whole image for it
+        was most of a diagnosis's time. Not with a lens distortion, which moves the image."""
+        if "distortion" in self.names:
+            raise ValueError("a distortion moves the image: predict the whole image")
+        sub = copy.copy(self)
+        sub.data = self.data.on_pixels(pixels)
+        sub._xn, sub._yn, sub._vig_r = (column(a, pixels) for a in (self._xn, self._yn, self._vig_r))
+        sub._saturated, sub._diffuse_white = column(self._saturated, pixels), column(self._diffuse_white, pixels)
+        sub._inputs, sub._tones, sub._scales = {}, {}, {}
+        return sub
 
     def _per_pattern(self, cache: dict, key: Any, obs: Observation, make: Any) -> np.ndarray:
         per = _recent(cache, key, dict)

@@ -17,7 +17,7 @@ from typing import Any
 from ..errors import ProCamError
 from ..gap.data import DiagnosisError
 from ..gap.diagnose import diagnose
-from ..gap.fit import MIN_SHARE
+from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import NAMES
 from ..imageio import write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, write_manifest
@@ -43,6 +43,8 @@ class DiagnoseOptions:
     spp: int = 32
     #: an effect is selected only if it removes at least this share of the held-out RMSE left
     min_share: float = MIN_SHARE
+    #: effects selected at most (rounds of the greedy selection)
+    max_effects: int = MAX_EFFECTS
     force: bool = False
 
     def candidates(self) -> tuple[str, ...]:
@@ -60,6 +62,8 @@ class DiagnoseOptions:
             raise ProCamError(f"the working scale must be between 0.05 and 1, got {self.scale}")
         if self.spp < 1:
             raise ProCamError(f"spp must be ≥ 1, got {self.spp}")
+        if not isinstance(self.max_effects, int) or self.max_effects < 1:
+            raise ProCamError(f"--max-effects must be a whole number ≥ 1, got {self.max_effects!r}")
 
 
 def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:
@@ -77,6 +81,7 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
         found = diagnose(cal, captures, source=str(Path(options.calibration).absolute()),
                          format=(KIND.format, KIND.version), scale=options.scale, spp=options.spp,
                          candidates=options.candidates(), min_share=options.min_share,
+                         max_effects=options.max_effects,
                          progress=part(say, 0.0, 0.98), cancel=cancel)
         write_manifest(folder.tmp / KIND.manifest, found.doc)
         for name, image in found.images.items():
