@@ -31,6 +31,9 @@ def test_demo_writes_every_folder_and_compensation_helps(demo, capsys):
     assert summary["calibration"]["position_error_cm"] < 2.0
     # The diagnosis names the calibration where it now lies, not where it was built.
     assert f"`{demo / 'calibration'}`" in (demo / "diagnosis" / "summary.md").read_text()
+    # and the summary carries its warnings (a selection at its limit, a blur too fine for the working scale)
+    gap = json.loads((demo / "diagnosis" / "gap.json").read_text())
+    assert summary["diagnosis"]["warnings"] == gap["warnings"]
 
 
 def test_evaluate_accepts_the_demos_folders(demo, tmp_path):

@@ -70,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
     if g["absorbed"]:
         print(f"    absorbed by calibration, found from its inputs: {', '.join(g['absorbed'])}; "
               f"--effects auto would invert: {', '.join(g['compensation']) or 'none'}")
+    for w in g.get("warnings", []):
+        print(f"    warning: {w}")
     for k, r in enumerate(g["regions"]):
         print(f"    region {k + 1} ({r.get('cause', '?')}): {r['share']:.0%} of the error, {r['description']}")
     print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())

@@ -157,7 +157,7 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
                                 "residual_after": gap["residual_after"],
                                 "selected": gap["selected"], "selected_params": gap["selected_params"],
                                 "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
-                                "regions": gap["regions"][:3]}
+                                "regions": gap["regions"][:3], "warnings": gap.get("warnings", [])}
         seconds["diagnose"] = time.perf_counter() - t0
         summary["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
         summary["seconds_total"] = round(time.perf_counter() - t_start, 1)
