@@ -480,6 +480,35 @@ def test_a_local_effect_is_placed_where_its_model_puts_light(clean_case):
     assert len(places) == 1 and places[0].cause == "glossy" and "left over" in places[0].description
 
 
+def test_places_of_one_effect_with_comparable_error_are_one_region(clean_case):
+    """Bounce light in two folds, a highlight on both planes of an edge: one effect's light in two places of
+    comparable error is one finding, one region "in 2 places"; a place holding a quarter of the largest's error
+    stays a region of its own."""
+    from procam.addon.gap.regions import WHOLE, find_regions
+
+    data = load_gap_data(clean_case[0], scale=1.0, spp=4)
+    ys, xs = np.nonzero(data.mask)
+    yy, xx = np.mgrid[:data.mask.shape[0], :data.mask.shape[1]]
+
+    def disc(py, px, radius):
+        cy, cx = int(np.percentile(ys, py)), int(np.percentile(xs, px))
+        return ((yy - cy) ** 2 + (xx - cx) ** 2 <= radius ** 2) & data.mask
+
+    a, b, small = disc(30, 25, 7), disc(30, 75, 7), disc(75, 50, 3.5)
+    light = np.where(a | b | small, 0.5, 0.0).astype(np.float32)
+    held = data.held_index
+    base = np.where((a | b | small)[None, ..., None], np.float32(0.1), np.float32(0.0)) * \
+        np.ones((len(held),) + data.mask.shape + (3,), np.float32)
+    regions = [r for r in find_regions(data, base, data.size, held, lights={"interreflection": light},
+                                       causes={"interreflection": np.zeros_like(base)},
+                                       remainder=np.zeros_like(base)) if WHOLE not in r.tags]
+    assert [r.cause for r in regions] == ["interreflection", "interreflection"]
+    both, alone = regions
+    assert "in 2 places" in both.description and "places" not in alone.description
+    assert both.mask[a].mean() > 0.5 and both.mask[b].mean() > 0.5 and not both.mask[small].any()
+    assert alone.mask[small].mean() > 0.5 and both.share > 3 * alone.share
+
+
 def test_a_highlight_is_placed_by_its_light_as_the_camera_saw_it(clean_case):
     """Where the white capture clipped around the lobe's peak the camera saw a flat patch, not the lobe's sharp
     peak: the light a region is drawn on is capped at its level at the patch's edge, and the set holding half of

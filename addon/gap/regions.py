@@ -25,6 +25,11 @@ local cause (interreflection, glossy, the remainder) whose largest component
 holds less than :data:`GLOBAL_SHARE` of its error or covers over half the lit
 area.
 
+Places that one modelled effect names and that hold comparable error (each at
+least :data:`SAME_FINDING` of its largest's) are one region, "in N places": one
+effect's light can fall in parts (the bounce light in the curve's two folds,
+a highlight on both planes of the hedge), which are one thing to act on.
+
 Regions are ranked by their share of the total squared error, and described
 against what the calibration alone knows: surface creases, the unlit side of a
 concave edge, where the projector's mirror reflection falls (the calibrated
@@ -51,6 +56,8 @@ MIN_REGION_PIXELS = 0.002
 MAX_REGIONS = 6
 #: A cause whose largest compact region holds less than this share of its error acts over the whole lit area.
 GLOBAL_SHARE = 0.25
+#: Places of one modelled effect holding at least this share of the error of its largest are one finding.
+SAME_FINDING = 0.5
 #: A region is described by a property of the place when at least this share of its pixels has it.
 PLACE_SHARE = 0.3
 #: ... and by a kind of pattern (input level, sharp edges) when its error gathers there this many times the
@@ -214,6 +221,7 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
         if remainder_cause in local:
             rest = parts_of(np.where(taken, 0.0, local[remainder_cause][0]))
             sels += [q for q in (p & ~taken for p in rest) if int(q.sum()) >= min_px]
+        named: list[tuple[np.ndarray, str]] = []
         for sel in sels:
             part = {c: float(e[sel].sum()) for c, (_, e) in local.items()}
             here = sum(part.values())
@@ -225,15 +233,39 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
             cause = max(part, key=part.get)
             if modelled and (cause != UNEXPLAINED):
                 cause = max(modelled, key=modelled.get)
+            named.append((sel, cause))
+        for sel, cause in _one_finding_per_effect(named, lambda q: sum(float(e[q].sum()) for _, e in local.values())):
+            part = {c: float(e[sel].sum()) for c, (_, e) in local.items()}
+            here = sum(part.values())
             others = [f"{c} {v / here:.0%}" for c, v in sorted(part.items(), key=lambda kv: -kv[1]) if v >= 0.1 * here]
-            regions.append(region(sel, here / total, cause,
-                                  f"; of the error here: {', '.join(others)}" if len(others) > 1 else ""))
+            n = int((cv2.connectedComponentsWithStats(sel.astype(np.uint8), connectivity=8)[2][1:, 4] >= min_px).sum())
+            regions.append(region(sel, here / total, cause, (f", in {n} places" if n > 1 else "")
+                                  + (f"; of the error here: {', '.join(others)}" if len(others) > 1 else "")))
         if spread_rest:
             covered = np.logical_or.reduce(sels) if sels else np.zeros_like(mask)
             regions.append(region(mask, float(local[remainder_cause][1][~covered].sum()) / total, remainder_cause))
     # a remainder within the captures' noise over the whole area names nothing: it goes last
     regions.sort(key=lambda r: (r.cause == LEFT_OVER and WHOLE in r.tags, -r.share))
     return regions[:MAX_REGIONS]
+
+
+def _one_finding_per_effect(named: list[tuple[np.ndarray, str]], error: Any) -> list[tuple[np.ndarray, str]]:
+    """Places named by one modelled effect that hold comparable error (each at least :data:`SAME_FINDING` of its
+    largest's), joined into one: light bouncing between the curve's folds lands in two bands, and the hedge's
+    highlight falls on both planes; each is one thing to act on, and as separate places neither held half of it.
+    The remainder's places are left apart: what no model explains need not be one cause."""
+    out: list[tuple[np.ndarray, str]] = []
+    joined: set[str] = set()
+    for sel, cause in named:
+        if cause not in MODELS:
+            out.append((sel, cause))
+        elif cause not in joined:
+            joined.add(cause)
+            mine = sorted((q for q, c in named if c == cause), key=lambda q: -error(q))
+            top = error(mine[0])
+            out.append((np.logical_or.reduce([q for q in mine if error(q) >= SAME_FINDING * top]), cause))
+            out += [(q, cause) for q in mine if error(q) < SAME_FINDING * top]
+    return out
 
 
 def label_image(regions: list[Region], shape: tuple[int, int], full_size: tuple[int, int]) -> np.ndarray:
