@@ -97,7 +97,8 @@ def test_calibrate_operator_moves_the_projector_and_shows_the_textured_surface(r
     with pytest.raises(RuntimeError, match="never overwritten without ‘Replace Results’$"):
         bpy.ops.procam.calibrate()
     assert jobs.BOARD.get("calibrate").status == jobs.FAILED
-    assert jobs.BOARD.get("calibrate").snapshot().error.endswith("without ‘Replace Results’")  # as the panel shows it
+    # and the panel's "Failed:" line says it so too
+    assert jobs.BOARD.get("calibrate").snapshot().error.endswith("without ‘Replace Results’")
 
 
 def test_calibrate_one_stage_at_a_time(registered, tiny, tmp_path):

@@ -72,8 +72,9 @@ def _blur_unseen(spans: float, scale: float) -> str:
 
 def _at_the_limit(max_effects: int, runner_up: str, share: float) -> str:
     """The warning for a selection that stopped at its limit while another effect still removed enough."""
-    return (f"the selection stopped at its limit of {max_effects} effect{'s' * (max_effects != 1)}, and {runner_up} still removed {share:.0%} "
-            f"of what was left in the last round: --max-effects {max_effects + 1} would try it (slower)")
+    return (f"the selection stopped at its limit of {max_effects} effect{'s' * (max_effects != 1)}, and {runner_up} "
+            f"still removed {share:.0%} of what was left in the last round: --max-effects {max_effects + 1} would "
+            "try it (slower)")
 
 
 def _psnr(rmse: float) -> float:
@@ -302,7 +303,8 @@ class Diagnosis:
 
 def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, format: tuple[str, int],
              scale: float = 0.5, spp: int = 32, candidates: tuple[str, ...] = NAMES, min_share: float = MIN_SHARE,
-             max_effects: int = MAX_EFFECTS, progress: Progress | None = None, cancel: Cancel | None = None) -> Diagnosis:
+             max_effects: int = MAX_EFFECTS, progress: Progress | None = None,
+             cancel: Cancel | None = None) -> Diagnosis:
     """Diagnose a calibration on its capture set's held-out patterns.
 
     ``source`` names the calibration in the report (its folder); ``format`` is the document's (tag, version).
