@@ -31,7 +31,8 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
         scene = context.scene
         cal = paths.resolve(scene.procam_calibration_dir, "calibration folder")
         out = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder")
-        options = diagnose_step.DiagnoseOptions(cal, out, force=scene.procam_replace_outputs)
+        options = diagnose_step.DiagnoseOptions(cal, out, max_effects=scene.procam_max_effects,
+                                                force=scene.procam_replace_outputs)
         return jobs.Job("diagnosis", diagnose_step.run, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:

@@ -32,6 +32,7 @@ SIDEBAR_NAMES = {
     "--surface-mesh": "‘Surface Mesh’",
     "--depth-offset": "‘Depth Offset’",
     "--no-bias": "‘Bias θ’",
+    "--max-effects": "‘Max Effects’",
 }
 
 #: An operator dialog's own "Replace" box (the sidebar's is ‘Replace Results’).

@@ -4,6 +4,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
+from ..addon.gap.fit import MAX_EFFECTS
 from ..addon.stages.compensate import DEFAULT_SCHEDULE
 
 
@@ -92,4 +93,8 @@ def scene_properties() -> dict[str, object]:
             name="Results", subtype="DIR_PATH", description="Compensation folder: projector inputs and frames"),
         "procam_diagnosis_dir": StringProperty(
             name="Diagnosis", subtype="DIR_PATH", description="Diagnosis folder (gap.json and residual maps)"),
+        "procam_max_effects": IntProperty(
+            name="Max Effects", default=MAX_EFFECTS, min=1, soft_max=8,
+            description="Effects the diagnosis selects at most: rounds of its greedy selection, each slower than "
+                        "the last"),
     }

@@ -185,7 +185,8 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
                      "confidence": 0.7},
                     {"name": "response", "params": {}, "heldout_rmse_before": 0.03, "heldout_rmse_after": 0.02,
                      "confidence": 0.9}],
-        "selected": ["response"]}))
+        "selected": ["response"], "headline": "The projector is out of focus: compensate with --effects auto.",
+        "warnings": ["the selection stopped at its limit of 5 effects: --max-effects 6 would try it"]}))
     jobs.BOARD.clear()
     scene.procam_compensation_dir = str(comp)
     scene.procam_diagnosis_dir = str(gap)
@@ -197,6 +198,10 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
     diag = texts(drawn["PROCAM_PT_diagnose"])
     assert diag.index("response") < diag.index("vignetting")  # selected first
     assert "55% projector border" in diag and "residual" in diag
+    # the diagnosis's advice names the sidebar's fields, and the limit it names is a field of this panel
+    assert "‘Effect Models’" in diag and "‘Max Effects’" in diag
+    assert "--" not in diag
+    assert "procam_max_effects" in [c[1]["property"] for c in drawn["PROCAM_PT_diagnose"] if c[0] == "prop"]
     opens = [c[1] for c in drawn["PROCAM_PT_diagnose"] if c[0] == "operator" and c[1]["operator"] == "procam.show_text"]
     assert len(opens) == 1
     assert bpy.ops.procam.show_text(filepath=str(gap / "summary.md"), name="ProCam diagnosis summary") == {"FINISHED"}
