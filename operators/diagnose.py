@@ -7,6 +7,7 @@ from ..addon.steps import diagnose as diagnose_step
 from ..addon.steps.layout import CALIBRATION
 from . import paths
 from .job_operator import JobOperator
+from .messages import DIAGNOSE_FIELDS
 
 
 class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
@@ -17,7 +18,7 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
     bl_label = "Diagnose"
     bl_options = {"REGISTER", "UNDO"}
     step = "diagnose"
-    option_names = {"--out": "‘Diagnosis’ folder"}
+    option_names = DIAGNOSE_FIELDS
 
     @classmethod
     def why_not(cls, scene: bpy.types.Scene) -> str | None:
@@ -31,7 +32,8 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
         scene = context.scene
         cal = paths.resolve(scene.procam_calibration_dir, "calibration folder")
         out = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder")
-        options = diagnose_step.DiagnoseOptions(cal, out, max_effects=scene.procam_max_effects,
+        options = diagnose_step.DiagnoseOptions(cal, out, scale=scene.procam_diagnosis_scale,
+                                                max_effects=scene.procam_max_effects,
                                                 force=scene.procam_replace_outputs)
         return jobs.Job("diagnosis", diagnose_step.run, options)
 

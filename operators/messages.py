@@ -37,6 +37,8 @@ SIDEBAR_NAMES = {
 
 #: An operator dialog's own "Replace" box (the sidebar's is ‘Replace Results’).
 REPLACE_BOX = {"--force": "‘Replace’"}
+#: The Diagnose panel's fields (``--scale`` means another scale to other commands: the lab's, the demo's).
+DIAGNOSE_FIELDS = {"--out": "‘Diagnosis’ folder", "--scale": "‘Working Scale’"}
 
 _OPTION = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 #: The Python API's keyword beside an option ("--force (force=True)"): the sidebar's field stands for both.

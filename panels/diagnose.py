@@ -4,7 +4,7 @@ import bpy
 
 from ..addon.steps import diagnose as diagnose_step
 from ..addon.steps.summary import fmt as _num
-from ..operators.messages import sidebar_text
+from ..operators.messages import DIAGNOSE_FIELDS, sidebar_text
 from .step_state import draw_state, wrapped
 
 
@@ -22,12 +22,14 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         layout.prop(scene, "procam_diagnosis_dir", text="")
         summary = diagnose_step.summary(bpy.path.abspath(scene.procam_diagnosis_dir))
         done = draw_state(layout, "diagnose", summary)
-        layout.prop(scene, "procam_max_effects")
+        row = layout.row(align=True)
+        row.prop(scene, "procam_diagnosis_scale")
+        row.prop(scene, "procam_max_effects")
         layout.operator("procam.diagnose", icon="VIEWZOOM")
         if not done:
             return
         for note in summary.data["notes"]:  # the diagnosis's advice names the command's options
-            wrapped(layout.box(), sidebar_text(note), icon="INFO")
+            wrapped(layout.box(), sidebar_text(note, DIAGNOSE_FIELDS), icon="INFO")
         selected = set(summary.data["selected"])
         box = layout.box()
         box.label(text="Effects (selected first, as the diagnosis ranks them):")

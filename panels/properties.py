@@ -93,6 +93,10 @@ def scene_properties() -> dict[str, object]:
             name="Results", subtype="DIR_PATH", description="Compensation folder: projector inputs and frames"),
         "procam_diagnosis_dir": StringProperty(
             name="Diagnosis", subtype="DIR_PATH", description="Diagnosis folder (gap.json and residual maps)"),
+        "procam_diagnosis_scale": FloatProperty(
+            name="Working Scale", default=0.5, min=0.05, max=1.0,
+            description="The diagnosis's working resolution as a share of the camera image: 1 sees a projector blur "
+                        "of about a texel that 0.5 can miss (slower)"),
         "procam_max_effects": IntProperty(
             name="Max Effects", default=MAX_EFFECTS, min=1, soft_max=8,
             description="Effects the diagnosis selects at most: rounds of its greedy selection, each slower than "

@@ -186,7 +186,8 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
                     {"name": "response", "params": {}, "heldout_rmse_before": 0.03, "heldout_rmse_after": 0.02,
                      "confidence": 0.9}],
         "selected": ["response"], "headline": "The projector is out of focus: compensate with --effects auto.",
-        "warnings": ["the selection stopped at its limit of 5 effects: --max-effects 6 would try it"]}))
+        "warnings": ["the selection stopped at its limit of 5 effects: --max-effects 6 would try it",
+                     "a blur of about a texel can go unseen; --scale 0.9 looks at 2.0 texels a pixel"]}))
     jobs.BOARD.clear()
     scene.procam_compensation_dir = str(comp)
     scene.procam_diagnosis_dir = str(gap)
@@ -199,9 +200,10 @@ def test_panels_draw_running_failed_and_done_states(registered, tmp_path):
     assert diag.index("response") < diag.index("vignetting")  # selected first
     assert "55% projector border" in diag and "residual" in diag
     # the diagnosis's advice names the sidebar's fields, and the limit it names is a field of this panel
-    assert "‘Effect Models’" in diag and "‘Max Effects’" in diag
+    assert "‘Effect Models’" in diag and "‘Max Effects’" in diag and "‘Working Scale’" in diag
     assert "--" not in diag
-    assert "procam_max_effects" in [c[1]["property"] for c in drawn["PROCAM_PT_diagnose"] if c[0] == "prop"]
+    fields = [c[1]["property"] for c in drawn["PROCAM_PT_diagnose"] if c[0] == "prop"]
+    assert "procam_max_effects" in fields and "procam_diagnosis_scale" in fields
     opens = [c[1] for c in drawn["PROCAM_PT_diagnose"] if c[0] == "operator" and c[1]["operator"] == "procam.show_text"]
     assert len(opens) == 1
     assert bpy.ops.procam.show_text(filepath=str(gap / "summary.md"), name="ProCam diagnosis summary") == {"FINISHED"}
@@ -301,7 +303,7 @@ def test_live_panel_draws_placement_check_report_and_session(registered, tmp_pat
 def test_step_messages_name_the_sidebar_fields_not_the_command_options():
     """The steps' messages are the command's ("rerun with --force"); the sidebar reports them by its fields, and
     every field a message may name is one the sidebar has."""
-    from procam.operators.messages import SIDEBAR_NAMES, sidebar_text
+    from procam.operators.messages import DIAGNOSE_FIELDS, SIDEBAR_NAMES, sidebar_text
     from procam.panels.properties import scene_properties
 
     assert sidebar_text("x already holds a calibration; it is never overwritten without --force (force=True)") == \
@@ -310,5 +312,5 @@ def test_step_messages_name_the_sidebar_fields_not_the_command_options():
     assert sidebar_text("give --workers N") == "give --workers (an option of the procam command) N"
     assert sidebar_text("a--b and --force-ish stay") == "a--b and --force-ish (an option of the procam command) stay"
     labels = {getattr(p, "keywords", {}).get("name") for p in scene_properties().values()}
-    for option, text in SIDEBAR_NAMES.items():
+    for option, text in [*SIDEBAR_NAMES.items(), *DIAGNOSE_FIELDS.items()]:
         assert option == "--out" or text.strip("‘’") in labels, (option, text)
