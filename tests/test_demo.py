@@ -34,6 +34,12 @@ def test_demo_writes_every_folder_and_compensation_helps(demo, capsys):
     # and the summary carries its warnings (a selection at its limit, a blur too fine for the working scale)
     gap = json.loads((demo / "diagnosis" / "gap.json").read_text())
     assert summary["diagnosis"]["warnings"] == gap["warnings"]
+    # the loop closed: the same targets compensated again with the effects the diagnosis says compensation inverts
+    fx = summary["with_effects"]
+    assert fx["effects"] == summary["diagnosis"]["compensation"] and fx["effects"]
+    again = json.loads((demo / "compensation-effects" / "compensation.json").read_text())
+    assert sorted(again["effects"]["used"]) == sorted(fx["effects"])
+    assert fx["mean"]["psnr"] > fx["mean"]["uncompensated_psnr"] + 3.0 and (demo / "evaluation-effects").is_dir()
 
 
 def test_evaluate_accepts_the_demos_folders(demo, tmp_path):

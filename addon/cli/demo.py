@@ -74,6 +74,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"    warning: {w}")
     for k, r in enumerate(g["regions"]):
         print(f"    region {k + 1} ({r.get('cause', '?')}): {r['share']:.0%} of the error, {r['description']}")
+    fx = summary.get("with_effects")
+    if fx:
+        print(f"  compensated again with {', '.join(fx['effects'])} inverted (--effects auto): PSNR "
+              f"{m['psnr']:.2f} → {fx['mean']['psnr']:.2f} dB, SSIM {m['ssim']:.3f} → {fx['mean']['ssim']:.3f} "
+              f"({args.out}/evaluation-effects/)")
     print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())
           + f", total {summary['seconds_total']}")
     return 0

@@ -1,4 +1,5 @@
-"""The built-in demo end to end, made of the real steps: lab → calibrate → compensate → evaluate → diagnose.
+"""The built-in demo end to end, made of the real steps: lab → calibrate → compensate → evaluate → diagnose →
+compensate and evaluate again with the effects the diagnosis found.
 
 Every stage of the demo is the step a user would run, writing the folder that
 step writes, in place under the demo folder, so that ``procam evaluate``,
@@ -13,6 +14,9 @@ any other:
 ``compensation/``                   stage C, closed loop through the lab
 ``evaluation/``                     each input projected in the lab, PSNR/SSIM next to the uncompensated target
 ``diagnosis/``                      the sim-to-real diagnosis of the calibration (the lab truth is not read)
+``compensation-effects/``,          the loop closed: the targets compensated again with the effects the diagnosis
+``evaluation-effects/``             says compensation can invert (``--effects auto``), and evaluated (when it
+                                    names any)
 ``summary.json``                    the figures the demo prints
 
 Default: half resolution (camera 320×240, projector 400×300) so it runs in minutes on 2 cores; ``full`` uses
@@ -42,8 +46,8 @@ from .stage_c import StageCOptions
 
 KIND = layout.DEMO
 #: The demo's stages and their share of its running time, for progress.
-PLAN = (("lab", 0.15), ("calibrate", 0.05), ("cross-check", 0.02), ("compensate", 0.3), ("evaluate", 0.08),
-        ("diagnose", 0.4))
+PLAN = (("lab", 0.13), ("calibrate", 0.05), ("cross-check", 0.02), ("compensate", 0.2), ("evaluate", 0.05),
+        ("diagnose", 0.4), ("with effects", 0.15))
 
 
 @dataclass(frozen=True)
@@ -141,13 +145,7 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         metrics = evaluate.run(evaluate.EvaluateOptions(out / "calibration", out / "compensation", targets, device,
                                                         out / "evaluation"), spans["evaluate"], cancel)
         seconds["evaluate"] = time.perf_counter() - t0
-        rows = [{"name": t["name"], "psnr": t["psnr"], "ssim": t["ssim"],
-                 "uncompensated_psnr": t["uncompensated"]["psnr"], "uncompensated_ssim": t["uncompensated"]["ssim"],
-                 "seconds": next(c.seconds for c in view.targets if c.name == t["name"]), "mode": t["mode"]}
-                for t in metrics["targets"] if t.get("status") == "done"]
-        summary["compensation"] = {"area": view.doc.get("area"), "targets": rows,
-                                   "mean": {k: float(np.mean([r[k] for r in rows]))
-                                            for k in ("psnr", "ssim", "uncompensated_psnr", "uncompensated_ssim")}}
+        summary["compensation"] = {"area": view.doc.get("area"), **_measured(view, metrics)}
 
         t0 = time.perf_counter()
         # 192×144 working images, as scripts/bench_diagnosis.py measured the diagnosis.
@@ -159,8 +157,32 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
                                 "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
                                 "regions": gap["regions"][:3], "warnings": gap.get("warnings", [])}
         seconds["diagnose"] = time.perf_counter() - t0
+
+        if gap["compensation"]["effects"]:
+            # The loop closed: what inverting the effects the diagnosis found buys on the same targets.
+            t0 = time.perf_counter()
+            fx = part(spans["with effects"], 0.0, 0.8)
+            view = compensate.run(compensate.CompensateOptions(
+                out / "calibration", targets, out / "compensation-effects",
+                StageCOptions(schedule=options.schedule, iterations=options.iterations, seed=options.seed,
+                              device=device, effects="auto", diagnosis=out / "diagnosis")), fx, cancel)
+            metrics = evaluate.run(evaluate.EvaluateOptions(out / "calibration", out / "compensation-effects",
+                                                            targets, device, out / "evaluation-effects"),
+                                   part(spans["with effects"], 0.8, 1.0), cancel)
+            summary["with_effects"] = {"effects": gap["compensation"]["effects"], **_measured(view, metrics)}
+            seconds["with_effects"] = time.perf_counter() - t0
         summary["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
         summary["seconds_total"] = round(time.perf_counter() - t_start, 1)
         write_manifest(out / KIND.manifest, summary)
     say("done", 1.0)
     return summary
+
+
+def _measured(view: Any, metrics: dict[str, Any]) -> dict[str, Any]:
+    """Per target and on average: PSNR and SSIM of the evaluation, uncompensated and compensated."""
+    rows = [{"name": t["name"], "psnr": t["psnr"], "ssim": t["ssim"],
+             "uncompensated_psnr": t["uncompensated"]["psnr"], "uncompensated_ssim": t["uncompensated"]["ssim"],
+             "seconds": next(c.seconds for c in view.targets if c.name == t["name"]), "mode": t["mode"]}
+            for t in metrics["targets"] if t.get("status") == "done"]
+    return {"targets": rows, "mean": {k: float(np.mean([r[k] for r in rows]))
+                                      for k in ("psnr", "ssim", "uncompensated_psnr", "uncompensated_ssim")}}
