@@ -218,6 +218,9 @@ class Composite:
         return sub
 
     def _per_pattern(self, cache: dict, key: Any, obs: Observation, make: Any) -> np.ndarray:
+        """``make()`` for this pattern, remembered in ``cache`` under ``key`` (None: made every time)."""
+        if key is None:
+            return make()
         per = _recent(cache, key, dict)
         out = per.get(id(obs))
         if out is None:
@@ -241,7 +244,7 @@ class Composite:
                 (obs.sampled, obs.averaged)
             return plain + sample_input(x, corr, d.footprint) - averaged
 
-        return make() if corr is not d.corr else self._per_pattern(self._inputs, sigma, obs, make)
+        return self._per_pattern(self._inputs, sigma if corr is d.corr else None, obs, make)
 
     def _tone(self, a: np.ndarray, obs: Observation, r: np.ndarray, sigma: float | None) -> np.ndarray:
         """:func:`projector_tone` of the pattern's input ``a`` (from :meth:`_input_at` with a blur of ``sigma``);
@@ -249,7 +252,7 @@ class Composite:
         def make() -> np.ndarray:
             return projector_tone(a, r[:3], float(r[3]), float(r[4]))
 
-        return make() if sigma is None else self._per_pattern(self._tones, (sigma, *map(float, r)), obs, make)
+        return self._per_pattern(self._tones, None if sigma is None else (sigma, *map(float, r)), obs, make)
 
     def _light_scale(self, curve: float) -> np.ndarray:
         return _recent(self._scales, curve, lambda: light_scale(self.data.gain, curve))

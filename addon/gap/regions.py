@@ -221,7 +221,7 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
         if remainder_cause in local:
             rest = parts_of(np.where(taken, 0.0, local[remainder_cause][0]))
             sels += [q for q in (p & ~taken for p in rest) if int(q.sum()) >= min_px]
-        named: list[tuple[np.ndarray, str]] = []
+        named: list[tuple[np.ndarray, str, float]] = []
         for sel in sels:
             part = {c: float(e[sel].sum()) for c, (_, e) in local.items()}
             here = sum(part.values())
@@ -233,10 +233,9 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
             cause = max(part, key=part.get)
             if modelled and (cause != UNEXPLAINED):
                 cause = max(modelled, key=modelled.get)
-            named.append((sel, cause))
-        for sel, cause in _one_finding_per_effect(named, lambda q: sum(float(e[q].sum()) for _, e in local.values())):
+            named.append((sel, cause, here))
+        for sel, cause, here in _one_finding_per_effect(named):
             part = {c: float(e[sel].sum()) for c, (_, e) in local.items()}
-            here = sum(part.values())
             others = [f"{c} {v / here:.0%}" for c, v in sorted(part.items(), key=lambda kv: -kv[1]) if v >= 0.1 * here]
             n = int((cv2.connectedComponentsWithStats(sel.astype(np.uint8), connectivity=8)[2][1:, 4] >= min_px).sum())
             regions.append(region(sel, here / total, cause, (f", in {n} places" if n > 1 else "")
@@ -249,22 +248,25 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
     return regions[:MAX_REGIONS]
 
 
-def _one_finding_per_effect(named: list[tuple[np.ndarray, str]], error: Any) -> list[tuple[np.ndarray, str]]:
-    """Places named by one modelled effect that hold comparable error (each at least :data:`SAME_FINDING` of its
-    largest's), joined into one: light bouncing between the curve's folds lands in two bands, and the hedge's
-    highlight falls on both planes; each is one thing to act on, and as separate places neither held half of it.
-    The remainder's places are left apart: what no model explains need not be one cause."""
-    out: list[tuple[np.ndarray, str]] = []
+def _one_finding_per_effect(named: list[tuple[np.ndarray, str, float]]) -> list[tuple[np.ndarray, str, float]]:
+    """Places (mask, cause, error there) named by one modelled effect that hold comparable error (each at least
+    :data:`SAME_FINDING` of its largest's), joined into one: light bouncing between the curve's folds lands in two
+    bands, and the hedge's highlight falls on both planes; each is one thing to act on, and as separate places
+    neither held half of it. The remainder's places are left apart: what no model explains need not be one cause.
+    (The places are disjoint, so a joined place's error is the sum of its parts'.)"""
+    out: list[tuple[np.ndarray, str, float]] = []
     joined: set[str] = set()
-    for sel, cause in named:
+    for place in named:
+        cause = place[1]
         if cause not in MODELS:
-            out.append((sel, cause))
+            out.append(place)
         elif cause not in joined:
             joined.add(cause)
-            mine = sorted((q for q, c in named if c == cause), key=lambda q: -error(q))
-            top = error(mine[0])
-            out.append((np.logical_or.reduce([q for q in mine if error(q) >= SAME_FINDING * top]), cause))
-            out += [(q, cause) for q in mine if error(q) < SAME_FINDING * top]
+            mine = [q for q in named if q[1] == cause]
+            top = max(q[2] for q in mine)
+            same = [q for q in mine if q[2] >= SAME_FINDING * top]
+            out.append((np.logical_or.reduce([q[0] for q in same]), cause, sum(q[2] for q in same)))
+            out += [q for q in mine if q[2] < SAME_FINDING * top]
     return out
 
 
