@@ -72,6 +72,12 @@ def main(root: Path = REAL) -> int:
     print(f"            published {_k(pub['cam_int'])}")
     print(f"camera dist ours      {cal.camera_distortion}  ({cal.camera_model})")
     print(f"            published {pub['cam_dist'].ravel()}")
+    ys, xs = np.mgrid[0:cal.camera_size[1], 0:cal.camera_size[0]]
+    seen = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64).reshape(-1, 1, 2)
+    moved = np.linalg.norm(cv2.undistortPoints(seen, cal.camera_matrix, cal.camera_distortion, P=cal.camera_matrix)
+                           .reshape(-1, 2) - seen.reshape(-1, 2), axis=1)
+    print(f"            takes each camera pixel {np.median(moved):.2f} px (median), up to {moved.max():.2f} px, "
+          "to where a pinhole puts it (what import --rig, and a live camera after it, undo)")
     half = pub["proj_int"].copy()
     half[:2] /= 2
     print(f"proj K      ours      {_k(cal.projector_matrix)}")

@@ -62,6 +62,26 @@ def test_a_saturated_white_capture_is_reported(calibrated, tmp_path, capsys):
     assert "shorter exposure" in cal.warnings[0]
 
 
+def test_the_calibration_keeps_the_camera_lens_its_photographs_lost(calibrated, tmp_path):
+    """A capture set imported with a rig file records the camera lens taken out of its photographs; its
+    calibration keeps that record, so a live camera's frames go through the same lens even where the capture set
+    is no longer beside the calibration (tests/test_capture.py: test_a_live_camera_sees_through_…)."""
+    from procam.addon.steps.stage_c import camera_lens_of
+
+    captures, _, _, _ = calibrated
+    mine = tmp_path / "set"
+    shutil.copytree(captures, mine)
+    doc = json.loads((mine / "capture.json").read_text())
+    cam = CaptureSet.load(mine, verify_images=False).camera.intrinsics
+    doc["camera_lens_removed"] = {"camera": cam.to_dict(), "distortion": [-0.1, 0.02, 0, 0, 0], "source": "rig"}
+    (mine / "capture.json").write_text(json.dumps(doc))
+    assert main(["calibrate", str(mine), "--out", str(tmp_path / "cal"), "--stages", "surface",
+                 "--no-blend-output"]) == 0
+    shutil.rmtree(mine)
+    lens = camera_lens_of(read_calibration(tmp_path / "cal", complete=False))
+    assert lens is not None and np.allclose(lens.distortion, [-0.1, 0.02, 0, 0, 0]) and lens.camera == cam
+
+
 def test_an_albedo_brighter_than_the_simulated_irradiance_is_not_clipped(calibrated, tmp_path):
     """Read in camera units the albedo exceeds 1 where the camera is brighter than the simulation (a gain, a tone
     curve): it is kept, so the model is not too dark there; a spike far above the surface's brightest is capped."""

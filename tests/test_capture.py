@@ -13,6 +13,7 @@ import pytest
 
 from procam.addon.capture import patterns
 from procam.addon.capture.devices import (Device, FolderDevice, capture_sequence, export_sequence, import_captures,
+                                          removed_lens,
                                           load_sequence)
 from procam.addon.capture.format import CaptureSet, DepthInfo, linear_to_srgb, srgb_to_linear
 from procam.addon.capture.patterns import (calibration_sequence, checkerboard, decode_gray_code,
@@ -642,9 +643,62 @@ def test_import_with_a_rig_file(tmp_path, capsys):
                                                        small_projector().camera_from_projector)
     assert np.array_equal(sq.image("white"), plain.image("white"))  # no distortion: the photographs as they were
     capsys.readouterr()
+    # The lens taken out is recorded, for a live camera's frames later (test_a_live_camera_sees_through_…).
+    assert np.allclose(removed_lens(cs).distortion, [-0.2, 0, 0, 0, 0]) and removed_lens(plain) is None
+    assert removed_lens(cs).camera.size == CAM and removed_lens(sq) is not None
     # A rig of another projector or camera resolution is refused, naming the file; nothing is written.
     for name, cam, frame, message in (("p.json", CAM, (160, 120), "calibrates a 160×120 projector"),
                                       ("c.json", (128, 96), FRAME, "camera resolution is 128×96")):
         bad = _rig_file(tmp_path / name, cam, frame, np.zeros(5))
         assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "bad"), "--rig", str(bad)]) == 2
         assert message in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypatch):
+    """Photographs imported with a rig file lose the camera's lens distortion, and their calibration lives in that
+    pinhole camera; a live camera still delivers the lens's image. Stage C and evaluation put its frames through
+    the same lens (recorded by the capture set and by the calibration), and refuse a set that says a lens was
+    taken out without recording which, before the projector window opens, rather than compare them silently."""
+    from types import SimpleNamespace
+
+    from procam.addon.capture.devices import LensRemovedDevice, RigLens
+    from procam.addon.steps import stage_c
+
+    seq = export_sequence(small_projector(), tmp_path / "seq", checker_size=10, graycode=False)
+    caps = shoot_folder(seq, tmp_path / "photos")
+    rig = _rig_file(tmp_path / "rig.json", CAM, FRAME, [-0.2, 0.05, 0.0, 0.0, 0.0])
+    assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "set"), "--rig", str(rig)]) == 0
+    lens = removed_lens(CaptureSet.load(tmp_path / "set"))
+    rng = np.random.default_rng(0)
+    raw = rng.uniform(0.0, 1.0, (CAM[1], CAM[0], 3)).astype(np.float32)
+
+    class Camera_(Device):
+        opened = 0
+
+        def __init__(self, spec, projector, progress=None):
+            Camera_.opened += 1
+            self.projector, self.camera_size = projector, CAM
+
+        def project(self, frame):
+            return raw
+
+    monkeypatch.setattr(stage_c, "LiveDevice", Camera_)
+    spec, proj = "live:camera=0,display=0", small_projector()
+    # From the capture set (a calibration made before calibrations recorded it) and from the calibration alone.
+    for report, where in (({}, tmp_path / "set"), ({"camera_lens_removed": lens.to_dict()}, tmp_path / "moved")):
+        device = stage_c.open_device(spec, proj, calibration=SimpleNamespace(report=report, capture_dir=str(where)))
+        assert isinstance(device, LensRemovedDevice) and device.camera_size == CAM
+        seen = device.project(np.zeros((FRAME[1], FRAME[0], 3), np.float32))
+        np.testing.assert_array_equal(seen, lens.image(raw))
+        assert np.abs(seen - raw).max() > 0.1  # the lens really moves the image
+    plain = stage_c.open_device(spec, proj, calibration=SimpleNamespace(report={}, capture_dir=str(tmp_path / "x")))
+    assert not isinstance(plain, LensRemovedDevice)
+    assert RigLens.from_dict(lens.to_dict()).to_dict() == lens.to_dict()
+    # A set whose notes say a lens was taken out but which does not record it (an earlier ProCam) is refused.
+    doc = json.loads((tmp_path / "set" / "capture.json").read_text())
+    del doc["camera_lens_removed"]
+    (tmp_path / "set" / "capture.json").write_text(json.dumps(doc))
+    opened = Camera_.opened
+    with pytest.raises(CaptureError, match="import the photographs again with --rig"):
+        stage_c.open_device(spec, proj, calibration=SimpleNamespace(report={}, capture_dir=str(tmp_path / "set")))
+    assert Camera_.opened == opened

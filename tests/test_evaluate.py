@@ -163,7 +163,8 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(evaluate_step, "open_device", lambda spec, projector=None: Flaky(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(evaluate_step, "open_device",
+                        lambda spec, projector=None, **_: Flaky(LabTruth.load(env.truth_path)))
     out = env.root / "eval_flaky"
     assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
     assert "camera is" in capsys.readouterr().err
@@ -194,7 +195,7 @@ def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
             self.inner.close()
 
     monkeypatch.setattr(evaluate_step, "open_device",
-                        lambda spec, projector=None: Replay(LabTruth.load(env.truth_path)))
+                        lambda spec, projector=None, **_: Replay(LabTruth.load(env.truth_path)))
     out = env.root / "eval_replay"
     assert _evaluate(env, out, env.targets / "a.png") == 0
     doc = json.loads((out / "metrics.json").read_text())

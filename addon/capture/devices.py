@@ -424,6 +424,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     shots: list[Shot] = []
     kept: dict[str, np.ndarray] = {}  # the first white, black and surface photographs, for the depth's alignment
     with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes, force=force,
+                          camera_lens=None if undistort is None else undistort.to_dict(),
                           **status) as writer:
         for i, (frame, path) in enumerate(zip(seq.frames, files)):
             say(f"importing {path.name}", i / len(files))
@@ -525,8 +526,9 @@ class FolderDevice(Device):
         return super().capture_off()
 
 
-__all__ = ["Device", "FolderDevice", "SequenceInfo", "capture_sequence", "check_complete", "check_orientations",
-           "export_sequence", "import_captures", "list_captures", "load_sequence", "stored_bit_depth"]
+__all__ = ["Device", "FolderDevice", "LensRemovedDevice", "RigLens", "SequenceInfo", "capture_sequence",
+           "check_complete", "check_orientations", "export_sequence", "import_captures", "list_captures",
+           "load_sequence", "removed_lens", "stored_bit_depth"]
 
 
 @dataclass(frozen=True)
@@ -557,3 +559,51 @@ class RigLens:
         out = cv2.remap(a, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return out.reshape(a.shape)
+
+    def to_dict(self) -> dict[str, Any]:
+        """As a capture set records it (``camera_lens_removed``)."""
+        return {"camera": self.camera.to_dict(), "distortion": [float(v) for v in np.ravel(self.distortion)],
+                "source": self.source}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "RigLens":
+        return RigLens(Intrinsics.from_dict(d["camera"]), np.asarray(d["distortion"], np.float64), str(d["source"]))
+
+
+def removed_lens(captures: CaptureSet) -> RigLens | None:
+    """The calibrated camera lens import took out of ``captures``' photographs (None: it took none out).
+
+    A capture set made by an earlier ProCam says in its notes that a lens was taken out but does not record
+    which: a live camera's frames could then not be put through the same, and are refused."""
+    if captures.camera_lens is not None:
+        return RigLens.from_dict(captures.camera_lens)
+    if "lens distortion removed" in str(captures.notes.get("camera", "")):
+        raise CaptureError(f"the photographs of {captures.path} had the camera's lens distortion taken out at "
+                           "import, but the capture set does not record that lens (made by an earlier ProCam), so a "
+                           "live camera's frames cannot be undistorted the same way; import the photographs again "
+                           "with --rig, then calibrate")
+    return None
+
+
+class LensRemovedDevice(Device):
+    """A device whose camera images go through the lens import took out of the calibration's photographs.
+
+    A capture set imported with a rig file (``import-captures --rig``, ``capture --rig``) holds photographs with
+    the camera's lens distortion taken out, and its calibration lives in that pinhole camera; a live camera still
+    delivers the lens's image, which would sit up to the lens's displacement off the calibration, silently."""
+
+    def __init__(self, device: Device, lens: RigLens) -> None:
+        self.device, self.lens = device, lens
+        self.projector = device.projector
+
+    def __getattr__(self, name: str) -> Any:  # the live device's report, camera_size, …
+        return getattr(self.device, name)
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        return self.lens.image(self.device.project(frame))
+
+    def capture_off(self) -> np.ndarray:
+        return self.lens.image(self.device.capture_off())
+
+    def close(self) -> None:
+        self.device.close()

@@ -18,6 +18,8 @@ or the virtual lab produces, and what calibration reads. Layout::
                "native_size": [256, 192], "units": "metres", "missing": 0} | null,
      "target_area": [x, y, width, height] | null,   # camera pixels, corner convention
      "notes": {...},                                 # free-form provenance
+     "camera_lens_removed": {"camera": Intrinsics.to_dict(), "distortion": [k1, k2, p1, p2, k3],
+                             "source": "..."},      # only when import took a calibrated lens out
      "images": [{"file": "images/0003_checker_p0.png", "kind": "checker", "name": "checker_p0",
                  "pattern": "patterns/0003_checker_p0.png",
                  "params": {"square": 50, "phase": 0, "area": "input"}}, ...]}
@@ -37,6 +39,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -152,6 +155,20 @@ def _check_params(kind: str, params: dict[str, Any], where: str) -> None:
         raise CaptureError(f"{where}: pattern area must be 'input' or 'frame', got {area!r}")
 
 
+def _lens_removed(value: Any, where: str) -> dict[str, Any] | None:
+    """The ``camera_lens_removed`` entry, checked: a camera's intrinsics and OpenCV's 4 to 8 distortion terms."""
+    if value is None:
+        return None
+    try:
+        Intrinsics.from_dict(value["camera"])
+        terms = [float(v) for v in value["distortion"]]
+        if not 4 <= len(terms) <= 8 or not all(math.isfinite(v) for v in terms):
+            raise ValueError(f"{len(terms)} distortion terms, or one not finite")
+    except (KeyError, TypeError, ValueError, RigError) as exc:
+        raise CaptureError(f"{where}: invalid camera_lens_removed (the lens import took out): {exc}") from None
+    return {"camera": value["camera"], "distortion": terms, "source": str(value.get("source", ""))}
+
+
 def _inside(root: Path, rel: str, where: str) -> Path:
     """Resolve ``rel`` inside the set; refuse absolute paths and escapes so a set stays self-contained."""
     if not isinstance(rel, str) or not rel or Path(rel).is_absolute() or ".." in Path(rel).parts:
@@ -205,6 +222,9 @@ class CaptureSet:
     colour_space: str = "linear"
     notes: dict[str, Any] = field(default_factory=dict)
     version: int = VERSION
+    #: the calibrated camera lens import took out of every photograph (``RigLens.to_dict``), None when it took
+    #: none: a live camera's frames must go through the same before they meet this set's calibration
+    camera_lens: dict[str, Any] | None = None
 
     # -- loading ---------------------------------------------------------------------------------
 
@@ -301,7 +321,8 @@ class CaptureSet:
             entries.append(Entry(rel, kind, str(name), dict(params), pattern))
         return CaptureSet(root, camera, projector, entries, depth_info, target_area,
                           str(doc.get("camera_status", "nominal")), str(doc.get("projector_status", "nominal")),
-                          bool(doc.get("projector_pose_known", False)), colour, dict(doc.get("notes") or {}), version)
+                          bool(doc.get("projector_pose_known", False)), colour, dict(doc.get("notes") or {}), version,
+                          _lens_removed(doc.get("camera_lens_removed"), where))
 
     def verify(self) -> None:
         """Decode every file once: exists, readable, complete, right size, sane depth."""
@@ -411,6 +432,7 @@ class CaptureSet:
                 "depth": self.depth_info.to_dict() if self.depth_info else None,
                 "target_area": list(self.target_area) if self.target_area else None,
                 "notes": jsonable(self.notes),
+                **({"camera_lens_removed": jsonable(self.camera_lens)} if self.camera_lens else {}),
                 "images": [e.to_dict() for e in self.entries]}
 
     @staticmethod
@@ -451,7 +473,7 @@ class CaptureSetWriter:
                  depth_info: DepthInfo | None = None, target_area: tuple[int, int, int, int] | None = None,
                  camera_status: str = "nominal", projector_status: str = "nominal",
                  projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
-                 force: bool = False) -> None:
+                 camera_lens: dict[str, Any] | None = None, force: bool = False) -> None:
         self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, error=CaptureError)
         self.path = Path(path)
         self.camera, self.projector = camera, projector
@@ -460,6 +482,7 @@ class CaptureSetWriter:
         self.camera_status, self.projector_status = camera_status, projector_status
         self.projector_pose_known = projector_pose_known
         self.notes = dict(notes or {})
+        self.camera_lens = camera_lens
         self.entries: list[Entry] = []
         self._names: set[str] = set()
         self._patterns: dict[str, str] = {}  # content hash → file, so a frame shown twice is stored once
@@ -552,7 +575,7 @@ class CaptureSetWriter:
     def to_dict(self) -> dict[str, Any]:
         return CaptureSet(self.path, self.camera, self.projector, self.entries, self.depth_info, self.target_area,
                           self.camera_status, self.projector_status, self.projector_pose_known, "linear",
-                          self.notes).to_dict()
+                          self.notes, camera_lens=self.camera_lens).to_dict()
 
     def commit(self) -> CaptureSet:
         """Write capture.json, check the new set loads cleanly, then move it into place."""

@@ -201,6 +201,10 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
                               if k in ("init", "surface_report", "pose", "projector_intrinsics")}
     saturated = white_saturation(captures)
     report["white_saturated_share"] = saturated
+    if captures.camera_lens is not None:
+        # The camera lens import took out of the photographs: a live camera's frames must go through it too
+        # (capture/devices.LensRemovedDevice), also where the capture set is no longer beside the calibration.
+        report["camera_lens_removed"] = captures.camera_lens
     if saturated > SATURATED_WARN_SHARE:
         report["warnings"] = [
             f"the white capture {captures.entry('white').file} is saturated on {saturated:.0%} of the lit area "

@@ -463,7 +463,7 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     owned = device is None
     try:
         if owned:
-            device = open_device(options.device, cal.rig.projector)
+            device = open_device(options.device, cal.rig.projector, calibration=cal)
             if device is None:
                 raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE, "
                                       "folder:CAPTURE_DIR or live:camera=…")

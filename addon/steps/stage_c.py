@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..capture.devices import Device, FolderDevice
+from ..capture.devices import Device, FolderDevice, LensRemovedDevice, RigLens, removed_lens
 from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.lab import LabDevice, LabTruth
@@ -128,16 +128,30 @@ def device_kind(spec: str) -> str:
     return kind
 
 
-def open_device(spec: str | None, projector: Projector | None = None, progress: Progress | None = None) -> Device | None:
+def camera_lens_of(calibration: Calibration) -> RigLens | None:
+    """The camera lens import took out of the photographs ``calibration`` was made from (None: none was): as the
+    calibration records it, else as its capture set does (calibrations made before they recorded it)."""
+    doc = calibration.report.get("camera_lens_removed")
+    if doc is not None:
+        return RigLens.from_dict(doc)
+    captures = calibrate_step.captures_of(calibration, required=False)
+    return None if captures is None else removed_lens(captures)
+
+
+def open_device(spec: str | None, projector: Projector | None = None, progress: Progress | None = None, *,
+                calibration: Calibration | None = None) -> Device | None:
     """A capture device from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed captures) or
-    ``live:…`` (the projector window and camera; ``projector`` gives the window its size)."""
+    ``live:…`` (the projector window and camera; ``projector`` gives the window its size). A live camera's frames
+    go through the lens that import took out of ``calibration``'s photographs, if it took one out."""
     if not spec:
         return None
     kind, where = device_kind(spec), spec.partition(":")[2]
     if kind == "live":
         if projector is None:
             raise CaptureError("a live device needs the calibrated projector to size its window")
-        return LiveDevice(spec, projector, progress=progress)
+        lens = None if calibration is None else camera_lens_of(calibration)  # refused before the window opens
+        device = LiveDevice(spec, projector, progress=progress)
+        return device if lens is None else LensRemovedDevice(device, lens)
     return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
 
 
@@ -181,7 +195,8 @@ class StageC:
             raise ProCamError("the compensator given was made with other bounces/spp/seed than the options'")
         self._owned = device is None
         self.device = device if device is not None else (
-            open_device(options.device, calibration.rig.projector, part(say, 0.0, 0.0, "live device: "))
+            open_device(options.device, calibration.rig.projector, part(say, 0.0, 0.0, "live device: "),
+                        calibration=calibration)
             if options.mode == "closed-loop" else None)
         try:
             say("loading the calibrated scene", 0.0)
