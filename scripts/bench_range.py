@@ -12,7 +12,8 @@ Prints, per target, the range ceiling (the target clipped per pixel to the
 captured [black, white]: what no input can beat), the noise ceiling (that
 clipped target as a capture scores it through the camera's noise, measured
 from two captures of each compensated input) and the PSNR reached, for both,
-and the show's gain and offset. ``--effects auto`` diagnoses the
+and the show's gain and offset, and where the error lies: how much of it is finer than 1.5 camera
+pixels, for the capture and for what stage C's own model predicted. ``--effects auto`` diagnoses the
 calibration first and compensates with the effects it selected around stage C.
 ``--work DIR`` keeps and reuses every folder.
 """
@@ -115,6 +116,41 @@ def main() -> None:
                   f"{row['mean_noise_ceiling'] - row['mean']['psnr']:.2f} dB below the noise ceiling, "
                   f"{row['mean_range_ceiling'] - row['mean']['psnr']:.2f} dB below the range ceiling; "
                   f"camera noise RMS {noise:.4f}; stage C's own prediction through that noise {predicted:.2f} dB")
+            fx = "-fx" if args.effects == "auto" else ""
+            print(f"  squared error ×1e-4 (of it finer than {FINE_PX} camera pixels), capture against target | "
+                  f"stage C's prediction against target | capture against prediction; the camera's noise:")
+            for t in done:
+                parts = error_scales(work / f"comp-{name}{fx}", work / f"eval-{name}{fx}", t)
+                print(f"  {t['name']}: " + " | ".join(f"{1e4 * whole:.2f} ({1e4 * fine:.2f})" for whole, fine in parts)
+                      + f"; {1e4 * t['capture_noise_rmse'] ** 2:.2f}")
+
+
+#: The scale (σ of a Gaussian, camera pixels) below which :func:`error_scales` calls an error fine: finer than the
+#: projector's lens passes much of at the lab's texels per pixel, and where the camera's noise lies.
+FINE_PX = 1.5
+
+
+def error_scales(comp: Path, ev: Path, row: dict) -> list[tuple[float, float]]:
+    """Mean squared error inside the display area, and its part finer than :data:`FINE_PX`, of the capture
+    against the target, of stage C's prediction against the target, and of the capture against the prediction."""
+    import cv2
+
+    from procam.addon.imageio import read_image
+
+    a, name = row["area"], row["name"]
+    inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
+
+    def area_of(path: Path) -> np.ndarray:
+        image = np.asarray(read_image(path), np.float32)
+        return image if image.shape[:2] == (a["height"], a["width"]) else image[inside]
+
+    capture, target = area_of(ev / f"{name}_capture.png"), area_of(comp / f"{name}_target.png")
+    simulated = area_of(comp / f"{name}_simulated.png")
+    out = []
+    for e in (capture - target, simulated - target, capture - simulated):
+        fine = e - cv2.GaussianBlur(e, (0, 0), FINE_PX)
+        out.append((float(np.mean(e ** 2)), float(np.mean(fine ** 2))))
+    return out
 
 
 if __name__ == "__main__":
