@@ -151,7 +151,11 @@ def open_device(spec: str | None, projector: Projector | None = None, progress: 
             raise CaptureError("a live device needs the calibrated projector to size its window")
         lens = None if calibration is None else camera_lens_of(calibration)  # refused before the window opens
         device = LiveDevice(spec, projector, progress=progress)
-        return device if lens is None else LensRemovedDevice(device, lens)
+        if lens is None:
+            return device
+        (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
+                            f"({lens.source})", 0.0)
+        return LensRemovedDevice(device, lens)
     return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
 
 
