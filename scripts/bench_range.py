@@ -125,8 +125,8 @@ def main() -> None:
                       + f"; {1e4 * t['capture_noise_rmse'] ** 2:.2f}")
 
 
-#: The scale (σ of a Gaussian, camera pixels) below which :func:`error_scales` calls an error fine: finer than the
-#: projector's lens passes much of at the lab's texels per pixel, and where the camera's noise lies.
+#: The scale (σ of a Gaussian, camera pixels) below which :func:`error_scales` calls an error fine: detail the lab
+#: projector's blurred lens passes little of (the plane's camera pixel spans 1.76 texels), and the camera's noise.
 FINE_PX = 1.5
 
 
