@@ -151,7 +151,9 @@ ACTIONS = {
     "glossy": "the surface is glossy{where}: a matte finish helps; compensate with --effects auto, which restores "
               "the light the white capture clipped in the highlight",
     "camera_response": "the camera applies a tone curve: shoot linear (raw), or compensate with --effects auto",
-    "distortion": "the camera's lens distorts the image: calibrate it with a printed board (procam calibrate-rig)",
+    "distortion": "the camera's lens distorts the image: calibrate it with a printed board (procam calibrate-rig), "
+                  "then import the photographs with that rig file, which takes the lens out of them and out of a "
+                  "live camera's frames (the warp and θ take up only part of it, least through a blurred projector)",
     "depth_noise": "the surface's depth is off: recapture the depth, or take the surface from the Gray code "
                    "(--surface-from graycode)",
 }
