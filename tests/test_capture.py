@@ -693,6 +693,13 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
         assert np.abs(seen - raw).max() > 0.1  # the lens really moves the image
     plain = stage_c.open_device(spec, proj, calibration=SimpleNamespace(report={}, capture_dir=str(tmp_path / "x")))
     assert not isinstance(plain, LensRemovedDevice)
+    # The lab's camera too (a lab set undistorted with undistort-captures); a replayed capture set is not.
+    monkeypatch.setattr(stage_c, "LabTruth", SimpleNamespace(load=lambda path: path))
+    monkeypatch.setattr(stage_c, "LabDevice", lambda truth: Camera_("lab", proj))
+    with_lens = SimpleNamespace(report={"camera_lens_removed": lens.to_dict()}, capture_dir="")
+    assert isinstance(stage_c.open_device("lab:t.json", proj, calibration=with_lens), LensRemovedDevice)
+    assert not isinstance(stage_c.open_device(f"folder:{tmp_path / 'set'}", proj, calibration=with_lens),
+                          LensRemovedDevice)
     assert RigLens.from_dict(lens.to_dict()).to_dict() == lens.to_dict()
     # A set whose notes say a lens was taken out but which does not record it (an earlier ProCam) is refused.
     doc = json.loads((tmp_path / "set" / "capture.json").read_text())
@@ -702,3 +709,33 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     with pytest.raises(CaptureError, match="import the photographs again with --rig"):
         stage_c.open_device(spec, proj, calibration=SimpleNamespace(report={}, capture_dir=str(tmp_path / "set")))
     assert Camera_.opened == opened
+
+
+def test_undistorting_a_set_later_gives_what_import_with_the_rig_gives(tmp_path, capsys):
+    """A capture set made before the camera was calibrated (or rendered by the lab) gets the board-calibrated lens
+    taken out afterwards (undistort-captures): the same images, camera and record as importing the photographs with
+    the rig file, the set's own projector kept; a set whose lens is already out, or a lens of another camera size,
+    is refused."""
+    seq = export_sequence(small_projector(), tmp_path / "seq", checker_size=10, graycode=False)
+    caps = shoot_folder(seq, tmp_path / "photos")
+    rig = _rig_file(tmp_path / "rig.json", CAM, FRAME, [-0.2, 0.05, 0.0, 0.0, 0.0])
+    plain = import_captures(seq, caps, None, None, tmp_path / "plain")
+    assert main(["import-captures", str(seq), str(caps), "--out", str(tmp_path / "at_import"), "--rig",
+                 str(rig)]) == 0
+    assert main(["undistort-captures", str(tmp_path / "plain"), "--rig", str(rig), "--out",
+                 str(tmp_path / "later")]) == 0
+    assert "taken out" in capsys.readouterr().out
+    at_import, later = CaptureSet.load(tmp_path / "at_import"), CaptureSet.load(tmp_path / "later")
+    assert later.camera == at_import.camera and later.projector.to_dict() == plain.projector.to_dict()
+    assert later.camera_lens["distortion"] == at_import.camera_lens["distortion"]
+    assert [e.kind for e in later] == [e.kind for e in plain]
+    for kind, params in (("white", {}), ("checker", {"phase": 0})):
+        np.testing.assert_allclose(later.image(kind, **params), at_import.image(kind, **params), atol=2 / 65535)
+        np.testing.assert_array_equal(later.pattern(kind, **params), plain.pattern(kind, **params))
+    assert main(["undistort-captures", str(tmp_path / "later"), "--rig", str(rig), "--out",
+                 str(tmp_path / "x")]) == 2
+    assert "already taken out" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    other = _rig_file(tmp_path / "other.json", (128, 96), FRAME, np.zeros(5))
+    assert main(["undistort-captures", str(tmp_path / "plain"), "--rig", str(other), "--out",
+                 str(tmp_path / "x")]) == 2
+    assert "calibrates a 128×96 camera" in capsys.readouterr().err

@@ -38,7 +38,7 @@ from ..rig.model import Camera, Intrinsics, Projector, intrinsics_from_fov
 from ..outputs import AtomicFolder
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
-from .format import CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
+from .format import CAMERA_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
 from .patterns import PatternSpec, calibration_sequence
 
 SEQUENCE_FORMAT = "procam-sequence"
@@ -459,6 +459,44 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     return CaptureSet.load(out_capture_dir, verify_images=False)
 
 
+def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *, force: bool = False,
+                       progress: Progress | None = None) -> CaptureSet:
+    """A new capture set: ``captures`` with the calibrated camera ``lens`` taken out of every camera image and
+    depth map, as ``import-captures --rig`` does at import, for a set captured (or rendered by the lab) before
+    the camera was calibrated. The camera becomes the lens's pinhole and the set records the lens, so a live
+    camera's frames go through it too; the projector, the patterns and the targets are kept as they are."""
+    say = progress or quiet
+    size = captures.camera.intrinsics.size
+    if captures.camera_lens is not None:
+        raise CaptureError(f"the camera's lens was already taken out of {captures.path} "
+                           f"({captures.camera_lens.get('source')}); undistort the set it was made from")
+    if lens.camera.size != size:
+        raise CaptureError(f"the lens is calibrated for a {lens.camera.size[0]}×{lens.camera.size[1]} camera, but "
+                           f"the capture set {captures.path} is {size[0]}×{size[1]}")
+    depth_info = captures.depth_info
+    if depth_info is not None:
+        depth_info = replace(depth_info, intrinsics=lens.pinhole.scaled(*depth_info.intrinsics.size))
+    notes = {**captures.notes, "camera": f"calibrated, lens distortion removed: {lens.source}",
+             "undistorted_from": str(Path(captures.path).resolve())}
+    with CaptureSetWriter(out, Camera(lens.pinhole), captures.projector, depth_info=depth_info,
+                          target_area=captures.target_area, camera_status="calibrated",
+                          projector_status=captures.projector_status,
+                          projector_pose_known=captures.projector_pose_known, notes=notes,
+                          camera_lens=lens.to_dict(), force=force) as writer:
+        for i, e in enumerate(captures.entries):
+            say(f"undistorting {e.name}", i / max(len(captures.entries), 1))
+            if e.kind == "depth":
+                writer.add_depth(lens.image(captures._read_depth(e), nearest=True), name=e.name,
+                                 suffix=Path(e.file).suffix, **e.params)
+                continue
+            image = captures._read(e.file)
+            if e.kind in CAMERA_KINDS:
+                image = np.clip(lens.image(image), 0.0, 1.0)
+            pattern = captures._read(e.pattern) if e.pattern else None
+            writer.add(e.kind, image, name=e.name, frame=pattern, **e.params)
+    return CaptureSet.load(out, verify_images=False)
+
+
 def _align(depth: np.ndarray, kept: dict[str, np.ndarray], name: str, reading: DepthReading | None,
            notes: dict[str, Any], say: Progress) -> np.ndarray:
     """The depth map checked (and corrected) for a shift against the photographs; notes["depth"] says what."""
@@ -528,7 +566,7 @@ class FolderDevice(Device):
 
 __all__ = ["Device", "FolderDevice", "LensRemovedDevice", "RigLens", "SequenceInfo", "capture_sequence",
            "check_complete", "check_orientations", "export_sequence", "import_captures", "list_captures",
-           "load_sequence", "removed_lens", "stored_bit_depth"]
+           "load_sequence", "removed_lens", "stored_bit_depth", "undistort_captures"]
 
 
 @dataclass(frozen=True)

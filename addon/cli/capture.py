@@ -1,8 +1,10 @@
-"""``procam patterns`` and ``procam import-captures``: the folder workflow for users with their own tools.
+"""``procam patterns``, ``import-captures`` and ``undistort-captures``: the folder workflow for users with their own
+tools.
 
 ``patterns`` writes the numbered calibration frames at the projector's native
 resolution; the user shows and photographs them; ``import-captures`` turns the
-photographs into a capture set that calibration reads.
+photographs into a capture set that calibration reads; ``undistort-captures`` takes a
+board-calibrated camera lens out of a capture set made before the camera was calibrated.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from ..capture.devices import load_sequence
 from ..capture.patterns import LAYOUTS
 from ..errors import CaptureError, RigError
 from ..rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
-from ..steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
+from ..steps.capture import (ImportOptions, PatternsOptions, UndistortOptions, run_import, run_patterns,
+                             run_undistort)
 from .app import command
 from .terminal import run_step
 
@@ -143,4 +146,22 @@ def import_photographs(args: argparse.Namespace) -> int:
     if args.rig is not None:
         print(f"  camera and projector from {args.rig}: lens distortion removed from the photographs; projector "
               f"pose {'from the rig (use calibrate --init nominal to keep it)' if cs.projector_pose_known else 'left to calibrate (the rig is in board squares)'}")
+    return 0
+
+
+def _configure_undistort(p: argparse.ArgumentParser) -> None:
+    p.add_argument("captures_dir", type=Path, help="a capture set (procam lab, import-captures or capture)")
+    p.add_argument("--rig", type=Path, required=True, metavar="RIG_JSON",
+                   help="a rig calibration from `procam calibrate-rig` of the camera that took the set")
+    p.add_argument("--out", type=Path, required=True, help="new capture-set folder")
+    p.add_argument("--force", action="store_true", help="replace an existing capture set at --out")
+
+
+@command("undistort-captures", "Take the camera lens of a rig calibration out of an existing capture set.",
+         _configure_undistort)
+def undistort(args: argparse.Namespace) -> int:
+    cs = run_step("undistort-captures", run_undistort, UndistortOptions(args.captures_dir, args.rig, args.out,
+                                                                        force=args.force))
+    print(f"wrote capture set {cs.path}: {len(cs)} images with the camera's lens from {args.rig} taken out; "
+          "calibrate it, and a live camera's frames will go through the same lens")
     return 0

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture.devices import RigLens, export_sequence, import_captures, load_sequence
+from ..capture.devices import RigLens, export_sequence, import_captures, load_sequence, undistort_captures
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
@@ -207,6 +207,25 @@ def rig_models(rig_path: Path, projector: Projector, camera: Camera | None = Non
     except RigError as exc:
         raise CaptureError(f"{rig_path} does not describe a usable rig: {exc}") from None
     return cam, proj, lens
+
+
+@dataclass(frozen=True)
+class UndistortOptions:
+    """What ``procam undistort-captures`` asks for: a capture set, the rig calibration of its camera, a new folder."""
+
+    captures_dir: Path
+    rig: Path
+    out: Path
+    force: bool = False
+
+
+def run_undistort(options: UndistortOptions, progress: Progress | None = None,
+                  cancel: Cancel | None = None) -> CaptureSet:
+    """The capture set with the rig's camera lens taken out (:func:`..capture.devices.undistort_captures`)."""
+    del cancel  # a few seconds of image remapping
+    captures = CaptureSet.load(options.captures_dir)
+    _, _, lens = rig_models(options.rig, captures.projector, captures.camera)
+    return undistort_captures(captures, lens, options.out, force=options.force, progress=progress)
 
 
 def run_import(options: ImportOptions, progress: Progress | None = None,

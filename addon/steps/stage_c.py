@@ -141,22 +141,25 @@ def camera_lens_of(calibration: Calibration) -> RigLens | None:
 def open_device(spec: str | None, projector: Projector | None = None, progress: Progress | None = None, *,
                 calibration: Calibration | None = None) -> Device | None:
     """A capture device from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed captures) or
-    ``live:…`` (the projector window and camera; ``projector`` gives the window its size). A live camera's frames
-    go through the lens that import took out of ``calibration``'s photographs, if it took one out."""
+    ``live:…`` (the projector window and camera; ``projector`` gives the window its size). A camera's frames (live
+    or the lab's; a replayed capture set's are as it stored them) go through the lens that was taken out of
+    ``calibration``'s photographs, if one was."""
     if not spec:
         return None
     kind, where = device_kind(spec), spec.partition(":")[2]
+    # Read before a window opens, so that a capture set that cannot say which lens it lost is refused first.
+    lens = None if calibration is None or kind == "folder" else camera_lens_of(calibration)
     if kind == "live":
         if projector is None:
             raise CaptureError("a live device needs the calibrated projector to size its window")
-        lens = None if calibration is None else camera_lens_of(calibration)  # refused before the window opens
-        device = LiveDevice(spec, projector, progress=progress)
-        if lens is None:
-            return device
-        (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
-                            f"({lens.source})", 0.0)
-        return LensRemovedDevice(device, lens)
-    return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
+        device: Device = LiveDevice(spec, projector, progress=progress)
+    else:
+        device = LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
+    if lens is None:
+        return device
+    (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
+                        f"({lens.source})", 0.0)
+    return LensRemovedDevice(device, lens)
 
 
 @dataclass
