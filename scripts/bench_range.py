@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,11 @@ def main() -> None:
     ap.add_argument("--diagnose-scale", type=float, default=None,
                     help="with --effects auto: procam diagnose's --scale (default its own); 1 looks at every "
                          "camera pixel, where half scale can miss a projector blur of about a texel")
+    ap.add_argument("--camera-rig", type=Path, default=None,
+                    help="a rig calibration of the lab's demo rig (procam lab-board, then procam calibrate-rig) at "
+                         "any scale: its camera lens is taken out of the lab's capture set (procam "
+                         "undistort-captures, K scaled to the set's size) before calibrating, and so out of every "
+                         "lab capture after")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -59,6 +65,12 @@ def main() -> None:
         lab, truth = work / "lab", work / "lab.truth.json"
         step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--scale", str(args.scale), "--out",
               str(lab), "--truth", str(truth)], lab)
+        if args.camera_rig is not None:
+            rig = scaled_rig_file(args.camera_rig, json.loads((lab / "capture.json").read_text())["camera"],
+                                  work / "camera-rig.json")
+            step(["undistort-captures", str(lab), "--rig", str(rig), "--out", str(work / "lab-undistorted")],
+                 work / "lab-undistorted")
+            lab = work / "lab-undistorted"
         step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
         targets = []
         (work / "targets").mkdir(exist_ok=True)
@@ -123,6 +135,30 @@ def main() -> None:
                 parts = error_scales(work / f"comp-{name}{fx}", work / f"eval-{name}{fx}", t)
                 print(f"  {t['name']}: " + " | ".join(f"{1e4 * whole:.2f} ({1e4 * fine:.2f})" for whole, fine in parts)
                       + f"; {1e4 * t['capture_noise_rmse'] ** 2:.2f}")
+
+
+def scaled_rig_file(src: Path, camera: dict, dst: Path) -> Path:
+    """``src`` (a rig.json) with its camera and projector K scaled to ``camera``'s size (a capture set's camera,
+    as ``capture.json`` holds it; the same aspect): a lab rendered at another scale is the same rig. The
+    distortion terms are in normalised coordinates and stay."""
+    from procam.addon.rig.model import Camera
+    from procam.addon.steps import rig as rig_step
+
+    cal = rig_step.read(src)
+    size = Camera.from_dict(camera).intrinsics.size
+    s = size[0] / cal.camera_size[0]
+
+    def scaled(k: np.ndarray) -> np.ndarray:  # OpenCV pixel centres: x' = s (x + ½) − ½
+        k = np.array(k, float)
+        k[:2, :2] *= s
+        k[:2, 2] = s * (k[:2, 2] + 0.5) - 0.5
+        return k
+
+    out = replace(cal, camera_size=size, camera_matrix=scaled(cal.camera_matrix),
+                  projector_size=(round(cal.projector_size[0] * s), round(cal.projector_size[1] * s)),
+                  projector_matrix=scaled(cal.projector_matrix))
+    dst.write_text(json.dumps({"format": rig_step.KIND.format, "version": rig_step.KIND.version, **out.to_dict()}))
+    return dst
 
 
 #: The scale (σ of a Gaussian, camera pixels) below which :func:`error_scales` calls an error fine: detail the lab
