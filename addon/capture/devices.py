@@ -345,6 +345,11 @@ def _depth_reference(white: np.ndarray | None, black: np.ndarray | None,
     return refs
 
 
+#: How a capture set's notes begin (``notes["camera"]``) when a calibrated camera lens was taken out of its
+#: photographs; sets from before ``camera_lens_removed`` recorded the lens are known by it.
+LENS_REMOVED = "calibrated, lens distortion removed"
+
+
 def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: Camera | None,
                     projector: Projector | None, out_capture_dir: str | Path, *, encoding: str = "auto",
                     camera_fov: float = 60.0, depth: np.ndarray | None = None,
@@ -418,7 +423,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
         notes["orientation"] = f"EXIF orientation {orientation} ({ORIENTATIONS[orientation]}) applied to every photograph"
     status: dict[str, Any] = {}
     if undistort is not None:
-        notes["camera"] = f"calibrated, lens distortion removed: {undistort.source}"
+        notes["camera"] = f"{LENS_REMOVED}: {undistort.source}"
         status = {"camera_status": "calibrated", "projector_status": "calibrated",
                   "projector_pose_known": undistort.pose_known}
     shots: list[Shot] = []
@@ -476,7 +481,7 @@ def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *
     depth_info = captures.depth_info
     if depth_info is not None:
         depth_info = replace(depth_info, intrinsics=lens.pinhole.scaled(*depth_info.intrinsics.size))
-    notes = {**captures.notes, "camera": f"calibrated, lens distortion removed: {lens.source}",
+    notes = {**captures.notes, "camera": f"{LENS_REMOVED}: {lens.source}",
              "undistorted_from": str(Path(captures.path).resolve())}
     with CaptureSetWriter(out, Camera(lens.pinhole), captures.projector, depth_info=depth_info,
                           target_area=captures.target_area, camera_status="calibrated",
@@ -615,7 +620,7 @@ def removed_lens(captures: CaptureSet) -> RigLens | None:
     which: a live camera's frames could then not be put through the same, and are refused."""
     if captures.camera_lens is not None:
         return RigLens.from_dict(captures.camera_lens)
-    if "lens distortion removed" in str(captures.notes.get("camera", "")):
+    if LENS_REMOVED in str(captures.notes.get("camera", "")):
         raise CaptureError(f"the photographs of {captures.path} had the camera's lens distortion taken out at "
                            "import, but the capture set does not record that lens (made by an earlier ProCam), so a "
                            "live camera's frames cannot be undistorted the same way; import the photographs again "
@@ -624,11 +629,12 @@ def removed_lens(captures: CaptureSet) -> RigLens | None:
 
 
 class LensRemovedDevice(Device):
-    """A device whose camera images go through the lens import took out of the calibration's photographs.
+    """A device whose camera images go through the lens taken out of the calibration's photographs.
 
-    A capture set imported with a rig file (``import-captures --rig``, ``capture --rig``) holds photographs with
-    the camera's lens distortion taken out, and its calibration lives in that pinhole camera; a live camera still
-    delivers the lens's image, which would sit up to the lens's displacement off the calibration, silently."""
+    A capture set imported with a rig file (``import-captures --rig``, ``capture --rig``) or undistorted after
+    (``undistort-captures``) holds photographs with the camera's lens distortion taken out, and its calibration
+    lives in that pinhole camera; a live camera (or the lab's) still delivers the lens's image, which would sit
+    up to the lens's displacement off the calibration, silently."""
 
     def __init__(self, device: Device, lens: RigLens) -> None:
         self.device, self.lens = device, lens

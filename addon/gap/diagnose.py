@@ -22,8 +22,8 @@ from ..stages.calibrate import Calibration
 from .data import LEVEL_EFFECTS, MAX_TEXELS_PER_PIXEL, NO_VALIDATION, GapData, load_gap_data
 from .compensation import HELD_BY_STAGE_C, INVERTIBLE
 from .evidence import calibration_evidence
-from .fit import (MAX_EFFECTS, MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite, residual_stack,
-                  select_effects, structured)
+from .fit import (MAX_EFFECTS, MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_subset, fit_composite,
+                  residual_stack, select_effects, structured)
 from .models import (MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, local_light,
                      signature_mask)
 from .regions import LEFT_OVER, UNEXPLAINED, WHOLE, find_regions, label_image, residual_maps
