@@ -4,6 +4,14 @@ A command writes into a hidden temporary sibling of its output folder and
 renames it into place only when everything is written, so a crash or a
 cancel never leaves a half-written result under the real name, and an
 existing result is only replaced with ``force`` — after the new one is complete.
+
+:func:`check_replaceable` is the one place that decides whether an existing
+output may be replaced: only a folder of the kind the step writes (its
+manifest and format tag, so made by ProCam), never a file, never a folder of
+other files, and never an input of the run or a folder holding one. The
+hidden siblings are named after their owner (host and process id), so a later
+run of the same output removes the ones a killed run left behind, and never
+one a live run is still writing.
 """
 
 from __future__ import annotations
@@ -14,6 +22,8 @@ import json
 import os
 import re
 import shutil
+import socket
+import sys
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -29,27 +39,198 @@ class OutputError(ProCamError):
     """An output folder that cannot be written or already holds results."""
 
 
+def holds_manifest(folder: str | Path, manifest: str, format: str) -> bool:
+    """Whether ``folder`` holds the JSON ``manifest`` with the format tag ``format``: a folder ProCam made."""
+    try:
+        doc = json.loads((Path(folder) / manifest).read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == format
+
+
+def _real(path: str | Path) -> Path:
+    return Path(os.path.realpath(os.path.abspath(path)))
+
+
+def input_under(target: str | Path, inputs: Iterable[str | Path | None]) -> Path | None:
+    """The first of ``inputs`` that is ``target`` or lies inside it (real paths compared), else None."""
+    real = _real(target)
+    for given in inputs:
+        if given is None:
+            continue
+        p = _real(given)
+        if p == real or real in p.parents:
+            return Path(given)
+    return None
+
+
+def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable: Callable[[Path], bool],
+                      inputs: Iterable[str | Path | None], error: type[ProCamError] = OutputError) -> bool:
+    """Refuse an output ``target`` that must not be replaced; True when it holds something ``force`` replaces.
+
+    ``replaceable(path)`` says whether an existing folder is of the kind this
+    step writes (its manifest, with ProCam's format tag). Never replaced: a
+    file, a non-empty folder that is not ``replaceable`` (user data), and an
+    input of this run or a folder holding one (``inputs``: the files and
+    folders the run reads), even with ``force``. A non-empty ``replaceable``
+    folder is replaced only with ``force``.
+    """
+    target = Path(target)
+    given = input_under(target, inputs)
+    if given is not None:
+        which = "is" if _real(given) == _real(target) else "holds"
+        raise error(f"{target} {which} an input of this run ({given}); a step never replaces what it reads — "
+                    "choose another output folder")
+    if not target.exists():
+        return False
+    if not target.is_dir():
+        raise error(f"{target} exists and is not a folder; choose another output path")
+    if not any(target.iterdir()):
+        return False
+    if not replaceable(target):
+        raise error(f"{target} exists, is not empty and is not a {what}; refusing to replace it — choose another "
+                    "output folder")
+    if not force:
+        raise error(f"{target} already holds a {what}; it is never overwritten without --force (force=True)")
+    return True
+
+
+def input_around(path: str | Path, inputs: Iterable[str | Path | None]) -> Path | None:
+    """The first of ``inputs`` that is ``path`` or holds it (real paths compared), else None."""
+    real = _real(path)
+    for given in inputs:
+        if given is None:
+            continue
+        p = _real(given)
+        if p == real or p in real.parents:
+            return Path(given)
+    return None
+
+
+def check_file_replaceable(path: str | Path, *, force: bool, what: str, replaceable: Callable[[Path], bool],
+                           inputs: Iterable[str | Path | None], error: type[ProCamError] = OutputError) -> bool:
+    """:func:`check_replaceable` for an output that is one file: True when ``path`` exists and may be replaced.
+
+    Never written: an input of this run or a file inside one (``inputs``:
+    what the run reads, and the folders it must leave alone), a folder. An
+    existing file is replaced only with ``force`` and only when
+    ``replaceable(path)`` (its content shows ProCam wrote it, of this kind).
+    """
+    path = Path(path)
+    given = input_around(path, inputs)
+    if given is not None:
+        raise error(f"the {what} {path} would be written into {given}, which this run must leave as it is (an "
+                    "input, or a folder another ProCam step made); choose another file name")
+    if not path.exists() and not path.is_symlink():
+        return False
+    if path.is_dir():
+        raise error(f"the {what} {path} is a folder; give a file name")
+    if path.is_symlink() or not replaceable(path):
+        raise error(f"{path} exists and is not a {what}; refusing to replace it — choose another file name")
+    if not force:
+        raise error(f"the {what} {path} already exists; it is never overwritten without --force (force=True)")
+    return True
+
+
+# -- hidden siblings: their owner in their name, so the ones a killed run left can be told apart ---------------
+
+def _owner() -> str:
+    host = re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:24] or "host"
+    return f"{host}-{os.getpid()}"
+
+
+def hidden_sibling(target: Path, role: str) -> Path:
+    """A new, empty, hidden folder beside ``target`` (``.NAME.ROLE-HOST-PID-XXXXXXXX``; ``role`` tmp or old)."""
+    return Path(tempfile.mkdtemp(prefix=f".{target.name}.{role}-{_owner()}-", dir=target.parent))
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine; True when that cannot be told (never remove on a doubt)."""
+    if pid == os.getpid():
+        return True
+    if sys.platform == "win32":
+        try:
+            import ctypes
+            kernel32 = ctypes.windll.kernel32  # type: ignore[attr-defined]
+            handle = kernel32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION
+            if not handle:
+                return kernel32.GetLastError() != 87  # ERROR_INVALID_PARAMETER: no such process
+            code = ctypes.c_ulong()
+            ok = kernel32.GetExitCodeProcess(handle, ctypes.byref(code))
+            kernel32.CloseHandle(handle)
+            return not ok or code.value == 259  # STILL_ACTIVE
+        except Exception:  # noqa: BLE001 — no answer: treat it as alive
+            return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: alive, another user's
+        return True
+    return True
+
+
+def stale_siblings(target: str | Path) -> list[Path]:
+    """The hidden ``tmp``/``old`` siblings of ``target`` whose owner, a process of this host, has ended."""
+    target = Path(target)
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.(?:tmp|old)-([A-Za-z0-9]+)-(\d+)-[a-z0-9_]{{8}}")
+    host = _owner().rsplit("-", 1)[0]
+    try:
+        names = os.listdir(target.parent)
+    except OSError:
+        return []
+    out = []
+    for name in sorted(names):
+        m = pattern.fullmatch(name)
+        if m and m.group(1) == host and not _pid_alive(int(m.group(2))):
+            out.append(target.parent / name)
+    return out
+
+
+def remove_stale_siblings(target: str | Path, replaceable: Callable[[Path], bool]) -> list[Path]:
+    """Remove what a killed run of ``target`` left beside it; returns what was removed.
+
+    A half-written ``tmp`` sibling always goes; a set-aside ``old`` one only
+    when ``target`` holds a complete result of its kind (else the old one may
+    be the only copy left: a kill between setting it aside and moving the new
+    one in).
+    """
+    target = Path(target)
+    done = []
+    for p in stale_siblings(target):
+        if p.name[len(target.name) + 1:].startswith(".old-") and not (target.is_dir() and replaceable(target)):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                p.unlink()
+        done.append(p)
+    return done
+
+
 class AtomicFolder:
     """Build a folder in a hidden sibling and rename it into place when complete.
 
     An existing ``target`` is refused unless ``force``; even then it is only
     renamed to a backup and removed after the new folder is in place, so a
     failure at any point leaves either the old folder or the new one, never
-    a mixture. ``replaceable(path)`` says which existing folders ``force``
-    may replace (others are refused even with ``force``, to protect user data).
+    a mixture. :func:`check_replaceable` decides what may be replaced
+    (``replaceable``: the kind this step writes; ``inputs``: what the run reads).
     """
 
     def __init__(self, target: str | Path, *, force: bool = False, what: str = "folder",
-                 replaceable: Callable[[Path], bool] | None = None,
+                 replaceable: Callable[[Path], bool], inputs: Iterable[str | Path | None],
                  error: type[ProCamError] = OutputError) -> None:
         self.target = Path(target)
         self.error = error
         self.force = force
         self.what = what
-        check_replaceable(self.target, force=force, what=what, replaceable=replaceable, error=error)
+        check_replaceable(self.target, force=force, what=what, replaceable=replaceable, inputs=inputs, error=error)
         try:
             self.target.parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.tmp-", dir=self.target.parent))
+            remove_stale_siblings(self.target, replaceable)
+            self.tmp = hidden_sibling(self.target, "tmp")
             usual_mode(self.tmp)
         except OSError as exc:
             raise self.error(f"cannot write {self.what} at {self.target}: {exc.strerror or exc}") from None
@@ -79,39 +260,20 @@ class AtomicFolder:
             self.done = True
 
 
-def check_replaceable(target: Path, *, force: bool, what: str, replaceable: Callable[[Path], bool] | None = None,
-                      error: type[ProCamError] = OutputError) -> bool:
-    """Refuse an output ``target`` that must not be replaced; True when it holds something ``force`` replaces.
-
-    A file is never replaced, nor a non-empty folder that is not ``replaceable``
-    (user data); a non-empty one that is only with ``force``.
-    """
-    if not target.exists():
-        return False
-    if not target.is_dir():
-        raise error(f"{target} exists and is not a folder; choose another output path")
-    if not any(target.iterdir()):
-        return False
-    if replaceable is not None and not replaceable(target):
-        raise error(f"{target} exists, is not empty and is not a {what}; refusing to replace it — choose another "
-                    "output folder")
-    if not force:
-        raise error(f"{target} already holds a {what}; it is never overwritten without --force (force=True)")
-    return True
-
-
 def _set_aside(target: Path) -> Path:
     """Rename ``target`` to a hidden unique sibling; returns the sibling."""
-    backup = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+    backup = hidden_sibling(target, "old")
     backup.rmdir()  # mkdtemp reserves a unique name; rename needs it free
     os.replace(target, backup)
     return backup
 
 
 @contextlib.contextmanager
-def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "results folder") -> Iterator[Path]:
-    """Yield a temporary folder; on success it becomes ``path`` (replacing it only with ``force``)."""
-    folder = AtomicFolder(path, force=force, what=what)
+def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "results folder",
+                        replaceable: Callable[[Path], bool], inputs: Iterable[str | Path | None]) -> Iterator[Path]:
+    """Yield a temporary folder; on success it becomes ``path`` (replacing, only with ``force``, a folder
+    :func:`check_replaceable` allows)."""
+    folder = AtomicFolder(path, force=force, what=what, replaceable=replaceable, inputs=inputs)
     try:
         yield folder.tmp
     except BaseException:
@@ -167,13 +329,14 @@ def write_manifest(path: str | Path, doc: dict[str, Any]) -> Path:
 
 @contextlib.contextmanager
 def folder_in_place(path: str | Path, *, force: bool = False, what: str = "results folder",
-                    replaceable: Callable[[Path], bool] | None = None) -> Iterator[Path]:
+                    replaceable: Callable[[Path], bool], inputs: Iterable[str | Path | None]) -> Iterator[Path]:
     """Yield ``path`` itself, new and empty, for work whose files must name their final place (step folders
     that point at each other). An existing folder is set aside first (only with ``force`` and when
-    ``replaceable``) and removed once the work succeeds; on failure the partial folder goes and the old one
-    comes back."""
+    :func:`check_replaceable` allows it) and removed once the work succeeds; on failure the partial folder goes
+    and the old one comes back."""
     target = Path(path).absolute()
-    replacing = check_replaceable(target, force=force, what=what, replaceable=replaceable)
+    replacing = check_replaceable(target, force=force, what=what, replaceable=replaceable, inputs=inputs)
+    remove_stale_siblings(target, replaceable)
     backup = _set_aside(target) if replacing else None
     try:
         target.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,7 @@ import math
 import re
 import struct
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,7 @@ from ..errors import CaptureError, ImageError, RigError
 from ..imageio import ORIENTATIONS, exif_orientation, read_image, write_atomic_bytes, write_image
 from ..progress import Progress, quiet
 from ..rig.model import Camera, Intrinsics, Projector, intrinsics_from_fov
-from ..outputs import AtomicFolder
+from ..outputs import AtomicFolder, holds_manifest
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
 from .format import CAMERA_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
@@ -89,7 +89,7 @@ def capture_sequence(device: Device, sequence: Sequence[PatternSpec], out_dir: s
                      notes: dict[str, Any] | None = None, **writer_args: Any) -> CaptureSet:
     """Show each pattern through ``device`` and write the captures as a new capture set."""
     with CaptureSetWriter(out_dir, camera, device.projector, depth_info=depth_info, notes=notes,
-                          force=force, **writer_args) as writer:
+                          force=force, inputs=writer_args.pop("inputs", ()), **writer_args) as writer:
         for spec in sequence:
             frame = spec.image
             shot = device.capture_off() if spec.projector_off else device.project(frame)
@@ -102,7 +102,7 @@ def capture_sequence(device: Device, sequence: Sequence[PatternSpec], out_dir: s
 # -- folder workflow: export ---------------------------------------------------------------------
 
 def _is_sequence(path: Path) -> bool:
-    return (path / SEQUENCE_MANIFEST).is_file()
+    return holds_manifest(path, SEQUENCE_MANIFEST, SEQUENCE_FORMAT)
 
 
 def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: int | None = None,
@@ -117,7 +117,8 @@ def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: 
     """
     seq = calibration_sequence(projector, checker_size, area=area, graycode=graycode, validation=validation, seed=seed,
                                layout=layout)
-    folder = AtomicFolder(out_dir, force=force, what="pattern sequence", replaceable=_is_sequence, error=CaptureError)
+    folder = AtomicFolder(out_dir, force=force, what="pattern sequence", replaceable=_is_sequence, inputs=(),
+                          error=CaptureError)
     try:
         frames = []
         for i, spec in enumerate(seq):
@@ -355,8 +356,10 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
                     camera_fov: float = 60.0, depth: np.ndarray | None = None,
                     depth_native_size: tuple[int, int] | None = None, depth_path: str | Path | None = None,
                     depth_units: str = "auto", undistort: RigLens | None = None, check_session: bool = True,
-                    progress: Progress | None = None, force: bool = False) -> CaptureSet:
-    """Turn photographs of an exported sequence into a new capture set.
+                    progress: Progress | None = None, force: bool = False,
+                    inputs: Iterable[str | Path | None] = ()) -> CaptureSet:
+    """Turn photographs of an exported sequence into a new capture set (``inputs``: other files the run reads,
+    never replaced, besides the sequence, the photographs and the depth file).
 
     Captures are matched to frames by name, or else by the number in their names (``list_captures``).
     ``encoding='auto'`` treats 8-bit files (JPEG, 8-bit PNG/TIFF) as sRGB and
@@ -429,6 +432,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     shots: list[Shot] = []
     kept: dict[str, np.ndarray] = {}  # the first white, black and surface photographs, for the depth's alignment
     with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes, force=force,
+                          inputs=(sequence_dir, captures_dir, depth_path, *inputs),
                           camera_lens=None if undistort is None else undistort.to_dict(),
                           **status) as writer:
         for i, (frame, path) in enumerate(zip(seq.frames, files)):
@@ -465,7 +469,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
 
 
 def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *, force: bool = False,
-                       progress: Progress | None = None) -> CaptureSet:
+                       inputs: Iterable[str | Path | None] = (), progress: Progress | None = None) -> CaptureSet:
     """A new capture set: ``captures`` with the calibrated camera ``lens`` taken out of every camera image and
     depth map, as ``import-captures --rig`` does at import, for a set captured (or rendered by the lab) before
     the camera was calibrated. The camera becomes the lens's pinhole and the set records the lens, so a live
@@ -487,7 +491,7 @@ def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *
                           target_area=captures.target_area, camera_status="calibrated",
                           projector_status=captures.projector_status,
                           projector_pose_known=captures.projector_pose_known, notes=notes,
-                          camera_lens=lens.to_dict(), force=force) as writer:
+                          camera_lens=lens.to_dict(), force=force, inputs=(captures.path, *inputs)) as writer:
         for i, e in enumerate(captures.entries):
             say(f"undistorting {e.name}", i / max(len(captures.entries), 1))
             if e.kind == "depth":

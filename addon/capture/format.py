@@ -41,7 +41,7 @@ import hashlib
 import json
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,7 +50,7 @@ import numpy as np
 
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
-from ..outputs import AtomicFolder, jsonable
+from ..outputs import AtomicFolder, holds_manifest, jsonable
 from ..rig.model import Camera, Intrinsics, Projector
 
 FORMAT = "procam-capture"
@@ -444,7 +444,8 @@ class CaptureSet:
 # -- writing -------------------------------------------------------------------------------------
 
 def is_capture_set(path: str | Path) -> bool:
-    return (Path(path) / MANIFEST).is_file()
+    """Whether ``path`` holds a capture set's manifest with its format tag (one ProCam wrote)."""
+    return holds_manifest(path, MANIFEST, FORMAT)
 
 
 def _slug(text: str) -> str:
@@ -467,14 +468,17 @@ class CaptureSetWriter:
     capture fails before anything is moved into place. On an exception inside
     the ``with`` block nothing is written. Missing depth may be NaN or 0; it is
     stored as 0 (``read_image`` refuses NaN) and loaded back as NaN.
+    ``inputs``: what the run reads, never replaced (:func:`..outputs.check_replaceable`).
     """
 
     def __init__(self, path: str | Path, camera: Camera, projector: Projector, *,
                  depth_info: DepthInfo | None = None, target_area: tuple[int, int, int, int] | None = None,
                  camera_status: str = "nominal", projector_status: str = "nominal",
                  projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
-                 camera_lens: dict[str, Any] | None = None, force: bool = False) -> None:
-        self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, error=CaptureError)
+                 camera_lens: dict[str, Any] | None = None, force: bool = False,
+                 inputs: Iterable[str | Path | None] = ()) -> None:
+        self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, inputs=inputs,
+                                    error=CaptureError)
         self.path = Path(path)
         self.camera, self.projector = camera, projector
         self.depth_info = depth_info

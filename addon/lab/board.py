@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,13 +23,14 @@ import numpy as np
 from ..capture.patterns import gray_code_patterns, white
 from ..errors import LabError
 from ..imageio import write_atomic_bytes, write_image
-from ..outputs import AtomicFolder
+from ..outputs import AtomicFolder, check_file_replaceable
 from ..progress import Cancel, Progress, check, quiet
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 from .effects import lens_of, parse_effects
 from .lab import LabDevice, make_truth
 
+BOARD_TRUTH_FORMAT = "procam-lab-board-truth"
 #: The board's albedo: white paper and printed black (not 0: ink reflects a little).
 PAPER, INK = 0.85, 0.04
 
@@ -97,7 +100,7 @@ class BoardTruth:
     effects: str
 
     def save(self, path: Path) -> None:
-        doc = {"format": "procam-lab-board-truth", "version": 1,
+        doc = {"format": BOARD_TRUTH_FORMAT, "version": 1,
                "warning": "sealed lab truth: only evaluation code may read this file",
                "rig": self.rig.to_dict(), "board": list(self.board), "square": self.square,
                "camera_from_board": [p.tolist() for p in self.poses], "effects": self.effects}
@@ -118,22 +121,45 @@ def default_supersample(effects: str) -> int:
     return 2 if lens_of(parse_effects(effects)) is not None else 1
 
 
+def is_board_truth(path: Path) -> bool:
+    """Whether ``path`` is a board truth file ProCam wrote (its format tag), which ``force`` may replace."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == BOARD_TRUTH_FORMAT
+
+
+def is_board_sessions(path: Path) -> bool:
+    """Whether ``path`` holds board sessions as :func:`render_board_sessions` writes them, and nothing else: these
+    folders have no manifest, so only ``pose_NN`` folders of ``graycode_NN.png`` files may be replaced."""
+    sessions = list(Path(path).iterdir())
+    return bool(sessions) and all(
+        s.is_dir() and not s.is_symlink() and re.fullmatch(r"pose_\d{2,}", s.name)
+        and all(f.is_file() and re.fullmatch(r"graycode_\d{2,}\.png", f.name) for f in s.iterdir())
+        for s in sessions)
+
+
 def render_board_sessions(rig: Rig, out: Path, *, board: tuple[int, int] = (9, 7), square: float = 0.06,
                           poses: int = 6, effects: str = "", samples: int = 16, seed: int = 0,
                           truth_path: Path | None = None, force: bool = False, supersample: int = 1,
-                          progress: Progress | None = None, cancel: Cancel | None = None) -> BoardTruth:
+                          inputs: Iterable[str | Path | None] = (), progress: Progress | None = None,
+                          cancel: Cancel | None = None) -> BoardTruth:
     """Render one session folder per board pose into ``out`` (``pose_00/graycode_00.png`` …, Gray code for the
     projector's native frame in OpenCV's order, then white, then black) and seal the truth at ``truth_path``
     (default: beside ``out``). The folder is written atomically. ``supersample`` renders the camera finer and
-    averages down (:func:`.effects.apply_camera`)."""
+    averages down (:func:`.effects.apply_camera`). Nothing is written into ``inputs`` (the folders the truth must
+    not land in); an existing truth file is replaced only with ``force`` and only when it is one of ours."""
     say = progress or quiet
     truth_path = Path(truth_path) if truth_path else Path(out).with_name(Path(out).name + ".truth.json")
     size = rig.projector.intrinsics.size
     frames = [img for *_, img in gray_code_patterns(size)] + [white(size), np.zeros((size[1], size[0], 3), np.float32)]
     placed = board_poses(poses, board, square, centre=(0.0, 0.0, 1.5), seed=seed)
     truth = BoardTruth(rig, tuple(board), float(square), tuple(placed), effects)
-    folder = AtomicFolder(out, force=force, what="board sessions", error=LabError,
-                          replaceable=lambda p: (p / "pose_00").is_dir())  # only sessions of ours are replaced
+    check_file_replaceable(truth_path, force=force, what="ProCam board truth file", replaceable=is_board_truth,
+                           inputs=(out, *inputs), error=LabError)
+    folder = AtomicFolder(out, force=force, what="board sessions", error=LabError, replaceable=is_board_sessions,
+                          inputs=(truth_path,))
     try:
         for k, pose in enumerate(placed):
             lab = make_truth(board_mesh(board, square, pose), rig=rig, effects=effects, samples=samples,

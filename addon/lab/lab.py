@@ -28,7 +28,9 @@ import math
 import os
 import shutil
 import tempfile
+import zipfile
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -41,6 +43,7 @@ from ..capture.patterns import PatternSpec, calibration_sequence
 from ..errors import CaptureError, LabError
 from ..imageio import read_image, write_atomic_bytes
 from ..native import import_pymeshlab
+from ..outputs import check_file_replaceable, check_replaceable, hidden_sibling, remove_stale_siblings
 from ..progress import Cancel, Progress, check, quiet
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
@@ -611,14 +614,35 @@ def _check_writable_folder(folder: Path, what: str) -> None:
         raise LabError(f"cannot write the {what} at {folder}: {exc.strerror or exc} ({base})") from None
 
 
-def check_lab_outputs(out_dir: str | Path, truth_path: str | Path, *, force: bool = False) -> tuple[Path, Path]:
+def is_truth_file(path: Path) -> bool:
+    """Whether ``path`` is a lab truth file ProCam wrote (its format tag), which ``force`` may replace."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == TRUTH_FORMAT
+
+
+def is_truth_surface(path: Path) -> bool:
+    """Whether ``path`` is the surface :meth:`LabTruth.save` stores beside a truth file: exactly its arrays."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return set(data.files) == {"vertices", "faces", "uvs", "albedo"}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return False
+
+
+def check_lab_outputs(out_dir: str | Path, truth_path: str | Path, *, force: bool = False,
+                      inputs: Iterable[str | Path | None] = ()) -> tuple[Path, Path]:
     """Refuse, before any rendering, outputs that :func:`run_lab` could not write or must not replace.
 
     The truth file (and the surface stored beside it) must lie outside the
     capture set; an existing capture set or truth file is replaced only with
-    ``force``; a non-empty folder that is not a capture set is never replaced.
-    Returns both paths made absolute.
+    ``force`` and only when ProCam wrote it (:func:`..outputs.check_replaceable`);
+    nothing is written into ``inputs`` (what the run reads, and the step folders
+    the truth must not land in). Returns both paths made absolute.
     """
+    inputs = tuple(inputs)
     out_dir, truth_path = Path(out_dir).absolute(), Path(truth_path).absolute()
     out_real = Path(os.path.realpath(out_dir))
     for p in (truth_path, LabTruth.mesh_path(truth_path)):
@@ -628,22 +652,10 @@ def check_lab_outputs(out_dir: str | Path, truth_path: str | Path, *, force: boo
                            "everything in the capture set, and the truth is sealed from it")
     if truth_path.suffix.lower() != ".json":
         raise LabError(f"the truth file must be a .json file, got {truth_path.name!r}")
-    if out_dir.exists():
-        if not out_dir.is_dir():
-            raise LabError(f"{out_dir} exists and is not a folder; choose another output folder")
-        if any(out_dir.iterdir()):
-            if not is_capture_set(out_dir):
-                raise LabError(f"{out_dir} is not empty and is not a capture set; refusing to replace it — "
-                               "choose another output folder")
-            if not force:
-                raise LabError(f"{out_dir} already holds a capture set; it is never overwritten without --force "
-                               "(Replace in Blender)")
-    for p in (truth_path, LabTruth.mesh_path(truth_path)):
-        if p.is_dir():
-            raise LabError(f"the truth file {p} is a folder; give a file name")
-        if p.exists() and not force:
-            raise LabError(f"the truth file {p} already exists (the sealed truth of another lab session?); "
-                           "it is never overwritten without --force (Replace in Blender)")
+    check_replaceable(out_dir, force=force, what="capture set", replaceable=is_capture_set, inputs=inputs,
+                      error=LabError)
+    for p, ours in ((truth_path, is_truth_file), (LabTruth.mesh_path(truth_path), is_truth_surface)):
+        check_file_replaceable(p, force=force, what="ProCam lab truth file", replaceable=ours, inputs=inputs, error=LabError)
     _check_writable_folder(out_dir.parent, "capture set")
     _check_writable_folder(truth_path.parent, "truth file")
     return out_dir, truth_path
@@ -673,6 +685,7 @@ class _NominalDevice(Device):
 
 
 def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
+            inputs: Iterable[str | Path | None] = (),
             graycode: bool = True, validation: bool = True, fast_binary: bool = True, depth_wall: bool = True,
             supersample: int = 1, progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
     """Render a complete calibration capture set into ``out_dir`` and seal the truth at ``truth_path``.
@@ -686,7 +699,8 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     calibration reads the sensor's bias. ``progress`` reports each capture;
     ``cancel`` stops between captures and leaves nothing behind.
     """
-    out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force)
+    inputs = tuple(inputs)
+    out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force, inputs=inputs)
     nominal = truth.nominal_projector
     seq: list[PatternSpec] = calibration_sequence(truth.rig.projector, graycode=graycode, validation=validation,
                                                   seed=truth.seed)
@@ -708,7 +722,8 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     if truth.nominal_camera_intrinsics is not None:  # the depth image is unprojected with the camera as given
         depth_info = DepthInfo(truth.nominal_camera_intrinsics.scaled(*depth_info.intrinsics.size),
                                depth_info.native_size)
-    writer = CaptureSetWriter(out_dir, truth.nominal_camera, nominal, depth_info=depth_info, notes=notes, force=force)
+    writer = CaptureSetWriter(out_dir, truth.nominal_camera, nominal, depth_info=depth_info, notes=notes, force=force,
+                              inputs=inputs)
     tmp_truth: Path | None = None
     try:
         with LabDevice(truth, supersample=supersample) as device:
@@ -728,7 +743,8 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
             writer.add_depth(lab_wall_depth(truth), name="wall", **{WALL_PARAM: WALL_DISTANCE})
         # Seal the truth under a temporary name first: the set and its truth appear together or not at all.
         truth_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp_truth = Path(tempfile.mkdtemp(prefix=f".{truth_path.stem}.tmp-", dir=truth_path.parent))
+        remove_stale_siblings(truth_path, is_truth_file)
+        tmp_truth = hidden_sibling(truth_path, "tmp")
         truth.save(tmp_truth / truth_path.name)
         writer.commit()
     except BaseException:

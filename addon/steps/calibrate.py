@@ -82,7 +82,9 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     reused = STAGES[:STAGES.index(plan[0])]
     previous, images = _previous(Path(options.out), options.capture_dir, reused) if reused else (None, {})
     folder = AtomicFolder(options.out, force=options.force or previous is not None, what=KIND.what,
-                          replaceable=KIND.holds, error=CalibrationError)
+                          replaceable=KIND.holds, error=CalibrationError,
+                          inputs=(options.capture_dir, options.surface_mesh if isinstance(options.surface_mesh,
+                                                                                          (str, Path)) else None))
     precompute = options.precompute and plan[-1] == STAGES[-1]
     share = 0.8 if precompute else 0.95
     try:

@@ -31,6 +31,7 @@ from ..progress import Cancel, Progress, quiet
 from ..outputs import file_sha256
 from ..rig.model import Camera, Intrinsics, Projector, Rig
 from ..surface.mesh import SurfaceMesh
+from . import layout
 from . import rig as rig_step
 
 
@@ -79,7 +80,10 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     if not 0.05 <= options.scale <= 2:
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
     out, truth_path = options.paths()
-    check_lab_outputs(out, truth_path, force=options.force)  # before reading any mesh
+    # What the truth must not be written into: the mesh read, and any step folder (another set's capture.json…).
+    mesh = Path(options.surface) if isinstance(options.surface, (str, Path)) and Path(options.surface).is_file() else None
+    inputs = (mesh, *layout.step_folders_around(truth_path))
+    check_lab_outputs(out, truth_path, force=options.force, inputs=inputs)  # before reading any mesh
     check_supersample(options.supersample)
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
@@ -87,7 +91,7 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
                        projector_shift=options.projector_shift, nominal_error=options.nominal_error,
                        camera_fov_error=options.camera_fov_error)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
-    return render_lab(truth, out, truth_path=truth_path, force=options.force, graycode=options.graycode,
+    return render_lab(truth, out, truth_path=truth_path, force=options.force, inputs=inputs, graycode=options.graycode,
                       fast_binary=not options.full_binary, supersample=options.supersample, progress=progress,
                       cancel=cancel)
 
@@ -124,6 +128,7 @@ def run_board(options: BoardOptions, progress: Progress | None = None, cancel: C
                                  square=options.square, poses=options.poses, effects=options.effects,
                                  samples=options.samples, seed=options.seed, truth_path=options.truth,
                                  force=options.force, supersample=supersample, progress=progress,
+                                 inputs=layout.step_folders_around(options.truth or Path(options.out)),
                                  cancel=cancel)
 
 
@@ -225,7 +230,8 @@ def run_undistort(options: UndistortOptions, progress: Progress | None = None,
     del cancel  # a few seconds of image remapping
     captures = CaptureSet.load(options.captures_dir)
     _, _, lens = rig_models(options.rig, captures.projector, captures.camera)
-    return undistort_captures(captures, lens, options.out, force=options.force, progress=progress)
+    return undistort_captures(captures, lens, options.out, force=options.force,
+                              inputs=(options.captures_dir, options.rig), progress=progress)
 
 
 def run_import(options: ImportOptions, progress: Progress | None = None,
@@ -239,4 +245,5 @@ def run_import(options: ImportOptions, progress: Progress | None = None,
                            encoding=options.encoding, camera_fov=options.camera_fov, depth=options.depth,
                            depth_path=options.depth_path, depth_units=options.depth_units,
                            depth_native_size=options.depth_native_size, undistort=lens,
-                           check_session=options.check_exposure, progress=progress, force=options.force)
+                           check_session=options.check_exposure, progress=progress, force=options.force,
+                           inputs=(options.rig,))

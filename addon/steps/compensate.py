@@ -30,7 +30,7 @@ from ..outputs import AtomicFolder, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
 from . import calibrate as calibrate_step
 from . import layout
-from .stage_c import StageC, StageCOptions
+from .stage_c import StageC, StageCOptions, device_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.COMPENSATION
@@ -87,7 +87,9 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
             r = stage.range_map
             say(f"range: targets mapped to {r.gain:.3f}·t + {r.offset:+.3f} ({r.rule})", 0.03)
         names = output_names(paths)
-        folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds)
+        folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                              inputs=(options.calibration, cal.capture_dir, *paths,
+                                      *device_inputs(options.stage_c.device)))
         records: list[dict[str, Any]] = []
         failure: ProCamError | None = None
         try:

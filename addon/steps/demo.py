@@ -99,7 +99,8 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         spans[name] = part(say, start, start + share, f"[{name}] ")
         start += share
     t_start = time.perf_counter()
-    with folder_in_place(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds) as out:
+    with folder_in_place(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                         inputs=()) as out:
         t0 = time.perf_counter()
         truth_path = out / "lab-truth.json"
         capture.run_lab(capture.LabOptions(out / "captures", surface=options.surface, effects=options.effects,

@@ -76,7 +76,7 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     except ProCamError as exc:
         raise DiagnosisError(f"{exc}; the diagnosis compares the model with those captures") from None
     folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                          error=ProCamError)
+                          inputs=(options.calibration, captures.path), error=ProCamError)
     try:
         found = diagnose(cal, captures, source=str(Path(options.calibration).absolute()),
                          format=(KIND.format, KIND.version), scale=options.scale, spp=options.spp,

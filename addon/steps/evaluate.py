@@ -59,7 +59,7 @@ from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
 from .show_work import source_record
-from .stage_c import open_device
+from .stage_c import device_inputs, open_device
 from .summary import Summary, cached, fmt
 
 KIND = layout.EVALUATION
@@ -459,7 +459,9 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
             inputs.record(name)  # a target with no compensation fails before anything is read or projected
         targets = [(name, *load_target(p, encoding=options.target_encoding))
                    for name, p in zip(names, options.targets)]
-    folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds)
+    folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                          inputs=(options.calibration, options.inputs, cal.capture_dir, *options.targets,
+                                  *device_inputs(options.device)))
     owned = device is None
     try:
         if owned:

@@ -45,7 +45,8 @@ def run_frames(options: ExportFramesOptions, progress: Progress | None = None, c
     for t in view.targets:
         if not t.frame_path.is_file():
             raise ImageError(f"compensated frame {t.frame_path} is missing; run Compensate again")
-    with fresh_output_folder(options.out, force=options.force, what=KIND.what) as tmp:
+    with fresh_output_folder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                             inputs=(options.compensation, *(t.frame_path for t in view.targets))) as tmp:
         frames = []
         for i, t in enumerate(view.targets):
             check(cancel, "the export was cancelled; nothing was written")

@@ -11,6 +11,7 @@ folder ProCam writes.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from typing import Any
 from ..capture import devices as sequence_format
 from ..capture import format as capture_format
 from ..errors import ProCamError
+from ..outputs import holds_manifest
 
 
 @dataclass(frozen=True)
@@ -42,8 +44,8 @@ class FolderKind:
         return doc
 
     def holds(self, path: str | Path) -> bool:
-        """Whether ``path`` (a folder) holds this kind's manifest: what ``force`` may replace."""
-        return (Path(path) / self.manifest).is_file()
+        """Whether ``path`` (a folder) holds this kind's manifest with its format tag: what ``force`` may replace."""
+        return holds_manifest(path, self.manifest, self.format)
 
 
 CAPTURES = FolderKind("capture set", capture_format.MANIFEST, capture_format.FORMAT, capture_format.VERSION,
@@ -57,6 +59,16 @@ EVALUATION = FolderKind("evaluation folder", "metrics.json", "procam-evaluation"
 DIAGNOSIS = FolderKind("diagnosis folder", "gap.json", "procam-gap", 1, "procam diagnose")
 FRAMES = FolderKind("projector frame sequence", "frames.json", "procam-frames", 1, "procam export-frames")
 DEMO = FolderKind("demo folder", "summary.json", "procam-demo", 1, "procam demo")
+#: every kind of step folder
+FOLDER_KINDS = (CAPTURES, PATTERNS, CALIBRATION, COMPENSATION, SHOW, EVALUATION, DIAGNOSIS, FRAMES, DEMO)
+
+
+def step_folders_around(path: str | Path) -> tuple[Path, ...]:
+    """The folders holding ``path`` that are step folders ProCam made: a file of another step must not land there."""
+    p = Path(os.path.abspath(path))
+    return tuple(d for d in p.parents if any(k.holds(d) for k in FOLDER_KINDS))
+
+
 #: not a folder: one JSON file (its default name); camera and projector intrinsics and their relative pose.
 RIG = FolderKind("rig calibration", "rig.json", "procam-rig", 1, "procam calibrate-rig")
 

@@ -133,6 +133,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     say, stop = progress or quiet, cancel or never
     LiveSpec.parse(options.device)  # a bad device string fails before anything is written
     check_replaceable(options.out, force=options.force, what="capture set", replaceable=is_capture_set,
+                      inputs=(options.session, options.depth_path, options.rig),
                       error=CaptureError)
     doc, done = open_session(options)
     session = options.session

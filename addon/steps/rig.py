@@ -30,7 +30,7 @@ import numpy as np
 from ..capture.patterns import gray_code_bits
 from ..errors import CalibrationError, CaptureError
 from ..imageio import read_image
-from ..outputs import write_manifest
+from ..outputs import check_file_replaceable, holds_manifest, write_manifest
 from ..progress import Cancel, Progress, quiet
 from ..stages.rig_calibration import PoseSource, RigCalibration, calibrate_rig
 from . import layout
@@ -130,22 +130,13 @@ def pose_source(folder: Path, files: list[Path]) -> PoseSource:
                       lambda: [_read(f, shape.get("white")) for f in gray_files])
 
 
-def _check_out(out: Path, force: bool) -> None:
-    """Refuse an output that must not be replaced, before any work."""
+def _check_out(out: Path, force: bool, sessions: tuple[Path, ...]) -> None:
+    """Refuse an output that must not be replaced, before any work (:func:`..outputs.check_file_replaceable`)."""
     if out.is_dir():
         raise CalibrationError(f"{out} is a folder; give the file to write, e.g. {out / KIND.manifest}")
-    if not out.exists():
-        return
-    if not force:
-        raise CalibrationError(f"{out} already exists; it is never overwritten without --force (force=True)")
-    try:
-        doc = json.loads(out.read_text())
-        ours = isinstance(doc, dict) and doc.get("format") == KIND.format
-    except (OSError, ValueError):
-        ours = False
-    if not ours:
-        raise CalibrationError(f"{out} exists and is not a ProCam rig calibration; refusing to replace it — "
-                               "choose another output file")
+    check_file_replaceable(out, force=force, what="ProCam rig calibration",
+                           replaceable=lambda p: holds_manifest(p.parent, p.name, KIND.format),
+                           inputs=(*sessions, *layout.step_folders_around(out)), error=CalibrationError)
 
 
 def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> RigCalibration:
@@ -153,7 +144,7 @@ def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | 
     say = progress or quiet
     started = time.monotonic()
     out = Path(options.out)
-    _check_out(out, options.force)
+    _check_out(out, options.force, tuple(options.sessions))
     if options.projector_size is None:
         raise CalibrationError("give the projector's native size (--projector WIDTHxHEIGHT): the number of images "
                                "fixes only the total number of Gray-code bits, which many sizes share")

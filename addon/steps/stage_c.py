@@ -128,6 +128,19 @@ def device_kind(spec: str) -> str:
     return kind
 
 
+def device_inputs(spec: str | None) -> tuple[Path, ...]:
+    """The files and folders the device ``spec`` reads (a lab truth and its surface, a replayed capture set):
+    inputs of the run, which no output may replace."""
+    if not spec:
+        return ()
+    kind, _, where = spec.partition(":")
+    if kind == "lab" and where:
+        return Path(where), LabTruth.mesh_path(where)
+    if kind == "folder" and where:
+        return (Path(where),)
+    return ()
+
+
 def camera_lens_of(calibration: Calibration) -> RigLens | None:
     """The camera lens import took out of the photographs ``calibration`` was made from (None: none was): as the
     calibration records it, else as its capture set does (calibrations made before they recorded it)."""
