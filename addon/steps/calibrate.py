@@ -29,7 +29,7 @@ import numpy as np
 from ..capture.format import CaptureSet
 from ..errors import CalibrationError, Cancelled, ProCamError
 from ..imageio import read_image, write_atomic_bytes, write_image
-from ..outputs import AtomicFolder, file_sha256, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Rig
 from ..stages.calibrate import STAGES, Calibration, calibrate_captures, stage_plan
@@ -78,13 +78,15 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     plan = stage_plan(options.stages)
     if options.init == "given" and options.initial_pose is None:
         raise CalibrationError("a given start pose (init 'given') needs the pose itself")
-    captures = CaptureSet.load(options.capture_dir)
     reused = STAGES[:STAGES.index(plan[0])]
+    mesh = options.surface_mesh if isinstance(options.surface_mesh, (str, Path)) else None
+    # A partial run (reused stages) replaces the calibration it continues; anything else needs force.
+    check_replaceable(options.out, force=options.force or bool(reused), what=KIND.what, replaceable=KIND.holds,
+                      inputs=(options.capture_dir, mesh), error=CalibrationError)
+    captures = CaptureSet.load(options.capture_dir)
     previous, images = _previous(Path(options.out), options.capture_dir, reused) if reused else (None, {})
     folder = AtomicFolder(options.out, force=options.force or previous is not None, what=KIND.what,
-                          replaceable=KIND.holds, error=CalibrationError,
-                          inputs=(options.capture_dir, options.surface_mesh if isinstance(options.surface_mesh,
-                                                                                          (str, Path)) else None))
+                          replaceable=KIND.holds, error=CalibrationError, inputs=(options.capture_dir, mesh))
     precompute = options.precompute and plan[-1] == STAGES[-1]
     share = 0.8 if precompute else 0.95
     try:
@@ -96,13 +98,28 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
                                     progress=part(say, 0.0, share), cancel=cancel)
         say("writing the calibration folder", share)
         write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
-        if precompute:
-            _precompute(folder.tmp, result.calibration, options.seed, part(say, share, 1.0, "transport operator: "),
-                        cancel)
     except BaseException:
         folder.abort()
         raise
+    stopped: BaseException | None = None
+    if precompute:
+        try:
+            _precompute(folder.tmp, result.calibration, options.seed, part(say, share, 1.0, "transport operator: "),
+                        cancel)
+        except (Cancelled, KeyboardInterrupt) as exc:
+            # The calibration is finished and worth minutes: keep it, without the operator (compensation renders
+            # its own when none is stored, and `procam precompute` adds it later).
+            stopped = exc
+            for name in (layout.TRANSPORT_NPZ, layout.TRANSPORT_JSON):
+                (folder.tmp / name).unlink(missing_ok=True)
+        except BaseException:
+            folder.abort()
+            raise
     folder.commit()
+    if stopped is not None:
+        raise Cancelled(f"the transport operator's precompute was cancelled; the calibration is kept in "
+                        f"{options.out} without it: run `procam precompute {options.out}` to add it (compensation "
+                        "renders one itself meanwhile)")
     say("done", 1.0)
     return result.calibration
 
@@ -132,8 +149,7 @@ def _precompute(folder: Path, calibration: Calibration, seed: int, say: Progress
         store_transport(folder, calibration, seed=seed, progress=say, cancel=cancel)
     except TransportError as exc:
         if cancel is not None and cancel():
-            raise Cancelled("calibration cancelled while precomputing its transport operator; nothing was "
-                            "written") from None
+            raise Cancelled("precomputing the transport operator was cancelled") from None
         say(f"warning: no transport operator precomputed ({exc})", 1.0)
 
 

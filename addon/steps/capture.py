@@ -28,7 +28,7 @@ from ..lab.effects import parse_effects
 from ..lab.lab import check_lab_outputs, check_supersample, make_truth, run_lab as render_lab, scaled_rig
 from ..rig.demo import demo_rig
 from ..progress import Cancel, Progress, quiet
-from ..outputs import file_sha256
+from ..outputs import check_replaceable, file_sha256
 from ..rig.model import Camera, Intrinsics, Projector, Rig
 from ..surface.mesh import SurfaceMesh
 from . import layout
@@ -228,6 +228,8 @@ def run_undistort(options: UndistortOptions, progress: Progress | None = None,
                   cancel: Cancel | None = None) -> CaptureSet:
     """The capture set with the rig's camera lens taken out (:func:`..capture.devices.undistort_captures`)."""
     del cancel  # a few seconds of image remapping
+    check_replaceable(options.out, force=options.force, what=layout.CAPTURES.what, replaceable=layout.CAPTURES.holds,
+                      inputs=(options.captures_dir, options.rig), error=CaptureError)
     captures = CaptureSet.load(options.captures_dir)
     _, _, lens = rig_models(options.rig, captures.projector, captures.camera)
     return undistort_captures(captures, lens, options.out, force=options.force,
@@ -237,6 +239,9 @@ def run_undistort(options: UndistortOptions, progress: Progress | None = None,
 def run_import(options: ImportOptions, progress: Progress | None = None,
                cancel: Cancel | None = None) -> CaptureSet:
     """Turn photographs of an exported pattern sequence into a new capture set."""
+    check_replaceable(options.out, force=options.force, what=layout.CAPTURES.what, replaceable=layout.CAPTURES.holds,
+                      inputs=(options.sequence_dir, options.photos_dir, options.depth_path, options.rig),
+                      error=CaptureError)
     camera, projector, lens = options.camera, None, None
     if options.rig is not None:
         camera, projector, lens = rig_models(options.rig, load_sequence(options.sequence_dir).projector, camera)

@@ -12,8 +12,9 @@ and ``compensation.json``: the calibration used (path and content hash), how
 stage C ran (mode, device, schedule, effects), the rig the inputs are for,
 and per target its area, losses and seconds. All targets are read before any
 work starts, so a missing or unreadable one fails at once; if a later target
-fails during its optimisation, the finished ones are kept and the manifest
-records the failure, which is then raised.
+fails during its optimisation, or the run is cancelled (Ctrl-C, Cancel), the
+finished ones are kept, the manifest records the failure or the cancel and
+``"complete": false``, and the error (or :class:`Cancelled`) is then raised.
 """
 
 from __future__ import annotations
@@ -26,11 +27,11 @@ from typing import Any
 from ..capture.devices import Device
 from ..errors import Cancelled, ImageError, ProCamError
 from ..imageio import write_image
-from ..outputs import AtomicFolder, natural_key, output_names, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
 from . import calibrate as calibrate_step
 from . import layout
-from .stage_c import StageC, StageCOptions, device_inputs
+from .stage_c import StageC, StageCOptions, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.COMPENSATION
@@ -74,6 +75,9 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     paths = list(options.targets)
     if not paths:
         raise ImageError("no target images: add target files or choose an image sequence folder")
+    # The output is checked before anything is read (and again, with the capture set, when it is created).
+    check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                      inputs=(options.calibration, *paths, *stage_c_inputs(options.stage_c)))
     say("reading the calibration and the targets", 0.0)
     options.stage_c.check()
     cal = calibrate_step.read(options.calibration)
@@ -89,54 +93,35 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         names = output_names(paths)
         folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                               inputs=(options.calibration, cal.capture_dir, *paths,
-                                      *device_inputs(options.stage_c.device)))
+                                      *stage_c_inputs(options.stage_c)))
         records: list[dict[str, Any]] = []
         failure: ProCamError | None = None
+        stopped: BaseException | None = None  # Ctrl-C or Cancel: the targets finished so far are kept
         try:
             if stage.options.mode == "open-loop":
                 say("estimating θ from the validation captures (open loop)", 0.02)
                 stage.estimate_bias()
             n = len(paths)
             for i, ((image, note), name, path) in enumerate(zip(targets, names, paths)):
-                check(cancel, "compensation was cancelled; nothing was written")
-                area = stage.area_for(image)
-                say(f"target {i + 1}/{n}: {name} ({area.width}×{area.height} at {area.x},{area.y})",
-                    0.05 + 0.95 * i / n)
                 try:
-                    # The first target's answer is rendered by Mitsuba too: on the transport schedule that checks
-                    # the operator against the scene once per run, at the cost of one render.
-                    done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
-                                            verify=True if i == 0 else None,
-                                            progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
-                                                          f"target {i + 1}/{n} {name}: "))
-                except Cancelled:
-                    raise
+                    record = _one_target(stage, folder.tmp, image, note, name, path, i, n, say, cancel)
+                except (Cancelled, KeyboardInterrupt) as exc:
+                    stopped = exc
+                    for file in layout.target_files(name).values():  # a target cut short leaves no file behind
+                        (folder.tmp / file).unlink(missing_ok=True)
+                    break
                 except ProCamError as exc:
                     failure = exc
                     records.append({"name": name, "file": str(path.absolute()), "status": "failed",
                                     "error": str(exc)})
                     break
-                for w in done.warnings:
-                    say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / n)
-                files = layout.target_files(name)
-                res = done.result
-                write_image(folder.tmp / files["input"], done.input)
-                write_image(folder.tmp / files["frame"], done.frame)
-                write_image(folder.tmp / files["simulated"], res.simulated)
-                write_image(folder.tmp / files["target"], done.fitted)
-                records.append({"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
-                                "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
-                                "seconds": round(res.seconds, 2), "captures": res.captures,
-                                "seconds_compute": res.report.get("seconds_compute"),
-                                "seconds_verify": res.report.get("seconds_verify"),
-                                "simulated_by": res.report.get("simulated_by", "mitsuba"),
-                                "operator_vs_mitsuba_psnr": res.report.get("operator_vs_mitsuba_psnr"),
-                                "input_blur": res.report.get("input_blur"),  # the lens's blur held in the solve
-                                "loss_first": res.losses[0] if res.losses else None,
-                                "loss_last": res.losses[-1] if res.losses else None,
-                                "losses": [round(v, 7) for v in res.losses],
-                                "psnr_simulated_start": round(float(res.report["psnr_simulated_start"]), 3),
-                                "psnr_simulated": round(float(res.report["psnr_simulated"]), 3)})
+                records.append(record)
+            finished = sum(r["status"] == "done" for r in records)
+            if stopped is not None and not finished:
+                raise stopped
+            if stopped is not None:
+                records.append({"name": names[len(records)], "file": str(paths[len(records)].absolute()),
+                                "status": "cancelled", "error": "cancelled before it finished"})
             areas = [r["area"] for r in records if r.get("area")]
             bias = stage.bias
             write_manifest(folder.tmp / KIND.manifest, {
@@ -146,15 +131,54 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                 "open_loop_bias": None if bias is None else {"kind": bias.kind, **bias.report},
                 **stage.rig_record(),
                 "area": areas[0] if areas and all(a == areas[0] for a in areas) else None,
-                "complete": failure is None, "targets": records})
+                "complete": failure is None and stopped is None, "targets": records})
         except BaseException:
             folder.abort()
             raise
         folder.commit()
+    if stopped is not None:
+        raise Cancelled(f"compensation was cancelled after {finished} of {len(paths)} target(s); the finished ones "
+                        f"are kept in {options.out} (marked incomplete): run the same command with --force to "
+                        "redo it whole")
     say("done", 1.0)
     if failure is not None:
         raise failure
     return read(options.out)
+
+
+def _one_target(stage: StageC, tmp: Path, image: Any, note: Any, name: str, path: Path, i: int, n: int,
+                say: Progress, cancel: Cancel | None) -> dict[str, Any]:
+    """Compensate one target and write its files into ``tmp``; returns its record."""
+    check(cancel, "compensation was cancelled; nothing was written")
+    area = stage.area_for(image)
+    say(f"target {i + 1}/{n}: {name} ({area.width}×{area.height} at {area.x},{area.y})", 0.05 + 0.95 * i / n)
+    # The first target's answer is rendered by Mitsuba too: on the transport schedule that checks the operator
+    # against the scene once per run, at the cost of one render.
+    done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
+                            verify=True if i == 0 else None,
+                            progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
+                                          f"target {i + 1}/{n} {name}: "))
+    for w in done.warnings:
+        say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / n)
+    files = layout.target_files(name)
+    res = done.result
+    write_image(tmp / files["input"], done.input)
+    write_image(tmp / files["frame"], done.frame)
+    write_image(tmp / files["simulated"], res.simulated)
+    write_image(tmp / files["target"], done.fitted)
+    return {"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
+            "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
+            "seconds": round(res.seconds, 2), "captures": res.captures,
+            "seconds_compute": res.report.get("seconds_compute"),
+            "seconds_verify": res.report.get("seconds_verify"),
+            "simulated_by": res.report.get("simulated_by", "mitsuba"),
+            "operator_vs_mitsuba_psnr": res.report.get("operator_vs_mitsuba_psnr"),
+            "input_blur": res.report.get("input_blur"),  # the lens's blur held in the solve
+            "loss_first": res.losses[0] if res.losses else None,
+            "loss_last": res.losses[-1] if res.losses else None,
+            "losses": [round(v, 7) for v in res.losses],
+            "psnr_simulated_start": round(float(res.report["psnr_simulated_start"]), 3),
+            "psnr_simulated": round(float(res.report["psnr_simulated"]), 3)}
 
 
 # -- reading ---------------------------------------------------------------------------------------

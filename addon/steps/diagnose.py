@@ -20,7 +20,7 @@ from ..gap.diagnose import diagnose
 from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import NAMES
 from ..imageio import write_atomic_bytes, write_image
-from ..outputs import AtomicFolder, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from . import calibrate as calibrate_step
 from . import layout
@@ -70,6 +70,8 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     """Diagnose the calibration into ``options.out``; returns the ``gap.json`` document."""
     say = progress or quiet
     options.check()
+    check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                      inputs=(options.calibration,), error=ProCamError)
     cal = calibrate_step.read(options.calibration)
     try:
         captures = calibrate_step.captures_of(cal, verify_images=True)

@@ -46,7 +46,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import ImageError, ProCamError
 from ..imageio import read_image, write_image
-from ..outputs import AtomicFolder, output_names, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, output_names, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..stages.calibrate import Calibration
 from ..stages.classical import fit_classical
@@ -448,6 +448,8 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     """Measure every target of ``options`` into a new evaluation folder; returns ``metrics.json``'s document.
     ``device``: an open device to use instead of opening ``options.device`` (the manifest names the latter)."""
     say = progress or quiet
+    check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                      inputs=(options.calibration, options.inputs, *options.targets, *device_inputs(options.device)))
     cal = calibrate_step.read(options.calibration)
     inputs = CompensationInputs.load(options.inputs)
     notes = inputs.check_against(cal, options.calibration)  # inputs of another rig fail before any projection

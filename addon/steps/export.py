@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ImageError
-from ..outputs import fresh_output_folder, write_manifest
+from ..outputs import check_replaceable, fresh_output_folder, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from . import calibrate as calibrate_step
 from . import compensate as compensate_step
@@ -39,6 +39,8 @@ def run_frames(options: ExportFramesOptions, progress: Progress | None = None, c
     say = progress or quiet
     if options.first < 0:
         raise ImageError(f"the first frame number must be ≥ 0, got {options.first}")
+    check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
+                      inputs=(options.compensation,), error=ImageError)
     view = compensate_step.read(options.compensation)
     if not view.targets:
         raise ImageError(f"{options.compensation} holds no finished targets to export; run Compensate first")

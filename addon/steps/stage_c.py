@@ -131,14 +131,17 @@ def device_kind(spec: str) -> str:
 def device_inputs(spec: str | None) -> tuple[Path, ...]:
     """The files and folders the device ``spec`` reads (a lab truth and its surface, a replayed capture set):
     inputs of the run, which no output may replace."""
-    if not spec:
-        return ()
-    kind, _, where = spec.partition(":")
+    kind, _, where = (spec or "").partition(":")
     if kind == "lab" and where:
         return Path(where), LabTruth.mesh_path(where)
     if kind == "folder" and where:
         return (Path(where),)
     return ()
+
+
+def stage_c_inputs(options: "StageCOptions") -> tuple[Path, ...]:
+    """What stage C reads besides the calibration and the targets: its device's files and the diagnosis."""
+    return (*device_inputs(options.device), *((options.diagnosis,) if options.diagnosis else ()))
 
 
 def camera_lens_of(calibration: Calibration) -> RigLens | None:
