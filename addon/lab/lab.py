@@ -655,7 +655,8 @@ def check_lab_outputs(out_dir: str | Path, truth_path: str | Path, *, force: boo
     check_replaceable(out_dir, force=force, what="capture set", replaceable=is_capture_set, inputs=inputs,
                       error=LabError)
     for p, ours in ((truth_path, is_truth_file), (LabTruth.mesh_path(truth_path), is_truth_surface)):
-        check_file_replaceable(p, force=force, what="ProCam lab truth file", replaceable=ours, inputs=inputs, error=LabError)
+        check_file_replaceable(p, force=force, what="ProCam lab truth file", replaceable=ours, inputs=inputs,
+                               error=LabError)
     _check_writable_folder(out_dir.parent, "capture set")
     _check_writable_folder(truth_path.parent, "truth file")
     return out_dir, truth_path

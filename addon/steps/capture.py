@@ -81,7 +81,8 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
         raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
     out, truth_path = options.paths()
     # What the truth must not be written into: the mesh read, and any step folder (another set's capture.json…).
-    mesh = Path(options.surface) if isinstance(options.surface, (str, Path)) and Path(options.surface).is_file() else None
+    named = isinstance(options.surface, (str, Path)) and Path(options.surface).is_file()
+    mesh = Path(options.surface) if named else None
     inputs = (mesh, *layout.step_folders_around(truth_path))
     check_lab_outputs(out, truth_path, force=options.force, inputs=inputs)  # before reading any mesh
     check_supersample(options.supersample)
