@@ -94,3 +94,101 @@ def test_export_frames_refuses_a_frame_outside_the_compensation(tmp_path: Path, 
     assert not out.exists()
     assert _read_outside(seen, secret.parent) == []
     assert "names files inside itself" in capsys.readouterr().err
+
+
+# -- item 4: import-captures copies a pattern that sequence.json names outside the sequence ----------------------
+
+FRAME = (80, 60)
+CAM = (64, 48)
+
+
+def _sequence(tmp_path: Path) -> tuple[Path, Path]:
+    """A small exported sequence (no Gray code) and plain photographs of it, one per frame."""
+    from procam.addon.capture.devices import export_sequence
+    from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
+
+    proj = Projector(projector_intrinsics_from_throw(FRAME[0], FRAME[1], 1.25, 0.0, 0.15), input_size=(60, 60))
+    seq = export_sequence(proj, tmp_path / "seq", checker_size=10, graycode=False, validation=False)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    frames = json.loads((seq / "sequence.json").read_text())["frames"]
+    for i, _ in enumerate(frames):
+        write_image(photos / f"IMG_{i:04d}.png", np.full((CAM[1], CAM[0], 3), 0.2 + 0.01 * i, np.float32))
+    return seq, photos
+
+
+def _import(seq: Path, photos: Path, out: Path) -> int:
+    return main(["import-captures", str(seq), str(photos), "--out", str(out), "--no-exposure-check"])
+
+
+def test_import_captures_of_an_honest_sequence(tmp_path: Path) -> None:
+    from procam.addon.capture.format import CaptureSet
+
+    seq, photos = _sequence(tmp_path)
+    assert _import(seq, photos, tmp_path / "set") == 0
+    assert CaptureSet.load(tmp_path / "set").entries_of("white")
+
+
+@pytest.mark.parametrize("how", ["absolute", "climbing", "symlink"])
+def test_import_captures_refuses_a_pattern_outside_the_sequence(tmp_path: Path, how: str, capsys) -> None:
+    seq, photos = _sequence(tmp_path)
+    secret = _outside(tmp_path)
+    manifest = seq / "sequence.json"
+    doc = json.loads(manifest.read_text())
+    white = next(f for f in doc["frames"] if f["kind"] == "white")
+    if how == "symlink":
+        (seq / white["file"]).unlink()
+        os.symlink(secret, seq / white["file"])
+    else:
+        white["file"] = str(secret) if how == "absolute" else "../elsewhere/secret.png"
+        manifest.write_text(json.dumps(doc))
+    out = tmp_path / "set"
+    with opened() as seen:
+        assert _import(seq, photos, out) == 2
+    assert not out.exists()
+    assert _read_outside(seen, secret.parent) == []
+    assert "names files inside itself" in capsys.readouterr().err
+
+
+# -- item 5: a capture set whose image, pattern or depth folder is a symlink leaving it ----------------------------
+
+@pytest.mark.parametrize("folder", ["images", "patterns"])
+def test_a_capture_set_with_a_symlinked_folder_leaving_it_is_refused(tmp_path: Path, folder: str, capsys) -> None:
+    from procam.addon.capture.format import CaptureSet
+    from procam.addon.errors import CaptureError
+
+    seq, photos = _sequence(tmp_path)
+    assert _import(seq, photos, tmp_path / "set") == 0
+    capsys.readouterr()
+    moved = tmp_path / "elsewhere" / folder
+    moved.parent.mkdir()
+    (tmp_path / "set" / folder).rename(moved)
+    os.symlink(moved, tmp_path / "set" / folder)
+    with pytest.raises(CaptureError, match="outside"):
+        CaptureSet.load(tmp_path / "set", verify_images=False)
+    with opened() as seen:
+        assert main(["calibrate", str(tmp_path / "set"), "--out", str(tmp_path / "cal")]) == 2
+    assert not (tmp_path / "cal").exists()
+    assert _read_outside(seen, moved.parent) == []
+    assert "outside" in capsys.readouterr().err
+
+
+def test_a_capture_set_whose_depth_file_links_outside_is_refused(tmp_path: Path) -> None:
+    from procam.addon.capture.format import CaptureSet, CaptureSetWriter, DepthInfo
+    from procam.addon.errors import CaptureError
+    from procam.addon.rig.model import Camera, Projector, intrinsics_from_fov, projector_intrinsics_from_throw
+
+    camera = Camera(intrinsics_from_fov(CAM[0], CAM[1], 58.0))
+    proj = Projector(projector_intrinsics_from_throw(FRAME[0], FRAME[1], 1.25, 0.0, 0.15), input_size=(60, 60))
+    with CaptureSetWriter(tmp_path / "set", camera, proj, depth_info=DepthInfo(camera.intrinsics, CAM)) as w:
+        w.add("white", np.full((CAM[1], CAM[0], 3), 0.5, np.float32))
+        entry = w.add_depth(np.full((CAM[1], CAM[0]), 2.0, np.float32))
+    CaptureSet.load(tmp_path / "set")
+    secret = tmp_path / "elsewhere" / "depth.npy"
+    secret.parent.mkdir()
+    np.save(secret, np.full((CAM[1], CAM[0]), 3.0, np.float32))
+    (tmp_path / "set" / entry.file).unlink()
+    os.symlink(secret, tmp_path / "set" / entry.file)
+    with opened() as seen, pytest.raises(CaptureError, match="outside"):
+        CaptureSet.load(tmp_path / "set")
+    assert _read_outside(seen, secret.parent) == []
