@@ -192,3 +192,66 @@ def test_a_capture_set_whose_depth_file_links_outside_is_refused(tmp_path: Path)
     with opened() as seen, pytest.raises(CaptureError, match="outside"):
         CaptureSet.load(tmp_path / "set")
     assert _read_outside(seen, secret.parent) == []
+
+
+# -- item 5: calibration.json's surface mesh and diagnostics ----------------------------------------------------
+
+def _mesh_file(path: Path) -> Path:
+    np.savez(path, vertices=np.array([[0, 0, 2], [1, 0, 2], [0, 1, 2]], np.float64), faces=np.array([[0, 1, 2]]),
+             uvs=np.zeros((3, 2)), albedo=np.full((4, 4, 3), 0.5, np.float32))
+    return path
+
+
+def _calibration(folder: Path, mesh: object) -> Path:
+    """A calibration folder (every stage run) whose manifest names ``mesh`` as its surface."""
+    from procam.addon.rig.model import Camera, Projector, Rig, intrinsics_from_fov, projector_intrinsics_from_throw
+
+    rig = Rig(Camera(intrinsics_from_fov(CAM[0], CAM[1], 58.0)),
+              Projector(projector_intrinsics_from_throw(FRAME[0], FRAME[1], 1.25, 0.0, 0.15), input_size=(60, 60)))
+    folder.mkdir()
+    _mesh_file(folder / "surface.npz")
+    doc = {"format": layout.CALIBRATION.format, "version": 1, "rig": rig.to_dict(), "capture_set": "",
+           "surface": {"mesh": mesh}}
+    (folder / layout.CALIBRATION.manifest).write_text(json.dumps(doc))
+    return folder
+
+
+def test_an_honest_calibration_reads_its_own_mesh(tmp_path: Path) -> None:
+    from procam.addon.steps import calibrate
+
+    cal = _calibration(tmp_path / "cal", "surface.npz")
+    assert calibrate.read(cal).surface.vertices.shape == (3, 3)
+    assert calibrate.identity(cal)["surface_sha256"]
+
+
+@pytest.mark.parametrize("how", ["absolute", "climbing", "symlink", "not a name"])
+def test_a_calibration_mesh_outside_its_folder_is_refused(tmp_path: Path, how: str) -> None:
+    from procam.addon.errors import CalibrationError
+    from procam.addon.steps import calibrate
+
+    (tmp_path / "elsewhere").mkdir()
+    secret = _mesh_file(tmp_path / "elsewhere" / "mesh.npz")
+    mesh = {"absolute": str(secret), "climbing": "../elsewhere/mesh.npz", "symlink": "linked.npz",
+            "not a name": ["surface.npz"]}[how]
+    cal = _calibration(tmp_path / "cal", mesh)
+    if how == "symlink":
+        os.symlink(secret, cal / "linked.npz")
+    with opened() as seen:
+        with pytest.raises(CalibrationError):
+            calibrate.read(cal)
+        with pytest.raises(CalibrationError):
+            calibrate.identity(cal)
+        assert main(["precompute", str(cal)]) == 2
+    assert _read_outside(seen, secret.parent) == []
+
+
+def test_calibration_diagnostics_linked_outside_are_refused(tmp_path: Path) -> None:
+    from procam.addon.errors import CalibrationError
+    from procam.addon.steps import calibrate
+
+    cal = _calibration(tmp_path / "cal", "surface.npz")
+    secret = _outside(tmp_path, "warp.png")
+    os.symlink(secret.parent, cal / layout.DIAGNOSTICS_DIR)
+    with opened() as seen, pytest.raises(CalibrationError, match="outside"):
+        calibrate.read_view(cal)
+    assert _read_outside(seen, secret.parent) == []
