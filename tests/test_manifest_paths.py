@@ -65,7 +65,8 @@ def _compensation(folder: Path, frame: str) -> Path:
         write_image(folder / name, np.zeros((60, 80, 3), np.float32))
     doc = {"format": layout.COMPENSATION.format, "version": 1,
            "targets": [{"name": "a", "status": "done", "input": "a_input.png", "frame": frame,
-                        "simulated": "a_simulated.png", "psnr_simulated": 30.0, "seconds": 1.0, "mode": "forward"}]}
+                        "simulated": "a_simulated.png", "psnr_simulated": 30.0, "seconds": 1.0, "mode": "forward",
+                        "area": {"x": 0, "y": 0, "width": 60, "height": 60}}]}
     (folder / layout.COMPENSATION.manifest).write_text(json.dumps(doc))
     return folder
 
@@ -255,3 +256,47 @@ def test_calibration_diagnostics_linked_outside_are_refused(tmp_path: Path) -> N
     with opened() as seen, pytest.raises(CalibrationError, match="outside"):
         calibrate.read_view(cal)
     assert _read_outside(seen, secret.parent) == []
+
+
+# -- the rule, other readers: evaluate's inputs (a compensation or a show folder) --------------------------------
+
+AREA = {"x": 0, "y": 0, "width": 60, "height": 60}
+
+
+@pytest.mark.parametrize("how", ["absolute", "climbing", "symlink"])
+def test_evaluate_refuses_compensated_inputs_outside_their_folder(tmp_path: Path, how: str) -> None:
+    from procam.addon.steps.evaluate import CompensationInputs, InputsError
+
+    secret = _outside(tmp_path)
+    comp = tmp_path / "comp"
+    frame = {"absolute": str(secret), "climbing": "../elsewhere/secret.png", "symlink": "link.png"}[how]
+    _compensation(comp, "a_frame.png")
+    doc = json.loads((comp / layout.COMPENSATION.manifest).read_text())
+    assert CompensationInputs.load(comp).records["a"].frame == comp / "a_frame.png"
+    doc["targets"][0]["frame"] = frame
+    (comp / layout.COMPENSATION.manifest).write_text(json.dumps(doc))
+    if how == "symlink":
+        os.symlink(secret, comp / "link.png")
+    with pytest.raises(InputsError, match="names files inside itself"):
+        CompensationInputs.load(comp)
+
+
+@pytest.mark.parametrize("how", ["absolute", "climbing", "symlink"])
+def test_evaluate_refuses_show_frames_outside_the_show(tmp_path: Path, how: str) -> None:
+    from procam.addon.steps.evaluate import CompensationInputs, InputsError
+
+    secret = _outside(tmp_path)
+    show = tmp_path / "show"
+    show.mkdir()
+    write_image(show / "frame_0001.png", np.zeros((60, 80, 3), np.float32))
+    entry = {"number": 1, "status": "done", "file": "frame_0001.png", "source": str(tmp_path / "a.png"),
+             "area": AREA}
+    doc = {"format": layout.SHOW.format, "version": 1, "frames": {"1": entry}}
+    (show / layout.SHOW.manifest).write_text(json.dumps(doc))
+    assert CompensationInputs.load(show).records["a"].frame == show / "frame_0001.png"
+    entry["file"] = {"absolute": str(secret), "climbing": "../elsewhere/secret.png", "symlink": "frame_0002.png"}[how]
+    if how == "symlink":
+        os.symlink(secret, show / "frame_0002.png")
+    (show / layout.SHOW.manifest).write_text(json.dumps(doc))
+    with pytest.raises(InputsError, match="names files inside itself"):
+        CompensationInputs.load(show)
