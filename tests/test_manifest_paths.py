@@ -300,3 +300,37 @@ def test_evaluate_refuses_show_frames_outside_the_show(tmp_path: Path, how: str)
     (show / layout.SHOW.manifest).write_text(json.dumps(doc))
     with pytest.raises(InputsError, match="names files inside itself"):
         CompensationInputs.load(show)
+
+
+# -- the rule, fixed names too: a link in a folder never takes ProCam outside it ------------------------------
+
+def test_a_transport_operator_linked_from_another_folder_is_refused(tmp_path: Path) -> None:
+    from procam.addon.stages.transport import TransportError
+    from procam.addon.steps import calibrate, transport
+
+    cal_dir = _calibration(tmp_path / "cal", "surface.npz")
+    ident = calibrate.identity(cal_dir)
+    (tmp_path / "elsewhere").mkdir()
+    np.savez(tmp_path / "elsewhere" / "transport.npz", matrix=np.zeros(3))
+    os.symlink(tmp_path / "elsewhere" / "transport.npz", cal_dir / layout.TRANSPORT_NPZ)
+    (cal_dir / layout.TRANSPORT_JSON).write_text(json.dumps(
+        {"calibration_sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"], "bounces": 1, "seed": 0}))
+    cal = calibrate.read(cal_dir)
+    with opened() as seen, pytest.raises(TransportError, match="outside"):
+        transport.load(cal, bounces=1, seed=0)
+    assert _read_outside(seen, tmp_path / "elsewhere") == []
+
+
+def test_a_lab_truth_mesh_linked_outside_is_refused(tmp_path: Path) -> None:
+    from procam.addon.errors import LabError
+    from procam.addon.lab.lab import TRUTH_FORMAT, LabTruth
+
+    (tmp_path / "elsewhere").mkdir()
+    secret = _mesh_file(tmp_path / "elsewhere" / "mesh.npz")
+    (tmp_path / "set").mkdir()
+    os.symlink(secret, tmp_path / "set" / "truth_mesh.npz")
+    truth = tmp_path / "set" / "truth.json"
+    truth.write_text(json.dumps({"format": TRUTH_FORMAT, "surface": {"mesh": "truth_mesh.npz"}}))
+    with opened() as seen, pytest.raises(LabError):
+        LabTruth.load(truth)
+    assert _read_outside(seen, secret.parent) == []
