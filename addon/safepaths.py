@@ -24,10 +24,13 @@ def _real(path: Path) -> Path:
 def within(root: str | Path, path: str | Path, *, what: str, error: type[ProCamError] = ProCamError) -> Path:
     """``path`` (absolute, or relative to the working folder), refused unless it and every symlink on the way
     stay inside ``root``; returns it unresolved, so messages name what the user gave."""
-    root_real = _real(Path(root))
     path = Path(path)
-    real = _real(path)
-    if real != root_real and root_real not in real.parents:
+    try:
+        root_real, real = _real(Path(root)), _real(path)
+        outside = real != root_real and root_real not in real.parents
+    except (OSError, ValueError):  # a NUL byte, or a name the system cannot resolve
+        outside = True
+    if outside:
         raise error(f"{what} {path} lies outside {root} (a link or a path that leaves the folder); a ProCam folder "
                     "only names files inside itself — ask for a folder made by ProCam, or remake it")
     return path
@@ -39,7 +42,8 @@ def inside(root: str | Path, name: object, *, what: str, error: type[ProCamError
     if not isinstance(name, str) or not name or "\x00" in name:
         raise error(f"{what} in {root} is named {name!r}, which is not a file name; remake the folder with ProCam")
     rel = Path(name)
-    if rel.is_absolute() or ".." in rel.parts:
+    # No parts: "." or "./" names the folder itself, not a file in it.
+    if rel.is_absolute() or rel.drive or not rel.parts or ".." in rel.parts:
         raise error(f"{what} {name!r} in {root} must be a relative path inside the folder; a ProCam folder only "
                     "names files inside itself — ask for a folder made by ProCam, or remake it")
     return within(root, Path(root) / rel, what=what, error=error)

@@ -17,6 +17,7 @@ from bpy.props import CollectionProperty, StringProperty
 from ..addon import jobs
 from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
+from ..addon.safepaths import inside
 from ..addon.stages.display_area import parse_area
 from ..addon.steps import compensate as compensate_step
 from ..addon.steps import evaluate as evaluate_step
@@ -157,7 +158,8 @@ class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
         folder = paths.resolve(context.scene.procam_evaluation_dir, "evaluation folder")
         for t in result["targets"]:
             if t.get("status") == "done":
-                blender_rig.load_image_file(folder / t["image"], f"ProCam {t['name']} comparison")
+                image = inside(folder, t["image"], what="the comparison image", error=evaluate_step.EvaluationError)
+                blender_rig.load_image_file(image, f"ProCam {t['name']} comparison")
         return f"Evaluation: {evaluate_step.summary(folder).headline}"
 
 

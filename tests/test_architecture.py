@@ -151,3 +151,64 @@ def test_step_folders_are_written_by_steps_only():
 def test_the_graph_reader_sees_a_loop():
     """The cycle finder is not vacuous: a two-module loop is found."""
     assert _cycles({"a": {"b"}, "b": {"a"}, "c": {"a"}}) == [["a", "b"]]
+
+
+#: Keys under which ProCam manifests name files and folders (a frame, a mesh, a pattern …).
+FILE_KEYS = {"file", "files", "frame", "input", "simulated", "target", "mesh", "pattern", "image", "capture",
+             "uncompensated", "classical", "path", "folder", "name", "source"}
+#: Calls whose first argument is a file ProCam writes into its own output (a name it chose), not one it reads.
+WRITERS = {"write_image", "write_atomic_bytes", "write_manifest"}
+#: Readers of a resumed show's frames, resolved through safepaths by the show's own fix (issue 37, item 5): remove
+#: these when that lands.
+PENDING = {"addon/steps/show.py: self.path / str(entry.get('file', ''))",
+           "addon/steps/show.py: folder.path / entry['file']"}
+
+
+def _manifest_value(node: ast.AST) -> bool:
+    """``d["file"]``, ``d.get("file")`` or ``str()`` of one: a value read from a manifest under a file key."""
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "str" and node.args:
+        return _manifest_value(node.args[0])
+    if isinstance(node, ast.Subscript):
+        key = node.slice
+    elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get" and node.args:
+        key = node.args[0]
+    else:
+        return False
+    return isinstance(key, ast.Constant) and key.value in FILE_KEYS
+
+
+def _path_joins_of_manifest_values(tree: ast.AST) -> list[ast.AST]:
+    written = {id(call.args[0]) for call in ast.walk(tree) if isinstance(call, ast.Call) and call.args
+               and (call.func.id if isinstance(call.func, ast.Name) else getattr(call.func, "attr", "")) in WRITERS}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div) and _manifest_value(node.right):
+            if id(node) not in written:
+                found.append(node)
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
+                and node.func.attr in ("joinpath", "with_name", "join") and any(map(_manifest_value, node.args)):
+            found.append(node)
+    return found
+
+
+def test_paths_read_from_manifests_go_through_safepaths():
+    """No reader joins a file name taken from a manifest onto a folder itself: ``safepaths.inside`` resolves it, so
+    an absolute name, ``..`` or a link leaving the folder is refused in one place."""
+    files = [*ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"), *(ROOT / "panels").rglob("*.py")]
+    offenders = [f"{p.relative_to(ROOT)}: {ast.unparse(node)}" for p in sorted(files)
+                 for node in _path_joins_of_manifest_values(ast.parse(p.read_text(), str(p)))]
+    assert sorted(set(offenders) - PENDING) == []
+
+
+def test_the_manifest_path_scan_sees_a_join():
+    """The scan is not vacuous: the joins the readers used to make are found, writes into our own output are not."""
+    code = """
+def read(folder, doc, t, e):
+    a = folder / t["frame"]
+    b = root / str(e.get("file", ""))
+    c = path.with_name(doc["surface"]["mesh"])
+    write_image(folder.tmp / files["input"], x)
+    d = sig / e["gain"]
+"""
+    found = [ast.unparse(n) for n in _path_joins_of_manifest_values(ast.parse(code))]
+    assert found == ["folder / t['frame']", "root / str(e.get('file', ''))", "path.with_name(doc['surface']['mesh'])"]

@@ -261,7 +261,7 @@ def test_path_escape_refused(good_set):
     def change(d):
         d["images"][0]["file"] = "../elsewhere.png"
     edit_manifest(good_set, change)
-    with pytest.raises(CaptureError, match="must be a relative path inside the capture set"):
+    with pytest.raises(CaptureError, match="file .*must be a relative path inside the folder"):
         CaptureSet.load(good_set)
 
 

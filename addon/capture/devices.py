@@ -36,9 +36,10 @@ from ..imageio import ORIENTATIONS, exif_orientation, read_image, write_atomic_b
 from ..progress import Progress, quiet
 from ..rig.model import Camera, Intrinsics, Projector, intrinsics_from_fov
 from ..outputs import AtomicFolder, holds_manifest
+from ..safepaths import inside
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
-from .format import CAMERA_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
+from .format import CAMERA_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, Entry, srgb_to_linear
 from .patterns import PatternSpec, calibration_sequence
 
 SEQUENCE_FORMAT = "procam-sequence"
@@ -180,7 +181,14 @@ def load_sequence(sequence_dir: str | Path) -> SequenceInfo:
     for i, f in enumerate(frames):
         if not isinstance(f, dict) or not {"file", "name", "kind"} <= f.keys():
             raise CaptureError(f"{manifest}: frame {i} needs file, name and kind")
+        # A frame is a file of the sequence: a name leading out of it would be copied into the capture set.
+        inside(root, f["file"], what=f"{manifest.name}: frame {i}", error=CaptureError)
     return SequenceInfo(root, projector, camera, frames)
+
+
+def sequence_frame(seq: SequenceInfo, frame: dict[str, Any]) -> Path:
+    """The file of one of ``seq``'s frames, inside the sequence folder."""
+    return inside(seq.path, frame["file"], what="pattern frame", error=CaptureError)
 
 
 # -- folder workflow: import ---------------------------------------------------------------------
@@ -445,7 +453,7 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
             pattern = None
             if frame["kind"] != "surface":
                 try:
-                    pattern = read_image(seq.path / frame["file"])
+                    pattern = read_image(sequence_frame(seq, frame))
                 except ImageError as exc:
                     raise CaptureError(f"pattern frame {frame['file']} of the sequence is unreadable: {exc}") from None
             params = dict(frame.get("params") or {})
@@ -551,21 +559,21 @@ class FolderDevice(Device):
         self.captures = CaptureSet.load(capture_dir)
         self.projector = self.captures.projector
         self.camera = self.captures.camera
-        self._by_frame: dict[str, str] = {}
+        self._by_frame: dict[str, Entry] = {}
         keys: dict[str, str] = {}  # pattern file → key: patterns shown twice are stored once
         for e in self.captures.entries:
             if e.pattern:
                 if e.pattern not in keys:
-                    keys[e.pattern] = _frame_key(read_image(self.captures.path / e.pattern))
-                self._by_frame.setdefault(keys[e.pattern], e.file)
+                    keys[e.pattern] = _frame_key(read_image(self.captures.pattern_file(e)))
+                self._by_frame.setdefault(keys[e.pattern], e)
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         f = self.check_frame(frame)
-        file = self._by_frame.get(_frame_key(f))
-        if file is None:
+        entry = self._by_frame.get(_frame_key(f))
+        if entry is None:
             raise CaptureError(f"this frame was never captured in {self.captures.path}; export it with the "
                                "sequence, capture it with your tools and import the captures again")
-        return read_image(self.captures.path / file)
+        return read_image(self.captures.file(entry))
 
     def capture_off(self) -> np.ndarray:
         if self.captures.entries_of("surface"):

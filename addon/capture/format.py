@@ -52,6 +52,7 @@ from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, holds_manifest, jsonable
 from ..rig.model import Camera, Intrinsics, Projector
+from ..safepaths import inside
 
 FORMAT = "procam-capture"
 VERSION = 1
@@ -167,13 +168,6 @@ def _lens_removed(value: Any, where: str) -> dict[str, Any] | None:
     except (KeyError, TypeError, ValueError, RigError) as exc:
         raise CaptureError(f"{where}: invalid camera_lens_removed (the lens import took out): {exc}") from None
     return {"camera": value["camera"], "distortion": terms, "source": str(value.get("source", ""))}
-
-
-def _inside(root: Path, rel: str, where: str) -> Path:
-    """Resolve ``rel`` inside the set; refuse absolute paths and escapes so a set stays self-contained."""
-    if not isinstance(rel, str) or not rel or Path(rel).is_absolute() or ".." in Path(rel).parts:
-        raise CaptureError(f"{where}: file {rel!r} must be a relative path inside the capture set")
-    return root / rel
 
 
 def _size(img: np.ndarray) -> tuple[int, int]:
@@ -298,7 +292,7 @@ class CaptureSet:
             kind, rel = raw["kind"], raw["file"]
             if kind not in KINDS:
                 raise CaptureError(f"{here} ({rel}): unknown kind {kind!r}; known kinds: {', '.join(KINDS)}")
-            _inside(root, rel, here)
+            inside(root, rel, what=f"{here}: file", error=CaptureError)
             params = raw.get("params", {})
             if not isinstance(params, dict):
                 raise CaptureError(f"{here} ({rel}): 'params' must be an object")
@@ -313,7 +307,7 @@ class CaptureSet:
                 raise CaptureError(f"{here}: {rel} has an unsupported type for a {kind} image (use {', '.join(suffixes)})")
             pattern = raw.get("pattern")
             if pattern is not None:
-                _inside(root, pattern, here)
+                inside(root, pattern, what=f"{here}: pattern", error=CaptureError)
             if kind == "depth" and depth_info is None:
                 raise CaptureError(f"{here} ({rel}): a depth image needs the 'depth' section (its intrinsics)")
             files.add(rel)
@@ -342,8 +336,12 @@ class CaptureSet:
                     raise CaptureError(f"{self.path / e.pattern}: projected pattern is {_size(pat)[0]}×{_size(pat)[1]}, "
                                        f"but the projector frame is {frame[0]}×{frame[1]}")
 
+    def _file(self, rel: str) -> Path:
+        # Checked at load too; resolved again at each read, so a link put in after loading is not followed.
+        return inside(self.path, rel, what="capture set file", error=CaptureError)
+
     def _read(self, rel: str) -> np.ndarray:
-        path = self.path / rel
+        path = self._file(rel)
         if not path.is_file():
             raise CaptureError(f"capture set {self.path}: file {rel} is missing")
         try:
@@ -352,7 +350,7 @@ class CaptureSet:
             raise CaptureError(f"capture set {self.path}: {rel} is unreadable or truncated ({exc})") from None
 
     def _read_depth(self, e: Entry) -> np.ndarray:
-        path = self.path / e.file
+        path = self._file(e.file)
         if not path.is_file():
             raise CaptureError(f"capture set {self.path}: depth file {e.file} is missing")
         try:
@@ -416,7 +414,14 @@ class CaptureSet:
         return [(e, e.params[WALL_PARAM]) for e in self.entries_of("depth") if WALL_PARAM in e.params]
 
     def file(self, entry: Entry) -> Path:
-        return self.path / entry.file
+        """The image file of ``entry``, inside the set."""
+        return self._file(entry.file)
+
+    def pattern_file(self, entry: Entry) -> Path:
+        """The projected pattern file of ``entry``, inside the set."""
+        if not entry.pattern:
+            raise CaptureError(f"capture set {self.path}: {entry.file} records no projected pattern")
+        return self._file(entry.pattern)
 
     def __iter__(self) -> Iterator[Entry]:
         return iter(self.entries)

@@ -232,7 +232,7 @@ def decode_gray_code_set(captures: "CaptureSet", **thresholds: Any) -> GrayCodeD
     proj = captures.projector
     size = proj.input_size if area == "input" else proj.intrinsics.size
     offset = proj.input_offset if area == "input" else (0, 0)
-    key = (tuple(_file_stamp(captures.path / e.file) for e in entries + levels), tuple(size), tuple(offset),
+    key = (tuple(_file_stamp(captures.file(e)) for e in entries + levels), tuple(size), tuple(offset),
            tuple(sorted(thresholds.items())))
     kept = _LATEST_DECODING.get(key)
     if kept is not None:

@@ -48,6 +48,7 @@ from ..progress import Cancel, Progress, check, quiet
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
 from ..rig.model import Camera, Intrinsics, Projector, Rig
+from ..safepaths import inside
 from ..surface.mesh import SurfaceMesh
 from ..surface.shapes import SHAPES, builtin_surface
 from .depth import depth_capture, sensor_resolution
@@ -148,7 +149,8 @@ class LabTruth:
             doc = json.loads(path.read_text())
             if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
                 raise LabError(f"{path} is not a ProCam lab truth file")
-            data = np.load(path.with_name(doc["surface"]["mesh"]))
+            data = np.load(inside(path.parent, doc["surface"]["mesh"], what="the lab truth's surface mesh",
+                                  error=LabError))
             surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"],
                                   name=doc["surface"].get("name", "surface"))
             return LabTruth(Rig.from_dict(doc["rig"]), surface, doc["surface"]["source"],

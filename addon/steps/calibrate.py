@@ -32,6 +32,7 @@ from ..imageio import read_image, write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Rig
+from ..safepaths import inside, within
 from ..stages.calibrate import STAGES, Calibration, calibrate_captures, stage_plan
 from ..stages.transport import TransportError, build_transport
 from ..stages.warp import Warp, grid_image
@@ -226,14 +227,14 @@ def read(folder: str | Path, *, complete: bool = True) -> Calibration:
         doc = json.loads(path.read_text())
         if doc.get("format") != KIND.format:
             raise CalibrationError(f"{path} is not a ProCam calibration")
-        data = np.load(folder / doc["surface"]["mesh"])
-        surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"], name="surface")
+        with np.load(_mesh(folder, doc["surface"]["mesh"])) as data:
+            surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"], name="surface")
         warp = Warp.from_dict(doc["warp"]) if doc.get("warp") else None
         report = {k: v for k, v in doc.items() if k not in ("format", "version", "capture_set", "rig",
                                                              "camera_from_projector", "warp", "surface")}
         cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report,
                           str(folder.absolute()))
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
     missing = cal.missing_stages
     if complete and missing:
@@ -254,6 +255,11 @@ def captures_of(cal: Calibration, *, verify_images: bool = False, required: bool
         return None
 
 
+def _mesh(folder: Path, name: object) -> Path:
+    """The surface mesh a calibration manifest names: a file of the calibration folder."""
+    return inside(folder, name, what="the surface mesh", error=CalibrationError)
+
+
 def identity(folder: str | Path) -> dict[str, str]:
     """Path and content hashes of a calibration folder (its manifest and surface mesh): what made a result."""
     folder = Path(folder)
@@ -261,7 +267,7 @@ def identity(folder: str | Path) -> dict[str, str]:
     try:
         mesh = json.loads(doc_path.read_text()).get("surface", {}).get("mesh", layout.SURFACE_NPZ)
         return {"path": str(folder.absolute()), "sha256": file_sha256(doc_path),
-                "surface_sha256": file_sha256(folder / mesh)}
+                "surface_sha256": file_sha256(_mesh(folder, mesh))}
     except (OSError, ValueError, AttributeError) as exc:
         raise CalibrationError(f"cannot read the calibration {folder}: {exc}") from None
 
@@ -269,7 +275,10 @@ def identity(folder: str | Path) -> dict[str, str]:
 def diagnostic_images(folder: str | Path) -> dict[str, np.ndarray]:
     """The diagnostic images of a calibration folder (``diagnostics/*.png``) by name."""
     diag = Path(folder) / layout.DIAGNOSTICS_DIR
-    return {p.stem: read_image(p, channels=3) for p in sorted(diag.glob("*.png"))} if diag.is_dir() else {}
+    if not diag.is_dir():
+        return {}
+    return {p.stem: read_image(within(folder, p, what="diagnostic image", error=CalibrationError), channels=3)
+            for p in sorted(diag.glob("*.png"))}
 
 
 @dataclass

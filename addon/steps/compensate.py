@@ -29,6 +29,7 @@ from ..errors import Cancelled, ImageError, ProCamError
 from ..imageio import write_image
 from ..outputs import AtomicFolder, check_replaceable, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
+from ..safepaths import inside
 from . import calibrate as calibrate_step
 from . import layout
 from .stage_c import StageC, StageCOptions, stage_c_inputs
@@ -220,8 +221,11 @@ def read(folder: str | Path) -> CompensationView:
         if not isinstance(t, dict) or t.get("status") != "done":
             continue
         try:
-            out.append(CompensatedTarget(str(t["name"]), folder / t["input"], folder / t["frame"],
-                                         folder / t["simulated"], float(t.get("psnr_simulated", float("nan"))),
+            name = str(t["name"])
+            # The files a record names are this folder's own: never a path that leads out of it.
+            files = [inside(folder, t[key], what=f"the {key} image of target {name!r}")
+                     for key in ("input", "frame", "simulated")]
+            out.append(CompensatedTarget(name, *files, float(t.get("psnr_simulated", float("nan"))),
                                          float(t.get("seconds", 0.0)), str(t.get("mode", ""))))
         except (KeyError, TypeError, ValueError) as exc:
             raise ProCamError(f"{path}: a target record is malformed ({exc})") from None

@@ -48,6 +48,7 @@ from ..errors import ImageError, ProCamError
 from ..imageio import read_image, write_image
 from ..outputs import AtomicFolder, check_replaceable, output_names, write_manifest
 from ..progress import Cancel, Progress, check, quiet
+from ..safepaths import inside
 from ..stages.calibrate import Calibration
 from ..stages.classical import fit_classical
 from ..stages.compensate import Compensator
@@ -143,8 +144,10 @@ class CompensationInputs:
                 name = str(r["name"])
             except (KeyError, TypeError, ProCamError) as exc:
                 raise InputsError(f"{manifest}: a target record is malformed ({exc})") from None
-            frame = root / r["frame"] if r.get("frame") else None
-            inp = root / r["input"] if r.get("input") else None
+            frame = inside(root, r["frame"], what=f"the frame of target {name!r}", error=InputsError) \
+                if r.get("frame") else None
+            inp = inside(root, r["input"], what=f"the input of target {name!r}", error=InputsError) \
+                if r.get("input") else None
             records[name] = InputRecord(name, frame, inp, area, r.get("mode"))
         return CompensationInputs(root, doc, records)
 
@@ -165,7 +168,8 @@ class CompensationInputs:
             try:
                 # a video's frames share one source: they are named by their output files (frame_NNNN)
                 name = Path(str(e["file"])).stem if video else output_names([str(e["source"])])[0]
-                records[name] = InputRecord(name, root / str(e["file"]), None, DisplayArea.from_dict(e["area"]),
+                file = inside(root, e["file"], what=f"the file of frame {name!r}", error=InputsError)
+                records[name] = InputRecord(name, file, None, DisplayArea.from_dict(e["area"]),
                                             e.get("mode"))
             except (KeyError, TypeError, ValueError, ProCamError) as exc:
                 raise InputsError(f"{manifest}: a frame record is malformed ({exc})") from None

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..capture.devices import export_sequence, load_sequence
+from ..capture.devices import export_sequence, load_sequence, sequence_frame
 from ..capture.format import CaptureSet, is_capture_set
 from ..errors import Cancelled, CaptureError
 from ..imageio import read_image, write_atomic_bytes, write_image
@@ -137,7 +137,8 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
                       error=CaptureError)
     doc, done = open_session(options)
     session = options.session
-    frames = load_sequence(session / "sequence").frames
+    sequence = load_sequence(session / "sequence")
+    frames = sequence.frames
     if done:
         say(f"resuming the live session in {session}: {done} of {len(frames)} frames already captured", 0.0)
     missing = [(i, f) for i, f in enumerate(frames) if not _photo(session, i).is_file()]
@@ -154,7 +155,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
                     if frame["kind"] == "surface":
                         shot = device.capture_off()
                     else:
-                        shot = device.project(read_image(session / "sequence" / frame["file"]))
+                        shot = device.project(read_image(sequence_frame(sequence, frame)))
                     write_image(_photo(session, i), shot)
         say("importing the photographs (depth, exposure check)", 0.9)
         captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out,

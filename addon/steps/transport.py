@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import CalibrationError
 from ..progress import Cancel, Progress, quiet
+from ..safepaths import inside
 from ..stages.calibrate import Calibration
 from ..stages.transport import TransportError, TransportOperator
 from . import calibrate as calibrate_step
@@ -57,10 +58,13 @@ def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOpera
     if not calibration.folder:
         return None
     folder = Path(calibration.folder)
-    if not (folder / OPERATOR_FILE).is_file() or not (folder / REPORT_FILE).is_file():
+    # Fixed names, but the files may be links: the operator of another folder is not this calibration's.
+    operator, report = (inside(folder, name, what="the light-transport operator file", error=TransportError)
+                        for name in (OPERATOR_FILE, REPORT_FILE))
+    if not operator.is_file() or not report.is_file():
         return None
     try:
-        doc = json.loads((folder / REPORT_FILE).read_text())
+        doc = json.loads(report.read_text())
         ident = calibrate_step.identity(folder)
     except (OSError, ValueError, CalibrationError):
         return None
@@ -68,7 +72,7 @@ def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOpera
             (ident["sha256"], ident["surface_sha256"], bounces, seed):
         return None
     try:
-        with np.load(folder / OPERATOR_FILE) as data:
+        with np.load(operator) as data:
             return TransportOperator.from_arrays(data, doc)
     except (OSError, ValueError) as exc:
         raise TransportError(f"cannot read {folder / OPERATOR_FILE} ({exc}); run procam precompute "
