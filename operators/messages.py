@@ -16,6 +16,7 @@ from __future__ import annotations
 import re
 
 from ..addon.options import sidebar_names
+from ..addon.steps.diagnose import DiagnoseOptions
 from ..addon.steps.stage_c import StageCOptions
 
 #: The command's options that are fields of the sidebar (scene properties), as a message names them: by the
@@ -23,6 +24,7 @@ from ..addon.steps.stage_c import StageCOptions
 #: passes that name instead.
 SIDEBAR_NAMES = {
     **sidebar_names([StageCOptions]),
+    **{k: v for k, v in sidebar_names([DiagnoseOptions]).items() if k != "--scale"},
     "--force": "‘Replace Results’",
     "--out": "output folder",
     "--diagnosis": "‘Diagnosis’",
@@ -31,13 +33,12 @@ SIDEBAR_NAMES = {
     "--projector-intrinsics": "‘Projector Lens’",
     "--surface-mesh": "‘Surface Mesh’",
     "--depth-offset": "‘Depth Offset’",
-    "--max-effects": "‘Max Effects’",
 }
 
 #: An operator dialog's own "Replace" box (the sidebar's is ‘Replace Results’).
 REPLACE_BOX = {"--force": "‘Replace’"}
 #: The Diagnose panel's fields (``--scale`` means another scale to other commands: the lab's, the demo's).
-DIAGNOSE_FIELDS = {"--out": "‘Diagnosis’ folder", "--scale": "‘Working Scale’"}
+DIAGNOSE_FIELDS = {"--out": "‘Diagnosis’ folder", **sidebar_names([DiagnoseOptions])}
 
 _OPTION = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
 #: The Python API's keyword beside an option ("--force (force=True)"): the sidebar's field stands for both.

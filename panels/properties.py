@@ -4,8 +4,8 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
-from ..addon.gap.fit import MAX_EFFECTS
 from ..addon.options import Declared, prop_name, sidebar_fields
+from ..addon.steps.diagnose import DiagnoseOptions
 from ..addon.steps.stage_c import StageCOptions
 from ..operators.messages import sidebar_text
 
@@ -57,7 +57,7 @@ def declared_properties(*classes: type) -> dict[str, object]:
 def scene_properties() -> dict[str, object]:
     """Properties set on ``bpy.types.Scene``; PROCAM_PG_target must be registered first."""
     return {
-        **declared_properties(StageCOptions),
+        **declared_properties(StageCOptions, DiagnoseOptions),
         "procam_calibration_dir": StringProperty(
             name="Calibration", subtype="DIR_PATH",
             description="Calibration folder: Calibrate writes it, Compensate and Diagnose read it"),
@@ -92,12 +92,4 @@ def scene_properties() -> dict[str, object]:
             name="Results", subtype="DIR_PATH", description="Compensation folder: projector inputs and frames"),
         "procam_diagnosis_dir": StringProperty(
             name="Diagnosis", subtype="DIR_PATH", description="Diagnosis folder (gap.json and residual maps)"),
-        "procam_diagnosis_scale": FloatProperty(
-            name="Working Scale", default=0.5, min=0.05, max=1.0,
-            description="The diagnosis's working resolution as a share of the camera image: 1 sees a projector blur "
-                        "of about a texel that 0.5 can miss (slower)"),
-        "procam_max_effects": IntProperty(
-            name="Max Effects", default=MAX_EFFECTS, min=1, soft_max=8,
-            description="Effects the diagnosis selects at most: rounds of its greedy selection, each slower than "
-                        "the last"),
     }

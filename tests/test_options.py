@@ -60,6 +60,24 @@ def test_the_sidebar_reads_the_same_declaration():
     assert names["--no-bias"] == "‘Bias θ’" and names["--schedule"] == "‘Schedule’" and "--spp" not in names
 
 
+def test_the_diagnosis_options_come_from_their_declaration_too():
+    from procam.addon.steps.diagnose import DiagnoseOptions
+
+    p = argparse.ArgumentParser(exit_on_error=False)
+    add_arguments(p, DiagnoseOptions)
+    for bad in (["--min-share", "nan"], ["--scale", "2"], ["--max-effects", "0"], ["--spp", "1.5"]):
+        with pytest.raises((argparse.ArgumentError, SystemExit)):
+            p.parse_args(bad)
+    options = from_arguments(DiagnoseOptions, p.parse_args(["--scale", "1", "--max-effects", "6"]),
+                             calibration=Path("c"), out=Path("d"))
+    assert (options.scale, options.max_effects, options.min_share) == (1.0, 6, DiagnoseOptions.min_share)
+    with pytest.raises(ProCamError):
+        DiagnoseOptions(Path("c"), Path("d"), min_share=math.nan).check()
+    scene = {"procam_diagnosis_scale": 0.25, "procam_max_effects": 3}
+    assert from_values(DiagnoseOptions, scene.__getitem__, calibration=Path("c"), out=Path("d")) == \
+        DiagnoseOptions(Path("c"), Path("d"), scale=0.25, max_effects=3)
+
+
 def test_no_option_of_stage_c_is_declared_a_second_time():
     """The stage-C flags are added to no parser by hand, made into no scene property by hand, and named in no
     hand-written message table: the declaration on StageCOptions is the only one. (``--diagnosis`` is named by
