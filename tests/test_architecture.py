@@ -151,3 +151,12 @@ def test_step_folders_are_written_by_steps_only():
 def test_the_graph_reader_sees_a_loop():
     """The cycle finder is not vacuous: a two-module loop is found."""
     assert _cycles({"a": {"b"}, "b": {"a"}, "c": {"a"}}) == [["a", "b"]]
+
+
+def test_steps_never_import_the_blender_side():
+    """The steps run where Blender is not: what writes a .blend is handed to them (``blend_writer``), never
+    imported, not even inside a function."""
+    for path in sorted((ADDON / "steps").glob("*.py")):
+        blender = sorted(m for m in _imports(path) if m == "procam.addon.blender" or
+                         m.startswith("procam.addon.blender.") or m == "bpy" or m.startswith("bpy."))
+        assert not blender, f"{path.relative_to(ROOT)} imports {blender}"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibrationError
-from ..steps.calibrate import CalibrateOptions, run as calibrate
+from ..steps.calibrate import BlendWriter, CalibrateOptions, run as calibrate
 from ..steps.layout import TRANSPORT_JSON
 from .app import command
 from .terminal import run_step
@@ -55,6 +55,13 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
 
+def blend_writer() -> "BlendWriter":
+    """Blender's writer of a calibration's scene.blend: bpy is imported here, by the command, never by the steps."""
+    from ..blender.blend_file import save_calibration_blend
+
+    return save_calibration_blend
+
+
 @command("calibrate", "Estimate surface, projector pose and warp from a capture set.", _configure)
 def run(args: argparse.Namespace) -> int:
     initial = None
@@ -71,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
                                depth_offset=args.depth_offset, surface_from=args.surface_from,
                                surface_mesh=args.surface_mesh, with_blend=not args.no_blend_output, seed=args.seed,
                                precompute=args.precompute, force=args.force)
-    cal = run_step("calibrate", calibrate, options)
+    cal = run_step("calibrate", calibrate, options, blend_writer=blend_writer() if options.with_blend else None)
     r = cal.report
     print(f"calibration: {args.out}")
     sr = r["surface_report"]

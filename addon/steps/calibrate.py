@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,7 +65,8 @@ class CalibrateOptions:
     surface_from: str = "auto"
     #: the object's mesh (OBJ/PLY file in its own frame, or a mesh), registered to the measured surface
     surface_mesh: Path | SurfaceMesh | None = None
-    with_blend: bool = True
+    #: also write scene.blend, through the ``blend_writer`` given to :func:`run` (the procam command turns it on)
+    with_blend: bool = False
     seed: int = 0
     #: also precompute the light-transport operator into the folder (``procam precompute``), when the run ends
     #: with the last stage: stage C's default schedule solves on it
@@ -72,9 +74,20 @@ class CalibrateOptions:
     force: bool = False
 
 
-def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> Calibration:
-    """Calibrate the capture set into ``options.out``; returns the calibration written."""
+#: What writes a calibration's ``scene.blend``: (path, rig, surface, diagnostic images) → the path. Blender's side
+#: supplies it (``addon/blender/blend_file.save_calibration_blend``, passed by the command line); the steps never
+#: import bpy, so a step runs, and is tested, where Blender is not.
+BlendWriter = Callable[[Path, Rig, SurfaceMesh, dict[str, np.ndarray]], Path]
+
+
+def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+        blend_writer: BlendWriter | None = None) -> Calibration:
+    """Calibrate the capture set into ``options.out``; returns the calibration written. ``blend_writer`` writes
+    its ``scene.blend`` (needed unless ``options.with_blend`` is off)."""
     say = progress or quiet
+    if options.with_blend and blend_writer is None:
+        raise CalibrationError("a calibration's scene.blend needs Blender's writer: pass blend_writer (the procam "
+                               "command does), or turn with_blend off")
     plan = stage_plan(options.stages)
     if options.init == "given" and options.initial_pose is None:
         raise CalibrationError("a given start pose (init 'given') needs the pose itself")
@@ -93,7 +106,8 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
                                     surface_from=options.surface_from, surface_mesh=options.surface_mesh,
                                     progress=part(say, 0.0, share), cancel=cancel)
         say("writing the calibration folder", share)
-        write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
+        write(folder.tmp, result.calibration, result.images,
+              blend_writer=blend_writer if options.with_blend else None)
         if precompute:
             _precompute(folder.tmp, result.calibration, options.seed, part(say, share, 1.0, "transport operator: "),
                         cancel)
@@ -135,8 +149,12 @@ def _precompute(folder: Path, calibration: Calibration, seed: int, say: Progress
         say(f"warning: no transport operator precomputed ({exc})", 1.0)
 
 
-def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = True) -> None:
-    """The files of a calibration folder into the (new, empty) ``folder``."""
+def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = False,
+          blend_writer: BlendWriter | None = None) -> None:
+    """The files of a calibration folder into the (new, empty) ``folder``; ``scene.blend`` too when a
+    ``blend_writer`` is given."""
+    if with_blend and blend_writer is None:
+        raise CalibrationError("scene.blend needs Blender's writer (blend_writer)")
     mesh = cal.surface
     write_manifest(folder / KIND.manifest, manifest(cal))
     buf = io.BytesIO()
@@ -150,11 +168,8 @@ def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with
     clipped = {name: np.clip(im, 0, 1) for name, im in images.items()}
     for name, im in clipped.items():
         write_image(diag / f"{name}.png", im)
-    if with_blend:
-        # bpy is imported only here: a .blend is the one calibration output that needs Blender.
-        from ..blender.blend_file import save_calibration_blend
-
-        save_calibration_blend(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)
+    if blend_writer is not None:
+        blend_writer(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)
 
 
 def manifest(cal: Calibration) -> dict[str, Any]:
