@@ -46,6 +46,8 @@ class Choice:
     value: str
     label: str = ""
     description: str = ""
+    #: offered on the command line and in the sidebar; False: a value only Python callers give
+    offered: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,6 +78,9 @@ class Spec:
     metavar: str | None = None
     #: for a Path: the sidebar's subtype (DIR_PATH, FILE_PATH)
     subtype: str = ""
+    #: the sidebar shows this option through a field of its own making (a mesh picker, a checkbox beside a value):
+    #: its label names it in messages, but no scene property is made from the declaration
+    own_field: bool = False
 
     def cli_flag(self, name: str) -> str:
         return ("--" + name.replace("_", "-")) if self.flag is None else self.flag
@@ -83,6 +88,11 @@ class Spec:
     @property
     def values(self) -> tuple[str, ...]:
         return tuple(c.value for c in self.choices)
+
+    @property
+    def offered(self) -> tuple[Choice, ...]:
+        """The choices the command line and the sidebar offer."""
+        return tuple(c for c in self.choices if c.offered)
 
 
 def option(default: Any = dataclasses.MISSING, *, help: str, default_factory: Any = dataclasses.MISSING,
@@ -153,10 +163,10 @@ def check_value(d: Declared, value: Any, error: type[ProCamError] = ProCamError)
         value = float(value)
     elif d.kind is str and not isinstance(value, str):
         raise error(f"{what} must be text, got {value!r}")
-    elif d.kind is Path:
+    elif d.kind is Path and isinstance(value, str):
         value = Path(value)
     if d.spec.choices and value not in d.spec.values:
-        raise error(f"{what} must be one of {', '.join(d.spec.values)}, got {value!r}")
+        raise error(f"{what} must be one of {', '.join(c.value for c in d.spec.offered)}, got {value!r}")
     lo, hi = d.spec.min, d.spec.max
     if lo is not None and value < lo or hi is not None and value > hi:
         bounds = (f"≥ {lo:g}" if hi is None else f"≤ {hi:g}" if lo is None else f"between {lo:g} and {hi:g}")
@@ -188,6 +198,9 @@ def _text_type(d: Declared) -> Callable[[str], Any]:
                 value = Path(text)
             else:
                 value = text
+            if d.spec.choices and value not in {c.value for c in d.spec.offered}:
+                raise ValueError(f"{d.spec.cli_flag(d.name)} must be one of "
+                                 f"{', '.join(c.value for c in d.spec.offered)}, got {value!r}")
             return check_value(d, value)
         except (ValueError, ProCamError) as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
@@ -218,7 +231,8 @@ def add_arguments(parser: argparse.ArgumentParser | Any, cls: type, *, only: Seq
         elif d.kind is bool:
             parser.add_argument(flag, dest=d.name, action="store_true", default=d.default, help=d.spec.help)
         else:
-            metavar = d.spec.metavar or ("{" + ",".join(d.spec.values) + "}" if d.spec.choices else None)
+            metavar = d.spec.metavar or ("{" + ",".join(c.value for c in d.spec.offered) + "}" if d.spec.choices
+                                         else None)
             parser.add_argument(flag, dest=d.name, type=_text_type(d), default=d.default, metavar=metavar,
                                 help=_cli_help(d))
 
@@ -233,8 +247,8 @@ def from_arguments(cls: type, args: argparse.Namespace, **given: Any) -> Any:
 # -- the sidebar -----------------------------------------------------------------------------------------------
 
 def sidebar_fields(cls: type) -> Iterator[Declared]:
-    """The declared options of ``cls`` that are fields of the sidebar."""
-    return (d for d in declared(cls) if d.spec.label)
+    """The declared options of ``cls`` whose sidebar field is made from the declaration."""
+    return (d for d in declared(cls) if d.spec.label and not d.spec.own_field)
 
 
 def prop_name(d: Declared) -> str:
@@ -263,7 +277,9 @@ def sidebar_names(classes: Iterable[type]) -> dict[str, str]:
     """The command's flags of the sidebar's fields, each named by its label as a message says it."""
     names: dict[str, str] = {}
     for cls in classes:
-        for d in sidebar_fields(cls):
+        for d in declared(cls):
+            if not d.spec.label:
+                continue
             flag = d.spec.negate or d.spec.cli_flag(d.name)
             if flag:
                 names[flag] = f"‘{d.spec.label}’"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import re
 
 from ..addon.options import sidebar_names
+from ..addon.steps.calibrate import CalibrateOptions
 from ..addon.steps.diagnose import DiagnoseOptions
 from ..addon.steps.stage_c import StageCOptions
 
@@ -23,16 +24,12 @@ from ..addon.steps.stage_c import StageCOptions
 #: field's label. An operator whose dialog has its own field for an option (a "Replace" box, its output folder)
 #: passes that name instead.
 SIDEBAR_NAMES = {
-    **sidebar_names([StageCOptions]),
+    **sidebar_names([CalibrateOptions, StageCOptions]),
     **{k: v for k, v in sidebar_names([DiagnoseOptions]).items() if k != "--scale"},
     "--force": "‘Replace Results’",
     "--out": "output folder",
     "--diagnosis": "‘Diagnosis’",
     "--targets": "‘Targets’",
-    "--init": "‘Start Pose’",
-    "--projector-intrinsics": "‘Projector Lens’",
-    "--surface-mesh": "‘Surface Mesh’",
-    "--depth-offset": "‘Depth Offset’",
 }
 
 #: An operator dialog's own "Replace" box (the sidebar's is ‘Replace Results’).

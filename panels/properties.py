@@ -5,6 +5,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
                        StringProperty)
 
 from ..addon.options import Declared, prop_name, sidebar_fields
+from ..addon.steps.calibrate import CalibrateOptions
 from ..addon.steps.diagnose import DiagnoseOptions
 from ..addon.steps.stage_c import StageCOptions
 from ..operators.messages import sidebar_text
@@ -16,14 +17,6 @@ class PROCAM_PG_target(bpy.types.PropertyGroup):
     filepath: StringProperty(name="Target", subtype="FILE_PATH", description="Target image file")
 
 
-INIT_ITEMS = [("graycode", "Gray Code", "Start stage A from Gray-code correspondences + PnP"),
-              ("nominal", "Nominal", "Start stage A from the capture set's nominal projector pose"),
-              ("blender", "Scene Projector", "Start stage A from where the ProCam Projector stands in the scene")]
-INTRINSICS_ITEMS = [("spec", "Spec Sheet", "The projector's focal length and principal point as the capture set gives "
-                                         "them (throw ratio and lens shift, or a rig calibration)"),
-                    ("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray "
-                                                "code on a curved or edged surface before finding its pose (kept at "
-                                                "the spec where the surface cannot tell, e.g. a flat wall)")]
 MODE_ITEMS = [("OPEN", "Open Loop", "No device: the bias θ comes from the calibration's validation captures"),
               ("CLOSED", "Closed Loop", "θ from captures of the projector input through the device (lab or folder)"),
               ("LIVE", "Live", "Closed loop through the real projector and camera of the Live panel")]
@@ -36,7 +29,7 @@ def declared_property(d: Declared) -> object:
     text = sidebar_text(spec.help)
     common = {"name": spec.label, "description": text[:1].upper() + text[1:]}
     if spec.choices:
-        return EnumProperty(items=[(c.value, c.label or c.value, c.description) for c in spec.choices],
+        return EnumProperty(items=[(c.value, c.label or c.value, c.description) for c in spec.offered],
                             default=d.default, **common)
     if d.kind is bool:
         return BoolProperty(default=bool(d.default), **common)
@@ -57,12 +50,10 @@ def declared_properties(*classes: type) -> dict[str, object]:
 def scene_properties() -> dict[str, object]:
     """Properties set on ``bpy.types.Scene``; PROCAM_PG_target must be registered first."""
     return {
-        **declared_properties(StageCOptions, DiagnoseOptions),
+        **declared_properties(CalibrateOptions, StageCOptions, DiagnoseOptions),
         "procam_calibration_dir": StringProperty(
             name="Calibration", subtype="DIR_PATH",
             description="Calibration folder: Calibrate writes it, Compensate and Diagnose read it"),
-        "procam_calibration_init": EnumProperty(name="Start Pose", items=INIT_ITEMS, default="graycode"),
-        "procam_projector_intrinsics": EnumProperty(name="Projector Lens", items=INTRINSICS_ITEMS, default="spec"),
         "procam_surface_mesh": PointerProperty(
             name="Surface Mesh", type=bpy.types.Object, poll=lambda _, obj: obj.type == "MESH",
             description="A mesh of the object (scan or CAD, anywhere in the scene) to register to the measured "

@@ -78,15 +78,30 @@ def test_the_diagnosis_options_come_from_their_declaration_too():
         DiagnoseOptions(Path("c"), Path("d"), scale=0.25, max_effects=3)
 
 
-def test_no_option_of_stage_c_is_declared_a_second_time():
-    """The stage-C flags are added to no parser by hand, made into no scene property by hand, and named in no
-    hand-written message table: the declaration on StageCOptions is the only one. (``--diagnosis`` is named by
-    the Diagnosis folder field, which the Diagnose panel writes and Compensate reads.)"""
-    flags = {d.spec.negate or d.spec.cli_flag(d.name) for d in declared(StageCOptions)} - {"", "--diagnosis"}
-    props = {d.spec.prop or f"procam_{d.name}" for d in declared(StageCOptions) if d.spec.label}
+def _options_classes():
+    from procam.addon.steps.calibrate import CalibrateOptions
+    from procam.addon.steps.diagnose import DiagnoseOptions
+
     cli = REPO / "addon" / "cli"
-    for path in [cli / "compensate.py", cli / "show.py", REPO / "panels" / "properties.py",
-                 REPO / "operators" / "messages.py", REPO / "operators" / "compensate.py"]:
+    return [(StageCOptions, [cli / "compensate.py", cli / "show.py"]),
+            (CalibrateOptions, [cli / "calibrate.py"]), (DiagnoseOptions, [cli / "diagnose.py"])]
+
+
+@pytest.mark.parametrize("index", range(3))
+def test_no_declared_option_is_declared_a_second_time(index):
+    """A declared option's flag is added to no parser by hand, its scene property made by no hand, and its name in
+    messages written in no table: the declaration on the Options class is the only one. (``--diagnosis`` is named
+    by the Diagnosis folder field, which the Diagnose panel writes and Compensate reads.)"""
+    cls, files = _options_classes()[index]
+    flags = {d.spec.negate or d.spec.cli_flag(d.name) for d in declared(cls)} - {"", "--diagnosis"}
+    props = {d.spec.prop or f"procam_{d.name}" for d in declared(cls) if d.spec.label and not d.spec.own_field}
+    for path in files:  # the command's parsers
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Constant) and isinstance(node.value, str):
-                assert node.value not in flags | props, f"{path.name} declares {node.value} again"
+                assert node.value not in flags, f"{path.name} declares {node.value} again"
+    for path in (REPO / "panels" / "properties.py", REPO / "operators" / "messages.py"):  # the sidebar's tables
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Dict):
+                for key in node.keys:
+                    if isinstance(key, ast.Constant):
+                        assert key.value not in flags | props, f"{path.name} declares {key.value} again"

@@ -30,6 +30,7 @@ import numpy as np
 from ..capture.format import CaptureSet
 from ..errors import CalibrationError, Cancelled, ProCamError
 from ..imageio import read_image, write_atomic_bytes, write_image
+from ..options import Choice, option, validate
 from ..outputs import AtomicFolder, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Rig
@@ -45,32 +46,62 @@ KIND = layout.CALIBRATION
 
 @dataclass(frozen=True)
 class CalibrateOptions:
-    """What ``procam calibrate`` and the Calibrate button ask for."""
+    """What ``procam calibrate`` and the Calibrate button ask for; each field declares its option once
+    (addon/options.py)."""
 
     capture_dir: Path
     out: Path
-    #: stage A's start: graycode (Gray-code PnP), nominal (the capture set's pose), given (``initial_pose``)
-    init: str = "graycode"
+    init: str = option(
+        "graycode", label="Start Pose", prop="procam_calibration_init", choices=(
+            Choice("graycode", "Gray Code", "Start stage A from Gray-code correspondences + PnP"),
+            Choice("nominal", "Nominal", "Start stage A from the capture set's nominal projector pose (kept as it is "
+                                         "when it came from a metric rig calibration)"),
+            Choice("blender", "Scene Projector", "Start stage A from where the ProCam Projector stands in the scene "
+                                                 "(on the command line: the one in --blend)"),
+            Choice("given", offered=False)),
+        help="starting pose for stage A: Gray-code correspondences + PnP (default), the capture set's nominal "
+             "projector (kept as it is when it came from a metric rig calibration), or the ProCam Projector placed "
+             "in a .blend (--blend); from Python, 'given' starts from initial_pose")
     initial_pose: np.ndarray | None = None
-    #: the projector's K: 'spec' (the capture set's) or 'fit' (focal length and principal point fitted to the
-    #: Gray code on the surface before stage A; kept at the spec where the data do not determine them)
-    projector_intrinsics: str = "spec"
-    #: stage A's refinement: ours, or the paper's (binary mask, Γ with ε = 0.01)
-    stage_a: str = "ours"
-    #: a contiguous run of surface,pose,warp; earlier stages come from the calibration already at ``out``
-    stages: str = "all"
-    #: the depth sensor's bias in metres; None: read from the capture set's wall depth image
-    depth_offset: float | None = None
-    #: the surface's source: auto (depth if present, else Gray code with a known rig), depth, graycode, mesh
-    surface_from: str = "auto"
-    #: the object's mesh (OBJ/PLY file in its own frame, or a mesh), registered to the measured surface
-    surface_mesh: Path | SurfaceMesh | None = None
+    projector_intrinsics: str = option(
+        "spec", label="Projector Lens", choices=(
+            Choice("spec", "Spec Sheet", "The projector's focal length and principal point as the capture set gives "
+                                         "them (throw ratio and lens shift, or a rig calibration)"),
+            Choice("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray code "
+                                              "on a curved or edged surface before finding its pose (kept at the "
+                                              "spec where the surface cannot tell, e.g. a flat wall)")),
+        help="the projector's focal length and principal point (default spec)")
+    stage_a: str = option(
+        "ours", choices=("ours", "paper"),
+        help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the paper's "
+             "(binary mask, Γ with ε = 0.01, 200 Adam steps), from the start --init gives (--init nominal --stage-a "
+             "paper reproduces the paper's pipeline)")
+    stages: str = option(
+        "all", metavar="STAGES", check=lambda text: stage_plan(text),
+        help="run these stages only, comma-separated from surface,pose,warp (a contiguous run): earlier ones come "
+             "from the calibration already in --out, later ones are left to run (default: all)")
+    depth_offset: float | None = option(
+        None, min=-0.5, max=0.5, metavar="METRES", label="Depth Offset", own_field=True,
+        help="the depth sensor's constant bias in metres (+ = it reads too far), subtracted from the depth; "
+             "default: read from the capture set's wall depth image (a flat wall at a tape-measured distance), "
+             "else 0")
+    surface_from: str = option(
+        "auto", choices=("auto", "depth", "graycode", "mesh"),
+        help="where the surface comes from: the capture set's depth image, the Gray code triangulated with a "
+             "calibrated rig (import-captures --rig with a metric rig file), or the mesh of --surface-mesh "
+             "registered to either (default auto: the mesh if given, else depth if present, else the Gray code when "
+             "the projector's pose is known)")
+    surface_mesh: Path | SurfaceMesh | None = option(
+        None, metavar="FILE", label="Surface Mesh", own_field=True, parse=Path,
+        help="the object's mesh (.obj/.ply, a scan or CAD model in its own frame, metres or millimetres), "
+             "registered by ICP to the depth or triangulated points and used as the surface")
     #: also write scene.blend, through the ``blend_writer`` given to :func:`run` (the procam command turns it on)
     with_blend: bool = False
-    seed: int = 0
-    #: also precompute the light-transport operator into the folder (``procam precompute``), when the run ends
-    #: with the last stage: stage C's default schedule solves on it
-    precompute: bool = True
+    seed: int = option(0, min=0, help="seed of every random stream")
+    precompute: bool = option(
+        True, negate="--no-precompute",
+        help="also precompute the light-transport operator into the folder (procam precompute; ~25 s at 640×480), "
+             "which stage C's default schedule solves on (default on)")
     force: bool = False
 
 
@@ -85,6 +116,7 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     """Calibrate the capture set into ``options.out``; returns the calibration written. ``blend_writer`` writes
     its ``scene.blend`` (needed unless ``options.with_blend`` is off)."""
     say = progress or quiet
+    validate(options, CalibrationError)
     if options.with_blend and blend_writer is None:
         raise CalibrationError("a calibration's scene.blend needs Blender's writer: pass blend_writer (the procam "
                                "command does), or turn with_blend off")
