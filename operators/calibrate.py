@@ -9,6 +9,7 @@ import bpy
 from bpy.props import EnumProperty
 
 from ..addon import jobs
+from ..addon.options import from_values
 from ..addon.blender import rig as blender_rig
 from ..addon.errors import CalibrationError, ProCamError
 from ..addon.native import prepare_worker_libraries
@@ -92,9 +93,9 @@ class PROCAM_OT_calibrate(JobOperator, bpy.types.Operator):
         # Read in the main thread: bpy must not run in the worker.
         mesh = blender_rig.read_mesh_object(scene, scene.procam_surface_mesh) if scene.procam_surface_mesh else None
         # No scene.blend: the open scene is the .blend here, and bpy must not run in the worker (Export saves one).
-        options = CalibrateOptions(captures, out, init=init, initial_pose=initial, stages=stages or "all",
-                                   depth_offset=offset, projector_intrinsics=scene.procam_projector_intrinsics,
-                                   surface_mesh=mesh, with_blend=False, force=scene.procam_replace_outputs)
+        options = from_values(CalibrateOptions, lambda prop: getattr(scene, prop), capture_dir=captures, out=out,
+                              init=init, initial_pose=initial, stages=stages or "all", depth_offset=offset,
+                              surface_mesh=mesh, with_blend=False, force=scene.procam_replace_outputs)
         return jobs.Job("calibration", calibrate_step.run_view, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:

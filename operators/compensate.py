@@ -17,8 +17,8 @@ from bpy.props import CollectionProperty, StringProperty
 from ..addon import jobs
 from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
+from ..addon.options import from_values
 from ..addon.safepaths import inside
-from ..addon.stages.display_area import parse_area
 from ..addon.steps import compensate as compensate_step
 from ..addon.steps import evaluate as evaluate_step
 from ..addon.steps import show as show_step
@@ -44,10 +44,8 @@ def stage_c_options(scene: bpy.types.Scene) -> StageCOptions:
     diagnosis = None
     if effects.lower() != "none":
         diagnosis = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder (for the effect models)")
-    return StageCOptions(schedule=scene.procam_schedule, iterations=scene.procam_iterations or None,
-                         seed=scene.procam_seed, area=parse_area(scene.procam_area) if scene.procam_area.strip()
-                         else None, use_bias=scene.procam_use_bias, device=scene_device(scene) if closed else None,
-                         effects=effects, diagnosis=diagnosis, range=scene.procam_range.strip() or "none")
+    return from_values(StageCOptions, lambda prop: getattr(scene, prop), device=scene_device(scene) if closed else None,
+                       diagnosis=diagnosis)
 
 
 def scene_targets(scene: bpy.types.Scene) -> tuple:

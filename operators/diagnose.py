@@ -3,6 +3,7 @@
 import bpy
 
 from ..addon import jobs
+from ..addon.options import from_values
 from ..addon.steps import diagnose as diagnose_step
 from ..addon.steps.layout import CALIBRATION
 from . import paths
@@ -32,9 +33,8 @@ class PROCAM_OT_diagnose(JobOperator, bpy.types.Operator):
         scene = context.scene
         cal = paths.resolve(scene.procam_calibration_dir, "calibration folder")
         out = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder")
-        options = diagnose_step.DiagnoseOptions(cal, out, scale=scene.procam_diagnosis_scale,
-                                                max_effects=scene.procam_max_effects,
-                                                force=scene.procam_replace_outputs)
+        options = from_values(diagnose_step.DiagnoseOptions, lambda prop: getattr(scene, prop), calibration=cal,
+                              out=out, force=scene.procam_replace_outputs)
         return jobs.Job("diagnosis", diagnose_step.run, options)
 
     def apply(self, context: bpy.types.Context, result: object) -> str:

@@ -3,6 +3,7 @@
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
+from ..addon.blender.blend_file import save_calibration_blend_atomic
 from ..addon.errors import ProCamError
 from ..addon.steps import export as export_step
 from ..addon.steps.layout import CALIBRATION, COMPENSATION
@@ -39,7 +40,8 @@ class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
         try:
             out = export_step.run_blend(export_step.ExportBlendOptions(
                 paths.resolve(context.scene.procam_calibration_dir, "calibration folder"),
-                paths.resolve(self.filepath, ".blend file"), force=self.force))
+                paths.resolve(self.filepath, ".blend file"), force=self.force),
+                writer=save_calibration_blend_atomic)
         except ProCamError as exc:
             self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘File’"}))
             return {"CANCELLED"}

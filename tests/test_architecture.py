@@ -212,3 +212,12 @@ def read(folder, doc, t, e):
 """
     found = [ast.unparse(n) for n in _path_joins_of_manifest_values(ast.parse(code))]
     assert found == ["folder / t['frame']", "root / str(e.get('file', ''))", "path.with_name(doc['surface']['mesh'])"]
+
+
+def test_steps_never_import_the_blender_side():
+    """The steps run where Blender is not: what writes a .blend is handed to them (``blend_writer``), never
+    imported, not even inside a function."""
+    for path in sorted((ADDON / "steps").glob("*.py")):
+        blender = sorted(m for m in _imports(path) if m == "procam.addon.blender" or
+                         m.startswith("procam.addon.blender.") or m == "bpy" or m.startswith("bpy."))
+        assert not blender, f"{path.relative_to(ROOT)} imports {blender}"

@@ -13,6 +13,7 @@ from procam.addon.lab.lab import LabTruth
 from procam.addon.capture.format import CaptureSet
 from procam.addon.imageio import read_image, write_image
 from procam.addon.stages.calibrate import white_saturation
+from procam.addon.blender.blend_file import save_calibration_blend
 from procam.addon.steps.calibrate import CalibrateOptions
 from procam.addon.steps.calibrate import read as read_calibration
 from procam.addon.steps.calibrate import run as run_calibration
@@ -23,7 +24,7 @@ from procam.addon.stages.metrics import psnr, ssim
 def calibrated(lab_set, tmp_path_factory):
     captures, truth = lab_set("vedge", "realistic")
     out = tmp_path_factory.mktemp("cal") / "calibration"
-    cal = run_calibration(CalibrateOptions(captures, out))
+    cal = run_calibration(CalibrateOptions(captures, out, with_blend=True), blend_writer=save_calibration_blend)
     return captures, truth, out, cal
 
 

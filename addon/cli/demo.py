@@ -13,6 +13,7 @@ from pathlib import Path
 from ..stages.compensate import DEFAULT_SCHEDULE, SCHEDULES
 from ..steps.demo import DemoOptions, run as demo
 from .app import command
+from .calibrate import blend_writer
 from .terminal import run_step
 
 
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
                           targets=tuple(n.strip() for n in args.targets.split(",") if n.strip()),
                           schedule=args.schedule, iterations=args.iterations, samples=args.samples, seed=args.seed,
                           force=args.force)
-    summary = run_step("demo", demo, options)
+    summary = run_step("demo", demo, options, blend_writer=blend_writer())
     cam, proj = summary["resolution"]["camera"], summary["resolution"]["projector"]
     c = summary["calibration"]
     x = summary["cross_renderer"]

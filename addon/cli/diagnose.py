@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..gap.fit import MAX_EFFECTS, MIN_SHARE
-from ..gap.models import NAMES
+from ..options import add_arguments, from_arguments
 from ..steps.diagnose import DiagnoseOptions, run as diagnose
 from .app import command
 from .terminal import run_step
@@ -15,27 +14,15 @@ from .terminal import run_step
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
     p.add_argument("--out", type=Path, required=True, help="diagnosis folder to create (gap.json, maps, summary.md)")
-    p.add_argument("--effects", default="all",
-                   help=f"candidate effect models, comma-separated, or 'all' (default): {', '.join(NAMES)}")
-    p.add_argument("--scale", type=float, default=0.5,
-                   help="working resolution as a share of the camera image (default 0.5)")
-    p.add_argument("--spp", type=int, default=32, help="samples per pixel of the model renders (default 32)")
-    p.add_argument("--min-share", type=float, default=MIN_SHARE,
-                   help=f"an effect is selected only if it removes at least this share of the held-out RMSE "
-                        f"left (default {MIN_SHARE})")
-    p.add_argument("--max-effects", type=int, default=MAX_EFFECTS,
-                   help=f"effects selected at most: rounds of the greedy selection, each slower than the last "
-                        f"(default {MAX_EFFECTS})")
+    add_arguments(p, DiagnoseOptions)
     p.add_argument("--force", action="store_true", help="replace an existing diagnosis folder")
 
 
 @command("diagnose", "Sim-to-real diagnosis: residual maps, regions, and which unmodelled effect explains them.",
          _configure)
 def run(args: argparse.Namespace) -> int:
-    doc = run_step("diagnose", diagnose, DiagnoseOptions(args.calibration, args.out, effects=args.effects,
-                                                         scale=args.scale, spp=args.spp,
-                                                         min_share=args.min_share, max_effects=args.max_effects,
-                                                         force=args.force))
+    doc = run_step("diagnose", diagnose, from_arguments(DiagnoseOptions, args, calibration=args.calibration,
+                                                        out=args.out, force=args.force))
     res, after = doc["residual"], doc["residual_after"]
     print(f"diagnosis: {args.out}")
     print(f"  {doc['headline']}")

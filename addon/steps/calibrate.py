@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ import numpy as np
 from ..capture.format import CaptureSet
 from ..errors import CalibrationError, Cancelled, ProCamError
 from ..imageio import read_image, write_atomic_bytes, write_image
+from ..options import Choice, option, validate
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Rig
@@ -45,37 +47,80 @@ KIND = layout.CALIBRATION
 
 @dataclass(frozen=True)
 class CalibrateOptions:
-    """What ``procam calibrate`` and the Calibrate button ask for."""
+    """What ``procam calibrate`` and the Calibrate button ask for; each field declares its option once
+    (addon/options.py)."""
 
     capture_dir: Path
     out: Path
-    #: stage A's start: graycode (Gray-code PnP), nominal (the capture set's pose), given (``initial_pose``)
-    init: str = "graycode"
+    init: str = option(
+        "graycode", label="Start Pose", prop="procam_calibration_init", choices=(
+            Choice("graycode", "Gray Code", "Start stage A from Gray-code correspondences + PnP"),
+            Choice("nominal", "Nominal", "Start stage A from the capture set's nominal projector pose (kept as it is "
+                                         "when it came from a metric rig calibration)"),
+            Choice("blender", "Scene Projector", "Start stage A from where the ProCam Projector stands in the scene "
+                                                 "(on the command line: the one in --blend)"),
+            Choice("given", offered=False)),
+        help="starting pose for stage A: Gray-code correspondences + PnP (default), the capture set's nominal "
+             "projector (kept as it is when it came from a metric rig calibration), or the ProCam Projector placed "
+             "in a .blend (--blend); from Python, 'given' starts from initial_pose")
     initial_pose: np.ndarray | None = None
-    #: the projector's K: 'spec' (the capture set's) or 'fit' (focal length and principal point fitted to the
-    #: Gray code on the surface before stage A; kept at the spec where the data do not determine them)
-    projector_intrinsics: str = "spec"
-    #: stage A's refinement: ours, or the paper's (binary mask, Γ with ε = 0.01)
-    stage_a: str = "ours"
-    #: a contiguous run of surface,pose,warp; earlier stages come from the calibration already at ``out``
-    stages: str = "all"
-    #: the depth sensor's bias in metres; None: read from the capture set's wall depth image
-    depth_offset: float | None = None
-    #: the surface's source: auto (depth if present, else Gray code with a known rig), depth, graycode, mesh
-    surface_from: str = "auto"
-    #: the object's mesh (OBJ/PLY file in its own frame, or a mesh), registered to the measured surface
-    surface_mesh: Path | SurfaceMesh | None = None
-    with_blend: bool = True
-    seed: int = 0
-    #: also precompute the light-transport operator into the folder (``procam precompute``), when the run ends
-    #: with the last stage: stage C's default schedule solves on it
-    precompute: bool = True
+    projector_intrinsics: str = option(
+        "spec", label="Projector Lens", choices=(
+            Choice("spec", "Spec Sheet", "The projector's focal length and principal point as the capture set gives "
+                                         "them (throw ratio and lens shift, or a rig calibration)"),
+            Choice("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray code "
+                                              "on a curved or edged surface before finding its pose (kept at the "
+                                              "spec where the surface cannot tell, e.g. a flat wall)")),
+        help="the projector's focal length and principal point (default spec)")
+    stage_a: str = option(
+        "ours", choices=("ours", "paper"),
+        help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the paper's "
+             "(binary mask, Γ with ε = 0.01, 200 Adam steps), from the start --init gives (--init nominal --stage-a "
+             "paper reproduces the paper's pipeline)")
+    stages: str = option(
+        "all", metavar="STAGES", check=lambda text: stage_plan(text),
+        help="run these stages only, comma-separated from surface,pose,warp (a contiguous run): earlier ones come "
+             "from the calibration already in --out, later ones are left to run (default: all)")
+    depth_offset: float | None = option(
+        None, min=-0.5, max=0.5, metavar="METRES", label="Depth Offset", own_field=True,
+        help="the depth sensor's constant bias in metres (+ = it reads too far), subtracted from the depth; "
+             "default: read from the capture set's wall depth image (a flat wall at a tape-measured distance), "
+             "else 0")
+    surface_from: str = option(
+        "auto", choices=("auto", "depth", "graycode", "mesh"),
+        help="where the surface comes from: the capture set's depth image, the Gray code triangulated with a "
+             "calibrated rig (import-captures --rig with a metric rig file), or the mesh of --surface-mesh "
+             "registered to either (default auto: the mesh if given, else depth if present, else the Gray code when "
+             "the projector's pose is known)")
+    surface_mesh: Path | SurfaceMesh | None = option(
+        None, metavar="FILE", label="Surface Mesh", own_field=True, parse=Path,
+        help="the object's mesh (.obj/.ply, a scan or CAD model in its own frame, metres or millimetres), "
+             "registered by ICP to the depth or triangulated points and used as the surface")
+    #: also write scene.blend, through the ``blend_writer`` given to :func:`run` (the procam command turns it on)
+    with_blend: bool = False
+    seed: int = option(0, min=0, help="seed of every random stream")
+    precompute: bool = option(
+        True, negate="--no-precompute",
+        help="also precompute the light-transport operator into the folder (procam precompute; ~25 s at 640×480), "
+             "which stage C's default schedule solves on (default on)")
     force: bool = False
 
 
-def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> Calibration:
-    """Calibrate the capture set into ``options.out``; returns the calibration written."""
+#: What writes a calibration's ``scene.blend``: (path, rig, surface, diagnostic images) → the path. Blender's side
+#: supplies it (``addon/blender/blend_file.save_calibration_blend``, passed by the command line); the steps never
+#: import bpy, so a step runs, and is tested, where Blender is not.
+BlendWriter = Callable[[Path, Rig, SurfaceMesh, dict[str, np.ndarray]], Path]
+
+
+def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+        blend_writer: BlendWriter | None = None) -> Calibration:
+    """Calibrate the capture set into ``options.out``; returns the calibration written. ``blend_writer`` writes
+    its ``scene.blend`` (needed unless ``options.with_blend`` is off)."""
     say = progress or quiet
+    validate(options, CalibrationError)
+    if options.with_blend and blend_writer is None:
+        raise CalibrationError("a calibration's scene.blend needs Blender's writer: pass blend_writer (the procam "
+                               "command does), or turn with_blend off")
     plan = stage_plan(options.stages)
     if options.init == "given" and options.initial_pose is None:
         raise CalibrationError("a given start pose (init 'given') needs the pose itself")
@@ -98,7 +143,8 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
                                     surface_from=options.surface_from, surface_mesh=options.surface_mesh,
                                     progress=part(say, 0.0, share), cancel=cancel)
         say("writing the calibration folder", share)
-        write(folder.tmp, result.calibration, result.images, with_blend=options.with_blend)
+        write(folder.tmp, result.calibration, result.images,
+              blend_writer=blend_writer if options.with_blend else None)
     except BaseException:
         folder.abort()
         raise
@@ -154,8 +200,12 @@ def _precompute(folder: Path, calibration: Calibration, seed: int, say: Progress
         say(f"warning: no transport operator precomputed ({exc})", 1.0)
 
 
-def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = True) -> None:
-    """The files of a calibration folder into the (new, empty) ``folder``."""
+def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = False,
+          blend_writer: BlendWriter | None = None) -> None:
+    """The files of a calibration folder into the (new, empty) ``folder``; ``scene.blend`` too when a
+    ``blend_writer`` is given."""
+    if with_blend and blend_writer is None:
+        raise CalibrationError("scene.blend needs Blender's writer (blend_writer)")
     mesh = cal.surface
     write_manifest(folder / KIND.manifest, manifest(cal))
     buf = io.BytesIO()
@@ -169,11 +219,8 @@ def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with
     clipped = {name: np.clip(im, 0, 1) for name, im in images.items()}
     for name, im in clipped.items():
         write_image(diag / f"{name}.png", im)
-    if with_blend:
-        # bpy is imported only here: a .blend is the one calibration output that needs Blender.
-        from ..blender.blend_file import save_calibration_blend
-
-        save_calibration_blend(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)
+    if blend_writer is not None:
+        blend_writer(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)
 
 
 def manifest(cal: Calibration) -> dict[str, Any]:

@@ -79,8 +79,10 @@ def _heat(diff: np.ndarray, scale: float) -> np.ndarray:
     return out
 
 
-def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:
-    """Run the demo into ``options.out`` (module doc); returns the summary it writes to ``summary.json``."""
+def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+        blend_writer: calibrate.BlendWriter | None = None) -> dict[str, Any]:
+    """Run the demo into ``options.out`` (module doc); returns the summary it writes to ``summary.json``.
+    ``blend_writer``: what writes the calibration's ``scene.blend`` (none without it)."""
     if options.samples < 1:
         raise ProCamError("samples must be ≥ 1")
     if not options.targets:
@@ -110,8 +112,9 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         seconds["lab"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        cal = calibrate.run(calibrate.CalibrateOptions(out / "captures", out / "calibration", seed=options.seed),
-                            spans["calibrate"], cancel)
+        cal = calibrate.run(calibrate.CalibrateOptions(out / "captures", out / "calibration", seed=options.seed,
+                                                       with_blend=blend_writer is not None),
+                            spans["calibrate"], cancel, blend_writer=blend_writer)
         seconds["calibrate"] = time.perf_counter() - t0
         est, true = cal.rig.projector, truth.rig.projector
         ang = np.degrees(np.arccos(np.clip(est.direction @ true.direction, -1, 1)))

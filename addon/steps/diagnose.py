@@ -20,6 +20,7 @@ from ..gap.diagnose import diagnose
 from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import NAMES
 from ..imageio import write_atomic_bytes, write_image
+from ..options import option, validate
 from ..outputs import AtomicFolder, check_replaceable, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from . import calibrate as calibrate_step
@@ -31,20 +32,23 @@ KIND = layout.DIAGNOSIS
 
 @dataclass(frozen=True)
 class DiagnoseOptions:
-    """What ``procam diagnose`` and the Diagnose button ask for."""
+    """What ``procam diagnose`` and the Diagnose button ask for; each field declares its option once
+    (addon/options.py)."""
 
     calibration: Path
     out: Path
-    #: candidate effect models: 'all' or NAME,...
-    effects: str = "all"
-    #: working resolution as a share of the camera image
-    scale: float = 0.5
-    #: samples per pixel of the model renders
-    spp: int = 32
-    #: an effect is selected only if it removes at least this share of the held-out RMSE left
-    min_share: float = MIN_SHARE
-    #: effects selected at most (rounds of the greedy selection)
-    max_effects: int = MAX_EFFECTS
+    effects: str = option("all", help=f"candidate effect models, comma-separated, or 'all' (default): "
+                                      f"{', '.join(NAMES)}")
+    scale: float = option(0.5, min=0.05, max=1.0, label="Working Scale", prop="procam_diagnosis_scale",
+                          help="working resolution as a share of the camera image: 1 sees a projector blur of about "
+                               "a texel that 0.5 can miss (slower)")
+    spp: int = option(32, min=1, help="samples per pixel of the model renders")
+    min_share: float = option(MIN_SHARE, min=0.0, max=1.0,
+                              help="an effect is selected only if it removes at least this share of the held-out "
+                                   "RMSE left")
+    max_effects: int = option(MAX_EFFECTS, min=1, soft_max=8, label="Max Effects",
+                              help="effects selected at most: rounds of the greedy selection, each slower than the "
+                                   "last")
     force: bool = False
 
     def candidates(self) -> tuple[str, ...]:
@@ -57,13 +61,8 @@ class DiagnoseOptions:
         return names
 
     def check(self) -> None:
+        validate(self)
         self.candidates()
-        if not 0.05 <= self.scale <= 1.0:
-            raise ProCamError(f"the working scale must be between 0.05 and 1, got {self.scale}")
-        if self.spp < 1:
-            raise ProCamError(f"spp must be ≥ 1, got {self.spp}")
-        if not isinstance(self.max_effects, int) or self.max_effects < 1:
-            raise ProCamError(f"--max-effects must be a whole number ≥ 1, got {self.max_effects!r}")
 
 
 def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:

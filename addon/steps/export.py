@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,17 +76,17 @@ class ExportBlendOptions:
     force: bool = False
 
 
-def run_blend(options: ExportBlendOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> Path:
-    """Save a calibration (rig, textured surface, diagnostic images) as a .blend; the open Blender file is untouched.
+#: Writes a calibration as a .blend file at a path, replacing one only with ``force``: Blender's side supplies it
+#: (``addon/blender/blend_file.save_calibration_blend_atomic``).
+AtomicBlendWriter = Callable[..., Path]
 
-    Needs bpy: run it in Blender or where the ``bpy`` module is installed, on the main thread.
-    """
-    # bpy is imported here only: this is the one export that needs Blender.
-    from ..blender.blend_file import save_calibration_blend_atomic
 
+def run_blend(options: ExportBlendOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
+              writer: AtomicBlendWriter) -> Path:
+    """Save a calibration (rig, textured surface, diagnostic images) as a .blend through ``writer``; the open
+    Blender file is untouched. Blender's writer needs bpy on the main thread."""
     (progress or quiet)("reading the calibration", 0.0)
     view = calibrate_step.read_view(options.calibration)
-    out = save_calibration_blend_atomic(options.out, view.calibration.rig, view.calibration.surface, view.images,
-                                        force=options.force)
+    out = writer(options.out, view.calibration.rig, view.calibration.surface, view.images, force=options.force)
     (progress or quiet)("done", 1.0)
     return out

@@ -23,12 +23,14 @@ from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.lab import LabDevice, LabTruth
 from ..live.device import LiveDevice, LiveSpec
+from ..options import Choice, option, validate
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Projector
 from ..stages.calibrate import Calibration
-from ..stages.compensate import (DEFAULT_SCHEDULE, BiasModel, CompensationResult, Compensator, Schedule, get_schedule,
-                                 split_iterations)
-from ..stages.display_area import DisplayArea, TargetAspectWarning, choose_area, fit_target, load_target
+from ..stages.compensate import (DEFAULT_SCHEDULE, ITERATIONS_JOINT, ITERATIONS_Z, SCHEDULES, BiasModel,
+                                 CompensationResult, Compensator, Schedule, get_schedule, split_iterations)
+from ..stages.display_area import (TARGET_ENCODINGS, DisplayArea, TargetAspectWarning, choose_area, fit_target,
+                                   load_target, parse_area)
 from ..stages.range import RangeError, RangeMap, fit_range, parse_range
 from ..stages.transport import TransportMemoryError, check_memory
 from . import calibrate as calibrate_step
@@ -38,35 +40,75 @@ from . import transport as transport_step
 DEVICE_KINDS = ("lab", "folder", "live")
 
 
+def _schedule_counts(name: str) -> str:
+    s = SCHEDULES[name]
+    start = f"{s.fixed_point} fixed-point steps + " if s.fixed_point else ""
+    return f"{name}: {start}{s.iterations_z}+{s.iterations_joint} iterations, lr {s.lr}, a capture every " \
+           f"{s.capture_interval}"
+
+
+SCHEDULE_CHOICES = (
+    Choice("transport", "Transport", "Solve on the calibration's precomputed light-transport operator: no renders, "
+                                     "under a second a target, 3 captures in closed loop"),
+    Choice("fast", "Fast", "Fixed-point start, 150 joint iterations, 15 captures: renders every step; no operator "
+                           "needed"),
+    Choice("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ"))
+
+
 @dataclass(frozen=True)
 class StageCOptions:
     """How stage C runs for every target: the schedule (by name, with the values given over it) and choices.
 
     A schedule value left None is the named schedule's (``stages.compensate.SCHEDULES``); ``iterations`` is the
-    total, split in the schedule's own ratio.
+    total, split in the schedule's own ratio. Each field is the one declaration of its option (addon/options.py):
+    ``procam compensate`` and ``procam show`` take it from the command line, the Compensate panel from the scene.
     """
 
-    schedule: str = DEFAULT_SCHEDULE
-    iterations: int | None = None
-    lr: float | None = None
-    alpha: float | None = None
-    capture_every: int | None = None
-    spp: int = 4
-    bounces: int = 1
-    seed: int = 0
-    #: display area x, y, width, height in camera pixels; None: chosen per aspect ratio
-    area: tuple[int, int, int, int] | None = None
-    target_encoding: str = "auto"
-    #: False: no θ at all (the ablation)
-    use_bias: bool = True
-    #: closed loop through ``lab:TRUTH_FILE``, ``folder:CAPTURE_DIR`` or ``live:camera=…``; None: open loop
-    device: str | None = None
-    #: diagnosed effect models around stage C: 'none', 'auto' or NAME,...; their parameters come from ``diagnosis``
-    effects: str = "none"
-    diagnosis: Path | None = None
-    #: the show's range map: 'none', 'auto' (one gain and offset fitted to the targets, stages/range.py) or
-    #: 'GAIN,OFFSET'
-    range: str = "none"
+    schedule: str = option(
+        DEFAULT_SCHEDULE, label="Schedule", choices=SCHEDULE_CHOICES,
+        help=f"stage-C schedule (default {DEFAULT_SCHEDULE}; 'paper' = the paper's 200+300 iterations); the "
+             "iterations, learning rate and capture interval given override its values: "
+             + "; ".join(_schedule_counts(n) for n in SCHEDULES))
+    iterations: int | None = option(
+        None, label="Iterations", min=0, soft_max=1000, blank=0,
+        help="total iterations, split between z alone and z + θ in the schedule's own ratio "
+             f"(paper: {ITERATIONS_Z}:{ITERATIONS_JOINT} Adam steps; fast: all joint Adam steps, after its fixed-point "
+             "steps; transport: solver steps, half of them before the first capture; default: the schedule's counts; "
+             "0 in the sidebar)")
+    lr: float | None = option(None, min=1e-9, help="Adam learning rate on z (default: the schedule's)")
+    alpha: float | None = option(None, flag="", min=0.0, max=0.5,
+                                 help="θ's rate in Eq. 10 (default: the schedule's, matched to its captures)")
+    capture_every: int | None = option(
+        None, min=1, help="closed loop: capture W(z) every K joint iterations (default: the schedule's; 1 = the "
+                          "paper, for fast real hardware)")
+    spp: int = option(4, min=1, help="samples per pixel inside the loop")
+    bounces: int = option(1, min=0, help="indirect bounces simulated")
+    seed: int = option(0, min=0, label="Seed", help="seed of every random stream; the same seed repeats the result")
+    area: tuple[int, int, int, int] | None = option(
+        None, label="Display Area", parse=parse_area, blank="",
+        help="display area x,y,width,height in camera pixels (default: the capture set's, else the largest "
+             "rectangle of the target's aspect ratio that the projector covers)")
+    target_encoding: str = option("auto", choices=TARGET_ENCODINGS,
+                                  help="auto: 8-bit files are sRGB and are linearised, 16-bit/float are linear")
+    use_bias: bool = option(True, negate="--no-bias", label="Bias θ",
+                            help="estimate the per-pixel bias θ; off: no θ at all (the ablation), neither captures "
+                                 "nor validation")
+    device: str | None = option(
+        None, check=lambda spec: device_kind(spec), label="Device", blank="",
+        help="closed loop through lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or "
+             "live:camera=SOURCE,display=N; without a device θ is estimated from the validation captures (open "
+             "loop)")
+    effects: str = option(
+        "none", label="Effect Models", blank="",
+        help="effect models around stage C, fitted by procam diagnose: 'auto' (the ones it selected), NAME,... or "
+             "'none' (default); needs --diagnosis")
+    diagnosis: Path | None = option(None, subtype="DIR_PATH", help="the procam diagnose folder for --effects")
+    range: str = option(
+        "none", label="Range", check=parse_range, blank="",
+        help="what the targets become before compensation: 'auto' fits one gain and offset to all the targets so "
+             "that at most 1 % of their values lie outside what the projector shows on this surface (its white and "
+             "black captures), never dimming targets that fit; 'GAIN,OFFSET' gives them; 'none' (default) keeps the "
+             "targets as they are")
 
     def run_arguments(self) -> dict[str, Any]:
         """The schedule keywords of :meth:`Compensator.run`: the schedule's name and only the values given."""
@@ -82,18 +124,7 @@ class StageCOptions:
 
     def check(self) -> Schedule:
         """Refuse values stage C cannot use, before anything is loaded; returns the resolved schedule."""
-        for what, v, lo in (("spp", self.spp, 1), ("bounces", self.bounces, 0)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-                raise ProCamError(f"{what} must be a whole number ≥ {lo}, got {v!r}")
-        if self.capture_every is not None and self.capture_every < 1:
-            raise ProCamError(f"capture every must be ≥ 1, got {self.capture_every}")
-        if self.iterations is not None and self.iterations < 0:
-            raise ProCamError(f"iterations must be ≥ 0, got {self.iterations}")
-        if self.lr is not None and not (0 < self.lr < float("inf")):
-            raise ProCamError(f"the learning rate must be a positive number, got {self.lr}")
-        if self.device is not None:
-            device_kind(self.device)
-        parse_range(self.range)
+        validate(self)
         return self.resolved()
 
     @property
