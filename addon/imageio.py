@@ -168,6 +168,11 @@ def unit_float(pixels: np.ndarray) -> np.ndarray:
     return a.astype(np.float32)
 
 
+#: The files :func:`read_image` reads, and so what a folder of images (targets, a show's frames, board photographs,
+#: imported captures) is taken to hold: the one list every such folder is listed with.
+READ_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".hdr", ".npy")
+
+
 def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
     """Read an image as float32 linear values; 8/16-bit files are scaled to [0, 1].
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import bpy
 
 from ..addon.errors import ProCamError
-from ..addon.steps.rig import IMAGE_SUFFIXES
+from ..addon.imageio import READ_IMAGE_SUFFIXES
 
 
 def resolve(value: str, what: str) -> Path:
@@ -43,7 +43,7 @@ def _natural(path: Path) -> list[object]:
 def holds_numbered_images(folder: Path) -> bool:
     """Whether ``folder`` holds images named like a board session's (``graycode_00.png`` …)."""
     try:
-        return any(p.suffix.lower() in IMAGE_SUFFIXES and _NUMBERED_STEM.search(p.stem) and p.is_file()
+        return any(p.suffix.lower() in READ_IMAGE_SUFFIXES and _NUMBERED_STEM.search(p.stem) and p.is_file()
                    for p in folder.iterdir())
     except OSError:
         return False

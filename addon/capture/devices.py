@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from ..errors import CaptureError, ImageError, RigError
-from ..imageio import ORIENTATIONS, exif_orientation, read_image, write_atomic_bytes, write_image
+from ..imageio import ORIENTATIONS, READ_IMAGE_SUFFIXES, exif_orientation, read_image, write_atomic_bytes, write_image
 from ..progress import Progress, quiet
 from ..rig.model import Camera, Intrinsics, Projector, intrinsics_from_fov
 from ..outputs import AtomicFolder, holds_manifest
@@ -45,7 +45,6 @@ from .patterns import PatternSpec, calibration_sequence
 SEQUENCE_FORMAT = "procam-sequence"
 SEQUENCE_VERSION = 1
 SEQUENCE_MANIFEST = "sequence.json"
-CAPTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 ENCODINGS = ("auto", "srgb", "linear")
 
 
@@ -276,9 +275,9 @@ def list_captures(captures_dir: str | Path, frame_files: list[str] | None = None
     if not root.is_dir():
         raise CaptureError(f"captures folder {root} does not exist")
     files = [p for p in root.iterdir() if p.is_file() and not p.name.startswith(".")
-             and p.suffix.lower() in CAPTURE_SUFFIXES]
+             and p.suffix.lower() in READ_IMAGE_SUFFIXES]
     if not files:
-        raise CaptureError(f"no captures in {root} (expected numbered {', '.join(CAPTURE_SUFFIXES)} files)")
+        raise CaptureError(f"no captures in {root} (expected numbered {', '.join(READ_IMAGE_SUFFIXES)} files)")
     order = {Path(f).stem: i for i, f in enumerate(frame_files or [])}
     if order and all(p.stem in order for p in files):
         return sorted(files, key=lambda p: order[p.stem])

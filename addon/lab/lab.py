@@ -41,15 +41,14 @@ from ..capture.devices import Device
 from ..capture.format import CaptureSet, CaptureSetWriter, DepthInfo, WALL_PARAM, is_capture_set, validate_depth
 from ..capture.patterns import PatternSpec, calibration_sequence
 from ..errors import CaptureError, LabError
-from ..imageio import read_image, write_atomic_bytes
-from ..native import import_pymeshlab
+from ..imageio import write_atomic_bytes
 from ..outputs import check_file_replaceable, check_replaceable, hidden_sibling, remove_stale_siblings
 from ..progress import Cancel, Progress, check, quiet
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
 from ..rig.model import Camera, Intrinsics, Projector, Rig
 from ..safepaths import inside
-from ..surface.mesh import SurfaceMesh
+from ..surface.mesh import SurfaceMesh, read_mesh_file
 from ..surface.shapes import SHAPES, builtin_surface
 from .depth import depth_capture, sensor_resolution
 from .effects import EffectSet, apply_camera, apply_projector, camera_render_intrinsics, parse_effects, render_settings
@@ -254,28 +253,7 @@ def load_mesh_file(path: Path) -> SurfaceMesh:
     """A user's ``.obj``/``.ply`` surface (rig frame, metres), with its texture if the file names one."""
     if not path.is_file():
         raise LabError(f"unknown surface {str(path)!r}: not one of {', '.join(SHAPES)} and no such mesh file")
-
-    pymeshlab = import_pymeshlab()
-    ms = pymeshlab.MeshSet()
-    try:
-        ms.load_new_mesh(str(path))
-    except pymeshlab.PyMeshLabException as exc:
-        raise LabError(f"cannot read mesh {path}: {exc}") from None
-    m = ms.current_mesh()
-    verts, faces = np.asarray(m.vertex_matrix()), np.asarray(m.face_matrix())
-    if len(faces) == 0:
-        raise LabError(f"mesh {path} has no faces")
-    albedo = np.full((4, 4, 3), 0.8, np.float32)
-    uvs = np.zeros((len(verts), 2))
-    if m.has_wedge_tex_coord() and m.texture_number() > 0:
-        wedge = np.asarray(m.wedge_tex_coord_matrix()).reshape(-1, 3, 2)
-        uvs[faces.ravel()] = wedge.reshape(-1, 2)  # one UV per vertex: seams take the last wedge's UV
-        tex = path.parent / m.texture(0).name if hasattr(m.texture(0), "name") else None
-        if tex is not None and tex.is_file():
-            albedo = read_image(tex)
-    elif m.has_vertex_tex_coord():
-        uvs = np.asarray(m.vertex_tex_coord_matrix())
-    return SurfaceMesh(verts, faces, uvs, albedo, name=path.stem)
+    return read_mesh_file(path, error=LabError)
 
 
 def _stream(seed: int, *keys: int) -> np.random.Generator:

@@ -26,7 +26,7 @@ from typing import Any
 
 from ..capture.devices import Device
 from ..errors import Cancelled, ImageError, ProCamError
-from ..imageio import write_image
+from ..imageio import READ_IMAGE_SUFFIXES, write_image
 from ..outputs import AtomicFolder, check_replaceable, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
@@ -36,8 +36,6 @@ from .stage_c import StageC, StageCOptions, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.COMPENSATION
-#: Files taken as targets when a folder of images is given.
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".hdr", ".npy")
 
 
 @dataclass(frozen=True)
@@ -58,10 +56,10 @@ def target_paths(files: Sequence[str | Path], sequence_dir: str | Path | None = 
         folder = Path(sequence_dir)
         if not folder.is_dir():
             raise ImageError(f"the target sequence folder {folder} does not exist; choose a folder of images")
-        found = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        found = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in READ_IMAGE_SUFFIXES
                         and not p.name.startswith(".")), key=natural_key)
         if not found:
-            raise ImageError(f"the target sequence folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+            raise ImageError(f"the target sequence folder {folder} holds no images ({', '.join(READ_IMAGE_SUFFIXES)})")
         out += found
     if not out:
         raise ImageError("no target images: add target files or choose an image sequence folder")

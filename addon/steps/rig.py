@@ -29,7 +29,7 @@ import numpy as np
 
 from ..capture.patterns import gray_code_bits
 from ..errors import CalibrationError, CaptureError
-from ..imageio import read_image
+from ..imageio import READ_IMAGE_SUFFIXES, read_image
 from ..outputs import check_file_replaceable, holds_manifest, write_manifest
 from ..progress import Cancel, Progress, quiet
 from ..stages.rig_calibration import PoseSource, RigCalibration, calibrate_rig
@@ -38,8 +38,6 @@ from .summary import Summary, cached, fmt
 
 KIND = layout.RIG
 
-#: Image files a session folder may hold.
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".exr", ".npy")
 _NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<number>\d+)$")
 
 
@@ -73,7 +71,7 @@ def session_files(folder: str | Path, projector_size: tuple[int, int]) -> list[P
     groups: dict[str, dict[int, Path]] = {}
     for p in folder.iterdir():
         m = _NUMBERED.match(p.stem)
-        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and m:
+        if p.is_file() and p.suffix.lower() in READ_IMAGE_SUFFIXES and m:
             groups.setdefault(m["prefix"] + "\0" + p.suffix.lower(), {})[int(m["number"])] = p
     if not groups:
         raise CaptureError(f"{folder} holds no numbered images (expected graycode_00.png, graycode_01.png, …)")

@@ -58,7 +58,7 @@ import numpy as np
 
 from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
-from ..imageio import write_atomic_bytes
+from ..imageio import READ_IMAGE_SUFFIXES, write_atomic_bytes
 from ..outputs import file_sha256, jsonable, natural_key, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..stages.compensate import BiasModel, Compensator
@@ -76,8 +76,6 @@ KIND = layout.SHOW
 FORMAT, VERSION, MANIFEST = KIND.format, KIND.version, KIND.manifest
 BIAS_FILE = layout.OPEN_LOOP_BIAS
 FRAME_PREFIX = layout.FRAME_PREFIX
-#: Files taken as frames when a folder is given.
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".npy")
 #: ``--range auto`` fits the show's gain and offset to at most this many frames, evenly spread.
 RANGE_SAMPLE = 32
 #: Frames per warm-start chunk (by frame number: 1–24, 25–48, …): one second at 24 fps.
@@ -156,9 +154,9 @@ def list_frames(inputs: Sequence[str | Path]) -> list[SourceFrame]:
     if len(items) == 1 and items[0].is_dir():
         folder = items[0]
         paths = [p for p in folder.iterdir()
-                 if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES]
+                 if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in READ_IMAGE_SUFFIXES]
         if not paths:
-            raise SequenceError(f"the folder {folder} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+            raise SequenceError(f"the folder {folder} holds no images ({', '.join(READ_IMAGE_SUFFIXES)})")
         return _numbered(paths)
     if len(items) == 1 and not items[0].exists():
         regex = _pattern_regex(items[0].name)

@@ -9,10 +9,13 @@ the top of the image).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from ..errors import SurfaceError
+from ..errors import ProCamError, SurfaceError
+from ..imageio import read_image
+from ..native import import_pymeshlab
 from ..rig.model import Rig
 
 
@@ -94,3 +97,33 @@ def frame_points_to_camera(rig: Rig, surface: SurfaceMesh, px: np.ndarray) -> np
     tc = ray_intersect(surface, np.zeros(3), pts)
     cam[~np.isfinite(t) | (tc < 0.999)] = np.nan
     return cam
+
+
+def read_mesh_file(path: str | Path, *, texture: bool = True, error: type[ProCamError] = SurfaceError) -> SurfaceMesh:
+    """A user's ``.obj``/``.ply``/``.stl`` mesh as the file holds it (its frame, its units), with the texture it
+    names when ``texture`` (else a plain grey one: calibration makes its own); ``error`` says what is wrong. The
+    one mesh reader: the lab's surfaces and the meshes calibration registers both come through here."""
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"no mesh file at {path}; give the .obj or .ply of the object (scan or CAD)")
+    pymeshlab = import_pymeshlab()
+    ms = pymeshlab.MeshSet()
+    try:
+        ms.load_new_mesh(str(path))
+    except pymeshlab.PyMeshLabException as exc:
+        raise error(f"cannot read the mesh {path}: {exc}; export it as .obj or .ply") from None
+    m = ms.current_mesh()
+    verts, faces = np.asarray(m.vertex_matrix(), np.float64), np.asarray(m.face_matrix(), np.int64)
+    if len(faces) == 0:
+        raise error(f"the mesh {path} has no triangles (a point cloud?); give a triangle mesh")
+    albedo = np.full((4, 4, 3), 0.8, np.float32)
+    uvs = np.zeros((len(verts), 2))
+    if texture and m.has_wedge_tex_coord() and m.texture_number() > 0:
+        wedge = np.asarray(m.wedge_tex_coord_matrix()).reshape(-1, 3, 2)
+        uvs[faces.ravel()] = wedge.reshape(-1, 2)  # one UV per vertex: seams take the last wedge's UV
+        tex = path.parent / m.texture(0).name if hasattr(m.texture(0), "name") else None
+        if tex is not None and tex.is_file():
+            albedo = read_image(tex)
+    elif texture and m.has_vertex_tex_coord():
+        uvs = np.asarray(m.vertex_tex_coord_matrix())
+    return SurfaceMesh(verts, faces, uvs, albedo, name=path.stem)

@@ -60,9 +60,8 @@ import cv2
 import numpy as np
 
 from ..errors import SurfaceError
-from ..native import import_pymeshlab
 from ..rig.model import Intrinsics
-from .mesh import SurfaceMesh
+from .mesh import SurfaceMesh, read_mesh_file
 
 #: Share of the gated pairs dropped each iteration (the worst point-to-plane residuals).
 TRIM = 0.15
@@ -119,20 +118,7 @@ class Registration:
 
 def load_mesh(path: str | Path) -> SurfaceMesh:
     """A user's ``.obj``/``.ply``/``.stl`` mesh, in its own frame and units (no texture: calibration makes one)."""
-    path = Path(path)
-    if not path.is_file():
-        raise SurfaceError(f"no mesh file at {path}; give the .obj or .ply of the object (scan or CAD)")
-    pymeshlab = import_pymeshlab()
-    ms = pymeshlab.MeshSet()
-    try:
-        ms.load_new_mesh(str(path))
-    except pymeshlab.PyMeshLabException as exc:
-        raise SurfaceError(f"cannot read the mesh {path}: {exc}; export it as .obj or .ply") from None
-    m = ms.current_mesh()
-    verts, faces = np.asarray(m.vertex_matrix(), np.float64), np.asarray(m.face_matrix(), np.int64)
-    if len(faces) == 0:
-        raise SurfaceError(f"the mesh {path} has no triangles (a point cloud?); give a triangle mesh")
-    return SurfaceMesh(verts, faces, np.zeros((len(verts), 2)), np.full((4, 4, 3), 0.8, np.float32), name=path.stem)
+    return read_mesh_file(path, texture=False)
 
 
 def save_obj(mesh: SurfaceMesh, path: str | Path) -> None:
