@@ -165,7 +165,8 @@ class Job:
             self._t0 = time.perf_counter()
 
     def _run(self) -> None:
-        status, result, error = DONE, None, None
+        status, result = DONE, None
+        error: ProCamError | None = None
         try:
             if self._cancel.is_set():
                 raise Cancelled(f"{self.name} was cancelled before it started; nothing was written")

@@ -12,6 +12,7 @@ Video frames are 8-bit and, like 8-bit images, sRGB-encoded.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class VideoReader:
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self._cap = None
+        self._cap: Any = None  # a cv2.VideoCapture once opened
         self._next = 0  # the index the next grab returns
 
     def read(self, index: int) -> np.ndarray:

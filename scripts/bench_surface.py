@@ -153,7 +153,7 @@ def print_surface_table(rows: list[dict]) -> None:
         sel = [r for r in rows if r["surface"] == surf and r["variant"] == variant]
 
         def avg(k: str) -> float:
-            return float(np.mean([r[k] for r in sel]))
+            return float(np.mean([r[k] for r in sel]))  # noqa: B023 — called only within this iteration
 
         lo, hi = min(r["normal_mean"] for r in sel), max(r["normal_mean"] for r in sel)
         print(f"| {surf} | {variant} | {len(sel)} | {avg('normal_mean'):.2f} ({lo:.2f}–{hi:.2f}) | "

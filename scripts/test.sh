@@ -3,4 +3,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+# Lint and types before the tests, so a finding fails the command (seconds: both keep their caches in .venv).
+# The repository root is the package `procam`; mypy finds it through a link, whatever the clone is called.
+mkdir -p .venv/mypy-path && ln -sfn ../.. .venv/mypy-path/procam
+.venv/bin/ruff check --quiet .
+.venv/bin/mypy
 exec .venv/bin/python -m pytest -q -p no:cacheprovider "$@"

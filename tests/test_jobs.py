@@ -33,7 +33,7 @@ def test_job_runs_in_a_thread_reports_progress_and_keeps_the_result():
     snap = job.snapshot()
     assert snap.status == jobs.RUNNING and snap.fraction == pytest.approx(1 / 3) and snap.message == "step 1/3"
     with pytest.raises(jobs.JobError, match="running"):
-        job.result
+        job.result  # noqa: B018 — the property raises
     gate.release()
     gate.release()
     assert job.wait(5)
@@ -57,7 +57,7 @@ def test_cancel_stops_at_the_next_progress_report_and_counts_as_cancelled():
     assert snap.status == jobs.CANCELLED and "cancelled" in snap.error
     assert isinstance(job.error, Cancelled)
     with pytest.raises(jobs.JobError):
-        job.result
+        job.result  # noqa: B018 — the property raises
 
 
 def test_engine_cancel_check_is_the_jobs_flag():

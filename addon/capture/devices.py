@@ -62,7 +62,7 @@ class Device(ABC):
         w, h = self.projector.intrinsics.size
         return self.project(np.zeros((h, w, 3), dtype=np.float32))
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 — a device that holds nothing needs no override
         """Release windows, cameras, renderers."""
 
     def check_frame(self, frame: np.ndarray) -> np.ndarray:

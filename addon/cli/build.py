@@ -20,6 +20,8 @@ def _build_script() -> ModuleType:
         raise ProCamError("build-extension works from a ProCam source checkout (scripts/build_extension.py "
                           "is not part of an installed extension)")
     spec = importlib.util.spec_from_file_location("procam_build_extension", _SCRIPT)
+    if spec is None or spec.loader is None:
+        raise ProCamError(f"cannot load {_SCRIPT} as a Python module")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

@@ -53,7 +53,7 @@ def _pair(text: str) -> tuple[float, float]:
     try:
         a, b = (float(v) / 100.0 for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected two percentages A,B (e.g. 0,127), got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected two percentages A,B (e.g. 0,127), got {text!r}") from None
     return a, b
 
 
@@ -97,7 +97,7 @@ def _board(text: str) -> tuple[int, int]:
     try:
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"board must be COLSxROWS inner corners, e.g. 9x7; got {text!r}")
+        raise argparse.ArgumentTypeError(f"board must be COLSxROWS inner corners, e.g. 9x7; got {text!r}") from None
     return cols, rows
 
 

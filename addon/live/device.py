@@ -206,7 +206,7 @@ class LiveDevice(Device):
         assert self.camera is not None
         if self.spec.latency is not None:
             return float(self.spec.latency), (float(self.spec.latency),)
-        found = []
+        found: list[float] = []
         for k in range(3):
             say(f"measuring the camera latency ({k + 1}/3)", 0.2 + 0.1 * k)
             self._show(self._flat(0.0))

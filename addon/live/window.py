@@ -101,7 +101,8 @@ class ProjectorWindow:
     @property
     def position(self) -> tuple[int, int]:
         """The window's top-left in desktop coordinates."""
-        return tuple(int(v) for v in self._window.position)
+        x, y = self._window.position
+        return int(x), int(y)
 
     def _pump(self) -> None:
         pygame = self._pg

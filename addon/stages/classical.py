@@ -293,7 +293,7 @@ def fit_classical(captures: CaptureSet, *, device: Device | None = None,
     # Response from the grey images (black, val_grey_*, white): median normalised capture per level.
     levels, norm = [], []
     span = np.maximum(white - black, 1e-6)[valid]
-    for (name, _, _), x, y in zip(samples, inputs, shots):
+    for (_name, _, _), x, y in zip(samples, inputs, shots):
         xi = x[valid]
         if np.ptp(xi) < 1e-3 and np.allclose(xi, xi[:, :1], atol=1e-3) and 0 < xi.mean() < 1:
             levels.append(float(xi.mean()))

@@ -984,7 +984,7 @@ class Compensator:
         if mode == "closed-loop":
             n_capt = sched.captures or max(1, sched.iterations_joint // sched.capture_interval)
             per = max(1, sched.iterations_joint // max(n_capt, 1))
-            for c in range(n_capt):
+            for _ in range(n_capt):
                 x = self.warp_w(view.expand(zc, z))
                 t_dev = time.perf_counter()
                 y = self._check_capture(device.project(self.rig.projector.frame_from_input(x))).reshape(-1, 3)[rows]

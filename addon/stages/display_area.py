@@ -129,7 +129,7 @@ def parse_area(text: str) -> tuple[int, int, int, int]:
     if len(values) != 4:
         raise DisplayAreaError(f"a display area is x,y,width,height in whole camera pixels (e.g. 120,80,400,300), "
                                f"got {text!r}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 # -- the projector's footprint -------------------------------------------------------------------

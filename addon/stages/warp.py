@@ -844,7 +844,7 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
         dx, dy = mi.Float(np.ascontiguousarray(d[:, 0])), mi.Float(np.ascontiguousarray(d[:, 1]))
         dr.enable_grad(dx, dy)
         loss = mi.Float(0.0)
-        for k, b in enumerate(boards):
+        for k, _board in enumerate(boards):
             warp_dr.set_pattern(blurred[k])
             frame = warp_dr.frame(dx, dy, bases[k])
             image = model.render_dr(frame, seed=seed + 2 * it + 1, spp=spp)

@@ -221,9 +221,9 @@ def read(folder: str | Path) -> CompensationView:
         try:
             name = str(t["name"])
             # The files a record names are this folder's own: never a path that leads out of it.
-            files = [inside(folder, t[key], what=f"the {key} image of target {name!r}")
-                     for key in ("input", "frame", "simulated")]
-            out.append(CompensatedTarget(name, *files, float(t.get("psnr_simulated", float("nan"))),
+            image, frame, simulated = (inside(folder, t[key], what=f"the {key} image of target {name!r}")
+                                       for key in ("input", "frame", "simulated"))
+            out.append(CompensatedTarget(name, image, frame, simulated, float(t.get("psnr_simulated", float("nan"))),
                                          float(t.get("seconds", 0.0)), str(t.get("mode", ""))))
         except (KeyError, TypeError, ValueError) as exc:
             raise ProCamError(f"{path}: a target record is malformed ({exc})") from None
