@@ -144,6 +144,21 @@ def test_a_different_image_under_the_same_name_is_refused(env, capsys):
     assert any("matched by file name only" in n for n in notes)
 
 
+def test_compensate_refuses_a_png_declaring_20000x20000(env, capsys):
+    import time
+
+    from tests.test_input_limits import png_bomb
+
+    bomb = env.root / "bomb.png"
+    bomb.write_bytes(png_bomb(20000, 20000))
+    t0 = time.perf_counter()
+    assert main(["compensate", str(env.cal_dir), str(bomb), "--out", str(env.root / "c_bomb"), "--iterations", "1",
+                 "--spp", "1", "--no-bias"]) == 2
+    assert time.perf_counter() - t0 < 30  # refused from the header, not after decoding 2.4 GB
+    assert "declares 20000×20000 pixels" in capsys.readouterr().err
+    assert not (env.root / "c_bomb").exists()
+
+
 def test_other_capture_set_is_named(env):
     from procam.addon.steps.evaluate import CompensationInputs, MismatchError
 
