@@ -49,6 +49,7 @@ inverted too.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -355,7 +356,7 @@ def _checked_params(params: Any, where: str) -> dict[str, dict[str, float]]:
                               f"{', '.join(MODELS)}); it was written by another version or edited: run procam "
                               "diagnose again")
         if not isinstance(values, dict) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values.values()):
+                isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in values.values()):
             raise ProCamError(f"{where}: the parameters of the effect {name!r} are malformed (a table of finite "
                               "numbers is expected); run procam diagnose again")
         out[str(name)] = {str(k): float(v) for k, v in values.items()}
