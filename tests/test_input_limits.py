@@ -165,7 +165,7 @@ def test_an_out_folder_we_may_not_look_into_is_a_clear_error(tmp_path, monkeypat
         out.chmod(0)
         try:
             with pytest.raises(OutputError, match="cannot look into"):
-                AtomicFolder(out, force=True)
+                AtomicFolder(out, force=True, replaceable=lambda p: True, inputs=())
         finally:
             out.chmod(0o755)
     real = pathlib.Path.iterdir
@@ -177,9 +177,9 @@ def test_an_out_folder_we_may_not_look_into_is_a_clear_error(tmp_path, monkeypat
 
     monkeypatch.setattr(pathlib.Path, "iterdir", denied)
     with pytest.raises(OutputError, match="cannot look into .*Permission denied"):
-        AtomicFolder(out, force=True)
+        AtomicFolder(out, force=True, replaceable=lambda p: True, inputs=())
     with pytest.raises(OutputError, match="cannot look into"):
-        with folder_in_place(out, force=True):
+        with folder_in_place(out, force=True, replaceable=lambda p: True, inputs=()):
             pass
     with pytest.raises(ProCamError, match="cannot write the show folder") as info:
         ShowFolder(out).open()
