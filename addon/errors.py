@@ -23,6 +23,10 @@ class ImageError(ProCamError):
     """A missing, unreadable or ill-shaped image."""
 
 
+class WriteError(ProCamError):
+    """An output that cannot be written: a full disk, no permission, a read-only file system."""
+
+
 class RenderError(ProCamError):
     """The renderer cannot run (backend, LLVM, GPU) or produced invalid values."""
 

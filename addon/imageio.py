@@ -8,6 +8,7 @@ a half-written file under the real name.
 
 from __future__ import annotations
 
+import errno
 import os
 import struct
 import tempfile
@@ -15,10 +16,21 @@ from pathlib import Path
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
+#: The most pixels (width × height) an image, depth map or video frame may declare: 2**27 = 134 million, a 16K×8K
+#: equirectangular panorama or a 100-megapixel medium-format photograph, 16 times a 4K projector's frame. Read
+#: into float32 RGB that is 1.6 GB; a file that declares more (a few hundred bytes can declare 20000×20000) is
+#: refused before it is decoded. The environment variable PROCAM_MAX_PIXELS sets another limit.
+MAX_PIXELS = 1 << 27
+MAX_PIXELS_VARIABLE = "PROCAM_MAX_PIXELS"
+
+_given = os.environ.get(MAX_PIXELS_VARIABLE, "").strip()
+# OpenCV's own limit (read once, when cv2 loads) backs ours up for a format whose header is not read here.
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", _given if _given.isdigit() and int(_given) > 0 else str(MAX_PIXELS))
+
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .errors import ImageError  # noqa: E402
+from .errors import ImageError, WriteError  # noqa: E402
 
 
 # Read once, in the importing (main) thread: os.umask can only be read by setting it, which would race
@@ -41,22 +53,39 @@ def usual_mode(path: str | Path) -> None:
         pass  # a file system without POSIX modes: nothing to fix
 
 
+def write_failed(path: str | Path, exc: OSError) -> WriteError:
+    """The error to raise when writing ``path`` failed with ``exc``: says what is wrong and what to do."""
+    why = {errno.ENOSPC: "the disk is full; free some space and run it again",
+           errno.EDQUOT: "the disk quota is exceeded; free some space and run it again",
+           errno.EACCES: "no permission to write there; choose another folder or change its permissions",
+           errno.EPERM: "no permission to write there; choose another folder or change its permissions",
+           errno.EROFS: "the file system is read-only; choose another folder"}.get(exc.errno)
+    return WriteError(f"cannot write {path}: {why or (exc.strerror or exc)}")
+
+
 def atomic_path(path: Path) -> tuple[Path, Path]:
     """A temporary sibling for ``path`` (same suffix, same folder, so rename is atomic), with the usual mode."""
     path = Path(path)
     if not path.parent.is_dir():
         raise ImageError(f"cannot write {path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise write_failed(path, exc) from None
     os.close(fd)
     usual_mode(tmp)
     return Path(tmp), path
 
 
 def write_atomic_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` under a temporary name renamed into place; a failed write is a :class:`WriteError`
+    (a full disk is the user's to fix, not a bug) and leaves no temporary file."""
     tmp, final = atomic_path(path)
     try:
         tmp.write_bytes(data)
         os.replace(tmp, final)
+    except OSError as exc:
+        raise write_failed(final, exc) from None
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -92,6 +121,8 @@ def write_image(path: str | Path, image: np.ndarray) -> Path:
         if not ok:
             raise ImageError(f"OpenCV could not write {path}")
         os.replace(tmp, final)
+    except OSError as exc:
+        raise write_failed(final, exc) from None
     finally:
         tmp.unlink(missing_ok=True)
     return final
@@ -173,6 +204,188 @@ def unit_float(pixels: np.ndarray) -> np.ndarray:
 READ_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".hdr", ".npy")
 
 
+def max_pixels() -> int:
+    """The pixel limit: ``PROCAM_MAX_PIXELS`` when set (a positive whole number), else :data:`MAX_PIXELS`."""
+    given = os.environ.get(MAX_PIXELS_VARIABLE, "").strip().replace("_", "")
+    if not given:
+        return MAX_PIXELS
+    if not given.isdigit() or int(given) <= 0:
+        raise ImageError(f"{MAX_PIXELS_VARIABLE} must be a positive whole number of pixels (e.g. {MAX_PIXELS}), "
+                         f"got {os.environ[MAX_PIXELS_VARIABLE]!r}")
+    return int(given)
+
+
+def check_pixels(width: int, height: int, what: str) -> None:
+    """Refuse ``what`` (a file, a video) whose frames are ``width`` × ``height``, beyond the pixel limit."""
+    limit = max_pixels()
+    if width < 0 or height < 0 or width * height > limit:
+        raise ImageError(f"{what} declares {width}×{height} pixels ({width * height / 1e6:.1f} megapixels), more "
+                         f"than the limit of {limit} ({limit / 1e6:.1f} megapixels); scale it down, or raise the "
+                         f"limit with the environment variable {MAX_PIXELS_VARIABLE} if the memory allows it")
+
+
+def npy_shape(path: Path) -> tuple[int, ...]:
+    """The array shape a ``.npy`` file's header declares (read without loading the data)."""
+    from numpy.lib import format as npy
+
+    try:
+        with open(path, "rb") as fh:
+            version = npy.read_magic(fh)
+            if version == (1, 0):
+                shape, _, _ = npy.read_array_header_1_0(fh)
+            else:
+                shape, _, _ = npy.read_array_header_2_0(fh)
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as exc:
+        raise ImageError(f"cannot read {path}: not a NumPy .npy file or a damaged one ({exc})") from None
+    return tuple(int(v) for v in shape)
+
+
+def _jpeg_size(fh) -> tuple[int, int] | None:
+    fh.seek(2)
+    while True:
+        b = fh.read(1)
+        while b == b"\xff":  # fill bytes before a marker
+            b = fh.read(1)
+        if not b:
+            return None
+        marker = b[0]
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            continue
+        head = fh.read(2)
+        if len(head) < 2:
+            return None
+        (length,) = struct.unpack(">H", head)
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # a start of frame
+            sof = fh.read(5)
+            if len(sof) < 5:
+                return None
+            h, w = struct.unpack(">HH", sof[1:5])
+            return (w, h) if h else None  # height 0: given later (DNL); OpenCV's own limit applies
+        if marker in (0xD9, 0xDA):
+            return None
+        fh.seek(length - 2, 1)
+        b = fh.read(1)
+        if b != b"\xff":
+            return None
+
+
+def _tiff_size(fh) -> tuple[int, int] | None:
+    head = fh.read(8)
+    e = "<" if head[:2] == b"II" else ">"
+    if struct.unpack(e + "H", head[2:4])[0] != 42:  # BigTIFF (43): OpenCV's own limit applies
+        return None
+    fh.seek(struct.unpack(e + "I", head[4:8])[0])
+    raw = fh.read(2)
+    if len(raw) < 2:
+        return None
+    found: dict[int, int] = {}
+    for _ in range(struct.unpack(e + "H", raw)[0]):
+        entry = fh.read(12)
+        if len(entry) < 12:
+            break
+        tag, typ = struct.unpack(e + "HH", entry[:4])
+        if tag in (256, 257) and typ in (3, 4):
+            found[tag] = struct.unpack(e + ("H" if typ == 3 else "I"), entry[8:10] if typ == 3 else entry[8:12])[0]
+    return (found[256], found[257]) if len(found) == 2 else None
+
+
+def _exr_size(fh) -> tuple[int, int] | None:
+    fh.seek(8)
+    for _ in range(1000):  # attributes: name\0 type\0 size value, until an empty name
+        name = b""
+        while (c := fh.read(1)) not in (b"\0", b""):
+            name += c
+        if not name or len(name) > 255:
+            return None
+        typ = b""
+        while (c := fh.read(1)) not in (b"\0", b""):
+            typ += c
+        raw = fh.read(4)
+        if len(raw) < 4:
+            return None
+        (size,) = struct.unpack("<i", raw)
+        if name == b"dataWindow" and typ == b"box2i" and size == 16:
+            x0, y0, x1, y1 = struct.unpack("<4i", fh.read(16))
+            return x1 - x0 + 1, y1 - y0 + 1
+        fh.seek(size, 1)
+    return None
+
+
+def _radiance_size(fh) -> tuple[int, int] | None:
+    fh.seek(0)
+    for _ in range(200):
+        line = fh.readline(4096)
+        if not line:
+            return None
+        words = line.split()
+        if len(words) == 4 and words[0] in (b"-Y", b"+Y", b"-X", b"+X") and words[2] in (b"-Y", b"+Y", b"-X", b"+X"):
+            try:
+                a, b = int(words[1]), int(words[3])
+            except ValueError:
+                return None
+            return (b, a) if words[0].endswith(b"Y") else (a, b)
+    return None
+
+
+def declared_size(fh) -> tuple[int, int] | None:
+    """(width, height) an image file's header declares (PNG, JPEG, TIFF, BMP, EXR, Radiance HDR), read from the
+    binary file object ``fh`` without decoding; None for another format or a header not understood."""
+    head = fh.read(32)
+    try:
+        if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+            return struct.unpack(">II", head[16:24])
+        if head[:2] == b"\xff\xd8":
+            return _jpeg_size(fh)
+        if head[:4] in (b"II*\0", b"MM\0*"):
+            fh.seek(0)
+            return _tiff_size(fh)
+        if head[:2] == b"BM" and len(head) >= 26:
+            (info,) = struct.unpack("<I", head[14:18])
+            w, h = struct.unpack("<HH", head[18:22]) if info == 12 else struct.unpack("<ii", head[18:26])
+            return abs(w), abs(h)
+        if head[:4] == b"\x76\x2f\x31\x01":
+            return _exr_size(fh)
+        if head[:2] == b"#?":
+            return _radiance_size(fh)
+    except (struct.error, OSError, ValueError):
+        return None
+    return None
+
+
+def check_image_file(path: str | Path, what: str | None = None) -> tuple[int, ...] | None:
+    """Refuse an image or ``.npy`` file that declares more pixels than the limit, before it is decoded.
+
+    Returns the shape a ``.npy`` declares (None for an image file). A ``.npy``'s first two axes are its
+    height and width; one that is not 2-D or 3-D is no image."""
+    path = Path(path)
+    what = what or str(path)
+    if path.suffix.lower() == ".npy":
+        shape = npy_shape(path)
+        if len(shape) not in (2, 3):
+            raise ImageError(f"{what} holds an array of shape {shape}, not an image (H×W or H×W×C)")
+        check_pixels(shape[1], shape[0], what)
+        if len(shape) == 3 and not 1 <= shape[2] <= 4:
+            raise ImageError(f"{what} holds {shape[2]} channels per pixel; an image has 1, 3 or 4")
+        return shape
+    try:
+        with open(path, "rb") as fh:
+            size = declared_size(fh)
+    except OSError as exc:
+        raise ImageError(f"cannot read {what}: {exc.strerror or exc}") from None
+    if size is not None:
+        check_pixels(int(size[0]), int(size[1]), what)
+    return None
+
+
+def check_image_bytes(data: bytes, what: str) -> None:
+    """:func:`check_image_file` for an image held in memory (a PNG about to be decoded)."""
+    import io
+
+    size = declared_size(io.BytesIO(data))
+    if size is not None:
+        check_pixels(int(size[0]), int(size[1]), what)
+
+
 def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
     """Read an image as float32 linear values; 8/16-bit files are scaled to [0, 1].
 
@@ -183,10 +396,11 @@ def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"image not found: {path}")
+    check_image_file(path)  # before decoding: a small file can declare billions of pixels
     if path.suffix.lower() == ".npy":
         try:
             img = np.load(path, allow_pickle=False).astype(np.float32)
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, EOFError) as exc:
             raise ImageError(f"cannot read {path}: {exc}") from None
     else:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

@@ -85,7 +85,11 @@ def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable
         return False
     if not target.is_dir():
         raise error(f"{target} exists and is not a folder; choose another output path")
-    if not any(target.iterdir()):
+    try:
+        empty = not any(target.iterdir())
+    except OSError as exc:  # a folder we may not look into (permissions) is not ours to replace
+        raise error(f"cannot look into {target} ({exc.strerror or exc}); choose another output folder") from None
+    if empty:
         return False
     if not replaceable(target):
         raise error(f"{target} exists, is not empty and is not a {what}; refusing to replace it — choose another "
@@ -337,9 +341,15 @@ def folder_in_place(path: str | Path, *, force: bool = False, what: str = "resul
     target = Path(path).absolute()
     replacing = check_replaceable(target, force=force, what=what, replaceable=replaceable, inputs=inputs)
     remove_stale_siblings(target, replaceable)
-    backup = _set_aside(target) if replacing else None
     try:
-        target.mkdir(parents=True, exist_ok=True)
+        backup = _set_aside(target) if replacing else None
+    except OSError as exc:
+        raise OutputError(f"cannot replace {what} at {target}: {exc.strerror or exc}") from None
+    try:
+        try:
+            target.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot write {what} at {target}: {exc.strerror or exc}") from None
         usual_mode(target)
         yield target
     except BaseException:

@@ -18,6 +18,7 @@ import numpy as np
 
 from .capture.format import srgb_to_linear
 from .errors import ImageError
+from .imageio import check_pixels
 
 #: File endings read as video (what FFmpeg inside OpenCV's wheels decodes).
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".mts", ".m2ts")
@@ -39,6 +40,13 @@ def _open(path: Path):  # -> cv2.VideoCapture
         cap.release()
         raise ImageError(f"cannot open the video {path} (a format or codec FFmpeg in OpenCV does not read, or a "
                          "damaged file); convert it to .mp4 (H.264) or to numbered images")
+    # The frame size its stream declares, before the first frame is decoded.
+    width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    try:
+        check_pixels(width, height, f"the video {path}")
+    except ImageError:
+        cap.release()
+        raise
     return cap
 
 

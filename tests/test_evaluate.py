@@ -118,6 +118,47 @@ def test_bad_inputs_are_clear_errors(env, capsys):
         assert not (root / name).exists()
 
 
+def test_a_different_image_under_the_same_name_is_refused(env, capsys):
+    from procam.addon.imageio import write_image
+    from procam.addon.outputs import file_sha256
+
+    root = env.root
+    doc = json.loads((env.comp / "compensation.json").read_text())
+    assert doc["targets"][0]["file_sha256"] == file_sha256(env.targets / "a.png")
+    other = root / "elsewhere"
+    other.mkdir()
+    write_image(other / "a.png", _target(seed=11))  # same name, same size, another picture
+    assert _evaluate(env, root / "e_same_name", other / "a.png") == 2
+    err = capsys.readouterr().err
+    assert "is not the image the input 'a'" in err and "contents differ" in err
+    assert not (root / "e_same_name").exists()
+    # A folder from before the hash was recorded: matched by name, with a warning that says so.
+    old = root / "comp_no_hash"
+    shutil.copytree(env.comp, old)
+    for t in doc["targets"]:
+        t.pop("file_sha256")
+    (old / "compensation.json").write_text(json.dumps(doc))
+    assert _evaluate(env, root / "e_no_hash", other / "a.png", inputs=old, extra=["--no-repeat"]) == 0
+    assert "records no content hash for the target(s) a" in capsys.readouterr().err
+    notes = json.loads((root / "e_no_hash" / "metrics.json").read_text())["notes"]
+    assert any("matched by file name only" in n for n in notes)
+
+
+def test_compensate_refuses_a_png_declaring_20000x20000(env, capsys):
+    import time
+
+    from tests.test_input_limits import png_bomb
+
+    bomb = env.root / "bomb.png"
+    bomb.write_bytes(png_bomb(20000, 20000))
+    t0 = time.perf_counter()
+    assert main(["compensate", str(env.cal_dir), str(bomb), "--out", str(env.root / "c_bomb"), "--iterations", "1",
+                 "--spp", "1", "--no-bias"]) == 2
+    assert time.perf_counter() - t0 < 30  # refused from the header, not after decoding 2.4 GB
+    assert "declares 20000×20000 pixels" in capsys.readouterr().err
+    assert not (env.root / "c_bomb").exists()
+
+
 def test_other_capture_set_is_named(env):
     from procam.addon.steps.evaluate import CompensationInputs, MismatchError
 

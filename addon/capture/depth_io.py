@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from ..errors import CaptureError
+from ..imageio import check_image_file
 from ..rig.model import Intrinsics
 from .format import MAX_DEPTH_MISSING
 
@@ -115,6 +116,8 @@ def _one_channel(raw: np.ndarray, path: Path) -> np.ndarray:
 def _read_raster(path: Path) -> tuple[np.ndarray, str, bool]:
     """Values as stored, the format's name, and whether they are integer millimetres by convention."""
     suffix = path.suffix.lower()
+    # Its header is read first: a few bytes can declare 10⁶×10⁶ values (ImageError names the size and the limit).
+    check_image_file(path, f"depth file {path}")
     if suffix == ".npy":
         try:
             a = np.load(path, allow_pickle=False)

@@ -19,6 +19,7 @@ from ..rig.model import Camera, Projector, intrinsics_from_fov, projector_intrin
 from ..steps.capture import (ImportOptions, PatternsOptions, UndistortOptions, run_import, run_patterns,
                              run_undistort)
 from .app import command
+from .args import finite_float
 from .terminal import run_step
 
 
@@ -38,9 +39,10 @@ def add_projector_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--projector-height", type=_positive_int, required=True, help="native projector height (px)")
     p.add_argument("--input-width", type=_positive_int, help="projector input width inside the frame (default: frame)")
     p.add_argument("--input-height", type=_positive_int, help="projector input height (default: frame)")
-    p.add_argument("--throw-ratio", type=float, default=1.0, help="nominal throw ratio, distance / width (default 1.0)")
-    p.add_argument("--shift-x", type=float, default=0.0, help="nominal lens shift right, fraction of the width")
-    p.add_argument("--shift-y", type=float, default=0.0, help="nominal lens shift up, fraction of the height")
+    p.add_argument("--throw-ratio", type=finite_float, default=1.0,
+                   help="nominal throw ratio, distance / width (default 1.0)")
+    p.add_argument("--shift-x", type=finite_float, default=0.0, help="nominal lens shift right, fraction of the width")
+    p.add_argument("--shift-y", type=finite_float, default=0.0, help="nominal lens shift up, fraction of the height")
 
 
 def projector_from_args(args: argparse.Namespace) -> Projector:
@@ -87,7 +89,7 @@ def patterns(args: argparse.Namespace) -> int:
 
 def add_camera_options(p: argparse.ArgumentParser) -> None:
     """What import-captures and a live capture need beyond the photographs: camera lens, rig file, depth, checks."""
-    p.add_argument("--camera-fov", type=float, default=60.0,
+    p.add_argument("--camera-fov", type=finite_float, default=60.0,
                    help="nominal horizontal field of view of the camera in degrees (default 60)")
     p.add_argument("--rig", type=Path, metavar="RIG_JSON",
                    help="a rig calibration from `procam calibrate-rig`: calibrated camera and projector K, the "

@@ -13,6 +13,7 @@ from pathlib import Path
 from ..stages.compensate import DEFAULT_SCHEDULE, SCHEDULES
 from ..steps.demo import DemoOptions, run as demo
 from .app import command
+from .args import finite_float
 from .calibrate import blend_writer
 from .terminal import run_step
 
@@ -20,7 +21,7 @@ from .terminal import run_step
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="results folder (default: out/demo)")
     p.add_argument("--full", action="store_true", help="paper resolution: camera 640×480, projector 800×600")
-    p.add_argument("--scale", type=float, default=None,
+    p.add_argument("--scale", type=finite_float, default=None,
                    help="fraction of the paper's resolution (default 0.5, or 1 with --full); e.g. 0.2 for a quick check")
     p.add_argument("--surface", default="vedge", choices=("plane", "curve", "vedge", "hedge"))
     p.add_argument("--effects", default="realistic", help="lab effects (default: realistic)")

@@ -15,6 +15,7 @@ from ..lab.effects import effect_help
 from ..lab.lab import describe_run
 from ..steps.capture import BoardOptions, LabOptions, run_board, run_lab
 from .app import command
+from .args import finite_float
 from .terminal import progress, run_step
 
 
@@ -30,7 +31,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
                         "binarised, get a quarter (at least 4) unless --full-binary")
     p.add_argument("--full-binary", action="store_true",
                    help="render checker and Gray-code frames with the full --samples too")
-    p.add_argument("--scale", type=float, default=1.0,
+    p.add_argument("--scale", type=finite_float, default=1.0,
                    help="resolution scale: 1 = camera 640×480, projector 800×600 (default); 0.5 halves both")
     p.add_argument("--projector-shift", type=_pair, default=None, metavar="RIGHT,UP",
                    help="the demo projector's lens shift in %% of its image (default 0,15; a real projector may sit "
@@ -38,7 +39,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nominal-error", type=_pair, default=(0.0, 0.0), metavar="FOCAL,SHIFT",
                    help="give the pipeline a projector spec that is wrong by FOCAL %% in focal length (throw ratio) "
                         "and SHIFT %% of the height in vertical lens shift, as a data sheet may be (default 0,0)")
-    p.add_argument("--camera-fov-error", type=float, default=0.0, metavar="DEGREES",
+    p.add_argument("--camera-fov-error", type=finite_float, default=0.0, metavar="DEGREES",
                    help="give the pipeline a camera whose horizontal field of view is DEGREES off, as a guessed or "
                         "spec-sheet FoV may be (default 0)")
     p.add_argument("--supersample", type=int, default=1, metavar="N",
@@ -51,8 +52,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
 
 def _pair(text: str) -> tuple[float, float]:
     try:
-        a, b = (float(v) / 100.0 for v in text.split(","))
-    except ValueError:
+        a, b = (finite_float(v) / 100.0 for v in text.split(","))
+    except (ValueError, argparse.ArgumentTypeError):
         raise argparse.ArgumentTypeError(f"expected two percentages A,B (e.g. 0,127), got {text!r}") from None
     return a, b
 
@@ -80,11 +81,12 @@ def _configure_board(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="folder to create, one pose_NN session folder per pose")
     p.add_argument("--truth", type=Path, default=None, help="sealed truth file (default: OUT.truth.json beside OUT)")
     p.add_argument("--board", type=_board, default=(9, 7), metavar="COLSxROWS", help="inner corners (default 9x7)")
-    p.add_argument("--square", type=float, default=0.06, metavar="METRES", help="square size (default 0.06)")
+    p.add_argument("--square", type=finite_float, default=0.06, metavar="METRES", help="square size (default 0.06)")
     p.add_argument("--poses", type=int, default=6, help="board poses (default 6; at least 3)")
     p.add_argument("--effects", default="", help="lab effects, e.g. distortion=0.5,noise=0.3 (default none)")
     p.add_argument("--samples", type=int, default=4, help="Cycles samples per pixel (default 4)")
-    p.add_argument("--scale", type=float, default=1.0, help="resolution scale: 1 = camera 640×480, projector 800×600")
+    p.add_argument("--scale", type=finite_float, default=1.0,
+                   help="resolution scale: 1 = camera 640×480, projector 800×600")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--supersample", type=int, default=None, metavar="N",
                    help="render the camera at N times its resolution and average down, so that lens distortion "

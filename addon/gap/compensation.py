@@ -48,6 +48,8 @@ inverted too.
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -343,16 +345,39 @@ class AdaptedDevice:
         return f
 
 
-def load_adapter(doc: dict[str, Any], projector: Any, names: list[str] | None = None) -> EffectAdapter:
+def _checked_params(params: Any, where: str) -> dict[str, dict[str, float]]:
+    """Effect parameters read from a diagnosis: known effect names, each with a table of finite numbers."""
+    if not isinstance(params, dict):
+        raise ProCamError(f"{where}: the effects' parameters are malformed; run procam diagnose again")
+    out: dict[str, dict[str, float]] = {}
+    for name, values in params.items():
+        if name not in MODELS:
+            raise ProCamError(f"{where} names the effect {name!r}, which this ProCam does not know (known: "
+                              f"{', '.join(MODELS)}); it was written by another version or edited: run procam "
+                              "diagnose again")
+        if not isinstance(values, dict) or not all(
+                isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in values.values()):
+            raise ProCamError(f"{where}: the parameters of the effect {name!r} are malformed (a table of finite "
+                              "numbers is expected); run procam diagnose again")
+        out[str(name)] = {str(k): float(v) for k, v in values.items()}
+    return out
+
+
+def load_adapter(doc: dict[str, Any], projector: Any, names: list[str] | None = None,
+                 where: str = "the diagnosis") -> EffectAdapter:
     """The adapter of a diagnosis (its ``gap.json`` document): the effects it found compensation can invert
-    (``auto``), or ``names`` with their fitted parameters."""
-    selected = dict(doc.get("selected_params") or {})
-    if names is None:  # what the diagnosis found compensation can invert (older documents: every selected effect)
-        params = dict((doc.get("compensation") or {}).get("params", selected))
-    else:
-        fitted = {e["name"]: e["params"] for e in doc.get("effects", []) if e.get("params")}
-        params = {n: selected.get(n, fitted.get(n)) for n in names if selected.get(n, fitted.get(n)) is not None}
-    return EffectAdapter(params, projector, clipped_white=doc.get("clipped_white"))
+    (``auto``), or ``names`` with their fitted parameters. A document naming an unknown effect, or with
+    malformed parameters, is refused (``where`` names it)."""
+    try:
+        selected = dict(doc.get("selected_params") or {})
+        if names is None:  # what the diagnosis found compensation can invert (older documents: every selected one)
+            params = (doc.get("compensation") or {}).get("params", selected)
+        else:
+            fitted = {e["name"]: e["params"] for e in doc.get("effects", []) if e.get("params")}
+            params = {n: selected.get(n, fitted.get(n)) for n in names if selected.get(n, fitted.get(n)) is not None}
+    except (AttributeError, KeyError, TypeError, ValueError):
+        raise ProCamError(f"{where}: its effects are malformed; run procam diagnose again") from None
+    return EffectAdapter(_checked_params(params, where), projector, clipped_white=doc.get("clipped_white"))
 
 
 def effects_wanted(effects: str | None) -> bool:
@@ -375,12 +400,12 @@ def adapter_from_options(effects: str | None, diagnosis: dict[str, Any] | None, 
         raise ProCamError(f"--effects {effects} needs --diagnosis DIR: the folder `procam diagnose CALIB --out DIR` "
                           "wrote, where the effects' parameters were fitted")
     if spec == "auto":
-        return load_adapter(diagnosis, projector)
+        return load_adapter(diagnosis, projector, where=where)
     names = [n.strip() for n in effects.split(",") if n.strip()]
     unknown = [n for n in names if n not in MODELS]
     if unknown:
         raise ProCamError(f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(MODELS)}")
-    adapter = load_adapter(diagnosis, projector, names)
+    adapter = load_adapter(diagnosis, projector, names, where)
     missing = [n for n in names if n not in adapter.params]
     if missing:
         raise ProCamError(f"{where} has no fitted parameters for {', '.join(missing)} "

@@ -34,6 +34,23 @@ from ..errors import ImageError, RigError
 MAX_SHIFT = 5.0
 
 
+def whole_pixels(value: Any, what: str) -> int:
+    """A count of pixels read from a file: a whole number (``640`` or ``640.0``); 128.9 is refused, not truncated."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if isinstance(value, bool) or not number.is_integer():
+        raise RigError(f"{what} must be a whole number of pixels, got {value!r}")
+    return int(number)
+
+
+def _pixel_pair(value: Any, what: str) -> tuple[int, int]:
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        raise RigError(f"{what} must be two whole numbers of pixels, got {value!r}")
+    return whole_pixels(value[0], what), whole_pixels(value[1], what)
+
+
 def square_scaled_size(width: int, height: int, scale: float, *, minimum: tuple[int, int] = (2, 2)
                        ) -> tuple[int, int]:
     """The size nearest to ``scale`` × (width, height) whose two axes scale alike, so that a square-pixel camera
@@ -145,8 +162,8 @@ class Intrinsics:
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "Intrinsics":
         try:
-            return Intrinsics(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
-                              float(d["cx"]), float(d["cy"]))
+            return Intrinsics(whole_pixels(d["width"], "resolution width"),
+                              whole_pixels(d["height"], "resolution height"), float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise RigError(f"intrinsics need width, height, fx, fy, cx, cy: {exc}") from None
 
@@ -301,8 +318,8 @@ class Projector:
         try:
             return Projector(Intrinsics.from_dict(d["intrinsics"]), np.asarray(d["camera_from_projector"], dtype=float),
                              float(d.get("intensity", 1.0)),
-                             tuple(d["input_size"]) if d.get("input_size") else None,
-                             tuple(d["input_offset"]) if d.get("input_offset") else None,
+                             _pixel_pair(d["input_size"], "input size") if d.get("input_size") else None,
+                             _pixel_pair(d["input_offset"], "input offset") if d.get("input_offset") else None,
                              tuple(d["lens_distortion"]) if d.get("lens_distortion") else None)
         except KeyError as exc:
             raise RigError(f"projector description lacks {exc}") from None

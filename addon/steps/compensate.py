@@ -10,7 +10,8 @@ The folder is written atomically (an existing one is only replaced with
 
 and ``compensation.json``: the calibration used (path and content hash), how
 stage C ran (mode, device, schedule, effects), the rig the inputs are for,
-and per target its area, losses and seconds. All targets are read before any
+and per target its file and that file's SHA-256 (evaluate checks it), area,
+losses and seconds. All targets are read before any
 work starts, so a missing or unreadable one fails at once; if a later target
 fails during its optimisation, or the run is cancelled (Ctrl-C, Cancel), the
 finished ones are kept, the manifest records the failure or the cancel and
@@ -27,7 +28,7 @@ from typing import Any
 from ..capture.devices import Device
 from ..errors import Cancelled, ImageError, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_image
-from ..outputs import AtomicFolder, check_replaceable, natural_key, output_names, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
 from . import calibrate as calibrate_step
@@ -84,6 +85,8 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     with StageC(cal, options.stage_c, device=device, progress=part(say, 0.0, 0.02)) as stage:
         # Read every target and choose its area first: a bad file or area fails before minutes of work.
         targets = [stage.load(p) for p in paths]
+        # What each target held, so that evaluate can tell a different image under the same name.
+        hashes = [file_sha256(p) for p in paths]
         for image, _ in targets:
             stage.area_for(image)
         if stage.fix_range([image for image, _ in targets]) is not None:
@@ -101,7 +104,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                 say("estimating θ from the validation captures (open loop)", 0.02)
                 stage.estimate_bias()
             n = len(paths)
-            for i, ((image, note), name, path) in enumerate(zip(targets, names, paths)):
+            for i, ((image, note), name, path, sha) in enumerate(zip(targets, names, paths, hashes)):
                 try:
                     record = _one_target(stage, folder.tmp, image, note, name, path, i, n, say, cancel)
                 except (Cancelled, KeyboardInterrupt) as exc:
@@ -111,10 +114,10 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                     break
                 except ProCamError as exc:
                     failure = exc
-                    records.append({"name": name, "file": str(path.absolute()), "status": "failed",
-                                    "error": str(exc)})
+                    records.append({"name": name, "file": str(path.absolute()), "file_sha256": sha,
+                                    "status": "failed", "error": str(exc)})
                     break
-                records.append(record)
+                records.append({**record, "file_sha256": sha})
             finished = sum(r["status"] == "done" for r in records)
             if stopped is not None and not finished:
                 raise stopped

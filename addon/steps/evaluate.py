@@ -12,7 +12,9 @@ folder (atomically; replaced only with ``force``):
 ``NAME_uncompensated_capture.png`` the camera's view of the uncompensated target
 
 Targets are matched to the compensation by file stem, as the compensate step
-named them. If a target fails during the projections, the finished ones are
+named them, and checked by content: a target whose SHA-256 differs from the one
+recorded for the file compensated is refused (a folder from before the hash was
+recorded is matched by name only, with a warning). If a target fails during the projections, the finished ones are
 kept and ``metrics.json`` records the failure (``"complete": false``), which
 is then raised.
 
@@ -46,7 +48,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import ImageError, ProCamError
 from ..imageio import read_image, write_image
-from ..outputs import AtomicFolder, check_replaceable, output_names, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, file_sha256, output_names, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
 from ..stages.calibrate import Calibration
@@ -102,6 +104,9 @@ class InputRecord:
     input: Path | None
     area: DisplayArea
     mode: str | None = None
+    #: the file the input was computed from and its SHA-256 (None where an older ProCam recorded none)
+    source: str | None = None
+    sha256: str | None = None
 
 
 def _read_manifest(manifest: Path, fmt: str, what: str) -> dict[str, Any]:
@@ -148,7 +153,9 @@ class CompensationInputs:
                 if r.get("frame") else None
             inp = inside(root, r["input"], what=f"the input of target {name!r}", error=InputsError) \
                 if r.get("input") else None
-            records[name] = InputRecord(name, frame, inp, area, r.get("mode"))
+            sha = r.get("file_sha256")
+            records[name] = InputRecord(name, frame, inp, area, r.get("mode"), str(r.get("file") or ""),
+                                        sha if isinstance(sha, str) else None)
         return CompensationInputs(root, doc, records)
 
     @staticmethod
@@ -169,8 +176,10 @@ class CompensationInputs:
                 # a video's frames share one source: they are named by their output files (frame_NNNN)
                 name = Path(str(e["file"])).stem if video else output_names([str(e["source"])])[0]
                 file = inside(root, e["file"], what=f"the file of frame {name!r}", error=InputsError)
+                sha = None if video else e.get("source_sha256")  # a video is checked whole (video_targets)
                 records[name] = InputRecord(name, file, None, DisplayArea.from_dict(e["area"]),
-                                            e.get("mode"))
+                                            e.get("mode"), str(e.get("source") or ""),
+                                            sha if isinstance(sha, str) else None)
             except (KeyError, TypeError, ValueError, ProCamError) as exc:
                 raise InputsError(f"{manifest}: a frame record is malformed ({exc})") from None
         return CompensationInputs(root, doc, records)
@@ -201,6 +210,25 @@ class CompensationInputs:
                 notes.append(f"the inputs were computed with the calibration {doc['calibration']}, evaluated here "
                              f"with {calibration_dir} (same capture set)")
         return notes
+
+    def check_targets(self, names: list[str], paths: "tuple[Path, ...] | list[Path]") -> list[str]:
+        """Refuse a target whose contents differ from the file its input was computed from (same name, another
+        image); notes naming the targets whose record holds no hash (an older ProCam wrote it) and so are matched
+        by name only."""
+        unchecked = []
+        for name, path in zip(names, paths):
+            rec = self.record(name)
+            if rec.sha256 is None:
+                unchecked.append(name)
+            elif file_sha256(path) != rec.sha256:
+                raise MismatchError(f"{path} is not the image the input {name!r} in {self.path} was computed from "
+                                    f"({rec.source or 'a file of that name'}): its contents differ. Give the target "
+                                    "files as they were given to compensate (or compensate this one)")
+        if not unchecked:
+            return []
+        return [f"{self.path} records no content hash for the target(s) {', '.join(unchecked)} (an older ProCam "
+                "wrote it): they are matched by file name only, not checked to be the images compensated; run "
+                "procam compensate again to have them checked"]
 
     def record(self, name: str) -> InputRecord:
         if name not in self.records:
@@ -465,6 +493,9 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
             inputs.record(name)  # a target with no compensation fails before anything is read or projected
         targets = [(name, *load_target(p, encoding=options.target_encoding))
                    for name, p in zip(names, options.targets)]
+        for note in inputs.check_targets(names, options.targets):
+            say(f"warning: {note}", 0.0)
+            notes.append(note)
     folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                           inputs=(options.calibration, options.inputs, cal.capture_dir, *options.targets,
                                   *device_inputs(options.device)))

@@ -326,14 +326,15 @@ class ShowFolder:
         if p.exists() and not p.is_dir():
             raise SequenceError(f"{p} exists and is not a folder; choose another --out")
         manifest = p / MANIFEST
-        if p.is_dir() and not manifest.is_file() and any(not q.name.startswith(".") for q in p.iterdir()):
-            raise SequenceError(f"{p} is not empty and holds no {MANIFEST}: it is not a show folder; "
-                                "refusing to write frames into it — choose another --out")
         try:
+            if p.is_dir() and not manifest.is_file() and any(not q.name.startswith(".") for q in p.iterdir()):
+                raise SequenceError(f"{p} is not empty and holds no {MANIFEST}: it is not a show folder; "
+                                    "refusing to write frames into it — choose another --out")
             p.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise SequenceError(f"cannot create the show folder {p}: {exc.strerror or exc}") from None
-        self.lock()
+            self.lock()
+        except OSError as exc:  # a folder we may not look into or write (permissions)
+            raise SequenceError(f"cannot write the show folder {p}: {exc.strerror or exc}; choose another --out "
+                                "or change its permissions") from None
         try:
             return self._read(manifest, force)
         except BaseException:

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from ..errors import Cancelled, ImageError, ProCamError
+from ..imageio import check_image_bytes
 from ..outputs import file_sha256
 from ..progress import Cancel, Progress, quiet
 from ..video import VideoReader, load_video_frame
@@ -80,6 +81,7 @@ def encode_png16(frame: np.ndarray) -> bytes:
 
 def decode_png16(data: bytes) -> np.ndarray:
     """A 16-bit RGB PNG's bytes as float [0, 1] (H×W×3)."""
+    check_image_bytes(data, "a frame to warm-start from")
     raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.dtype != np.uint16 or raw.ndim != 3:
         raise ImageError("a frame to warm-start from is not a 16-bit RGB PNG")
