@@ -142,10 +142,10 @@ def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | 
     say = progress or quiet
     started = time.monotonic()
     out = Path(options.out)
-    _check_out(out, options.force, tuple(options.sessions))
-    if options.projector_size is None:
+    if options.projector_size is None:  # a missing argument is named first, before anything on disk
         raise CalibrationError("give the projector's native size (--projector WIDTHxHEIGHT): the number of images "
                                "fixes only the total number of Gray-code bits, which many sizes share")
+    _check_out(out, options.force, tuple(options.sessions))
     size = (int(options.projector_size[0]), int(options.projector_size[1]))
     if len(set(Path(s).resolve() for s in options.sessions)) != len(options.sessions):
         raise CaptureError("the same session folder is given twice; give each board pose once")
