@@ -161,8 +161,8 @@ def test_bad_inputs_are_refused_before_any_work(tmp_path, capsys):
     assert "capture_0/graycode_41.png is 1280×1024 but the session's white image is 640×512" in \
         run("--projector", "1024x768")
     assert not out.exists()
-    out.write_text("{}")
-    assert "without --force" in run("--projector", "1024x768")
+    out.write_text("{}")  # a file ProCam did not write is refused with or without --force
+    assert "is not a ProCam rig calibration" in run("--projector", "1024x768")
     assert "is not a ProCam rig calibration" in run("--projector", "1024x768", "--force")
     assert out.read_text() == "{}"
 
