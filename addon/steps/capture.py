@@ -15,8 +15,9 @@ The capture-set format itself (reading, validating, writing) is
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -162,20 +163,12 @@ def run_patterns(options: PatternsOptions, progress: Progress | None = None,
     return out
 
 
-@dataclass(frozen=True)
-class ImportOptions:
-    """What ``procam import-captures`` and Import Captures ask for."""
+@dataclass(frozen=True, kw_only=True)
+class PhotoSettings:
+    """How photographs become a capture set: what importing a folder of them and capturing them live share."""
 
-    sequence_dir: Path
-    photos_dir: Path
-    out: Path
-    #: the camera model (size checked against the photographs); None: from the photographs and ``camera_fov``
-    camera: Camera | None = None
+    #: the camera's field of view when nothing else gives its K
     camera_fov: float = 60.0
-    #: auto: 8-bit files are sRGB, 16-bit/float are linear
-    encoding: str = "auto"
-    #: a depth map already in memory (metres, aligned with the camera up to a few pixels)
-    depth: np.ndarray | None = None
     #: a depth file: .npy/.exr in metres, 16-bit PNG/TIFF in millimetres, or a PLY point cloud in the camera frame
     depth_path: Path | None = None
     #: the depth file's units: auto (detected from its values, with a warning when it converts), m or mm
@@ -187,6 +180,25 @@ class ImportOptions:
     rig: Path | None = None
     #: refuse a session whose exposure or white balance changed between photographs (capture/exposure.py)
     check_exposure: bool = True
+
+    def photo_settings(self) -> dict[str, Any]:
+        """These settings as keywords, to hand them on to an import."""
+        return {f.name: getattr(self, f.name) for f in fields(PhotoSettings)}
+
+
+@dataclass(frozen=True)
+class ImportOptions(PhotoSettings):
+    """What ``procam import-captures`` and Import Captures ask for."""
+
+    sequence_dir: Path
+    photos_dir: Path
+    out: Path
+    #: the camera model (size checked against the photographs); None: from the photographs and ``camera_fov``
+    camera: Camera | None = None
+    #: auto: 8-bit files are sRGB, 16-bit/float are linear
+    encoding: str = "auto"
+    #: a depth map already in memory (metres, aligned with the camera up to a few pixels)
+    depth: np.ndarray | None = None
     force: bool = False
 
 

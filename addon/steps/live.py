@@ -33,14 +33,14 @@ from ..live.device import LiveDevice, LiveSpec
 from ..outputs import check_replaceable
 from ..progress import Cancel, Progress, never, part, quiet
 from ..rig.model import Projector
-from .capture import ImportOptions, run_import
+from .capture import ImportOptions, PhotoSettings, run_import
 
 SESSION_FORMAT = "procam-live-session"
 SESSION_MANIFEST = "session.json"
 
 
 @dataclass(frozen=True)
-class LiveCaptureOptions:
+class LiveCaptureOptions(PhotoSettings):
     """What ``procam capture`` asks for: the live device, the pattern sequence, and how to import it."""
 
     device: str  # live:camera=…,display=…
@@ -51,12 +51,6 @@ class LiveCaptureOptions:
     graycode: bool = True
     validation: bool = True
     seed: int = 0
-    camera_fov: float = 60.0
-    depth_path: Path | None = None
-    depth_units: str = "auto"
-    depth_native_size: tuple[int, int] | None = None
-    rig: Path | None = None
-    check_exposure: bool = True
     force: bool = False
     #: discard an existing session of other settings instead of refusing
     restart: bool = False
@@ -158,11 +152,8 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
                         shot = device.project(read_image(sequence_frame(sequence, frame)))
                     write_image(_photo(session, i), shot)
         say("importing the photographs (depth, exposure check)", 0.9)
-        captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out,
-                                            camera_fov=options.camera_fov, encoding="linear",
-                                            depth_path=options.depth_path, depth_units=options.depth_units,
-                                            depth_native_size=options.depth_native_size, rig=options.rig,
-                                            check_exposure=options.check_exposure, force=options.force),
+        captures = run_import(ImportOptions(session / "sequence", session / "photos", options.out, encoding="linear",
+                                            force=options.force, **options.photo_settings()),
                               part(say, 0.9, 1.0))
     except Cancelled as exc:
         # however the stop came (this loop's check, or the job's at a progress report), the photographs taken so
