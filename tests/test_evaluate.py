@@ -187,8 +187,8 @@ def test_other_aspect_warns_and_is_recorded(env, capsys):
 
 def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
     """A device that returns a capture of the wrong size on the second target: the first one's results stay."""
-    from procam.addon.steps import evaluate as evaluate_step
     from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.steps import stage_c
 
     class Flaky:
         def __init__(self, truth):
@@ -204,8 +204,7 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(evaluate_step, "open_device",
-                        lambda spec, projector=None, **_: Flaky(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_: Flaky(LabTruth.load(env.truth_path)))
     out = env.root / "eval_flaky"
     assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
     assert "camera is" in capsys.readouterr().err
@@ -218,8 +217,8 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
 def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
     """A device that returns the same image for the same frame (a capture folder replayed, a noiseless simulator)
     shows no noise; the second capture then measures nothing, and no noise ceiling is claimed."""
-    from procam.addon.steps import evaluate as evaluate_step
     from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.steps import stage_c
 
     class Replay:
         def __init__(self, truth):
@@ -235,8 +234,7 @@ def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(evaluate_step, "open_device",
-                        lambda spec, projector=None, **_: Replay(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_: Replay(LabTruth.load(env.truth_path)))
     out = env.root / "eval_replay"
     assert _evaluate(env, out, env.targets / "a.png") == 0
     doc = json.loads((out / "metrics.json").read_text())
