@@ -185,7 +185,8 @@ def camera_lens_of(calibration: Calibration) -> RigLens | None:
     return None if captures is None else removed_lens(captures)
 
 
-def open_device(spec: str | None, projector: Projector | None = None, progress: Progress | None = None) -> Device | None:
+def open_device(spec: str | None, projector: Projector | None = None,
+                progress: Progress | None = None) -> Device | None:
     """A capture device as it is, from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed
     captures) or ``live:…`` (the projector window and camera; ``projector`` gives the window its size). Stage C and
     evaluation project through :func:`device_pipeline`, which opens it and puts the calibration's lens after it."""
