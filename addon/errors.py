@@ -1,7 +1,7 @@
-"""Exceptions for failures the user can fix; each message says what to do.
+"""Exceptions for failures the user can fix; each message says what to do; and the user's cancel.
 
 The CLI prints the message and exits non-zero; operators pass it to ``self.report``.
-Anything that is not a ``ProCamError`` is a bug in ProCam.
+Anything that is not a ``ProCamError`` (or a :class:`Cancelled`) is a bug in ProCam.
 """
 
 
@@ -47,7 +47,13 @@ class LabError(ProCamError):
     """A bad virtual-lab request: unknown surface or effect, a value out of range."""
 
 
-class Cancelled(ProCamError):
-    """The user cancelled a running stage; nothing was written."""
+class Cancelled(Exception):
+    """The user cancelled a running stage (Esc in Blender, Ctrl-C between two steps); nothing was written, or a
+    resumable step says what it kept.
+
+    Not a :class:`ProCamError`: a stage that records a failed target and goes on, or turns one error into another,
+    catches ``ProCamError``, and a cancel is neither a failure nor something to go on after. Whoever decides what a
+    cancel means (the CLI's exit code 130, a job's cancelled state) catches it by name, before ``Exception``.
+    """
 
     exit_code = 130

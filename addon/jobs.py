@@ -6,9 +6,9 @@ timer and asks for a stop with :meth:`Job.cancel`. Engine functions check
 ``cancel()`` where they can; :meth:`Job.progress` also raises
 :class:`~.errors.Cancelled` once a stop was asked for, so a function that only
 reports progress still stops at its next report. The outcome is kept: the
-result, or the :class:`~.errors.ProCamError` (``Cancelled`` counts as
-cancelled, not failed). Anything else is a ProCam bug: the traceback goes to
-stderr and the job fails with a message that says so.
+result, the :class:`~.errors.Cancelled` (the job is cancelled), or the
+:class:`~.errors.ProCamError` (it failed). Anything else is a ProCam bug: the
+traceback goes to stderr and the job fails with a message that says so.
 
 bpy is not thread-safe, so a worker must not touch it. Work that has to run on
 Blender's main thread (a virtual-lab capture renders with Cycles) goes through
@@ -68,7 +68,7 @@ class Job:
         self._message = "waiting"
         self._fraction = 0.0
         self._result: Any = None
-        self._error: ProCamError | None = None
+        self._error: ProCamError | Cancelled | None = None
         self._t0: float | None = None
         self._t1: float | None = None
         self._thread: threading.Thread | None = None
@@ -142,7 +142,7 @@ class Job:
         return self._done.is_set()
 
     @property
-    def error(self) -> ProCamError | None:
+    def error(self) -> ProCamError | Cancelled | None:
         with self._lock:
             return self._error
 

@@ -73,7 +73,9 @@ class _DeviceJob(JobOperator):
     """A job that projects through the scene's device: opened here, on the main thread (the lab builds a
     Blender scene and renders with Cycles), and relayed to from the worker. A live device is the exception:
     the step opens it in the job's own thread (the calibrated projector sizes its window, and an SDL window
-    stays with the thread that made it; operators/live.py says why macOS runs it in the foreground)."""
+    stays with the thread that made it; operators/live.py says why macOS runs it in the foreground). The step puts
+    the calibration's lens and the effect models after the device it is given (steps/stage_c.device_pipeline), as
+    after one it opens itself."""
 
     def in_foreground(self, context: bpy.types.Context) -> bool:
         return WINDOW_NEEDS_MAIN_THREAD and context.scene.procam_compensation_mode == "LIVE"

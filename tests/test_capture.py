@@ -684,22 +684,29 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
 
     monkeypatch.setattr(stage_c, "LiveDevice", Camera_)
     spec, proj = "live:camera=0,display=0", small_projector()
+
+    def calibration(report, capture_dir):
+        return SimpleNamespace(report=report, capture_dir=str(capture_dir), rig=SimpleNamespace(projector=proj))
+
     # From the capture set (a calibration made before calibrations recorded it) and from the calibration alone.
     for report, where in (({}, tmp_path / "set"), ({"camera_lens_removed": lens.to_dict()}, tmp_path / "moved")):
-        device = stage_c.open_device(spec, proj, calibration=SimpleNamespace(report=report, capture_dir=str(where)))
+        device = stage_c.device_pipeline(spec, calibration(report, where))
         assert isinstance(device, LensRemovedDevice) and device.camera_size == CAM
         seen = device.project(np.zeros((FRAME[1], FRAME[0], 3), np.float32))
         np.testing.assert_array_equal(seen, lens.image(raw))
         assert np.abs(seen - raw).max() > 0.1  # the lens really moves the image
-    plain = stage_c.open_device(spec, proj, calibration=SimpleNamespace(report={}, capture_dir=str(tmp_path / "x")))
+    plain = stage_c.device_pipeline(spec, calibration({}, tmp_path / "x"))
     assert not isinstance(plain, LensRemovedDevice)
     # The lab's camera too (a lab set undistorted with undistort-captures); a replayed capture set is not.
     monkeypatch.setattr(stage_c, "LabTruth", SimpleNamespace(load=lambda path: path))
     monkeypatch.setattr(stage_c, "LabDevice", lambda truth: Camera_("lab", proj))
-    with_lens = SimpleNamespace(report={"camera_lens_removed": lens.to_dict()}, capture_dir="")
-    assert isinstance(stage_c.open_device("lab:t.json", proj, calibration=with_lens), LensRemovedDevice)
-    assert not isinstance(stage_c.open_device(f"folder:{tmp_path / 'set'}", proj, calibration=with_lens),
-                          LensRemovedDevice)
+    with_lens = calibration({"camera_lens_removed": lens.to_dict()}, "")
+    assert isinstance(stage_c.device_pipeline("lab:t.json", with_lens), LensRemovedDevice)
+    assert not isinstance(stage_c.device_pipeline(f"folder:{tmp_path / 'set'}", with_lens), LensRemovedDevice)
+    # A device opened elsewhere (Blender opens the lab on its main thread and relays to it) gets the same lens.
+    relayed = stage_c.device_pipeline("lab:t.json", with_lens, device=Camera_("lab", proj))
+    assert isinstance(relayed, LensRemovedDevice)
+    np.testing.assert_array_equal(relayed.project(np.zeros((FRAME[1], FRAME[0], 3), np.float32)), lens.image(raw))
     assert RigLens.from_dict(lens.to_dict()).to_dict() == lens.to_dict()
     # A set whose notes say a lens was taken out but which does not record it (an earlier ProCam) is refused.
     doc = json.loads((tmp_path / "set" / "capture.json").read_text())
@@ -707,7 +714,7 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     (tmp_path / "set" / "capture.json").write_text(json.dumps(doc))
     opened = Camera_.opened
     with pytest.raises(CaptureError, match="import the photographs again with --rig"):
-        stage_c.open_device(spec, proj, calibration=SimpleNamespace(report={}, capture_dir=str(tmp_path / "set")))
+        stage_c.device_pipeline(spec, calibration({}, tmp_path / "set"))
     assert Camera_.opened == opened
 
 

@@ -187,8 +187,8 @@ def test_other_aspect_warns_and_is_recorded(env, capsys):
 
 def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
     """A device that returns a capture of the wrong size on the second target: the first one's results stay."""
-    from procam.addon.steps import evaluate as evaluate_step
     from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.steps import stage_c
 
     class Flaky:
         def __init__(self, truth):
@@ -204,8 +204,7 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(evaluate_step, "open_device",
-                        lambda spec, projector=None, **_: Flaky(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_: Flaky(LabTruth.load(env.truth_path)))
     out = env.root / "eval_flaky"
     assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
     assert "camera is" in capsys.readouterr().err
@@ -218,8 +217,8 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
 def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
     """A device that returns the same image for the same frame (a capture folder replayed, a noiseless simulator)
     shows no noise; the second capture then measures nothing, and no noise ceiling is claimed."""
-    from procam.addon.steps import evaluate as evaluate_step
     from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.steps import stage_c
 
     class Replay:
         def __init__(self, truth):
@@ -235,8 +234,7 @@ def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(evaluate_step, "open_device",
-                        lambda spec, projector=None, **_: Replay(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_: Replay(LabTruth.load(env.truth_path)))
     out = env.root / "eval_replay"
     assert _evaluate(env, out, env.targets / "a.png") == 0
     doc = json.loads((out / "metrics.json").read_text())
@@ -306,3 +304,25 @@ def test_range_auto_on_bright_content(env, capsys):
     assert plain["ceiling_gap_at_limit"] > 0.5
     assert "range ceiling" in capsys.readouterr().out
     assert main(["compensate", str(env.cal_dir), str(bright), "--out", str(env.root / "x"), "--range", "2"]) == 2
+
+
+def test_esc_during_an_evaluation_writes_nothing_and_counts_as_cancelled(env):
+    """Esc in Blender while the evaluation waits for the lab on the main thread: the relay ends the wait with
+    Cancelled. That is a cancel, not a failed target: no folder is committed, no failed row is recorded, and the
+    job is cancelled (the operator then says the output folder is unchanged, which it is)."""
+    from procam.addon import jobs
+    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.steps import evaluate as evaluate_step
+
+    out = env.root / "eval_cancelled"
+    options = evaluate_step.EvaluateOptions(env.cal_dir, env.comp, (env.targets / "a.png",),
+                                            f"lab:{env.truth_path}", out)
+    lab = LabDevice(LabTruth.load(env.truth_path))
+    try:
+        relay = jobs.MainThreadRelay(cancel=lambda: True, poll_s=0.001)  # Esc is pressed while the lab is wanted
+        job = jobs.Job("evaluation", evaluate_step.run, options, device=jobs.RelayedDevice(lab, relay)).run()
+    finally:
+        lab.close()
+    snap = job.snapshot()
+    assert snap.status == jobs.CANCELLED and "cancelled" in snap.error, snap
+    assert not out.exists() and not [p for p in env.root.iterdir() if out.name in p.name]

@@ -131,3 +131,37 @@ def test_every_step_writes_the_same_folder_from_the_command_line_and_from_blende
     assert bpy.ops.procam.diagnose() == {"FINISHED"}
     _same(cli / "diagnosis", ui / "diagnosis", "gap.json", roots)
     assert diagnose.read(ui / "diagnosis")["selected"] is not None
+
+    # A capture set whose camera lens was taken out (undistort-captures): its calibration lives in the pinhole
+    # camera, so the lab's frames must go through that lens, whichever front door projects through the lab.
+    rig = _rig_file(tmp_path / "rig.json", CaptureSet.load(captures), [-0.3, 0.1, 0.0, 0.0, 0.0])
+    assert main(["undistort-captures", str(captures), "--rig", str(rig), "--out", str(tmp_path / "pinhole")]) == 0
+    lens_cal = tmp_path / "pinhole-calibration"
+    assert main(["calibrate", str(tmp_path / "pinhole"), "--out", str(lens_cal), "--no-blend-output"]) == 0
+    assert "camera_lens_removed" in json.loads((lens_cal / "calibration.json").read_text())
+    assert main(["compensate", str(lens_cal), *map(str, files), "--out", str(cli / "lens-compensation"),
+                 "--iterations", "3", "--device", f"lab:{truth}"]) == 0
+    assert main(["evaluate", str(lens_cal), "--inputs", str(cli / "lens-compensation"), "--targets",
+                 *map(str, files), "--device", f"lab:{truth}", "--out", str(cli / "lens-evaluation")]) == 0
+    scene.procam_calibration_dir, scene.procam_compensation_dir = str(lens_cal), str(ui / "lens-compensation")
+    scene.procam_evaluation_dir = str(ui / "lens-evaluation")
+    scene.procam_compensation_mode, scene.procam_device, scene.procam_iterations = "CLOSED", f"lab:{truth}", 3
+    assert bpy.ops.procam.compensate() == {"FINISHED"}
+    _same(cli / "lens-compensation", ui / "lens-compensation", "compensation.json", roots)
+    assert bpy.ops.procam.evaluate() == {"FINISHED"}
+    _same(cli / "lens-evaluation", ui / "lens-evaluation", "metrics.json", roots)
+
+
+def _rig_file(path: Path, captures: CaptureSet, distortion) -> Path:
+    """A rig.json as `procam calibrate-rig` writes it for the lab set's camera and projector, with ``distortion``
+    as the camera's lens (board squares: the set keeps its own projector pose)."""
+    from procam.addon.outputs import write_manifest
+    from procam.addon.stages.rig_calibration import RigCalibration
+    from procam.addon.steps.layout import RIG
+
+    cam, proj = captures.camera.intrinsics, captures.projector.intrinsics
+    nan4 = np.full(4, np.nan)
+    rig = RigCalibration((9, 7), 0.03, cam.size, proj.size, cam.opencv_matrix(), np.asarray(distortion, float),
+                         proj.opencv_matrix(), np.zeros(5), np.eye(4), 0.2, 0.2, 0.3, nan4, nan4, ())
+    write_manifest(path, {"format": RIG.format, "version": RIG.version, **rig.to_dict()})
+    return path

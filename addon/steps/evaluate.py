@@ -62,7 +62,7 @@ from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
 from .show_work import source_record
-from .stage_c import device_inputs, open_device
+from .stage_c import device_inputs, device_pipeline
 from .summary import Summary, cached, fmt
 
 KIND = layout.EVALUATION
@@ -501,11 +501,10 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
                                   *device_inputs(options.device)))
     owned = device is None
     try:
-        if owned:
-            device = open_device(options.device, cal.rig.projector, calibration=cal)
-            if device is None:
-                raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE, "
-                                      "folder:CAPTURE_DIR or live:camera=…")
+        if not options.device:
+            raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE, "
+                                  "folder:CAPTURE_DIR or live:camera=…")
+        device = device_pipeline(options.device, cal, device=device, progress=say)
         result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
                                  notes=notes, classical=options.classical, repeat=options.repeat, progress=say,
                                  cancel=cancel)

@@ -33,7 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..errors import Cancelled, ImageError, ProCamError
+from ..errors import ImageError, ProCamError
 from ..imageio import check_image_bytes
 from ..outputs import file_sha256
 from ..progress import Cancel, Progress, quiet
@@ -131,8 +131,6 @@ def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers:
         done = stage.compensate(img, name=f"frame {job.number}", what=f"target {job.path.name}", cancel=cancel,
                                 progress=say, start=z0)
         png = encode_png16(done.frame)
-    except Cancelled:
-        raise
     except ProCamError as exc:
         return FrameOutcome(job.number, None, {"number": job.number, "source": str(job.path.absolute()),
                                                "status": "failed", "error": str(exc)}, str(exc))

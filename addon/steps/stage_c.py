@@ -185,28 +185,42 @@ def camera_lens_of(calibration: Calibration) -> RigLens | None:
     return None if captures is None else removed_lens(captures)
 
 
-def open_device(spec: str | None, projector: Projector | None = None, progress: Progress | None = None, *,
-                calibration: Calibration | None = None) -> Device | None:
-    """A capture device from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed captures) or
-    ``live:…`` (the projector window and camera; ``projector`` gives the window its size). A camera's frames (live
-    or the lab's; a replayed capture set's are as it stored them) go through the lens that was taken out of
-    ``calibration``'s photographs, if one was."""
+def open_device(spec: str | None, projector: Projector | None = None,
+                progress: Progress | None = None) -> Device | None:
+    """A capture device as it is, from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed
+    captures) or ``live:…`` (the projector window and camera; ``projector`` gives the window its size). Stage C and
+    evaluation project through :func:`device_pipeline`, which opens it and puts the calibration's lens after it."""
     if not spec:
         return None
     kind, where = device_kind(spec), spec.partition(":")[2]
-    # Read before a window opens, so that a capture set that cannot say which lens it lost is refused first.
-    lens = None if calibration is None or kind == "folder" else camera_lens_of(calibration)
     if kind == "live":
         if projector is None:
             raise CaptureError("a live device needs the calibrated projector to size its window")
-        device: Device = LiveDevice(spec, projector, progress=progress)
-    else:
-        device = LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
-    if lens is None:
-        return device
-    (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
-                        f"({lens.source})", 0.0)
-    return LensRemovedDevice(device, lens)
+        return LiveDevice(spec, projector, progress=progress)
+    return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
+
+
+def device_pipeline(spec: str | None, calibration: Calibration, *, device: Device | None = None,
+                    adapter: EffectAdapter | None = None, progress: Progress | None = None) -> Device | None:
+    """The device stage C and evaluation project through, from the command line and from Blender alike: ``device``
+    (one opened elsewhere: Blender opens the lab on its main thread and relays to it) or the one ``spec`` names,
+    opened here; then the lens that was taken out of ``calibration``'s photographs, if one was (a camera's frames,
+    live or the lab's; a replayed capture set's are as it stored them); then ``adapter``'s effect models (send g⁻¹(x),
+    see h⁻¹(capture)). None without ``spec``. Closing the answer closes the device (a relayed one's owner closes
+    the real one)."""
+    if not spec:
+        if device is not None:
+            raise ValueError("a device given without the spec that names it: which lens it needs is unknown")
+        return None
+    # Read before a window opens, so that a capture set that cannot say which lens it lost is refused first.
+    lens = None if device_kind(spec) == "folder" else camera_lens_of(calibration)
+    if device is None:
+        device = open_device(spec, calibration.rig.projector, progress)
+    if lens is not None:
+        (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
+                            f"({lens.source})", 0.0)
+        device = LensRemovedDevice(device, lens)
+    return device if adapter is None else AdaptedDevice(device, adapter)
 
 
 @dataclass
@@ -248,10 +262,10 @@ class StageC:
                 (options.bounces, options.spp, options.seed):
             raise ProCamError("the compensator given was made with other bounces/spp/seed than the options'")
         self._owned = device is None
-        self.device = device if device is not None else (
-            open_device(options.device, calibration.rig.projector, part(say, 0.0, 0.0, "live device: "),
-                        calibration=calibration)
-            if options.mode == "closed-loop" else None)
+        #: the device stage C projects through (:func:`device_pipeline`: lens, then effect models); None: open loop
+        self.device = device_pipeline(options.device, calibration, device=device, adapter=self.adapter,
+                                      progress=part(say, 0.0, 0.0, "device: ")) \
+            if options.mode == "closed-loop" else None
         try:
             say("loading the calibrated scene", 0.0)
             if compensator is not None:
@@ -279,9 +293,6 @@ class StageC:
                         self.schedule = self.options.check()
             if self.schedule.transport and self.adapter is not None:
                 self.adapter.blur_in_solve(self.compensator)
-            self.model_device = self.device
-            if self.adapter is not None and self.device is not None:
-                self.model_device = AdaptedDevice(self.device, self.adapter)
             self.bias: BiasModel | None = None
         except BaseException:
             self.close()
@@ -350,7 +361,7 @@ class StageC:
             if self.range_map is not None:
                 fitted = self.range_map.apply(fitted)
             model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
-            res = self.compensator.run(model_target, area, device=self.model_device, **self.options.run_arguments(),
+            res = self.compensator.run(model_target, area, device=self.device, **self.options.run_arguments(),
                                        progress=progress, cancel=cancel, open_loop_theta=self.bias,
                                        use_bias=self.options.use_bias, name=name, start=start, verify=verify)
         if self.adapter is None:
