@@ -201,7 +201,8 @@ def open_device(spec: str | None, projector: Projector | None = None,
 
 
 def device_pipeline(spec: str | None, calibration: Calibration, *, device: Device | None = None,
-                    adapter: EffectAdapter | None = None, progress: Progress | None = None) -> Device | None:
+                    adapter: EffectAdapter | None = None, progress: Progress | None = None
+                    ) -> Device | AdaptedDevice | None:
     """The device stage C and evaluation project through, from the command line and from Blender alike: ``device``
     (one opened elsewhere: Blender opens the lab on its main thread and relays to it) or the one ``spec`` names,
     opened here; then the lens that was taken out of ``calibration``'s photographs, if one was (a camera's frames,
