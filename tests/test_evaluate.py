@@ -175,11 +175,18 @@ def test_other_capture_set_is_named(env):
 def test_other_aspect_warns_and_is_recorded(env, capsys):
     from procam.addon.imageio import write_image
 
+    # A target is evaluated against the compensation of that same image (its content is checked), so the wide
+    # image is compensated into the display area of the others, whose aspect it does not have.
     wide = env.root / "wide"
     wide.mkdir()
     write_image(wide / "a.png", _target(240, 100))
+    a = json.loads((env.comp / "compensation.json").read_text())["targets"][0]["area"]
+    comp = env.root / "comp_wide"
+    assert main(["compensate", str(env.cal_dir), str(wide / "a.png"), "--out", str(comp), "--iterations", "4",
+                 "--spp", "1", "--no-bias", "--area", f"{a['x']},{a['y']},{a['width']},{a['height']}"]) == 0
+    capsys.readouterr()
     out = env.root / "eval_wide"
-    assert _evaluate(env, out, wide / "a.png") == 0
+    assert _evaluate(env, out, wide / "a.png", inputs=comp) == 0
     row = json.loads((out / "metrics.json").read_text())["targets"][0]
     assert row["warnings"] and "stretched" in row["warnings"][0]
     assert "stretched" in capsys.readouterr().err
