@@ -205,7 +205,7 @@ def test_compensation(world):
         return argv, [case.w / "comp", case.w / "cal", case.w / "frames", case.w / "truth.json"], None
 
     _check(world, "compensation", ["comp", "cal", "captures", "frames", "truth.json", "truth.surface.npz"],
-           scenario, 24)
+           scenario, 20)
 
 
 def test_show(world):
@@ -216,7 +216,7 @@ def test_show(world):
         argv = ["show", str(case.w / "cal"), str(case.w / "frames"), "--out", str(case.w / "show"), *FAST]
         return argv, [case.w / "show", case.w / "cal", case.w / "frames"], case.w / "show"
 
-    _check(world, "show", ["show", "cal", "captures", "frames"], scenario, 10)
+    _check(world, "show", ["show", "cal", "captures", "frames"], scenario, 8)
 
 
 def test_diagnosis(world):
@@ -229,7 +229,7 @@ def test_diagnosis(world):
         argv = _compensate(case, ["--effects", "auto", "--diagnosis", str(case.w / "gap")])
         return argv, [case.w / "gap", case.w / "cal", case.w / "frames"], None
 
-    _check(world, "gap", ["gap", "cal", "captures", "frames"], scenario, 10)
+    _check(world, "gap", ["gap", "cal", "captures", "frames"], scenario, 8)
 
 
 def test_video(world):
@@ -269,3 +269,4 @@ def test_replacing_folders(world):
 
     _check(world, "--out --force", ["seq", "photos", "set", "rig.json", "cal", "captures", "frames", "comp",
                                     "truth.json", "truth.surface.npz"], scenario, 16)
+
