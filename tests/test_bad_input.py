@@ -270,3 +270,16 @@ def test_replacing_folders(world):
     _check(world, "--out --force", ["seq", "photos", "set", "rig.json", "cal", "captures", "frames", "comp",
                                     "truth.json", "truth.surface.npz"], scenario, 16)
 
+
+# -- defects the suite found, each pinned by a case of its own -----------------------------------------------
+
+@pytest.mark.parametrize("params", [-1e308, "x", [1, 2]])
+def test_sequence_frame_params_of_another_type_is_refused(world, params):
+    """A frame's ``params`` that is not an object (found by the suite: exit 1, "'float' object is not iterable")."""
+    case = Case(world)
+    reset_example(case, ["seq", "photos"])
+    doc = json.loads((case.w / "seq" / "sequence.json").read_text())
+    doc["frames"][0]["params"] = params
+    (case.w / "seq" / "sequence.json").write_text(json.dumps(doc))
+    result = run_case(case, _import(case, []), [case.w / "seq", case.w / "photos"])
+    assert result.code == 2 and "frame 0" in result.stderr, result.stderr[-500:]
