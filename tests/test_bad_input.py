@@ -283,3 +283,30 @@ def test_sequence_frame_params_of_another_type_is_refused(world, params):
     (case.w / "seq" / "sequence.json").write_text(json.dumps(doc))
     result = run_case(case, _import(case, []), [case.w / "seq", case.w / "photos"])
     assert result.code == 2 and "frame 0" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("where, value", [(("projector", "input_size"), [60]), (("projector", "input_size"), [60, 1e999]),
+                                          (("projector", "input_offset"), [10])])
+def test_sequence_projector_of_a_bad_input_size_is_refused(world, where, value):
+    """An input size or offset of one number or an infinite one (found by the suite: IndexError, OverflowError)."""
+    case = Case(world)
+    reset_example(case, ["seq", "photos"])
+    doc = json.loads((case.w / "seq" / "sequence.json").read_text())
+    doc[where[0]][where[1]] = value
+    (case.w / "seq" / "sequence.json").write_text(json.dumps(doc))
+    result = run_case(case, _import(case, []), [case.w / "seq", case.w / "photos"])
+    assert result.code == 2 and "projector" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("key", ["depth", "notes"])
+def test_capture_set_section_of_another_type_is_refused(world, key):
+    """capture.json's depth or notes that is not an object (found by the suite: AttributeError, TypeError)."""
+    case = Case(world)
+    reset_example(case, ["set", "rig.json"])
+    doc = json.loads((case.w / "set" / "capture.json").read_text())
+    doc[key] = 1e308
+    (case.w / "set" / "capture.json").write_text(json.dumps(doc))
+    argv = ["undistort-captures", str(case.w / "set"), "--rig", str(case.w / "rig.json"), "--out",
+            str(case.example / "out" / "u")]
+    result = run_case(case, argv, [case.w / "set"])
+    assert result.code == 2 and key in result.stderr, result.stderr[-500:]
