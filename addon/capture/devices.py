@@ -182,6 +182,9 @@ def load_sequence(sequence_dir: str | Path) -> SequenceInfo:
             raise CaptureError(f"{manifest}: frame {i} needs file, name and kind")
         # A frame is a file of the sequence: a name leading out of it would be copied into the capture set.
         inside(root, f["file"], what=f"{manifest.name}: frame {i}", error=CaptureError)
+        if not isinstance(f.get("params") or {}, dict):
+            raise CaptureError(f"{manifest}: frame {i}'s params must be an object, not {f['params']!r}; export the "
+                               "sequence again with `procam patterns`")
     return SequenceInfo(root, projector, camera, frames)
 
 

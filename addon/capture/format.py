@@ -266,6 +266,9 @@ class CaptureSet:
             raise CaptureError(f"{where}: missing {exc} model") from None
         except (RigError, TypeError, ValueError) as exc:
             raise CaptureError(f"{where}: invalid camera or projector model: {exc}") from None
+        for key in ("depth", "notes"):
+            if doc.get(key) and not isinstance(doc[key], dict):
+                raise CaptureError(f"{where}: '{key}' must be an object, not {doc[key]!r}; remake the capture set")
         depth_info = DepthInfo.from_dict(doc["depth"]) if doc.get("depth") else None
         target_area = doc.get("target_area")
         if target_area is not None:

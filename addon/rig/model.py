@@ -323,6 +323,8 @@ class Projector:
                              tuple(d["lens_distortion"]) if d.get("lens_distortion") else None)
         except KeyError as exc:
             raise RigError(f"projector description lacks {exc}") from None
+        except (IndexError, OverflowError) as exc:  # an input size or offset of one number, or an infinite one
+            raise RigError(f"projector description has an invalid input size or offset ({exc})") from None
 
 
 @dataclass(frozen=True)

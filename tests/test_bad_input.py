@@ -1,0 +1,312 @@
+"""Bad input, at random: every manifest format and every image, depth and video input damaged, then read.
+
+Hypothesis draws, for each format, which file of a small valid folder to damage
+and how (:mod:`tests.bad_input`); the command that reads that format runs in
+this process through the CLI. Promised (issue 37): exit 0 or 2, never 1 or a
+hang; nothing opened outside the folders the command was given; nothing
+deleted or changed that ProCam did not make. Each test runs all its cases and
+then fails listing every case that broke a promise, so one run shows all that
+is wrong with a format.
+
+The default suite runs about 200 cases in well under two minutes on 2 cores;
+``PROCAM_BAD_INPUT_SCALE=10`` (``scripts/bench_bad_input.py``) runs ten times as
+many, with fresh random draws, and prints the table of figures.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+hypothesis = pytest.importorskip("hypothesis", reason="hypothesis is in requirements-dev.txt: pip install -r it")
+from hypothesis import HealthCheck, Phase, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from tests.bad_input import (FAST, FAST_C, Case, Figures, link_folder_outside, make_world, mutate_file,  # noqa: E402
+                             mutate_json, reset_example, run_case)
+
+SCALE = float(os.environ.get("PROCAM_BAD_INPUT_SCALE", "1"))
+#: Fresh random draws (the benchmark), or the same cases every run (the default suite: a failure repeats).
+RANDOM = SCALE != 1 or bool(os.environ.get("PROCAM_BAD_INPUT_RANDOM"))
+FIGURES = Figures()
+
+
+def _settings(examples: int):
+    # No shrinking: a case never raises (its result is recorded), and the suite must keep to its time.
+    return settings(max_examples=max(1, round(examples * SCALE)), deadline=None, database=None,
+                    derandomize=not RANDOM, phases=[Phase.explicit, Phase.generate],
+                    suppress_health_check=list(HealthCheck))
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("bad_input")
+    make_world(root)
+    return root
+
+
+@pytest.fixture(scope="module", autouse=True)
+def figures(request):
+    """Print the figures after the module (and write them to ``PROCAM_BAD_INPUT_FIGURES`` when set)."""
+    yield FIGURES
+    capture = request.config.pluginmanager.getplugin("capturemanager")
+    if FIGURES.cases:
+        with capture.global_and_fixture_disabled() if capture else contextlib.nullcontext():
+            print("\nbad-input property suite:\n" + FIGURES.table(), flush=True)
+    if os.environ.get("PROCAM_BAD_INPUT_FIGURES"):
+        Path(os.environ["PROCAM_BAD_INPUT_FIGURES"]).write_text(json.dumps(FIGURES.to_dict(), indent=1))
+
+
+Scenario = Callable[[Case, Callable], tuple[list[str], list[Path], Path | None]]
+
+
+def _check(world: Path, fmt: str, names: list[str], scenario: Scenario, examples: int) -> None:
+    """Run ``examples`` generated cases of ``scenario`` (copy ``names``, damage, read) and fail listing every case
+    that broke a promise."""
+    before = len(FIGURES.failures.get(fmt, []))
+
+    @_settings(examples)
+    @given(data=st.data())
+    def one(data):
+        case = Case(world)
+        reset_example(case, names)
+        argv, inputs, resumed = scenario(case, data.draw)
+        FIGURES.record(fmt, case, argv, run_case(case, argv, inputs, resumed=resumed))
+
+    one()
+    failures = FIGURES.failures.get(fmt, [])[before:]
+    assert not failures, f"{len(failures)} bad-input case(s) of {fmt} broke a promise:\n" + "\n".join(failures)
+
+
+def _pick_file(draw, folder: Path, suffixes=(".png", ".npy", ".npz", ".exr", ".obj", ".mtl")) -> Path:
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and not p.is_symlink() and p.suffix in suffixes)
+    return draw(st.sampled_from(files))
+
+
+def _damage_step_folder(case: Case, draw, folder: Path, manifest: str, *, link_dirs: tuple[str, ...] = ()) -> None:
+    """Damage a step folder: its manifest (most often), one of its files, or one of its sub-folders made a link."""
+    choices = ["manifest", "manifest", "manifest", "file"] + (["link"] if link_dirs else [])
+    what = draw(st.sampled_from(choices))
+    if what == "manifest":
+        mutate_json(case, draw, folder / manifest)
+    elif what == "file":
+        mutate_file(case, draw, _pick_file(draw, folder))
+    else:
+        link_folder_outside(case, folder / draw(st.sampled_from(link_dirs)))
+
+
+# -- the formats ---------------------------------------------------------------------------------------------
+
+def _import(case: Case, extra: list[str]) -> list[str]:
+    w = case.w
+    return ["import-captures", str(w / "seq"), str(w / "photos"), "--out", str(case.example / "out" / "set"), *extra]
+
+
+def test_sequence(world):
+    """``sequence.json`` and its pattern images, read by ``import-captures``."""
+    def scenario(case, draw):
+        _damage_step_folder(case, draw, case.w / "seq", "sequence.json")
+        return _import(case, []), [case.w / "seq", case.w / "photos"], None
+
+    _check(world, "sequence", ["seq", "photos"], scenario, 24)
+
+
+def test_photographs_and_depth(world):
+    """Photographs (a folder the user gives) and a depth map (``--depth``), read by ``import-captures``."""
+    def scenario(case, draw):
+        if draw(st.booleans()):
+            mutate_file(case, draw, _pick_file(draw, case.w / "photos"), links=False)
+        else:
+            mutate_file(case, draw, case.w / "depth.npy", links=False)
+        argv = _import(case, ["--depth", str(case.w / "depth.npy")])
+        return argv, [case.w / "seq", case.w / "photos", case.w / "depth.npy"], None
+
+    _check(world, "photos+depth", ["seq", "photos", "depth.npy"], scenario, 24)
+
+
+def test_rig(world):
+    """A rig file (``rig.json``), read by ``import-captures --rig`` and ``undistort-captures --rig``."""
+    def scenario(case, draw):
+        mutate_json(case, draw, case.w / "rig.json")
+        if draw(st.booleans()):
+            argv = _import(case, ["--rig", str(case.w / "rig.json")])
+        else:
+            argv = ["undistort-captures", str(case.w / "set"), "--rig", str(case.w / "rig.json"), "--out",
+                    str(case.example / "out" / "u")]
+        return argv, [case.w / "seq", case.w / "photos", case.w / "set", case.w / "rig.json"], None
+
+    _check(world, "rig", ["seq", "photos", "set", "rig.json"], scenario, 16)
+
+
+def test_capture_set(world):
+    """A capture set (``capture.json``, images, patterns, depth), read by ``undistort-captures``."""
+    def scenario(case, draw):
+        _damage_step_folder(case, draw, case.w / "set", "capture.json", link_dirs=("images", "patterns", "depth"))
+        argv = ["undistort-captures", str(case.w / "set"), "--rig", str(case.w / "rig.json"), "--out",
+                str(case.example / "out" / "u")]
+        return argv, [case.w / "set", case.w / "rig.json"], None
+
+    _check(world, "capture", ["set", "rig.json"], scenario, 24)
+
+
+def test_capture_set_calibrated(world):
+    """A lab capture set read by ``calibrate`` (surface, pose, warp): slow (about 6 s a case), so few cases."""
+    def scenario(case, draw):
+        _damage_step_folder(case, draw, case.w / "captures", "capture.json", link_dirs=("images", "depth"))
+        argv = ["calibrate", str(case.w / "captures"), "--out", str(case.example / "out" / "cal"),
+                "--no-precompute", "--no-blend-output"]
+        return argv, [case.w / "captures"], None
+
+    _check(world, "capture/cal", ["captures"], scenario, 3)
+
+
+def _compensate(case: Case, extra: list[str] = ()) -> list[str]:
+    return ["compensate", str(case.w / "cal"), str(case.w / "frames" / "shot_0001.png"), "--out",
+            str(case.example / "out" / "c"), *FAST_C, *extra]
+
+
+def test_calibration(world):
+    """A calibration folder (``calibration.json``, surface, albedo) and the capture set it names, read by
+    ``compensate`` (open loop: the validation captures are read too)."""
+    def scenario(case, draw):
+        if draw(st.integers(0, 3)) == 0:
+            _damage_step_folder(case, draw, case.w / "captures", "capture.json", link_dirs=("images",))
+        else:
+            _damage_step_folder(case, draw, case.w / "cal", "calibration.json", link_dirs=("diagnostics",))
+        return _compensate(case), [case.w / "cal", case.w / "captures", case.w / "frames"], None
+
+    _check(world, "calibration", ["cal", "captures", "frames"], scenario, 12)
+
+
+def test_target_images(world):
+    """A target image, read by ``compensate``."""
+    def scenario(case, draw):
+        mutate_file(case, draw, case.w / "frames" / "shot_0001.png", links=False)
+        return _compensate(case), [case.w / "cal", case.w / "captures", case.w / "frames"], None
+
+    _check(world, "target", ["cal", "captures", "frames"], scenario, 10)
+
+
+def test_compensation(world):
+    """A compensation folder (``compensation.json`` and its images), read by ``export-frames`` and ``evaluate``."""
+    def scenario(case, draw):
+        _damage_step_folder(case, draw, case.w / "comp", "compensation.json")
+        if draw(st.booleans()):
+            argv = ["export-frames", str(case.w / "comp"), "--out", str(case.example / "out" / "e")]
+        else:
+            argv = ["evaluate", str(case.w / "cal"), "--inputs", str(case.w / "comp"), "--targets",
+                    str(case.w / "frames" / "shot_0001.png"), "--device", f"lab:{case.w / 'truth.json'}", "--out",
+                    str(case.example / "out" / "ev"), "--no-repeat"]
+        return argv, [case.w / "comp", case.w / "cal", case.w / "frames", case.w / "truth.json"], None
+
+    _check(world, "compensation", ["comp", "cal", "captures", "frames", "truth.json", "truth.surface.npz"],
+           scenario, 20)
+
+
+def test_show(world):
+    """A show folder (``show.json`` and its frames), read when ``show`` resumes it."""
+    def scenario(case, draw):
+        _damage_step_folder(case, draw, case.w / "show", "show.json")
+        (case.w / "show" / "notes.txt").write_text("the user's note in the show folder\n")
+        argv = ["show", str(case.w / "cal"), str(case.w / "frames"), "--out", str(case.w / "show"), *FAST]
+        return argv, [case.w / "show", case.w / "cal", case.w / "frames"], case.w / "show"
+
+    _check(world, "show", ["show", "cal", "captures", "frames"], scenario, 8)
+
+
+def test_diagnosis(world):
+    """A diagnosis folder (``gap.json``), read by ``compensate --effects auto --diagnosis``."""
+    def scenario(case, draw):
+        if draw(st.integers(0, 3)) == 0:
+            mutate_file(case, draw, _pick_file(draw, case.w / "gap"))
+        else:
+            mutate_json(case, draw, case.w / "gap" / "gap.json")
+        argv = _compensate(case, ["--effects", "auto", "--diagnosis", str(case.w / "gap")])
+        return argv, [case.w / "gap", case.w / "cal", case.w / "frames"], None
+
+    _check(world, "gap", ["gap", "cal", "captures", "frames"], scenario, 8)
+
+
+def test_video(world):
+    """A target video, read by ``show``."""
+    def scenario(case, draw):
+        mutate_file(case, draw, case.w / "clip.avi", links=False)
+        argv = ["show", str(case.w / "cal"), str(case.w / "clip.avi"), "--out", str(case.example / "out" / "v"),
+                *FAST]
+        return argv, [case.w / "cal", case.w / "clip.avi"], None
+
+    _check(world, "video", ["cal", "captures", "clip.avi"], scenario, 8)
+
+
+def test_replacing_folders(world):
+    """``--out --force`` naming a user's folder or the command's own input: refused, nothing lost."""
+    def scenario(case, draw):
+        w, mine = case.w, case.example / "mine"
+        commands = {
+            "import-captures": (lambda out: _import(case, ["--out", out, "--force"]), [w / "seq", w / "photos"],
+                                [w / "seq", w / "photos"]),
+            "undistort-captures": (lambda out: ["undistort-captures", str(w / "set"), "--rig", str(w / "rig.json"),
+                                                "--out", out, "--force"], [w / "set"], [w / "set"]),
+            "compensate": (lambda out: _compensate(case, ["--out", out, "--force"]), [w / "cal", w / "frames"],
+                           [w / "cal", w / "captures", w / "frames"]),
+            "export-frames": (lambda out: ["export-frames", str(w / "comp"), "--out", out, "--force"],
+                              [w / "comp"], [w / "comp"]),
+            "evaluate": (lambda out: ["evaluate", str(w / "cal"), "--inputs", str(w / "comp"), "--targets",
+                                      str(w / "frames" / "shot_0001.png"), "--device", f"lab:{w / 'truth.json'}",
+                                      "--out", out, "--no-repeat", "--force"], [w / "comp", w / "cal"],
+                         [w / "cal", w / "comp", w / "frames"]),
+        }
+        name = draw(st.sampled_from(sorted(commands)))
+        make, targets, inputs = commands[name]
+        out = draw(st.sampled_from([mine, *targets]))
+        case.did.append(f"{name} --out {out.relative_to(case.example)} --force")
+        return make(str(out)), [*inputs, mine], None
+
+    _check(world, "--out --force", ["seq", "photos", "set", "rig.json", "cal", "captures", "frames", "comp",
+                                    "truth.json", "truth.surface.npz"], scenario, 16)
+
+
+# -- defects the suite found, each pinned by a case of its own -----------------------------------------------
+
+@pytest.mark.parametrize("params", [-1e308, "x", [1, 2]])
+def test_sequence_frame_params_of_another_type_is_refused(world, params):
+    """A frame's ``params`` that is not an object (found by the suite: exit 1, "'float' object is not iterable")."""
+    case = Case(world)
+    reset_example(case, ["seq", "photos"])
+    doc = json.loads((case.w / "seq" / "sequence.json").read_text())
+    doc["frames"][0]["params"] = params
+    (case.w / "seq" / "sequence.json").write_text(json.dumps(doc))
+    result = run_case(case, _import(case, []), [case.w / "seq", case.w / "photos"])
+    assert result.code == 2 and "frame 0" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("where, value", [(("projector", "input_size"), [60]), (("projector", "input_size"), [60, 1e999]),
+                                          (("projector", "input_offset"), [10])])
+def test_sequence_projector_of_a_bad_input_size_is_refused(world, where, value):
+    """An input size or offset of one number or an infinite one (found by the suite: IndexError, OverflowError)."""
+    case = Case(world)
+    reset_example(case, ["seq", "photos"])
+    doc = json.loads((case.w / "seq" / "sequence.json").read_text())
+    doc[where[0]][where[1]] = value
+    (case.w / "seq" / "sequence.json").write_text(json.dumps(doc))
+    result = run_case(case, _import(case, []), [case.w / "seq", case.w / "photos"])
+    assert result.code == 2 and "projector" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("key", ["depth", "notes"])
+def test_capture_set_section_of_another_type_is_refused(world, key):
+    """capture.json's depth or notes that is not an object (found by the suite: AttributeError, TypeError)."""
+    case = Case(world)
+    reset_example(case, ["set", "rig.json"])
+    doc = json.loads((case.w / "set" / "capture.json").read_text())
+    doc[key] = 1e308
+    (case.w / "set" / "capture.json").write_text(json.dumps(doc))
+    argv = ["undistort-captures", str(case.w / "set"), "--rig", str(case.w / "rig.json"), "--out",
+            str(case.example / "out" / "u")]
+    result = run_case(case, argv, [case.w / "set"])
+    assert result.code == 2 and key in result.stderr, result.stderr[-500:]
