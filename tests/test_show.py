@@ -530,7 +530,7 @@ def _procam(*args: str):
 
     import procam
 
-    env = {**os.environ, "PYTHONPATH": str(Path(procam.__file__).resolve().parent.parent)}
+    env = {**os.environ, "PYTHONPATH": str(Path(procam.__file__).parent.parent)}  # this checkout, not another
     return subprocess.Popen([sys.executable, "-c", "import sys; from procam.addon.cli.app import main; "
                              "sys.exit(main())", *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)

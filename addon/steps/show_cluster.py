@@ -108,6 +108,10 @@ def remote_frame(ctx: WorkerContext, job: FrameJob, prev: FrameOutcome | bytes |
     return compute_frame(_stage(ctx), job, start, readers=_READERS)
 
 
+#: A worker preload (the text of a script, run in each worker process as it starts): its own process group.
+_OWN_GROUP = "import os\nos.setpgid(0, 0)\n"
+
+
 @contextlib.contextmanager
 def _sigint_ignored() -> Iterator[None]:
     """SIGINT ignored while the block runs (in the main thread; elsewhere signals cannot be set, nor are they
@@ -188,11 +192,14 @@ class Cluster:
                 n = max(1, int(workers or 1))
                 self.threads = threads or max(1, (os.cpu_count() or 1) // n)
                 # Ctrl-C in a terminal reaches every process of its group, the workers too: they would die with
-                # tracebacks mid-frame. They start with SIGINT ignored (inherited through exec), so only this
-                # process hears it and cancels the show cleanly.
+                # tracebacks mid-frame and the show would end as a bug. So only this process hears it and cancels
+                # the show cleanly: the workers start with SIGINT ignored (inherited through exec), then leave the
+                # terminal's process group (ignoring alone does not last: Dr.Jit installs its own SIGINT handler
+                # while kernels run). They still exit with this process (Dask watches their parent).
                 with _sigint_ignored():
                     self.local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                              dashboard_address=None, silence_logs=logging.ERROR)
+                                              dashboard_address=None, silence_logs=logging.ERROR,
+                                              preload=[_OWN_GROUP] if hasattr(os, "setpgid") else None)
                 self.client = Client(self.local)
         except (OSError, TimeoutError, ValueError) as exc:
             self.close()
