@@ -5,7 +5,8 @@ decodes forwards and keeps its place; asking for an earlier frame reopens the
 file. Frames are found by decoding (``grab``), never by seeking: seeking to a
 frame number is exact only for some codecs, and a frame that depends on the
 codec's seek would make a resumed show differ from a fresh one. Frame counts
-are counted the same way (the container's own count can be an estimate).
+are counted the same way (the container's own count can be an estimate), and a
+file that decodes to fewer frames than its container lists is refused as damaged.
 Video frames are 8-bit and, like 8-bit images, sRGB-encoded.
 """
 
@@ -22,6 +23,10 @@ from .imageio import check_pixels
 
 #: File endings read as video (what FFmpeg inside OpenCV's wheels decodes).
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".mts", ".m2ts")
+
+#: Containers whose index lists exactly the frames decoded. Others' counts are estimates (duration × rate) or
+#: count samples an edit list may hide (MP4, MOV), so they are allowed one frame over.
+EXACT_COUNT_SUFFIXES = (".avi",)
 
 _COUNTS: dict[tuple[str, int, int], int] = {}
 
@@ -58,6 +63,9 @@ def frame_count(path: str | Path) -> int:
     if key not in _COUNTS:
         cap = _open(path)
         try:
+            import cv2
+
+            declared = cap.get(cv2.CAP_PROP_FRAME_COUNT)
             n = 0
             while cap.grab():
                 n += 1
@@ -65,6 +73,13 @@ def frame_count(path: str | Path) -> int:
             cap.release()
         if n == 0:
             raise ImageError(f"the video {path} holds no frame that can be decoded")
+        # A damaged file (a few bytes changed) decodes to fewer frames than its container lists: the frames after
+        # the lost one would carry the wrong numbers, and the neighbours of the damage are often corrupt too.
+        slack = 0 if path.suffix.lower() in EXACT_COUNT_SUFFIXES else 1
+        if declared > 0 and n + slack < round(declared):
+            raise ImageError(f"the video {path} decodes to {n} frames but its container lists {round(declared)}: "
+                             "the file is damaged or cut short (its frames would be misnumbered); copy or export "
+                             "it again, or convert it to numbered images and check them")
         _COUNTS[key] = n
     return _COUNTS[key]
 

@@ -166,6 +166,26 @@ def test_show_end_to_end_resume_and_refusals(lab_calibration, tmp_path, capsys):
     assert doc["mode"] == "none" and not (out / "open_loop_bias.npz").exists()
     assert doc["complete"] and not _leftovers(out)
 
+    # A manifest entry naming a file outside the folder, or a frame file that is a link leaving it, is not a
+    # finished frame: it is redone into its own name, and the file outside is neither counted nor touched.
+    first = _bytes(out)
+    elsewhere, linked = tmp_path / "elsewhere.png", tmp_path / "linked.png"
+    elsewhere.write_bytes(first["frame_0007.png"])
+    linked.write_bytes(first["frame_0009.png"])
+    doc["frames"]["7"]["file"] = str(elsewhere)
+    (out / MANIFEST).write_text(json.dumps(doc))
+    (out / "frame_0007.png").unlink()
+    (out / "frame_0009.png").unlink()
+    (out / "frame_0009.png").symlink_to(linked)
+    capsys.readouterr()
+    assert main(args[:-4] + ["--iterations", "3", "--spp", "1", "--no-bias"]) == EXIT_OK
+    doc = _manifest(out)
+    assert (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (2, 1) and doc["frames"]["7"]["file"] == \
+        "frame_0007.png"
+    assert [doc["frames"][n]["run"] == doc["runs"][-1]["run"] for n in ("7", "8", "9")] == [True, False, True]
+    assert not (out / "frame_0009.png").is_symlink() and _bytes(out) == first
+    assert elsewhere.read_bytes() == first["frame_0007.png"] and linked.read_bytes() == first["frame_0009.png"]
+
 
 def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys, monkeypatch):
     from procam.addon.stages.compensate import Compensator
@@ -183,13 +203,18 @@ def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys,
     assert doc["frames"]["2"]["status"] == "failed" and "cannot read" in doc["frames"]["2"]["error"]
     assert [f["frame"] for f in doc["failures"]] == [2] and not doc["complete"]
     assert doc["runs"][-1]["status"] == "incomplete" and not _leftovers(out)
-    # Fixed: the rerun does frame 2 only.
+    # Frame 3 had no frame 2 to warm-start from: computed cold, and recorded (and said) so.
+    assert doc["frames"]["3"]["warm_start"] is None and doc["frames"]["3"]["warm_start_missing"] == 2
+    assert "frame 3: warning: computed cold" in err
+    # Fixed: the rerun does frame 2, and frame 3 again from frame 2's answer (as a fresh run would); frame 1 stays.
     write_image(seq / "shot_0002.png", _target(2))
     before = _mtimes(out)
     assert main(args) == EXIT_OK
     doc = _manifest(out)
-    assert doc["complete"] and (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (1, 2)
-    assert {k: v for k, v in _mtimes(out).items() if k != "frame_0002.png"} == before
+    assert doc["complete"] and (doc["runs"][-1]["done"], doc["runs"][-1]["skipped"]) == (2, 1)
+    assert _mtimes(out)["frame_0001.png"] == before["frame_0001.png"]
+    assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, 2]
+    resumed = _bytes(out)
 
     # A bug (crash) in the middle of a fresh show: exit 1, short message, traceback in a log, frame 1 kept.
     real, calls = Compensator.run, []
@@ -228,6 +253,9 @@ def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys,
     assert [r["status"] for r in doc["runs"]] == ["crashed: ZeroDivisionError: simulated crash", "cancelled",
                                                   "complete"]
     assert not _leftovers(out2)
+    # The show resumed after its failed frame is the show made without one (out2: frames 2 and 3 computed in one
+    # run from the fixed target): byte-identical.
+    assert _bytes(out2) == resumed
 
     # A disk that refuses the frame stops the show at once (every frame would fail alike): exit 2, said so.
     import procam.addon.steps.show as show_step
@@ -433,3 +461,176 @@ def test_evaluate_measures_a_show_made_from_a_video_against_that_video(lab_calib
     assert main(evaluate + ["--targets", str(img), "--out", str(tmp_path / "e3")]) == EXIT_USER
     assert "give that video" in capsys.readouterr().err
     assert not (tmp_path / "e2").exists() and not (tmp_path / "e3").exists()
+
+
+# -- refusals and interruptions: a silent cluster, Ctrl-C, SIGKILL, a damaged video, a manifest naming elsewhere --
+
+def _silent_server():
+    """A TCP server on 127.0.0.1 that accepts connections and never answers (a wrong port, a stuck host)."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+
+    def serve():
+        while True:
+            try:
+                accepted.append(server.accept()[0])
+            except OSError:
+                return
+
+    threading.Thread(target=serve, daemon=True).start()
+    return server, accepted
+
+
+def test_show_cluster_that_never_answers_is_refused_in_time(lab_calibration, tmp_path, capsys):
+    import time
+
+    from procam.addon.errors import Cancelled
+    from procam.addon.steps.show_cluster import Cluster, ClusterError
+
+    server, accepted = _silent_server()
+    address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(ClusterError, match=f"{address} accepted the connection but did not answer within 1 s"):
+            Cluster(address=address, connect_timeout=1.0)
+        assert time.monotonic() - t0 < 5 and accepted
+        # Ctrl-C (the cancel poll) stops the wait at once, not at the timeout.
+        t0 = time.monotonic()
+
+        def cancelled():
+            raise Cancelled("show cancelled")
+
+        with pytest.raises(Cancelled):
+            Cluster(address=address, connect_timeout=60.0, poll=cancelled)
+        assert time.monotonic() - t0 < 2
+        # The command: exit 2, the address named, the frames not computed.
+        cal_dir, _, _ = lab_calibration()
+        seq = _frames(tmp_path / "frames", (1,))
+        out = tmp_path / "show"
+        assert main(["show", str(cal_dir), str(seq), "--out", str(out), *FAST, "--no-bias", "--cluster", address,
+                     "--connect-timeout", "1"]) == EXIT_USER
+        err = capsys.readouterr().err
+        assert address in err and "--connect-timeout" in err and "Traceback" not in err
+        assert not list(out.glob("frame_*.png")) and _manifest(out)["runs"][-1]["status"].startswith("stopped")
+        assert main(["show", str(cal_dir), str(seq), "--out", str(out), "--cluster", address,
+                     "--connect-timeout", "0"]) == EXIT_USER
+        assert "--connect-timeout must be" in capsys.readouterr().err
+    finally:
+        server.close()
+
+
+def _procam(*args: str):
+    """``procam ARGS`` in a child process of its own process group (a terminal's Ctrl-C reaches the whole group)."""
+    import os
+    import subprocess
+    import sys
+
+    import procam
+
+    env = {**os.environ, "PYTHONPATH": str(Path(procam.__file__).parent.parent)}  # this checkout, not another
+    return subprocess.Popen([sys.executable, "-c", "import sys; from procam.addon.cli.app import main; "
+                             "sys.exit(main())", *args], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+
+
+def _wait_for_a_frame(child, out: Path, timeout: float = 240.0) -> None:
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        assert child.poll() is None, child.communicate()
+        try:
+            if any(e.get("status") == "done" for e in _manifest(out)["frames"].values()):
+                return
+        except (OSError, ValueError, KeyError):
+            pass  # not written yet
+        time.sleep(0.05)
+    child.kill()
+    raise AssertionError("no frame finished in time")
+
+
+def _kept_frames_intact(out: Path) -> list[str]:
+    doc = _manifest(out)
+    done = [e for e in doc["frames"].values() if e["status"] == "done"]
+    assert done and all(hashlib.sha256((out / e["file"]).read_bytes()).hexdigest() == e["sha256"] for e in done)
+    return sorted(e["file"] for e in done)
+
+
+def test_ctrl_c_in_a_terminal_cancels_a_two_worker_show_cleanly(lab_calibration, tmp_path):
+    """The terminal sends SIGINT to the whole process group, workers included: they ignore it, and the show stops
+    with exit 130, no traceback, the finished frames kept."""
+    import os
+    import signal
+
+    cal_dir, _, _ = lab_calibration()
+    seq = _frames(tmp_path / "frames", range(1, 9))
+    out = tmp_path / "show"
+    child = _procam("show", str(cal_dir), str(seq), "--out", str(out), "--iterations", "30", "--spp", "1",
+                    "--no-bias", "--chunk", "2", "--workers", "2", "--threads", "1")
+    try:
+        _wait_for_a_frame(child, out)
+        os.killpg(child.pid, signal.SIGINT)
+        _, err = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+    assert child.returncode == EXIT_CANCELLED, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err and "bug in ProCam" not in err, err
+    kept = _kept_frames_intact(out)
+    assert f"{len(kept)} finished frame(s) kept" in err and "rerun the same command to resume" in err, err
+    assert len(kept) < 8 and _manifest(out)["runs"][-1]["status"] == "cancelled"
+
+
+def test_a_killed_show_reads_as_interrupted_and_resumes(lab_calibration, tmp_path, capsys):
+    """SIGKILL leaves the manifest saying "running": the reader, the panel summary and the resume say
+    "interrupted" once the recorded process is gone."""
+    import os
+    import signal
+    import socket
+
+    from procam.addon.steps import show as show_step
+
+    cal_dir, _, _ = lab_calibration()
+    seq = _frames(tmp_path / "frames", (1, 2, 3, 4))
+    out = tmp_path / "show"
+    args = ["show", str(cal_dir), str(seq), "--out", str(out), "--iterations", "30", "--spp", "1", "--no-bias"]
+    child = _procam(*args)
+    try:
+        _wait_for_a_frame(child, out)
+        # While it runs: its process and host are recorded, and it reads as running.
+        run = _manifest(out)["runs"][-1]
+        assert (run["status"], run["pid"], run["host"]) == ("running", child.pid, socket.gethostname())
+        assert show_step.summary(out).data["status"] == "running"
+        os.killpg(child.pid, signal.SIGKILL)
+        child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+    kept = _kept_frames_intact(out)
+    assert _manifest(out)["runs"][-1]["status"] == "running"  # what SIGKILL leaves on disk
+    s = show_step.summary(out)
+    assert s.data["status"] == "interrupted" and "interrupted" in s.headline and "rerun" in s.lines[0]
+    assert show_step.read(out)["runs"][-1]["status"] == "interrupted"
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    assert [r["status"] for r in doc["runs"]] == ["interrupted", "complete"] and doc["complete"]
+    assert doc["runs"][-1]["skipped"] == len(kept)
+
+
+def test_a_damaged_video_is_refused(tmp_path, capsys):
+    """A few bytes flipped in one frame's chunk header: FFmpeg drops that frame, so the frames after it would
+    be misnumbered; the container lists 6."""
+    video = _video(tmp_path / "clip.avi", 6)
+    assert len(list_frames([video])) == 6
+    data = bytearray(video.read_bytes())
+    tag = [i for i in range(len(data)) if data[i:i + 4] == b"00dc"][3]  # frame 3's chunk in the movie list
+    data[tag] ^= 0xFF
+    damaged = tmp_path / "damaged.avi"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(SequenceError, match="decodes to 5 frames but its container lists 6"):
+        list_frames([damaged])
+    assert main(["show", str(tmp_path), str(damaged), "--out", str(tmp_path / "out")]) == EXIT_USER
+    assert "damaged" in capsys.readouterr().err and not (tmp_path / "out").exists()

@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..steps.show import CHUNK, SequenceError, ShowOptions, list_frames, run as prepare_show
+from ..steps.show import CHUNK, CONNECT_TIMEOUT, SequenceError, ShowOptions, list_frames, run as prepare_show
 from .app import command
 from .compensate import add_effect_options, add_schedule_options, stage_c_options
 from .terminal import run_step
@@ -69,6 +69,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
                        help="compute the frames on a local cluster of N worker processes (Dask distributed)")
     where.add_argument("--cluster", metavar="ADDRESS",
                        help="compute the frames on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786)")
+    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT, metavar="SECONDS",
+                   help=f"with --cluster: seconds to wait for its scheduler to answer (default {CONNECT_TIMEOUT:g})")
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
@@ -78,7 +80,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     options = ShowOptions(args.calibration, tuple(args.targets), args.out, stage_c_options(args), force=args.force,
                           fail_fast=args.fail_fast, warm_start=not args.cold_start, chunk=args.chunk,
-                          workers=args.workers, cluster=args.cluster, threads=args.threads)
+                          workers=args.workers, cluster=args.cluster, threads=args.threads,
+                          connect_timeout=args.connect_timeout)
     options.check(options.stage_c.mode)  # a refused cluster request fails before anything is read
     frames = list_frames(options.targets)  # a bad sequence fails before the bar starts
     result = run_step("show", prepare_show, options, total=len(frames), unit="frames")

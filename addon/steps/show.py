@@ -45,12 +45,14 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 from importlib import metadata
 import os
 import re
+import socket
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -61,13 +63,14 @@ from ..errors import Cancelled, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_atomic_bytes
 from ..outputs import file_sha256, jsonable, natural_key, write_manifest
 from ..progress import Cancel, Progress, check, quiet
+from ..safepaths import inside
 from ..stages.compensate import BiasModel, Compensator
 from ..stages.display_area import DisplayArea
 from ..stages.range import RangeMap
 from ..video import VideoReader, frame_count, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
-from .show_cluster import Cluster, WorkerContext
+from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
 from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
 from .stage_c import StageC, StageCOptions
 from .summary import Summary, cached, fmt
@@ -221,6 +224,8 @@ class ShowOptions:
     #: Renders with several samples per pixel add them in an order that depends on the thread count, so runs
     #: are byte-identical between one process and a cluster when both use the same count.
     threads: int | None = None
+    #: seconds to wait for the scheduler at ``cluster`` to answer before giving up with a clear error
+    connect_timeout: float = CONNECT_TIMEOUT
 
     def check(self, mode: str) -> None:
         """Refuse a warm-start or cluster request that cannot run, before anything is loaded."""
@@ -234,6 +239,9 @@ class ShowOptions:
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
                                          or self.threads < 1):
             raise SequenceError(f"--threads must be a whole number ≥ 1, got {self.threads!r}")
+        t = self.connect_timeout
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0:
+            raise SequenceError(f"--connect-timeout must be a number of seconds > 0, got {t!r}")
         if (self.workers is not None or self.cluster) and mode == "closed-loop":
             raise SequenceError("the closed loop runs through one physical device (one projector and camera), "
                                 "whose frames cannot be shared out: drop --workers/--cluster, or drop --device "
@@ -312,6 +320,11 @@ class ShowFolder:
                                 "choose another --out") from None
         self._lock_fd = fd
 
+    @property
+    def locked(self) -> bool:
+        """Whether this object holds the folder's lock (False where the OS has no advisory locks)."""
+        return self._lock_fd is not None
+
     def unlock(self) -> None:
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # closing releases the flock
@@ -368,11 +381,19 @@ class ShowFolder:
         assert self.doc is not None
         write_manifest(self.path / MANIFEST, self.doc)
 
-    def verified(self, entry: dict[str, Any] | None) -> str | None:
-        """None when ``entry`` is a finished frame whose file is intact, else why it must be redone."""
+    def verified(self, entry: dict[str, Any] | None, name: str | None = None) -> str | None:
+        """None when ``entry`` is a finished frame whose file is intact, else why it must be redone. ``name``: the
+        file the frame must be in (an entry naming another file, inside the folder or not, is not finished)."""
         if not entry or entry.get("status") != "done":
             return "not finished" if not entry else f"{entry.get('status')} before"
-        path = self.path / str(entry.get("file", ""))
+        # An entry naming a file elsewhere (edited, or copied from another show) is redone into its own name
+        # rather than refused: the file it names is never read, and the rerun gives the complete show asked for.
+        if name is not None and entry.get("file") != name:
+            return f"its manifest entry names {entry.get('file')!r}, not {name}"
+        try:
+            path = inside(self.path, entry.get("file"), what="a finished frame", error=SequenceError)
+        except SequenceError:
+            return f"its manifest entry names {entry.get('file')!r}, outside the show folder"
         if not path.is_file():
             return f"{path.name} is missing"
         if path.stat().st_size != entry.get("bytes"):
@@ -510,6 +531,13 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
         areas: dict[str, Any] = {}
         if old is not None:
             history = {"runs": list(old.get("runs", [])), "failures": list(old.get("failures", []))}
+            for r in history["runs"]:
+                # This process holds the folder's lock, so no run recorded as running is still alive (where locks
+                # are not available, its recorded process is asked).
+                if isinstance(r, dict) and r.get("status") == "running" and (folder.locked or owner_gone(r)):
+                    r["status"] = "interrupted"
+                    log(f"run {r.get('run')} (started {r.get('started')}) was interrupted before it finished "
+                        "(its process ended: killed, or the machine stopped); resuming it")
             diffs = _differences(old.get("settings", {}), settings)
             current = {str(f.number): f for f in frames}
             changed = [n for n, e in old.get("frames", {}).items()
@@ -545,7 +573,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                "done": 0, "skipped": 0, "failed": 0,
                "where": (f"cluster {options.cluster}" if options.cluster else
                          f"local cluster, {options.workers} worker(s)" if options.workers else "this process"),
-               "threads": options.threads}
+               "threads": options.threads, "pid": os.getpid(), "host": socket.gethostname()}
         history["runs"].append(run)
         folder.doc = {
             "format": FORMAT, "version": VERSION, "procam_version": _procam_version(),
@@ -571,16 +599,32 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
 
         result = ShowResult(folder.path, total=len(frames))
         todo: list[SourceFrame] = []
+        prev_of = warm_from(frames, options)
+        # Frames whose redone answer differs from the one their successor started from: that successor is redone
+        # too. A frame redone only because its file went missing comes back byte-identical, so it is not here.
+        changes: set[int] = set()
         for f in frames:
-            why = folder.verified(frames_doc.get(str(f.number)))
+            entry = frames_doc.get(str(f.number))
+            prev = prev_of.get(f.number)
+            changed = not entry or entry.get("status") != "done"  # no answer yet: whoever started from it, didn't
+            why = folder.verified(entry, layout.frame_name(f.number, digits))
+            if why is None and entry.get("warm_start") != prev:
+                # Computed cold while its predecessor had no answer (it had failed), or started from a frame that
+                # no longer precedes it: a fresh run starts it from its predecessor, so it is redone to match.
+                why = (f"computed cold, without frame {prev}'s answer to start from" if prev is not None else
+                       f"warm-started from frame {entry.get('warm_start')}, which no longer precedes it")
+                changed = True
+            elif why is None and prev in changes:
+                why, changed = f"warm-started from frame {prev}, which is redone with another answer", True
             if why is None:
                 result.skipped.append(f.number)
-            else:
-                entry = frames_doc.get(str(f.number))
-                if entry and entry.get("status") == "done":
-                    log(f"frame {f.number}: redoing it ({why})")
-                    frames_doc[str(f.number)] = {**entry, "status": "invalid", "reason": why}
-                todo.append(f)
+                continue
+            if changed:
+                changes.add(f.number)
+            if entry and entry.get("status") == "done":
+                log(f"frame {f.number}: redoing it ({why})")
+                frames_doc[str(f.number)] = {**entry, "status": "invalid", "reason": why}
+            todo.append(f)
         run["skipped"] = len(result.skipped)
         if result.skipped:
             log(f"{len(result.skipped)} of {len(frames)} frames already finished in {folder.path}; skipping them")
@@ -595,7 +639,8 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
             run["status"] = "complete" if not result.failed else "incomplete"
         except Cancelled as exc:
             run["status"] = "cancelled"
-            raise Cancelled(f"{exc}; the finished frames are kept in {folder.path}: rerun the same command to "
+            kept = sum(1 for e in frames_doc.values() if isinstance(e, dict) and e.get("status") == "done")
+            raise Cancelled(f"{exc}; {kept} finished frame(s) kept in {folder.path}: rerun the same command to "
                             "resume") from None
         except KeyboardInterrupt:
             run["status"] = "cancelled"
@@ -727,15 +772,16 @@ def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage
     """The frames as tasks on a Dask cluster (:mod:`.show_cluster`); ``record`` writes each as it comes back."""
     where = f"the cluster at {options.cluster}" if options.cluster else f"a local cluster of {options.workers} worker(s)"
     say(f"starting {where}", 0.0)
-    cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads)
+    cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads,
+                      connect_timeout=options.connect_timeout,
+                      poll=lambda: check(cancel, f"show cancelled while reaching {where}"))
     try:
         say(f"{where}: {cluster.describe}", 0.0)
         key = hashlib.sha256(json.dumps([ident["sha256"], ident["surface_sha256"], repr(stage.options)])
                              .encode()).hexdigest()
         ctx = WorkerContext(key, Path(ident["path"]), stage.options, stage.bias, stage.range_map, dict(areas),
                             cluster.threads)
-        outcomes = cluster.run(ctx, jobs, starts, poll=lambda: check(cancel, "show cancelled; the finished frames "
-                                                                                "are kept"))
+        outcomes = cluster.run(ctx, jobs, starts, poll=lambda: check(cancel, "show cancelled"))
         try:
             for out in outcomes:
                 record(out)
@@ -748,8 +794,38 @@ def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage
 # -- reading ---------------------------------------------------------------------------------------
 
 def read(folder: str | Path) -> dict[str, Any]:
-    """A show folder's manifest; a clear error when the folder holds no show."""
-    return KIND.read(folder, SequenceError)
+    """A show folder's manifest; a clear error when the folder holds no show. A run recorded as running whose
+    process is gone reads as ``"interrupted"``."""
+    doc = KIND.read(folder, SequenceError)
+    if isinstance(doc.get("runs"), list):
+        doc["runs"] = _runs_shown(doc)
+    return doc
+
+
+def owner_gone(run: dict[str, Any]) -> bool:
+    """Whether the process that recorded ``run`` is known to have ended: it ran on this host under a process id
+    that is no longer alive. False when it lives or cannot be asked (another host, no id recorded)."""
+    pid, host = run.get("pid"), run.get("host")
+    if isinstance(pid, bool) or not isinstance(pid, int) or pid <= 0 or host != socket.gethostname():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, OSError):
+        return False  # alive under another user (or the OS will not say)
+    return False
+
+
+def _runs_shown(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """The manifest's runs as a reader should see them: a run still marked running whose process is gone was
+    interrupted (SIGKILL, power loss) — it never had the chance to say so."""
+    out = []
+    for r in doc.get("runs") or []:
+        if isinstance(r, dict) and r.get("status") == "running" and owner_gone(r):
+            r = {**r, "status": "interrupted"}
+        out.append(r)
+    return out
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
@@ -760,9 +836,25 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     head = (f"{len(done)}/{len(frames)} frames finished ({doc.get('mode')})"
             + (f", model PSNR {fmt(sum(psnr) / len(psnr), '.2f')} dB mean" if psnr else ""))
     lines = tuple(f"frame {e.get('number')}: failed — {e.get('error', '')}" for e in failed)
-    return Summary(True, head, lines, {"done": len(done), "failed": len(failed), "complete": doc.get("complete")})
+    runs = [r for r in doc.get("runs") or [] if isinstance(r, dict)]
+    last = runs[-1] if runs else {}
+    return Summary(True, head, lines, {"done": len(done), "failed": len(failed), "complete": doc.get("complete"),
+                                       "status": last.get("status"), "run": last})
 
 
 def summary(folder: str | Path) -> Summary:
-    """A show folder: frames finished and failed, mean model PSNR."""
-    return cached(KIND, folder, _summary, "run Prepare Show or choose a show folder")
+    """A show folder: frames finished and failed, mean model PSNR, and whether its last run is still running or
+    was interrupted."""
+    s = cached(KIND, folder, _summary, "run Prepare Show or choose a show folder")
+    run = s.data.get("run") if s.ok else None
+    if not run or run.get("status") != "running":
+        return s
+    # Asked on every call, not cached: the manifest of a killed run does not change when its process dies.
+    if owner_gone(run):
+        return replace(s, headline=s.headline + ", interrupted",
+                       lines=(f"run {run.get('run')} was interrupted before it finished (process {run.get('pid')} "
+                              f"on {run.get('host')} is gone); rerun the same command to resume",) + s.lines,
+                       data={**s.data, "status": "interrupted"})
+    owner = f" (process {run.get('pid')} on {run.get('host')})" if run.get("pid") else ""
+    return replace(s, headline=s.headline + ", running",
+                   lines=(f"run {run.get('run')} is marked running{owner}",) + s.lines)

@@ -30,8 +30,11 @@ one before it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import threading
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -105,25 +108,98 @@ def remote_frame(ctx: WorkerContext, job: FrameJob, prev: FrameOutcome | bytes |
     return compute_frame(_stage(ctx), job, start, readers=_READERS)
 
 
+#: A worker preload (the text of a script, run in each worker process as it starts): its own process group.
+_OWN_GROUP = "import os\nos.setpgid(0, 0)\n"
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the block runs (in the main thread; elsewhere signals cannot be set, nor are they
+    delivered to Python), for the processes it starts to inherit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+#: Seconds to wait for a cluster's scheduler to answer (``procam show --connect-timeout``).
+CONNECT_TIMEOUT = 15.0
+
+
+def _reach(address: str, timeout: float, poll: Callable[[], None]) -> None:
+    """Connect to the scheduler at ``address`` and exchange Dask's handshake, within ``timeout`` seconds, calling
+    ``poll`` every tenth of a second (it raises to cancel).
+
+    Why before ``Client(address, timeout=…)``: distributed bounds the TCP connect but not the handshake read after
+    it (``distributed.comm.core.connect`` awaits ``comm.read()`` with no limit), so a host that accepts the
+    connection and never answers — a wrong port, a firewall, a stopped process — holds the client forever, and
+    its wait in another thread does not see Ctrl-C. A scheduler sends its handshake at once on connecting."""
+    import asyncio
+    import time
+
+    from distributed.comm import connect
+
+    async def attempt() -> None:
+        task = asyncio.ensure_future(connect(address, timeout=timeout))
+        deadline = time.monotonic() + timeout
+        try:
+            while not task.done():
+                await asyncio.wait({task}, timeout=0.1)
+                if not task.done():
+                    poll()
+                    if time.monotonic() > deadline:
+                        raise ClusterError(f"the cluster at {address} accepted the connection but did not answer "
+                                           f"within {timeout:g} s (no Dask scheduler there?); check the address and "
+                                           "port (dask scheduler prints it), or give more time with "
+                                           "--connect-timeout")
+            comm = task.result()
+        finally:
+            if not task.done():
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+        await comm.close()
+
+    try:
+        asyncio.run(attempt())
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise ClusterError(f"cannot reach the cluster at {address}: {exc}; check the address and port, and that "
+                           "its scheduler runs (dask scheduler)") from None
+
+
 class Cluster:
     """A Dask client: on a local cluster of ``workers`` processes started here, or attached to ``address``."""
 
-    def __init__(self, *, workers: int | None = None, address: str | None = None, threads: int | None = None) -> None:
+    def __init__(self, *, workers: int | None = None, address: str | None = None, threads: int | None = None,
+                 connect_timeout: float = CONNECT_TIMEOUT, poll: Callable[[], None] = lambda: None) -> None:
+        """``poll`` is called while waiting for a cluster at ``address`` (it raises to cancel)."""
         try:
             from distributed import Client, LocalCluster
         except ImportError:
             raise ClusterError("--workers and --cluster need Dask distributed (pip install -r requirements.txt); "
                                "it is not installed in this Python") from None
         self.local = None
+        self.client = None
         self.threads: int | None = threads
         try:
             if address:
-                self.client = Client(address, timeout="20s")
+                _reach(address, connect_timeout, poll)
+                self.client = Client(address, timeout=f"{connect_timeout}s")
             else:
                 n = max(1, int(workers or 1))
                 self.threads = threads or max(1, (os.cpu_count() or 1) // n)
-                self.local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                          dashboard_address=None, silence_logs=logging.ERROR)
+                # Ctrl-C in a terminal reaches every process of its group, the workers too: they would die with
+                # tracebacks mid-frame and the show would end as a bug. So only this process hears it and cancels
+                # the show cleanly: the workers start with SIGINT ignored (inherited through exec), then leave the
+                # terminal's process group (ignoring alone does not last: Dr.Jit installs its own SIGINT handler
+                # while kernels run). They still exit with this process (Dask watches their parent).
+                with _sigint_ignored():
+                    self.local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                              dashboard_address=None, silence_logs=logging.ERROR,
+                                              preload=[_OWN_GROUP] if hasattr(os, "setpgid") else None)
                 self.client = Client(self.local)
         except (OSError, TimeoutError, ValueError) as exc:
             self.close()

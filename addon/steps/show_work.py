@@ -135,14 +135,21 @@ def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers:
         return FrameOutcome(job.number, None, {"number": job.number, "source": str(job.path.absolute()),
                                                "status": "failed", "error": str(exc)}, str(exc))
     res = done.result
+    warnings = list(done.warnings)
+    if job.prev is not None and z0 is None:
+        # Its predecessor has no answer (it failed): recorded, so that a rerun which finishes the predecessor
+        # redoes this frame from it too, and the folder ends up as a fresh run's.
+        warnings.append(f"computed cold: frame {job.prev} has no answer to start from; it is redone when frame "
+                        f"{job.prev} is")
     entry = {"number": job.number, "file": job.name, **source, "status": "done",
              "bytes": len(png), "sha256": hashlib.sha256(png).hexdigest(),
-             "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": done.warnings,
+             "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": warnings,
              "warm_start": job.prev if z0 is not None else None,
+             "warm_start_missing": job.prev if job.prev is not None and z0 is None else None,
              "psnr_model_start": round(res.report["psnr_simulated_start"], 3),
              "psnr_model": round(res.report["psnr_simulated"], 3),
              "loss_first": res.losses[0] if res.losses else None,
              "loss_last": res.losses[-1] if res.losses else None, "captures": res.captures,
              "seconds": round(res.seconds, 2), "seconds_total": round(time.perf_counter() - t0, 2)}
-    return FrameOutcome(job.number, png, entry, None, done.warnings,
+    return FrameOutcome(job.number, png, entry, None, warnings,
                         {k: a.to_dict() for k, a in stage.areas.items()})
