@@ -158,12 +158,6 @@ FILE_KEYS = {"file", "files", "frame", "input", "simulated", "target", "mesh", "
              "uncompensated", "classical", "path", "folder", "name", "source"}
 #: Calls whose first argument is a file ProCam writes into its own output (a name it chose), not one it reads.
 WRITERS = {"write_image", "write_atomic_bytes", "write_manifest"}
-#: Readers of a resumed show's frames, resolved through safepaths by the show's own fix (issue 37, item 5): remove
-#: these when that lands.
-PENDING = {"addon/steps/show.py: self.path / str(entry.get('file', ''))",
-           "addon/steps/show.py: folder.path / entry['file']"}
-
-
 def _manifest_value(node: ast.AST) -> bool:
     """``d["file"]``, ``d.get("file")`` or ``str()`` of one: a value read from a manifest under a file key."""
     if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "str" and node.args:
@@ -197,7 +191,7 @@ def test_paths_read_from_manifests_go_through_safepaths():
     files = [*ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"), *(ROOT / "panels").rglob("*.py")]
     offenders = [f"{p.relative_to(ROOT)}: {ast.unparse(node)}" for p in sorted(files)
                  for node in _path_joins_of_manifest_values(ast.parse(p.read_text(), str(p)))]
-    assert sorted(set(offenders) - PENDING) == []
+    assert offenders == []
 
 
 def test_the_manifest_path_scan_sees_a_join():

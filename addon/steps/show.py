@@ -703,7 +703,7 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
     for j in jobs:
         if j.prev is not None and j.prev not in numbers:
             entry = frames_doc[str(j.prev)]
-            data = (folder.path / entry["file"]).read_bytes()
+            data = inside(folder.path, entry["file"], what="a finished frame", error=SequenceError).read_bytes()
             if hashlib.sha256(data).hexdigest() != entry["sha256"]:
                 raise SequenceError(f"{entry['file']} changed while the show ran; rerun to redo it")
             starts[j.number] = data
