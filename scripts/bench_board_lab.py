@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from procam.addon.lab.board import BoardTruth, default_supersample, render_board_sessions
-from procam.addon.lab.lab import scaled_rig
+from procam.addon.lab.truth import scaled_rig
 from procam.addon.rig.demo import demo_rig
 from procam.addon.steps import rig as rig_step
 

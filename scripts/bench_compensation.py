@@ -59,7 +59,9 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     from procam.addon.capture.format import CaptureSet
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_image
-    from procam.addon.lab.lab import LabDevice, LabTruth, make_truth, run_lab
+    from procam.addon.lab.truth import LabTruth, make_truth
+    from procam.addon.lab.cycles_device import LabDevice
+    from procam.addon.lab.lab import run_lab
     from procam.addon.cli.terminal import progress
     from procam.addon.steps.calibrate import CalibrateOptions
     from procam.addon.steps.calibrate import read as read_calibration
@@ -151,7 +153,8 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
     """``ours`` and ``ours_no_w`` on a calibration whose stage A is the paper's (run after :func:`_surface_run`)."""
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_image
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.cli.terminal import progress
     from procam.addon.steps.calibrate import CalibrateOptions
     from procam.addon.steps.calibrate import read as read_calibration

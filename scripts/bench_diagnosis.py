@@ -123,7 +123,8 @@ def footprint(truth_path: Path, effect: str, samples: int = 64) -> np.ndarray:
     from dataclasses import replace
 
     from procam.addon.gap.regions import hot_set
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
 
     truth = LabTruth.load(truth_path)
     proj = truth.rig.projector
@@ -175,7 +176,8 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     (and, with ``ablate``, with them less that one: ``without``, what inverting it buys)."""
     from procam.addon.capture.targets import natural_target
     from procam.addon.gap.compensation import AdaptedCaptures, load_adapter
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.steps.calibrate import captures_of, read as read_calibration
     from procam.addon.stages.compensate import Compensator, area_psnr
     from procam.addon.stages.display_area import choose_area, fit_target

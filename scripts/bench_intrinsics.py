@@ -23,7 +23,7 @@ import numpy as np
 
 from procam.addon.capture.targets import natural_target
 from procam.addon.imageio import write_image
-from procam.addon.lab.lab import LabTruth
+from procam.addon.lab.truth import LabTruth
 from procam.addon.stages.display_area import choose_area
 from procam.addon.steps import calibrate, capture, compensate, evaluate
 from procam.addon.steps.stage_c import StageCOptions

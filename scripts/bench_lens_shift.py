@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from procam.addon.lab.crosscheck import run_cross_check
-from procam.addon.lab.lab import LabTruth
+from procam.addon.lab.truth import LabTruth
 from procam.addon.render.scene import projector_frustum
 from procam.addon.rig.demo import demo_projector, demo_rig
 from procam.addon.rig.model import Rig

@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 
 from procam.addon.capture.format import CaptureSet
-from procam.addon.lab.lab import LabTruth, make_truth, run_lab
+from procam.addon.lab.truth import LabTruth, make_truth
+from procam.addon.lab.lab import run_lab
 from procam.addon.stages.surface import scene_depth
 from procam.addon.stages.pose import estimate_pose, pose_error
 from procam.addon.surface.reconstruct import reconstruct_surface

@@ -44,7 +44,8 @@ def prepare(lab_dir: Path, surface: str, scale: float, samples: int, seed: int) 
     """The lab capture set, its truth and its calibration under ``lab_dir`` (built when missing)."""
     import bpy  # noqa: F401  (bpy before pymeshlab: both bundle Embree, see scripts/bench_warp.py)
 
-    from procam.addon.lab.lab import make_truth, run_lab
+    from procam.addon.lab.truth import make_truth
+    from procam.addon.lab.lab import run_lab
     from procam.addon.steps.calibrate import CalibrateOptions
     from procam.addon.steps.calibrate import run as run_calibration
 
@@ -172,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_atomic_bytes
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.steps.calibrate import read as read_calibration
     from procam.addon.stages.compensate import Compensator, area_psnr
     from procam.addon.stages.display_area import choose_area, fit_target

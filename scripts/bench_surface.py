@@ -118,7 +118,7 @@ def distances(mesh, rays: np.ndarray, depth: np.ndarray, normals: np.ndarray) ->
 
 
 def surface_rows(surfaces: list[str], variants: list[str], seeds: list[int], scale: float) -> list[dict]:
-    from procam.addon.lab.lab import WALL_DISTANCE, lab_depth, lab_wall_depth, make_truth
+    from procam.addon.lab.truth import WALL_DISTANCE, lab_depth, lab_wall_depth, make_truth
     from procam.addon.native import import_pymeshlab
     from procam.addon.surface.reconstruct import reconstruct_surface, wall_depth_offset
 
@@ -167,7 +167,7 @@ def bias_probe(surf: str, condition: str, seed: int, scale: float, points: int =
     import cv2
 
     from procam.addon.lab.effects import _undistort_normalised
-    from procam.addon.lab.lab import lab_depth, make_truth
+    from procam.addon.lab.truth import lab_depth, make_truth
     from procam.addon.render.raycast import first_hits
     from procam.addon.surface.reconstruct import reconstruct_surface
 

@@ -51,7 +51,7 @@ def main() -> None:
     from procam.addon.capture.format import CaptureSet
     from procam.addon.cli.app import main as procam
     from procam.addon.errors import ProCamError
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.stages.surface import surface_from_captures
     from procam.addon.surface.mesh import SurfaceMesh
     from procam.addon.surface.register import save_obj

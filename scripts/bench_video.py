@@ -37,7 +37,8 @@ from procam.addon.imageio import write_image
 
 def _lab(work: Path, scale: float) -> tuple[Path, Path]:
     """The lab capture set and a calibration folder holding its truth (true rig, surface, identity warp)."""
-    from procam.addon.lab.lab import LabTruth, make_truth, run_lab
+    from procam.addon.lab.truth import LabTruth, make_truth
+    from procam.addon.lab.lab import run_lab
     from procam.addon.stages.calibrate import Calibration
     from procam.addon.stages.warp import Warp
     from procam.addon.steps import calibrate as calibrate_step

@@ -32,7 +32,7 @@ import numpy as np
 
 def perturbed(pose: np.ndarray, offset_m: float, angle_deg: float, seed: int) -> np.ndarray:
     """``pose`` moved by ``offset_m`` and turned by ``angle_deg`` about a random axis (seeded)."""
-    from procam.addon.lab.lab import rough_pose
+    from procam.addon.lab.truth import rough_pose
 
     return rough_pose(pose, np.random.default_rng(seed), offset_m, angle_deg)
 
@@ -54,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.lab.lab import LabTruth, make_truth, run_lab
+    from procam.addon.lab.truth import LabTruth, make_truth
+    from procam.addon.lab.lab import run_lab
     from procam.addon.rig.model import Rig
     from procam.addon.stages.surface import scene_depth
     from procam.addon.stages.warp import estimate_warp

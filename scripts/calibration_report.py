@@ -19,7 +19,7 @@ from pathlib import Path
 
 
 def rows_for(pairs: list[tuple[Path, Path]]) -> list[dict]:
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.stages.pose import pose_error
 
     rows = []

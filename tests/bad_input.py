@@ -187,7 +187,8 @@ def make_world(root: Path) -> None:
     record (a calibration's capture set, a compensation's calibration) then hold in every case's copy."""
     from procam.addon.capture.devices import export_sequence, import_captures
     from procam.addon.cli.app import main
-    from procam.addon.lab.lab import LabTruth, make_truth, run_lab
+    from procam.addon.lab.truth import LabTruth, make_truth
+    from procam.addon.lab.lab import run_lab
     from procam.addon.stages.calibrate import Calibration
     from procam.addon.stages.warp import Warp
     from procam.addon.steps import calibrate as calibrate_step

@@ -67,7 +67,8 @@ def lab_set(tmp_path_factory) -> Callable[..., tuple[Path, Path]]:
              graycode: bool = True, seed: int = 0) -> tuple[Path, Path]:
         key = (surface, effects, scale, samples, graycode, seed)
         if key not in _LAB_SETS:
-            from procam.addon.lab.lab import make_truth, run_lab
+            from procam.addon.lab.truth import make_truth
+            from procam.addon.lab.lab import run_lab
 
             root = tmp_path_factory.mktemp(f"lab-{surface}")
             cam = (round(640 * scale), round(480 * scale))
@@ -96,7 +97,7 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
         captures_dir, truth_path = lab_set(*args, **kwargs)
         key = (str(captures_dir),)
         if key not in _LAB_CALIBRATIONS:
-            from procam.addon.lab.lab import LabTruth
+            from procam.addon.lab.truth import LabTruth
             from procam.addon.stages.calibrate import Calibration
             from procam.addon.stages.warp import Warp
             from procam.addon.steps import calibrate as calibrate_step

@@ -223,7 +223,7 @@ CATCH_ALL_ALLOWED = {
     ("addon/cli/app.py", "main"),  # its first one guards building the parser; the command's own lets Cancelled pass
     ("addon/jobs.py", "pump"),  # hands the exception to the worker, which raises it
     ("addon/blender/rig.py", "rig_summary"),  # the panel's text about the scene's rig objects
-    ("addon/lab/lab.py", "__del__"),  # closing a forgotten lab at interpreter shutdown
+    ("addon/lab/cycles_device.py", "__del__"),  # closing a forgotten lab at interpreter shutdown
     ("addon/outputs.py", "_pid_alive"),  # asking Windows whether a process still runs
 }
 

@@ -9,7 +9,7 @@ import pytest
 
 from procam.addon.cli.app import main
 from procam.addon.errors import CalibrationError
-from procam.addon.lab.lab import LabTruth
+from procam.addon.lab.truth import LabTruth
 from procam.addon.capture.format import CaptureSet
 from procam.addon.imageio import read_image, write_image
 from procam.addon.stages.calibrate import white_saturation

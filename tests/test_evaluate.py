@@ -27,7 +27,7 @@ def _target(w: int = 160, h: int = 120, seed: int = 3) -> np.ndarray:
 @pytest.fixture(scope="module")
 def env(lab_set, tmp_path_factory):
     from procam.addon.imageio import write_image
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.stages.calibrate import Calibration
     from procam.addon.stages.warp import Warp
     from procam.addon.steps import calibrate as calibrate_step
@@ -194,7 +194,8 @@ def test_other_aspect_warns_and_is_recorded(env, capsys):
 
 def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
     """A device that returns a capture of the wrong size on the second target: the first one's results stay."""
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.steps import stage_c
 
     class Flaky:
@@ -224,7 +225,8 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
 def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
     """A device that returns the same image for the same frame (a capture folder replayed, a noiseless simulator)
     shows no noise; the second capture then measures nothing, and no noise ceiling is claimed."""
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.steps import stage_c
 
     class Replay:
@@ -318,7 +320,8 @@ def test_esc_during_an_evaluation_writes_nothing_and_counts_as_cancelled(env):
     Cancelled. That is a cancel, not a failed target: no folder is committed, no failed row is recorded, and the
     job is cancelled (the operator then says the output folder is unchanged, which it is)."""
     from procam.addon import jobs
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.steps import evaluate as evaluate_step
 
     out = env.root / "eval_cancelled"

@@ -705,7 +705,7 @@ def test_ambient_occlusion_treats_the_two_sides_of_a_crease_alike():
     """The hedge is mirror-symmetric about its crease, so both planes see as much of the room. Each point turns
     the sampled directions its own way: with one direction set shared by every point, a plane's points all
     shared its luck and the planes came out 6 % apart, which the vignetting evidence read as projector falloff."""
-    from procam.addon.lab.lab import builtin_surface
+    from procam.addon.lab.truth import builtin_surface
 
     hedge = builtin_surface("hedge")
     tri = hedge.vertices[hedge.faces]

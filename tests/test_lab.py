@@ -20,7 +20,9 @@ from procam.addon.capture.patterns import checkerboard  # noqa: E402
 from procam.addon.cli.app import main  # noqa: E402
 from procam.addon.errors import LabError, RenderError  # noqa: E402
 from procam.addon.lab.effects import distort_points, parse_effects  # noqa: E402
-from procam.addon.lab.lab import LAB_SCENE_NAME, LabDevice, LabTruth, lab_depth, make_truth, run_lab  # noqa: E402
+from procam.addon.lab.truth import LabTruth, lab_depth, make_truth  # noqa: E402
+from procam.addon.lab.cycles_device import LAB_SCENE_NAME, LabDevice  # noqa: E402
+from procam.addon.lab.lab import run_lab  # noqa: E402
 from procam.addon.blender import rig as blender_rig  # noqa: E402
 
 pytestmark = pytest.mark.blender

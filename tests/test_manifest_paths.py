@@ -323,7 +323,7 @@ def test_a_transport_operator_linked_from_another_folder_is_refused(tmp_path: Pa
 
 def test_a_lab_truth_mesh_linked_outside_is_refused(tmp_path: Path) -> None:
     from procam.addon.errors import LabError
-    from procam.addon.lab.lab import TRUTH_FORMAT, LabTruth
+    from procam.addon.lab.truth import TRUTH_FORMAT, LabTruth
 
     (tmp_path / "elsewhere").mkdir()
     secret = _mesh_file(tmp_path / "elsewhere" / "mesh.npz")

@@ -223,7 +223,8 @@ def test_compensate_bad_input_changes_nothing(registered, calibrated, tmp_path):
 
 
 def test_closed_loop_in_a_worker_renders_the_lab_on_the_main_thread(bpy_scene, tiny, calibrated, targets, tmp_path):
-    from procam.addon.lab.lab import LabDevice, LabTruth
+    from procam.addon.lab.truth import LabTruth
+    from procam.addon.lab.cycles_device import LabDevice
 
     device = LabDevice(LabTruth.load(tiny[1]))
     holder = []
@@ -326,7 +327,7 @@ def test_export_patterns_then_import_captures(registered, tmp_path):
 def test_calibrate_registers_the_selected_mesh_as_the_surface(registered, tiny, tmp_path):
     """An artist's model of the object, placed by eye (5 cm and 3° off): Use Selected Mesh, then Calibrate
     registers it to the measured points and uses it as the surface."""
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.rig import frames
 
     scene = bpy.context.scene

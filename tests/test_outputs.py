@@ -222,7 +222,8 @@ def test_export_frames_replaces_only_a_frame_sequence_and_never_its_input(tmp_pa
 # -- item 2: the lab's truth file ------------------------------------------------------------------------------
 
 def test_lab_truth_replaces_only_a_truth_file_procam_wrote(tmp_path, capsys):
-    from procam.addon.lab.lab import TRUTH_FORMAT, check_lab_outputs
+    from procam.addon.lab.truth import TRUTH_FORMAT
+    from procam.addon.lab.lab import check_lab_outputs
 
     other = write_small_set(tmp_path / "other-set").path
     before = _snapshot(other)
@@ -328,7 +329,7 @@ def test_every_step_refuses_user_files_and_its_own_input_with_force(step, tmp_pa
 # -- item 13: Ctrl-C keeps what is finished ---------------------------------------------------------------------
 
 def _calibration_folder(tmp_path: Path, capture_dir: Path) -> Path:
-    from procam.addon.lab.lab import make_truth
+    from procam.addon.lab.truth import make_truth
     from procam.addon.stages.calibrate import Calibration
     from procam.addon.stages.warp import Warp
     from procam.addon.steps import calibrate as calibrate_step

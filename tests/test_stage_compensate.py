@@ -46,7 +46,7 @@ def _target(w: int = 160, h: int = 120) -> np.ndarray:
 @pytest.fixture(scope="module")
 def setup(lab_set):
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.stages.calibrate import Calibration
 
     captures_dir, truth_path = lab_set()
@@ -186,7 +186,7 @@ def test_open_loop_compensation(setup, open_loop):
 
 
 def test_closed_loop_improves_the_capture(setup, open_loop):
-    from procam.addon.lab.lab import LabDevice
+    from procam.addon.lab.cycles_device import LabDevice
 
     device = LabDevice(setup.truth)
     comp, area = setup.comp, setup.area
@@ -289,7 +289,7 @@ def test_coarse_to_fine_and_plateau_stop(setup):
 def test_fixed_point_phases(setup):
     """Forward-only fixed-point steps bring the model closer to the target than the one-shot inverse alone, and
     in the joint phase they run after every capture."""
-    from procam.addon.lab.lab import LabDevice
+    from procam.addon.lab.cycles_device import LabDevice
 
     comp, area = setup.comp, setup.area
     sched = Schedule("t", iterations_z=0, iterations_joint=0, fixed_point=6)

@@ -19,7 +19,7 @@ import pytest
 from procam.addon.capture.format import CaptureSet
 from procam.addon.errors import CalibrationError, ProCamError
 from procam.addon.imageio import write_image
-from procam.addon.lab.lab import LabTruth
+from procam.addon.lab.truth import LabTruth
 from procam.addon.stages import pose as stage
 from procam.addon.stages.pose import Cancelled, PoseResult, estimate_pose, pose_error
 from procam.addon.surface.reconstruct import reconstruct_surface

@@ -187,7 +187,7 @@ def warp_set(lab_set):
 def fitted(warp_set):
     """Stage B from a slightly wrong pose on the surface reconstructed from the set's depth."""
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.rig.model import Rig
     from procam.addon.stages.warp import estimate_warp
     from procam.addon.surface.reconstruct import reconstruct_surface
@@ -225,7 +225,7 @@ def test_warp_absorbs_a_wrong_pose_and_aligns_corners(fitted):
 
 def test_warp_with_the_true_pose_and_surface_does_no_harm(warp_set):
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.rig.model import Rig
     from procam.addon.stages.warp import estimate_warp
 
@@ -248,7 +248,7 @@ def _copy_set(src: Path, dst: Path) -> Path:
 
 def _setup(warp_set, tmp_path):
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.rig.model import Rig
 
     captures_dir, truth_path = warp_set
@@ -320,7 +320,7 @@ def test_the_graycode_warp_finds_a_known_shift_and_leaves_a_true_model_alone(lab
     from dataclasses import replace
 
     from procam.addon.capture.format import CaptureSet
-    from procam.addon.lab.lab import LabTruth
+    from procam.addon.lab.truth import LabTruth
     from procam.addon.stages.graycode_warp import warp_from_graycode
 
     captures_dir, truth_path = lab_set("plane")

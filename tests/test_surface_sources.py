@@ -10,7 +10,7 @@ import pytest
 from procam.addon.capture.format import CaptureSet
 from procam.addon.cli.app import main
 from procam.addon.errors import CalibrationError, SurfaceError
-from procam.addon.lab.lab import LabTruth
+from procam.addon.lab.truth import LabTruth
 from procam.addon.render.raycast import first_hits
 from procam.addon.stages.surface import surface_from_captures
 from procam.addon.steps.calibrate import read as read_calibration

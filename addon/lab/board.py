@@ -28,7 +28,7 @@ from ..progress import Cancel, Progress, check, quiet
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 from .effects import lens_of, parse_effects
-from .lab import LabDevice, make_truth
+from .truth import make_truth
 
 BOARD_TRUTH_FORMAT = "procam-lab-board-truth"
 #: The board's albedo: white paper and printed black (not 0: ink reflects a little).
@@ -166,6 +166,8 @@ def render_board_sessions(rig: Rig, out: Path, *, board: tuple[int, int] = (9, 7
                              seed=seed + k, surface_source=f"chessboard {board[0]}x{board[1]}, pose {k}")
             session = folder.tmp / f"pose_{k:02d}"
             session.mkdir()
+            from .cycles_device import LabDevice  # bpy: the lab's renders
+
             with LabDevice(lab, supersample=supersample) as device:
                 for i, frame in enumerate(frames):
                     check(cancel, "rendering the board sessions")

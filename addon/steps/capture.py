@@ -26,7 +26,8 @@ from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
 from ..lab.effects import parse_effects
-from ..lab.lab import check_lab_outputs, check_supersample, make_truth, run_lab as render_lab, scaled_rig
+from ..lab.truth import check_supersample, make_truth, scaled_rig
+from ..lab.lab import check_lab_outputs, run_lab as render_lab
 from ..rig.demo import demo_rig
 from ..progress import Cancel, Progress, quiet
 from ..outputs import check_replaceable, file_sha256

@@ -36,7 +36,7 @@ from ..capture.targets import natural_target
 from ..errors import ProCamError
 from ..imageio import write_image
 from ..lab.crosscheck import run_cross_check
-from ..lab.lab import LabTruth
+from ..lab.truth import LabTruth
 from ..outputs import folder_in_place, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..stages.compensate import DEFAULT_SCHEDULE

@@ -21,7 +21,7 @@ import numpy as np
 from ..capture.devices import Device, FolderDevice, LensRemovedDevice, RigLens, removed_lens
 from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
-from ..lab.lab import LabDevice, LabTruth
+from ..lab.truth import LabTruth
 from ..live.device import LiveDevice, LiveSpec
 from ..options import Choice, option, validate
 from ..progress import Cancel, Progress, part, quiet
@@ -197,7 +197,11 @@ def open_device(spec: str | None, projector: Projector | None = None,
         if projector is None:
             raise CaptureError("a live device needs the calibrated projector to size its window")
         return LiveDevice(spec, projector, progress=progress)
-    return LabDevice(LabTruth.load(Path(where))) if kind == "lab" else FolderDevice(Path(where))
+    if kind == "folder":
+        return FolderDevice(Path(where))
+    from ..lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
+
+    return LabDevice(LabTruth.load(Path(where)))
 
 
 def device_pipeline(spec: str | None, calibration: Calibration, *, device: Device | None = None,

@@ -1,0 +1,304 @@
+"""The virtual lab's truth: the real projector pose, the surface, the injected effects and their parameters.
+
+Pure data and maths, no Blender: :class:`LabTruth` (sealed in a JSON file
+beside a lab capture set, read only by evaluation and to re-open the lab),
+:func:`make_truth`, and the lab's depth sensor. The Cycles side that renders
+from a truth is :mod:`.cycles_device`; a whole capture session is :mod:`.lab`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+import zlib
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..capture.format import DepthInfo
+from ..errors import LabError
+from ..imageio import write_atomic_bytes
+from ..render.raycast import depth_map
+from ..rig.demo import demo_projector, demo_rig
+from ..rig.model import Camera, Intrinsics, Projector, Rig
+from ..safepaths import inside
+from ..surface.mesh import SurfaceMesh, read_mesh_file
+from ..surface.shapes import SHAPES, builtin_surface
+from .depth import depth_capture, sensor_resolution
+from .effects import EffectSet, camera_render_intrinsics, parse_effects
+
+
+TRUTH_FORMAT = "procam-lab-truth"
+#: Pattern kinds that calibration only binarises: rendered with fewer samples (see :func:`binary_samples`).
+BINARY_KINDS = ("checker", "graycode")
+
+#: ``progress(done, total, message)``: called before each step of :func:`run_lab`.
+
+
+def rough_pose(pose: np.ndarray, rng: np.random.Generator, offset_m: float = 0.16,
+               angle_deg: float = 5.5) -> np.ndarray:
+    """The pose an artist would place by eye: ``offset_m`` away and ``angle_deg`` turned, random directions."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = math.radians(angle_deg)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+    shift = rng.normal(size=3)
+    out = pose.copy()
+    out[:3, :3] = rot @ pose[:3, :3]
+    out[:3, 3] = pose[:3, 3] + offset_m * shift / np.linalg.norm(shift)
+    return out
+
+
+@dataclass(frozen=True)
+class LabTruth:
+    """Everything the lab knows and the pipeline must not: the sealed truth of one lab session."""
+
+    rig: Rig
+    surface: SurfaceMesh
+    surface_source: str
+    effects: EffectSet
+    seed: int
+    samples: int
+    nominal_pose: np.ndarray
+    #: the projector's spec-sheet intrinsics the pipeline is given; None: the true ones
+    nominal_intrinsics: Intrinsics | None = None
+    #: the camera's intrinsics the pipeline is given (a field of view read off a spec); None: the true ones
+    nominal_camera_intrinsics: Intrinsics | None = None
+
+    @property
+    def nominal_camera(self) -> Camera:
+        """The camera as the pipeline is told it is."""
+        return Camera(self.nominal_camera_intrinsics or self.rig.camera.intrinsics)
+
+    @property
+    def nominal_projector(self) -> Projector:
+        """The projector as the pipeline is told it is: nominal pose (placed by eye) and nominal intrinsics."""
+        proj = self.rig.projector
+        return replace(proj, intrinsics=self.nominal_intrinsics or proj.intrinsics,
+                       camera_from_projector=np.asarray(self.nominal_pose, dtype=float))
+
+    @staticmethod
+    def mesh_path(path: str | Path) -> Path:
+        """Where the surface of the truth file ``path`` is stored (``<stem>.surface.npz`` beside it)."""
+        path = Path(path)
+        return path.with_name(path.stem + ".surface.npz")
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``path`` (JSON) and the surface beside it (``<stem>.surface.npz``), each atomically."""
+        path = Path(path)
+        mesh_path = self.mesh_path(path)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, vertices=self.surface.vertices, faces=self.surface.faces, uvs=self.surface.uvs,
+                            albedo=self.surface.albedo)
+        write_atomic_bytes(mesh_path, buf.getvalue())
+        doc = {"format": TRUTH_FORMAT, "version": 1,
+               "warning": "sealed lab truth: only evaluation code may read this file",
+               "rig": self.rig.to_dict(),
+               "camera_from_projector": self.rig.projector.camera_from_projector.tolist(),
+               "nominal_camera_from_projector": np.asarray(self.nominal_pose).tolist(),
+               **({"nominal_projector_intrinsics": self.nominal_intrinsics.to_dict()}
+                  if self.nominal_intrinsics is not None else {}),
+               **({"nominal_camera_intrinsics": self.nominal_camera_intrinsics.to_dict()}
+                  if self.nominal_camera_intrinsics is not None else {}),
+               "surface": {"source": self.surface_source, "mesh": mesh_path.name, "name": self.surface.name},
+               "effects": self.effects.to_dict(), "effects_spec": self.effects.spec,
+               "seed": int(self.seed), "samples": int(self.samples)}
+        write_atomic_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())
+        return path
+
+    @staticmethod
+    def load(path: str | Path) -> "LabTruth":
+        path = Path(path)
+        try:
+            doc = json.loads(path.read_text())
+            if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
+                raise LabError(f"{path} is not a ProCam lab truth file")
+            data = np.load(inside(path.parent, doc["surface"]["mesh"], what="the lab truth's surface mesh",
+                                  error=LabError))
+            surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"],
+                                  name=doc["surface"].get("name", "surface"))
+            return LabTruth(Rig.from_dict(doc["rig"]), surface, doc["surface"]["source"],
+                            EffectSet.from_dict(doc["effects"]), int(doc["seed"]), int(doc["samples"]),
+                            np.asarray(doc["nominal_camera_from_projector"], dtype=float),
+                            Intrinsics.from_dict(doc["nominal_projector_intrinsics"])
+                            if "nominal_projector_intrinsics" in doc else None,
+                            Intrinsics.from_dict(doc["nominal_camera_intrinsics"])
+                            if "nominal_camera_intrinsics" in doc else None)
+        except FileNotFoundError as exc:
+            raise LabError(f"lab truth not found: {exc.filename}") from None
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise LabError(f"cannot read lab truth {path}: {exc}") from None
+
+
+def _whole(value: Any, what: str, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+        raise LabError(f"{what} must be a whole number ≥ {lo}, got {value!r}")
+    return int(value)
+
+
+def check_supersample(value: Any) -> int:
+    """The camera's supersampling (``apply_camera``) as a whole number from 1 to 4, else a :class:`LabError`."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= 4:
+        raise LabError(f"the supersampling must be a whole number from 1 to 4, got {value!r}")
+    return int(value)
+
+
+def scaled_rig(rig: Rig, scale: float) -> Rig:
+    """The same rig at ``scale`` times its resolutions (same lenses and pose; at least 8×6 pixels)."""
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0.05 <= scale <= 2:
+        raise LabError(f"the resolution scale must lie between 0.05 and 2, got {scale!r}")
+    if scale == 1:
+        return rig
+
+    def size(intr: Any) -> tuple[int, int]:
+        return max(8, round(intr.width * scale)), max(6, round(intr.height * scale))
+
+    return Rig(Camera(rig.camera.intrinsics.scaled(*size(rig.camera.intrinsics))),
+               rig.projector.scaled(*size(rig.projector.intrinsics)))
+
+
+def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | EffectSet | None = None,
+               seed: int = 0, samples: int = 16, camera_size: tuple[int, int] = (640, 480),
+               projector_size: tuple[int, int] = (800, 600), rig: Rig | None = None, scale: float = 1.0,
+               surface_source: str | None = None, projector_shift: tuple[float, float] | None = None,
+               nominal_error: tuple[float, float] = (0.0, 0.0), camera_fov_error: float = 0.0) -> LabTruth:
+    """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
+
+    ``rig`` replaces the demo rig (then ``camera_size``/``projector_size``/``projector_shift``
+    are not used); ``projector_shift`` (right, up; fractions of the image) gives the demo
+    projector another lens shift, aimed so that its image still lands on the surface;
+    ``scale`` scales either rig's resolutions (:func:`scaled_rig`). ``nominal_error``
+    (focal length as a fraction, vertical lens shift in image heights) makes the
+    projector's spec-sheet intrinsics the pipeline is given wrong by that much, as
+    a throw ratio and shift read off a data sheet are. ``camera_fov_error``
+    (degrees) does the same to the camera's horizontal field of view: the
+    capture set, its depth image included, then carries that camera.
+    The nominal projector pose the pipeline gets is the true one disturbed as
+    by a person placing it by eye (:func:`rough_pose`). Cheap checks come
+    first so that a bad request fails before any mesh is read.
+    """
+    seed = _whole(seed, "the seed", 0)
+    samples = _whole(samples, "Cycles samples", 1)
+    effect_set = parse_effects(effects)
+    if rig is None:
+        for what, size in (("camera", camera_size), ("projector", projector_size)):
+            if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 2 for v in size):
+                raise LabError(f"{what} size must be (width, height) in whole pixels ≥ 2, got {size!r}")
+        cam, proj = tuple(int(v) for v in camera_size), tuple(int(v) for v in projector_size)
+        rig = demo_rig(cam, proj)
+        if projector_shift is not None:
+            rig = Rig(rig.camera, demo_projector(*proj, shift=tuple(float(v) for v in projector_shift)))
+    rig = scaled_rig(rig, scale)
+    camera_render_intrinsics(effect_set, rig.camera.intrinsics)  # refuses a lens distortion that folds the image
+    if isinstance(surface, SurfaceMesh):
+        mesh, source = surface, surface_source or f"mesh {surface.name!r}"
+    elif isinstance(surface, str) and surface in SHAPES:
+        mesh, source = builtin_surface(surface, seed=seed), surface
+    else:
+        mesh = load_mesh_file(Path(surface))
+        source = surface_source or str(Path(surface).resolve())
+    rng = np.random.default_rng(seed + 7919)
+    nominal_k = None
+    if any(nominal_error):
+        k, (df, dshift) = rig.projector.intrinsics, (float(v) for v in nominal_error)
+        nominal_k = Intrinsics(k.width, k.height, k.fx * (1 + df), k.fy * (1 + df), k.cx, k.cy + dshift * k.height)
+    nominal_cam = None
+    if camera_fov_error:
+        k = rig.camera.intrinsics
+        fov = 2 * math.degrees(math.atan(k.width / (2 * k.fx))) + float(camera_fov_error)
+        if not 1.0 <= fov <= 170.0:
+            raise LabError(f"a camera field of view {camera_fov_error:+g}° off gives {fov:.1f}°; keep it in 1–170°")
+        f = k.width / (2 * math.tan(math.radians(fov) / 2))
+        nominal_cam = Intrinsics(k.width, k.height, f, f * k.fy / k.fx, k.cx, k.cy)
+    return LabTruth(rig, mesh, source, effect_set, seed, samples, rough_pose(rig.projector.camera_from_projector, rng),
+                    nominal_k, nominal_cam)
+
+
+def load_mesh_file(path: Path) -> SurfaceMesh:
+    """A user's ``.obj``/``.ply`` surface (rig frame, metres), with its texture if the file names one."""
+    if not path.is_file():
+        raise LabError(f"unknown surface {str(path)!r}: not one of {', '.join(SHAPES)} and no such mesh file")
+    return read_mesh_file(path, error=LabError)
+
+
+def _stream(seed: int, *keys: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(seed), *map(int, keys)]))
+
+
+def lab_depth(truth: LabTruth, seed: int | None = None) -> tuple[np.ndarray, DepthInfo]:
+    """A phone-LiDAR-like depth image at camera resolution (metres, NaN = none), and how it was taken.
+
+    Needs no Blender scene (a ray cast); the noise comes from ``(seed, "depth")``.
+    """
+
+    k = truth.rig.camera.intrinsics
+    rng = _stream(truth.seed if seed is None else seed, zlib.crc32(b"depth"))
+    d = depth_capture(depth_map(truth.surface, k), k, truth.effects, rng)
+    return d, DepthInfo(k, tuple(sensor_resolution(truth.effects, k)))
+
+
+#: Distance (metres) of the flat wall whose depth image calibrates the sensor's bias (see lab_wall_depth).
+WALL_DISTANCE = 1.5
+
+
+def lab_wall_depth(truth: LabTruth, distance: float = WALL_DISTANCE, seed: int | None = None) -> np.ndarray:
+    """The same sensor's depth image of a flat wall square to the camera at a tape-measured ``distance``.
+
+    What a user does once per depth device to learn its constant bias
+    (:func:`procam.addon.surface.reconstruct.wall_depth_offset`): the lab
+    applies the ``depth_noise`` effect exactly as to the scene (noise, bias,
+    sensor resolution, lost returns), with its own noise stream.
+    """
+
+    k = truth.rig.camera.intrinsics
+    half = 2.0 * distance  # far wider than any camera's field of view
+    wall = SurfaceMesh(np.array([[-half, -half, distance], [half, -half, distance], [half, half, distance],
+                                 [-half, half, distance]]), np.array([[0, 2, 1], [0, 3, 2]]),
+                       np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]),
+                       np.full((2, 2, 3), 0.8, np.float32), name="wall")
+    rng = _stream(truth.seed if seed is None else seed, zlib.crc32(b"depth-wall"))
+    return depth_capture(depth_map(wall, k), k, truth.effects, rng)
+
+
+def projector_depth(surface: SurfaceMesh, projector: Projector) -> np.ndarray:
+    """Depth of the surface along the projector's axis at each native frame pixel (metres, NaN off it)."""
+    pose = np.asarray(projector.camera_from_projector, float)
+    r, t = pose[:3, :3], pose[:3, 3]
+    local = replace(surface, vertices=(surface.vertices - t) @ r)  # rig frame → projector frame
+    return depth_map(local, projector.intrinsics)
+
+
+# --------------------------------------------------------------------------- a whole capture session
+
+
+def binary_samples(samples: int) -> int:
+    """Samples for patterns that calibration only binarises (checker, Gray code): a quarter, at least 4.
+
+    Their camera images are thresholded at half-way levels, where Monte Carlo
+    noise of a few percent changes nothing, so they need not pay for the
+    samples the photometric captures (white, black, validation) need.
+    """
+    return min(samples, max(4, samples // 4))
+
+
+def is_truth_file(path: Path) -> bool:
+    """Whether ``path`` is a lab truth file ProCam wrote (its format tag), which ``force`` may replace."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == TRUTH_FORMAT
+
+
+def is_truth_surface(path: Path) -> bool:
+    """Whether ``path`` is the surface :meth:`LabTruth.save` stores beside a truth file: exactly its arrays."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return set(data.files) == {"vertices", "faces", "uvs", "albedo"}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return False
