@@ -18,7 +18,6 @@ from ..addon import jobs
 from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
 from ..addon.options import from_values
-from ..addon.safepaths import inside
 from ..addon.steps import compensate as compensate_step
 from ..addon.steps import evaluate as evaluate_step
 from ..addon.steps import show as show_step
@@ -156,10 +155,8 @@ class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
 
     def apply(self, context: bpy.types.Context, result: object) -> str:
         folder = paths.resolve(context.scene.procam_evaluation_dir, "evaluation folder")
-        for t in result["targets"]:
-            if t.get("status") == "done":
-                image = inside(folder, t["image"], what="the comparison image", error=evaluate_step.EvaluationError)
-                blender_rig.load_image_file(image, f"ProCam {t['name']} comparison")
+        for name, image in evaluate_step.read(folder).comparisons():
+            blender_rig.load_image_file(image, f"ProCam {name} comparison")
         return f"Evaluation: {evaluate_step.summary(folder).headline}"
 
 

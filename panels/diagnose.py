@@ -1,5 +1,7 @@
 """View3D ▸ Sidebar ▸ ProCam ▸ Diagnose: ranked effects, regions and residual maps of a diagnosis folder."""
 
+from dataclasses import replace
+
 import bpy
 
 from ..addon.steps import diagnose as diagnose_step
@@ -21,15 +23,15 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         scene = context.scene
         layout.prop(scene, "procam_diagnosis_dir", text="")
         summary = diagnose_step.summary(bpy.path.abspath(scene.procam_diagnosis_dir))
-        done = draw_state(layout, "diagnose", summary)
+        # The diagnosis's advice names the command's options: here, the sidebar's fields.
+        shown = replace(summary, lines=tuple(sidebar_text(line, DIAGNOSE_FIELDS) for line in summary.lines))
+        done = draw_state(layout, "diagnose", shown)
         row = layout.row(align=True)
         row.prop(scene, "procam_diagnosis_scale")
         row.prop(scene, "procam_max_effects")
         layout.operator("procam.diagnose", icon="VIEWZOOM")
         if not done:
             return
-        for note in summary.data["notes"]:  # the diagnosis's advice names the command's options
-            wrapped(layout.box(), sidebar_text(note, DIAGNOSE_FIELDS), icon="INFO")
         selected = set(summary.data["selected"])
         box = layout.box()
         box.label(text="Effects (selected first, as the diagnosis ranks them):")

@@ -106,7 +106,7 @@ def test_every_step_writes_the_same_folder_from_the_command_line_and_from_blende
     scene.procam_evaluation_dir = str(ui / "evaluation")
     assert bpy.ops.procam.evaluate() == {"FINISHED"}
     _same(cli / "evaluation", ui / "evaluation", "metrics.json", roots)
-    assert evaluate.read(ui / "evaluation")["complete"]
+    assert evaluate.read(ui / "evaluation").complete
 
     # show, open loop, from the image sequence folder
     assert main(["show", str(cal), str(targets), "--out", str(cli / "show"), "--iterations", "3"]) == 0
@@ -116,7 +116,7 @@ def test_every_step_writes_the_same_folder_from_the_command_line_and_from_blende
     assert bpy.ops.procam.prepare_show() == {"FINISHED"}
     _same(cli / "show", ui / "show", "show.json", roots)
     _same_frames(cli / "show", ui / "show")
-    assert show.read(ui / "show")["complete"]
+    assert show.read(ui / "show").complete
 
     # export the compensated frames
     assert main(["export-frames", str(cli / "compensation"), "--out", str(cli / "frames")]) == 0
@@ -130,7 +130,7 @@ def test_every_step_writes_the_same_folder_from_the_command_line_and_from_blende
     scene.procam_diagnosis_dir = str(ui / "diagnosis")
     assert bpy.ops.procam.diagnose() == {"FINISHED"}
     _same(cli / "diagnosis", ui / "diagnosis", "gap.json", roots)
-    assert diagnose.read(ui / "diagnosis")["selected"] is not None
+    assert diagnose.read(ui / "diagnosis").selected is not None
 
     # A capture set whose camera lens was taken out (undistort-captures): its calibration lives in the pinhole
     # camera, so the lab's frames must go through that lens, whichever front door projects through the lab.

@@ -66,7 +66,7 @@ def test_threaded_calibration_returns_what_the_scene_shows(calibrated):
     assert {"warp_grid", "pose_mask", "warp_compare_after"} <= set(view.images)
     assert view.images["warp_grid"].shape[:2] == tuple(reversed(view.calibration.warp.size))
     summary = calibrate_step.summary(view.folder)
-    assert summary.ok and "px" in summary.headline and len(summary.lines) == 4
+    assert summary.ok and "px" in summary.headline and len(summary.lines) >= 4
 
 
 def test_calibrate_operator_moves_the_projector_and_shows_the_textured_surface(registered, tiny, tmp_path):

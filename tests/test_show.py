@@ -613,7 +613,7 @@ def test_a_killed_show_reads_as_interrupted_and_resumes(lab_calibration, tmp_pat
     assert _manifest(out)["runs"][-1]["status"] == "running"  # what SIGKILL leaves on disk
     s = show_step.summary(out)
     assert s.data["status"] == "interrupted" and "interrupted" in s.headline and "rerun" in s.lines[0]
-    assert show_step.read(out)["runs"][-1]["status"] == "interrupted"
+    assert show_step.read(out).runs[-1]["status"] == "interrupted"
     assert main(args) == EXIT_OK
     doc = _manifest(out)
     assert [r["status"] for r in doc["runs"]] == ["interrupted", "complete"] and doc["complete"]

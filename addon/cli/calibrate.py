@@ -3,17 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
-
-import numpy as np
 
 from ..errors import CalibrationError
 from ..options import add_arguments, from_arguments
-from ..steps.calibrate import BlendWriter, CalibrateOptions, run as calibrate
-from ..steps.layout import TRANSPORT_JSON
+from ..steps.calibrate import BlendWriter, CalibrateOptions, run as calibrate, summary
 from .app import command
-from .terminal import run_step
+from .terminal import print_summary, run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
@@ -45,40 +41,6 @@ def run(args: argparse.Namespace) -> int:
     options = from_arguments(CalibrateOptions, args, capture_dir=args.capture_dir, out=args.out,
                              init="given" if initial is not None else args.init, initial_pose=initial,
                              with_blend=not args.no_blend_output, force=args.force)
-    cal = run_step("calibrate", calibrate, options, blend_writer=blend_writer() if options.with_blend else None)
-    r = cal.report
-    print(f"calibration: {args.out}")
-    sr = r["surface_report"]
-    source = sr.get("source", "depth")
-    print(f"  surface: {sr['vertices']} vertices, {sr['faces']} faces, from {source}, depth offset "
-          f"{100 * sr.get('depth_offset', 0.0):+.2f} cm ({sr.get('depth_offset_source', 'none')})")
-    if "triangulation" in sr:
-        t = sr["triangulation"]
-        print(f"  triangulated Gray code: {t['points']} points ({t['rejected']} rejected), reprojection "
-              f"{t['reprojection_rms_px']:.2f} px rms, {t['triangulation_angle_deg']:.1f}° between the rays")
-    if "registration" in sr:
-        g = sr["registration"]
-        print(f"  mesh {sr['mesh_file']} registered to the {sr['measured']} points: residual {g['rms_mm']:.2f} mm "
-              f"rms, {g['median_mm']:.2f} mm median, overlap {g['overlap']:.0%}, {g['iterations']} iterations "
-              f"(start: {g['start']})")
-    p = cal.rig.projector
-    if "init" in r:
-        print(f"  projector position (m): {np.array2string(p.position, precision=4)}, "
-              f"direction: {np.array2string(p.direction, precision=4)} (init: {r['init']}, stage A: "
-              f"{r.get('pose', {}).get('info', {}).get('method', 'ours')})")
-    if "projector_intrinsics" in r:
-        print(f"  projector intrinsics (fitted to the Gray code): {r['projector_intrinsics']['summary']}")
-    print("  stages: " + ", ".join(f"{k} {v}" for k, v in cal.stages.items()))
-    for w in cal.warnings:
-        print(f"  warning: {w}")
-    b, a = (r.get("warp_report") or {}).get("corners_before_px"), (r.get("warp_report") or {}).get("corners_after_px")
-    if b and a:
-        what = ("decoded Gray code against the model, median" if r["warp_report"].get("source") == "graycode"
-                else "checker corners median")
-        print(f"  warp: {what} {b.get('median', float('nan')):.2f} px → {a.get('median', float('nan')):.2f} px")
-    print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in r["seconds"].items()))
-    operator = Path(args.out) / TRANSPORT_JSON
-    if operator.is_file():
-        doc = json.loads(operator.read_text())
-        print(f"  transport operator: {doc['megabytes']} MB in {doc['seconds']:.0f} s")
+    run_step("calibrate", calibrate, options, blend_writer=blend_writer() if options.with_blend else None)
+    print_summary("calibration", args.out, summary(args.out))
     return 0

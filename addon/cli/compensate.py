@@ -10,10 +10,10 @@ import argparse
 from pathlib import Path
 
 from ..options import add_arguments, from_arguments
-from ..steps.compensate import CompensateOptions, run as compensate
+from ..steps.compensate import CompensateOptions, run as compensate, summary
 from ..steps.stage_c import StageCOptions
 from .app import command
-from .terminal import run_step
+from .terminal import print_summary, run_step
 
 
 def add_schedule_options(p: argparse.ArgumentParser) -> None:
@@ -52,13 +52,5 @@ def run(args: argparse.Namespace) -> int:
     options = CompensateOptions(args.calibration, tuple(args.targets), args.out, stage_c_options(args),
                                 force=args.force)
     view = run_step("compensate", compensate, options, total=len(options.targets), unit="targets")
-    effects = view.doc.get("effects")
-    if effects:
-        print(f"effect models: {', '.join(effects['used']) or 'none'}"
-              + (f"; not inverted: {', '.join(effects['not_inverted'])}" if effects["not_inverted"] else ""))
-    for t in view.doc["targets"]:
-        if t.get("status") == "done":
-            print(f"{t['name']}: {t['mode']}, {t['seconds']:.1f} s, simulated PSNR {t['psnr_simulated_start']:.2f} "
-                  f"→ {t['psnr_simulated']:.2f} dB in the display area")
-    print(f"compensation: {args.out} ({len(view.targets)}/{len(options.targets)} targets)")
+    print_summary("compensation", view.folder, summary(view.folder))
     return 0

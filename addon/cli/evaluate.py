@@ -23,9 +23,9 @@ import argparse
 from pathlib import Path
 
 from ..stages.display_area import TARGET_ENCODINGS
-from ..steps.evaluate import EvaluateOptions, run as evaluate
+from ..steps.evaluate import EvaluateOptions, run as evaluate, summary
 from .app import command
-from .terminal import run_step
+from .terminal import print_summary, run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
@@ -54,26 +54,7 @@ def run(args: argparse.Namespace) -> int:
     options = EvaluateOptions(args.calibration, args.inputs, tuple(args.targets), args.device, args.out,
                               classical=args.classical, target_encoding=args.target_encoding, force=args.force,
                               repeat=args.repeat)
-    doc = run_step("evaluate", evaluate, options, total=len(options.targets), unit="targets")
-    for r in doc["targets"]:
-        if r.get("status") == "done":
-            u = r["uncompensated"]
-            extra = f", classical {r['classical']['psnr']:.2f} dB" if "classical" in r else ""
-            print(f"{r['name']}: PSNR {u['psnr']:.2f} → {r['psnr']:.2f} dB, SSIM {u['ssim']:.3f} → {r['ssim']:.3f} "
-                  f"(uncompensated → compensated{extra}); range ceiling {r['range_ceiling']:.2f} dB"
-                  + (f" ({r['noise_ceiling']:.2f} dB through the camera's noise, RMS {r['capture_noise_rmse']:.4f})"
-                     if "noise_ceiling" in r else "")
-                  + (f", {r['ceiling_gap_at_limit']:.0%} of the gap to it where the input is already at its limit"
-                     if r.get("ceiling_gap_at_limit") is not None else ""))
-    m = doc["mean"]
-    if doc.get("range"):
-        print(f"targets mapped by the compensation's range: {doc['range']['gain']:.3f}·t "
-              f"{doc['range']['offset']:+.3f}")
-    if doc.get("flicker"):
-        f = doc["flicker"]
-        print(f"flicker over {f['pairs']} consecutive pair(s): captured {f['captured']:.4f}, targets "
-              f"{f['targets']:.4f} (excess {f['excess']:+.4f}; uncompensated {f['uncompensated']:.4f})")
-    if m:
-        print(f"mean: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}; metrics in {args.out / 'metrics.json'}")
+    run_step("evaluate", evaluate, options, total=len(options.targets), unit="targets")
+    print_summary("evaluation", args.out, summary(args.out))
     return 0
 

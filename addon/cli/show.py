@@ -19,10 +19,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..steps.show import CHUNK, CONNECT_TIMEOUT, SequenceError, ShowOptions, list_frames, run as prepare_show
+from ..steps.show import (CHUNK, CONNECT_TIMEOUT, SequenceError, ShowOptions, list_frames, run as prepare_show,
+                          summary)
 from .app import command
 from .compensate import add_effect_options, add_schedule_options, stage_c_options
-from .terminal import run_step
+from .terminal import print_summary, run_step
 
 EPILOG = """\
 TARGETS is a folder of images, a numbered pattern (frames/shot_####.png or frames/shot_%04d.png), a list of
@@ -85,12 +86,7 @@ def run(args: argparse.Namespace) -> int:
     options.check(options.stage_c.mode)  # a refused cluster request fails before anything is read
     frames = list_frames(options.targets)  # a bad sequence fails before the bar starts
     result = run_step("show", prepare_show, options, total=len(frames), unit="frames")
-    doc = result.manifest
-    done_frames = [e for e in doc["frames"].values() if e.get("status") == "done"]
-    psnrs = [e["psnr_model"] for e in done_frames if str(e["number"]) in {str(n) for n in result.done}]
-    mean = f", model PSNR {sum(psnrs) / len(psnrs):.2f} dB mean in the display area" if psnrs else ""
-    print(f"show: {args.out} — {len(result.done)} frame(s) compensated, {len(result.skipped)} already finished, "
-          f"{len(result.failed)} failed, {result.seconds:.1f} s{mean}")
+    print_summary("show", result.folder, summary(result.folder))
     if result.failed:
         listed = "; ".join(f"frame {n}: {msg}" for n, msg in sorted(result.failed.items())[:5])
         more = f" (and {len(result.failed) - 5} more)" if len(result.failed) > 5 else ""

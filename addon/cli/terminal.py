@@ -18,9 +18,11 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, TypeVar
 
 from ..progress import Cancel
+from ..steps.summary import Summary
 
 T = TypeVar("T")
 
@@ -213,3 +215,11 @@ def run_step(label: str, step: Callable[..., T], options: Any, *, total: int = 1
         result = step(options, report, cancel, **keywords)
         bar.close()
     return result
+
+
+def print_summary(what: str, folder: str | Path, summary: Summary) -> None:
+    """A step's result on stdout: the folder it wrote, then its summary (headline and lines) as the sidebar shows
+    it, so both front doors report the same figures in the same words."""
+    print(f"{what}: {folder}")
+    for line in (summary.headline, *summary.lines):
+        print(f"  {line}")

@@ -21,7 +21,7 @@ from __future__ import annotations
 import io
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -358,30 +358,83 @@ def run_view(options: CalibrateOptions, progress: Progress | None = None,
     return read_view(options.out, part(progress, 0.95, 1.0))
 
 
+def _surface_lines(surf: dict[str, Any], doc: dict[str, Any], seconds: Any) -> list[str]:
+    offset = surf.get("depth_offset", 0.0)
+    lines = [f"Surface: {surf.get('vertices', doc.get('surface', {}).get('vertices', '?'))} vertices, "
+             f"{surf.get('faces', doc.get('surface', {}).get('faces', '?'))} faces, from {surf.get('source', 'depth')}, "
+             f"depth offset {fmt(100 * offset if isinstance(offset, (int, float)) else None, '+.2f', ' cm')} "
+             f"({surf.get('depth_offset_source', 'none')}) ({fmt(seconds, '.1f', ' s')})"]
+    t = surf.get("triangulation")
+    if isinstance(t, dict):
+        lines.append(f"triangulated Gray code: {t.get('points')} points ({t.get('rejected')} rejected), reprojection "
+                     f"{fmt(t.get('reprojection_rms_px'), '.2f')} px rms, "
+                     f"{fmt(t.get('triangulation_angle_deg'), '.1f')}° between the rays")
+    g = surf.get("registration")
+    if isinstance(g, dict):
+        lines.append(f"mesh {surf.get('mesh_file')} registered to the {surf.get('measured')} points: residual "
+                     f"{fmt(g.get('rms_mm'), '.2f')} mm rms, {fmt(g.get('median_mm'), '.2f')} mm median, overlap "
+                     f"{fmt(g.get('overlap'), '.0%')}, {g.get('iterations')} iterations (start: {g.get('start')})")
+    return lines
+
+
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
-    sec = doc.get("seconds", {})
+    sec = doc.get("seconds", {}) or {}
     losses = doc.get("losses", {})
     surf = doc.get("surface_report", {}) or {}
     warp = doc.get("warp_report", {}) or {}
     before, after = warp.get("corners_before_px") or {}, warp.get("corners_after_px") or {}
     pose = doc.get("pose", {}) or {}
-    position = np.asarray(doc["camera_from_projector"], dtype=float)[:3, 3]
-    lines = (
-        f"Surface: {surf.get('vertices', doc.get('surface', {}).get('vertices', '?'))} vertices, "
-        f"{surf.get('faces', doc.get('surface', {}).get('faces', '?'))} faces ({fmt(sec.get('surface'), '.1f', ' s')})",
-        f"Pose: init {doc.get('init', pose.get('init', '?'))}, loss {fmt(losses.get('pose'), '.4g')} "
+    cfp = np.asarray(doc["camera_from_projector"], dtype=float)
+    position, axis = cfp[:3, 3], cfp[:3, 2]
+    method = (pose.get("info") or {}).get("method", "ours") if isinstance(pose.get("info"), dict) else "ours"
+    lines = [
+        *_surface_lines(surf, doc, sec.get("surface")),
+        f"Pose: init {doc.get('init', pose.get('init', '?'))}, stage A {method}, loss {fmt(losses.get('pose'), '.4g')} "
         f"({fmt(sec.get('pose'), '.1f', ' s')})",
-        f"Projector at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) m",
-        f"Warp{' (from the Gray code)' if warp.get('source') == 'graycode' else ''}: "
-        f"corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "
-        f"loss {fmt(losses.get('warp'), '.4g')} ({fmt(sec.get('warp'), '.1f', ' s')})",
-    )
+        f"Projector at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) m, pointing "
+        f"({axis[0]:+.4f}, {axis[1]:+.4f}, {axis[2]:+.4f})",
+    ]
+    intrinsics = doc.get("projector_intrinsics")
+    if isinstance(intrinsics, dict) and intrinsics.get("summary"):
+        lines.append(f"projector intrinsics (fitted to the Gray code): {intrinsics['summary']}")
+    lines.append(f"Warp{' (from the Gray code)' if warp.get('source') == 'graycode' else ''}: "
+                 f"corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "
+                 f"loss {fmt(losses.get('warp'), '.4g')} ({fmt(sec.get('warp'), '.1f', ' s')})")
+    stages = doc.get("stages") or {n: "run" for n in STAGES}  # folders from before stages ran all three
+    lines.append("stages: " + ", ".join(f"{k} {v}" for k, v in stages.items()))
+    lines += [f"warning: {w}" for w in doc.get("warnings") or []]
+    if sec:
+        lines.append("seconds: " + ", ".join(f"{k} {fmt(v, '.1f')}" for k, v in sec.items()))
     head = f"Calibrated: warp corners {fmt(after.get('median'), '.2f')} px"
     diag = root / layout.DIAGNOSTICS_DIR
     maps = sorted(p.name for p in diag.glob("*.png")) if diag.is_dir() else []
-    return Summary(True, head, lines, {"diagnostics": maps, "capture_set": doc.get("capture_set", "")})
+    return Summary(True, head, tuple(lines), {"diagnostics": maps, "capture_set": doc.get("capture_set", "")})
+
+
+#: the transport operator's report by path, with its modification time: a precompute adds it to a calibration
+#: folder without touching calibration.json, so it is read beside the cached summary, not in it
+_TRANSPORT: dict[Path, tuple[int, str | None]] = {}
+
+
+def _transport_line(root: Path) -> str | None:
+    path = root / layout.TRANSPORT_JSON
+    try:
+        stamp = path.stat().st_mtime_ns
+    except OSError:
+        return None
+    hit = _TRANSPORT.get(path)
+    if hit is None or hit[0] != stamp:
+        try:
+            doc = json.loads(path.read_text())
+            line = f"transport operator: {doc['megabytes']} MB in {fmt(doc.get('seconds'), '.0f', ' s')}"
+        except (OSError, ValueError, KeyError, TypeError):
+            line = None
+        hit = _TRANSPORT[path] = (stamp, line)
+    return hit[1]
 
 
 def summary(folder: str | Path) -> Summary:
     """Key figures of a calibration folder: surface size, pose loss and position, warp corners before → after."""
-    return cached(KIND, folder, _summary, "run Calibrate or choose a calibration folder")
+    s = cached(KIND, folder, _summary, "run Calibrate or choose a calibration folder")
+    line = _transport_line(Path(folder)) if s.ok else None
+    return replace(s, lines=(*s.lines, line)) if line else s

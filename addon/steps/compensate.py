@@ -237,10 +237,15 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     targets = [t for t in doc.get("targets", []) if isinstance(t, dict)]
     done = [t for t in targets if t.get("status") == "done"]
     lines = []
+    effects = doc.get("effects")
+    if isinstance(effects, dict):
+        lines.append(f"effect models: {', '.join(effects.get('used') or []) or 'none'}"
+                     + (f"; not inverted: {', '.join(effects['not_inverted'])}" if effects.get("not_inverted") else ""))
     for t in targets:
         if t.get("status") == "done":
             lines.append(f"{t['name']}: simulated PSNR {fmt(t.get('psnr_simulated_start'), '.1f')} → "
-                         f"{fmt(t.get('psnr_simulated'), '.1f')} dB, {fmt(t.get('seconds'), '.0f', ' s')}")
+                         f"{fmt(t.get('psnr_simulated'), '.1f')} dB in the display area, {t.get('mode', '?')}, "
+                         f"{fmt(t.get('seconds'), '.1f', ' s')}")
         else:
             lines.append(f"{t.get('name', '?')}: {t.get('status', '?')} — {t.get('error', '')}")
     mode = doc.get("mode")

@@ -96,9 +96,80 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     return found.doc
 
 
-def read(folder: str | Path) -> dict[str, Any]:
-    """A diagnosis folder's ``gap.json``; a clear error when the folder holds none."""
-    return KIND.read(folder, DiagnosisError)
+@dataclass
+class DiagnosisView:
+    """A diagnosis folder: its ``gap.json`` and the figures its readers use."""
+
+    folder: Path
+    doc: dict[str, Any]
+
+    @property
+    def selected(self) -> list[str]:
+        """The effects selected, those found on the residual first, then those calibration absorbed."""
+        return [str(s) for s in self.doc.get("selected") or []]
+
+    @property
+    def absorbed(self) -> list[str]:
+        return [str(s) for s in self.doc.get("absorbed") or []]
+
+    @property
+    def headline(self) -> str:
+        return str(self.doc.get("headline") or "")
+
+    @property
+    def warnings(self) -> list[str]:
+        return [str(w) for w in self.doc.get("warnings") or []]
+
+    @property
+    def effects(self) -> list[dict[str, Any]]:
+        """Every candidate effect as the diagnosis ranked it."""
+        return [e for e in self.doc.get("effects") or [] if isinstance(e, dict) and "name" in e]
+
+    @property
+    def regions(self) -> list[dict[str, Any]]:
+        return [r for r in self.doc.get("regions") or [] if isinstance(r, dict)]
+
+
+def read(folder: str | Path) -> DiagnosisView:
+    """A diagnosis folder and its ``gap.json``; a clear error when the folder holds none."""
+    return DiagnosisView(Path(folder), KIND.read(folder, DiagnosisError))
+
+
+def _lines(root: Path, doc: dict[str, Any], notes: list[str]) -> tuple[str, ...]:
+    """What ``procam diagnose`` prints and the sidebar shows under the headline."""
+    view = DiagnosisView(root, doc)
+    res, after = doc.get("residual") or {}, doc.get("residual_after") or {}
+    lines = list(notes)
+    if after:
+        lines.append(f"held-out residual: RMSE {fmt(res.get('rmse'), '.4f')} ({fmt(res.get('psnr'), '.1f', ' dB')})"
+                     f" → {fmt(after.get('rmse'), '.4f')} ({fmt(after.get('psnr'), '.1f', ' dB')}) with the selected "
+                     f"effects; without pixel noise {fmt(res.get('rmse_structured'), '.4f')} → "
+                     f"{fmt(after.get('rmse_structured'), '.4f')}")
+    absorbed = (f" ({', '.join(view.absorbed)} absorbed by calibration, found from its inputs)"
+                if view.absorbed else "")
+    lines.append("selected: " + (", ".join(view.selected) or "none") + absorbed)
+    left = doc.get("unexplained") or {}
+    if left.get("detected"):
+        lines.append(f"unexplained: the selected effects explain {fmt(left.get('explained_share'), '.0%')}"
+                     f" of the residual above the captures' noise; RMSE {fmt(left.get('unexplained_rmse'), '.4f')} is"
+                     " left" + (f", most of it {left['where']}" if left.get("where") else ""))
+    elif left and doc.get("modelled"):
+        lines.append(f"explained: {fmt(left.get('explained_share'), '.0%')} of the residual above "
+                     "the captures' noise")
+    elif left:
+        lines.append(f"left: RMSE {fmt(left.get('unexplained_rmse'), '.4f')} above the captures' noise, too little "
+                     "to model")
+    for e in [e for e in view.effects[:3] if not e.get("error")]:
+        conf = e.get("confidence")
+        level = conf.get("level", "–") if isinstance(conf, dict) else fmt(conf, ".2f")
+        lines.append(f"{e['name']:<16} alone: RMSE {fmt(e.get('heldout_rmse_after'), '.4f')} "
+                     f"({fmt(e.get('reduction'), '.0%')} less), confidence {level}")
+    for k, r in enumerate(view.regions[:3]):
+        lines.append(f"region {k + 1} ({r.get('cause', '?')}): {fmt(r.get('share'), '.0%')} "
+                     f"of the error, {r.get('description', '')}")
+    if (root / layout.DIAGNOSIS_SUMMARY).is_file():
+        lines.append(f"summary: {root / layout.DIAGNOSIS_SUMMARY}")
+    return tuple(lines)
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
@@ -126,12 +197,13 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     session = doc.get("session") or {}
     if session.get("changed"):
         notes.append(f"The rig changed during the session: {session.get('sentence', '')}.")
+    lines = _lines(root, doc, notes)  # the residual left is said in the lines' own words, with its RMSE
     left = doc.get("unexplained") or {}
     if left.get("detected"):
         notes.append(f"Unexplained: the selected effects explain {fmt(100 * left.get('explained_share', 0), '.0f')}% "
                      "of the residual above the noise" + (f"; most of the rest {left['where']}"
                                                           if left.get("where") else "") + ".")
-    return Summary(True, head, (), {"effects": effects, "selected": selected, "regions": regions, "maps": maps,
+    return Summary(True, head, lines, {"effects": effects, "selected": selected, "regions": regions, "maps": maps,
                                     "summary": text, "notes": notes})
 
 

@@ -523,23 +523,73 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     return result.doc
 
 
-def read(folder: str | Path) -> dict[str, Any]:
-    """An evaluation folder's ``metrics.json``; a clear error when the folder holds none."""
-    return KIND.read(folder, EvaluationError)
+@dataclass
+class EvaluationView:
+    """An evaluation folder: its ``metrics.json`` and the figures its readers use."""
+
+    folder: Path
+    doc: dict[str, Any]
+
+    @property
+    def complete(self) -> bool:
+        """Whether every target was measured (a failure keeps the finished ones and says so)."""
+        return bool(self.doc.get("complete", True))
+
+    @property
+    def targets(self) -> list[dict[str, Any]]:
+        """One row per target, finished (``status`` done) or failed, in the order given."""
+        return [t for t in self.doc.get("targets") or [] if isinstance(t, dict)]
+
+    @property
+    def mean(self) -> dict[str, Any]:
+        """Mean PSNR and SSIM of the finished targets, compensated."""
+        return dict(self.doc.get("mean") or {})
+
+    @property
+    def mean_uncompensated(self) -> dict[str, Any]:
+        return dict(self.doc.get("mean_uncompensated") or {})
+
+    def comparisons(self) -> list[tuple[str, Path]]:
+        """Each finished target's name and comparison image, a file of this folder."""
+        return [(str(t["name"]), inside(self.folder, t["image"], what="the comparison image", error=EvaluationError))
+                for t in self.targets if t.get("status") == "done"]
+
+
+def read(folder: str | Path) -> EvaluationView:
+    """An evaluation folder and its ``metrics.json``; a clear error when the folder holds none."""
+    return EvaluationView(Path(folder), KIND.read(folder, EvaluationError))
+
+
+def _target_line(t: dict[str, Any]) -> str:
+    if t.get("status") != "done":
+        return f"{t.get('name')}: failed — {t.get('error', '')}"
+    u = t.get("uncompensated") or {}
+    classical = f", classical {fmt(t['classical'].get('psnr'), '.2f')} dB" if isinstance(t.get("classical"), dict) else ""
+    return (f"{t['name']}: PSNR {fmt(u.get('psnr'), '.2f')} → {fmt(t.get('psnr'), '.2f')} dB, SSIM "
+            f"{fmt(u.get('ssim'), '.3f')} → {fmt(t.get('ssim'), '.3f')} (uncompensated → compensated{classical}); "
+            f"range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"
+            + (f" ({fmt(t['noise_ceiling'], '.2f')} dB through the camera's noise, RMS "
+               f"{fmt(t.get('capture_noise_rmse'), '.4f')})" if "noise_ceiling" in t else "")
+            + (f", {fmt(t['ceiling_gap_at_limit'], '.0%')} of the gap to it where the input is already at its limit"
+               if t.get("ceiling_gap_at_limit") is not None else ""))
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
-    mean, plain = doc.get("mean") or {}, doc.get("mean_uncompensated") or {}
+    view = EvaluationView(root, doc)
+    mean, plain = view.mean, view.mean_uncompensated
     head = (f"PSNR {fmt(plain.get('psnr'), '.2f')} → {fmt(mean.get('psnr'), '.2f')} dB, SSIM "
             f"{fmt(plain.get('ssim'), '.3f')} → {fmt(mean.get('ssim'), '.3f')} (uncompensated → compensated)")
-    lines = tuple(f"{t['name']}: {fmt(t['uncompensated']['psnr'], '.2f')} → {fmt(t['psnr'], '.2f')} dB "
-                  f"(range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"
-                  + (f", {fmt(t['noise_ceiling'], '.2f')} dB through the camera's noise" if "noise_ceiling" in t else "")
-                  + (f", {t['ceiling_gap_at_limit']:.0%} of the gap to it at the input's limit"
-                     if t.get("ceiling_gap_at_limit") is not None else "") + ")"
-                  if t.get("status") == "done" else f"{t.get('name')}: failed — {t.get('error', '')}"
-                  for t in doc.get("targets", []))
-    return Summary(True, head, lines, {"targets": doc.get("targets", [])})
+    lines = [_target_line(t) for t in view.targets]
+    mapped = doc.get("range")
+    if isinstance(mapped, dict):
+        lines.append(f"targets mapped by the compensation's range: {fmt(mapped.get('gain'), '.3f')}·t "
+                     f"{fmt(mapped.get('offset'), '+.3f')}")
+    f = doc.get("flicker")
+    if isinstance(f, dict):
+        lines.append(f"flicker over {f.get('pairs')} consecutive pair(s): captured {fmt(f.get('captured'), '.4f')}, "
+                     f"targets {fmt(f.get('targets'), '.4f')} (excess {fmt(f.get('excess'), '+.4f')}; uncompensated "
+                     f"{fmt(f.get('uncompensated'), '.4f')})")
+    return Summary(True, head, tuple(lines), {"targets": view.targets, "complete": view.complete})
 
 
 def summary(folder: str | Path) -> Summary:

@@ -793,13 +793,41 @@ def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage
 
 # -- reading ---------------------------------------------------------------------------------------
 
-def read(folder: str | Path) -> dict[str, Any]:
-    """A show folder's manifest; a clear error when the folder holds no show. A run recorded as running whose
-    process is gone reads as ``"interrupted"``."""
+@dataclass
+class ShowView:
+    """A show folder: its manifest, with each run as a reader should see it (:func:`read`)."""
+
+    folder: Path
+    doc: dict[str, Any]
+
+    @property
+    def complete(self) -> bool:
+        """Whether every frame of the sequence is finished."""
+        return bool(self.doc.get("complete"))
+
+    @property
+    def frames(self) -> dict[str, dict[str, Any]]:
+        """Each frame's record by its number (as text): ``status`` done or failed, its ``file``, figures."""
+        return {str(k): e for k, e in (self.doc.get("frames") or {}).items() if isinstance(e, dict)}
+
+    @property
+    def runs(self) -> list[dict[str, Any]]:
+        """Every run that wrote the folder, oldest first; one whose process is gone reads ``interrupted``."""
+        return [r for r in self.doc.get("runs") or [] if isinstance(r, dict)]
+
+    @property
+    def status(self) -> str | None:
+        """The last run's status: running, complete, incomplete, cancelled, interrupted, … (None: no run)."""
+        return str(self.runs[-1].get("status")) if self.runs else None
+
+
+def read(folder: str | Path) -> ShowView:
+    """A show folder and its manifest; a clear error when the folder holds no show. A run recorded as running
+    whose process is gone reads as ``"interrupted"``."""
     doc = KIND.read(folder, SequenceError)
     if isinstance(doc.get("runs"), list):
         doc["runs"] = _runs_shown(doc)
-    return doc
+    return ShowView(Path(folder), doc)
 
 
 def owner_gone(run: dict[str, Any]) -> bool:
@@ -835,9 +863,12 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     psnr = [float(e["psnr_model"]) for e in done if e.get("psnr_model") is not None]
     head = (f"{len(done)}/{len(frames)} frames finished ({doc.get('mode')})"
             + (f", model PSNR {fmt(sum(psnr) / len(psnr), '.2f')} dB mean" if psnr else ""))
-    lines = tuple(f"frame {e.get('number')}: failed — {e.get('error', '')}" for e in failed)
     runs = [r for r in doc.get("runs") or [] if isinstance(r, dict)]
     last = runs[-1] if runs else {}
+    ran = ([f"run {last.get('run')}: {last.get('done', 0)} frame(s) compensated, {last.get('skipped', 0)} already "
+            f"finished, {last.get('failed', 0)} failed, {fmt(last.get('seconds'), '.1f', ' s')} "
+            f"({last.get('where', 'this process')})"] if last else [])
+    lines = (*ran, *(f"frame {e.get('number')}: failed — {e.get('error', '')}" for e in failed))
     return Summary(True, head, lines, {"done": len(done), "failed": len(failed), "complete": doc.get("complete"),
                                        "status": last.get("status"), "run": last})
 

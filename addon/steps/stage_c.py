@@ -144,8 +144,8 @@ class StageCOptions:
 def effect_adapter(options: StageCOptions, calibration: Calibration) -> EffectAdapter | None:
     """The diagnosed effect models ``options.effects`` names, with the parameters its diagnosis folder fitted."""
     wanted = effects_wanted(options.effects) and options.diagnosis is not None
-    doc = diagnose_step.read(options.diagnosis) if wanted else None
-    return adapter_from_options(options.effects, doc, calibration.rig.projector,
+    view = diagnose_step.read(options.diagnosis) if wanted else None
+    return adapter_from_options(options.effects, None if view is None else view.doc, calibration.rig.projector,
                                 where=f"the diagnosis in {options.diagnosis}")
 
 
