@@ -270,3 +270,21 @@ def test_a_cancel_is_not_an_error_the_user_can_fix():
                         and (rel, where) not in CATCH_ALL_ALLOWED:
                     catch_all.append(f"{rel}:{handler.lineno} in {where}")
     assert reraise_first == [] and catch_all == []
+
+
+def _sources() -> list[Path]:
+    return [*ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"), *(ROOT / "panels").rglob("*.py")]
+
+
+def test_one_definition_of_each_shared_helper():
+    """What several modules need is written once: one reader of mesh files, one list of the image files a folder
+    of images is listed with (the capture-set format's own list of what a set stores is a format rule, not a
+    reader's)."""
+    mesh_readers = sorted(p.relative_to(ROOT).as_posix() for p in _sources() if "load_new_mesh(" in p.read_text())
+    assert mesh_readers == ["addon/surface/mesh.py"]
+    image_lists = []
+    for path in _sources():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Tuple) and {".jpg", ".png"} <= {getattr(e, "value", None) for e in node.elts}:
+                image_lists.append(path.relative_to(ROOT).as_posix())
+    assert image_lists == ["addon/imageio.py"]
