@@ -81,6 +81,8 @@ class Spec:
     #: the sidebar shows this option through a field of its own making (a mesh picker, a checkbox beside a value):
     #: its label names it in messages, but no scene property is made from the declaration
     own_field: bool = False
+    #: the command line must give it (``evaluate --device``)
+    required: bool = False
 
     def cli_flag(self, name: str) -> str:
         return ("--" + name.replace("_", "-")) if self.flag is None else self.flag
@@ -102,6 +104,24 @@ def option(default: Any = dataclasses.MISSING, *, help: str, default_factory: An
         spec["choices"] = tuple(c if isinstance(c, Choice) else Choice(str(c)) for c in spec["choices"])
     return dataclasses.field(default=default, default_factory=default_factory,
                              metadata={KEY: Spec(help=help, **spec)})
+
+
+def spec_of(cls: type, name: str) -> Spec:
+    """The :class:`Spec` of option ``name`` of ``cls``: for a dialog's own field that takes its label from there,
+    or for another step's field that is the same option (:func:`same_option`)."""
+    for f in dataclasses.fields(cls):
+        if f.name == name and KEY in f.metadata:
+            spec: Spec = f.metadata[KEY]
+            return spec
+    raise KeyError(f"{cls.__name__} declares no option {name!r}")
+
+
+def same_option(cls: type, name: str, default: Any = dataclasses.MISSING, **changes: Any) -> Any:
+    """A dataclass field that is option ``name`` of ``cls`` again, declared there once (its flag, help, limits),
+    with the default ``default`` (else that field's) and the :class:`Spec` fields in ``changes`` changed."""
+    if default is dataclasses.MISSING:
+        default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
+    return dataclasses.field(default=default, metadata={KEY: dataclasses.replace(spec_of(cls, name), **changes)})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,8 +253,9 @@ def add_arguments(parser: argparse.ArgumentParser | Any, cls: type, *, only: Seq
         else:
             metavar = d.spec.metavar or ("{" + ",".join(c.value for c in d.spec.offered) + "}" if d.spec.choices
                                          else None)
+            required = {"required": True} if d.spec.required else {}
             parser.add_argument(flag, dest=d.name, type=_text_type(d), default=d.default, metavar=metavar,
-                                help=_cli_help(d))
+                                help=_cli_help(d), **required)
 
 
 def from_arguments(cls: type, args: argparse.Namespace, **given: Any) -> Any:

@@ -19,8 +19,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..steps.show import (CHUNK, CONNECT_TIMEOUT, SequenceError, ShowOptions, list_frames, run as prepare_show,
-                          summary)
+from ..options import add_arguments, from_arguments
+from ..steps.show import SequenceError, ShowOptions, list_frames, run as prepare_show, summary
 from .app import command
 from .compensate import add_effect_options, add_schedule_options, stage_c_options
 from .terminal import print_summary, run_step
@@ -55,23 +55,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
     add_effect_options(p)
     p.add_argument("--force", action="store_true",
                    help="redo every frame, even finished ones (needed when the settings or targets changed)")
-    p.add_argument("--fail-fast", action="store_true",
-                   help="stop at the first frame that fails instead of going on with the next ones")
-    p.add_argument("--cold-start", action="store_true",
-                   help="start every frame's stage C from its target alone, not from the previous frame's answer")
-    p.add_argument("--chunk", type=int, default=CHUNK, metavar="N",
-                   help=f"frames per warm-start chunk, by frame number (default {CHUNK}); the first frame of each "
-                        "chunk starts cold, and chunks run side by side with --workers/--cluster")
-    p.add_argument("--threads", type=int, metavar="N",
-                   help="Dr.Jit threads of this process, or of each worker (default: all cores; cores over "
-                        "workers on a local cluster); frames are byte-identical across runs with the same count")
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, metavar="N",
-                       help="compute the frames on a local cluster of N worker processes (Dask distributed)")
-    where.add_argument("--cluster", metavar="ADDRESS",
-                       help="compute the frames on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786)")
-    p.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT, metavar="SECONDS",
-                   help=f"with --cluster: seconds to wait for its scheduler to answer (default {CONNECT_TIMEOUT:g})")
+    add_arguments(p, ShowOptions, exclude=("workers", "cluster"))
+    add_arguments(p.add_mutually_exclusive_group(), ShowOptions, only=("workers", "cluster"))
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = EPILOG
 
@@ -79,10 +64,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
 @command("show", "Compensate every frame of an image sequence into a numbered 16-bit projector frame sequence "
                  "(resumable).", _configure)
 def run(args: argparse.Namespace) -> int:
-    options = ShowOptions(args.calibration, tuple(args.targets), args.out, stage_c_options(args), force=args.force,
-                          fail_fast=args.fail_fast, warm_start=not args.cold_start, chunk=args.chunk,
-                          workers=args.workers, cluster=args.cluster, threads=args.threads,
-                          connect_timeout=args.connect_timeout)
+    options = from_arguments(ShowOptions, args, calibration=args.calibration, targets=tuple(args.targets),
+                             out=args.out, stage_c=stage_c_options(args), force=args.force)
     options.check(options.stage_c.mode)  # a refused cluster request fails before anything is read
     frames = list_frames(options.targets)  # a bad sequence fails before the bar starts
     result = run_step("show", prepare_show, options, total=len(frames), unit="frames")

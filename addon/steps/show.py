@@ -45,7 +45,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import math
 from importlib import metadata
 import os
 import re
@@ -61,6 +60,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_atomic_bytes
+from ..options import option, validate
 from ..outputs import file_sha256, jsonable, natural_key, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
@@ -198,6 +198,11 @@ def frame_digits(frames: Sequence[SourceFrame]) -> int:
 
 # -- settings and manifest -----------------------------------------------------------------------
 
+def _seconds(value: float) -> None:
+    if not value > 0:
+        raise SequenceError(f"--connect-timeout must be a number of seconds > 0, got {value!r}")
+
+
 @dataclass(frozen=True)
 class ShowOptions:
     """What ``procam show`` and the Prepare Show button ask for.
@@ -210,38 +215,36 @@ class ShowOptions:
     out: Path
     stage_c: StageCOptions = field(default_factory=StageCOptions)
     force: bool = False
-    #: stop at the first frame that fails instead of going on with the next ones
-    fail_fast: bool = False
-    #: start each frame's stage C from the previous frame's answer (within its chunk); False: every frame cold
-    warm_start: bool = True
-    #: frames per chunk (by frame number); each chunk's first frame starts cold, chunks run side by side
-    chunk: int = CHUNK
-    #: compute on a local cluster of this many worker processes (None: in this process)
-    workers: int | None = None
-    #: compute on the Dask cluster whose scheduler is at this address (tcp://host:8786)
-    cluster: str | None = None
-    #: Dr.Jit threads of this process, or of each worker (None: all cores here; cores over workers on a cluster).
+    fail_fast: bool = option(False, help="stop at the first frame that fails instead of going on with the next ones")
+    warm_start: bool = option(
+        True, negate="--cold-start",
+        help="start each frame's stage C from the previous frame's answer (within its chunk); off: every frame "
+             "starts from its target alone")
+    chunk: int = option(
+        CHUNK, min=1, metavar="N",
+        help=f"frames per warm-start chunk, by frame number (default {CHUNK}); the first frame of each chunk starts "
+             "cold, and chunks run side by side with --workers/--cluster")
     #: Renders with several samples per pixel add them in an order that depends on the thread count, so runs
     #: are byte-identical between one process and a cluster when both use the same count.
-    threads: int | None = None
-    #: seconds to wait for the scheduler at ``cluster`` to answer before giving up with a clear error
-    connect_timeout: float = CONNECT_TIMEOUT
+    threads: int | None = option(
+        None, min=1, metavar="N",
+        help="Dr.Jit threads of this process, or of each worker (default: all cores; cores over workers on a local "
+             "cluster); frames are byte-identical across runs with the same count")
+    workers: int | None = option(
+        None, min=1, metavar="N",
+        help="compute the frames on a local cluster of N worker processes (Dask distributed)")
+    cluster: str | None = option(
+        None, metavar="ADDRESS",
+        help="compute the frames on the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786)")
+    connect_timeout: float = option(
+        CONNECT_TIMEOUT, metavar="SECONDS", check=_seconds,
+        help=f"with --cluster: seconds to wait for its scheduler to answer (default {CONNECT_TIMEOUT:g})")
 
     def check(self, mode: str) -> None:
         """Refuse a warm-start or cluster request that cannot run, before anything is loaded."""
-        if isinstance(self.chunk, bool) or not isinstance(self.chunk, int) or self.chunk < 1:
-            raise SequenceError(f"the chunk must be a whole number of frames ≥ 1, got {self.chunk!r}")
+        validate(self, SequenceError)
         if self.workers is not None and self.cluster:
             raise SequenceError("give either --workers (a local cluster) or --cluster ADDRESS, not both")
-        if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
-                                         or self.workers < 1):
-            raise SequenceError(f"--workers must be a whole number ≥ 1, got {self.workers!r}")
-        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
-                                         or self.threads < 1):
-            raise SequenceError(f"--threads must be a whole number ≥ 1, got {self.threads!r}")
-        t = self.connect_timeout
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0:
-            raise SequenceError(f"--connect-timeout must be a number of seconds > 0, got {t!r}")
         if (self.workers is not None or self.cluster) and mode == "closed-loop":
             raise SequenceError("the closed loop runs through one physical device (one projector and camera), "
                                 "whose frames cannot be shared out: drop --workers/--cluster, or drop --device "
