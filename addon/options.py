@@ -118,8 +118,9 @@ def spec_of(cls: type, name: str) -> Spec:
 
 def same_option(cls: type, name: str, default: Any = dataclasses.MISSING, **changes: Any) -> Any:
     """A dataclass field that is option ``name`` of ``cls`` again, declared there once (its flag, help, limits),
-    with the default ``default`` (else that field's) and the :class:`Spec` fields in ``changes`` changed."""
-    if default is dataclasses.MISSING:
+    with the default ``default`` (else that field's; none when ``required``) and the :class:`Spec` fields in
+    ``changes`` changed."""
+    if default is dataclasses.MISSING and not changes.get("required"):
         default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
     return dataclasses.field(default=default, metadata={KEY: dataclasses.replace(spec_of(cls, name), **changes)})
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..stages.display_area import TARGET_ENCODINGS
+from ..options import add_arguments, from_arguments
 from ..steps.evaluate import EvaluateOptions, run as evaluate, summary
 from .app import command
 from .terminal import print_summary, run_step
@@ -36,24 +36,16 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help="the target images given to procam compensate or show (for a show made from a video: that "
                         "video, each finished frame measured); two or more, in order, also give the sequence's "
                         "flicker")
-    p.add_argument("--device", required=True, help="lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or live:camera=SOURCE,display=N")
     p.add_argument("--out", type=Path, required=True, help="folder to create for the metrics and images")
-    p.add_argument("--classical", action="store_true",
-                   help="also measure the classical per-pixel colour-mixing baseline (captures 3 flat primaries)")
-    p.add_argument("--target-encoding", choices=TARGET_ENCODINGS, default="auto",
-                   help="auto: 8-bit files are sRGB and are linearised, 16-bit/float are linear")
-    p.add_argument("--no-repeat", dest="repeat", action="store_false",
-                   help="capture each compensated input once (default: twice, for the camera's noise and the noise "
-                        "ceiling, the range ceiling as a capture through that noise can score it)")
+    add_arguments(p, EvaluateOptions)
     p.add_argument("--force", action="store_true", help="replace an existing evaluation folder at --out")
 
 
 @command("evaluate", "Project compensated inputs through a device and measure PSNR/SSIM against the targets.",
          _configure)
 def run(args: argparse.Namespace) -> int:
-    options = EvaluateOptions(args.calibration, args.inputs, tuple(args.targets), args.device, args.out,
-                              classical=args.classical, target_encoding=args.target_encoding, force=args.force,
-                              repeat=args.repeat)
+    options = from_arguments(EvaluateOptions, args, calibration=args.calibration, inputs=args.inputs,
+                             targets=tuple(args.targets), out=args.out, force=args.force)
     run_step("evaluate", evaluate, options, total=len(options.targets), unit="targets")
     print_summary("evaluation", args.out, summary(args.out))
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..options import add_arguments, from_arguments
 from ..steps.transport import PrecomputeOptions, run
 from .app import command
 from .terminal import run_step
@@ -12,15 +13,15 @@ from .terminal import run_step
 
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
-    p.add_argument("--bounces", type=int, default=1, help="indirect bounces, as compensate will use (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="seed, as compensate will use (default 0)")
+    add_arguments(p, PrecomputeOptions)
     p.add_argument("--force", action="store_true", help="render it again even when one is stored")
 
 
 @command("precompute", "Precompute the light-transport operator of a calibration (compensate --schedule transport).",
          _configure)
 def precompute(args: argparse.Namespace) -> int:
-    doc = run_step("precompute", run, PrecomputeOptions(args.calibration, args.bounces, args.seed, args.force))
+    doc = run_step("precompute", run, from_arguments(
+        PrecomputeOptions, args, calibration=args.calibration, force=args.force))
     print(f"transport operator in {args.calibration}: {doc['direct_renders']} direct renders (lattice every "
           f"{doc['spacing']}th texel), {doc['entries_per_pixel']} entries a pixel, indirect {doc['indirect_blocks'][0]}"
           f"×{doc['indirect_blocks'][1]} blocks; {doc['megabytes']} MB, {doc['seconds']} s")

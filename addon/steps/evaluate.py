@@ -48,6 +48,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import ImageError, ProCamError
 from ..imageio import read_image, write_image
+from ..options import option, same_option, validate
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, output_names, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
@@ -62,7 +63,7 @@ from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
 from .show_work import source_record
-from .stage_c import device_inputs, device_pipeline
+from .stage_c import StageCOptions, device_inputs, device_pipeline
 from .summary import Summary, cached, fmt
 
 KIND = layout.EVALUATION
@@ -87,12 +88,17 @@ class EvaluateOptions:
     calibration: Path
     inputs: Path  # the compensation folder
     targets: tuple[Path, ...]
-    device: str  # lab:TRUTH_FILE, folder:CAPTURE_DIR or live:…
+    device: str = same_option(StageCOptions, "device", required=True,
+                              help="lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or live:camera=SOURCE,display=N")
     out: Path
-    classical: bool = False
-    target_encoding: str = "auto"
+    classical: bool = option(
+        False, help="also measure the classical per-pixel colour-mixing baseline (captures 3 flat primaries)")
+    target_encoding: str = same_option(StageCOptions, "target_encoding")
     force: bool = False
-    repeat: bool = True  # capture each compensated input twice: the camera's noise, and the noise ceiling
+    repeat: bool = option(
+        True, negate="--no-repeat",
+        help="capture each compensated input twice, for the camera's noise and the noise ceiling, the range ceiling "
+             "as a capture through that noise can score it (off: once)")
 
 
 @dataclass
@@ -480,6 +486,7 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     """Measure every target of ``options`` into a new evaluation folder; returns ``metrics.json``'s document.
     ``device``: an open device to use instead of opening ``options.device`` (the manifest names the latter)."""
     say = progress or quiet
+    validate(options)
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.calibration, options.inputs, *options.targets, *device_inputs(options.device)))
     cal = calibrate_step.read(options.calibration)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ImageError
+from ..options import option, validate
 from ..outputs import check_replaceable, fresh_output_folder, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from . import calibrate as calibrate_step
@@ -30,16 +31,14 @@ class ExportFramesOptions:
 
     compensation: Path
     out: Path
-    #: the number of the first frame
-    first: int = 1
+    first: int = option(1, min=0, help="number of the first frame (default 1)")
     force: bool = False
 
 
 def run_frames(options: ExportFramesOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> Path:
     """Copy the compensated frames into a new numbered sequence with ``frames.json``; returns the folder."""
     say = progress or quiet
-    if options.first < 0:
-        raise ImageError(f"the first frame number must be ≥ 0, got {options.first}")
+    validate(options, ImageError)
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.compensation,), error=ImageError)
     view = compensate_step.read(options.compensation)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import CalibrationError
+from ..options import option, validate
 from ..progress import Cancel, Progress, quiet
 from ..safepaths import inside
 from ..stages.calibrate import Calibration
@@ -33,8 +34,9 @@ class PrecomputeOptions:
     """What ``procam precompute`` asks for."""
 
     calibration: Path
-    bounces: int = 1
-    seed: int = 0
+    # declared here, not taken from StageCOptions: stage C imports this module
+    bounces: int = option(1, min=0, help="indirect bounces, as compensate will use")
+    seed: int = option(0, min=0, help="seed, as compensate will use")
     force: bool = False
 
 
@@ -42,6 +44,7 @@ def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Ca
         ) -> dict[str, Any]:
     """Render and store the operator; returns its report. An operator already there for the same calibration,
     bounces and seed is kept unless ``force``."""
+    validate(options, CalibrationError)
     say = progress or quiet
     folder = Path(options.calibration)
     cal = calibrate_step.read(folder)
