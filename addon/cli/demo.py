@@ -10,38 +10,23 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..stages.compensate import DEFAULT_SCHEDULE, SCHEDULES
+from ..options import add_arguments, from_arguments
 from ..steps.demo import DemoOptions, run as demo
 from .app import command
-from .args import finite_float
 from .calibrate import blend_writer
 from .terminal import run_step
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="results folder (default: out/demo)")
-    p.add_argument("--full", action="store_true", help="paper resolution: camera 640×480, projector 800×600")
-    p.add_argument("--scale", type=finite_float, default=None,
-                   help="fraction of the paper's resolution (default 0.5, or 1 with --full); e.g. 0.2 for a quick check")
-    p.add_argument("--surface", default="vedge", choices=("plane", "curve", "vedge", "hedge"))
-    p.add_argument("--effects", default="realistic", help="lab effects (default: realistic)")
-    p.add_argument("--targets", default="city,forest", help="built-in targets, comma-separated")
-    p.add_argument("--schedule", default=DEFAULT_SCHEDULE, choices=tuple(SCHEDULES),
-                   help=f"stage-C schedule (default {DEFAULT_SCHEDULE}; 'paper' = the paper's 500 iterations, "
-                        "several times slower)")
-    p.add_argument("--iterations", type=int, default=None, help="stage-C iterations per target (default: the schedule's)")
-    p.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel for the lab")
-    p.add_argument("--seed", type=int, default=0)
+    add_arguments(p, DemoOptions)
     p.add_argument("--force", action="store_true", help="replace an existing results folder")
 
 
 @command("demo", "Run the built-in demo end to end (lab, calibration, compensation, evaluation, diagnosis).",
          _configure)
 def run(args: argparse.Namespace) -> int:
-    options = DemoOptions(args.out, full=args.full, scale=args.scale, surface=args.surface, effects=args.effects,
-                          targets=tuple(n.strip() for n in args.targets.split(",") if n.strip()),
-                          schedule=args.schedule, iterations=args.iterations, samples=args.samples, seed=args.seed,
-                          force=args.force)
+    options = from_arguments(DemoOptions, args, out=args.out, force=args.force)
     summary = run_step("demo", demo, options, blend_writer=blend_writer())
     cam, proj = summary["resolution"]["camera"], summary["resolution"]["projector"]
     c = summary["calibration"]

@@ -37,9 +37,9 @@ from ..errors import ProCamError
 from ..imageio import write_image
 from ..lab.crosscheck import run_cross_check
 from ..lab.truth import LabTruth
+from ..options import option, same_option
 from ..outputs import folder_in_place, write_manifest
 from ..progress import Cancel, Progress, part, quiet
-from ..stages.compensate import DEFAULT_SCHEDULE
 from ..stages.display_area import choose_area
 from . import calibrate, capture, compensate, diagnose, evaluate, layout
 from .stage_c import StageCOptions
@@ -50,22 +50,28 @@ PLAN = (("lab", 0.13), ("calibrate", 0.05), ("cross-check", 0.02), ("compensate"
         ("diagnose", 0.4), ("with effects", 0.15))
 
 
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(n.strip() for n in text.split(",") if n.strip())
+
+
 @dataclass(frozen=True)
 class DemoOptions:
     """What ``procam demo`` asks for."""
 
     out: Path = Path("out/demo")
-    full: bool = False
-    #: fraction of the paper's resolution; None: 1 with ``full``, else 0.5 (small values make a quick smoke run)
-    scale: float | None = None
-    surface: str = "vedge"
-    effects: str = "realistic"
-    targets: tuple[str, ...] = ("city", "forest")
-    schedule: str = DEFAULT_SCHEDULE
-    #: stage C's iterations per target; None: the schedule's
-    iterations: int | None = None
-    samples: int = 16
-    seed: int = 0
+    full: bool = option(False, help="paper resolution: camera 640×480, projector 800×600")
+    scale: float | None = option(
+        None, min=0.05, max=2.0,
+        help="fraction of the paper's resolution (default 0.5, or 1 with --full); e.g. 0.2 for a quick check")
+    surface: str = option("vedge", choices=("plane", "curve", "vedge", "hedge"), help="the lab's surface")
+    effects: str = option("realistic", help="lab effects (default: realistic)")
+    targets: tuple[str, ...] = option(("city", "forest"), parse=_names, metavar="TARGETS",
+                                      help="built-in targets, comma-separated (default city,forest)")
+    # stage C's own declarations: the same flags, limits and help as procam compensate's
+    schedule: str = same_option(StageCOptions, "schedule")
+    iterations: int | None = same_option(StageCOptions, "iterations")
+    samples: int = option(16, min=1, help="Cycles samples per pixel for the lab")
+    seed: int = option(0, min=0, help="seed of every random stream")
     force: bool = False
 
 
