@@ -154,7 +154,8 @@ def _unwrap(hint: Any) -> tuple[type, bool]:
     args = typing.get_args(hint)
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         rest = [a for a in args if a is not type(None)]
-        kind, _ = _unwrap(rest[0])
+        # several kinds (a surface's name, file or mesh): the command line gives text, Python any of them
+        kind = _unwrap(rest[0])[0] if len(rest) == 1 else object
         return kind, len(rest) < len(args)
     origin = typing.get_origin(hint)
     return (origin or hint), False

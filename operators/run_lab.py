@@ -16,12 +16,18 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 from ..addon.blender import rig as blender_rig
 from ..addon.errors import ProCamError
 from ..addon.lab.lab import describe_run
+from ..addon.options import sidebar_names, spec_of
 from ..addon.steps.capture import LabOptions, run_lab
 from .messages import REPLACE_BOX, sidebar_text
 
-#: The command's options as this operator's dialog names them (its messages come from the shared lab step).
-_OPTION_NAMES = REPLACE_BOX | {"--out": "‘Capture Set’ folder", "--truth": "‘Truth File’",
-                               "--effects": "‘Effects’", "--scale": "‘Resolution Scale’", "--samples": "‘Samples’"}
+#: The command's options as this operator's dialog names them (its messages come from the shared lab step): the
+#: labels LabOptions declares, which the dialog's fields below show.
+_OPTION_NAMES = REPLACE_BOX | {"--out": "‘Capture Set’ folder"} | sidebar_names([LabOptions])
+
+def _label(name: str) -> str:
+    """The dialog's label of a lab option, as LabOptions declares it (and messages name it)."""
+    return spec_of(LabOptions, name).label
+
 
 _SURFACES = [("SCENE", "Scene Surface", "The scene's ProCam Surface (set it with Set Surface)"),
              ("plane", "Plane", "A flat textured wall"),
@@ -38,21 +44,21 @@ class PROCAM_OT_run_lab(bpy.types.Operator):
     bl_label = "Run Virtual Lab"
     bl_options = {"REGISTER", "UNDO"}
 
-    surface: EnumProperty(name="Surface", items=_SURFACES, default="SCENE")
+    surface: EnumProperty(name=_label("surface"), items=_SURFACES, default="SCENE")
     use_scene_rig: BoolProperty(name="Scene Rig", default=True,
                                 description="Use the scene's ProCam camera and projector when it has them "
                                             "(else the demo rig: camera 640×480, projector 800×600)")
-    effects: StringProperty(name="Effects", default="",
+    effects: StringProperty(name=_label("effects"), default="",
                             description="NAME=STRENGTH,… (strengths in [0, 1]) or 'realistic'; empty: none")
-    samples: IntProperty(name="Samples", description="Cycles samples per pixel", default=16, min=0, soft_min=1,
+    samples: IntProperty(name=_label("samples"), description="Cycles samples per pixel", default=16, min=0, soft_min=1,
                          soft_max=256)
-    scale: FloatProperty(name="Resolution Scale", description="Scale of the camera and projector resolutions",
+    scale: FloatProperty(name=_label("scale"), description="Scale of the camera and projector resolutions",
                          default=1.0, soft_min=0.05, soft_max=2.0)
-    seed: IntProperty(name="Seed", default=0, min=0)
-    graycode: BoolProperty(name="Gray Code", description="Include the Gray-code patterns", default=True)
+    seed: IntProperty(name=_label("seed"), default=0, min=0)
+    graycode: BoolProperty(name=_label("graycode"), description="Include the Gray-code patterns", default=True)
     out_dir: StringProperty(name="Capture Set", subtype="DIR_PATH",
                             description="Folder of the new capture set (default: the scene's capture set)")
-    truth_path: StringProperty(name="Truth File", subtype="FILE_PATH",
+    truth_path: StringProperty(name=_label("truth"), subtype="FILE_PATH",
                                description="Sealed truth JSON outside the capture set (default: beside it)")
     force: BoolProperty(name="Replace", description="Replace an existing capture set (and truth file)")
 

@@ -14,6 +14,7 @@ The capture-set format itself (reading, validating, writing) is
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -25,10 +26,11 @@ from ..capture.devices import RigLens, export_sequence, import_captures, load_se
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
-from ..lab.effects import parse_effects
+from ..lab.effects import effect_help, parse_effects
 from ..lab.truth import check_supersample, make_truth, scaled_rig
 from ..lab.lab import check_lab_outputs, run_lab as render_lab
 from ..rig.demo import demo_rig
+from ..options import option, same_option, validate
 from ..progress import Cancel, Progress, quiet
 from ..outputs import check_replaceable, file_sha256
 from ..rig.model import Camera, Intrinsics, Projector, Rig
@@ -37,37 +39,71 @@ from . import layout
 from . import rig as rig_step
 
 
+def percent_pair(text: str) -> tuple[float, float]:
+    """``A,B`` in percent → two fractions."""
+    try:
+        a, b = (float(v) / 100.0 for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"expected two percentages A,B (e.g. 0,127), got {text!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise ValueError(f"expected two finite percentages A,B (e.g. 0,127), got {text!r}")
+    return a, b
+
+
+def board_size(text: str) -> tuple[int, int]:
+    """``COLSxROWS`` inner corners."""
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"board must be COLSxROWS inner corners, e.g. 9x7; got {text!r}") from None
+    return cols, rows
+
+
 @dataclass(frozen=True)
 class LabOptions:
     """What ``procam lab`` and Run Virtual Lab ask for."""
 
     out: Path
-    #: plane, curve, vedge, hedge, a mesh file (rig frame, metres), or a mesh (Blender's ProCam Surface)
-    surface: str | Path | SurfaceMesh = "curve"
-    #: NAME=STRENGTH[,NAME.PARAM=VALUE…] or 'realistic'
-    effects: str = ""
-    seed: int = 0
-    samples: int = 16
-    #: 1 = camera 640×480, projector 800×600
-    scale: float = 1.0
-    graycode: bool = True
-    #: render checker and Gray-code frames with the full samples too
-    full_binary: bool = False
-    #: sealed truth file outside the capture set (None: OUT.truth.json beside OUT)
-    truth: Path | None = None
+    #: a mesh too: Blender's ProCam Surface
+    surface: str | Path | SurfaceMesh = option(
+        "curve", label="Surface", own_field=True,
+        help="plane, curve, vedge, hedge, or an .obj/.ply file (rig frame, metres)")
+    effects: str = option("", label="Effects", check=parse_effects,
+                          help="NAME=STRENGTH[,NAME.PARAM=VALUE…] or 'realistic'. " + effect_help())
+    seed: int = option(0, min=0, label="Seed", help="seed of every random stream; the same seed repeats the result")
+    samples: int = option(16, min=1, label="Samples",
+                          help="Cycles samples per pixel (default 16); checker and Gray-code frames, which are only "
+                               "binarised, get a quarter (at least 4) unless --full-binary")
+    scale: float = option(1.0, min=0.05, max=2.0, label="Resolution Scale",
+                          help="resolution scale: 1 = camera 640×480, projector 800×600 (default); 0.5 halves both")
+    graycode: bool = option(True, negate="--no-graycode", label="Gray Code",
+                            help="render the Gray-code patterns (off: faster)")
+    full_binary: bool = option(False, help="render checker and Gray-code frames with the full --samples too")
+    truth: Path | None = option(None, label="Truth File", own_field=True,
+                                help="sealed truth JSON, outside the capture set (default: OUT.truth.json beside OUT)")
     #: the rig to use instead of the demo rig (Blender's scene rig)
     rig: Rig | None = None
     surface_source: str | None = None
     camera_size: tuple[int, int] = (640, 480)
     projector_size: tuple[int, int] = (800, 600)
-    #: the demo projector's lens shift (right, up; fractions of the image); None: the demo's 15 % up
-    projector_shift: tuple[float, float] | None = None
-    #: how wrong the projector's spec-sheet intrinsics are: (focal length fraction, vertical shift in image heights)
-    nominal_error: tuple[float, float] = (0.0, 0.0)
-    #: how wrong the camera's horizontal field of view is, in degrees
-    camera_fov_error: float = 0.0
-    #: render the camera at this many times its resolution and average down (lens distortion resamples it)
-    supersample: int = 1
+    #: (right, up; fractions of the image)
+    projector_shift: tuple[float, float] | None = option(
+        None, parse=percent_pair, metavar="RIGHT,UP",
+        help="the demo projector's lens shift in % of its image (default 0,15; a real projector may sit far below "
+             "its image, e.g. 0,127)")
+    #: (focal length fraction, vertical shift in image heights)
+    nominal_error: tuple[float, float] = option(
+        (0.0, 0.0), parse=percent_pair, metavar="FOCAL,SHIFT",
+        help="give the pipeline a projector spec that is wrong by FOCAL % in focal length (throw ratio) and SHIFT % "
+             "of the height in vertical lens shift, as a data sheet may be (default 0,0)")
+    camera_fov_error: float = option(
+        0.0, metavar="DEGREES",
+        help="give the pipeline a camera whose horizontal field of view is DEGREES off, as a guessed or spec-sheet "
+             "FoV may be (default 0)")
+    supersample: int = option(
+        1, check=check_supersample, metavar="N",
+        help="render the camera at N times its resolution and average down, so that lens distortion resamples "
+             "finer pixels than the camera's, as a real lens does (default 1; 2 costs 4×)")
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -79,8 +115,7 @@ class LabOptions:
 
 def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
     """Render a calibration capture set in the virtual lab; every argument is checked before the first render."""
-    if not 0.05 <= options.scale <= 2:
-        raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
+    validate(options, LabError)
     out, truth_path = options.paths()
     # What the truth must not be written into: the mesh read, and any step folder (another set's capture.json…).
     named = isinstance(options.surface, (str, Path)) and Path(options.surface).is_file()
@@ -104,27 +139,29 @@ class BoardOptions:
     """What ``procam lab-board`` asks for: board sessions of the demo rig for ``procam calibrate-rig``."""
 
     out: Path
-    board: tuple[int, int] = (9, 7)
-    #: metres
-    square: float = 0.06
-    poses: int = 6
-    effects: str = ""
-    samples: int = 4
-    #: 1 = camera 640×480, projector 800×600
-    scale: float = 1.0
-    seed: int = 0
-    truth: Path | None = None
+    board: tuple[int, int] = option((9, 7), parse=board_size, metavar="COLSxROWS",
+                                    help="inner corners (default 9x7)")
+    square: float = option(0.06, min=1e-6, metavar="METRES", help="square size (default 0.06)")
+    poses: int = option(6, min=3, help="board poses (default 6; at least 3)")
+    effects: str = option("", check=parse_effects,
+                          help="lab effects, e.g. distortion=0.5,noise=0.3 (default none)")
+    samples: int = option(4, min=1, help="Cycles samples per pixel (default 4)")
+    scale: float = same_option(LabOptions, "scale", label="",
+                               help="resolution scale: 1 = camera 640×480, projector 800×600")
+    seed: int = same_option(LabOptions, "seed", label="")
+    truth: Path | None = same_option(LabOptions, "truth", label="", own_field=False,
+                                     help="sealed truth file (default: OUT.truth.json beside OUT)")
     force: bool = False
-    #: render the camera at this many times its resolution and average down (lens distortion resamples it);
-    #: None: 2 when the effects distort the camera's lens, else 1
-    supersample: int | None = None
+    supersample: int | None = option(
+        None, check=check_supersample, metavar="N",
+        help="render the camera at N times its resolution and average down, so that lens distortion resamples "
+             "finer pixels than the camera's, as a real lens does (default 2 when --effects distort the camera's "
+             "lens, which costs 4× the rendering; else 1)")
 
 
 def run_board(options: BoardOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> BoardTruth:
     """Render the board sessions (``lab/board.py``) and seal their truth beside them."""
-    if not 0.05 <= options.scale <= 2:
-        raise LabError(f"the resolution scale must lie between 0.05 and 2, got {options.scale}")
-    parse_effects(options.effects)  # a bad effect fails before the first render
+    validate(options, LabError)  # a bad effect fails before the first render
     supersample = check_supersample(options.supersample if options.supersample is not None
                                     else default_supersample(options.effects))
     return render_board_sessions(scaled_rig(demo_rig(), options.scale), Path(options.out), board=options.board,
