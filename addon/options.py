@@ -296,12 +296,13 @@ def from_values(cls: type, values: Callable[[str], Any], **given: Any) -> Any:
     return cls(**{**out, **given})
 
 
-def sidebar_names(classes: Iterable[type]) -> dict[str, str]:
-    """The command's flags of the sidebar's fields, each named by its label as a message says it."""
+def sidebar_names(classes: Iterable[type], only: Sequence[str] = ()) -> dict[str, str]:
+    """The command's flags of the sidebar's fields (``only`` these options), each named by its label as a message
+    says it."""
     names: dict[str, str] = {}
     for cls in classes:
         for d in declared(cls):
-            if not d.spec.label:
+            if not d.spec.label or (only and d.name not in only):
                 continue
             flag = d.spec.negate or d.spec.cli_flag(d.name)
             if flag:

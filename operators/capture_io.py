@@ -11,8 +11,9 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from ..addon.blender import rig as blender_rig
-from ..addon.errors import CaptureError, ProCamError
-from ..addon.steps.capture import ImportOptions, PatternsOptions, run_import, run_patterns
+from ..addon.errors import ProCamError
+from ..addon.options import sidebar_names, spec_of
+from ..addon.steps.capture import DepthSensorSize, ImportOptions, PatternsOptions, run_import, run_patterns
 from . import paths
 from .messages import REPLACE_BOX, sidebar_text
 
@@ -23,6 +24,20 @@ DEPTH_UNITS_ITEMS = [("auto", "Auto", "Detect millimetres given as metres from t
                                       "it converts)"),
                      ("m", "Metres", "The depth values are metres"),
                      ("mm", "Millimetres", "The depth values are millimetres")]
+
+
+def _label(name: str) -> str:
+    """The import dialog's label of an option, as ImportOptions declares it (and messages name it)."""
+    return spec_of(ImportOptions, name).label
+
+
+def _sensor_label(side: str) -> str:
+    return spec_of(DepthSensorSize, f"depth_native_{side}").label
+
+
+#: the import's options as its dialog names them in messages
+_IMPORT_NAMES = (REPLACE_BOX | {"--out": "‘New Capture Set’ folder"}
+                 | sidebar_names([ImportOptions, DepthSensorSize]))
 
 
 def _rig_missing(context: bpy.types.Context) -> str:
@@ -42,7 +57,7 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
     directory: StringProperty(name="Folder", subtype="DIR_PATH",
                               description="New folder for the numbered frames and sequence.json")
     force: BoolProperty(name="Replace", default=False, description="Replace an existing exported sequence there")
-    order: EnumProperty(name="Order", default="procam", items=[
+    order: EnumProperty(name=spec_of(PatternsOptions, "layout").label, default="procam", items=[
         ("procam", "ProCam", "Surface photo, black, white, checkerboards, Gray code, validation patterns"),
         ("opencv", "OpenCV Structured Light", "Gray code (each bit then its inverse, x then y), white, black, then "
                    "the validation patterns: the order of OpenCV's structured-light sessions and of board sessions "
@@ -88,27 +103,27 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
     photos_dir: StringProperty(name="Photographs", subtype="DIR_PATH",
                                description="One photograph per frame, numbered in the same order")
     out_dir: StringProperty(name="New Capture Set", subtype="DIR_PATH", description="Folder to create")
-    rig_file: StringProperty(name="Rig Calibration", subtype="FILE_PATH",
+    rig_file: StringProperty(name=_label("rig"), subtype="FILE_PATH",
                              description="Optional rig.json from procam calibrate-rig: calibrated camera and projector "
                                          "lenses (the camera's distortion is removed from the photographs) and, "
                                          "when calibrated in metres, the projector's pose")
-    depth_file: StringProperty(name="Depth", subtype="FILE_PATH",
+    depth_file: StringProperty(name=_label("depth_path"), subtype="FILE_PATH",
                                description="Optional depth of the scene seen from the camera: .npy/.exr in metres, "
                                            "16-bit .png/.tif in millimetres (0 = no depth), or a .ply point cloud "
                                            "in the camera's OpenCV frame; a shift of a few pixels against the "
                                            "photographs is found and corrected (with a warning)")
-    depth_units: EnumProperty(name="Depth Units", items=DEPTH_UNITS_ITEMS, default="auto")
-    depth_native_width: IntProperty(name="Depth Sensor Width", default=0, min=0, subtype="PIXEL",
+    depth_units: EnumProperty(name=_label("depth_units"), items=DEPTH_UNITS_ITEMS, default="auto")
+    depth_native_width: IntProperty(name=_sensor_label("width"), default=0, min=0, subtype="PIXEL",
                                     description="Native depth-sensor width (e.g. 256): a .ply point cloud is "
                                                 "projected at this size; 0: the camera's")
-    depth_native_height: IntProperty(name="Depth Sensor Height", default=0, min=0, subtype="PIXEL",
+    depth_native_height: IntProperty(name=_sensor_label("height"), default=0, min=0, subtype="PIXEL",
                                      description="Native depth-sensor height (e.g. 192); 0: the camera's")
-    encoding: EnumProperty(name="Encoding", items=ENCODING_ITEMS, default="auto",
+    encoding: EnumProperty(name=_label("encoding"), items=ENCODING_ITEMS, default="auto",
                            description="How the photographs are encoded")
-    camera_fov: FloatProperty(name="Camera Field of View", default=60.0, min=1.0, max=179.0,
+    camera_fov: FloatProperty(name=_label("camera_fov"), default=60.0, min=1.0, max=179.0,
                               description="Nominal horizontal field of view in degrees, used only without a rig "
                                           "calibration and without a ProCam Camera in the scene")
-    check_exposure: BoolProperty(name="Check Exposure", default=True,
+    check_exposure: BoolProperty(name=_label("check_exposure"), default=True,
                                  description="Refuse a session whose exposure or white balance changed between "
                                              "photographs (complementary patterns that do not add up to white + "
                                              "black); off: import anyway")
@@ -161,9 +176,7 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
             camera = blender_rig.read_camera(context.scene) if objs.camera is not None and rig is None else None
             out = paths.resolve(self.out_dir, "new capture set")
             depth = paths.resolve(self.depth_file, "depth file") if self.depth_file else None
-            if bool(self.depth_native_width) != bool(self.depth_native_height):
-                raise CaptureError("give both the depth sensor's width and height, or neither")
-            native = (self.depth_native_width, self.depth_native_height) if self.depth_native_width else None
+            native = DepthSensorSize(self.depth_native_width or None, self.depth_native_height or None).size()
             captures = run_import(ImportOptions(paths.resolve(self.sequence_dir, "pattern sequence"),
                                                 paths.resolve(self.photos_dir, "photographs"), out, camera=camera,
                                                 camera_fov=self.camera_fov, encoding=self.encoding,
@@ -172,7 +185,7 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
                                                 check_exposure=self.check_exposure, force=self.force),
                                   progress)
         except ProCamError as exc:
-            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘New Capture Set’ folder"}))
+            self.report({"ERROR"}, sidebar_text(str(exc), _IMPORT_NAMES))
             return {"CANCELLED"}
         context.scene.procam_capture_dir = str(out)
         lens = f", calibrated camera and projector from {rig.name}" if rig is not None else ""

@@ -24,6 +24,7 @@ from ..addon.live.camera import CameraClient, parse_source
 from ..addon.live.device import LiveDevice, LiveReport, LiveSpec
 from ..addon.live.window import list_displays
 from ..addon.progress import Cancel, Progress
+from ..addon.options import sidebar_names, spec_of
 from ..addon.rig.model import Projector
 from ..addon.steps.live import LiveCaptureOptions, run_live_capture
 from . import paths
@@ -158,11 +159,11 @@ class PROCAM_OT_live_capture(_LiveJob, bpy.types.Operator):
     bl_label = "Capture Live"
     bl_options = {"REGISTER", "UNDO"}
     step = "live_capture"
-    option_names = {"--out": "‘Live Capture Set’ folder", "--restart": "‘Restart’"}
+    option_names = {"--out": "‘Live Capture Set’ folder", **sidebar_names([LiveCaptureOptions], only=("restart",))}
     cancel_note = "the photographs so far are kept beside the capture-set folder: Capture Live again resumes"
     _out = None  # the capture set being written (a Path), for apply(); no annotation: Blender reads those as properties
 
-    restart: BoolProperty(name="Restart", default=False,
+    restart: BoolProperty(name=spec_of(LiveCaptureOptions, "restart").label, default=False,
                           description="Discard an interrupted session of other settings instead of refusing")
 
     @classmethod

@@ -33,7 +33,8 @@ from ..rig.demo import demo_rig
 from ..options import option, same_option, validate
 from ..progress import Cancel, Progress, quiet
 from ..outputs import check_replaceable, file_sha256
-from ..rig.model import Camera, Intrinsics, Projector, Rig
+from ..capture.patterns import LAYOUTS
+from ..rig.model import Camera, Intrinsics, Projector, Rig, intrinsics_from_fov, projector_intrinsics_from_throw
 from ..surface.mesh import SurfaceMesh
 from . import layout
 from . import rig as rig_step
@@ -179,20 +180,48 @@ class PatternsOptions:
     projector: Projector
     out: Path
     camera: Camera | None = None
-    checker: int | None = None
-    #: draw patterns inside the projector input, or over the whole frame
-    area: str = "input"
-    graycode: bool = True
-    validation: bool = True
-    seed: int = 0
-    #: procam, or opencv: OpenCV's structured-light order (Gray code, white, black), for sessions captured that way
-    layout: str = "procam"
+    checker: int | None = option(None, min=1, help="checkerboard square size in pixels (default: ~1/12 of the input)")
+    area: str = option("input", choices=("input", "frame"),
+                       help="draw patterns inside the projector input (default) or over the whole frame")
+    graycode: bool = option(True, negate="--no-graycode", help="the Gray-code frames (off: left out)")
+    validation: bool = option(True, negate="--no-validation", help="the validation frames (off: left out)")
+    seed: int = option(0, min=0, help="seed of the random validation patterns")
+    layout: str = option(
+        "procam", choices=LAYOUTS, label="Order", own_field=True,
+        help="procam (default): surface photo, black, white, checkerboards, Gray code, validation; opencv: OpenCV's "
+             "structured-light order (Gray code, each bit then its inverse, x then y; then white and black; no "
+             "surface photo or checkerboard), as procam calibrate-rig's board sessions use: import such photographs "
+             "with it")
     force: bool = False
+
+
+@dataclass(frozen=True)
+class ProjectorSheet:
+    """The projector as a spec sheet gives it (native size, input area, throw ratio, lens shift): the command
+    line's form of :class:`Projector` for ``patterns`` and ``capture``."""
+
+    projector_width: int = option(required=True, min=1, help="native projector width (px)")
+    projector_height: int = option(required=True, min=1, help="native projector height (px)")
+    input_width: int | None = option(None, min=1, help="projector input width inside the frame (default: frame)")
+    input_height: int | None = option(None, min=1, help="projector input height (default: frame)")
+    throw_ratio: float = option(1.0, check=lambda t: projector_intrinsics_from_throw(1, 1, t),
+                                help="nominal throw ratio, distance / width (default 1.0)")
+    shift_x: float = option(0.0, help="nominal lens shift right, fraction of the width")
+    shift_y: float = option(0.0, help="nominal lens shift up, fraction of the height")
+
+    def projector(self) -> Projector:
+        validate(self, RigError)
+        intr = projector_intrinsics_from_throw(self.projector_width, self.projector_height, self.throw_ratio,
+                                               self.shift_x, self.shift_y)
+        if (self.input_width is None) != (self.input_height is None):
+            raise RigError("give both --input-width and --input-height, or neither")
+        return Projector(intr, input_size=(self.input_width, self.input_height) if self.input_width else None)
 
 
 def run_patterns(options: PatternsOptions, progress: Progress | None = None,
                  cancel: Cancel | None = None) -> Path:
     """Write the numbered calibration pattern frames and ``sequence.json``; returns the folder."""
+    validate(options, CaptureError)
     (progress or quiet)("writing the pattern frames", 0.0)
     out = export_sequence(options.projector, options.out, checker_size=options.checker, area=options.area,
                           seed=options.seed, camera=options.camera, graycode=options.graycode,
@@ -205,23 +234,71 @@ def run_patterns(options: PatternsOptions, progress: Progress | None = None,
 class PhotoSettings:
     """How photographs become a capture set: what importing a folder of them and capturing them live share."""
 
-    #: the camera's field of view when nothing else gives its K
-    camera_fov: float = 60.0
-    #: a depth file: .npy/.exr in metres, 16-bit PNG/TIFF in millimetres, or a PLY point cloud in the camera frame
-    depth_path: Path | None = None
-    #: the depth file's units: auto (detected from its values, with a warning when it converts), m or mm
-    depth_units: str = "auto"
-    #: the depth sensor's native resolution (a point cloud is projected at this size; default the camera's)
+    camera_fov: float = option(
+        60.0, min=1.0, max=179.0, label="Camera Field of View", own_field=True,
+        help="nominal horizontal field of view of the camera in degrees (default 60), when nothing else gives the "
+             "camera's K")
+    depth_path: Path | None = option(
+        None, flag="--depth", metavar="FILE", label="Depth", own_field=True,
+        help="depth of the scene seen from the camera: .npy/.exr in metres, 16-bit .png/.tif in millimetres (0 = no "
+             "depth; iPhone, RealSense, Azure Kinect), or a .ply point cloud in the camera's OpenCV frame (x right, "
+             "y down, z forward). A shift of a few pixels against the photographs is found and corrected (with a "
+             "warning)")
+    depth_units: str = option(
+        "auto", choices=("auto", "m", "mm"), label="Depth Units", own_field=True,
+        help="units of the depth values; auto (default) detects millimetres given as metres and says so")
+    #: the depth sensor's native resolution (a point cloud is projected at this size; default the camera's);
+    #: the command line gives it as :class:`DepthSensorSize`
     depth_native_size: tuple[int, int] | None = None
-    #: a ``rig.json`` from ``procam calibrate-rig``: calibrated camera and projector K, the camera's lens
-    #: distortion taken out of every photograph, and the projector's pose when the rig is metric
-    rig: Path | None = None
-    #: refuse a session whose exposure or white balance changed between photographs (capture/exposure.py)
-    check_exposure: bool = True
+    rig: Path | None = option(
+        None, metavar="RIG_JSON", label="Rig Calibration", own_field=True,
+        help="a rig calibration from `procam calibrate-rig`: calibrated camera and projector K, the camera's lens "
+             "distortion removed from every photograph (and the depth map), the projector's pose when the rig was "
+             "calibrated with --square in metres")
+    check_exposure: bool = option(
+        True, negate="--no-exposure-check", label="Check Exposure", own_field=True,
+        help="refuse a session whose exposure or white balance seems to change between photographs (complementary "
+             "patterns that do not add up to white + black); off: import anyway")
 
     def photo_settings(self) -> dict[str, Any]:
         """These settings as keywords, to hand them on to an import."""
         return {f.name: getattr(self, f.name) for f in fields(PhotoSettings)}
+
+
+@dataclass(frozen=True)
+class DepthSensorSize:
+    """The depth sensor's native size as the command line and the import dialog give it: two numbers, both or
+    neither."""
+
+    depth_native_width: int | None = option(
+        None, min=1, label="Depth Sensor Width", own_field=True,
+        help="native depth-sensor width (e.g. 256); a .ply point cloud is projected at this size")
+    depth_native_height: int | None = option(None, min=1, label="Depth Sensor Height", own_field=True,
+                                             help="native depth-sensor height (e.g. 192)")
+
+    def size(self) -> tuple[int, int] | None:
+        validate(self, CaptureError)
+        w, h = self.depth_native_width, self.depth_native_height
+        if w is None and h is None:
+            return None
+        if w is None or h is None:
+            raise CaptureError("give both the depth sensor's width and height (--depth-native-width, "
+                               "--depth-native-height), or neither")
+        return w, h
+
+
+@dataclass(frozen=True)
+class CameraSize:
+    """The photographs' expected size (checked against them), as ``import-captures`` takes it."""
+
+    camera_width: int | None = option(None, min=1, help="expected capture width (checked)")
+    camera_height: int | None = option(None, min=1, help="expected capture height (checked)")
+
+    def camera(self, fov: float) -> Camera | None:
+        validate(self, CaptureError)
+        if (self.camera_width is None) != (self.camera_height is None):
+            raise CaptureError("give both --camera-width and --camera-height, or neither")
+        return Camera(intrinsics_from_fov(self.camera_width, self.camera_height, fov)) if self.camera_width else None
 
 
 @dataclass(frozen=True)
@@ -233,8 +310,8 @@ class ImportOptions(PhotoSettings):
     out: Path
     #: the camera model (size checked against the photographs); None: from the photographs and ``camera_fov``
     camera: Camera | None = None
-    #: auto: 8-bit files are sRGB, 16-bit/float are linear
-    encoding: str = "auto"
+    encoding: str = option("auto", choices=("auto", "srgb", "linear"), label="Encoding", own_field=True,
+                           help="how the captures are encoded; auto: 8-bit files are sRGB, 16-bit/float are linear")
     #: a depth map already in memory (metres, aligned with the camera up to a few pixels)
     depth: np.ndarray | None = None
     force: bool = False
@@ -270,7 +347,8 @@ class UndistortOptions:
     """What ``procam undistort-captures`` asks for: a capture set, the rig calibration of its camera, a new folder."""
 
     captures_dir: Path
-    rig: Path
+    rig: Path = option(required=True, metavar="RIG_JSON",
+                       help="a rig calibration from `procam calibrate-rig` of the camera that took the set")
     out: Path
     force: bool = False
 
@@ -290,6 +368,7 @@ def run_undistort(options: UndistortOptions, progress: Progress | None = None,
 def run_import(options: ImportOptions, progress: Progress | None = None,
                cancel: Cancel | None = None) -> CaptureSet:
     """Turn photographs of an exported pattern sequence into a new capture set."""
+    validate(options, CaptureError)
     check_replaceable(options.out, force=options.force, what=layout.CAPTURES.what, replaceable=layout.CAPTURES.holds,
                       inputs=(options.sequence_dir, options.photos_dir, options.depth_path, options.rig),
                       error=CaptureError)

@@ -27,33 +27,41 @@ from typing import Any
 
 from ..capture.devices import export_sequence, load_sequence, sequence_frame
 from ..capture.format import CaptureSet, is_capture_set
-from ..errors import Cancelled, CaptureError
+from ..errors import Cancelled, CaptureError, LiveError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..live.device import LiveDevice, LiveSpec
+from ..options import option, same_option, validate
 from ..outputs import check_replaceable
 from ..progress import Cancel, Progress, never, part, quiet
-from ..rig.model import Projector
-from .capture import ImportOptions, PhotoSettings, run_import
+from ..rig.model import Projector, projector_intrinsics_from_throw
+from .capture import ImportOptions, PatternsOptions, PhotoSettings, ProjectorSheet, run_import
 
 SESSION_FORMAT = "procam-live-session"
 SESSION_MANIFEST = "session.json"
+
+
+DEVICE_HELP = ("live:camera=SOURCE,display=N — SOURCE a camera index, a device path or a URL (http://…mjpg, "
+               "rtsp://…); display=N covers display N (at the projector's native size), position=X:Y puts the "
+               "window at desktop coordinates instead; options: average=N or noise=σ (frames per capture), "
+               "encoding=srgb|linear, latency=auto|SECONDS, size=WxH")
 
 
 @dataclass(frozen=True)
 class LiveCaptureOptions(PhotoSettings):
     """What ``procam capture`` asks for: the live device, the pattern sequence, and how to import it."""
 
-    device: str  # live:camera=…,display=…
+    device: str = option(required=True, check=LiveSpec.parse, help=DEVICE_HELP)
     projector: Projector
     out: Path
-    checker: int | None = None
-    area: str = "input"
-    graycode: bool = True
-    validation: bool = True
-    seed: int = 0
+    # the pattern sequence's options, declared by the patterns step
+    checker: int | None = same_option(PatternsOptions, "checker")
+    area: str = same_option(PatternsOptions, "area")
+    graycode: bool = same_option(PatternsOptions, "graycode")
+    validation: bool = same_option(PatternsOptions, "validation")
+    seed: int = same_option(PatternsOptions, "seed")
     force: bool = False
-    #: discard an existing session of other settings instead of refusing
-    restart: bool = False
+    restart: bool = option(False, label="Restart", own_field=True,
+                           help="discard an interrupted session of other settings instead of refusing")
 
     @property
     def session(self) -> Path:
@@ -63,6 +71,26 @@ class LiveCaptureOptions(PhotoSettings):
         """What a resumed session must share with the one it continues (the device may differ: a new port…)."""
         return {"projector": self.projector.to_dict(), "checker": self.checker, "area": self.area,
                 "graycode": self.graycode, "validation": self.validation, "seed": self.seed}
+
+
+@dataclass(frozen=True)
+class LiveCheckOptions:
+    """What ``procam live-check`` asks for: the live device and the projector window's size, or the displays."""
+
+    device: str | None = same_option(LiveCaptureOptions, "device", None, required=False)
+    projector_width: int | None = same_option(ProjectorSheet, "projector_width", None, required=False,
+                                              help="native projector width (px): the window's width")
+    projector_height: int | None = same_option(ProjectorSheet, "projector_height", None, required=False)
+    list_displays: bool = option(False, help="list the displays and their sizes, then stop")
+    check_exposure: bool = option(True, negate="--no-exposure-check", help="check that the exposure is locked")
+
+    def projector(self) -> Projector:
+        """The projector whose window the check opens (its native size; the throw ratio does not matter here)."""
+        validate(self, LiveError)
+        if not (self.device and self.projector_width and self.projector_height):
+            raise LiveError("live-check needs --device, --projector-width and --projector-height (or "
+                            "--list-displays)")
+        return Projector(projector_intrinsics_from_throw(self.projector_width, self.projector_height, 1.0))
 
 
 def _is_session(path: Path) -> bool:
@@ -125,7 +153,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
                      cancel: Cancel | None = None) -> CaptureSet:
     """Capture the calibration sequence live (resuming a session of the same settings) into a new capture set."""
     say, stop = progress or quiet, cancel or never
-    LiveSpec.parse(options.device)  # a bad device string fails before anything is written
+    validate(options, CaptureError)  # a bad device string fails before anything is written
     check_replaceable(options.out, force=options.force, what="capture set", replaceable=is_capture_set,
                       inputs=(options.session, options.depth_path, options.rig),
                       error=CaptureError)
