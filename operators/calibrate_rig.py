@@ -11,6 +11,7 @@ import bpy
 
 from ..addon import jobs
 from ..addon.errors import CalibrationError, CaptureError
+from ..addon.options import from_values, sidebar_names
 from ..addon.stages.rig_calibration import MIN_POSES, RigCalibration
 from ..addon.steps import rig as rig_step
 from . import paths
@@ -61,6 +62,7 @@ class PROCAM_OT_calibrate_rig(JobOperator, bpy.types.Operator):
     bl_label = "Calibrate Rig"
     bl_options = {"REGISTER", "UNDO"}
     step = "calibrate_rig"
+    option_names = {"--out": "‘Rig File’", **sidebar_names([rig_step.RigOptions])}
     _out = None  # the rig.json being written (a Path), for apply(); no annotation: Blender reads those as properties
 
     @classmethod
@@ -80,11 +82,9 @@ class PROCAM_OT_calibrate_rig(JobOperator, bpy.types.Operator):
         cols, rows = scene.procam_board_corners
         width, height = scene.procam_board_projector_size
         square = float(scene.procam_board_square)
-        options = rig_step.RigOptions(tuple(sessions), out, (int(cols), int(rows)), (int(width), int(height)),
-                                      square=square if square > 0 else None, window=int(scene.procam_board_window),
-                                      camera_model=scene.procam_board_camera_distortion,
-                                      projector_model=scene.procam_board_projector_distortion,
-                                      force=scene.procam_replace_outputs)
+        options = from_values(rig_step.RigOptions, lambda prop: getattr(scene, prop), sessions=tuple(sessions),
+                              out=out, board=(int(cols), int(rows)), projector_size=(int(width), int(height)),
+                              square=square if square > 0 else None, force=scene.procam_replace_outputs)
         self._out = out
         return jobs.Job("rig calibration", rig_step.run, options)
 

@@ -4,21 +4,15 @@ rig.json that Calibrate Rig writes (its state and key figures)."""
 from pathlib import Path
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, IntProperty, IntVectorProperty, StringProperty
+from bpy.props import FloatProperty, IntVectorProperty, StringProperty
 
-from ..addon.stages.rig_calibration import DISTORTION_MODELS, MIN_POSES
+from ..addon.options import spec_of
+from ..addon.stages.rig_calibration import MIN_POSES
 from ..addon.steps import rig as rig_step
 from ..addon.steps.summary import Summary
 from ..operators import paths
+from .properties import declared_properties
 from .step_state import draw_state, wrapped
-
-_DISTORTION_HELP = {"none": "No lens distortion", "k1": "Radial k1", "k1k2": "Radial k1 k2",
-                    "k1k2p1p2": "Radial k1 k2 and tangential p1 p2",
-                    "k1k2p1p2k3": "Radial k1 k2 k3 and tangential p1 p2 (k3 needs many varied poses)"}
-DISTORTION_ITEMS = [(name, name, _DISTORTION_HELP.get(name, name)) for name in DISTORTION_MODELS]
-PROJECTOR_DISTORTION_ITEMS = [("auto", "auto", "None, k1 or k1 k2: whichever the corners support (BIC)"),
-                              *DISTORTION_ITEMS]
-
 
 def scene_properties() -> dict[str, object]:
     """Scene properties this panel shows (registered on ``bpy.types.Scene`` by ``blender_registration``)."""
@@ -32,28 +26,17 @@ def scene_properties() -> dict[str, object]:
             description="Which subfolders are board poses (a pattern such as pose_* or capture_*); others, like a "
                         "folder of the pattern images themselves, are left out"),
         "procam_board_corners": IntVectorProperty(
-            name="Inner Corners", size=2, default=(9, 7), min=2, soft_max=40,
+            name=spec_of(rig_step.RigOptions, "board").label, size=2, default=(9, 7), min=2, soft_max=40,
             description="The chessboard's inner corners per row and rows (9 × 7 and 7 × 9 find the same board)"),
         "procam_board_square": FloatProperty(
-            name="Square Size", subtype="DISTANCE", unit="LENGTH", default=0.0, min=0.0, soft_max=0.2, precision=4,
+            name=spec_of(rig_step.RigOptions, "square").label, subtype="DISTANCE", unit="LENGTH", default=0.0, min=0.0, soft_max=0.2, precision=4,
             description="One chessboard square, measured (makes the projector's position metric, so Import "
                         "Captures can use it); 0: unknown, lengths in board squares"),
         "procam_board_projector_size": IntVectorProperty(
-            name="Projector Size", size=2, default=(1920, 1080), min=1,
+            name=spec_of(rig_step.RigOptions, "projector_size").label, size=2, default=(1920, 1080), min=1,
             description="The projector's native width and height the Gray code was made for (the number of "
                         "images alone does not tell it)"),
-        "procam_board_window": IntProperty(
-            name="Corner Window", default=47, min=5, soft_max=201, subtype="PIXEL",
-            description="Camera pixels on a side of the window around each corner whose decoded pixels fit the "
-                        "local homography (about two thirds of a square works well)"),
-        "procam_board_camera_distortion": EnumProperty(
-            name="Camera Distortion", items=DISTORTION_ITEMS, default="k1k2p1p2",
-            description="Which lens distortion terms to estimate for the camera (k3 is not observable from a few "
-                        "poses)"),
-        "procam_board_projector_distortion": EnumProperty(
-            name="Projector Distortion", items=PROJECTOR_DISTORTION_ITEMS, default="auto",
-            description="Which lens distortion terms to estimate for the projector (auto: what its corners "
-                        "support; a term fitted where there is no distortion moves the principal point)"),
+        **declared_properties(rig_step.RigOptions),
         "procam_rig_file": StringProperty(
             name="Rig File", subtype="FILE_PATH",
             description="The rig.json that Calibrate Rig writes; Import Captures then uses it"),

@@ -35,7 +35,8 @@ def declared_property(d: Declared) -> object:
         return BoolProperty(default=bool(d.default), **common)
     limits = {k: v for k, v in (("min", spec.min), ("max", spec.max), ("soft_max", spec.soft_max)) if v is not None}
     if d.kind is int:
-        return IntProperty(default=spec.blank if d.default is None else d.default, **limits, **common)
+        pixel = {"subtype": spec.subtype} if spec.subtype else {}
+        return IntProperty(default=spec.blank if d.default is None else d.default, **limits, **pixel, **common)
     if d.kind is float:
         return FloatProperty(default=spec.blank if d.default is None else d.default, **limits, **common)
     extra = {"subtype": spec.subtype} if spec.subtype else {}

@@ -3,36 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 import numpy as np
 
-from ..stages.rig_calibration import DISTORTION_MODELS, MIN_POSES, RigCalibration
+from ..options import add_arguments, from_arguments
+from ..stages.rig_calibration import MIN_POSES, RigCalibration
 from ..steps.rig import RigOptions, run as calibrate_rig
 from .app import command
 from .terminal import run_step
-
-
-def _pair(what: str):
-    """An argparse type for ``AxB`` (``x``, ``×`` or ``,`` between two positive whole numbers)."""
-    def parse(text: str) -> tuple[int, int]:
-        m = re.fullmatch(r"\s*(\d+)\s*[x×X,]\s*(\d+)\s*", text)
-        if not m or int(m[1]) <= 0 or int(m[2]) <= 0:
-            raise argparse.ArgumentTypeError(f"{what} must look like 9x7 (two positive whole numbers), got {text!r}")
-        return int(m[1]), int(m[2])
-    parse.__name__ = what  # argparse names the type in its messages
-    return parse
-
-
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
 
 
 def _configure(p: argparse.ArgumentParser) -> None:
@@ -40,24 +19,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                    help=f"one folder per board pose (at least {MIN_POSES}), each holding the camera's images "
                         "PREFIX_00 … in projection order: the Gray code (OpenCV's order), then white, then black "
                         "(e.g. graycode_00..41.png for a 1024x768 projector)")
-    p.add_argument("--board", type=_pair("board"), required=True, metavar="COLSxROWS",
-                   help="the chessboard's inner corners: per row x rows (9x7 and 7x9 both find the same board)")
-    p.add_argument("--square", type=_positive, default=None, metavar="METRES",
-                   help="the size of one chessboard square in metres, so that the projector's position is metric "
-                        "and import-captures --rig can use it (default: lengths in board squares)")
-    p.add_argument("--projector", type=_pair("projector size"), required=True, metavar="WxH",
-                   help="the projector's native size the Gray code was made for (required: the image count "
-                        "gives only the number of bits, which many sizes share)")
+    add_arguments(p, RigOptions, exclude=("window", "camera_model", "projector_model"))
     p.add_argument("--out", type=Path, required=True, metavar="RIG_JSON", help="the rig.json file to write")
-    p.add_argument("--window", type=int, default=47, metavar="PIXELS",
-                   help="side of the camera-pixel window around each corner whose decoded pixels fit the local "
-                        "homography (default 47; about two thirds of a square works well)")
-    p.add_argument("--camera-distortion", choices=tuple(DISTORTION_MODELS), default="k1k2p1p2",
-                   help="which of OpenCV's k1 k2 p1 p2 k3 to estimate for the camera (default k1k2p1p2: k3 is not "
-                        "observable from a few poses)")
-    p.add_argument("--projector-distortion", choices=("auto", *DISTORTION_MODELS), default="auto",
-                   help="the same for the projector (default auto: none, k1 or k1k2, whichever the corners "
-                        "support by the BIC; a distortion fitted where there is none moves the principal point)")
+    add_arguments(p, RigOptions, only=("window", "camera_model", "projector_model"))
     p.add_argument("--force", action="store_true", help="replace an existing rig.json")
 
 
@@ -104,9 +68,7 @@ def print_report(cal: RigCalibration, out: Path) -> None:
 
 @command("calibrate-rig", "Calibrate camera, projector and their pose from a chessboard lit by Gray code.", _configure)
 def run(args: argparse.Namespace) -> int:
-    options = RigOptions(tuple(args.sessions), args.out, args.board, args.projector, square=args.square,
-                         window=args.window, camera_model=args.camera_distortion,
-                         projector_model=args.projector_distortion, force=args.force)
+    options = from_arguments(RigOptions, args, sessions=tuple(args.sessions), out=args.out, force=args.force)
     cal = run_step("calibrate-rig", calibrate_rig, options)
     print_report(cal, args.out)
     return 0

@@ -24,15 +24,17 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
 from ..capture.patterns import gray_code_bits
 from ..errors import CalibrationError, CaptureError
 from ..imageio import READ_IMAGE_SUFFIXES, read_image
+from ..options import Choice, option, validate
 from ..outputs import check_file_replaceable, holds_manifest, write_manifest
 from ..progress import Cancel, Progress, quiet
-from ..stages.rig_calibration import PoseSource, RigCalibration, calibrate_rig
+from ..stages.rig_calibration import DISTORTION_MODELS, PoseSource, RigCalibration, calibrate_rig
 from . import layout
 from .summary import Summary, cached, fmt
 
@@ -41,19 +43,64 @@ KIND = layout.RIG
 _NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<number>\d+)$")
 
 
+def _pair(what: str) -> Callable[[str], tuple[int, int]]:
+    """Text ``AxB`` (``x``, ``×`` or ``,`` between two positive whole numbers) → (A, B)."""
+    def parse(text: str) -> tuple[int, int]:
+        m = re.fullmatch(r"\s*(\d+)\s*[x×X,]\s*(\d+)\s*", text)
+        if not m or int(m[1]) <= 0 or int(m[2]) <= 0:
+            raise ValueError(f"{what} must look like 9x7 (two positive whole numbers), got {text!r}")
+        return int(m[1]), int(m[2])
+    return parse
+
+
+def _positive_square(value: float) -> None:
+    if not value > 0:
+        raise CalibrationError(f"--square must be a positive number of metres, got {value!r}")
+
+
+_DISTORTION_HELP = {"none": "No lens distortion", "k1": "Radial k1", "k1k2": "Radial k1 k2",
+                    "k1k2p1p2": "Radial k1 k2 and tangential p1 p2",
+                    "k1k2p1p2k3": "Radial k1 k2 k3 and tangential p1 p2 (k3 needs many varied poses)"}
+_DISTORTION_CHOICES = tuple(Choice(name, name, _DISTORTION_HELP.get(name, name)) for name in DISTORTION_MODELS)
+
+
 @dataclass(frozen=True)
 class RigOptions:
     """What ``procam calibrate-rig`` asks for."""
 
     sessions: tuple[Path, ...]  # one folder per board pose
     out: Path  # the rig.json to write
-    board: tuple[int, int]  # inner corners: per row, rows
-    projector_size: tuple[int, int] | None  # the Gray-code grid (native projector frame), width × height
-    #: the square's size in metres, which makes the projector's position metric; None: lengths in board squares
-    square: float | None = None
-    window: int = 47  # camera pixels on a side of each corner's homography window
-    camera_model: str = "k1k2p1p2"
-    projector_model: str = "auto"
+    board: tuple[int, int] = option(
+        required=True, parse=_pair("board"), metavar="COLSxROWS", label="Inner Corners", own_field=True,
+        help="the chessboard's inner corners: per row x rows (9x7 and 7x9 both find the same board)")
+    #: None: not given (refused by :func:`run` with what to give)
+    projector_size: tuple[int, int] | None = option(
+        required=True, flag="--projector", parse=_pair("projector size"), metavar="WxH", label="Projector Size",
+        own_field=True,
+        help="the projector's native size the Gray code was made for (required: the image count gives only the "
+             "number of bits, which many sizes share)")
+    square: float | None = option(
+        None, metavar="METRES", check=_positive_square, label="Square Size", own_field=True,
+        help="the size of one chessboard square in metres, so that the projector's position is metric and "
+             "import-captures --rig can use it (default: lengths in board squares)")
+    window: int = option(
+        47, min=5, soft_max=201, metavar="PIXELS", label="Corner Window", prop="procam_board_window",
+        subtype="PIXEL",
+        help="side of the camera-pixel window around each corner whose decoded pixels fit the local homography "
+             "(default 47; about two thirds of a square works well)")
+    camera_model: str = option(
+        "k1k2p1p2", flag="--camera-distortion", choices=_DISTORTION_CHOICES, label="Camera Distortion",
+        prop="procam_board_camera_distortion",
+        help="which of OpenCV's k1 k2 p1 p2 k3 to estimate for the camera (default k1k2p1p2: k3 is not observable "
+             "from a few poses)")
+    projector_model: str = option(
+        "auto", flag="--projector-distortion", label="Projector Distortion",
+        prop="procam_board_projector_distortion",
+        choices=(Choice("auto", "auto", "None, k1 or k1 k2: whichever the corners support (BIC)"),
+                 *_DISTORTION_CHOICES),
+        help="which of OpenCV's k1 k2 p1 p2 k3 to estimate for the projector (default auto: none, k1 or k1k2, "
+             "whichever the corners support by the BIC; a distortion fitted where there is none moves the principal "
+             "point)")
     force: bool = False
 
 
@@ -145,6 +192,7 @@ def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | 
     if options.projector_size is None:  # a missing argument is named first, before anything on disk
         raise CalibrationError("give the projector's native size (--projector WIDTHxHEIGHT): the number of images "
                                "fixes only the total number of Gray-code bits, which many sizes share")
+    validate(options, CalibrationError)
     _check_out(out, options.force, tuple(options.sessions))
     size = (int(options.projector_size[0]), int(options.projector_size[1]))
     if len(set(Path(s).resolve() for s in options.sessions)) != len(options.sessions):
