@@ -65,19 +65,21 @@ class LabOptions:
     """What ``procam lab`` and Run Virtual Lab ask for."""
 
     out: Path
-    #: a mesh too: Blender's ProCam Surface
+    #: a mesh too: Blender's ProCam Surface. The lab's sidebar is Run Virtual Lab's dialog, whose fields are the
+    #: operator's own (own_field): their labels come from here
     surface: str | Path | SurfaceMesh = option(
         "curve", label="Surface", own_field=True,
         help="plane, curve, vedge, hedge, or an .obj/.ply file (rig frame, metres)")
-    effects: str = option("", label="Effects", check=parse_effects,
+    effects: str = option("", label="Effects", own_field=True, check=parse_effects,
                           help="NAME=STRENGTH[,NAME.PARAM=VALUE…] or 'realistic'. " + effect_help())
-    seed: int = option(0, min=0, label="Seed", help="seed of every random stream; the same seed repeats the result")
-    samples: int = option(16, min=1, label="Samples",
+    seed: int = option(0, min=0, label="Seed", own_field=True,
+                       help="seed of every random stream; the same seed repeats the result")
+    samples: int = option(16, min=1, label="Samples", own_field=True,
                           help="Cycles samples per pixel (default 16); checker and Gray-code frames, which are only "
                                "binarised, get a quarter (at least 4) unless --full-binary")
-    scale: float = option(1.0, min=0.05, max=2.0, label="Resolution Scale",
+    scale: float = option(1.0, min=0.05, max=2.0, label="Resolution Scale", own_field=True,
                           help="resolution scale: 1 = camera 640×480, projector 800×600 (default); 0.5 halves both")
-    graycode: bool = option(True, negate="--no-graycode", label="Gray Code",
+    graycode: bool = option(True, negate="--no-graycode", label="Gray Code", own_field=True,
                             help="render the Gray-code patterns (off: faster)")
     full_binary: bool = option(False, help="render checker and Gray-code frames with the full --samples too")
     truth: Path | None = option(None, label="Truth File", own_field=True,
