@@ -699,7 +699,9 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     assert not isinstance(plain, LensRemovedDevice)
     # The lab's camera too (a lab set undistorted with undistort-captures); a replayed capture set is not.
     monkeypatch.setattr(stage_c, "LabTruth", SimpleNamespace(load=lambda path: path))
-    monkeypatch.setattr(stage_c, "LabDevice", lambda truth: Camera_("lab", proj))
+    from procam.addon.lab import cycles_device  # where stage C takes the lab's device from when it renders
+
+    monkeypatch.setattr(cycles_device, "LabDevice", lambda truth: Camera_("lab", proj))
     with_lens = calibration({"camera_lens_removed": lens.to_dict()}, "")
     assert isinstance(stage_c.device_pipeline("lab:t.json", with_lens), LensRemovedDevice)
     assert not isinstance(stage_c.device_pipeline(f"folder:{tmp_path / 'set'}", with_lens), LensRemovedDevice)
