@@ -44,6 +44,11 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
 
 
+def area_psnr(image: np.ndarray, target: np.ndarray, area: DisplayArea) -> float:
+    """PSNR (dB, peak 1) of ``image`` against ``target`` inside the area (both camera size)."""
+    return psnr(area.crop(image), area.crop(target))
+
+
 def ssim(image: np.ndarray, target: np.ndarray) -> float:
     """Mean SSIM over channels (Gaussian window 11, σ 1.5, as Wang et al.)."""
     a, b = _pair(image, target)
