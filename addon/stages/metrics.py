@@ -27,7 +27,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import CaptureError, ImageError
 from .display_area import DisplayArea
-from .warp import Warp
+from .warp_model import Warp
 
 
 def _pair(image: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
