@@ -11,7 +11,7 @@ projects through the lab and measures PSNR/SSIM inside the area for:
 * ``classical``     — per-pixel 3×3 colour mixing + offset, Gray-code geometry
                       (:mod:`procam.addon.stages.classical`; fitted once per surface from the
                       capture set plus 3 flat primaries captured through the lab);
-* ``ours``          — stage C, closed loop through the lab (``compensate()`` defaults except iterations);
+* ``ours``          — stage C, closed loop through the lab (``Compensator.run`` defaults except iterations);
 * ``ours_no_theta`` — stage C without θ (``use_bias=False``: no captures, the model alone);
 * ``ours_no_w``     — stage C on the calibration with the warp replaced by the identity (closed loop).
 
@@ -67,7 +67,7 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     from procam.addon.steps.calibrate import read as read_calibration
     from procam.addon.steps.calibrate import run as run_calibration
     from procam.addon.stages.classical import fit_classical
-    from procam.addon.stages.compensate import Compensator, compensate, split_iterations
+    from procam.addon.stages.compensate import Compensator, split_iterations
     from procam.addon.stages.display_area import choose_area, fit_target
     from procam.addon.stages.metrics import measure, side_by_side, uncompensated_input, without_warp
 
@@ -116,13 +116,13 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
             inputs["classical"] = (classical.compensate(placed, mask), time.perf_counter() - t0)
             common = dict(area=area, iterations_z=it_z, iterations_joint=it_joint, name=name)
             schedule = None
-            res = compensate(cal, fitted, device=device, compensator=comp, **common)
+            res = comp.run(fitted, device=device, **common)
             inputs["ours"] = (res.x_input, res.seconds)
             schedule = res.report.get("schedule", {}).get("name") if isinstance(res.report.get("schedule"), dict) else None
             used = {"total": len(res.losses), "captures": res.captures}
-            res = compensate(cal, fitted, compensator=comp, use_bias=False, **common)
+            res = comp.run(fitted, use_bias=False, **common)
             inputs["ours_no_theta"] = (res.x_input, res.seconds)
-            res = compensate(cal_no_w, fitted, device=device, compensator=comp_no_w, **common)
+            res = comp_no_w.run(fitted, device=device, **common)
             inputs["ours_no_w"] = (res.x_input, res.seconds)
             row: dict = {"name": name, "ours_iterations": used}
             crops = []
@@ -159,7 +159,7 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
     from procam.addon.steps.calibrate import CalibrateOptions
     from procam.addon.steps.calibrate import read as read_calibration
     from procam.addon.steps.calibrate import run as run_calibration
-    from procam.addon.stages.compensate import Compensator, compensate, split_iterations
+    from procam.addon.stages.compensate import Compensator, split_iterations
     from procam.addon.stages.display_area import DisplayArea, fit_target
     from procam.addon.stages.metrics import measure, side_by_side, without_warp
     from procam.addon.stages.pose import pose_error
@@ -193,8 +193,8 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
             row: dict = {"name": name}
             crops = []
             for m in methods:
-                res = compensate(cals[m], fitted, device=device, compensator=comps[m], area=area, iterations_z=it_z,
-                                 iterations_joint=it_joint, name=name)
+                res = comps[m].run(fitted, area, device=device, iterations_z=it_z, iterations_joint=it_joint,
+                                   name=name)
                 meas = measure(device, cal.rig.projector.frame_from_input(res.x_input), fitted, area, cam_size)
                 row[m] = {**meas.scores(), "seconds": round(res.seconds, 2)}
                 crops.append(area.crop(meas.capture))

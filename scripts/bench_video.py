@@ -40,7 +40,7 @@ def _lab(work: Path, scale: float) -> tuple[Path, Path]:
     from procam.addon.lab.truth import LabTruth, make_truth
     from procam.addon.lab.lab import run_lab
     from procam.addon.stages.calibrate import Calibration
-    from procam.addon.stages.warp import Warp
+    from procam.addon.stages.warp_model import Warp
     from procam.addon.steps import calibrate as calibrate_step
 
     captures, truth_path, cal_dir = work / "captures", work / "truth.json", work / "cal"

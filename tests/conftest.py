@@ -99,7 +99,7 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
         if key not in _LAB_CALIBRATIONS:
             from procam.addon.lab.truth import LabTruth
             from procam.addon.stages.calibrate import Calibration
-            from procam.addon.stages.warp import Warp
+            from procam.addon.stages.warp_model import Warp
             from procam.addon.steps import calibrate as calibrate_step
 
             truth = LabTruth.load(truth_path)  # tests are evaluation code: they may read the truth

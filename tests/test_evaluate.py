@@ -29,7 +29,7 @@ def env(lab_set, tmp_path_factory):
     from procam.addon.imageio import write_image
     from procam.addon.lab.truth import LabTruth
     from procam.addon.stages.calibrate import Calibration
-    from procam.addon.stages.warp import Warp
+    from procam.addon.stages.warp_model import Warp
     from procam.addon.steps import calibrate as calibrate_step
 
     captures_dir, truth_path = lab_set()
@@ -265,7 +265,7 @@ def test_check_capture_size():
 def test_no_w_ablation_uses_an_identity_warp(env):
     from procam.addon.stages.compensate import Compensator
     from procam.addon.stages.metrics import without_warp
-    from procam.addon.stages.warp import Warp
+    from procam.addon.stages.warp_model import Warp
 
     size = env.cal.rig.projector.input_size
     rng = np.random.default_rng(0)

@@ -20,8 +20,8 @@ import pytest
 
 from procam.addon.errors import CaptureError, ImageError
 from procam.addon.stages.compensate import (DEFAULT_SCHEDULE, SCHEDULES, BiasModel, Cancelled, CompensationError,
-                                            Compensator, Schedule, area_psnr, compensate, get_schedule, matched_alpha,
-                                            plateaued, split_iterations)
+                                            Compensator, Schedule, area_psnr, get_schedule, matched_alpha, plateaued,
+                                            split_iterations)
 from procam.addon.stages.display_area import (DisplayArea, DisplayAreaError, TargetAspectWarning, choose_area,
                                               fit_target, largest_rectangle, load_target, parse_area)
 
@@ -371,11 +371,11 @@ def test_bad_inputs_are_clear_errors(setup):
         comp.run(_target(), area, iterations_z=1, iterations_joint=0, open_loop_theta=np.zeros((3, 3, 3)))
 
 
-def test_compensate_function_and_given_theta(setup, open_loop):
+def test_run_with_given_theta(setup, open_loop):
     bias, _ = open_loop
     theta = np.zeros_like(bias.theta)
-    res = compensate(setup.cal, _target(), area=setup.area, schedule="fast", iterations_z=3, iterations_joint=2,
-                     open_loop_theta=theta, compensator=setup.comp)
+    res = setup.comp.run(_target(), setup.area, schedule="fast", iterations_z=3, iterations_joint=2,
+                         open_loop_theta=theta)
     assert res.mode == "open-loop" and res.report["bias"]["kind"] == "given" and len(res.losses) == 5
     assert isinstance(BiasModel(theta).predict(res.simulated_raw), np.ndarray)
 

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from procam.addon.errors import CalibrationError, Cancelled, ImageError, ProCamError
-from procam.addon.stages.warp import (Warp, _DrWarp, _pixel_basis, bending_matrix, grid_image, pixel_centres,
-                                      sample_bilinear, solve_inverse, tps_basis)
+from procam.addon.stages.warp import _DrWarp
+from procam.addon.stages.warp_model import (Warp, bending_matrix, grid_image, pixel_basis, pixel_centres,
+                                            sample_bilinear, solve_inverse, tps_basis)
 
 
 def _smooth_shifts(grid: int, amplitude: float, seed: int = 0) -> np.ndarray:
@@ -69,7 +70,7 @@ def test_tps_interpolates_the_control_shifts_and_reproduces_affine_fields():
     e = bending_matrix(size, n)
     assert abs(affine[:, 0] @ e @ affine[:, 0]) < 1e-8 and shifts[..., 0].ravel() @ e @ shifts[..., 0].ravel() > 0
     # The cached per-pixel basis is the same spline.
-    dense = _pixel_basis(120, 90, n).reshape(90, 120, -1)
+    dense = pixel_basis(120, 90, n).reshape(90, 120, -1)
     assert np.allclose(dense[10, 20], tps_basis(np.array([[20.5, 10.5]]), size, n)[0], atol=1e-6)
 
 
@@ -136,7 +137,7 @@ def test_drjit_warp_gradient_matches_finite_differences():
     y, x = np.mgrid[0:30, 0:40] + 0.5
     pattern = (0.5 + 0.4 * np.sin(x / 4.0) * np.cos(y / 5.0)).astype(np.float32)
     weights = np.random.default_rng(8).random((34, 50, 3)).astype(np.float32)
-    basis = _pixel_basis(40, 30, n)
+    basis = pixel_basis(40, 30, n)
     s = _smooth_shifts(n, 1.5, seed=9).reshape(-1, 2)
     warp_dr = _DrWarp(mi, size, frame_size, offset)
     warp_dr.set_pattern(pattern)

@@ -31,6 +31,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
+from ..colour import srgb_decode
 from ..errors import ImageError, RigError, SurfaceError
 from ..surface.mesh import SurfaceMesh
 from ..rig import frames
@@ -197,7 +198,7 @@ def _image_to_array(image: bpy.types.Image) -> np.ndarray:
     rgb = np.repeat(img[..., :1], 3, axis=2) if ch < 3 else img[..., :3]
     if not image.is_float and image.colorspace_settings.name == "sRGB":
         # Byte images report their stored (sRGB-encoded) values: decode to linear.
-        rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+        rgb = srgb_decode(rgb)
     return np.ascontiguousarray(rgb, dtype=np.float32)
 
 

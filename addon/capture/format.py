@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from ..colour import srgb_decode, srgb_encode
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, holds_manifest, jsonable
@@ -617,13 +618,12 @@ class CaptureSetWriter:
 
 def srgb_to_linear(values: np.ndarray) -> np.ndarray:
     """The sRGB transfer inverted (IEC 61966-2-1), for 8-bit captures that cameras store sRGB-encoded."""
-    v = np.asarray(values, dtype=np.float32)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return srgb_decode(np.asarray(values, dtype=np.float32)).astype(np.float32)
 
 
 def linear_to_srgb(values: np.ndarray) -> np.ndarray:
-    v = np.clip(np.asarray(values, dtype=np.float32), 0.0, 1.0)
-    return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1 / 2.4) - 0.055).astype(np.float32)
+    """Linear light → the sRGB transfer (clipped to [0, 1]), float32."""
+    return srgb_encode(np.asarray(values, dtype=np.float32)).astype(np.float32)
 
 
 __all__ = ["AtomicFolder", "CaptureSet", "CaptureSetWriter", "DepthInfo", "Entry", "KINDS", "FORMAT", "VERSION",

@@ -52,6 +52,7 @@ from ..errors import Cancelled, CaptureError, ProCamError, SurfaceError
 from ..progress import Cancel
 from ..render.backend import mitsuba
 from ..render.scene import surface_mesh
+from ..rig.lens import undistort_normalised
 from ..stages.calibrate import Calibration, SATURATED
 from ..stages.pose import full_white_irradiance, surface_view, target_mask
 from ..surface.reconstruct import wall_depth_offset
@@ -340,14 +341,9 @@ def distortion_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray) ->
 
     def residual(theta: np.ndarray, sel: np.ndarray) -> np.ndarray:
         xd = seen[sel]
-        xu = xd
-        p1, p2 = theta[8], theta[9]
-        for _ in range(6):  # undistort OpenCV's x_d = x_u (1 + k1 r² + k2 r⁴) + tangential(p1, p2), fixed point
-            x, y = xu[:, :1], xu[:, 1:]
-            r2 = x * x + y * y
-            tang = np.concatenate([2 * p1 * x * y + p2 * (r2 + 2 * x * x), p1 * (r2 + 2 * y * y) + 2 * p2 * x * y],
-                                  axis=1)
-            xu = (xd - tang) / (1 + theta[6] * r2 + theta[7] * r2 * r2)
+        # undistort OpenCV's x_d = x_u (1 + k1 r² + k2 r⁴) + tangential(p1, p2), fixed point
+        xu = np.concatenate(undistort_normalised(xd[:, :1], xd[:, 1:], theta[6], theta[7], theta[8], theta[9],
+                                                 steps=6), axis=1)
         pts = _bilinear(view.points, xu * f + k[:2, 2])
         proj_pts, _ = cv2.projectPoints(np.nan_to_num(pts), theta[:3], theta[3:6], kp, lens)
         r = proj_pts.reshape(-1, 2) - code[sel]

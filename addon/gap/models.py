@@ -29,6 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..colour import srgb_encode
+from ..rig.lens import undistort_normalised
 from ..stages.calibrate import SATURATED
 from .data import GLOSSY_ROUGHNESS, GapData, Observation, column, sample_input
 
@@ -145,15 +147,10 @@ def vignetting_radius(projector: Any, positions: np.ndarray) -> np.ndarray:
     return (np.hypot(rx, ry) / rmax).astype(np.float32)
 
 
-def _srgb(v: np.ndarray) -> np.ndarray:
-    v = np.clip(v, 0.0, 1.0)
-    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1 / 2.4) - 0.055)
-
-
 def camera_curve(v: np.ndarray, curve: float) -> np.ndarray:
     """The camera's tone curve: linear light → captured value (a blend of linear and the sRGB encoding)."""
     v = np.clip(v, 0.0, 1.0)
-    return ((1.0 - curve) * v + curve * _srgb(v)).astype(np.float32)
+    return ((1.0 - curve) * v + curve * srgb_encode(v)).astype(np.float32)
 
 
 def inverse_camera_curve(y: np.ndarray, curve: float) -> np.ndarray:
@@ -335,12 +332,7 @@ class Composite:
         # sample the undistorted image at p's undistorted position (one fixed-point step is enough
         # for |k1| ≤ 0.4 over a normal field of view).
         c = self.data.camera
-        xd, yd = self._xn, self._yn
-        xu, yu = xd, yd
-        for _ in range(3):
-            r2 = xu * xu + yu * yu
-            f = 1 + k1 * r2 + k2 * r2 * r2
-            xu, yu = xd / f, yd / f
+        xu, yu = undistort_normalised(self._xn, self._yn, k1, k2, steps=3)
         mx = (xu * c.fx + c.cx - 0.5).astype(np.float32)
         my = (yu * c.fy + c.cy - 0.5).astype(np.float32)
         return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -56,6 +56,7 @@ from typing import Any, Callable, Mapping
 import cv2
 import numpy as np
 
+from ..colour import srgb_encode
 from ..errors import LabError
 from ..rig.model import Intrinsics, Projector
 
@@ -518,10 +519,6 @@ def _psf(sigma: float, disk: float) -> np.ndarray:
     return (psf / psf.sum()).astype(np.float32)
 
 
-def _srgb_encode(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
-
-
 # --------------------------------------------------------------------------- projector side
 
 def apply_projector(frame: np.ndarray, effects: EffectSet, projector: Projector,
@@ -703,7 +700,9 @@ def render_settings(effects: EffectSet, camera_intrinsics: Intrinsics | None = N
     return out
 
 
-Lens = tuple[float, float, float, float]  # OpenCV k1, k2, p1, p2
+#: OpenCV k1, k2, p1, p2. The lab's lens is written apart from the diagnosis's (rig/lens.py) on purpose: it is the
+#: truth the diagnosis must find, inverted exactly here where the diagnosis stops after a few fixed-point steps.
+Lens = tuple[float, float, float, float]
 
 
 def lens_of(effects: EffectSet) -> Lens | None:
@@ -899,7 +898,7 @@ def apply_camera(image: np.ndarray, effects: EffectSet, camera_intrinsics: Intri
         img = np.clip(img * gains, 0.0, 1.0)
         c = np.float32(e["curve"])
         if c > 0:
-            img = (1.0 - c) * img + c * _srgb_encode(img).astype(np.float32)
+            img = (1.0 - c) * img + c * srgb_encode(img).astype(np.float32)
 
     return quantise16(img)
 

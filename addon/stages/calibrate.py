@@ -28,7 +28,8 @@ from .graycode_warp import warp_from_graycode
 from .intrinsics import estimate_projector_intrinsics
 from .pose import estimate_pose, surface_view, target_mask
 from .surface import surface_from_captures, surface_photo
-from .warp import Warp, estimate_warp, grid_image
+from .warp import estimate_warp
+from .warp_model import Warp, grid_image
 
 #: The calibration stages, in order; each needs the ones before it.
 STAGES = ("surface", "pose", "warp")

@@ -8,7 +8,7 @@ calibrated rig and surface name the texel the model says it sees. Their
 difference is M's shift there (``apply_m(c)(q) = c(q + d_M(q))``: the model's
 texel ``q`` shows what the real projector put at ``q + d_M(q)``), so M is a
 regularised linear least-squares fit of the TPS shifts to those pairs, and W its
-inverse (:func:`.warp.solve_inverse`), as for the checkerboard warp.
+inverse (:func:`.warp_model.solve_inverse`), as for the checkerboard warp.
 
 The decoded texel is whole (±0.5 texel), but unbiased, and a few thousand pairs
 per control point average it out. Decoding errors (dark paint, grazing light)
@@ -27,8 +27,8 @@ from ..errors import CalibrationError, CaptureError
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
 from .transport import camera_to_input_of
-from .warp import (DEFAULT_GRID, Warp, WarpResult, bending_matrix, distance_stats, grid_image, solve_inverse,
-                   tps_basis)
+from .warp import WarpResult, distance_stats
+from .warp_model import DEFAULT_GRID, Warp, bending_matrix, grid_image, solve_inverse, tps_basis
 
 #: Pairs the fit uses at most (a fixed random subset of the decoded lit pixels).
 MAX_PAIRS = 60000

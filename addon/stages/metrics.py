@@ -27,7 +27,7 @@ import numpy as np
 from ..capture.devices import Device
 from ..errors import CaptureError, ImageError
 from .display_area import DisplayArea
-from .warp import Warp
+from .warp_model import Warp
 
 
 def _pair(image: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,6 +42,11 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     a, b = _pair(image, target)
     mse = float(np.mean((a.astype(np.float64) - b) ** 2))
     return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
+
+
+def area_psnr(image: np.ndarray, target: np.ndarray, area: DisplayArea) -> float:
+    """PSNR (dB, peak 1) of ``image`` against ``target`` inside the area (both camera size)."""
+    return psnr(area.crop(image), area.crop(target))
 
 
 def ssim(image: np.ndarray, target: np.ndarray) -> float:

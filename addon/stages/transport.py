@@ -24,7 +24,7 @@ unlit-direct at a quarter of the camera's resolution, and the difference is
 that block's indirect response. ``T z`` adds, for every block, its mean input
 times its response, upsampled.
 
-Stage C on the operator (``stages/compensate.py``, schedule ``transport``)
+Stage C on the operator (``stages/solve_transport.py``, schedule ``transport``)
 needs ``T z`` and ``Tᵀ r`` only: sparse gathers and scatters, no Mitsuba.
 """
 

@@ -11,22 +11,7 @@ the real world), so it fits the *inverse* warp ``M`` through the simulation,
 with ``c`` the projected checkerboard and ``y`` its binarised capture, and then
 ``W`` from ``W(M(z)) ≈ z`` (Eq. 8).
 
-Warp model
-    A thin-plate spline (TPS) on the projector *input* image (``input_size``):
-    an ``n × n`` lattice of control points spanning the image corner to corner
-    (default 8 × 8), each with a shift in input pixels. ``M(c)`` samples ``c``
-    at ``φ_M(p) = p + d_M(p)``, where ``d_M`` is the TPS interpolant of the
-    shifts (kernel ``r² log r²`` in coordinates divided by the longer image
-    side, so the spline is isotropic and independent of the resolution), and
-    is black where ``φ_M(p)`` leaves the image — the projector shows nothing
-    outside its input. ``W`` is the same kind of spline with its own shifts.
-    ``d`` is *linear* in the shifts, ``d(p) = B(p) · s``, with ``B`` (pixels ×
-    n²) fixed by the lattice (DESIGN.md §4): we build ``B`` once. In the
-    optimisation ``d = B·s`` enters Dr.Jit as a leaf, a bilinear
-    ``dr.gather`` of the pattern with differentiable weights builds the
-    projector frame, and the render's adjoint arrives at ``d``; the linear
-    layer's adjoint ``Bᵀ·∂L/∂d`` is then one matrix product (see
-    :class:`_DrWarp` for why not in Dr.Jit).
+The warp model (the thin-plate spline, M and W, sampling) is ``stages/warp_model.py``.
 
 Target: why normalise before binarising
     The paper binarises each colour channel of the capture at 0.7. A raw
@@ -66,14 +51,6 @@ Optimisation
     is the mean of the last 15 % of the iterates, which removes the jitter
     the render noise leaves in Adam's steps.
 
-W from M (Eq. 8)
-    Closed form. ``W(M(z)) = z ∘ φ_M ∘ φ_W`` is ``z`` when ``φ_W = φ_M⁻¹``. We
-    push a dense grid of points ``q`` through ``φ_M``, giving pairs
-    ``(φ_M(q), q)``, and solve the linear least-squares problem
-    ``B(φ_M(q)) · s_W = q − φ_M(q)`` for W's shifts (the TPS is linear in
-    them). The residual ``|φ_M(φ_W(p)) − p|`` over the image is reported; it
-    is far below 0.1 px for warps of a few pixels.
-
 Measuring
     Checkerboard inner corners are located to sub-pixel precision
     (``cornerSubPix``) in the normalised capture and in the normalised
@@ -101,7 +78,6 @@ Measuring
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -112,342 +88,18 @@ import numpy as np
 
 from ..capture.format import CaptureSet, Entry
 from ..capture.patterns import refine_corners
-from ..errors import CalibrationError, Cancelled, ImageError, ProCamError
+from ..errors import CalibrationError, Cancelled, ProCamError
 from ..progress import Cancel, Progress
 from ..render import backend
 from ..render.forward import ForwardModel
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh, frame_points_to_camera
+from .warp_model import (DEFAULT_GRID, Warp, bending_matrix, check_lattice, grid_image, pixel_basis, pixel_centres,
+                         sample_bilinear, solve_inverse)
 
 
-DEFAULT_GRID = 8
 #: The paper's per-channel binarisation threshold, applied to the normalised capture (see module notes).
 THRESHOLD = 0.7
-FORMAT = "procam-warp-tps"
-
-
-# ============================================================================ thin-plate spline
-
-def _tps_kernel(r2: np.ndarray) -> np.ndarray:
-    """U(r) = r² log r² (from squared distances), 0 at r = 0."""
-    return np.where(r2 > 0.0, r2 * np.log(np.maximum(r2, 1e-300)), 0.0)
-
-
-def _check_lattice(size: tuple[int, int], grid: int) -> tuple[int, int, int]:
-    try:
-        w, h = (int(v) for v in size)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"warp size must be (width, height), got {size!r}") from None
-    if w < 2 or h < 2:
-        raise CalibrationError(f"warp size must be at least 2×2 pixels, got {w}×{h}")
-    if not isinstance(grid, (int, np.integer)) or isinstance(grid, bool) or not 2 <= grid <= 64:
-        raise CalibrationError(f"warp grid must be a whole number of control points per side in [2, 64], got {grid!r}")
-    return w, h, int(grid)
-
-
-@functools.lru_cache(maxsize=8)
-def _tps_system(w: int, h: int, grid: int) -> tuple[np.ndarray, np.ndarray]:
-    """Control points (n²×2, normalised) and the inverse of the TPS system matrix L (n²+3 square)."""
-    scale = float(max(w, h))
-    ii, jj = np.meshgrid(np.linspace(0.0, w, grid), np.linspace(0.0, h, grid))  # row-major: [row j, col i]
-    ctrl = np.stack([ii.ravel(), jj.ravel()], axis=1) / scale
-    k = _tps_kernel(((ctrl[:, None, :] - ctrl[None, :, :]) ** 2).sum(-1))
-    p = np.concatenate([np.ones((len(ctrl), 1)), ctrl], axis=1)
-    n = len(ctrl)
-    big = np.zeros((n + 3, n + 3))
-    big[:n, :n], big[:n, n:], big[n:, :n] = k, p, p.T
-    linv = np.linalg.inv(big)
-    ctrl.setflags(write=False)
-    linv.setflags(write=False)
-    return ctrl, linv
-
-
-def tps_basis(points: np.ndarray, size: tuple[int, int], grid: int) -> np.ndarray:
-    """B (N × n²): the TPS displacement at ``points`` (N×2 input pixels) is ``B @ shifts.reshape(n², 2)``.
-
-    Row-major control order: control point ``(j, i)`` (row j, column i) is column ``j·n + i``.
-    """
-    w, h, n = _check_lattice(size, grid)
-    ctrl, linv = _tps_system(w, h, n)
-    q = np.asarray(points, dtype=np.float64).reshape(-1, 2) / float(max(w, h))
-    out = np.empty((len(q), n * n))
-    for start in range(0, len(q), 65536):  # chunks keep the N × n² kernel matrix small
-        qc = q[start:start + 65536]
-        u = _tps_kernel(((qc[:, None, :] - ctrl[None, :, :]) ** 2).sum(-1))
-        a = np.concatenate([u, np.ones((len(qc), 1)), qc], axis=1)
-        out[start:start + len(qc)] = a @ linv[:, :n * n]
-    return out
-
-
-def pixel_centres(size: tuple[int, int]) -> np.ndarray:
-    """(h·w)×2 pixel centres (corner convention: ``i + 0.5``), row-major."""
-    w, h = int(size[0]), int(size[1])
-    x, y = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    return np.stack([x.ravel(), y.ravel()], axis=1)
-
-
-@functools.lru_cache(maxsize=2)
-def _pixel_basis(w: int, h: int, grid: int) -> np.ndarray:
-    """The basis at every pixel centre, float32 (92 MB for 600×600 and 8×8), built once per lattice."""
-    b = tps_basis(pixel_centres((w, h)), (w, h), grid).astype(np.float32)
-    b.setflags(write=False)
-    return b
-
-
-def bending_matrix(size: tuple[int, int], grid: int) -> np.ndarray:
-    """E (n²×n²): the TPS bending energy of one coordinate's shifts ``s`` is ``s @ E @ s`` (up to 8π).
-
-    Zero for affine shift fields; in normalised coordinates, so shifts in pixels give px².
-    """
-    w, h, n = _check_lattice(size, grid)
-    _, linv = _tps_system(w, h, n)
-    e = linv[:n * n, :n * n]
-    return 0.5 * (e + e.T)
-
-
-def bilinear_taps(size: tuple[int, int], x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The four (flat index, weight) taps of bilinear samples of a ``size`` = (w, h) image at continuous positions
-    (corner convention), each (4, …) like ``x``; taps outside the image get weight 0."""
-    w, h = size
-    u, v = np.asarray(x, dtype=np.float64) - 0.5, np.asarray(y, dtype=np.float64) - 0.5
-    i0, j0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-    fu, fv = (u - i0).astype(np.float32), (v - j0).astype(np.float32)
-    index, weight = [], []
-    for di, dj, wt in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
-        ii, jj = i0 + di, j0 + dj
-        ok = (ii >= 0) & (ii < w) & (jj >= 0) & (jj < h)
-        index.append(np.clip(jj, 0, h - 1) * w + np.clip(ii, 0, w - 1))
-        weight.append(np.where(ok, wt, 0.0).astype(np.float32))
-    return np.stack(index), np.stack(weight)
-
-
-def channel_taps(index: np.ndarray, weight: np.ndarray, channels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Taps from :func:`bilinear_taps` spread over the values of an image with ``channels`` channels, for
-    :func:`sample_taps` (flat gathers are 3× faster than gathering whole pixels)."""
-    shape = index.shape[1:]
-    idx = (index.reshape(4, -1, 1) * channels + np.arange(channels)).reshape(4, -1)
-    return idx, np.repeat(weight.reshape(4, -1), channels, axis=1).reshape((4, *shape, channels))
-
-
-def sample_taps(image: np.ndarray, index: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` (H×W×C, float32) through taps from :func:`channel_taps` with its C."""
-    flat = np.asarray(image, dtype=np.float32).reshape(-1)
-    out = np.take(flat, index[0]).reshape(weight.shape[1:]) * weight[0]
-    for k in range(1, 4):
-        out += np.take(flat, index[k]).reshape(weight.shape[1:]) * weight[k]
-    return out
-
-
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` (H×W or H×W×C) at continuous positions (corner convention); 0 outside."""
-    img = np.asarray(image, dtype=np.float32)
-    taps = channel_taps(*bilinear_taps((img.shape[1], img.shape[0]), x, y), img.shape[2] if img.ndim == 3 else 1)
-    out = sample_taps(img, *taps)
-    return out if img.ndim == 3 else out[..., 0]
-
-
-# ============================================================================ the warp as data
-
-@dataclass(frozen=True, eq=False)
-class Warp:
-    """The warps M (simulation side) and W (real projector side) on the projector input image.
-
-    ``size`` is the input image (width, height) the shifts are measured in;
-    ``m_shifts``/``w_shifts`` are ``grid × grid × 2`` arrays ``[row, col, (dx, dy)]``
-    in pixels of that image, for control points spaced evenly from the image's
-    top-left corner ``(0, 0)`` to its bottom-right corner ``(w, h)``.
-    ``apply_m(c)(p) = c(p + d_M(p))``; ``apply_w`` likewise with W's shifts.
-    Give the real projector ``apply_w(z)`` to show what the simulation shows for ``z``.
-    """
-
-    grid: int
-    size: tuple[int, int]
-    m_shifts: np.ndarray
-    w_shifts: np.ndarray
-
-    def __post_init__(self) -> None:
-        w, h, n = _check_lattice(self.size, self.grid)
-        object.__setattr__(self, "size", (w, h))
-        object.__setattr__(self, "grid", n)
-        for name in ("m_shifts", "w_shifts"):
-            a = np.asarray(getattr(self, name), dtype=np.float64)
-            if a.shape != (n, n, 2):
-                raise CalibrationError(f"warp {name} must be {n}×{n}×2 (grid × grid × (dx, dy)), got shape {a.shape}")
-            if not np.all(np.isfinite(a)):
-                raise CalibrationError(f"warp {name} holds NaN or infinite values")
-            a = a.copy()
-            a.setflags(write=False)
-            object.__setattr__(self, name, a)
-        object.__setattr__(self, "_taps", {})
-
-    def __eq__(self, other: object) -> bool:
-        # Exact equality (the generated __eq__ would compare arrays ambiguously).
-        return (isinstance(other, Warp) and self.grid == other.grid and self.size == other.size
-                and np.array_equal(self.m_shifts, other.m_shifts) and np.array_equal(self.w_shifts, other.w_shifts))
-
-    __hash__ = None  # type: ignore[assignment]  # holds arrays
-
-    @staticmethod
-    def identity(size: tuple[int, int], grid: int = DEFAULT_GRID) -> "Warp":
-        """No warp: both maps are the identity."""
-        w, h, n = _check_lattice(size, grid)
-        return Warp(n, (w, h), np.zeros((n, n, 2)), np.zeros((n, n, 2)))
-
-    @property
-    def is_identity(self) -> bool:
-        return not (np.any(self.m_shifts) or np.any(self.w_shifts))
-
-    # -- point maps ------------------------------------------------------------------------------
-
-    def _map(self, shifts: np.ndarray, points: np.ndarray) -> np.ndarray:
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        return p + tps_basis(p, self.size, self.grid) @ shifts.reshape(-1, 2)
-
-    def map_m(self, points: np.ndarray, size: tuple[int, int] | None = None) -> np.ndarray:
-        """φ_M: where ``apply_m`` samples its input for output positions ``points`` (N×2 input pixels; of an input
-        of ``size``, default the warp's own, when the input has another resolution of the same image)."""
-        if size is None or tuple(size) == self.size:
-            return self._map(self.m_shifts, points)
-        scale = np.asarray(self.size, np.float64) / np.asarray(size, np.float64)
-        return self._map(self.m_shifts, np.asarray(points, np.float64).reshape(-1, 2) * scale) / scale
-
-    def map_w(self, points: np.ndarray) -> np.ndarray:
-        """φ_W: where ``apply_w`` samples its input for output positions ``points`` (N×2 input pixels)."""
-        return self._map(self.w_shifts, points)
-
-    def displacement(self, which: str = "m", size: tuple[int, int] | None = None) -> np.ndarray:
-        """Dense displacement field (h×w×2, pixels of ``size``, default the warp's size) of M or W."""
-        shifts = {"m": self.m_shifts, "w": self.w_shifts}[which]
-        w, h = self.size if size is None else (int(size[0]), int(size[1]))
-        if (w, h) == self.size:
-            d = _pixel_basis(w, h, self.grid) @ shifts.reshape(-1, 2).astype(np.float32)
-        else:
-            # Another resolution of the same image: evaluate at its pixel centres in warp pixels, scale back.
-            sx, sy = self.size[0] / w, self.size[1] / h
-            centres = pixel_centres((w, h)) * (sx, sy)
-            d = (tps_basis(centres, self.size, self.grid) @ shifts.reshape(-1, 2)) / (sx, sy)
-        return d.reshape(h, w, 2).astype(np.float32)
-
-    # -- images ----------------------------------------------------------------------------------
-
-    def _apply(self, which: str, image: np.ndarray) -> np.ndarray:
-        img = np.asarray(image, dtype=np.float32)
-        if img.ndim not in (2, 3) or min(img.shape[:2]) < 1:
-            raise ImageError(f"a warp applies to an H×W or H×W×C image, got shape {img.shape}")
-        h, w = img.shape[:2]
-        if abs(w / h - self.size[0] / self.size[1]) > 0.02:
-            raise ImageError(f"the warp is for {self.size[0]}×{self.size[1]} projector input images; "
-                             f"a {w}×{h} image has another aspect ratio")
-        shifts = self.m_shifts if which == "m" else self.w_shifts
-        if not np.any(shifts):
-            return img.copy()  # exact identity (bilinear sampling at pixel centres would be too, up to rounding)
-        # The taps depend on the warp and the image's shape alone: kept, since stage C warps every capture's input.
-        channels = img.shape[2] if img.ndim == 3 else 1
-        taps = self._taps.get((which, w, h, channels))
-        if taps is None:
-            d = self.displacement(which, (w, h))
-            c = pixel_centres((w, h)).reshape(h, w, 2)
-            taps = self._taps[(which, w, h, channels)] = channel_taps(
-                *bilinear_taps((w, h), c[..., 0] + d[..., 0], c[..., 1] + d[..., 1]), channels)
-        out = sample_taps(img, *taps)
-        return out if img.ndim == 3 else out[..., 0]
-
-    def apply_m(self, image: np.ndarray) -> np.ndarray:
-        """M(image): the input the *simulation* needs to reproduce what the real projector shows for ``image``."""
-        return self._apply("m", image)
-
-    def apply_w(self, image: np.ndarray) -> np.ndarray:
-        """W(image): the input to give the *real* projector so it shows what the simulation shows for ``image``."""
-        return self._apply("w", image)
-
-    # -- serialisation ---------------------------------------------------------------------------
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"format": FORMAT, "model": "thin-plate spline, kernel r^2 log r^2, coordinates / max(width, height)",
-                "grid": int(self.grid), "size": [int(v) for v in self.size],
-                "control_points": "grid x grid from (0, 0) to (width, height), row-major [row][col]",
-                "shifts": "input pixels (dx, dy); M samples its input at p + d_M(p), W at p + d_W(p)",
-                "m_shifts": np.round(self.m_shifts, 6).tolist(), "w_shifts": np.round(self.w_shifts, 6).tolist()}
-
-    @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Warp":
-        if not isinstance(d, dict):
-            raise CalibrationError("a warp description must be a JSON object")
-        if d.get("format", FORMAT) != FORMAT:
-            raise CalibrationError(f"unknown warp format {d.get('format')!r} (expected {FORMAT!r})")
-        try:
-            size = tuple(int(v) for v in d["size"])
-            return Warp(int(d["grid"]), size, np.asarray(d["m_shifts"], dtype=np.float64),
-                        np.asarray(d["w_shifts"], dtype=np.float64))
-        except KeyError as exc:
-            raise CalibrationError(f"warp description lacks {exc}") from None
-        except (TypeError, ValueError) as exc:
-            raise CalibrationError(f"warp description is malformed: {exc}") from None
-
-
-def solve_inverse(m_shifts: np.ndarray, size: tuple[int, int], grid: int, *, step: float | None = None
-                  ) -> tuple[np.ndarray, float]:
-    """W's shifts from M's (Eq. 8) by linear least squares, and the max residual |φ_M(φ_W(p)) − p| in px.
-
-    Samples ``q`` every ``step`` px (default: ~100 per side) over the image and
-    fits ``φ_W(φ_M(q)) = q``; the residual is then checked the other way round
-    (W then M, i.e. ``W(M(z)) = z``) at pixel centres where ``φ_W(p)`` stays in the image.
-    """
-    w, h, n = _check_lattice(size, grid)
-    m = np.asarray(m_shifts, dtype=np.float64).reshape(-1, 2)
-    if not np.any(m):
-        return np.zeros((n, n, 2)), 0.0
-    step = step or max(1.0, max(w, h) / 100)
-    xs, ys = np.arange(0.0, w + 1e-9, step), np.arange(0.0, h + 1e-9, step)
-    q = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    x = q + tps_basis(q, size, n) @ m
-    a = tps_basis(x, size, n)
-    s_w = np.linalg.lstsq(a, q - x, rcond=None)[0]
-    # Check W∘M on a grid offset from the fitting samples.
-    p = q[::3] + 0.5 * step
-    p = p[(p[:, 0] < w) & (p[:, 1] < h)]
-    pw = p + tps_basis(p, size, n) @ s_w
-    inside = (pw[:, 0] >= 0) & (pw[:, 0] <= w) & (pw[:, 1] >= 0) & (pw[:, 1] <= h)
-    back = pw + tps_basis(pw, size, n) @ m
-    err = np.linalg.norm(back - p, axis=1)[inside]
-    return s_w.reshape(n, n, 2), float(err.max()) if err.size else 0.0
-
-
-def grid_image(warp: Warp, size: tuple[int, int] | None = None, *, lines: int | None = None,
-               exaggerate: float = 1.0) -> np.ndarray:
-    """An image (h×w×3, [0, 1]) of the warp M for the UI: the regular lattice in grey, the deformed one in
-    white (where M makes the simulation sample each lattice line), control points and their shifts in orange.
-
-    ``exaggerate`` scales the displacements so warps of a pixel or two are visible.
-    """
-    w, h = warp.size if size is None else (int(size[0]), int(size[1]))
-    sx, sy = w / warp.size[0], h / warp.size[1]
-    lines = lines or (2 * (warp.grid - 1) + 1)
-    img = np.full((h, w, 3), 0.08, np.float32)
-    shift = 4  # cv2 drawing with sub-pixel precision (coordinates × 16)
-
-    def poly(points_warp: np.ndarray) -> np.ndarray:
-        d = warp.map_m(points_warp) - points_warp
-        pts = (points_warp + exaggerate * d) * (sx, sy) - 0.5  # OpenCV draws on pixel centres
-        return np.round(pts * (1 << shift)).astype(np.int32).reshape(-1, 1, 2)
-
-    t = np.linspace(0.0, 1.0, 101)
-    for k in np.linspace(0.0, 1.0, lines):
-        for seg in (np.stack([t * warp.size[0], np.full_like(t, k * warp.size[1])], 1),
-                    np.stack([np.full_like(t, k * warp.size[0]), t * warp.size[1]], 1)):
-            plain = np.round((seg * (sx, sy) - 0.5) * (1 << shift)).astype(np.int32).reshape(-1, 1, 2)
-            cv2.polylines(img, [plain], False, (0.35, 0.35, 0.35), 1, cv2.LINE_AA, shift)
-            cv2.polylines(img, [poly(seg)], False, (1.0, 1.0, 1.0), 1, cv2.LINE_AA, shift)
-    ctrl = np.stack(np.meshgrid(np.linspace(0, warp.size[0], warp.grid), np.linspace(0, warp.size[1], warp.grid)),
-                    -1).reshape(-1, 2)
-    tip = ctrl + exaggerate * warp.m_shifts.reshape(-1, 2)
-    radius = max(2, round(min(w, h) / 150))
-    for a, b in zip(ctrl, tip):
-        pa = tuple(int(v) for v in np.round((a * (sx, sy) - 0.5) * (1 << shift)))
-        pb = tuple(int(v) for v in np.round((b * (sx, sy) - 0.5) * (1 << shift)))
-        cv2.line(img, pa, pb, (1.0, 0.55, 0.1), 1, cv2.LINE_AA, shift)
-        cv2.circle(img, pb, radius << shift, (1.0, 0.55, 0.1), -1, cv2.LINE_AA, shift)
-    return np.clip(img, 0.0, 1.0)
 
 
 # ============================================================================ result
@@ -784,15 +436,39 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
         raise CalibrationError(f"stage B iterations must be a whole number ≥ 0, got {iterations!r}")
     proj = rig.projector
     size = proj.input_size
-    _check_lattice(size, grid)
+    check_lattice(size, grid)
     say("reading and binarising the checkerboard captures", 0.0)
     boards, lit_capture = _collect_boards(captures, rig)
     check_cancel()
 
     mi = backend.mitsuba()
-    import drjit as dr
-
     say("building the simulation", 0.03)
+    model, inv_white, mask = _simulation(captures, surface, rig, lit_capture, spp=spp, seed=seed)
+    fit = _FitM(mi, model, boards, mask, inv_white, grid=grid, spp=spp, seed=seed)
+    lr0 = learning_rate if learning_rate is not None else 0.004 * fit.scale
+    m_shifts, losses = fit.run(iterations, lr0, bending, l2, say, check_cancel)
+    check_cancel()
+
+    say("solving W from M", 0.82)
+    w_shifts, inverse_error = solve_inverse(m_shifts, size, fit.n)
+    warp = Warp(fit.n, size, m_shifts, w_shifts)
+
+    say("measuring checkerboard corners before and after", 0.85)
+    corners, diagnostics = _measure(model, surface, boards[0], warp, inv_white, mask, spp=spp, seed=seed,
+                                    check_cancel=check_cancel)
+    result = WarpResult(warp, losses, corners.stats("before"), corners.stats("after"),
+                        time.perf_counter() - t_start, diagnostics, inverse_error)
+    say(f"corners {result.corners_before_px['median']:.2f} px → {result.corners_after_px['median']:.2f} px "
+        "(median)", 1.0)
+    return result
+
+
+def _simulation(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, lit_capture: np.ndarray, *, spp: int,
+                seed: int) -> tuple[ForwardModel, np.ndarray, np.ndarray]:
+    """Stage B's direct-light model, 1 / its white (0 where unlit), and the loss pixels: lit in the capture and
+    in the simulation, away from both footprints' borders."""
+    proj = rig.projector
+    size = proj.input_size
     try:
         model = ForwardModel(rig, surface, bounces=0, spp=spp, smoothing_eps=0.0, clamp=False, seed=seed)
     except ProCamError as exc:
@@ -802,7 +478,6 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
     white_model = model.render(white_frame, spp=max(16, spp), seed=seed + 1_000_003)
     lit_model = _lit_from_contrast(white_model)
     inv_white = np.where(lit_model[..., None], 1.0 / np.maximum(white_model, 1e-6), 0.0).astype(np.float32)
-    # Loss pixels: lit in the capture and in the simulation, away from both footprints' borders.
     mask = _erode(lit_capture & lit_model, 2)
     overlap = mask.sum() / max(1, _erode(lit_capture, 2).sum())
     if mask.sum() < 200 or overlap < 0.3:
@@ -810,75 +485,96 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
             f"stage B: the simulated projection covers only {100 * overlap:.0f} % of the lit area of the white "
             f"capture {captures.path / captures.entry('white').file}; the projector pose from stage A (or the "
             "surface) is too far off for a warp to bridge")
-    w, h = size
-    n = int(grid)
-    scale = float(max(w, h))
-    lr0 = learning_rate if learning_rate is not None else 0.004 * scale
-    square = min(b.square for b in boards)
-    sigma0, sigma1 = max(1.0, square / 5.0), 0.5
+    return model, inv_white, mask
 
-    warp_dr = _DrWarp(mi, size, proj.intrinsics.size, proj.input_offset)
-    basis = _pixel_basis(w, h, n)
-    mask_dr = mi.Float(np.repeat(mask.ravel(), 3).astype(np.float32))
-    inv_white_dr = mi.Float(inv_white.ravel())
-    n_mask = float(mask.sum() * 3)
-    targets = [mi.Float(np.where(mask[..., None], b.target, 0.0).astype(np.float32).ravel()) for b in boards]
-    bases = [mi.Float(b.frame_base.ravel()) if b.frame_base.any() else None for b in boards]
-    blurred: list[np.ndarray] = [b.pattern for b in boards]
-    energy = bending_matrix(size, n)
 
-    s = np.zeros((n * n, 2))
-    m1, m2 = np.zeros_like(s), np.zeros_like(s)
-    beta1, beta2 = 0.9, 0.99
-    losses: list[float] = []
-    tail: list[np.ndarray] = []
-    tail_start = int(0.85 * iterations)
-    current_sigma = None
-    for it in range(iterations):
-        check_cancel()
-        sigma = round(_sigma(it, iterations, sigma0, sigma1), 2)
-        if sigma != current_sigma:
-            blurred = [_blur(b.pattern, sigma) for b in boards]
-            current_sigma = sigma
-        d = basis @ s.astype(np.float32)
+class _FitM:
+    """The fit of M's shifts (Eq. 7): Adam on the shifts through the renders' adjoint, coarse to fine."""
+
+    def __init__(self, mi: Any, model: ForwardModel, boards: list[_Board], mask: np.ndarray, inv_white: np.ndarray,
+                 *, grid: int, spp: int, seed: int) -> None:
+        proj = model.rig.projector
+        size = proj.input_size
+        self.mi, self.model, self.boards, self.spp, self.seed = mi, model, boards, spp, seed
+        w, h = size
+        self.n = n = int(grid)
+        self.scale = float(max(w, h))
+        square = min(b.square for b in boards)
+        self.sigma0, self.sigma1 = max(1.0, square / 5.0), 0.5
+        self.warp_dr = _DrWarp(mi, size, proj.intrinsics.size, proj.input_offset)
+        self.basis = pixel_basis(w, h, n)
+        self.mask_dr = mi.Float(np.repeat(mask.ravel(), 3).astype(np.float32))
+        self.inv_white_dr = mi.Float(inv_white.ravel())
+        self.n_mask = float(mask.sum() * 3)
+        self.targets = [mi.Float(np.where(mask[..., None], b.target, 0.0).astype(np.float32).ravel()) for b in boards]
+        self.bases = [mi.Float(b.frame_base.ravel()) if b.frame_base.any() else None for b in boards]
+        self.energy = bending_matrix(size, n)
+
+    def gradient(self, s: np.ndarray, blurred: list[np.ndarray], it: int) -> tuple[np.ndarray, float]:
+        """The data loss's gradient with respect to the shifts ``s`` (through the TPS layer's adjoint), and the loss."""
+        import drjit as dr
+
+        mi = self.mi
+        d = self.basis @ s.astype(np.float32)
         dx, dy = mi.Float(np.ascontiguousarray(d[:, 0])), mi.Float(np.ascontiguousarray(d[:, 1]))
         dr.enable_grad(dx, dy)
         loss = mi.Float(0.0)
-        for k, _board in enumerate(boards):
-            warp_dr.set_pattern(blurred[k])
-            frame = warp_dr.frame(dx, dy, bases[k])
-            image = model.render_dr(frame, seed=seed + 2 * it + 1, spp=spp)
-            r = image.array * inv_white_dr
-            diff = (r - targets[k]) * mask_dr
-            loss = loss + dr.sum(dr.square(diff)) / (n_mask * len(boards))
+        for k, _board in enumerate(self.boards):
+            self.warp_dr.set_pattern(blurred[k])
+            frame = self.warp_dr.frame(dx, dy, self.bases[k])
+            image = self.model.render_dr(frame, seed=self.seed + 2 * it + 1, spp=self.spp)
+            r = image.array * self.inv_white_dr
+            diff = (r - self.targets[k]) * self.mask_dr
+            loss = loss + dr.sum(dr.square(diff)) / (self.n_mask * len(self.boards))
         dr.backward(loss)
         grad_d = np.stack([np.array(dr.grad(dx)), np.array(dr.grad(dy))], axis=1)
-        g = (basis.T @ grad_d).astype(np.float64)  # the TPS layer's adjoint
+        g = (self.basis.T @ grad_d).astype(np.float64)  # the TPS layer's adjoint
         data = float(loss[0]) if dr.width(loss) else float(loss)
         if not (np.all(np.isfinite(g)) and math.isfinite(data)):
             raise CalibrationError("stage B diverged (NaN in the warp gradient); check the surface mesh and pose")
-        g += (2.0 * bending * (energy @ s) + 2.0 * l2 * s) / scale ** 2  # regularisers on s / scale
-        losses.append(data)
-        m1 = beta1 * m1 + (1 - beta1) * g
-        m2 = beta2 * m2 + (1 - beta2) * g * g
-        mh, vh = m1 / (1 - beta1 ** (it + 1)), m2 / (1 - beta2 ** (it + 1))
-        # The floor on Adam's denominator (0.1 % of the largest) keeps control points whose gradient is
-        # nearly zero (no camera pixel sees their neighbourhood) from taking full-size noisy steps.
-        s = s - _lr(it, iterations, lr0) * mh / (np.sqrt(vh) + 1e-12 + 1e-3 * np.sqrt(vh).max())
-        if it >= tail_start:
-            tail.append(s.copy())
-        if it % 5 == 0 or it == iterations - 1:
-            say(f"iteration {it + 1}/{iterations}, loss {data:.4f}", 0.05 + 0.75 * (it + 1) / iterations)
-    # The average of the last iterates: Adam's steps jitter with the render noise; their mean does not.
-    m_shifts = (np.mean(tail, axis=0) if tail else s).reshape(n, n, 2)
-    check_cancel()
+        return g, data
 
-    say("solving W from M", 0.82)
-    w_shifts, inverse_error = solve_inverse(m_shifts, size, n)
-    warp = Warp(n, size, m_shifts, w_shifts)
+    def run(self, iterations: int, lr0: float, bending: float, l2: float, say: Progress,
+            check_cancel: Any) -> tuple[np.ndarray, list[float]]:
+        """M's shifts (n×n×2: the mean of the last 15 % of the iterates) and the data loss at each step."""
+        n, scale = self.n, self.scale
+        blurred: list[np.ndarray] = [b.pattern for b in self.boards]
+        s = np.zeros((n * n, 2))
+        m1, m2 = np.zeros_like(s), np.zeros_like(s)
+        beta1, beta2 = 0.9, 0.99
+        losses: list[float] = []
+        tail: list[np.ndarray] = []
+        tail_start = int(0.85 * iterations)
+        current_sigma = None
+        for it in range(iterations):
+            check_cancel()
+            sigma = round(_sigma(it, iterations, self.sigma0, self.sigma1), 2)
+            if sigma != current_sigma:
+                blurred = [_blur(b.pattern, sigma) for b in self.boards]
+                current_sigma = sigma
+            g, data = self.gradient(s, blurred, it)
+            g += (2.0 * bending * (self.energy @ s) + 2.0 * l2 * s) / scale ** 2  # regularisers on s / scale
+            losses.append(data)
+            m1 = beta1 * m1 + (1 - beta1) * g
+            m2 = beta2 * m2 + (1 - beta2) * g * g
+            mh, vh = m1 / (1 - beta1 ** (it + 1)), m2 / (1 - beta2 ** (it + 1))
+            # The floor on Adam's denominator (0.1 % of the largest) keeps control points whose gradient is
+            # nearly zero (no camera pixel sees their neighbourhood) from taking full-size noisy steps.
+            s = s - _lr(it, iterations, lr0) * mh / (np.sqrt(vh) + 1e-12 + 1e-3 * np.sqrt(vh).max())
+            if it >= tail_start:
+                tail.append(s.copy())
+            if it % 5 == 0 or it == iterations - 1:
+                say(f"iteration {it + 1}/{iterations}, loss {data:.4f}", 0.05 + 0.75 * (it + 1) / iterations)
+        # The average of the last iterates: Adam's steps jitter with the render noise; their mean does not.
+        return (np.mean(tail, axis=0) if tail else s).reshape(n, n, 2), losses
 
-    say("measuring checkerboard corners before and after", 0.85)
-    board = boards[0]
+
+def _measure(model: ForwardModel, surface: SurfaceMesh, board: _Board, warp: Warp, inv_white: np.ndarray,
+             mask: np.ndarray, *, spp: int, seed: int, check_cancel: Any) -> tuple[_Corners, dict[str, np.ndarray]]:
+    """The checkerboard's inner corners in the capture and in the simulation before and after the warp, and the
+    diagnostic images."""
+    proj = model.rig.projector
+    w, h = size = proj.input_size
     x0, y0 = proj.input_offset
 
     def frame_of(pattern: np.ndarray) -> np.ndarray:
@@ -918,13 +614,7 @@ def estimate_warp(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, grid:
                    "render_before": rgb(before_grey), "render_after": rgb(after_grey),
                    "compare_before": compare(before_grey), "compare_after": compare(after_grey),
                    "grid": grid_image(warp, size, exaggerate=1.0)}
-    result = WarpResult(warp, losses, corners.stats("before"), corners.stats("after"),
-                        time.perf_counter() - t_start, diagnostics, inverse_error)
-    say(f"corners {result.corners_before_px['median']:.2f} px → {result.corners_after_px['median']:.2f} px "
-        "(median)", 1.0)
-    return result
+    return corners, diagnostics
 
-
-__all__ = ["DEFAULT_GRID", "THRESHOLD", "Warp", "WarpResult", "bending_matrix", "binarise", "distance_stats",
-           "estimate_warp", "grid_image", "measure_corners", "normalised_capture", "sample_bilinear", "solve_inverse",
-           "tps_basis"]
+__all__ = ["THRESHOLD", "WarpResult", "binarise", "distance_stats", "estimate_warp", "measure_corners",
+           "normalised_capture"]

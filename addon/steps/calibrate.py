@@ -37,7 +37,7 @@ from ..rig.model import Rig
 from ..safepaths import inside, within
 from ..stages.calibrate import STAGES, Calibration, calibrate_captures, stage_plan
 from ..stages.transport import TransportError, build_transport
-from ..stages.warp import Warp, grid_image
+from ..stages.warp_model import Warp, grid_image
 from ..surface.mesh import SurfaceMesh
 from . import layout
 from .summary import Summary, cached, fmt
