@@ -35,12 +35,13 @@ def test_png_declaring_20000x20000_is_refused_at_once_in_little_memory(tmp_path,
     bomb.write_bytes(png_bomb(20000, 20000))
     assert bomb.stat().st_size < 200
     # A fresh interpreter under a 3 GiB address-space cap (decoding would need 2.4 GB for the pixels alone): it
-    # must refuse with the size and the limit, in well under a second of work and a few hundred MB.
+    # must refuse with the size and the limit, in well under a second of work and without growing the process's peak memory.
     out = run_python("""
         import json, resource, sys, time
         resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
         from procam.addon.errors import ProCamError
         from procam.addon.stages.display_area import load_target
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         t0 = time.perf_counter()
         try:
             load_target(sys.argv[1])
@@ -48,14 +49,15 @@ def test_png_declaring_20000x20000_is_refused_at_once_in_little_memory(tmp_path,
         except ProCamError as exc:
             code, message = exc.exit_code, str(exc)
         print(json.dumps({"code": code, "message": message, "seconds": time.perf_counter() - t0,
-                          "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                          "grown_mb": (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024}))
         sys.exit(code)
     """, str(bomb), env={"PROCAM_MAX_PIXELS": ""}, timeout=120)
     assert out.returncode == 2, out.stderr[-2000:]
     doc = json.loads(out.stdout.strip().splitlines()[-1])
     assert "20000×20000" in doc["message"] and str(1 << 27) in doc["message"]
     assert "PROCAM_MAX_PIXELS" in doc["message"]
-    assert doc["seconds"] < 2.0 and doc["maxrss_mb"] < 600
+    # The peak memory the refusal adds to what the imports took (those vary with the machine's libraries).
+    assert doc["seconds"] < 2.0 and doc["grown_mb"] < 100
 
 
 @pytest.mark.parametrize("suffix", [".png", ".jpg", ".tif", ".bmp", ".exr", ".hdr"])
