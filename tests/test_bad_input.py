@@ -310,3 +310,113 @@ def test_capture_set_section_of_another_type_is_refused(world, key):
             str(case.example / "out" / "u")]
     result = run_case(case, argv, [case.w / "set"])
     assert result.code == 2 and key in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("text", ["[]", "[1, 2]", "null", "1e308", '"calibration"'])
+def test_calibration_manifest_that_is_not_an_object_is_refused(world, text):
+    """A calibration.json that is a list, null, a number or a string (found by the suite: exit 1, "'list' object has
+    no attribute 'get'")."""
+    case = Case(world)
+    reset_example(case, ["cal", "captures", "frames"])
+    (case.w / "cal" / "calibration.json").write_text(text)
+    result = run_case(case, _compensate(case), [case.w / "cal", case.w / "captures", case.w / "frames"])
+    assert result.code == 2 and "calibration" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("how", ["cut", "flip", "empty", "text"])
+def test_damaged_surface_mesh_is_refused_as_damaged(world, how):
+    """A cut or byte-flipped ``surface.npz`` (found by the suite: exit 1, zipfile.BadZipFile): the calibration's
+    error, saying the file is damaged and to calibrate again."""
+    case = Case(world)
+    reset_example(case, ["cal", "captures", "frames"])
+    path = case.w / "cal" / "surface.npz"
+    data = path.read_bytes()
+    if how == "cut":
+        path.write_bytes(data[:len(data) // 2])
+    elif how == "flip":  # inside the first member's compressed or stored data: a CRC or inflate failure
+        buf = bytearray(data)
+        for o in range(100, len(data) - 200, max(1, len(data) // 16)):
+            buf[o] ^= 0xFF
+        path.write_bytes(bytes(buf))
+    elif how == "empty":
+        path.write_bytes(b"")
+    else:
+        path.write_text("not an npz file\n")
+    result = run_case(case, _compensate(case), [case.w / "cal", case.w / "captures", case.w / "frames"])
+    assert result.code == 2, result.stderr[-800:]
+    assert "damaged" in result.stderr and "procam calibrate" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan")])
+def test_capture_set_non_finite_note_is_refused(world, value):
+    """capture.json whose ``notes.exposure.lit_fraction`` is infinite (found by the suite: exit 1 when the new
+    capture set's manifest is written, "Out of range float values are not JSON compliant")."""
+    case = Case(world)
+    reset_example(case, ["set", "rig.json"])
+    doc = json.loads((case.w / "set" / "capture.json").read_text())
+    doc.setdefault("notes", {}).setdefault("exposure", {})["lit_fraction"] = value
+    (case.w / "set" / "capture.json").write_text(json.dumps(doc))
+    argv = ["undistort-captures", str(case.w / "set"), "--rig", str(case.w / "rig.json"), "--out",
+            str(case.example / "out" / "u")]
+    result = run_case(case, argv, [case.w / "set"])
+    assert result.code == 2 and "lit_fraction" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("how", ["cut", "flip", "lone array", "member missing", "missing"])
+def test_read_arrays_refuses_a_damaged_archive_saying_what_to_do(tmp_path, how):
+    """Every .npz a step wrote is read through one function: a damaged one is the folder's error, never exit 1."""
+    import numpy as np
+
+    from procam.addon.errors import CalibrationError
+    from procam.addon.imageio import read_arrays
+
+    path = tmp_path / "surface.npz"
+    np.savez_compressed(path, vertices=np.arange(3000, dtype=np.float32), faces=np.arange(300))
+    data = path.read_bytes()
+    if how == "cut":
+        path.write_bytes(data[:len(data) - 40])
+    elif how == "flip":
+        path.write_bytes(bytes(b ^ 0xFF if 60 <= i < 64 else b for i, b in enumerate(data)))
+    elif how == "lone array":
+        with open(path, "wb") as fh:
+            np.save(fh, np.ones(3))
+    elif how == "missing":
+        path.unlink()
+    names = ("vertices", "faces", "uvs") if how == "member missing" else ("vertices", "faces")
+    with pytest.raises(CalibrationError, match=r"(damaged|missing).*; calibrate again$"):
+        read_arrays(path, names, error=CalibrationError, remedy="calibrate again")
+
+
+def test_damaged_lab_truth_surface_is_refused(world):
+    """A cut ``truth.surface.npz`` beside a lab truth (read by ``evaluate --device lab:``): the lab's error."""
+    from procam.addon.errors import LabError
+    from procam.addon.lab.lab import LabTruth
+
+    case = Case(world)
+    reset_example(case, ["truth.json", "truth.surface.npz"])
+    surface = case.w / "truth.surface.npz"
+    surface.write_bytes(surface.read_bytes()[:200])
+    with pytest.raises(LabError, match="damaged.*procam lab"):
+        LabTruth.load(case.w / "truth.json")
+
+
+def test_damaged_transport_operator_is_refused(world, tmp_path):
+    """A cut ``transport.npz`` that its record says belongs to the calibration: precompute it again."""
+    import numpy as np
+
+    from procam.addon.stages.transport import TransportError
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps import transport as transport_step
+
+    case = Case(world)
+    reset_example(case, ["cal", "captures"])
+    folder = case.w / "cal"
+    ident = calibrate_step.identity(folder)
+    (folder / "transport.json").write_text(json.dumps({"calibration_sha256": ident["sha256"], "bounces": 1, "seed": 0,
+                                                       "surface_sha256": ident["surface_sha256"]}))
+    np.savez(folder / "transport.npz", index=np.arange(5000), weight=np.ones(5000, np.float32))
+    (folder / "transport.npz").write_bytes((folder / "transport.npz").read_bytes()[:3000])
+    with pytest.raises(TransportError, match="damaged.*procam precompute"):
+        transport_step.load(calibrate_step.read(folder), bounces=1, seed=0)
+    (folder / "transport.json").write_text("[]")  # a record that is not an object: no operator of this calibration
+    assert transport_step.load(calibrate_step.read(folder), bounces=1, seed=0) is None
