@@ -420,3 +420,66 @@ def test_damaged_transport_operator_is_refused(world, tmp_path):
         transport_step.load(calibrate_step.read(folder), bounces=1, seed=0)
     (folder / "transport.json").write_text("[]")  # a record that is not an object: no operator of this calibration
     assert transport_step.load(calibrate_step.read(folder), bounces=1, seed=0) is None
+
+
+def _readers() -> dict:
+    from procam.addon.capture.format import CaptureSet
+    from procam.addon.lab.lab import LabTruth
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps import compensate as compensate_step
+    from procam.addon.steps import rig as rig_step
+
+    return {"cal/calibration.json": lambda w: calibrate_step.read(w / "cal"),
+            "rig.json": lambda w: rig_step.read(w / "rig.json"),
+            "set/capture.json": lambda w: CaptureSet.load(w / "set"),
+            "truth.json": lambda w: LabTruth.load(w / "truth.json"),
+            "comp/compensation.json": lambda w: compensate_step.read(w / "comp")}
+
+
+@pytest.mark.parametrize("manifest, where, value", [
+    ("cal/calibration.json", ("warp", "grid"), float("inf")),
+    ("rig.json", ("version",), float("inf")),
+    ("rig.json", ("board", "inner_corners"), []),
+    ("rig.json", ("board", "inner_corners"), [9]),
+    ("rig.json", ("board", "inner_corners"), ""),
+    ("rig.json", ("camera", "std"), None),
+    ("rig.json", ("projector", "std"), [1, 2]),
+    ("set/capture.json", ("images", 0, "name"), [1, 2, 3]),
+    ("set/capture.json", ("images", 0, "name"), {"a": 1}),
+    ("truth.json", ("seed",), float("inf")),
+    ("comp/compensation.json", ("targets",), 128.9),
+    ("comp/compensation.json", ("targets",), True),
+])
+def test_manifest_value_of_another_shape_is_refused(world, manifest, where, value):
+    """A value of another shape where a reader indexes or converts it (found by setting every key of every
+    manifest to every odd value: IndexError, AttributeError, OverflowError, "unhashable type", "not iterable").
+    The reader alone is run: its error is the user's (a ProCamError), never an internal one."""
+    from procam.addon.errors import ProCamError
+
+    case = Case(world)
+    reset_example(case, ["cal", "captures", "rig.json", "set", "truth.json", "truth.surface.npz", "comp"])
+    path = case.w / manifest
+    doc = json.loads(path.read_text())
+    _get_set(doc, where, value)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ProCamError):
+        _readers()[manifest](case.w)
+
+
+def _get_set(doc, where, value) -> None:
+    for key in where[:-1]:
+        doc = doc[key]
+    doc[where[-1]] = value
+
+
+def test_rig_board_of_one_number_is_refused_by_undistort(world):
+    """rig.json whose board has one inner-corner count (found by the suite: exit 1, IndexError)."""
+    case = Case(world)
+    reset_example(case, ["set", "rig.json"])
+    doc = json.loads((case.w / "rig.json").read_text())
+    del doc["board"]["inner_corners"][1]
+    (case.w / "rig.json").write_text(json.dumps(doc))
+    argv = ["undistort-captures", str(case.w / "set"), "--rig", str(case.w / "rig.json"), "--out",
+            str(case.example / "out" / "u")]
+    result = run_case(case, argv, [case.w / "set", case.w / "rig.json"])
+    assert result.code == 2 and "rig" in result.stderr, result.stderr[-500:]

@@ -321,6 +321,8 @@ class CaptureSet:
                 raise CaptureError(f"{here} ({rel}): 'params' must be an object")
             _check_params(kind, params, f"{here} ({rel})")
             name = raw.get("name") or Path(rel).stem
+            if not isinstance(name, str):
+                raise CaptureError(f"{here} ({rel}): 'name' must be a string, not {name!r}")
             if rel in files:
                 raise CaptureError(f"{here}: duplicate entry for file {rel}")
             if name in names:

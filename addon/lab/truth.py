@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..capture.format import DepthInfo
-from ..errors import LabError
+from ..errors import MALFORMED, LabError
 from ..imageio import DAMAGED_ARRAYS, read_arrays, write_atomic_bytes
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
@@ -132,7 +132,7 @@ class LabTruth:
                             if "nominal_camera_intrinsics" in doc else None)
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except (OSError, *MALFORMED) as exc:
             raise LabError(f"cannot read lab truth {path}: {exc}") from None
 
 

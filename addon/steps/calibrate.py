@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..errors import CalibrationError, Cancelled, ProCamError
+from ..errors import MALFORMED, CalibrationError, Cancelled, ProCamError
 from ..imageio import read_arrays, read_image, write_atomic_bytes, write_image
 from ..options import Choice, option, validate
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, write_manifest
@@ -281,7 +281,7 @@ def read(folder: str | Path, *, complete: bool = True) -> Calibration:
                                                              "camera_from_projector", "warp", "surface")}
         cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report,
                           str(folder.absolute()))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, *MALFORMED) as exc:
         raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
     missing = cal.missing_stages
     if complete and missing:
