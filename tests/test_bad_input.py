@@ -483,3 +483,16 @@ def test_rig_board_of_one_number_is_refused_by_undistort(world):
             str(case.example / "out" / "u")]
     result = run_case(case, argv, [case.w / "set", case.w / "rig.json"])
     assert result.code == 2 and "rig" in result.stderr, result.stderr[-500:]
+
+
+def test_show_entry_without_its_number_is_redone_or_refused(world):
+    """A resumed show whose frame entry lost its ``number`` (found by the suite: exit 1, KeyError: 'number')."""
+    case = Case(world)
+    reset_example(case, ["show", "cal", "captures", "frames"])
+    doc = json.loads((case.w / "show" / "show.json").read_text())
+    del doc["frames"]["1"]["number"]
+    (case.w / "show" / "show.json").write_text(json.dumps(doc))
+    from tests.bad_input import FAST
+    argv = ["show", str(case.w / "cal"), str(case.w / "frames"), "--out", str(case.w / "show"), *FAST]
+    result = run_case(case, argv, [case.w / "show", case.w / "cal", case.w / "frames"], resumed=case.w / "show")
+    assert result.code in (0, 2) and not result.losses, result.stderr[-800:]
