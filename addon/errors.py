@@ -57,3 +57,9 @@ class Cancelled(Exception):
     """
 
     exit_code = 130
+
+
+#: What reading a parsed JSON manifest of the wrong shape raises in code that indexes and converts it: a missing
+#: key or item, a value of another type (a list where an object was, ``int(None)``), a bad or infinite number.
+#: A manifest reader catches these around its parsing and raises its own error, which says what to do.
+MALFORMED = (LookupError, TypeError, ValueError, AttributeError, OverflowError)

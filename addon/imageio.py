@@ -12,6 +12,9 @@ import errno
 import os
 import struct
 import tempfile
+import zipfile
+import zlib
+from collections.abc import Iterable
 from pathlib import Path
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
@@ -30,7 +33,7 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", _given if _given.isdigit() a
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .errors import ImageError, WriteError  # noqa: E402
+from .errors import ImageError, ProCamError, WriteError  # noqa: E402
 
 
 # Read once, in the importing (main) thread: os.umask can only be read by setting it, which would race
@@ -384,6 +387,30 @@ def check_image_bytes(data: bytes, what: str) -> None:
     size = declared_size(io.BytesIO(data))
     if size is not None:
         check_pixels(int(size[0]), int(size[1]), what)
+
+
+#: What NumPy raises on a cut, byte-flipped or foreign .npz/.npy file: its own header checks, and the zip and zlib
+#: layers of an .npz (a member is inflated, and its CRC checked, only when it is read).
+DAMAGED_ARRAYS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
+
+
+def read_arrays(path: str | Path, names: Iterable[str] | None = None, *, error: type[ProCamError],
+                remedy: str) -> dict[str, np.ndarray]:
+    """The arrays ``names`` (every member when None) of an .npz file a step wrote, each read in full now. A missing
+    file, or one that is cut, damaged, pickled or lacks one of ``names``, is ``error``, which says so and ends with
+    ``remedy`` (the step that makes the file again)."""
+    path = Path(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError("a single array, not an .npz archive")
+        with data:
+            return {n: np.asarray(data[n]) for n in (data.files if names is None else names)}
+    except FileNotFoundError:
+        raise error(f"{path} is missing; {remedy}") from None
+    except DAMAGED_ARRAYS as exc:
+        why = f"{type(exc).__name__}: {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise error(f"{path} is damaged ({why}); {remedy}") from None
 
 
 def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:

@@ -77,6 +77,19 @@ IMAGE_SUFFIXES = (".png", ".exr", ".npy")
 DEPTH_SUFFIXES = (".npy", ".exr")
 
 
+def _non_finite(value: Any, at: str = "") -> tuple[str, float] | None:
+    """The first number in a JSON document that is NaN or infinite (Python's reader accepts ``NaN``,
+    ``Infinity`` and ``1e999``), as its dotted key path and value; None when every number is finite."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return at or "the document", value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        found = _non_finite(item, f"{at}.{key}" if at else str(key))
+        if found is not None:
+            return found
+    return None
+
+
 @dataclass(frozen=True)
 class DepthInfo:
     """Intrinsics of the depth image as stored, and the sensor's native resolution."""
@@ -251,6 +264,13 @@ class CaptureSet:
     def _from_doc(root: Path, doc: Any, where: str) -> "CaptureSet":
         if not isinstance(doc, dict):
             raise CaptureError(f"{where}: expected a JSON object")
+        # capture.json is standard JSON (its writer refuses NaN and infinities): a value that is not, which only a
+        # hand edit or another program makes, is refused here, before any work, rather than carried into the
+        # capture sets made from this one, whose manifest could then not be written.
+        odd = _non_finite(doc)
+        if odd is not None:
+            raise CaptureError(f"{where}: {odd[0]} is {odd[1]}, which standard JSON cannot hold; give a finite number "
+                               "or remove it")
         if doc.get("format") != FORMAT:
             raise CaptureError(f"{where}: not a ProCam capture set (format {doc.get('format')!r}, expected {FORMAT!r})")
         version = doc.get("version")
@@ -302,6 +322,8 @@ class CaptureSet:
                 raise CaptureError(f"{here} ({rel}): 'params' must be an object")
             _check_params(kind, params, f"{here} ({rel})")
             name = raw.get("name") or Path(rel).stem
+            if not isinstance(name, str):
+                raise CaptureError(f"{here} ({rel}): 'name' must be a string, not {name!r}")
             if rel in files:
                 raise CaptureError(f"{here}: duplicate entry for file {rel}")
             if name in names:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import zipfile
 import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -20,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from ..capture.format import DepthInfo
-from ..errors import LabError
-from ..imageio import write_atomic_bytes
+from ..errors import MALFORMED, LabError
+from ..imageio import DAMAGED_ARRAYS, read_arrays, write_atomic_bytes
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
 from ..rig.model import Camera, Intrinsics, Projector, Rig
@@ -118,8 +117,10 @@ class LabTruth:
             doc = json.loads(path.read_text())
             if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
                 raise LabError(f"{path} is not a ProCam lab truth file")
-            data = np.load(inside(path.parent, doc["surface"]["mesh"], what="the lab truth's surface mesh",
-                                  error=LabError))
+            data = read_arrays(inside(path.parent, doc["surface"]["mesh"], what="the lab truth's surface mesh",
+                                      error=LabError), ("vertices", "faces", "uvs", "albedo"), error=LabError,
+                               remedy=f"make the lab captures and their truth again (procam lab … --truth {path} "
+                               "--force)")
             surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"],
                                   name=doc["surface"].get("name", "surface"))
             return LabTruth(Rig.from_dict(doc["rig"]), surface, doc["surface"]["source"],
@@ -131,7 +132,7 @@ class LabTruth:
                             if "nominal_camera_intrinsics" in doc else None)
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except (OSError, *MALFORMED) as exc:
             raise LabError(f"cannot read lab truth {path}: {exc}") from None
 
 
@@ -300,5 +301,5 @@ def is_truth_surface(path: Path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as data:
             return set(data.files) == {"vertices", "faces", "uvs", "albedo"}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+    except DAMAGED_ARRAYS:
         return False

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..errors import CalibrationError, Cancelled, ProCamError
-from ..imageio import read_image, write_atomic_bytes, write_image
+from ..errors import MALFORMED, CalibrationError, Cancelled, ProCamError
+from ..imageio import read_arrays, read_image, write_atomic_bytes, write_image
 from ..options import Choice, option, validate
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
@@ -270,18 +270,18 @@ def read(folder: str | Path, *, complete: bool = True) -> Calibration:
     path = folder / KIND.manifest
     if not path.is_file():
         raise CalibrationError(f"{folder} is not a calibration folder (no {KIND.manifest}); run {KIND.made_by}")
+    doc = KIND.read(folder, CalibrationError)  # a JSON object of the calibration's format, or refused
     try:
-        doc = json.loads(path.read_text())
-        if doc.get("format") != KIND.format:
-            raise CalibrationError(f"{path} is not a ProCam calibration")
-        with np.load(_mesh(folder, doc["surface"]["mesh"])) as data:
-            surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"], name="surface")
+        data = read_arrays(_mesh(folder, doc["surface"]["mesh"]), ("vertices", "faces", "uvs", "albedo"),
+                           error=CalibrationError, remedy=f"calibrate again: procam calibrate "
+                           f"{doc.get('capture_set') or 'CAPTURE_SET'} --out {folder} --force")
+        surface = SurfaceMesh(data["vertices"], data["faces"], data["uvs"], data["albedo"], name="surface")
         warp = Warp.from_dict(doc["warp"]) if doc.get("warp") else None
         report = {k: v for k, v in doc.items() if k not in ("format", "version", "capture_set", "rig",
                                                              "camera_from_projector", "warp", "surface")}
         cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report,
                           str(folder.absolute()))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, *MALFORMED) as exc:
         raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
     missing = cal.missing_stages
     if complete and missing:

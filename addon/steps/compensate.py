@@ -218,7 +218,11 @@ def read(folder: str | Path) -> CompensationView:
     doc = KIND.read(folder)
     path = folder / KIND.manifest
     out = []
-    for t in doc.get("targets") or []:
+    targets = doc.get("targets") or []
+    if not isinstance(targets, list):
+        raise ProCamError(f"{path}: 'targets' must be a list of target records, not {targets!r}; give the folder "
+                          f"{KIND.made_by} wrote")
+    for t in targets:
         if not isinstance(t, dict) or t.get("status") != "done":
             continue
         try:

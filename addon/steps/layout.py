@@ -40,7 +40,7 @@ class FolderKind:
         except (OSError, ValueError) as exc:
             raise error(f"{folder} is not a {self.what} ({exc}); give the folder {self.made_by} wrote") from None
         if not isinstance(doc, dict) or doc.get("format") != self.format:
-            raise error(f"{path} is not a ProCam {self.what} manifest")
+            raise error(f"{path} is not a ProCam {self.what} manifest; give the folder {self.made_by} wrote")
         return doc
 
     def holds(self, path: str | Path) -> bool:

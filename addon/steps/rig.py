@@ -29,7 +29,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..capture.patterns import gray_code_bits
-from ..errors import CalibrationError, CaptureError
+from ..errors import MALFORMED, CalibrationError, CaptureError
 from ..imageio import READ_IMAGE_SUFFIXES, read_image
 from ..options import Choice, option, validate
 from ..outputs import check_file_replaceable, holds_manifest, write_manifest
@@ -234,7 +234,7 @@ def read(path: str | Path) -> RigCalibration:
         if int(doc.get("version", 0)) > KIND.version:
             raise CalibrationError(f"{p} was written by a newer ProCam (version {doc['version']}); update ProCam")
         return RigCalibration.from_dict(doc)
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, *MALFORMED) as exc:
         raise CalibrationError(f"cannot read rig calibration {p}: {exc}") from None
 
 

@@ -59,7 +59,7 @@ import numpy as np
 
 from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
-from ..imageio import READ_IMAGE_SUFFIXES, write_atomic_bytes
+from ..imageio import DAMAGED_ARRAYS, READ_IMAGE_SUFFIXES, write_atomic_bytes
 from ..options import option, validate
 from ..outputs import file_sha256, jsonable, natural_key, write_manifest
 from ..progress import Cancel, Progress, check, quiet
@@ -450,7 +450,7 @@ def _load_bias(path: Path) -> BiasModel | None:
             return BiasModel(data["theta"].astype(np.float32),
                              data["gain"].astype(np.float32) if "gain" in data.files else None,
                              str(data["kind"]), json.loads(str(data["report"])))
-    except (OSError, ValueError, KeyError):
+    except (*DAMAGED_ARRAYS, TypeError):  # TypeError: a lone array (.npy), not an archive
         return None  # damaged: estimated again
 
 

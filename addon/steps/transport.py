@@ -17,9 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..errors import CalibrationError
+from ..imageio import read_arrays
 from ..options import option, validate
 from ..progress import Cancel, Progress, quiet
 from ..safepaths import inside
@@ -71,12 +70,10 @@ def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOpera
         ident = calibrate_step.identity(folder)
     except (OSError, ValueError, CalibrationError):
         return None
+    if not isinstance(doc, dict):  # not the record precompute writes: no operator of this calibration
+        return None
     if (doc.get("calibration_sha256"), doc.get("surface_sha256"), doc.get("bounces"), doc.get("seed")) != \
             (ident["sha256"], ident["surface_sha256"], bounces, seed):
         return None
-    try:
-        with np.load(operator) as data:
-            return TransportOperator.from_arrays(data, doc)
-    except (OSError, ValueError) as exc:
-        raise TransportError(f"cannot read {folder / OPERATOR_FILE} ({exc}); run procam precompute "
-                             f"{folder} --force") from None
+    data = read_arrays(operator, error=TransportError, remedy=f"run procam precompute {folder} --force")
+    return TransportOperator.from_arrays(data, doc)
