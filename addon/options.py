@@ -192,7 +192,7 @@ def check_value(d: Declared, value: Any, error: type[ProCamError] = ProCamError)
     lo, hi = d.spec.min, d.spec.max
     if lo is not None and value < lo or hi is not None and value > hi:
         bounds = (f"≥ {lo:g}" if hi is None else f"≤ {hi:g}" if lo is None else f"between {lo:g} and {hi:g}")
-        raise error(f"{what} must be {bounds}, got {value!r}")
+        raise error(f"{what} must be {'a whole number ' if d.kind is int else ''}{bounds}, got {value!r}")
     if d.spec.check is not None:
         d.spec.check(value)
     return value
