@@ -185,7 +185,8 @@ def make_world(root: Path) -> None:
 
     They are made in ``root/example/w``, where every case runs, and moved: the absolute paths their manifests
     record (a calibration's capture set, a compensation's calibration) then hold in every case's copy."""
-    from procam.addon.capture.devices import export_sequence, import_captures
+    from procam.addon.capture.sequence import export_sequence
+    from procam.addon.capture.photos import import_captures
     from procam.addon.cli.app import main
     from procam.addon.lab.truth import LabTruth, make_truth
     from procam.addon.lab.lab import run_lab

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from procam.addon.capture import patterns
-from procam.addon.capture.devices import (Device, FolderDevice, capture_sequence, export_sequence, import_captures,
-                                          removed_lens,
-                                          load_sequence)
+from procam.addon.capture.devices import Device, FolderDevice, capture_sequence
+from procam.addon.capture.sequence import export_sequence, load_sequence
+from procam.addon.capture.photos import import_captures, removed_lens
 from procam.addon.capture.format import CaptureSet, DepthInfo, linear_to_srgb, srgb_to_linear
 from procam.addon.capture.patterns import (calibration_sequence, checkerboard, decode_gray_code,
                                            decode_gray_code_set, gray_code_bits, gray_code_layout,
@@ -603,7 +603,7 @@ def _rig_file(path: Path, camera_size, projector_size, distortion, metric=True) 
 
 def test_rig_lens_puts_a_point_where_a_pinhole_would(tmp_path):
     """Undistortion moves a dot from where the distorted lens shows it to where the pinhole K puts it."""
-    from procam.addon.capture.devices import RigLens
+    from procam.addon.rig.lens import RigLens
 
     k = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
     dist = np.array([-0.25, 0.08, 0.001, -0.002, 0.0])
@@ -661,7 +661,8 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     taken out without recording which, before the projector window opens, rather than compare them silently."""
     from types import SimpleNamespace
 
-    from procam.addon.capture.devices import LensRemovedDevice, RigLens
+    from procam.addon.capture.devices import LensRemovedDevice
+    from procam.addon.rig.lens import RigLens
     from procam.addon.steps import stage_c
 
     seq = export_sequence(small_projector(), tmp_path / "seq", checker_size=10, graycode=False)

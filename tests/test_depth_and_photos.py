@@ -15,7 +15,7 @@ import pytest
 
 from procam.addon.capture.depth_io import (align_depth, find_alignment, project_points, read_depth,
                                            read_ply_points)
-from procam.addon.capture.devices import export_sequence, load_sequence
+from procam.addon.capture.sequence import export_sequence, load_sequence
 from procam.addon.capture.exposure import (Shot, capture_set_shots, check_capture_set, check_exposure,
                                            reduce_image)
 from procam.addon.capture.format import CaptureSet, linear_to_srgb

@@ -105,7 +105,7 @@ CAM = (64, 48)
 
 def _sequence(tmp_path: Path) -> tuple[Path, Path]:
     """A small exported sequence (no Gray code) and plain photographs of it, one per frame."""
-    from procam.addon.capture.devices import export_sequence
+    from procam.addon.capture.sequence import export_sequence
     from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
 
     proj = Projector(projector_intrinsics_from_throw(FRAME[0], FRAME[1], 1.25, 0.0, 0.15), input_size=(60, 60))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..capture.devices import load_sequence
+from ..capture.sequence import load_sequence
 from ..options import add_arguments, declared, from_arguments
 from ..rig.model import Projector
 from ..steps.capture import (CameraSize, DepthSensorSize, ImportOptions, PatternsOptions, PhotoSettings,

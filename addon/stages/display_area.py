@@ -32,7 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..capture.devices import stored_bit_depth
+from ..capture.photos import stored_bit_depth
 from ..capture.format import srgb_to_linear
 from ..errors import ImageError, ProCamError
 from ..imageio import read_image

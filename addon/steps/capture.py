@@ -22,7 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from ..capture.devices import RigLens, export_sequence, import_captures, load_sequence, undistort_captures
+from ..rig.lens import RigLens
+from ..capture.sequence import export_sequence, load_sequence
+from ..capture.photos import import_captures, undistort_captures
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
@@ -357,7 +359,7 @@ class UndistortOptions:
 
 def run_undistort(options: UndistortOptions, progress: Progress | None = None,
                   cancel: Cancel | None = None) -> CaptureSet:
-    """The capture set with the rig's camera lens taken out (:func:`..capture.devices.undistort_captures`)."""
+    """The capture set with the rig's camera lens taken out (:func:`..capture.photos.undistort_captures`)."""
     del cancel  # a few seconds of image remapping
     check_replaceable(options.out, force=options.force, what=layout.CAPTURES.what, replaceable=layout.CAPTURES.holds,
                       inputs=(options.captures_dir, options.rig), error=CaptureError)

@@ -3,7 +3,7 @@
 A folder is recognised by its manifest; a reader checks the format tag and
 version before trusting anything else in it. Capture sets (``capture.json``)
 and exported pattern sequences (``sequence.json``) are defined with their
-format in :mod:`..capture.format` and :mod:`..capture.devices`, which the lab
+format in :mod:`..capture.format` and :mod:`..capture.sequence`, which the lab
 and the import share; they are listed here too so that this page names every
 folder ProCam writes.
 """
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..capture import devices as sequence_format
+from ..capture import sequence as sequence_format
 from ..capture import format as capture_format
 from ..errors import ProCamError
 from ..outputs import holds_manifest

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..capture.devices import export_sequence, load_sequence, sequence_frame
+from ..capture.sequence import export_sequence, load_sequence, sequence_frame
 from ..capture.format import CaptureSet, is_capture_set
 from ..errors import Cancelled, CaptureError, LiveError
 from ..imageio import read_image, write_atomic_bytes, write_image

@@ -18,7 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from ..capture.devices import Device, FolderDevice, LensRemovedDevice, RigLens, removed_lens
+from ..capture.devices import Device, FolderDevice, LensRemovedDevice
+from ..rig.lens import RigLens
+from ..capture.photos import removed_lens
 from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.truth import LabTruth
