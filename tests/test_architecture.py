@@ -279,7 +279,10 @@ def _sources() -> list[Path]:
 def test_one_definition_of_each_shared_helper():
     """What several modules need is written once: one reader of mesh files, one list of the image files a folder
     of images is listed with (the capture-set format's own list of what a set stores is a format rule, not a
-    reader's)."""
+    reader's), one sRGB transfer (its break points spelled in colour.py alone)."""
+    srgb = sorted(p.relative_to(ROOT).as_posix() for p in _sources()
+                  if "0.0031308" in p.read_text() or "0.04045" in p.read_text())
+    assert srgb == ["addon/colour.py"]
     mesh_readers = sorted(p.relative_to(ROOT).as_posix() for p in _sources() if "load_new_mesh(" in p.read_text())
     assert mesh_readers == ["addon/surface/mesh.py"]
     image_lists = []
