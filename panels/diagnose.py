@@ -23,8 +23,10 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         scene = context.scene
         layout.prop(scene, "procam_diagnosis_dir", text="")
         summary = diagnose_step.summary(bpy.path.abspath(scene.procam_diagnosis_dir))
-        # The diagnosis's advice names the command's options: here, the sidebar's fields.
-        shown = replace(summary, lines=tuple(sidebar_text(line, DIAGNOSE_FIELDS) for line in summary.lines))
+        # The diagnosis's advice names the command's options: here, the sidebar's fields; the effects and regions
+        # the command lists after it are drawn below, all of them, in boxes of their own.
+        brief = summary.lines[:summary.data.get("brief", len(summary.lines))]
+        shown = replace(summary, lines=tuple(sidebar_text(line, DIAGNOSE_FIELDS) for line in brief))
         done = draw_state(layout, "diagnose", shown)
         row = layout.row(align=True)
         row.prop(scene, "procam_diagnosis_scale")

@@ -135,8 +135,9 @@ def read(folder: str | Path) -> DiagnosisView:
     return DiagnosisView(Path(folder), KIND.read(folder, DiagnosisError))
 
 
-def _lines(root: Path, doc: dict[str, Any], notes: list[str]) -> tuple[str, ...]:
-    """What ``procam diagnose`` prints and the sidebar shows under the headline."""
+def _lines(root: Path, doc: dict[str, Any], notes: list[str], brief: list[int]) -> tuple[str, ...]:
+    """What ``procam diagnose`` prints and the sidebar shows under the headline; ``brief[0]`` is set to the number
+    of lines before the top effects and regions are listed."""
     view = DiagnosisView(root, doc)
     res, after = doc.get("residual") or {}, doc.get("residual_after") or {}
     lines = list(notes)
@@ -159,6 +160,7 @@ def _lines(root: Path, doc: dict[str, Any], notes: list[str]) -> tuple[str, ...]
     elif left:
         lines.append(f"left: RMSE {fmt(left.get('unexplained_rmse'), '.4f')} above the captures' noise, too little "
                      "to model")
+    brief[0] = len(lines)  # the panel lists every effect and region itself: it shows the lines up to here
     for e in [e for e in view.effects[:3] if not e.get("error")]:
         conf = e.get("confidence")
         level = conf.get("level", "–") if isinstance(conf, dict) else fmt(conf, ".2f")
@@ -197,14 +199,15 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     session = doc.get("session") or {}
     if session.get("changed"):
         notes.append(f"The rig changed during the session: {session.get('sentence', '')}.")
-    lines = _lines(root, doc, notes)  # the residual left is said in the lines' own words, with its RMSE
+    brief = [0]
+    lines = _lines(root, doc, notes, brief)  # the residual left is said in the lines' own words, with its RMSE
     left = doc.get("unexplained") or {}
     if left.get("detected"):
         notes.append(f"Unexplained: the selected effects explain {fmt(100 * left.get('explained_share', 0), '.0f')}% "
                      "of the residual above the noise" + (f"; most of the rest {left['where']}"
                                                           if left.get("where") else "") + ".")
     return Summary(True, head, lines, {"effects": effects, "selected": selected, "regions": regions, "maps": maps,
-                                    "summary": text, "notes": notes})
+                                    "summary": text, "notes": notes, "brief": brief[0]})
 
 
 def summary(folder: str | Path) -> Summary:
