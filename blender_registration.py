@@ -38,7 +38,8 @@ OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projecto
              PROCAM_OT_export_patterns, PROCAM_OT_import_captures, PROCAM_OT_calibrate_rig,
              PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_use_selected_surface_mesh,
              PROCAM_OT_add_targets, PROCAM_OT_remove_target,
-             PROCAM_OT_compensate, PROCAM_OT_evaluate, PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated, PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
+             PROCAM_OT_compensate, PROCAM_OT_evaluate, PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated,
+             PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text,
              PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job,
              PROCAM_OT_live_check, PROCAM_OT_live_preview, PROCAM_OT_live_capture)
 #: Sidebar panels in workflow order (a sub-panel right after its parent, which must be registered first).

@@ -29,7 +29,8 @@ def scene_properties() -> dict[str, object]:
             name=spec_of(rig_step.RigOptions, "board").label, size=2, default=(9, 7), min=2, soft_max=40,
             description="The chessboard's inner corners per row and rows (9 × 7 and 7 × 9 find the same board)"),
         "procam_board_square": FloatProperty(
-            name=spec_of(rig_step.RigOptions, "square").label, subtype="DISTANCE", unit="LENGTH", default=0.0, min=0.0, soft_max=0.2, precision=4,
+            name=spec_of(rig_step.RigOptions, "square").label, subtype="DISTANCE", unit="LENGTH",
+            default=0.0, min=0.0, soft_max=0.2, precision=4,
             description="One chessboard square, measured (makes the projector's position metric, so Import "
                         "Captures can use it); 0: unknown, lengths in board squares"),
         "procam_board_projector_size": IntVectorProperty(

@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
                                                projector_model=args.projector_distortion))
         t_cal = time.perf_counter() - t0
     effects = truth.effects if args.sessions else args.effects
-    print(f"{len(sessions)} board poses, camera {rig.camera.intrinsics.size}, projector {rig.projector.intrinsics.size}, "
+    print(f"{len(sessions)} board poses, camera {rig.camera.intrinsics.size}, "
+          f"projector {rig.projector.intrinsics.size}, "
           f"effects {effects or 'none'}, {args.samples} spp; distortion models camera {args.camera_distortion}, "
           f"projector {args.projector_distortion}; render {t_render:.0f} s, calibrate-rig {t_cal:.1f} s")
     print("| device | fx error | fy error | cx error | cy error | RMS |")

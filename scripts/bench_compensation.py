@@ -78,7 +78,8 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
     cam = (round(640 * args.scale), round(480 * args.scale))
     proj = (round(800 * args.scale), round(600 * args.scale))
     if not (captures_dir / "capture.json").is_file() or not truth_path.is_file():
-        progress(f"[{surface}] lab: rendering the capture set ({cam[0]}×{cam[1]} camera, {proj[0]}×{proj[1]} projector)")
+        progress(f"[{surface}] lab: rendering the capture set ({cam[0]}×{cam[1]} camera, "
+                 f"{proj[0]}×{proj[1]} projector)")
         t0 = time.perf_counter()
         truth = make_truth(surface, effects=args.effects, seed=args.seed, samples=args.samples, camera_size=cam,
                            projector_size=proj)
@@ -118,7 +119,8 @@ def _surface_run(surface: str, args: argparse.Namespace, work: Path, out: Path) 
             schedule = None
             res = comp.run(fitted, device=device, **common)
             inputs["ours"] = (res.x_input, res.seconds)
-            schedule = res.report.get("schedule", {}).get("name") if isinstance(res.report.get("schedule"), dict) else None
+            schedule = (res.report.get("schedule", {}).get("name")
+                        if isinstance(res.report.get("schedule"), dict) else None)
             used = {"total": len(res.losses), "captures": res.captures}
             res = comp.run(fitted, use_bias=False, **common)
             inputs["ours_no_theta"] = (res.x_input, res.seconds)
@@ -171,8 +173,8 @@ def _paper_pose_run(surface: str, args: argparse.Namespace, work: Path, out: Pat
     if not (calib_dir / "calibration.json").is_file():
         progress(f"[{surface}] calibrating with the paper's stage A (nominal start, binary mask)")
         t0 = time.perf_counter()
-        run_calibration(CalibrateOptions(folder / "captures", calib_dir, init="nominal", stage_a="paper", seed=args.seed,
-                  with_blend=False, force=True))
+        run_calibration(CalibrateOptions(folder / "captures", calib_dir, init="nominal", stage_a="paper",
+                                         seed=args.seed, with_blend=False, force=True))
         seconds["calibrate"] = time.perf_counter() - t0
     cal = read_calibration(calib_dir)
     truth = LabTruth.load(folder / "truth.json")
@@ -329,7 +331,8 @@ def main(argv: list[str] | None = None) -> int:
         md += _paper_pose_markdown(paper)
     md += f"\nTotal wall time of this run: {time.perf_counter() - t_start:.0f} s (work folder {work}).\n"
     doc = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-           "surfaces": results, "paper_pose": paper if args.paper_pose else None, "seconds_total": round(time.perf_counter() - t_start, 1)}
+           "surfaces": results, "paper_pose": paper if args.paper_pose else None,
+           "seconds_total": round(time.perf_counter() - t_start, 1)}
     write_atomic_bytes(args.out / "table2.json", (json.dumps(doc, indent=1) + "\n").encode())
     write_atomic_bytes(args.out / "table2.md", md.encode())
     print(md)

@@ -317,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
                                                   args.samples) if len(effects) == 1 else False,
                "selected": doc["selected"], "absorbed": doc.get("absorbed", []), "rmse_before": before,
                "rmse_after": after, "floor": floor,
-               "removed_above_floor": removed, "compensation": comp, "regions": local, "seconds": round(time.perf_counter() - t0, 1),
+               "removed_above_floor": removed, "compensation": comp, "regions": local,
+               "seconds": round(time.perf_counter() - t0, 1),
                "confidence": {e["name"]: e["confidence"].get("level") for e in doc["effects"]
                               if e["name"] in doc["selected"]}}
         rows.append(row)
@@ -407,7 +408,8 @@ def report_markdown(rows: list[dict], args: argparse.Namespace) -> str:
         c = f"{comp['base']:.2f} → {comp['effects']:.2f}" if comp else "–"
         rem = f"{r['removed_above_floor']:.0%}" if r["removed_above_floor"] is not None else "–"
         fl = f"{r['floor']:.4f}" if r["floor"] is not None else "–"
-        where = r["surface"] + (f" (seed {r['seed']})" if r.get("seed") else "") + (f" at {r['strength']:g}" if r.get("injected") and r.get("strength", 0.5) != 0.5 else "")
+        where = (r["surface"] + (f" (seed {r['seed']})" if r.get("seed") else "")
+                 + (f" at {r['strength']:g}" if r.get("injected") and r.get("strength", 0.5) != 0.5 else ""))
         lines.append(f"| {where} | {'+'.join(r['injected']) or 'none'} | {r['first']} | "
                      f"{', '.join(r['selected']) or 'none'} | {r['rmse_before']:.4f} → {r['rmse_after']:.4f} | {fl} | "
                      f"{rem} | {c} | {r['seconds']} |")

@@ -42,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, default=None)
     args = ap.parse_args(argv)
     error = tuple(float(v) / 100 for v in args.nominal_error.split(","))
-    print(f"spec wrong by {args.nominal_error} (focal %, shift % of height), camera FoV {args.camera_fov_error:+g}°; scale {args.scale:g}, effects "
+    print(f"spec wrong by {args.nominal_error} (focal %, shift % of height), "
+          f"camera FoV {args.camera_fov_error:+g}°; scale {args.scale:g}, effects "
           f"{args.effects or 'none'}, {args.samples} spp; targets {args.targets}, closed loop, fast schedule")
     print("| surface | K from | focal err % | principal point err px | determined | camera focal err % | pose mm | "
           "axis ° | PSNR dB |")
@@ -83,8 +84,8 @@ def main(argv: list[str] | None = None) -> int:
                 psnr = np.mean([t["psnr"] for t in metrics["targets"] if t.get("status") == "done"])
                 det_s = "—" if det is None else ", ".join(n for n, v in det.items() if v) or "nothing"
                 print(f"| {surface} | {m} | {100 * (k.fx / tk.fx - 1):+.2f} | "
-                      f"{np.hypot(k.cx - tk.cx, k.cy - tk.cy):.1f} | {det_s} | {cam_err:+.2f} | {pos:.1f} | {ang:.3f} | "
-                      f"{psnr:.2f} |",
+                      f"{np.hypot(k.cx - tk.cx, k.cy - tk.cy):.1f} | {det_s} | {cam_err:+.2f} | {pos:.1f} | "
+                      f"{ang:.3f} | {psnr:.2f} |",
                       flush=True)
     return 0
 

@@ -66,7 +66,8 @@ def latency_run(delay: float, size: tuple[int, int]) -> dict[str, float]:
     stale = sum(abs(s - (hi if v > 0.5 else lo)) > 0.25 * (hi - lo) for v, s in zip(levels, seen))
     median = float(np.median(report.latencies_s))
     return {"delay_ms": delay * 1000, "measured_ms": [round(v * 1000, 1) for v in report.latencies_s],
-            "median_error_frames": (median - delay) / report.camera_frame_s, "camera_frame_ms": report.camera_frame_s * 1000,
+            "median_error_frames": (median - delay) / report.camera_frame_s,
+            "camera_frame_ms": report.camera_frame_s * 1000,
             "stale_captures": int(stale), "captures": len(levels)}
 
 
@@ -142,7 +143,8 @@ def main() -> None:
                 r = whole_loop(Path(tmp))
             print(f"\nwhole loop at 256×192: capture {r['capture_s']:.1f} s, calibrate {r['calibrate_s']:.1f} s, "
                   f"compensate {r['compensate_s']:.1f} s, evaluate {r['evaluate_s']:.1f} s; projector pose "
-                  f"{r['pose_error_mm']:.1f} mm off; PSNR {r['psnr_uncompensated']:.2f} → {r['psnr_compensated']:.2f} dB")
+                  f"{r['pose_error_mm']:.1f} mm off; "
+                  f"PSNR {r['psnr_uncompensated']:.2f} → {r['psnr_compensated']:.2f} dB")
     finally:
         import pygame
         pygame.display.quit()  # before its X server goes away

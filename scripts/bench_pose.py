@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     rows = []
-    header = f"{'surface':8s} {'strategy':9s} {'pos mm':>8s} {'dir °':>7s} {'seconds':>8s} {'loss':>9s}  sub-steps (pos mm / dir °)"
+    header = (f"{'surface':8s} {'strategy':9s} {'pos mm':>8s} {'dir °':>7s} {'seconds':>8s} {'loss':>9s}  "
+              "sub-steps (pos mm / dir °)")
     print(header, flush=True)
     for surf_name in args.surfaces.split(","):
         caps_dir, truth_path = lab_set(args.cache, surf_name, args.effects, args.scale, args.samples, args.seed)

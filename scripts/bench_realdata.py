@@ -89,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
                   "--no-precompute", "--force"])
         if not (gap / "gap.json").is_file():
             _cli(["diagnose", str(cal), "--out", str(gap), "--scale", str(args.scale), "--force"])
-        rows.append((pose, json.loads((cal / "calibration.json").read_text()), json.loads((gap / "gap.json").read_text())))
+        rows.append((pose, json.loads((cal / "calibration.json").read_text()),
+                     json.loads((gap / "gap.json").read_text())))
 
     print(f"\nreal photographs: {args.real}\nrig: {rig}; diagnosis at scale {args.scale}; "
           f"{time.perf_counter() - t0:.0f} s in all (reused folders not counted)\n")

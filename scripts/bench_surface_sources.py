@@ -105,7 +105,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r_ in rows:
         if "refused" in r_:
-            print(f"| {r_['surface']} | {r_['source']} | refused: {r_['refused'].removeprefix('surface: ').split(' (start')[0]} "
+            refused = r_["refused"].removeprefix("surface: ").split(" (start")[0]
+            print(f"| {r_['surface']} | {r_['source']} | refused: {refused} "
                   "| | | | | | | |")
             continue
         rep = f"{r_['reprojection_rms_px']:.2f}" if "reprojection_rms_px" in r_ else ""

@@ -104,7 +104,8 @@ def main() -> None:
             f, t = results[f"fast-{loop}"], results[f"transport-{loop}"]
             print(f"\n{loop} loop, {args.surface}, scale {args.scale}; compute seconds per target, without the lab's "
                   f"captures ({f['_captures']} for fast, {t['_captures']} for transport)\n")
-            print("| Target | fast: PSNR | fast: s | transport: PSNR | transport: s | Δ PSNR |\n|---|---|---|---|---|---|")
+            print("| Target | fast: PSNR | fast: s | transport: PSNR | transport: s | Δ PSNR |\n"
+                  "|---|---|---|---|---|---|")
             names = [n for n in f if not n.startswith("_")]
             for n in names:
                 print(f"| {n} | {f[n][0]:.2f} | {f[n][1]:.1f} | {t[n][0]:.2f} | {t[n][1]:.2f} | "

@@ -10,8 +10,9 @@ natural photograph (a slow camera move: consecutive frames differ little),
 and compensates it open loop with ``procam show`` three times: warm start in
 this process, ``--cold-start`` in this process, and warm start on a local
 cluster of ``--workers`` processes (whose frames must be byte-identical to the
-first run's: every run uses ``--threads`` Dr.Jit threads per process). Then ``procam evaluate`` projects the warm and cold shows
-through the lab and reports their flicker. Prints one Markdown row per run,
+first run's: every run uses ``--threads`` Dr.Jit threads per process). Then
+``procam evaluate`` projects the warm and cold shows through the lab and
+reports their flicker. Prints one Markdown row per run,
 with frames per second (wall, whole ``procam show``). ``--schedule transport``
 precomputes the calibration's light-transport operator first (its seconds are
 printed apart). ``--runs`` picks the runs and ``--no-evaluate`` skips the lab

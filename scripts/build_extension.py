@@ -238,9 +238,9 @@ def blender_ext_tool() -> Path:
         found = sorted(Path(spec.submodule_search_locations[0]).glob(f"*/{BLENDER_EXT}"))
         if found:
             return found[-1]
-    raise BuildError(f"the zips are written by Blender's extension tool, which ships in the bpy wheel, and {sys.executable} "
-                     "has no bpy: run `procam build-extension` (or this script with .venv/bin/python) after the "
-                     "README's set-up")
+    raise BuildError(f"the zips are written by Blender's extension tool, which ships in the bpy wheel, "
+                     f"and {sys.executable} has no bpy: run `procam build-extension` (or this script with "
+                     ".venv/bin/python) after the README's set-up")
 
 
 def _blender_build(tool: Path, stage: Path, out: Path, *, split: bool, output_file: Path | None = None) -> None:

@@ -30,7 +30,8 @@ def rows_for(pairs: list[tuple[Path, Path]]) -> list[dict]:
         warp = doc.get("warp_report") or {}
         surface = doc.get("surface_report") or {}
         cam = doc["rig"]["camera"]["intrinsics"]
-        rows.append({"calibration": str(cal_dir), "surface": truth.surface_source, "camera": [cam["width"], cam["height"]],
+        rows.append({"calibration": str(cal_dir), "surface": truth.surface_source,
+                     "camera": [cam["width"], cam["height"]],
                      "position_mm": 1000 * pos, "direction_deg": ang,
                      "depth_offset_cm": 100 * float(surface.get("depth_offset", 0.0)),
                      "true_bias_cm": 100 * float(truth.effects["depth_noise"]["bias"]),
@@ -44,8 +45,9 @@ def markdown(rows: list[dict]) -> str:
     def num(v: object, spec: str) -> str:
         return "–" if v is None else format(float(v), spec)
 
-    lines = ["| calibration | camera | position mm | direction ° | depth offset cm (lab bias) | corners px before → after "
-             "| surface s | pose s | albedo s | warp s |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| calibration | camera | position mm | direction ° | depth offset cm (lab bias) | "
+             "corners px before → after | surface s | pose s | albedo s | warp s |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         s = r["seconds"]
         lines.append(f"| {r['calibration']} | {r['camera'][0]}×{r['camera'][1]} | {r['position_mm']:.1f} | "

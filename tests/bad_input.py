@@ -149,7 +149,8 @@ def snapshot(root: Path) -> dict[str, str]:
     return out
 
 
-def lost(before: dict[str, str], after: dict[str, str], may_change: Callable[[str], bool] = lambda n: False) -> list[str]:
+def lost(before: dict[str, str], after: dict[str, str],
+         may_change: Callable[[str], bool] = lambda n: False) -> list[str]:
     """Files of ``before`` that are gone or changed in ``after``, except those ``may_change`` allows."""
     return [f"{n} ({'deleted' if n not in after else 'changed'})" for n, h in before.items()
             if after.get(n) != h and not may_change(n)]
@@ -595,7 +596,8 @@ class Figures:
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"cases": dict(self.cases), "codes": {f: {str(k): v for k, v in c.items()} for f, c in self.codes.items()},
+        return {"cases": dict(self.cases),
+                "codes": {f: {str(k): v for k, v in c.items()} for f, c in self.codes.items()},
                 "internal": dict(self.internal), "hangs": dict(self.hangs), "escapes": dict(self.escapes),
                 "losses": dict(self.losses), "failures": self.failures}
 

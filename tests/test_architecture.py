@@ -117,8 +117,8 @@ def test_bpy_only_where_blender_is_the_point():
 
 
 #: Why an import of our own may wait inside a function: it loads bpy (Blender's bridge and the Cycles lab), or cv2
-#: where Blender registers the extension (type-checking imports sit at module level). Anything else goes at the top of the file,
-#: where a reader sees what the module depends on.
+#: where Blender registers the extension (type-checking imports sit at module level). Anything else goes at the top
+#: of the file, where a reader sees what the module depends on.
 LAZY_ALLOWED = ("blender", "cycles", "imageio", "cli.app", "addon.jobs")
 
 

@@ -285,7 +285,8 @@ def test_sequence_frame_params_of_another_type_is_refused(world, params):
     assert result.code == 2 and "frame 0" in result.stderr, result.stderr[-500:]
 
 
-@pytest.mark.parametrize("where, value", [(("projector", "input_size"), [60]), (("projector", "input_size"), [60, 1e999]),
+@pytest.mark.parametrize("where, value", [(("projector", "input_size"), [60]),
+                                          (("projector", "input_size"), [60, 1e999]),
                                           (("projector", "input_offset"), [10])])
 def test_sequence_projector_of_a_bad_input_size_is_refused(world, where, value):
     """An input size or offset of one number or an infinite one (found by the suite: IndexError, OverflowError)."""

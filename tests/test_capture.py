@@ -121,7 +121,8 @@ def test_round_trip(tmp_path):
     assert again.image("graycode", axis="x", bit=0, inverted=True).dtype == np.float32
     assert again.image("validation", pattern="grey", level=0.5).shape == (CAM[1], CAM[0], 3)
     assert again.image("target").shape == (30, 40, 3)
-    assert np.array_equal(again.pattern("checker", phase=0), small_projector().frame_from_input(checkerboard(INPUT, 10, 0)))
+    assert np.array_equal(again.pattern("checker", phase=0),
+                          small_projector().frame_from_input(checkerboard(INPUT, 10, 0)))
     assert np.allclose(again.pattern("validation", name="val_grey_0.5"), 0.5, atol=1e-4)
     assert len(again.entries_of("checker")) == 2 and again.entries_of("depth")[0].file.endswith(".npy")
     d = again.depth()
@@ -178,7 +179,8 @@ def test_truncated_image(good_set):
 def test_wrong_size(good_set):
     e = CaptureSet.load(good_set).entry("black")
     write_image(good_set / e.file, np.zeros((CAM[1] + 2, CAM[0], 3)))
-    with pytest.raises(CaptureError, match=r"0001_black\.png: image is 64×50 pixels, but the camera resolution is 64×48"):
+    with pytest.raises(CaptureError,
+                       match=r"0001_black\.png: image is 64×50 pixels, but the camera resolution is 64×48"):
         CaptureSet.load(good_set)
 
 
@@ -244,7 +246,8 @@ def test_missing_params(good_set):
     def change(d):
         del d["images"][5]["params"]["bit"]
     edit_manifest(good_set, change)
-    with pytest.raises(CaptureError, match=r"0005_graycode_x00\.png\): a 'graycode' entry needs the parameter\(s\) bit"):
+    with pytest.raises(CaptureError,
+                       match=r"0005_graycode_x00\.png\): a 'graycode' entry needs the parameter\(s\) bit"):
         CaptureSet.load(good_set)
 
 
@@ -613,10 +616,11 @@ def test_rig_lens_puts_a_point_where_a_pinhole_would(tmp_path):
     assert np.linalg.norm(seen - pinhole) > 10  # the lens really moves it
     ys, xs = np.mgrid[0:480, 0:640]
     blob = np.exp(-((xs - seen[0]) ** 2 + (ys - seen[1]) ** 2) / (2 * 2.0 ** 2)).astype(np.float32)
-    out = RigLens(Intrinsics.from_opencv_matrix(640, 480, k), dist, "test").image(np.repeat(blob[..., None], 3, 2))[..., 0]
+    lens = RigLens(Intrinsics.from_opencv_matrix(640, 480, k), dist, "test")
+    out = lens.image(np.repeat(blob[..., None], 3, 2))[..., 0]
     centre = np.array([(out * xs).sum(), (out * ys).sum()]) / out.sum()
     assert np.linalg.norm(centre - pinhole) < 0.1
-    half = RigLens(Intrinsics.from_opencv_matrix(640, 480, k), dist, "test").image(blob[::2, ::2].copy(), nearest=True)  # a half-size depth map
+    half = lens.image(blob[::2, ::2].copy(), nearest=True)  # a half-size depth map
     assert np.unravel_index(np.argmax(half), half.shape) == pytest.approx(
         (round((pinhole[1] + 0.5) / 2 - 0.5), round((pinhole[0] + 0.5) / 2 - 0.5)), abs=1)
 

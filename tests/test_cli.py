@@ -160,7 +160,8 @@ def test_console_script_exit_codes(tmp_path):
     assert ok.returncode == EXIT_OK and "exit codes:" in ok.stdout
     bad = subprocess.run([exe, "show", str(tmp_path), str(tmp_path / "f_####.png"), "--out", str(tmp_path / "o")],
                          capture_output=True, text=True, timeout=120)
-    assert bad.returncode == EXIT_USER and bad.stderr.startswith("procam show: error:") and "Traceback" not in bad.stderr
+    assert (bad.returncode == EXIT_USER and bad.stderr.startswith("procam show: error:")
+            and "Traceback" not in bad.stderr)
 
 
 # -- progress on stderr --------------------------------------------------------------------------

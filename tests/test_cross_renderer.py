@@ -61,11 +61,12 @@ def test_cross_check_detects_a_wrong_projector(rig_and_surface):
 
     rig, surface = rig_and_surface
     k = rig.projector.intrinsics
-    shifted = Projector(Intrinsics(k.width, k.height, k.fx, k.fy, k.cx + 2.0, k.cy), rig.projector.camera_from_projector,
-                        rig.projector.intensity * 1.05)
+    shifted = Projector(Intrinsics(k.width, k.height, k.fx, k.fy, k.cx + 2.0, k.cy),
+                        rig.projector.camera_from_projector, rig.projector.intensity * 1.05)
     good = ForwardModel(rig, surface, spp=16, smoothing_eps=0.0, clamp=False)
     bad = ForwardModel(Rig(rig.camera, shifted), surface, spp=16, smoothing_eps=0.0, clamp=False)
-    frames = {"white": np.ones((k.height, k.width, 3), np.float32), "checker": checkerboard_frame(k.width, k.height, 40)}
+    frames = {"white": np.ones((k.height, k.width, 3), np.float32),
+              "checker": checkerboard_frame(k.width, k.height, 40)}
     a = {n: good.render(f) for n, f in frames.items()}
     b = {n: bad.render(f) for n, f in frames.items()}
     m = measure(a, b, predicted_corners(rig, surface, 40), 20.0, 0)

@@ -691,7 +691,8 @@ def test_an_effect_whose_gain_lies_where_its_form_matters_least_is_reported_not_
 def test_an_effect_theta_holds_stays_in_the_model_compensation_is_scored_on(lab_calibration):
     """A black level is left to stage C's θ, not inverted; but the other effects are judged with it in the model,
     as θ will hold it: judged without it, the missing room light outweighs what they explain."""
-    data = load_gap_data(lab_calibration("plane", "response=0.4,black_level=1,black_level.ambient=0.12", **TINY)[0], scale=1.0, spp=8)
+    data = load_gap_data(lab_calibration("plane", "response=0.4,black_level=1,black_level.ambient=0.12", **TINY)[0],
+                         scale=1.0, spp=8)
     both = ("response", "black_level")
     sel = gap_fit.Selection(gap_fit.fit_composite(data, ()), {}, selected=list(both),
                             final=gap_fit.fit_composite(data, both))

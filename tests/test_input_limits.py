@@ -35,7 +35,8 @@ def test_png_declaring_20000x20000_is_refused_at_once_in_little_memory(tmp_path,
     bomb.write_bytes(png_bomb(20000, 20000))
     assert bomb.stat().st_size < 200
     # A fresh interpreter under a 3 GiB address-space cap (decoding would need 2.4 GB for the pixels alone): it
-    # must refuse with the size and the limit, in well under a second of work and without growing the process's peak memory.
+    # must refuse with the size and the limit, in well under a second of work and without growing the process's
+    # peak memory.
     out = run_python("""
         import json, resource, sys, time
         resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))

@@ -58,7 +58,8 @@ def _slanted_depth(intr: Intrinsics = PROJ.intrinsics) -> np.ndarray:
 def test_registry_names_match_the_design():
     assert NAMES == ("response", "crosstalk", "black_level", "vignetting", "defocus", "interreflection", "glossy",
                      "camera_response", "distortion", "noise", "depth_noise",
-                     "response_scurve", "defocus_depth", "lamp", "distortion_tangential", "warmup", "surface_moved", "subsurface")
+                     "response_scurve", "defocus_depth", "lamp", "distortion_tangential", "warmup", "surface_moved",
+                     "subsurface")
 
 
 def test_every_lab_effect_names_a_diagnosis_model_or_none():

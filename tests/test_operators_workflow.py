@@ -85,7 +85,8 @@ def test_calibrate_operator_moves_the_projector_and_shows_the_textured_surface(r
     objs = blender_rig.find_rig_objects(scene)
     assert np.allclose(blender_rig.read_projector(scene).camera_from_projector,
                        cal.rig.projector.camera_from_projector, atol=1e-6)
-    assert objs.surface.name == blender_rig.CALIBRATED_SURFACE_NAME and len(objs.surface.data.polygons) == len(cal.surface.faces)
+    assert objs.surface.name == blender_rig.CALIBRATED_SURFACE_NAME
+    assert len(objs.surface.data.polygons) == len(cal.surface.faces)
     tex = [n for n in objs.surface.active_material.node_tree.nodes if n.type == "TEX_IMAGE"][0].image
     assert tuple(tex.size) == (cal.surface.albedo.shape[1], cal.surface.albedo.shape[0])
     assert user_surface.hide_render and user_surface.name in scene.objects  # kept, hidden, no longer the surface
@@ -272,7 +273,8 @@ def test_diagnose_operator_and_cancel_button(registered, calibrated, tmp_path, m
     import threading
 
     gate = threading.Event()
-    job = jobs.BOARD.add("diagnose", jobs.Job("diagnosis", lambda *, progress, cancel: (gate.wait(5), progress("x", 1))))
+    job = jobs.BOARD.add("diagnose", jobs.Job("diagnosis",
+                                              lambda *, progress, cancel: (gate.wait(5), progress("x", 1))))
     job.start()
     try:
         with pytest.raises(RuntimeError, match="diagnosis is running"):

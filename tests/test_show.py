@@ -353,7 +353,8 @@ def test_show_from_a_video_warm_starts_and_resumes_exactly(lab_calibration, tmp_
     args = ["show", str(cal_dir), str(video), "--out", str(out), *FAST, "--no-bias", "--chunk", "2"]
     assert main(args) == EXIT_OK
     doc = _manifest(out)
-    assert doc["video"]["frames"] == 3 and doc["video"]["source_sha256"] == hashlib.sha256(video.read_bytes()).hexdigest()
+    assert doc["video"]["frames"] == 3
+    assert doc["video"]["source_sha256"] == hashlib.sha256(video.read_bytes()).hexdigest()
     assert doc["settings"]["warm_start"]["chunk"] == 2
     # Chunks by frame number {1, 2}, {3}: frame 2 starts from frame 1, frames 1 and 3 start cold.
     assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, None]

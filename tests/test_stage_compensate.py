@@ -72,7 +72,8 @@ def test_open_loop_theta_leaves_out_capture_values_given_as_nan(setup):
     back there): θ leaves those values out and stays finite, and every other pixel's θ is unchanged."""
     class WhiteWithHole:
         def __init__(self, captures):
-            self._c, self.path, self.camera, self.projector = captures, captures.path, captures.camera, captures.projector
+            self._c, self.path, self.camera, self.projector = (captures, captures.path, captures.camera,
+                                                               captures.projector)
 
         def entries_of(self, kind):
             return self._c.entries_of(kind)

@@ -24,7 +24,8 @@ def _smooth_shifts(grid: int, amplitude: float, seed: int = 0) -> np.ndarray:
     out = np.zeros((grid, grid, 2))
     for a in range(2):
         c = rng.uniform(-1, 1, 4)
-        out[..., a] = amplitude * (c[0] + 0.5 * c[1] * xx + 0.5 * c[2] * yy + c[3] * np.sin(np.pi * xx) * np.sin(np.pi * yy))
+        out[..., a] = amplitude * (c[0] + 0.5 * c[1] * xx + 0.5 * c[2] * yy
+                                   + c[3] * np.sin(np.pi * xx) * np.sin(np.pi * yy))
     return out
 
 
@@ -256,7 +257,8 @@ def _setup(warp_set, tmp_path):
     truth = LabTruth.load(truth_path)
     folder = _copy_set(captures_dir, tmp_path / "captures")
     captures = CaptureSet.load(folder)
-    return folder, truth.surface, Rig(captures.camera, captures.projector.with_pose(truth.rig.projector.camera_from_projector))
+    return folder, truth.surface, Rig(captures.camera,
+                                      captures.projector.with_pose(truth.rig.projector.camera_from_projector))
 
 
 def _fit(folder: Path, surface, rig, **kw):

@@ -1,4 +1,5 @@
-"""Surfaces without a depth sensor: the Gray code triangulated with a known rig, and the user's mesh registered by ICP."""
+"""Surfaces without a depth sensor: the Gray code triangulated with a known rig, and the user's mesh registered
+by ICP."""
 
 import json
 import shutil

@@ -350,7 +350,8 @@ def _build_surface(mesh: SurfaceMesh, built: _Built, rig_to_world: np.ndarray) -
     uv_layer.data.foreach_set("uv", mesh.uvs[faces.ravel()].astype(np.float32).ravel())
     data.update()
     if data.validate():
-        raise SurfaceError(f"surface {mesh.name!r} has invalid geometry (degenerate or duplicate faces); clean the mesh")
+        raise SurfaceError(f"surface {mesh.name!r} has invalid geometry (degenerate or duplicate faces); "
+                           "clean the mesh")
 
     mat = built.add(bpy.data.materials, bpy.data.materials.new(f"{SURFACE_NAME} Material"))
     if mat.node_tree is None:  # Blender < 5.0 creates materials without nodes
@@ -731,7 +732,8 @@ def apply_calibration(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh, *,
     # Nothing below can fail on valid objects: move, rename, tag, tidy.
     if keep_proj and move_projector:
         proj = new.projector
-        proj.matrix_world = _matrix(frames.blender_matrix_world(_rig_to_world(scene) @ rig.projector.camera_from_projector))
+        proj.matrix_world = _matrix(
+            frames.blender_matrix_world(_rig_to_world(scene) @ rig.projector.camera_from_projector))
         data = _props(proj)
         data["pose"] = [float(v) for v in rig.projector.camera_from_projector.ravel()]
         data["intensity"] = float(rig.projector.intensity)

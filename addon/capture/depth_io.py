@@ -321,9 +321,9 @@ def read_depth(path: str | Path, camera: Intrinsics, *, units: str = "auto",
     med = float(np.nanmedian(depth))
     if not MIN_DEPTH_M <= med <= MAX_DEPTH_M:
         raise CaptureError(f"depth file {path}: its median depth is {med:.4g} m in {reason}, outside "
-                           f"[{MIN_DEPTH_M:g}, {MAX_DEPTH_M:g}] m: not a depth map in metres or millimetres (disparity, "
-                           "centimetres, a normalised image?); give --depth-units, or export depth in metres "
-                           "(.npy/.exr) or 16-bit millimetres (.png)")
+                           f"[{MIN_DEPTH_M:g}, {MAX_DEPTH_M:g}] m: not a depth map in metres or millimetres "
+                           "(disparity, centimetres, a normalised image?); give --depth-units, or export depth in "
+                           "metres (.npy/.exr) or 16-bit millimetres (.png)")
     out_of_range = valid & ((depth < MIN_DEPTH_M) | (depth > MAX_DEPTH_M))
     if out_of_range.any():
         warnings.append(f"depth file {path.name}: {int(out_of_range.sum())} pixels ({out_of_range.mean():.1%}) outside "
@@ -331,7 +331,8 @@ def read_depth(path: str | Path, camera: Intrinsics, *, units: str = "auto",
         depth[out_of_range] = np.nan
         if np.isfinite(depth).mean() < MIN_VALID:
             raise CaptureError(f"depth file {path} is mostly holes once the pixels outside [{MIN_DEPTH_M:g}, "
-                               f"{MAX_DEPTH_M:g}] m are removed ({np.isfinite(depth).mean():.0%} valid); check its units")
+                               f"{MAX_DEPTH_M:g}] m are removed ({np.isfinite(depth).mean():.0%} valid); "
+                               "check its units")
     return DepthReading(path, depth.astype(np.float32), fmt, scale, reason, projected, tuple(warnings))
 
 
@@ -436,8 +437,8 @@ def find_alignment(depth: np.ndarray, reference_image: np.ndarray | Sequence[np.
     * too few depth edges, or no shift where S stands out from its median by
       ``MIN_PROMINENCE``: not checked (shift 0);
     * the zero shift loses less than ``MIN_GAIN`` of the peak's prominence: aligned;
-    * otherwise the best shift is taken, unless it sits at the border of the search (misaligned by ``max_shift`` or more)
-      or a separate peak comes within ``RUNNER_UP`` of it: then the evidence is
+    * otherwise the best shift is taken, unless it sits at the border of the search (misaligned by
+      ``max_shift`` or more) or a separate peak comes within ``RUNNER_UP`` of it: then the evidence is
       ambiguous and a :class:`CaptureError` is raised.
 
     ``confidence`` is the prominence of the chosen shift's match, (S − median) / (1 − median), in [0, 1].

@@ -262,8 +262,8 @@ def check_exposure(shots: Sequence[Shot], *, gain_tolerance: float = GAIN_TOLERA
         since = culprit.source
         skipped_from = checked_at[n - 1] + 1 if n > 0 else 0
         if culprit is a and skipped_from < checked_at[n]:
-            since += (f" (or from as early as {pairs[skipped_from][0].source}: the pairs between have patterns too fine "
-                      "to check)")
+            since += (f" (or from as early as {pairs[skipped_from][0].source}: "
+                      "the pairs between have patterns too fine to check)")
         raise CaptureError(f"{where + ': ' if where else ''}{kind}, from {since} on: it is {what}.{hint} "
                            f"Nothing was imported; {_HOW}")
     return ExposureReport(True, "exposure and white balance steady", tuple(checks), float(lit.mean()),

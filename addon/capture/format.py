@@ -254,7 +254,8 @@ class CaptureSet:
         except (OSError, UnicodeDecodeError) as exc:
             raise CaptureError(f"cannot read {manifest}: {exc}") from None
         except json.JSONDecodeError as exc:
-            raise CaptureError(f"{manifest} is not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}") from None
+            raise CaptureError(f"{manifest} is not valid JSON (line {exc.lineno}, column {exc.colno}): "
+                               f"{exc.msg}") from None
         cs = CaptureSet._from_doc(root, doc, str(manifest))
         if verify_images:
             cs.verify()
@@ -301,7 +302,8 @@ class CaptureSet:
                 ok = w > 0 and h > 0 and x >= 0 and y >= 0 and x + w <= cw and y + h <= ch
             if not ok:
                 raise CaptureError(f"{where}: target_area must be [x, y, width, height] of whole camera pixels "
-                                   f"inside the {camera.intrinsics.width}×{camera.intrinsics.height} image, got {target_area!r}")
+                                   f"inside the {camera.intrinsics.width}×{camera.intrinsics.height} image, "
+                                   f"got {target_area!r}")
             target_area = tuple(target_area)
         images = doc.get("images")
         if not isinstance(images, list):
@@ -330,7 +332,8 @@ class CaptureSet:
                 raise CaptureError(f"{here} ({rel}): duplicate entry name {name!r}")
             suffixes = DEPTH_SUFFIXES if kind == "depth" else IMAGE_SUFFIXES
             if Path(rel).suffix.lower() not in suffixes:
-                raise CaptureError(f"{here}: {rel} has an unsupported type for a {kind} image (use {', '.join(suffixes)})")
+                raise CaptureError(f"{here}: {rel} has an unsupported type for a {kind} image "
+                                   f"(use {', '.join(suffixes)})")
             pattern = raw.get("pattern")
             if pattern is not None:
                 inside(root, pattern, what=f"{here}: pattern", error=CaptureError)
@@ -359,7 +362,8 @@ class CaptureSet:
             if e.pattern:
                 pat = self._read(e.pattern)
                 if _size(pat) != frame:
-                    raise CaptureError(f"{self.path / e.pattern}: projected pattern is {_size(pat)[0]}×{_size(pat)[1]}, "
+                    raise CaptureError(f"{self.path / e.pattern}: projected pattern is "
+                                       f"{_size(pat)[0]}×{_size(pat)[1]}, "
                                        f"but the projector frame is {frame[0]}×{frame[1]}")
 
     def _file(self, rel: str) -> Path:

@@ -304,7 +304,8 @@ def smooth_random(size: Size, seed: int, scale: float = 32.0) -> np.ndarray:
 
 
 def _validation_specs(size: Size, seed: int, grey_levels: Sequence[float], ramp_channels: Sequence[str],
-                      random_count: int, random_scale: float) -> list[tuple[str, dict[str, Any], Callable[[], np.ndarray]]]:
+                      random_count: int, random_scale: float
+                      ) -> list[tuple[str, dict[str, Any], Callable[[], np.ndarray]]]:
     out: list[tuple[str, dict[str, Any], Callable[[], np.ndarray]]] = []
     for level in grey_levels:
         out.append((f"val_grey_{level:.3f}".rstrip("0").rstrip("."), {"pattern": "grey", "level": float(level)},
@@ -377,7 +378,8 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
     frame_size = projector.intrinsics.size
     checker_size = default_checker_size(size) if checker_size is None else checker_size
     if not isinstance(checker_size, (int, np.integer)) or checker_size <= 0 or checker_size > min(size):
-        raise CaptureError(f"checker size must be a whole number of pixels between 1 and {min(size)}, got {checker_size!r}")
+        raise CaptureError(f"checker size must be a whole number of pixels between 1 and {min(size)}, "
+                           f"got {checker_size!r}")
 
     def place(make: Callable[[], np.ndarray]) -> Callable[[], np.ndarray]:
         if area == "frame":
@@ -387,8 +389,8 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
     base = {"area": area}
     dark = PatternSpec("black", "black", dict(base), place(lambda: black(size)))
     light = PatternSpec("white", "white", dict(base), place(lambda: white(size)))
-    seq = [] if layout == "opencv" else [PatternSpec("surface", "surface", {"projector": "off"}, lambda: black(frame_size)),
-                                         dark, light]
+    seq = [] if layout == "opencv" else [
+        PatternSpec("surface", "surface", {"projector": "off"}, lambda: black(frame_size)), dark, light]
     for ph in checker_phases if layout == "procam" else ():
         seq.append(PatternSpec(f"checker_s{checker_size}_p{ph}", "checker",
                                {**base, "square": int(checker_size), "phase": int(ph)},
@@ -413,7 +415,7 @@ def calibration_sequence(projector: Projector, checker_size: int | None = None, 
     return seq
 
 
-__all__ = ["CLOSING_WHITE", "GrayCodeDecoding", "LAYOUTS", "PatternSpec", "black", "calibration_sequence", "checkerboard", "colour_ramp",
-           "decode_gray_code", "decode_gray_code_set", "default_checker_size", "flat", "gray_code_bits",
-           "gray_code_layout", "gray_code_pattern", "gray_code_patterns", "smooth_random", "validation_patterns",
-           "white"]
+__all__ = ["CLOSING_WHITE", "GrayCodeDecoding", "LAYOUTS", "PatternSpec", "black", "calibration_sequence",
+           "checkerboard", "colour_ramp", "decode_gray_code", "decode_gray_code_set", "default_checker_size", "flat",
+           "gray_code_bits", "gray_code_layout", "gray_code_pattern", "gray_code_patterns", "smooth_random",
+           "validation_patterns", "white"]

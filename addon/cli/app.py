@@ -72,15 +72,16 @@ def _fill_missing_help(parser: argparse.ArgumentParser) -> None:
 
 #: The modules of this package that define subcommands, in the order ``procam --help`` lists them: the workflow's
 #: steps first. Imported when the parser is built, because each registers itself with :func:`command`.
-COMMAND_MODULES = ("lab", "capture", "live", "calibrate", "precompute", "rig", "compensate", "show", "evaluate", "diagnose", "export",
-                   "demo", "build")
+COMMAND_MODULES = ("lab", "capture", "live", "calibrate", "precompute", "rig", "compensate", "show", "evaluate",
+                   "diagnose", "export", "demo", "build")
 
 
 def build_parser() -> argparse.ArgumentParser:
     for module in COMMAND_MODULES:
         importlib.import_module(f"{__package__}.{module}")
 
-    parser = argparse.ArgumentParser(prog="procam", description="ProCam: projector compensation by differentiable rendering.",
+    parser = argparse.ArgumentParser(prog="procam",
+                                     description="ProCam: projector compensation by differentiable rendering.",
                                      epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_text, configure, run in _COMMANDS:

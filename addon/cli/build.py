@@ -1,4 +1,5 @@
-"""``procam build-extension``: the Blender extension zips, one per platform with its wheels (scripts/build_extension.py)."""
+"""``procam build-extension``: the Blender extension zips, one per platform with its wheels
+(scripts/build_extension.py)."""
 
 from __future__ import annotations
 

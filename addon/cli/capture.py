@@ -79,8 +79,10 @@ def import_photographs(args: argparse.Namespace) -> int:
     w, h = cs.camera.intrinsics.size
     print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
     if args.rig is not None:
-        print(f"  camera and projector from {args.rig}: lens distortion removed from the photographs; projector "
-              f"pose {'from the rig (use calibrate --init nominal to keep it)' if cs.projector_pose_known else 'left to calibrate (the rig is in board squares)'}")
+        pose = ("from the rig (use calibrate --init nominal to keep it)" if cs.projector_pose_known
+                else "left to calibrate (the rig is in board squares)")
+        print(f"  camera and projector from {args.rig}: lens distortion removed from the photographs; "
+              f"projector pose {pose}")
     return 0
 
 

@@ -13,8 +13,9 @@ and writes a new folder (``addon/steps/evaluate.py``; replaced only with ``--for
 Targets are matched to the compensation by file stem, as ``procam compensate``
 named them (a show folder: by the stems of the images its frames were made
 from). Two or more targets, in order, also give the sequence's flicker
-(``"flicker"``: captured, targets, excess = captured − targets). If a target fails during the projections, the finished ones are
-kept and ``metrics.json`` records the failure (``"complete": false``).
+(``"flicker"``: captured, targets, excess = captured − targets). If a target
+fails during the projections, the finished ones are kept and ``metrics.json``
+records the failure (``"complete": false``).
 """
 
 from __future__ import annotations

@@ -25,7 +25,8 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
-@command("lab", "Render a calibration capture set in the virtual lab (Cycles + injected real-world effects).", _configure)
+@command("lab", "Render a calibration capture set in the virtual lab (Cycles + injected real-world effects).",
+         _configure)
 def run(args: argparse.Namespace) -> int:
     options = from_arguments(LabOptions, args, out=args.out, force=args.force)
     out, truth_path = options.paths()

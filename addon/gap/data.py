@@ -409,8 +409,8 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
                                         pattern_edges(sampled),
                                         sample_input(x, corr, footprint) if footprint > 0 else None))
     fit, held = split_patterns(observations)
-    return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera, cal.warp,
-                   fit, held, spans, report={"calibration": source,
+    return GapData(observations, size, mask, gain, corr, per_metre, points, rays, _crease_map(points), proj, camera,
+                   cal.warp, fit, held, spans, report={"calibration": source,
                                       "capture_set": str(captures.path), "working_size": list(size), "spp": spp,
                                       "patterns": [o.name for o in observations],
                                       "validation": any(o.kind == "validation" for o in observations)})

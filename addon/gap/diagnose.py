@@ -56,7 +56,8 @@ ABSORBED = {
 }
 
 
-#: Roughnesses of the lobes the evidence tries (interpolated between the model's renders, :data:`.data.GLOSSY_ROUGHNESS`).
+#: Roughnesses of the lobes the evidence tries (interpolated between the model's renders,
+#: :data:`.data.GLOSSY_ROUGHNESS`).
 EVIDENCE_ROUGHNESS = tuple(round(0.2 + 0.05 * i, 2) for i in range(9))
 
 
@@ -255,7 +256,8 @@ def _summary(doc: dict[str, Any]) -> str:
                 + "".join(f"; not {n}: {why}" for n, why in doc["compensation"]["left_out"].items()), ""]
                if doc["modelled"] else []),
              "## Which effect", "",
-             "| rank | effect | held-out RMSE alone | removes | confidence | signature (share of gain where expected) |",
+             "| rank | effect | held-out RMSE alone | removes | confidence | "
+             "signature (share of gain where expected) |",
              "|---|---|---|---|---|---|"]
     for k, e in enumerate(doc["effects"]):
         if e.get("error"):

@@ -197,8 +197,9 @@ def vignetting_evidence(captures: Any, cal: Any, view: Any, mask: np.ndarray, *,
         return ev, gl
     level = float(np.median(room[ok]))
     if level < MIN_PHOTO_LEVEL:
-        ev.error = gl.error = (f"the surface photo is dark (median {level:.3f} where the projector lights the surface): "
-                               "take it with the room lights on, so that paint can be told from projector falloff")
+        ev.error = gl.error = (f"the surface photo is dark (median {level:.3f} where the projector lights the "
+                               "surface): take it with the room lights on, so that paint can be told from projector "
+                               "falloff")
         return ev, gl
     ok &= (room > 0.1 * level) & (lit_light > 0)
     ys, xs = np.nonzero(ok)

@@ -143,7 +143,8 @@ def vignetting_radius(projector: Any, positions: np.ndarray) -> np.ndarray:
     k = projector.intrinsics
     ccx, ccy = k.cx - projector.input_offset[0] - 0.5, k.cy - projector.input_offset[1] - 0.5
     rx, ry = (positions[..., 0] - ccx) / k.fx, (positions[..., 1] - ccy) / k.fy
-    rmax = max(np.hypot(cx / k.fx, cy / k.fy) for cx in (-0.5 - ccx, iw - 0.5 - ccx) for cy in (-0.5 - ccy, ih - 0.5 - ccy))
+    rmax = max(np.hypot(cx / k.fx, cy / k.fy)
+               for cx in (-0.5 - ccx, iw - 0.5 - ccx) for cy in (-0.5 - ccy, ih - 0.5 - ccy))
     return (np.hypot(rx, ry) / rmax).astype(np.float32)
 
 

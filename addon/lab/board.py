@@ -82,7 +82,8 @@ def board_poses(count: int, board: tuple[int, int], square: float, *, centre: tu
         rx = math.radians((1 if k % 2 else -1) * rng.uniform(10, 25))
         ry = math.radians((1 if (k // 2) % 2 else -1) * rng.uniform(10, 25))
         r = _rotation(rx, ry, math.radians(rng.uniform(-10, 10)))
-        c = np.asarray(centre) + np.array([rng.uniform(-0.08, 0.08), rng.uniform(-0.06, 0.06), rng.uniform(-0.15, 0.15)])
+        c = np.asarray(centre) + np.array([rng.uniform(-0.08, 0.08), rng.uniform(-0.06, 0.06),
+                                           rng.uniform(-0.15, 0.15)])
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = r, c - r @ half
         poses.append(pose)

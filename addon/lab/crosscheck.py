@@ -80,7 +80,8 @@ def measure(cycles: dict[str, np.ndarray], mitsuba: dict[str, np.ndarray], guess
     g = guesses[ok]
     ij = np.clip(np.round(g - 0.5).astype(int), 0, [w - 1, h - 1])
     g = g[inner[ij[:, 1], ij[:, 0]]]
-    offsets = np.linalg.norm(refine_corners(pat_c, g, window) - refine_corners(pat_m, g, window), axis=1) if len(g) else np.zeros(0)
+    offsets = (np.linalg.norm(refine_corners(pat_c, g, window) - refine_corners(pat_m, g, window), axis=1)
+               if len(g) else np.zeros(0))
     solid = cv2.erode(lit.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     c, m = cycles["white"][solid], mitsuba["white"][solid]
     mean_m = float(m.mean()) if m.size else float("nan")

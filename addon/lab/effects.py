@@ -175,7 +175,8 @@ _KINDS: tuple[EffectKind, ...] = (
                 Param("bias", "m", -0.2, 0.2, lambda s: 0.02 * s, "constant depth offset (positive = too far)"),
                 Param("holes", "", 0.0, 1.0, lambda s: 0.5 * s,
                       "probability of losing a return where the surface is seen at a grazing angle"),
-                Param("grazing_deg", "deg", 30.0, 89.0, lambda s: 75.0, "angle to the view ray above which returns are lost"),
+                Param("grazing_deg", "deg", 30.0, 89.0, lambda s: 75.0,
+                      "angle to the view ray above which returns are lost"),
                 Param("dropout", "", 0.0, 0.5, lambda s: 0.02 * s, "probability of a random missing return"),
                 Param("width", "px", 8.0, 4096.0, lambda s: 256.0, "native depth width", integer=True),
                 Param("height", "px", 6.0, 4096.0, lambda s: 192.0, "native depth height", integer=True),
@@ -403,7 +404,8 @@ def _param_value(name: str, param: str, text: Any) -> float:
         names = [q.name for q in kind.params]
         near = difflib.get_close_matches(param, names, n=1)
         hint = f" (did you mean {near[0]!r}?)" if near else ""
-        raise LabError(f"effect {name!r} has no parameter {param!r}{hint}; its parameters: {', '.join(names)}") from None
+        raise LabError(f"effect {name!r} has no parameter {param!r}{hint}; "
+                       f"its parameters: {', '.join(names)}") from None
     v = _number(text, f"{name}.{param}")
     if not p.lo <= v <= p.hi:
         raise LabError(f"{name}.{param} must lie in [{p.lo:g}, {p.hi:g}] {p.unit}".rstrip() + f", got {v:g}")
@@ -446,7 +448,8 @@ def parse_effects(spec: "str | Mapping[str, Any] | EffectSet | None") -> EffectS
             key, _, value = tok.partition("=")
             items.append((key.strip(), value.strip()))
     else:
-        raise LabError(f"effects must be a string like 'response=0.5,noise=0.2' or a mapping, got {type(spec).__name__}")
+        raise LabError(f"effects must be a string like 'response=0.5,noise=0.2' or a mapping, "
+                       f"got {type(spec).__name__}")
 
     strengths = dict.fromkeys(NAMES, 0.0)
     overrides: dict[str, dict[str, float]] = {n: {} for n in NAMES}

@@ -125,7 +125,8 @@ class LiveReport:
 
     def lines(self) -> list[str]:
         took = ", ".join(k for k, v in self.locked.items() if v) or "none"
-        return [f"latency {self.latency_s * 1000:.0f} ms (measured {', '.join(f'{v * 1000:.0f}' for v in self.latencies_s)} ms)",
+        measured = ", ".join(f"{v * 1000:.0f}" for v in self.latencies_s)
+        return [f"latency {self.latency_s * 1000:.0f} ms (measured {measured} ms)",
                 f"camera frame {self.camera_frame_s * 1000:.1f} ms; noise {self.noise:.4f} per frame, "
                 f"{self.average} frame(s) averaged per capture",
                 f"manual settings accepted by the camera backend: {took}; white drift after {ADAPT_S:.0f} s: "

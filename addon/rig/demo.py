@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import Camera, Intrinsics, Projector, Rig, intrinsics_from_fov, look_at_pose, projector_intrinsics_from_throw
+from .model import (Camera, Intrinsics, Projector, Rig, intrinsics_from_fov, look_at_pose,
+                    projector_intrinsics_from_throw)
 
 CAMERA_SIZE = (640, 480)
 PROJECTOR_SIZE = (800, 600)

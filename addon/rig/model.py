@@ -163,7 +163,8 @@ class Intrinsics:
     def from_dict(d: dict[str, Any]) -> "Intrinsics":
         try:
             return Intrinsics(whole_pixels(d["width"], "resolution width"),
-                              whole_pixels(d["height"], "resolution height"), float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
+                              whole_pixels(d["height"], "resolution height"),
+                              float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise RigError(f"intrinsics need width, height, fx, fy, cx, cy: {exc}") from None
 

@@ -1,4 +1,5 @@
-"""The calibration pipeline's optimisations: capture set → surface (S_g, S_c) → projector pose (stage A) → warp (stage B).
+"""The calibration pipeline's optimisations: capture set → surface (S_g, S_c) → projector pose (stage A)
+→ warp (stage B).
 
 :func:`calibrate_captures` runs the stages and returns a :class:`Calibration`
 with its diagnostic images; writing and reading the calibration folder is

@@ -315,8 +315,8 @@ def fit_classical(captures: CaptureSet, *, device: Device | None = None,
     report = {"method": "per-pixel 3×3 colour mixing + offset (Nayar et al. 2003), global per-channel response",
               "samples": len(samples), "patterns": [s[0] for s in samples], "flat_colours_captured": captured,
               "response_gamma": [round(float(g), 4) for g in response.gamma], "grey_levels": levels,
-              "fit_rms": float(np.sqrt(np.mean(rms[fits] ** 2))), "fit_outliers": int((~fits).sum()), "pixels": int(valid.sum()),
-              "decoding_outliers": int((lit & ~valid).sum()), "ridge": ridge}
+              "fit_rms": float(np.sqrt(np.mean(rms[fits] ** 2))), "fit_outliers": int((~fits).sum()),
+              "pixels": int(valid.sum()), "decoding_outliers": int((lit & ~valid).sum()), "ridge": ridge}
     return ClassicalModel(response, mixing, offset, valid, input_xy, tuple(proj.input_size), report)
 
 

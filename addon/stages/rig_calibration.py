@@ -629,5 +629,5 @@ def calibrate_rig(sessions: Sequence[PoseSource], board: tuple[int, int] = (9, 7
         projector_model_choice=choice)
 
 
-__all__ = ["AUTO_MODELS", "DISTORTION_MODELS", "MIN_POSES", "BoardPose", "PoseReport", "PoseSource", "RigCalibration", "as_grey",
-           "calibrate_rig", "corner_in_projector", "find_board", "observe_pose"]
+__all__ = ["AUTO_MODELS", "DISTORTION_MODELS", "MIN_POSES", "BoardPose", "PoseReport", "PoseSource", "RigCalibration",
+           "as_grey", "calibrate_rig", "corner_in_projector", "find_board", "observe_pose"]

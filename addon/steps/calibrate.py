@@ -361,7 +361,8 @@ def run_view(options: CalibrateOptions, progress: Progress | None = None,
 def _surface_lines(surf: dict[str, Any], doc: dict[str, Any], seconds: Any) -> list[str]:
     offset = surf.get("depth_offset", 0.0)
     lines = [f"Surface: {surf.get('vertices', doc.get('surface', {}).get('vertices', '?'))} vertices, "
-             f"{surf.get('faces', doc.get('surface', {}).get('faces', '?'))} faces, from {surf.get('source', 'depth')}, "
+             f"{surf.get('faces', doc.get('surface', {}).get('faces', '?'))} faces, "
+             f"from {surf.get('source', 'depth')}, "
              f"depth offset {fmt(100 * offset if isinstance(offset, (int, float)) else None, '+.2f', ' cm')} "
              f"({surf.get('depth_offset_source', 'none')}) ({fmt(seconds, '.1f', ' s')})"]
     t = surf.get("triangulation")

@@ -195,7 +195,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
     text = layout.DIAGNOSIS_SUMMARY if (root / layout.DIAGNOSIS_SUMMARY).is_file() else None
     # What a technician reads first: the plain sentence, a rig that changed, what is left unexplained.
-    notes = ([str(doc["headline"])] if doc.get("headline") else []) + [f"Warning: {w}." for w in doc.get("warnings", [])]
+    notes = (([str(doc["headline"])] if doc.get("headline") else [])
+             + [f"Warning: {w}." for w in doc.get("warnings", [])])
     session = doc.get("session") or {}
     if session.get("changed"):
         notes.append(f"The rig changed during the session: {session.get('sentence', '')}.")

@@ -571,7 +571,8 @@ def _target_line(t: dict[str, Any]) -> str:
     if t.get("status") != "done":
         return f"{t.get('name')}: failed — {t.get('error', '')}"
     u = t.get("uncompensated") or {}
-    classical = f", classical {fmt(t['classical'].get('psnr'), '.2f')} dB" if isinstance(t.get("classical"), dict) else ""
+    classical = (f", classical {fmt(t['classical'].get('psnr'), '.2f')} dB"
+                 if isinstance(t.get("classical"), dict) else "")
     return (f"{t['name']}: PSNR {fmt(u.get('psnr'), '.2f')} → {fmt(t.get('psnr'), '.2f')} dB, SSIM "
             f"{fmt(u.get('ssim'), '.3f')} → {fmt(t.get('ssim'), '.3f')} (uncompensated → compensated{classical}); "
             f"range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"

@@ -773,7 +773,8 @@ def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage
                     ident: dict[str, str], areas: dict[str, Any], record: Any, say: Progress,
                     cancel: Cancel | None) -> None:
     """The frames as tasks on a Dask cluster (:mod:`.show_cluster`); ``record`` writes each as it comes back."""
-    where = f"the cluster at {options.cluster}" if options.cluster else f"a local cluster of {options.workers} worker(s)"
+    where = (f"the cluster at {options.cluster}" if options.cluster
+             else f"a local cluster of {options.workers} worker(s)")
     say(f"starting {where}", 0.0)
     cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads,
                       connect_timeout=options.connect_timeout,

@@ -212,7 +212,8 @@ class _Fit:
 
 def _icp(matcher: _Matcher, points: np.ndarray, normals: np.ndarray | None, s: np.ndarray, iterations: int,
          extent: float, trim: float = 0.0) -> _Fit:
-    """Point-to-plane ICP (module doc; the worst ``trim`` share of pairs dropped) from ``s`` (mesh_from_rig) for at most ``iterations`` steps."""
+    """Point-to-plane ICP (module doc; the worst ``trim`` share of pairs dropped) from ``s`` (mesh_from_rig)
+    for at most ``iterations`` steps."""
     fit = _Fit(s.copy())
     gate = math.inf
     history: list[np.ndarray] = []

@@ -64,7 +64,8 @@ class TriangulationReport:
 
 
 def triangulate_depth(captures: CaptureSet, camera_from_projector: np.ndarray | None = None, *,
-                      max_reprojection_px: float = MAX_REPROJECTION_PX, near: float = 0.1, far: float = 20.0) -> tuple[np.ndarray, TriangulationReport]:
+                      max_reprojection_px: float = MAX_REPROJECTION_PX, near: float = 0.1, far: float = 20.0
+                      ) -> tuple[np.ndarray, TriangulationReport]:
     """Depth (H×W metres at the camera's resolution, NaN = none) from the capture set's Gray code and a known rig.
 
     ``camera_from_projector`` (4×4, rig frame, metres) defaults to the capture
