@@ -486,12 +486,17 @@ def test_rig_board_of_one_number_is_refused_by_undistort(world):
     assert result.code == 2 and "rig" in result.stderr, result.stderr[-500:]
 
 
-def test_show_entry_without_its_number_is_redone_or_refused(world):
-    """A resumed show whose frame entry lost its ``number`` (found by the suite: exit 1, KeyError: 'number')."""
+@pytest.mark.parametrize("damage", ["no number", "a number", "a list"])
+def test_show_entry_damaged_is_redone_or_refused(world, damage):
+    """A resumed show whose frame entry lost its ``number`` (found by the suite: exit 1, KeyError: 'number'), or is
+    no record at all (found by the long run: exit 1, 'float' object has no attribute 'get')."""
     case = Case(world)
     reset_example(case, ["show", "cal", "captures", "frames"])
     doc = json.loads((case.w / "show" / "show.json").read_text())
-    del doc["frames"]["1"]["number"]
+    if damage == "no number":
+        del doc["frames"]["1"]["number"]
+    else:
+        doc["frames"]["1"] = 1e308 if damage == "a number" else [1, 2]
     (case.w / "show" / "show.json").write_text(json.dumps(doc))
     from tests.bad_input import FAST
     argv = ["show", str(case.w / "cal"), str(case.w / "frames"), "--out", str(case.w / "show"), *FAST]

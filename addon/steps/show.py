@@ -543,7 +543,11 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                         "(its process ended: killed, or the machine stopped); resuming it")
             diffs = _differences(old.get("settings", {}), settings)
             current = {str(f.number): f for f in frames}
-            changed = [n for n, e in old.get("frames", {}).items()
+            # An entry that is not a record (a damaged or hand-edited show.json) is no finished frame: redone.
+            listed = old.get("frames")
+            old_frames = {str(n): e for n, e in listed.items() if isinstance(e, dict)} \
+                if isinstance(listed, dict) else {}
+            changed = [n for n, e in old_frames.items()
                        if n in current and e.get("status") == "done" and _source_changed(e, current[n])]
             if not force:
                 if diffs:
@@ -558,11 +562,11 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                     raise SequenceError(f"the target image of frame(s) {', '.join(sorted(changed, key=int))} changed "
                                         f"since they were compensated into {folder.path}; rerun with --force to "
                                         "redo every frame, or choose another --out")
-                frames_doc = dict(old.get("frames", {}))
+                frames_doc = dict(old_frames)
                 areas = dict(old.get("areas", {}))
             else:
                 # --force: every frame is redone; remove the old ones so the folder never mixes two settings.
-                for e in old.get("frames", {}).values():
+                for e in old_frames.values():
                     name = str(e.get("file", ""))
                     if re.fullmatch(rf"{FRAME_PREFIX}\d+\.png", name):
                         (folder.path / name).unlink(missing_ok=True)
