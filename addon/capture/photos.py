@@ -178,9 +178,9 @@ def check_orientations(files: Sequence[Path]) -> int:
 def _size_message(path: Path, img: np.ndarray, camera: Camera) -> str:
     cw, ch = camera.intrinsics.size
     turned = (img.shape[1], img.shape[0]) == (ch, cw)
-    return (f"capture {path} is {img.shape[1]}×{img.shape[0]} pixels, but the camera resolution is {cw}×{ch}"
-            + ("; the photograph is turned by 90° against the others (rotated after it was taken, or the camera "
-               "was turned): every photograph of a session must be taken, and saved, the same way up" if turned else ""))
+    why = ("; the photograph is turned by 90° against the others (rotated after it was taken, or the camera was "
+           "turned): every photograph of a session must be taken, and saved, the same way up") if turned else ""
+    return f"capture {path} is {img.shape[1]}×{img.shape[0]} pixels, but the camera resolution is {cw}×{ch}" + why
 
 
 def _depth_reference(white: np.ndarray | None, black: np.ndarray | None,
@@ -271,7 +271,8 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
                              "captures": str(Path(captures_dir).resolve()), "encoding": encoding,
                              "camera": camera_note}
     if orientation != 1:
-        notes["orientation"] = f"EXIF orientation {orientation} ({ORIENTATIONS[orientation]}) applied to every photograph"
+        notes["orientation"] = (f"EXIF orientation {orientation} ({ORIENTATIONS[orientation]}) applied to every "
+                                "photograph")
     status: dict[str, Any] = {}
     if undistort is not None:
         notes["camera"] = f"{LENS_REMOVED}: {undistort.source}"

@@ -63,7 +63,8 @@ def export_sequence(projector: Projector, out_dir: str | Path, *, checker_size: 
                    "this photo shows the surface's own colours. Take every other frame in the dark.",
                    "Keep camera exposure, white balance and focus fixed for the whole sequence.",
                    "Save one photo per frame; name them so that sorting by the number in the name gives the "
-                   "sequence order (e.g. 0000.png, 0001.png …), then run: procam import-captures SEQUENCE CAPTURES --out SET"],
+                   "sequence order (e.g. 0000.png, 0001.png …), then run: "
+                   "procam import-captures SEQUENCE CAPTURES --out SET"],
                "frames": frames}
         write_atomic_bytes(folder.tmp / SEQUENCE_MANIFEST, (json.dumps(doc, indent=1) + "\n").encode())
     except BaseException:
