@@ -300,7 +300,7 @@ def test_cli_writes_set_and_truth_and_reports_progress_on_stderr(cli_set, capsys
     (["--effects", "blurr=0.5"], "unknown effect 'blurr'"),
     (["--effects", "noise=2"], "strength of 'noise' must lie in [0, 1]"),
     (["--effects", "noise.sigma=9"], "noise.sigma must lie in"),
-    (["--samples", "0"], "--samples must be ≥ 1, got 0"),
+    (["--samples", "0"], "--samples must be a whole number ≥ 1, got 0"),
     (["--samples", "2.5"], "argument --samples: invalid literal for int()"),
     (["--scale", "9"], "--scale must be between 0.05 and 2, got 9.0"),
     (["--scale", "nan"], "--scale must be a finite number"),
