@@ -12,6 +12,7 @@ import errno
 import os
 import struct
 import tempfile
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterable
@@ -238,7 +239,7 @@ def npy_shape(path: Path) -> tuple[int, ...]:
                 shape, _, _ = npy.read_array_header_1_0(fh)
             else:
                 shape, _, _ = npy.read_array_header_2_0(fh)
-    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as exc:
+    except (*DAMAGED_ARRAYS, TypeError) as exc:
         raise ImageError(f"cannot read {path}: not a NumPy .npy file or a damaged one ({exc})") from None
     return tuple(int(v) for v in shape)
 
@@ -391,7 +392,10 @@ def check_image_bytes(data: bytes, what: str) -> None:
 
 #: What NumPy raises on a cut, byte-flipped or foreign .npz/.npy file: its own header checks, and the zip and zlib
 #: layers of an .npz (a member is inflated, and its CRC checked, only when it is read).
-DAMAGED_ARRAYS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
+#: What NumPy raises on a damaged .npy/.npz: a cut file, a bad archive, or a header that no longer parses (its
+#: dictionary is read as Python literals: a flipped byte gives a SyntaxError or a TokenError).
+DAMAGED_ARRAYS = (OSError, ValueError, EOFError, KeyError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile,
+                  zlib.error)
 
 
 def read_arrays(path: str | Path, names: Iterable[str] | None = None, *, error: type[ProCamError],
@@ -427,7 +431,7 @@ def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         try:
             img = np.load(path, allow_pickle=False).astype(np.float32)
-        except (ValueError, OSError, EOFError) as exc:
+        except DAMAGED_ARRAYS as exc:
             raise ImageError(f"cannot read {path}: {exc}") from None
     else:
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

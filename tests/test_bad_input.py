@@ -21,6 +21,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis", reason="hypothesis is in requirements-dev.txt: pip install -r it")
@@ -502,3 +503,57 @@ def test_show_entry_damaged_is_redone_or_refused(world, damage):
     argv = ["show", str(case.w / "cal"), str(case.w / "frames"), "--out", str(case.w / "show"), *FAST]
     result = run_case(case, argv, [case.w / "show", case.w / "cal", case.w / "frames"], resumed=case.w / "show")
     assert result.code in (0, 2) and not result.losses, result.stderr[-800:]
+
+
+# -- found by the long run (scripts/bench_bad_input.py, 1583 cases): each once, here for good ----------------------
+
+@pytest.mark.parametrize("name", [1e308, None, ["a"]])
+def test_sequence_frame_name_that_is_not_text_is_refused(world, name):
+    """A frame's ``name`` that is not text (found by the long run: exit 1, TypeError in a regular expression)."""
+    case = Case(world)
+    reset_example(case, ["seq", "photos"])
+    doc = json.loads((case.w / "seq" / "sequence.json").read_text())
+    doc["frames"][0]["name"] = name
+    (case.w / "seq" / "sequence.json").write_text(json.dumps(doc))
+    result = run_case(case, _import(case, []), [case.w / "seq", case.w / "photos"])
+    assert result.code == 2 and "frame 0" in result.stderr, result.stderr[-500:]
+
+
+def test_depth_npy_whose_header_no_longer_parses_is_refused(world):
+    """A depth .npy whose header dictionary has a flipped byte (found by the long run: exit 1, tokenize's
+    TokenError from NumPy's header parser)."""
+    case = Case(world)
+    reset_example(case, ["seq", "photos", "depth.npy"])
+    path = case.w / "depth.npy"
+    data = bytearray(path.read_bytes())
+    data[data.index(b"}")] = ord("(")  # the header's closing brace: its literal never ends
+    path.write_bytes(bytes(data))
+    result = run_case(case, _import(case, ["--depth", str(path)]), [case.w / "seq", case.w / "photos", path])
+    assert result.code == 2 and "depth.npy" in result.stderr, result.stderr[-500:]
+
+
+def test_validation_capture_of_another_size_is_refused(world):
+    """A calibration's capture set holding one capture of another size, read by the open-loop θ (found by the long
+    run: exit 1, numpy's 'all input arrays must have the same shape')."""
+    from procam.addon.imageio import write_image
+
+    case = Case(world)
+    reset_example(case, ["cal", "captures", "frames"])
+    victim = sorted((case.w / "captures" / "images").glob("*val*.png"))[0]
+    write_image(victim, np.zeros((7, 9, 3), np.float32))
+    result = run_case(case, _compensate(case), [case.w / "cal", case.w / "captures", case.w / "frames"])
+    assert result.code == 2 and victim.name in result.stderr, result.stderr[-500:]
+
+
+def test_compensation_naming_a_calibration_that_is_no_path_is_refused(world):
+    """compensation.json's calibration holding a NUL byte (found by the long run: exit 1, 'embedded null byte')."""
+    case = Case(world)
+    reset_example(case, ["comp", "cal", "captures", "frames", "truth.json", "truth.surface.npz"])
+    doc = json.loads((case.w / "comp" / "compensation.json").read_text())
+    doc["calibration"] = "\x00"
+    (case.w / "comp" / "compensation.json").write_text(json.dumps(doc))
+    argv = ["evaluate", str(case.w / "cal"), "--inputs", str(case.w / "comp"), "--targets",
+            str(case.w / "frames" / "shot_0001.png"), "--device", f"lab:{case.w / 'truth.json'}", "--out",
+            str(case.example / "out" / "ev"), "--no-repeat"]
+    result = run_case(case, argv, [case.w / "comp", case.w / "cal", case.w / "frames", case.w / "truth.json"])
+    assert result.code == 2 and "no path" in result.stderr, result.stderr[-500:]

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from ..errors import CaptureError
-from ..imageio import check_image_file
+from ..imageio import DAMAGED_ARRAYS, check_image_file
 from ..rig.model import Intrinsics
 from .format import MAX_DEPTH_MISSING
 
@@ -121,7 +121,7 @@ def _read_raster(path: Path) -> tuple[np.ndarray, str, bool]:
     if suffix == ".npy":
         try:
             a = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
+        except DAMAGED_ARRAYS as exc:
             raise CaptureError(f"cannot read depth file {path}: {exc}") from None
         if a.dtype.kind not in "fiu":
             raise CaptureError(f"depth file {path} holds {a.dtype} values, not numbers")

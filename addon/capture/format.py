@@ -415,8 +415,15 @@ class CaptureSet:
         return found[0]
 
     def image(self, kind: str, **filters: Any) -> np.ndarray:
-        """The capture (float32 H×W×3, linear) of the one entry matching ``kind`` and ``filters``."""
-        return self._read(self.entry(kind, **filters).file)
+        """The capture (float32 H×W×3, linear) of the one entry matching ``kind`` and ``filters``; a set read
+        without verifying its images still gets each one checked against the camera's size here."""
+        e = self.entry(kind, **filters)
+        img = self._read(e.file)
+        cam = self.camera.intrinsics.size
+        if e.kind in CAMERA_KINDS and _size(img) != cam:
+            raise CaptureError(f"{self.path / e.file}: image is {_size(img)[0]}×{_size(img)[1]} pixels, but the "
+                               f"camera resolution is {cam[0]}×{cam[1]}; capture it again at the camera's size")
+        return img
 
     def pattern(self, kind: str, **filters: Any) -> np.ndarray:
         """The native projector frame that was shown for that entry."""

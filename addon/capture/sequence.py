@@ -106,8 +106,9 @@ def load_sequence(sequence_dir: str | Path) -> SequenceInfo:
     if not isinstance(frames, list) or not frames:
         raise CaptureError(f"{manifest}: no frames listed")
     for i, f in enumerate(frames):
-        if not isinstance(f, dict) or not {"file", "name", "kind"} <= f.keys():
-            raise CaptureError(f"{manifest}: frame {i} needs file, name and kind")
+        if not isinstance(f, dict) or not all(isinstance(f.get(k), str) for k in ("file", "name", "kind")):
+            raise CaptureError(f"{manifest}: frame {i} needs file, name and kind, as text; export the sequence "
+                               "again with `procam patterns`")
         # A frame is a file of the sequence: a name leading out of it would be copied into the capture set.
         inside(root, f["file"], what=f"{manifest.name}: frame {i}", error=CaptureError)
         if not isinstance(f.get("params") or {}, dict):

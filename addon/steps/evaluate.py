@@ -190,12 +190,21 @@ class CompensationInputs:
                 raise InputsError(f"{manifest}: a frame record is malformed ({exc})") from None
         return CompensationInputs(root, doc, records)
 
+    def _resolved(self, path: Any) -> Path:
+        """A folder a manifest names, resolved to compare it; a name no file system takes (a NUL byte, not text)
+        is the manifest's fault."""
+        try:
+            return Path(str(path)).resolve()
+        except (ValueError, OSError) as exc:
+            raise InputsError(f"{self.path} names a folder {path!r} that is no path ({exc}); run procam compensate "
+                              "again") from None
+
     def check_against(self, calibration: Any, calibration_dir: str | Path | None = None) -> list[str]:
         """Refuse inputs made from another capture set or rig; return notes (e.g. another calibration folder)."""
         notes: list[str] = []
         doc = self.doc
         mine, theirs = str(calibration.capture_dir or ""), str(doc.get("capture_set") or "")
-        if mine and theirs and Path(mine).resolve() != Path(theirs).resolve():
+        if mine and theirs and self._resolved(mine) != self._resolved(theirs):
             raise MismatchError(f"the inputs in {self.path} were computed from the capture set {theirs}, but the "
                                 f"calibration comes from {mine}; evaluate with the calibration the inputs were "
                                 "made with")
@@ -212,7 +221,7 @@ class CompensationInputs:
                 raise MismatchError(f"the inputs in {self.path} are for {key.replace('_', ' ')} {have[key]}, but the "
                                     f"calibration has {value}: they come from another rig or capture set")
         if calibration_dir is not None and doc.get("calibration"):
-            if Path(doc["calibration"]).resolve() != Path(calibration_dir).resolve():
+            if self._resolved(doc["calibration"]) != self._resolved(calibration_dir):
                 notes.append(f"the inputs were computed with the calibration {doc['calibration']}, evaluated here "
                              f"with {calibration_dir} (same capture set)")
         return notes
