@@ -557,3 +557,19 @@ def test_compensation_naming_a_calibration_that_is_no_path_is_refused(world):
             str(case.example / "out" / "ev"), "--no-repeat"]
     result = run_case(case, argv, [case.w / "comp", case.w / "cal", case.w / "frames", case.w / "truth.json"])
     assert result.code == 2 and "no path" in result.stderr, result.stderr[-500:]
+
+
+@pytest.mark.parametrize("value", [10 ** 30, [1, 2], {"gain": "x", "offset": 0}, {"gain": -1.0, "offset": 0.0}])
+def test_compensation_range_record_of_another_shape_is_refused(world, value):
+    """compensation.json's range map that is not a gain and an offset (found by the long run: exit 1, "'int' object
+    is not subscriptable")."""
+    case = Case(world)
+    reset_example(case, ["comp", "cal", "captures", "frames", "truth.json", "truth.surface.npz"])
+    doc = json.loads((case.w / "comp" / "compensation.json").read_text())
+    doc["range"] = value
+    (case.w / "comp" / "compensation.json").write_text(json.dumps(doc))
+    argv = ["evaluate", str(case.w / "cal"), "--inputs", str(case.w / "comp"), "--targets",
+            str(case.w / "frames" / "shot_0001.png"), "--device", f"lab:{case.w / 'truth.json'}", "--out",
+            str(case.example / "out" / "ev"), "--no-repeat"]
+    result = run_case(case, argv, [case.w / "comp", case.w / "cal", case.w / "frames", case.w / "truth.json"])
+    assert result.code == 2 and "range map" in result.stderr, result.stderr[-500:]

@@ -68,7 +68,15 @@ class RangeMap:
     def from_dict(d: dict[str, Any] | None) -> "RangeMap | None":
         if not d:
             return None
-        return RangeMap(float(d["gain"]), float(d["offset"]), str(d.get("rule", "given")), d.get("clipped_share"))
+        try:
+            gain, offset = float(d["gain"]), float(d["offset"])
+            if not (math.isfinite(gain) and math.isfinite(offset)) or gain <= 0 or not -1 < offset < 1:
+                raise ValueError("gain or offset out of range")
+        except (TypeError, KeyError, ValueError) as exc:
+            # A record from a damaged or hand-edited manifest: the step that wrote it makes it again.
+            raise RangeError(f"the range map {d!r} recorded with these results is not one ProCam writes ({exc}); "
+                             "compensate again") from None
+        return RangeMap(gain, offset, str(d.get("rule", "given")), d.get("clipped_share"))
 
 
 def parse_range(text: str) -> str | RangeMap:
