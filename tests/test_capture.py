@@ -321,6 +321,103 @@ def test_writer_refuses_bad_input(tmp_path):
     assert not (tmp_path / "new").exists() and siblings(tmp_path / "new") == []
 
 
+# -- several projectors ---------------------------------------------------------------------------
+
+FRAME2 = (64, 40)
+
+
+def write_two_projector_set(path: Path) -> CaptureSet:
+    """One camera, one surface photo and depth; projector 0 (80×60) and projector 1 (64×40, elsewhere)."""
+    cam, first = small_camera(), small_projector()
+    second = Projector(projector_intrinsics_from_throw(*FRAME2, 1.6), look_at_pose((-0.3, 0.1, 0.0), (0, 0, 1.6)))
+    rng = np.random.default_rng(2)
+    shape = (CAM[1], CAM[0], 3)
+    with CaptureSet.writer(path, cam, first, others=(second,), depth_info=DepthInfo(cam.intrinsics, CAM)) as w:
+        w.add("surface", rng.random(shape), projector="off")
+        for k, proj in enumerate((first, second)):
+            for kind, level in (("black", 0.0), ("white", 1.0)):
+                w.add(kind, np.full(shape, 0.02 + 0.7 * level * (k + 1) / 2), projector_index=k,
+                      frame=np.full((*proj.intrinsics.size[::-1], 3), level), area="frame")
+        w.add_depth(np.full((CAM[1], CAM[0]), 1.6))
+    return CaptureSet.load(path)
+
+
+def test_two_projector_set_round_trips_and_gives_one_projector_views(tmp_path):
+    cs = write_two_projector_set(tmp_path / "set")
+    assert len(cs.projectors) == 2 and cs.projectors[1].intrinsics.size == FRAME2
+    doc = json.loads((tmp_path / "set" / "capture.json").read_text())
+    assert doc["projector"] == doc["projectors"][0] and len(doc["projectors"]) == 2
+    assert [e.get("projector", 0) for e in doc["images"]] == [0, 0, 0, 1, 1, 0]  # written only when not 0
+    with pytest.raises(CaptureError, match="captures of 2 projectors"):
+        cs.image("white")  # single-projector code must take one projector's view
+    for k, level in ((0, 0.37), (1, 0.72)):
+        view = cs.for_projector(k)
+        assert view.projector is cs.projectors[k] and view.others == () and view.path == cs.path
+        assert [e.kind for e in view] == ["surface", "black", "white", "depth"]
+        assert {e.projector for e in view} == {0}
+        assert np.allclose(view.image("white"), level, atol=1e-3)
+        assert view.pattern("white").shape[:2] == cs.projectors[k].intrinsics.size[::-1]
+        assert view.depth().shape == (CAM[1], CAM[0])
+    # one projector's view is a one-projector set: its manifest has no trace of the others
+    assert "projectors" not in cs.for_projector(1).to_dict()
+    assert cs.for_projector(0).for_projector(0).projector is cs.projector
+    with pytest.raises(CaptureError, match="2 projector.*numbered 0 to 1.*no projector 2"):
+        cs.for_projector(2)
+    with pytest.raises(CaptureError, match="no projector -1"):
+        cs.for_projector(-1)
+
+
+def test_projectors_of_unknown_pose_may_share_the_placeholder_pose(tmp_path):
+    """Imported photographs of projectors not calibrated yet: every pose is the same placeholder."""
+    cam, first = small_camera(), small_projector()
+    shape = (CAM[1], CAM[0], 3)
+    with CaptureSet.writer(tmp_path / "set", cam, first, others=(first,)) as w:
+        for k in (0, 1):
+            w.add("white", np.full(shape, 0.5), projector_index=k)
+    assert len(CaptureSet.load(tmp_path / "set").projectors) == 2
+
+
+def test_one_projector_manifest_has_no_projector_fields(tmp_path):
+    write_small_set(tmp_path / "set")
+    doc = json.loads((tmp_path / "set" / "capture.json").read_text())
+    assert "projectors" not in doc and not any("projector" in e for e in doc["images"])
+    cs = CaptureSet.load(tmp_path / "set")
+    assert cs.for_projector(0) is cs and len(cs.projectors) == 1
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["images"][3].update(projector=2), "numbered 0 to 1, got 2"),
+    (lambda d: d["images"][3].update(projector="1"), "numbered 0 to 1, got '1'"),
+    (lambda d: d["images"][0].update(projector=1), "surface image is shared by every projector"),
+    (lambda d: [e.pop("projector", None) for e in d["images"]], "no captures of projector\\(s\\) 1"),
+    (lambda d: d["projectors"][0].update(intensity=9.0), "'projector' differs from the first"),
+    (lambda d: d.update(projectors=[]), "list of one or more"),
+])
+def test_bad_projector_indices_and_missing_sequences_are_refused(tmp_path, change, message):
+    out = tmp_path / "set"
+    write_two_projector_set(out)
+    edit_manifest(out, change)
+    with pytest.raises(CaptureError, match=message):
+        CaptureSet.load(out)
+
+
+def test_writer_checks_each_projector_frame_and_index(tmp_path):
+    cam, first = small_camera(), small_projector()
+    second = Projector(projector_intrinsics_from_throw(*FRAME2, 1.6), look_at_pose((-0.3, 0.1, 0.0), (0, 0, 1.6)))
+    shape = (CAM[1], CAM[0], 3)
+    w = CaptureSet.writer(tmp_path / "new", cam, first, others=(second,))
+    with pytest.raises(CaptureError, match="projector 1's frame is 64×40"):
+        w.add("white", np.zeros(shape), projector_index=1, frame=np.zeros((60, 80, 3)))
+    with pytest.raises(CaptureError, match="numbered 0 to 1, got 2"):
+        w.add("white", np.zeros(shape), projector_index=2)
+    with pytest.raises(CaptureError, match="target image is shared"):
+        w.add("target", np.zeros((8, 8, 3)), projector_index=1)
+    w.add("white", np.zeros(shape), frame=np.zeros((60, 80, 3)))
+    with pytest.raises(CaptureError, match="no captures of projector\\(s\\) 1"):
+        w.commit()  # projector 1's sequence never captured
+    assert not (tmp_path / "new").exists() and siblings(tmp_path / "new") == []
+
+
 def test_srgb_round_trip():
     v = np.linspace(0, 1, 256, dtype=np.float32)
     assert np.allclose(linear_to_srgb(srgb_to_linear(v)), v, atol=1e-5)

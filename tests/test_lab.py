@@ -7,6 +7,7 @@ Renders are small (camera 160×120, projector 200×150, 8 spp) so the whole file
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -307,6 +308,9 @@ def test_cli_writes_set_and_truth_and_reports_progress_on_stderr(cli_set, capsys
     (["--projector-shift", "0,nan"], "expected two finite percentages"),
     (["--supersample", "0"], "supersampling must be a whole number from 1 to 4"),
     (["--camera-fov-error", "200"], "keep it in 1–170°"),
+    (["--projectors", "9"], "--projectors must be a whole number between 1 and 8, got 9"),
+    (["--projectors", "2", "--layout", "ring"], "--layout must be one of side-by-side, stacked, got 'ring'"),
+    (["--projectors", "2", "--overlap", "1"], "--overlap must be between 0 and 0.9, got 1.0"),
 ])
 def test_cli_bad_input_fails_early_and_writes_nothing(tmp_path, capsys, args, message):
     code = main(["lab", "--out", str(tmp_path / "out" / "set"), *SMALL, *args])
@@ -467,3 +471,99 @@ def test_a_room_lamp_lights_the_paint_unevenly_and_translucent_paint_spreads_lig
     dark = (half.mean(axis=2) < 0.02) & lit
     dark[:, : int(0.3 * w)] = False
     assert sss.mean(axis=2)[dark].mean() > 10 * half.mean(axis=2)[dark].mean() + 1e-4
+
+
+# --------------------------------------------------------------------------- several projectors
+
+
+def footprints(cs: CaptureSet) -> list[np.ndarray]:
+    """Each projector's lit area in the camera: its white capture minus its black one, above half its peak."""
+    out = []
+    for k in range(len(cs.projectors)):
+        view = cs.for_projector(k)
+        lit = (view.image("white") - view.image("black")).mean(axis=2)
+        out.append(lit > 0.5 * np.percentile(lit, 99))
+    return out
+
+
+def test_truth_of_two_projectors_round_trips_and_one_projector_truth_is_unchanged(tmp_path):
+    one = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60))
+    one.save(tmp_path / "one.json")
+    doc = json.loads((tmp_path / "one.json").read_text())
+    assert "nominal_projectors" not in doc and "projectors" not in doc["rig"]
+    two = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2, nominal_error=(0.05, 0),
+                     effects="noise=0.5,vignetting=0.5", projector_effects="1:response=0.8")
+    # the first projector's nominal pose is off its true one by what it is with one projector (the layout moved it)
+    np.testing.assert_allclose(two.nominal_pose[:3, 3] - two.rig.projector.position,
+                               one.nominal_pose[:3, 3] - one.rig.projector.position)
+    assert len(two.rig.projectors) == 2 and len(two.nominal_projectors) == 2
+    two.save(tmp_path / "two.json")
+    back = LabTruth.load(tmp_path / "two.json")
+    assert len(json.loads((tmp_path / "two.json").read_text())["camera_from_projectors"]) == 2
+    for k in range(2):
+        np.testing.assert_allclose(back.rig.projectors[k].camera_from_projector,
+                                   two.rig.projectors[k].camera_from_projector)
+        np.testing.assert_allclose(back.nominal_projectors[k].camera_from_projector,
+                                   two.nominal_projectors[k].camera_from_projector)
+        assert back.nominal_projectors[k].intrinsics.fx == pytest.approx(two.rig.projectors[k].intrinsics.fx * 1.05)
+        view = back.for_projector(k)
+        assert view.rig.projector is back.rig.projectors[k] and view.rig.others == ()
+        np.testing.assert_allclose(view.nominal_projector.camera_from_projector,
+                                   back.nominal_projectors[k].camera_from_projector)
+    assert back.for_projector(0).seed == back.seed != back.for_projector(1).seed  # noise of its own
+    with pytest.raises(LabError, match="one projector's frames at a time"):
+        LabDevice(back)
+    # mixed projectors: projector 1 has its own projector effects, the camera's are everyone's
+    first, second = back.for_projector(0).effects, back.for_projector(1).effects
+    assert first["vignetting"].strength == 0.5 and first["response"].strength == 0
+    assert second["vignetting"].strength == 0 and second["response"].strength == 0.8
+    assert first["noise"] == second["noise"] == two.effects["noise"]
+    assert back.for_projector(1).projector_effects == {}
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("1:noise=0.3", "noise act.* shared by every projector"),
+    ("2:response=0.5", "projector 2, but the lab has 2 projector"),
+    ("response=0.5", "K:EFFECTS items"),
+    ("1:response=0.5;1:crosstalk=0.2", "projector 1 twice"),
+    ("1:respons=0.5", "unknown effect 'respons'"),
+])
+def test_bad_projector_effects_are_refused(spec, message):
+    with pytest.raises(LabError, match=message):
+        make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2, projector_effects=spec)
+
+
+def test_cli_two_projectors_side_by_side_overlap_by_the_fraction_asked(tmp_path, capsys):
+    out = tmp_path / "set"
+    assert main(["lab", "--surface", "plane", "--out", str(out), *SMALL, "--projectors", "2",
+                 "--layout", "side-by-side", "--overlap", "0.25", "--projector-effects", "1:response=1"]) == 0
+    assert "of 2 projectors" in capsys.readouterr().out
+    truth = LabTruth.load(tmp_path / "set.truth.json")
+    poses = [p.camera_from_projector for p in truth.rig.projectors]
+    assert len(poses) == 2 and np.linalg.norm(poses[0][:3, 3] - poses[1][:3, 3]) > 0.3
+    cs = CaptureSet.load(out)
+    assert len(cs.projectors) == 2 and len(cs.entries_of("surface")) == 1 and len(cs.entries_of("depth")) == 2
+    first, second = footprints(cs)
+    for mask in (first, second):
+        assert 0.1 < mask.mean() < 0.8  # each lights a part of what the camera sees
+    columns = [np.flatnonzero(m.any(axis=0)) for m in (first, second)]
+    assert columns[0].mean() < columns[1].mean()  # the first on the left
+    shared = (first & second).sum() / min(first.sum(), second.sum())
+    assert 0.15 < shared < 0.35, shared  # 0.25 asked
+    assert (first | second).sum() > 1.5 * max(first.sum(), second.sum())  # together they cover more than one
+    # projector 1's own response (gamma 2.2) darkens its mid-grey; projector 0 has none
+    ratios = []
+    for k, mask in enumerate((first, second)):
+        view = cs.for_projector(k)
+        black = view.image("black")
+        lit = (view.image("validation", pattern="grey", level=0.5) - black) / (view.image("white") - black + 1e-6)
+        ratios.append(float(np.median(lit.mean(axis=2)[mask])))
+    assert ratios[0] > 0.4 and ratios[1] < 0.3, ratios
+
+
+def test_stacked_projectors_light_nearly_the_same_area(tmp_path):
+    truth = make_truth("plane", samples=2, scale=0.2, projectors=2, layout="stacked")
+    run_lab(truth, tmp_path / "set", truth_path=tmp_path / "truth.json", graycode=False, validation=False,
+            depth_wall=False)
+    first, second = footprints(CaptureSet.load(tmp_path / "set"))
+    assert (first & second).sum() / (first | second).sum() > 0.8

@@ -168,8 +168,9 @@ FLAGS = {
     "import-captures": "--camera-fov --camera-height --camera-width --depth --depth-native-height "
                        "--depth-native-width --depth-units --encoding --force --no-exposure-check --out --rig",
     "lab-board": "--board --effects --force --out --poses --samples --scale --seed --square --supersample --truth",
-    "lab": "--camera-fov-error --effects --force --full-binary --no-graycode --nominal-error --out --projector-shift "
-           "--samples --scale --seed --supersample --surface --truth",
+    "lab": "--camera-fov-error --effects --force --full-binary --layout --no-graycode --nominal-error --out "
+           "--overlap --projector-effects --projector-shift --projectors --samples --scale --seed --supersample "
+           "--surface --truth",
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
                 "--projector-height --projector-width --seed --shift-x --shift-y --throw-ratio",

@@ -1,5 +1,7 @@
 """Rig model: intrinsics, spec-sheet conversion, poses, validation."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -119,6 +121,47 @@ def test_rig_dict_round_trip():
     assert back.camera.intrinsics == rig.camera.intrinsics
     assert np.allclose(back.projector.camera_from_projector, rig.projector.camera_from_projector)
     assert back.projector.input_size == rig.projector.input_size
+
+
+def test_one_projector_rig_dict_is_unchanged_and_several_round_trip():
+    rig = demo_rig((64, 48), (80, 60))
+    one = rig.to_dict()
+    assert set(one) == {"frame", "camera", "projector"}  # as before several projectors existed
+    assert len(rig.projectors) == 1 and rig.projectors[0] is rig.projector and Rig.from_dict(one).others == ()
+    second = Projector(projector_intrinsics_from_throw(64, 40, 1.6), look_at_pose((-0.3, 0.1, 0.0), (0, 0, 1.7)),
+                       intensity=1.5)
+    two = Rig(rig.camera, rig.projector, (second,))
+    d = two.to_dict()
+    assert d["projector"] == one["projector"] and len(d["projectors"]) == 2  # a one-projector reader reads the first
+    back = Rig.from_dict(json.loads(json.dumps(d)))
+    assert len(back.projectors) == 2 and back.projector_at(1).intrinsics.size == (64, 40)  # sizes may differ
+    assert np.allclose(back.projectors[1].camera_from_projector, second.camera_from_projector)
+    assert back.projectors[1].intensity == 1.5
+    assert Rig.from_dict({k: v for k, v in d.items() if k != "projector"}).to_dict() == d  # the list alone suffices
+    assert two.with_projectors(two.projectors[::-1]).projector.intensity == 1.5
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d.update(projectors=[]), "list of one or more"),
+    (lambda d: d.update(projectors=[3]), "list of one or more"),
+    (lambda d: d["projectors"][0].update(intensity=9.0), "'projector' differs from the first"),
+    (lambda d: d["projectors"][1].update(camera_from_projector=d["projectors"][0]["camera_from_projector"]),
+     "projectors 0 and 1 .* same pose"),
+    (lambda d: d["projectors"][1].pop("intrinsics"), "lacks 'intrinsics'"),
+])
+def test_bad_projector_lists_are_refused(change, message):
+    rig = demo_rig((64, 48), (80, 60))
+    other = rig.projector.with_pose(look_at_pose((-0.3, 0.1, 0.0), (0, 0, 1.7)))
+    d = json.loads(json.dumps(Rig(rig.camera, rig.projector, (other,)).to_dict()))
+    change(d)
+    with pytest.raises(RigError, match=message):
+        Rig.from_dict(d)
+
+
+def test_projector_index_out_of_range_is_named():
+    rig = demo_rig((64, 48), (80, 60))
+    with pytest.raises(RigError, match="1 projector.*no projector 1"):
+        rig.projector_at(1)
 
 
 def test_scaled_keeps_the_lens():

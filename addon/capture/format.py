@@ -24,6 +24,13 @@ or the virtual lab produces, and what calibration reads. Layout::
                  "pattern": "patterns/0003_checker_p0.png",
                  "params": {"square": 50, "phase": 0, "area": "input"}}, ...]}
 
+Several projectors, one camera and one surface: ``"projectors": [Projector.to_dict(), ...]`` lists every
+projector (``"projector"`` is still the first, so a one-projector reader reads it), and each entry a projector
+showed while the others were black says which, ``"projector": 1`` (numbered from 0; written only when not 0, so
+a one-projector set is written exactly as before). The surface photo, the depth images and targets are shared by
+all projectors and carry no index. :meth:`CaptureSet.for_projector` gives the one-projector view of a projector
+that single-projector code reads unchanged.
+
 Kinds and their required ``params``: ``surface`` (projector off), ``black``,
 ``white``, ``checker`` (square, phase), ``graycode`` (axis, bit, inverted),
 ``validation`` (pattern, plus its own parameters), ``target`` (a desired
@@ -42,7 +49,7 @@ import json
 import math
 import re
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,7 +59,7 @@ from ..colour import srgb_decode, srgb_encode
 from ..errors import CaptureError, ImageError, RigError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, holds_manifest, jsonable
-from ..rig.model import Camera, Intrinsics, Projector
+from ..rig.model import Camera, Intrinsics, Projector, projectors_from_dict
 from ..safepaths import inside
 
 FORMAT = "procam-capture"
@@ -63,6 +70,8 @@ MANIFEST = "capture.json"
 KINDS = ("surface", "black", "white", "checker", "graycode", "validation", "target", "depth")
 #: Kinds whose image is a camera capture and so must have the camera's size.
 CAMERA_KINDS = ("surface", "black", "white", "checker", "graycode", "validation")
+#: Kinds shared by every projector of a set (taken once, projectors off or not involved): they carry no index.
+SHARED_KINDS = ("surface", "target", "depth")
 REQUIRED_PARAMS: dict[str, tuple[str, ...]] = {
     "checker": ("square", "phase"),
     "graycode": ("axis", "bit", "inverted"),
@@ -125,6 +134,8 @@ class Entry:
     name: str
     params: dict[str, Any] = field(default_factory=dict)
     pattern: str | None = None
+    #: which projector showed it (0 = the first); the others showed black
+    projector: int = 0
 
     def matches(self, filters: dict[str, Any]) -> bool:
         for key, value in filters.items():
@@ -139,6 +150,8 @@ class Entry:
             d["pattern"] = self.pattern
         if self.params:
             d["params"] = jsonable(self.params)
+        if self.projector:
+            d["projector"] = int(self.projector)
         return d
 
 
@@ -168,6 +181,28 @@ def _check_params(kind: str, params: dict[str, Any], where: str) -> None:
     area = params.get("area")
     if area is not None and area not in ("input", "frame"):
         raise CaptureError(f"{where}: pattern area must be 'input' or 'frame', got {area!r}")
+
+
+def _projector_index(value: Any, kind: str, count: int, where: str) -> int:
+    """An entry's projector number, checked: a whole number naming one of the set's ``count`` projectors, and 0 for
+    the kinds every projector shares."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < count:
+        raise CaptureError(f"{where}: 'projector' must be a projector of the set, numbered 0 to {count - 1}, got "
+                           f"{value!r}")
+    if value and kind in SHARED_KINDS:
+        raise CaptureError(f"{where}: a {kind} image is shared by every projector and names none, got projector "
+                           f"{value}")
+    return value
+
+
+def _check_sequences(entries: list[Entry], count: int, where: str) -> None:
+    """Each projector of a multi-projector set has captures of its own: a projector listed without them is a
+    sequence that was never captured (or got lost), refused before calibration meets it."""
+    shown = {e.projector for e in entries if e.kind not in SHARED_KINDS}
+    missing = [str(k) for k in range(count) if k not in shown]
+    if missing:
+        raise CaptureError(f"{where}: the set lists {count} projectors, but holds no captures of projector(s) "
+                           f"{', '.join(missing)}; capture each projector's sequence (while the others show black)")
 
 
 def _lens_removed(value: Any, where: str) -> dict[str, Any] | None:
@@ -233,6 +268,13 @@ class CaptureSet:
     #: the calibrated camera lens import took out of every photograph (``RigLens.to_dict``), None when it took
     #: none: a live camera's frames must go through the same before they meet this set's calibration
     camera_lens: dict[str, Any] | None = None
+    #: projectors 2…N of a multi-projector set (``projector`` is the first); empty for one projector
+    others: tuple[Projector, ...] = ()
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        """Every projector of the set, the first (``projector``) first."""
+        return (self.projector, *self.others)
 
     # -- loading ---------------------------------------------------------------------------------
 
@@ -283,11 +325,16 @@ class CaptureSet:
             raise CaptureError(f"{where}: colour space {colour!r} is not supported; captures must be stored linear")
         try:
             camera = Camera.from_dict(doc["camera"])
-            projector = Projector.from_dict(doc["projector"])
+            # the poses of a capture set's projectors may all be unknown placeholders, so unlike a rig's they may
+            # coincide (projector_pose_known)
+            projector, others = projectors_from_dict({"projector": doc["projector"],
+                                                      **({"projectors": doc["projectors"]} if "projectors" in doc
+                                                         else {})})
         except KeyError as exc:
             raise CaptureError(f"{where}: missing {exc} model") from None
         except (RigError, TypeError, ValueError) as exc:
             raise CaptureError(f"{where}: invalid camera or projector model: {exc}") from None
+        count = 1 + len(others)
         for key in ("depth", "notes"):
             if doc.get(key) and not isinstance(doc[key], dict):
                 raise CaptureError(f"{where}: '{key}' must be an object, not {doc[key]!r}; remake the capture set")
@@ -339,19 +386,22 @@ class CaptureSet:
                 inside(root, pattern, what=f"{here}: pattern", error=CaptureError)
             if kind == "depth" and depth_info is None:
                 raise CaptureError(f"{here} ({rel}): a depth image needs the 'depth' section (its intrinsics)")
+            index = _projector_index(raw.get("projector", 0), kind, count, f"{here} ({rel})")
             files.add(rel)
             names.add(name)
-            entries.append(Entry(rel, kind, str(name), dict(params), pattern))
+            entries.append(Entry(rel, kind, str(name), dict(params), pattern, index))
+        if count > 1:
+            _check_sequences(entries, count, where)
         return CaptureSet(root, camera, projector, entries, depth_info, target_area,
                           str(doc.get("camera_status", "nominal")), str(doc.get("projector_status", "nominal")),
                           bool(doc.get("projector_pose_known", False)), colour, dict(doc.get("notes") or {}), version,
-                          _lens_removed(doc.get("camera_lens_removed"), where))
+                          _lens_removed(doc.get("camera_lens_removed"), where), others)
 
     def verify(self) -> None:
         """Decode every file once: exists, readable, complete, right size, sane depth."""
         cam = self.camera.intrinsics.size
-        frame = self.projector.intrinsics.size
         for e in self.entries:
+            frame = self.projectors[e.projector].intrinsics.size
             if e.kind == "depth":
                 self._read_depth(e)
                 continue
@@ -362,9 +412,10 @@ class CaptureSet:
             if e.pattern:
                 pat = self._read(e.pattern)
                 if _size(pat) != frame:
+                    whose = f"projector {e.projector}'s" if self.others else "the projector"
                     raise CaptureError(f"{self.path / e.pattern}: projected pattern is "
                                        f"{_size(pat)[0]}×{_size(pat)[1]}, "
-                                       f"but the projector frame is {frame[0]}×{frame[1]}")
+                                       f"but {whose} frame is {frame[0]}×{frame[1]}")
 
     def _file(self, rel: str) -> Path:
         # Checked at load too; resolved again at each read, so a link put in after loading is not followed.
@@ -409,6 +460,9 @@ class CaptureSet:
         what = f"{kind}" + (f" with {', '.join(f'{k}={v!r}' for k, v in filters.items())}" if filters else "")
         if not found:
             raise CaptureError(f"capture set {self.path} has no {what} image")
+        if len(found) > 1 and len({e.projector for e in found}) > 1:
+            raise CaptureError(f"capture set {self.path} holds the captures of {len(self.projectors)} projectors "
+                               f"({len(found)} {what} images); this step reads one projector's captures at a time")
         if len(found) > 1:
             raise CaptureError(f"capture set {self.path} has {len(found)} {what} images "
                                f"({', '.join(e.name for e in found)}); say which one, e.g. name=…")
@@ -460,6 +514,28 @@ class CaptureSet:
             raise CaptureError(f"capture set {self.path}: {entry.file} records no projected pattern")
         return self._file(entry.pattern)
 
+    def for_projector(self, index: int) -> "CaptureSet":
+        """The one-projector set of projector ``index`` (0 = the first): the camera, that projector, its captures
+        and the shared ones (surface photo, depth, targets), as single-projector code reads any set.
+
+        Same folder, nothing copied; the entries keep their files and names and are numbered 0 in the view.
+        """
+        count = len(self.projectors)
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < count:
+            raise CaptureError(f"capture set {self.path} has {count} projector(s), numbered 0 to {count - 1}; "
+                               f"there is no projector {index!r}")
+        index = int(index)
+        if count == 1:
+            return self
+        if not any(e.projector == index and e.kind not in SHARED_KINDS for e in self.entries):
+            raise CaptureError(f"capture set {self.path} holds no captures of projector {index}; capture its "
+                               "sequence (while the other projectors show black) and make the set again")
+        return CaptureSet(self.path, self.camera, self.projectors[index],
+                          [replace(e, projector=0) for e in self.entries if e.projector == index or
+                           e.kind in SHARED_KINDS], self.depth_info, self.target_area, self.camera_status,
+                          self.projector_status, self.projector_pose_known, self.colour_space, dict(self.notes),
+                          self.version, self.camera_lens)
+
     def __iter__(self) -> Iterator[Entry]:
         return iter(self.entries)
 
@@ -471,6 +547,7 @@ class CaptureSet:
                 "camera": self.camera.to_dict(), "camera_status": self.camera_status,
                 "projector": self.projector.to_dict(), "projector_status": self.projector_status,
                 "projector_pose_known": self.projector_pose_known,
+                **({"projectors": [p.to_dict() for p in self.projectors]} if self.others else {}),
                 "depth": self.depth_info.to_dict() if self.depth_info else None,
                 "target_area": list(self.target_area) if self.target_area else None,
                 "notes": jsonable(self.notes),
@@ -511,14 +588,17 @@ class CaptureSetWriter:
     the ``with`` block nothing is written. Missing depth may be NaN or 0; it is
     stored as 0 (``read_image`` refuses NaN) and loaded back as NaN.
     ``inputs``: what the run reads, never replaced (:func:`..outputs.check_replaceable`).
+    ``others``: projectors 2…N of a multi-projector set; :meth:`add`'s ``projector_index`` says which projector
+    showed a capture.
     """
 
-    def __init__(self, path: str | Path, camera: Camera, projector: Projector, *,
+    def __init__(self, path: str | Path, camera: Camera, projector: Projector, *, others: Iterable[Projector] = (),
                  depth_info: DepthInfo | None = None, target_area: tuple[int, int, int, int] | None = None,
                  camera_status: str = "nominal", projector_status: str = "nominal",
                  projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
                  camera_lens: dict[str, Any] | None = None, force: bool = False,
                  inputs: Iterable[str | Path | None] = ()) -> None:
+        self.others = tuple(others)
         self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, inputs=inputs,
                                     error=CaptureError)
         self.path = Path(path)
@@ -546,13 +626,21 @@ class CaptureSetWriter:
             out = f"{base}_{n}"
         return out
 
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        """Every projector of the set being written, the first first."""
+        return (self.projector, *self.others)
+
     def add(self, kind: str, image: np.ndarray, *, name: str | None = None, frame: np.ndarray | None = None,
-            **params: Any) -> Entry:
-        """Add one capture. ``frame`` is the native projector frame that was shown (stored under patterns/)."""
+            projector_index: int = 0, **params: Any) -> Entry:
+        """Add one capture. ``frame`` is the native projector frame that was shown (stored under patterns/);
+        ``projector_index`` the projector that showed it while the others showed black (0 = the first; not a
+        parameter named ``projector``, which the surface photo's ``projector="off"`` already is)."""
         if kind not in KINDS or kind == "depth":
             if kind == "depth":
                 raise CaptureError("use add_depth() for depth images")
             raise CaptureError(f"unknown kind {kind!r}; known kinds: {', '.join(KINDS)}")
+        index = _projector_index(projector_index, kind, len(self.projectors), f"new {kind} image")
         params = jsonable(params)
         _check_params(kind, params, f"new {kind} image")
         img = np.asarray(image, dtype=np.float32)
@@ -569,22 +657,23 @@ class CaptureSetWriter:
             # 16-bit PNG clips; say so instead of silently losing highlights.
             raise CaptureError(f"{label}: values outside [0, 1] (min {img.min():.3g}, max {img.max():.3g}); "
                                "scale the capture (e.g. exposure) before storing it")
-        name = self._unique(label)
+        name, projector = self._unique(label), index
         index = len(self.entries)
         rel = f"images/{index:04d}_{name}.png"
         write_image(self._tmp / rel, img)
-        pattern_rel = self._store_pattern(frame, index, name) if frame is not None else None
-        entry = Entry(rel, kind, name, dict(params), pattern_rel)
+        pattern_rel = self._store_pattern(frame, index, name, projector) if frame is not None else None
+        entry = Entry(rel, kind, name, dict(params), pattern_rel, projector)
         self.entries.append(entry)
         self._names.add(name)
         return entry
 
-    def _store_pattern(self, pattern: np.ndarray, index: int, name: str) -> str:
+    def _store_pattern(self, pattern: np.ndarray, index: int, name: str, projector: int) -> str:
         pat = np.asarray(pattern, dtype=np.float32)
-        frame = self.projector.intrinsics.size
+        frame = self.projectors[projector].intrinsics.size
         if _size(pat) != frame:
+            whose = f"projector {projector}'s" if self.others else "the projector"
             raise CaptureError(f"{name}: projected pattern is {_size(pat)[0]}×{_size(pat)[1]}, "
-                               f"but the projector frame is {frame[0]}×{frame[1]}; pass the native frame "
+                               f"but {whose} frame is {frame[0]}×{frame[1]}; pass the native frame "
                                "(Projector.frame_from_input)")
         if not np.all(np.isfinite(pat)) or pat.min(initial=0.0) < 0 or pat.max(initial=0.0) > 1:
             raise CaptureError(f"{name}: projected pattern must hold values in [0, 1]")
@@ -621,7 +710,7 @@ class CaptureSetWriter:
     def to_dict(self) -> dict[str, Any]:
         return CaptureSet(self.path, self.camera, self.projector, self.entries, self.depth_info, self.target_area,
                           self.camera_status, self.projector_status, self.projector_pose_known, "linear",
-                          self.notes, camera_lens=self.camera_lens).to_dict()
+                          self.notes, camera_lens=self.camera_lens, others=self.others).to_dict()
 
     def commit(self) -> CaptureSet:
         """Write capture.json, check the new set loads cleanly, then move it into place."""

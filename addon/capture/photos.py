@@ -336,7 +336,7 @@ def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *
         depth_info = replace(depth_info, intrinsics=lens.pinhole.scaled(*depth_info.intrinsics.size))
     notes = {**captures.notes, "camera": f"{LENS_REMOVED}: {lens.source}",
              "undistorted_from": str(Path(captures.path).resolve())}
-    with CaptureSetWriter(out, Camera(lens.pinhole), captures.projector, depth_info=depth_info,
+    with CaptureSetWriter(out, Camera(lens.pinhole), captures.projector, others=captures.others, depth_info=depth_info,
                           target_area=captures.target_area, camera_status="calibrated",
                           projector_status=captures.projector_status,
                           projector_pose_known=captures.projector_pose_known, notes=notes,
@@ -351,7 +351,7 @@ def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *
             if e.kind in CAMERA_KINDS:
                 image = np.clip(lens.image(image), 0.0, 1.0)
             pattern = captures._read(e.pattern) if e.pattern else None
-            writer.add(e.kind, image, name=e.name, frame=pattern, **e.params)
+            writer.add(e.kind, image, name=e.name, frame=pattern, projector_index=e.projector, **e.params)
     return CaptureSet.load(out, verify_images=False)
 
 

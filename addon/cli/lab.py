@@ -33,9 +33,9 @@ def run(args: argparse.Namespace) -> int:
     progress(f"lab: {out} ({args.samples} spp)")
     t0 = time.perf_counter()
     cs = run_step("lab", run_lab, options)
-    proj = cs.projector.intrinsics.size
-    print(f"capture set: {out} ({describe_run(cs, time.perf_counter() - t0)}, projector {proj[0]}×{proj[1]}, "
-          f"{args.samples} spp)")
+    sizes = ", ".join(f"{w}×{h}" for w, h in (p.intrinsics.size for p in cs.projectors))
+    print(f"capture set: {out} ({describe_run(cs, time.perf_counter() - t0)}, projector{'s' if cs.others else ''} "
+          f"{sizes}, {args.samples} spp)")
     print(f"sealed truth: {truth_path}")
     print(f"effects: {args.effects or 'none'}")
     return 0

@@ -71,6 +71,11 @@ class LabDevice(Device):
 
     def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None,
                  supersample: int = 1) -> None:
+        if truth.rig.others:
+            # one device renders one projector (the others black): run_lab opens one per projector
+            raise LabError(f"this lab holds {len(truth.rig.projectors)} projectors; a lab device shows one projector's "
+                           "frames at a time (LabTruth.for_projector), and showing on several at once is not "
+                           "supported yet")
         self.truth = truth
         self.projector = truth.rig.projector
         self.camera = truth.rig.camera

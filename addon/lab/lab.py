@@ -8,6 +8,14 @@ written to a *sealed* JSON file outside the capture set; pipeline and
 diagnosis code never read it, only evaluation does, and the lab device can
 be re-opened from it to capture more images later. Taking the depth image
 (from ``(seed, "depth")``) or not does not change any RGB capture.
+
+Several projectors: each projector's sequence is captured while the others
+show black, so each is rendered by a device of its own (the truth's
+:meth:`~.truth.LabTruth.for_projector`, its own random streams) on the shared
+surface and camera; the surface photo and the depth are taken once. The
+others' black is rendered as no light at all, which is exact without a
+projector black level among the effects (a black level of the others would add
+their dim glow to every capture; not simulated yet).
 """
 
 from __future__ import annotations
@@ -120,10 +128,12 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     """
     inputs = tuple(inputs)
     out_dir, truth_path = check_lab_outputs(out_dir, truth_path, force=force, inputs=inputs)
-    nominal = truth.nominal_projector
-    seq: list[PatternSpec] = calibration_sequence(truth.rig.projector, graycode=graycode, validation=validation,
-                                                  seed=truth.seed)
-    total = len(seq) + 2  # + depth + the scene
+    views = [truth.for_projector(k) for k in range(len(truth.rig.projectors))]
+    seqs: list[list[PatternSpec]] = [
+        [spec for spec in calibration_sequence(view.rig.projector, graycode=graycode, validation=validation,
+                                               seed=truth.seed) if k == 0 or not spec.projector_off]
+        for k, view in enumerate(views)]  # the surface photo (every projector off) is taken once
+    total = sum(len(seq) for seq in seqs) + 2  # + depth + the scene
     say = progress or quiet
 
     def report(done: int, n: int, message: str) -> None:
@@ -141,24 +151,29 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
     if truth.nominal_camera_intrinsics is not None:  # the depth image is unprojected with the camera as given
         depth_info = DepthInfo(truth.nominal_camera_intrinsics.scaled(*depth_info.intrinsics.size),
                                depth_info.native_size)
-    writer = CaptureSetWriter(out_dir, truth.nominal_camera, nominal, depth_info=depth_info, notes=notes, force=force,
-                              inputs=inputs)
+    nominal = truth.nominal_projectors
+    writer = CaptureSetWriter(out_dir, truth.nominal_camera, nominal[0], others=nominal[1:], depth_info=depth_info,
+                              notes=notes, force=force, inputs=inputs)
     tmp_truth: Path | None = None
     try:
         from .cycles_device import LabDevice  # bpy: the lab's renders
 
-        with LabDevice(truth, supersample=supersample) as device:
-            shown = _NominalDevice(device, nominal)
-            device.phase, device.session_shots = "calibration", len(seq)
-            for i, spec in enumerate(seq):
-                check(cancel, "the lab run was cancelled; nothing was written")
-                if spec.kind == "validation":
-                    device.phase = "validation"
-                report(i + 2, total, spec.name)
-                device.samples = binary if spec.kind in BINARY_KINDS else truth.samples
-                frame = None if spec.projector_off else spec.image
-                shot = shown.capture_off() if frame is None else shown.project(frame)
-                writer.add(spec.kind, shot, name=spec.name, frame=frame, **spec.params)
+        done = 2
+        for k, (view, seq) in enumerate(zip(views, seqs)):
+            with LabDevice(view, supersample=supersample) as device:
+                shown = _NominalDevice(device, nominal[k])
+                device.phase, device.session_shots = "calibration", len(seq)
+                for spec in seq:
+                    check(cancel, "the lab run was cancelled; nothing was written")
+                    if spec.kind == "validation":
+                        device.phase = "validation"
+                    name = spec.name if k == 0 else f"{spec.name}_p{k}"
+                    report(done, total, name)
+                    done += 1
+                    device.samples = binary if spec.kind in BINARY_KINDS else truth.samples
+                    frame = None if spec.projector_off else spec.image
+                    shot = shown.capture_off() if frame is None else shown.project(frame)
+                    writer.add(spec.kind, shot, name=name, frame=frame, projector_index=k, **spec.params)
         writer.add_depth(depth)
         if depth_wall:
             writer.add_depth(lab_wall_depth(truth), name="wall", **{WALL_PARAM: WALL_DISTANCE})
@@ -199,7 +214,8 @@ def describe_run(cs: CaptureSet, seconds: float) -> str:
     n = len([e for e in cs.entries if e.kind != "depth"])
     w, h = cs.camera.intrinsics.size
     wall = " + wall depth" if cs.depth_walls() else ""
-    return f"{n} captures + depth{wall} at {w}×{h} in {seconds:.0f} s"
+    many = f" of {len(cs.projectors)} projectors" if cs.others else ""
+    return f"{n} captures{many} + depth{wall} at {w}×{h} in {seconds:.0f} s"
 
 
 __all__ = ["check_lab_outputs", "describe_run", "run_lab"]

@@ -12,7 +12,8 @@ import io
 import json
 import math
 import zlib
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from ..safepaths import inside
 from ..surface.mesh import SurfaceMesh, read_mesh_file
 from ..surface.shapes import SHAPES, builtin_surface
 from .depth import depth_capture, sensor_resolution
+from .layouts import LAYOUTS, MAX_PROJECTORS, lay_out
 from .effects import EffectSet, camera_render_intrinsics, parse_effects
 
 
@@ -68,6 +70,24 @@ class LabTruth:
     nominal_intrinsics: Intrinsics | None = None
     #: the camera's intrinsics the pipeline is given (a field of view read off a spec); None: the true ones
     nominal_camera_intrinsics: Intrinsics | None = None
+    #: projectors 2…N as the pipeline is told they are (nominal pose and intrinsics), one per ``rig.others``
+    nominal_others: tuple[Projector, ...] = ()
+    #: projector index → that projector's own projector effects, in place of those of ``effects`` (mixed projectors)
+    projector_effects: dict[int, EffectSet] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if len(self.nominal_others) != len(self.rig.others):
+            raise LabError(f"the lab truth has {len(self.rig.projectors)} projectors but nominal descriptions of "
+                           f"{1 + len(self.nominal_others)}; make the lab captures and their truth again")
+        odd = [k for k in self.projector_effects if not 0 <= k < len(self.rig.projectors)]
+        if odd:
+            raise LabError(f"the lab truth gives effects of projector(s) {', '.join(map(str, odd))}, but has "
+                           f"{len(self.rig.projectors)} projector(s), numbered from 0")
+
+    def effects_of(self, index: int) -> EffectSet:
+        """The effects projector ``index`` is rendered with: the shared ones, its projector effects its own if given."""
+        own = self.projector_effects.get(index)
+        return self.effects if own is None else with_projector_effects(self.effects, own)
 
     @property
     def nominal_camera(self) -> Camera:
@@ -80,6 +100,25 @@ class LabTruth:
         proj = self.rig.projector
         return replace(proj, intrinsics=self.nominal_intrinsics or proj.intrinsics,
                        camera_from_projector=np.asarray(self.nominal_pose, dtype=float))
+
+    @property
+    def nominal_projectors(self) -> tuple[Projector, ...]:
+        """Every projector as the pipeline is told it is, the first first."""
+        return (self.nominal_projector, *self.nominal_others)
+
+    def for_projector(self, index: int) -> "LabTruth":
+        """The one-projector truth of projector ``index`` (0 = the first): what its own :class:`LabDevice` renders
+        while the other projectors show black. Its seed is the projector's own (:func:`projector_seed`), so two
+        projectors' captures do not share their noise."""
+        proj = self.rig.projector_at(index)
+        alone = {"rig": Rig(self.rig.camera, proj), "nominal_others": (), "effects": self.effects_of(index),
+                 "projector_effects": {}}
+        if index == 0:
+            return replace(self, **alone)
+        nominal = self.nominal_others[index - 1]
+        return replace(self, seed=projector_seed(self.seed, index), nominal_pose=nominal.camera_from_projector.copy(),
+                       nominal_intrinsics=None if nominal.intrinsics == proj.intrinsics else nominal.intrinsics,
+                       **alone)
 
     @staticmethod
     def mesh_path(path: str | Path) -> Path:
@@ -104,6 +143,10 @@ class LabTruth:
                   if self.nominal_intrinsics is not None else {}),
                **({"nominal_camera_intrinsics": self.nominal_camera_intrinsics.to_dict()}
                   if self.nominal_camera_intrinsics is not None else {}),
+               **({"camera_from_projectors": [p.camera_from_projector.tolist() for p in self.rig.projectors],
+                   "nominal_projectors": [p.to_dict() for p in self.nominal_projectors]} if self.rig.others else {}),
+               **({"projector_effects": {str(k): e.to_dict() for k, e in sorted(self.projector_effects.items())}}
+                  if self.projector_effects else {}),
                "surface": {"source": self.surface_source, "mesh": mesh_path.name, "name": self.surface.name},
                "effects": self.effects.to_dict(), "effects_spec": self.effects.spec,
                "seed": int(self.seed), "samples": int(self.samples)}
@@ -129,7 +172,9 @@ class LabTruth:
                             Intrinsics.from_dict(doc["nominal_projector_intrinsics"])
                             if "nominal_projector_intrinsics" in doc else None,
                             Intrinsics.from_dict(doc["nominal_camera_intrinsics"])
-                            if "nominal_camera_intrinsics" in doc else None)
+                            if "nominal_camera_intrinsics" in doc else None,
+                            tuple(Projector.from_dict(p) for p in doc.get("nominal_projectors", [])[1:]),
+                            {int(k): EffectSet.from_dict(e) for k, e in doc.get("projector_effects", {}).items()})
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
         except (OSError, *MALFORMED) as exc:
@@ -160,14 +205,71 @@ def scaled_rig(rig: Rig, scale: float) -> Rig:
         return max(8, round(intr.width * scale)), max(6, round(intr.height * scale))
 
     return Rig(Camera(rig.camera.intrinsics.scaled(*size(rig.camera.intrinsics))),
-               rig.projector.scaled(*size(rig.projector.intrinsics)))
+               rig.projector.scaled(*size(rig.projector.intrinsics)),
+               tuple(p.scaled(*size(p.intrinsics)) for p in rig.others))
+
+
+def projector_seed(seed: int, index: int) -> int:
+    """The seed of projector ``index``'s captures: the session's for the first (as with one projector), one of
+    its own drawn from ``(seed, index)`` for each other."""
+    if index == 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), zlib.crc32(b"projector"), int(index)]).generate_state(1)[0])
+
+
+def with_projector_effects(shared: EffectSet, own: EffectSet) -> EffectSet:
+    """``shared`` with its projector effects (stage ``projector``) replaced by those of ``own``."""
+    return EffectSet(tuple(own[e.name] if e.kind.stage == "projector" else e for e in shared.effects))
+
+
+def parse_projector_effects(spec: str | Mapping[int, Any] | None, count: int | None = None) -> dict[int, EffectSet]:
+    """``"1:response=0.6,vignetting=0.5;2:crosstalk=0.3"`` → projector index (from 0) → its own projector effects.
+
+    Each projector named gets exactly these projector effects instead of those of the shared effects (a mixed
+    rig: another response, colour or lens). Effects that act in the scene, the camera or the depth sensor are
+    shared by every projector and refused here, as is a projector the rig does not have (``count``).
+    """
+    items: list[tuple[Any, Any]]
+    if not spec:
+        return {}
+    if isinstance(spec, Mapping):
+        items = list(spec.items())
+    elif isinstance(spec, str):
+        items = []
+        for part in (p.strip() for p in spec.split(";")):
+            head, colon, text = part.partition(":")
+            if part and (not colon or not head.strip().isdigit()):
+                raise LabError(f"projector effects are K:EFFECTS items separated by ';', K a projector numbered "
+                               f"from 0 (e.g. 1:response=0.6,vignetting=0.5), got {part!r}")
+            if part:
+                items.append((int(head), text))
+    else:
+        raise LabError(f"projector effects must be text like '1:response=0.6', got {type(spec).__name__}")
+    out: dict[int, EffectSet] = {}
+    for k, text in items:
+        k = _whole(k, "a projector's number", 0)
+        if count is not None and k >= count:
+            raise LabError(f"projector effects name projector {k}, but the lab has {count} projector(s), numbered "
+                           "from 0")
+        if k in out:
+            raise LabError(f"projector effects name projector {k} twice; give all its effects in one item")
+        effects = parse_effects(text)
+        shared = [n for n in effects.active if effects[n].kind.stage != "projector"]
+        if shared:
+            raise LabError(f"projector {k}'s own effects may only act in the projector; {', '.join(shared)} "
+                           "act(s) in the scene, the camera or the depth sensor, shared by every projector: give "
+                           "them in the effects")
+        out[k] = effects
+    return out
 
 
 def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | EffectSet | None = None,
                seed: int = 0, samples: int = 16, camera_size: tuple[int, int] = (640, 480),
                projector_size: tuple[int, int] = (800, 600), rig: Rig | None = None, scale: float = 1.0,
                surface_source: str | None = None, projector_shift: tuple[float, float] | None = None,
-               nominal_error: tuple[float, float] = (0.0, 0.0), camera_fov_error: float = 0.0) -> LabTruth:
+               nominal_error: tuple[float, float] = (0.0, 0.0), camera_fov_error: float = 0.0,
+               projectors: int = 1, layout: str = "side-by-side", overlap: float = 0.2,
+               projector_effects: str | Mapping[int, Any] | None = None) -> LabTruth:
     """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
 
     ``rig`` replaces the demo rig (then ``camera_size``/``projector_size``/``projector_shift``
@@ -182,10 +284,25 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
     The nominal projector pose the pipeline gets is the true one disturbed as
     by a person placing it by eye (:func:`rough_pose`). Cheap checks come
     first so that a bad request fails before any mesh is read.
+    ``projectors`` > 1 lays out that many copies of the demo projector (:func:`.layouts.lay_out`: ``layout``
+    ``side-by-side`` with footprints overlapping by ``overlap`` of a width, or ``stacked``); a ``rig`` brings its
+    own projectors instead. Each projector gets its own nominal pose and intrinsics, drawn in order, the first
+    exactly as with one projector. ``projector_effects`` (:func:`parse_projector_effects`) gives projectors
+    effects of their own.
     """
     seed = _whole(seed, "the seed", 0)
     samples = _whole(samples, "Cycles samples", 1)
     effect_set = parse_effects(effects)
+    count = _whole(projectors, "the number of projectors", 1)
+    if count > MAX_PROJECTORS:
+        raise LabError(f"the lab lays out 1 to {MAX_PROJECTORS} projectors, got {count}")
+    if layout not in LAYOUTS:
+        raise LabError(f"the projector layout must be one of {', '.join(LAYOUTS)}, got {layout!r}")
+    own_effects = parse_projector_effects(projector_effects, max(count, len(rig.projectors) if rig else 1))
+    if rig is not None and count > 1 and count != len(rig.projectors):
+        raise LabError(f"the rig has {len(rig.projectors)} projector(s) of its own, and the lab lays out only copies "
+                       f"of the demo projector: leave the rig out for {count} demo projectors, or give the rig all "
+                       "its projectors")
     if rig is None:
         for what, size in (("camera", camera_size), ("projector", projector_size)):
             if len(size) != 2 or any(isinstance(v, bool) or int(v) != v or v < 2 for v in size):
@@ -203,11 +320,17 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
     else:
         mesh = load_mesh_file(Path(surface))
         source = surface_source or str(Path(surface).resolve())
+    if len(rig.projectors) < count:
+        rig = rig.with_projectors(lay_out(rig.projector, rig.camera, mesh, count, layout, overlap))
     rng = np.random.default_rng(seed + 7919)
-    nominal_k = None
-    if any(nominal_error):
-        k, (df, dshift) = rig.projector.intrinsics, (float(v) for v in nominal_error)
-        nominal_k = Intrinsics(k.width, k.height, k.fx * (1 + df), k.fy * (1 + df), k.cx, k.cy + dshift * k.height)
+
+    def spec_sheet(k: Intrinsics) -> Intrinsics | None:
+        if not any(nominal_error):
+            return None
+        df, dshift = (float(v) for v in nominal_error)
+        return Intrinsics(k.width, k.height, k.fx * (1 + df), k.fy * (1 + df), k.cx, k.cy + dshift * k.height)
+
+    nominal_k = spec_sheet(rig.projector.intrinsics)
     nominal_cam = None
     if camera_fov_error:
         k = rig.camera.intrinsics
@@ -216,8 +339,11 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
             raise LabError(f"a camera field of view {camera_fov_error:+g}° off gives {fov:.1f}°; keep it in 1–170°")
         f = k.width / (2 * math.tan(math.radians(fov) / 2))
         nominal_cam = Intrinsics(k.width, k.height, f, f * k.fy / k.fx, k.cx, k.cy)
-    return LabTruth(rig, mesh, source, effect_set, seed, samples, rough_pose(rig.projector.camera_from_projector, rng),
-                    nominal_k, nominal_cam)
+    first_pose = rough_pose(rig.projector.camera_from_projector, rng)
+    others = tuple(replace(p, intrinsics=spec_sheet(p.intrinsics) or p.intrinsics,
+                           camera_from_projector=rough_pose(p.camera_from_projector, rng)) for p in rig.others)
+    return LabTruth(rig, mesh, source, effect_set, seed, samples, first_pose, nominal_k, nominal_cam, others,
+                    own_effects)
 
 
 def load_mesh_file(path: Path) -> SurfaceMesh:

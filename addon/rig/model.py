@@ -328,23 +328,93 @@ class Projector:
             raise RigError(f"projector description has an invalid input size or offset ({exc})") from None
 
 
+#: Two projectors whose centres are closer than this (metres) and whose axes agree within MIN_TURN_DEG are one
+#: projector given twice, almost always a copy-paste mistake in a rig file.
+MIN_SEPARATION = 1e-3
+MIN_TURN_DEG = 0.01
+
+
 @dataclass(frozen=True)
 class Rig:
-    """Camera (at the origin of the rig frame) and projector."""
+    """Camera (at the origin of the rig frame) and one or more projectors.
+
+    ``projector`` is the first projector (index 0), the one every single-projector step uses; ``others`` are
+    projectors 2…N of a multi-projector rig, each with its own size, lens, pose and intensity. ``Rig(camera,
+    projector)`` is the one-projector rig it always was, and its dictionary is unchanged: the ``projectors`` list
+    is written only when there is more than one.
+    """
 
     camera: Camera
     projector: Projector
+    others: tuple[Projector, ...] = ()
+
+    def __post_init__(self) -> None:
+        others = tuple(self.others)
+        if not all(isinstance(p, Projector) for p in others):
+            raise RigError("the rig's other projectors must be Projector descriptions")
+        object.__setattr__(self, "others", others)
+        projectors = self.projectors
+        for i, a in enumerate(projectors):
+            for j in range(i + 1, len(projectors)):
+                b = projectors[j]
+                apart = float(np.linalg.norm(a.position - b.position))
+                turn = math.degrees(math.acos(float(np.clip(a.direction @ b.direction, -1.0, 1.0))))
+                if apart < MIN_SEPARATION and turn < MIN_TURN_DEG:
+                    raise RigError(f"projectors {i} and {j} (numbered from 0) have the same pose (centres "
+                                   f"{apart * 1000:.2f} mm apart, same direction); each projector needs its own pose")
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        """Every projector, the first (``projector``) first."""
+        return (self.projector, *self.others)
+
+    def projector_at(self, index: int) -> Projector:
+        """Projector ``index`` (0 = the first), or a :class:`RigError` naming how many there are."""
+        projectors = self.projectors
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < len(projectors):
+            raise RigError(f"the rig has {len(projectors)} projector(s), numbered 0 to {len(projectors) - 1}; "
+                           f"there is no projector {index!r}")
+        return projectors[int(index)]
+
+    def with_projectors(self, projectors: Any) -> "Rig":
+        """The same camera with these projectors (at least one; the first becomes ``projector``)."""
+        projectors = tuple(projectors)
+        if not projectors:
+            raise RigError("a rig needs at least one projector")
+        return Rig(self.camera, projectors[0], projectors[1:])
 
     def to_dict(self) -> dict[str, Any]:
+        # "projector" stays the first projector, so a reader that knows only one projector reads the first
         return {"frame": "OpenCV camera frame: x right, y down, z forward, metres",
-                "camera": self.camera.to_dict(), "projector": self.projector.to_dict()}
+                "camera": self.camera.to_dict(), "projector": self.projector.to_dict(),
+                **({"projectors": [p.to_dict() for p in self.projectors]} if self.others else {})}
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> "Rig":
         try:
-            return Rig(Camera.from_dict(d["camera"]), Projector.from_dict(d["projector"]))
+            camera = Camera.from_dict(d["camera"])
         except KeyError as exc:
             raise RigError(f"rig description lacks {exc}") from None
+        return Rig(camera, *projectors_from_dict(d))
+
+
+def projectors_from_dict(d: dict[str, Any]) -> tuple[Projector, tuple[Projector, ...]]:
+    """The first projector and the others of a description holding ``projector`` (one projector) or a
+    ``projectors`` list (several; a ``projector`` beside it must be the first of them), as a rig or a capture set
+    writes them."""
+    try:
+        many = d.get("projectors")
+        if many is None:
+            return Projector.from_dict(d["projector"]), ()
+        if not isinstance(many, list) or not many or not all(isinstance(p, dict) for p in many):
+            raise RigError("'projectors' must be a list of one or more projector descriptions")
+        projectors = [Projector.from_dict(p) for p in many]
+        if "projector" in d and Projector.from_dict(d["projector"]).to_dict() != projectors[0].to_dict():
+            raise RigError("'projector' differs from the first of the 'projectors'; give the first projector once, "
+                           "in 'projectors', or make the two the same")
+        return projectors[0], tuple(projectors[1:])
+    except KeyError as exc:
+        raise RigError(f"rig description lacks {exc}") from None
 
 
 def look_at_pose(position: Any, target: Any, up: Any = (0.0, -1.0, 0.0)) -> np.ndarray:

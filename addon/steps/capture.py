@@ -29,8 +29,9 @@ from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
 from ..lab.effects import effect_help, parse_effects
-from ..lab.truth import check_supersample, make_truth, scaled_rig
+from ..lab.truth import check_supersample, make_truth, parse_projector_effects, scaled_rig
 from ..lab.lab import check_lab_outputs, run_lab as render_lab
+from ..lab.layouts import LAYOUTS as PROJECTOR_LAYOUTS, MAX_PROJECTORS
 from ..rig.demo import demo_rig
 from ..options import option, same_option, validate
 from ..progress import Cancel, Progress, quiet
@@ -109,6 +110,22 @@ class LabOptions:
         1, check=check_supersample, metavar="N",
         help="render the camera at N times its resolution and average down, so that lens distortion resamples "
              "finer pixels than the camera's, as a real lens does (default 1; 2 costs 4×)")
+    projectors: int = option(
+        1, min=1, max=MAX_PROJECTORS, metavar="N",
+        help="how many projectors light the surface (default 1): copies of the demo projector placed by --layout, "
+             "each one's sequence captured while the others show black; depth and the surface photo are taken once")
+    projector_layout: str = option(
+        "side-by-side", flag="--layout", choices=PROJECTOR_LAYOUTS,
+        help="with --projectors above 1: side-by-side (footprints in a row, overlapping by --overlap) or stacked "
+             "(all on the same area from slightly different positions) (default side-by-side)")
+    overlap: float = option(
+        0.2, min=0.0, max=0.9, metavar="FRACTION",
+        help="side-by-side: how much neighbouring footprints overlap, as a fraction of a footprint's width "
+             "(default 0.2)")
+    projector_effects: str = option(
+        "", metavar="K:EFFECTS[;K:EFFECTS…]", check=parse_projector_effects,
+        help="projectors with effects of their own, numbered from 0, in place of the projector effects of "
+             "--effects: e.g. '1:response=0.6,crosstalk=0.3' for a second projector of another make (default none)")
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -132,7 +149,9 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
                        camera_size=options.camera_size, projector_size=options.projector_size,
                        projector_shift=options.projector_shift, nominal_error=options.nominal_error,
-                       camera_fov_error=options.camera_fov_error)
+                       camera_fov_error=options.camera_fov_error, projectors=options.projectors,
+                       layout=options.projector_layout, overlap=options.overlap,
+                       projector_effects=options.projector_effects)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, inputs=inputs, graycode=options.graycode,
                       fast_binary=not options.full_binary, supersample=options.supersample, progress=progress,
