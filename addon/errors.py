@@ -58,6 +58,11 @@ class Cancelled(Exception):
 
     exit_code = 130
 
+    def __init__(self, message: str = "", *, kept: bool = False) -> None:
+        super().__init__(message)
+        #: finished work was kept (a partial folder, photographs, frames), and the message says where
+        self.kept = kept
+
 
 #: What reading a parsed JSON manifest of the wrong shape raises in code that indexes and converts it: a missing
 #: key or item, a value of another type (a list where an object was, ``int(None)``), a bad or infinite number.

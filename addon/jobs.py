@@ -49,6 +49,8 @@ class Snapshot:
     fraction: float
     error: str | None
     seconds: float
+    #: a cancel that kept finished work: ``error`` says what and where
+    kept: bool = False
 
     @property
     def finished(self) -> bool:
@@ -125,7 +127,8 @@ class Job:
             end = self._t1 if self._t1 is not None else time.perf_counter()
             seconds = 0.0 if self._t0 is None else end - self._t0
             error = self.wording(str(self._error)) if self._error is not None else None
-            return Snapshot(self.name, self._status, self._message, self._fraction, error, seconds)
+            kept = isinstance(self._error, Cancelled) and self._error.kept
+            return Snapshot(self.name, self._status, self._message, self._fraction, error, seconds, kept)
 
     def mark_failed(self, error: ProCamError) -> None:
         """A finished job whose result could not be used (e.g. applying it to the scene failed)."""

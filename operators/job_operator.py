@@ -167,7 +167,9 @@ class JobOperator:
             self.report({"INFO"}, f"{message} ({snap.seconds:.1f} s)")
             return {"FINISHED"}
         if snap.status == jobs.CANCELLED:
-            self.report({"WARNING"}, f"{job.name} cancelled: {self.cancel_note}")
+            # A step that kept finished work says what and where; otherwise this operator's own note holds.
+            note = snap.error if snap.kept and snap.error else f"{job.name} cancelled: {self.cancel_note}"
+            self.report({"WARNING"}, note)
             return {"CANCELLED"}
         self.report({"ERROR"}, snap.error or f"{job.name} failed")  # worded for the sidebar (Job.wording)
         return {"CANCELLED"}

@@ -32,6 +32,8 @@ def draw_state(layout: bpy.types.UILayout, step: str, summary: Summary) -> bool:
         return False
     if snap is not None and snap.status == jobs.FAILED:
         wrapped(box, f"Failed: {snap.error}", icon="ERROR")
+    elif snap is not None and snap.status == jobs.CANCELLED and snap.kept and snap.error:
+        wrapped(box, f"Cancelled: {snap.error}", icon="CANCEL")
     elif snap is not None and snap.status == jobs.CANCELLED:
         box.label(text="Cancelled: nothing was changed", icon="CANCEL")
     if summary.ok:

@@ -167,3 +167,18 @@ def test_relay_wait_ends_when_the_job_is_cancelled():
     job.cancel()  # nobody pumps: the worker must still stop
     assert job.wait(5) and job.status == jobs.CANCELLED
     assert relay.pump() == 1  # the abandoned call is dropped, not run
+
+
+def test_a_cancel_that_kept_finished_work_says_so():
+    """A step that keeps what it finished (a partial compensation, photographs, a show's frames) raises a cancel that
+    says so; the snapshot carries it, so the sidebar reports what was kept instead of 'nothing was changed'."""
+    def keeps(*, progress, cancel):
+        raise Cancelled("compensation was cancelled after 1 of 2 target(s); the finished ones are kept", kept=True)
+
+    def writes_nothing(*, progress, cancel):
+        raise Cancelled("stage B (warp) was cancelled; no warp was stored")
+
+    kept = jobs.Job("compensation", keeps).run().snapshot()
+    assert kept.status == jobs.CANCELLED and kept.kept and "kept" in (kept.error or "")
+    plain = jobs.Job("calibration", writes_nothing).run().snapshot()
+    assert plain.status == jobs.CANCELLED and not plain.kept

@@ -166,7 +166,7 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     if stopped is not None:
         raise Cancelled(f"the transport operator's precompute was cancelled; the calibration is kept in "
                         f"{options.out} without it: run `procam precompute {options.out}` to add it (compensation "
-                        "renders one itself meanwhile)")
+                        "renders one itself meanwhile)", kept=True)
     say("done", 1.0)
     return result.calibration
 

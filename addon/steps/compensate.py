@@ -141,7 +141,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     if stopped is not None:
         raise Cancelled(f"compensation was cancelled after {finished} of {len(paths)} target(s); the finished ones "
                         f"are kept in {options.out} (marked incomplete): run the same command with --force to "
-                        "redo it whole")
+                        "redo it whole", kept=True)
     say("done", 1.0)
     if failure is not None:
         raise failure

@@ -187,7 +187,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
         # however the stop came (this loop's check, or the job's at a progress report), the photographs taken so
         # far stay in the session folder, and the same command resumes from them
         raise Cancelled(f"{exc}: {_photos_taken(session)} of {len(frames)} frames are captured and kept in "
-                        f"{session}; run the same command to resume") from None
+                        f"{session}; run the same command to resume", kept=True) from None
     shutil.rmtree(session, ignore_errors=True)
     say(f"capture set {options.out}: {len(frames)} frames", 1.0)
     return captures

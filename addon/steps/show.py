@@ -648,7 +648,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
             run["status"] = "cancelled"
             kept = sum(1 for e in frames_doc.values() if isinstance(e, dict) and e.get("status") == "done")
             raise Cancelled(f"{exc}; {kept} finished frame(s) kept in {folder.path}: rerun the same command to "
-                            "resume") from None
+                            "resume", kept=True) from None
         except KeyboardInterrupt:
             run["status"] = "cancelled"
             raise
