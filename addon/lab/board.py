@@ -23,7 +23,7 @@ import numpy as np
 from ..capture.patterns import gray_code_patterns, white
 from ..errors import LabError
 from ..imageio import write_atomic_bytes, write_image
-from ..outputs import AtomicFolder, check_file_replaceable
+from ..outputs import AtomicFolder, check_file_replaceable, holds_manifest
 from ..progress import Cancel, Progress, check, quiet
 from ..rig.model import Rig
 from ..surface.mesh import SurfaceMesh
@@ -124,11 +124,7 @@ def default_supersample(effects: str) -> int:
 
 def is_board_truth(path: Path) -> bool:
     """Whether ``path`` is a board truth file ProCam wrote (its format tag), which ``force`` may replace."""
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
-        return False
-    return isinstance(doc, dict) and doc.get("format") == BOARD_TRUTH_FORMAT
+    return holds_manifest(Path(path).parent, Path(path).name, BOARD_TRUTH_FORMAT)
 
 
 def is_board_sessions(path: Path) -> bool:

@@ -22,6 +22,7 @@ import numpy as np
 from ..capture.format import DepthInfo
 from ..errors import MALFORMED, LabError
 from ..imageio import DAMAGED_ARRAYS, read_arrays, write_atomic_bytes
+from ..outputs import holds_manifest
 from ..render.raycast import depth_map
 from ..rig.demo import demo_projector, demo_rig
 from ..rig.model import Camera, Intrinsics, Projector, Rig
@@ -415,11 +416,7 @@ def binary_samples(samples: int) -> int:
 
 def is_truth_file(path: Path) -> bool:
     """Whether ``path`` is a lab truth file ProCam wrote (its format tag), which ``force`` may replace."""
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
-        return False
-    return isinstance(doc, dict) and doc.get("format") == TRUTH_FORMAT
+    return holds_manifest(Path(path).parent, Path(path).name, TRUTH_FORMAT)
 
 
 def is_truth_surface(path: Path) -> bool:
