@@ -52,14 +52,15 @@ def _real(path: str | Path) -> Path:
     return Path(os.path.realpath(os.path.abspath(path)))
 
 
-def input_under(target: str | Path, inputs: Iterable[str | Path | None]) -> Path | None:
-    """The first of ``inputs`` that is ``target`` or lies inside it (real paths compared), else None."""
-    real = _real(target)
+def _input_at(path: str | Path, inputs: Iterable[str | Path | None], *, inside_path: bool) -> Path | None:
+    """The first of ``inputs`` that is ``path`` or, with ``inside_path``, lies inside it (a folder to replace
+    would take it along), else holds it (a file to write would land in it); real paths compared; else None."""
+    real = _real(path)
     for given in inputs:
         if given is None:
             continue
         p = _real(given)
-        if p == real or real in p.parents:
+        if p == real or (real in p.parents if inside_path else p in real.parents):
             return Path(given)
     return None
 
@@ -76,7 +77,7 @@ def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable
     folder is replaced only with ``force``.
     """
     target = Path(target)
-    given = input_under(target, inputs)
+    given = _input_at(target, inputs, inside_path=True)
     if given is not None:
         which = "is" if _real(given) == _real(target) else "holds"
         raise error(f"{target} {which} an input of this run ({given}); a step never replaces what it reads — "
@@ -99,18 +100,6 @@ def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable
     return True
 
 
-def input_around(path: str | Path, inputs: Iterable[str | Path | None]) -> Path | None:
-    """The first of ``inputs`` that is ``path`` or holds it (real paths compared), else None."""
-    real = _real(path)
-    for given in inputs:
-        if given is None:
-            continue
-        p = _real(given)
-        if p == real or p in real.parents:
-            return Path(given)
-    return None
-
-
 def check_file_replaceable(path: str | Path, *, force: bool, what: str, replaceable: Callable[[Path], bool],
                            inputs: Iterable[str | Path | None], error: type[ProCamError] = OutputError) -> bool:
     """:func:`check_replaceable` for an output that is one file: True when ``path`` exists and may be replaced.
@@ -121,7 +110,7 @@ def check_file_replaceable(path: str | Path, *, force: bool, what: str, replacea
     ``replaceable(path)`` (its content shows ProCam wrote it, of this kind).
     """
     path = Path(path)
-    given = input_around(path, inputs)
+    given = _input_at(path, inputs, inside_path=False)
     if given is not None:
         raise error(f"the {what} {path} would be written into {given}, which this run must leave as it is (an "
                     "input, or a folder another ProCam step made); choose another file name")
