@@ -54,7 +54,7 @@ def _lab(work: Path, scale: float) -> tuple[Path, Path]:
         cal_dir.mkdir()
         calibrate_step.write(cal_dir, Calibration(truth.rig, truth.surface,
                                                   Warp.identity(truth.rig.projector.input_size), str(captures)),
-                             {}, with_blend=False)
+                             {})
     return cal_dir, truth_path
 
 

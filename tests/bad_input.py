@@ -210,7 +210,7 @@ def make_world(root: Path) -> None:
     truth = LabTruth.load(w / "truth.json")
     cal = Calibration(truth.rig, truth.surface, Warp.identity(truth.rig.projector.input_size), str(w / "captures"))
     (w / "cal").mkdir()
-    calibrate_step.write(w / "cal", cal, {}, with_blend=False)
+    calibrate_step.write(w / "cal", cal, {})
     (w / "frames").mkdir()
     for n in (1, 2):
         _png(w / "frames" / f"shot_{n:04d}.png", 64, 48, seed=n)

@@ -107,7 +107,7 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
                               str(captures_dir))
             folder = tmp_path_factory.mktemp("calibration") / "cal"
             folder.mkdir()
-            calibrate_step.write(folder, cal, {}, with_blend=False)
+            calibrate_step.write(folder, cal, {})
             _LAB_CALIBRATIONS[key] = folder
         return _LAB_CALIBRATIONS[key], captures_dir, truth_path
 

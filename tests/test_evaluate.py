@@ -38,7 +38,7 @@ def env(lab_set, tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate")
     cal_dir = root / "cal"
     cal_dir.mkdir()
-    calibrate_step.write(cal_dir, cal, {}, with_blend=False)
+    calibrate_step.write(cal_dir, cal, {})
     targets = root / "targets"
     targets.mkdir()
     write_image(targets / "a.png", _target())

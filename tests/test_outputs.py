@@ -338,7 +338,7 @@ def _calibration_folder(tmp_path: Path, capture_dir: Path) -> Path:
     folder = tmp_path / "cal"
     folder.mkdir()
     calibrate_step.write(folder, Calibration(truth.rig, truth.surface, Warp.identity(truth.rig.projector.input_size),
-                                             str(capture_dir)), {}, with_blend=False)
+                                             str(capture_dir)), {})
     return folder
 
 

@@ -387,7 +387,7 @@ def _write_calibration(cal, folder):
     from procam.addon.steps import calibrate as calibrate_step
 
     folder.mkdir()
-    calibrate_step.write(folder, cal, {}, with_blend=False)
+    calibrate_step.write(folder, cal, {})
 
 
 def test_cli_round_trip(setup, tmp_path, monkeypatch, capsys):

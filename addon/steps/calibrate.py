@@ -200,12 +200,10 @@ def _precompute(folder: Path, calibration: Calibration, seed: int, say: Progress
         say(f"warning: no transport operator precomputed ({exc})", 1.0)
 
 
-def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *, with_blend: bool = False,
+def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *,
           blend_writer: BlendWriter | None = None) -> None:
     """The files of a calibration folder into the (new, empty) ``folder``; ``scene.blend`` too when a
     ``blend_writer`` is given."""
-    if with_blend and blend_writer is None:
-        raise CalibrationError("scene.blend needs Blender's writer (blend_writer)")
     mesh = cal.surface
     write_manifest(folder / KIND.manifest, manifest(cal))
     buf = io.BytesIO()
