@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import bpy
 
+from .operators.add_projector import PROCAM_OT_add_projector
 from .operators.calibrate import PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_use_selected_surface_mesh
 from .operators.calibrate_rig import PROCAM_OT_calibrate_rig
 from .operators.cancel_job import PROCAM_OT_cancel_job
@@ -34,7 +35,8 @@ from .panels.export import PROCAM_PT_export
 from .panels.live import PROCAM_PT_live
 from .panels.rig import PROCAM_PT_rig
 
-OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image, PROCAM_OT_run_lab,
+OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_add_projector, PROCAM_OT_set_surface, PROCAM_OT_set_projector_image,
+             PROCAM_OT_run_lab,
              PROCAM_OT_export_patterns, PROCAM_OT_import_captures, PROCAM_OT_calibrate_rig,
              PROCAM_OT_calibrate, PROCAM_OT_load_calibration, PROCAM_OT_use_selected_surface_mesh,
              PROCAM_OT_add_targets, PROCAM_OT_remove_target,

@@ -287,6 +287,9 @@ class RelayedDevice:
     def project(self, frame: Any) -> Any:
         return self._relay.call(self._device.project, frame)
 
+    def project_all(self, frames: Any) -> Any:
+        return self._relay.call(self._device.project_all, frames)
+
     def capture_off(self) -> Any:
         return self._relay.call(self._device.capture_off)
 

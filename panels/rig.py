@@ -23,5 +23,6 @@ class PROCAM_PT_rig(bpy.types.Panel):
             layout.label(text=state["error"], icon="ERROR")
         col = layout.column(align=True)
         col.operator("procam.create_rig", icon="ADD")
+        col.operator("procam.add_projector", icon="LIGHT_SPOT")
         col.operator("procam.set_surface", icon="MESH_PLANE")
         col.operator("procam.set_projector_image", icon="IMAGE_DATA")

@@ -378,3 +378,68 @@ def test_projector_frame_survives_save_and_reload(bpy_scene, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "rig.blend"))
     obj = blender_rig.find_rig_objects(bpy.context.scene).projector
     np.testing.assert_array_equal(blender_rig.projector_image(obj), frame)
+
+
+def _two_projector_rig():
+    rig = demo_rig((64, 48), (40, 30))
+    moved = rig.projector.camera_from_projector.copy()
+    moved[0, 3] += 0.4
+    other = Projector(projector_intrinsics_from_throw(50, 40, 1.1, 0.0, 0.1), moved, 1.7)
+    return rig.with_projectors((rig.projector, other))
+
+
+def test_rig_of_two_projectors_round_trips_in_order(bpy_scene):
+    rig = _two_projector_rig()
+    objs = blender_rig.create_rig(bpy_scene, rig)
+    assert len(objs.projectors) == 2 and objs.projector is objs.projectors[0]
+    names = [o.name for o in objs.projectors]
+    assert names == ["ProCam Projector", "ProCam Projector 2"]
+    # each its own light, frustum and frame image
+    assert len({o.data.name for o in objs.projectors}) == 2
+    assert len([o for o in bpy_scene.objects if blender_rig.role(o) == "frustum"]) == 2
+    assert blender_rig.projector_image(objs.projectors[1]).shape == (40, 50, 3)
+    # the order is the stored index, not the name: renaming does not reorder
+    objs.projectors[0].name = "Zed"
+    objs.projectors[1].name = "Alpha"
+    back = blender_rig.read_rig(bpy_scene)
+    assert len(back.projectors) == 2
+    for got, want in zip(back.projectors, rig.projectors):
+        np.testing.assert_allclose(got.camera_from_projector, want.camera_from_projector, atol=1e-9)
+        assert got.intrinsics == want.intrinsics and got.intensity == pytest.approx(want.intensity)
+    assert blender_rig.read_projector(bpy_scene, 1).intrinsics.size == (50, 40)
+    with pytest.raises(RigError, match="no projector 2"):
+        blender_rig.read_projector(bpy_scene, 2)
+    # a one-projector rig replaces both, and stores no index (as before several existed)
+    objs = blender_rig.create_rig(bpy_scene, demo_rig((64, 48), (40, 30)))
+    assert len(objs.projectors) == 1 and "index" not in objs.projector[blender_rig.PROP].to_dict()
+    assert blender_rig.read_rig(bpy_scene).others == ()
+
+
+def test_active_projector_is_the_one_the_panel_shows(bpy_scene):
+    rig = _two_projector_rig()
+    objs = blender_rig.create_rig(bpy_scene, rig)
+    assert "(1 of 2)" in blender_rig.rig_summary(bpy_scene)["projector"]
+    bpy.context.view_layer.objects.active = objs.projectors[1]
+    assert blender_rig.find_rig_objects(bpy_scene).projector == objs.projectors[1]
+    assert blender_rig.read_projector(bpy_scene).intrinsics.size == (50, 40)
+    assert "(2 of 2)" in blender_rig.rig_summary(bpy_scene)["projector"]
+    bpy.context.view_layer.objects.active = objs.projectors[0].children[0]  # its frustum
+    assert blender_rig.find_rig_objects(bpy_scene).projector == objs.projectors[0]
+    assert blender_rig.read_rig(bpy_scene).projector.intrinsics.size == (40, 30)  # rig order, whatever is active
+
+
+def test_operator_add_projector(registered):
+    scene = bpy.context.scene
+    assert bpy.ops.procam.create_rig(camera_width=32, camera_height=24, projector_width=40,
+                                     projector_height=30) == {"FINISHED"}
+    first = blender_rig.read_rig(scene).projector
+    assert bpy.ops.procam.add_projector(offset=0.3) == {"FINISHED"}
+    rig = blender_rig.read_rig(scene)
+    assert len(rig.projectors) == 2 and rig.others[0].intrinsics == first.intrinsics
+    np.testing.assert_allclose(rig.projector.camera_from_projector, first.camera_from_projector, atol=1e-9)
+    np.testing.assert_allclose(rig.others[0].position - first.position, first.camera_from_projector[:3, 0] * 0.3,
+                               atol=1e-6)
+    assert "(2 of 2)" in blender_rig.rig_summary(scene)["projector"]  # the new one is active
+    with pytest.raises(RuntimeError, match="same pose"):
+        bpy.ops.procam.add_projector(offset=0.0)
+    assert len(blender_rig.find_rig_objects(scene).projectors) == 2

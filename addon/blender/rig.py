@@ -23,6 +23,7 @@ All conversions between the rig frame and Blender go through :mod:`.frames`.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,11 +59,17 @@ _GREY_ALBEDO = 0.8
 
 @dataclass(frozen=True)
 class RigObjects:
-    """The ProCam objects of a scene (None where absent)."""
+    """The ProCam objects of a scene (None where absent).
+
+    ``projectors`` are all the scene's ProCam projectors in rig order (their stored ``index``, the first being
+    projector 1 of the rig); ``projector`` is the one the panels and operators work on: the active object where it
+    is one of several projectors (or a projector's frustum), else the first.
+    """
 
     camera: bpy.types.Object | None
     projector: bpy.types.Object | None
     surface: bpy.types.Object | None
+    projectors: tuple[bpy.types.Object, ...] = ()
 
 
 # --------------------------------------------------------------------------- tags
@@ -86,13 +93,39 @@ def _objects_with_role(scene: bpy.types.Scene, name: str) -> list[bpy.types.Obje
     return [o for o in scene.objects if role(o) == name]
 
 
+def projector_index(obj: bpy.types.Object) -> int:
+    """The stored place of a projector in the rig (0 = the first; a projector made before several existed: 0)."""
+    try:
+        return max(0, int(_props(obj).get("index", 0)))
+    except (TypeError, ValueError):
+        return 0
+
+
+def _active_object(scene: bpy.types.Scene) -> bpy.types.Object | None:
+    try:
+        if bpy.context.scene != scene:
+            return None
+        return bpy.context.view_layer.objects.active
+    except AttributeError:  # no view layer in this context
+        return None
+
+
 def find_rig_objects(scene: bpy.types.Scene) -> RigObjects:
-    """The scene's ProCam camera, projector and surface (the scene camera wins if several are tagged)."""
+    """The scene's ProCam camera, projectors and surface (the scene camera wins if several are tagged)."""
     cams = _objects_with_role(scene, "camera")
     cam = scene.camera if scene.camera in cams else (cams[0] if cams else None)
-    projs = [o for o in _objects_with_role(scene, "projector") if o.type == "LIGHT"]
+    # rig order: the stored index, then the name, so that a duplicated projector (same index) still reads stably
+    projs = sorted((o for o in _objects_with_role(scene, "projector") if o.type == "LIGHT"),
+                   key=lambda o: (projector_index(o), o.name))
     surfs = [o for o in _objects_with_role(scene, "surface") if o.type == "MESH"]
-    return RigObjects(cam, projs[0] if projs else None, surfs[0] if surfs else None)
+    current = projs[0] if projs else None
+    if len(projs) > 1:
+        active = _active_object(scene)
+        if active is not None and role(active) == "frustum":
+            active = active.parent
+        if active in projs:
+            current = active
+    return RigObjects(cam, current, surfs[0] if surfs else None, tuple(projs))
 
 
 # --------------------------------------------------------------------------- building blocks
@@ -286,20 +319,30 @@ def _frustum_vertices(intr: Intrinsics, depth: float = FRUSTUM_DEPTH) -> np.ndar
     return np.vstack([np.zeros(3), local])
 
 
-def _projector_props(projector: Projector) -> dict[str, Any]:
+def _projector_props(projector: Projector, index: int | None = None) -> dict[str, Any]:
+    """The stored model; ``index`` (the projector's place in a rig of several) only where several exist, so a
+    one-projector scene stores what it always did."""
     intr = projector.intrinsics
     return {"role": "projector", "width": int(intr.width), "height": int(intr.height),
             "fx": float(intr.fx), "fy": float(intr.fy), "cx": float(intr.cx), "cy": float(intr.cy),
             "intensity": float(projector.intensity),
             "input_size": [int(v) for v in projector.input_size],
             "input_offset": [int(v) for v in projector.input_offset],
-            "pose": [float(v) for v in projector.camera_from_projector.ravel()]}
+            "pose": [float(v) for v in projector.camera_from_projector.ravel()],
+            **({"index": int(index)} if index is not None else {})}
 
 
-def _build_projector(projector: Projector, built: _Built, rig_to_world: np.ndarray) -> bpy.types.Object:
+def projector_name(index: int) -> str:
+    """The name a new projector object gets: "ProCam Projector" for the first, "ProCam Projector 2" … after."""
+    return PROJECTOR_NAME if index == 0 else f"{PROJECTOR_NAME} {index + 1}"
+
+
+def _build_projector(projector: Projector, built: _Built, rig_to_world: np.ndarray,
+                     index: int | None = None) -> bpy.types.Object:
     intr = projector.intrinsics
     spot = spot_size_for(intr)  # may raise before anything is built
-    light = built.add(bpy.data.lights, bpy.data.lights.new(PROJECTOR_NAME, "SPOT"))
+    name = projector_name(index or 0)
+    light = built.add(bpy.data.lights, bpy.data.lights.new(name, "SPOT"))
     light.spot_size = spot
     light.spot_blend = 0.0
     light.show_cone = True
@@ -310,14 +353,15 @@ def _build_projector(projector: Projector, built: _Built, rig_to_world: np.ndarr
     light.color = (1.0, 1.0, 1.0)
     # Start with the input area white: the lit footprint shows where the projector reaches.
     frame = projector.frame_from_input(np.ones((projector.input_size[1], projector.input_size[0], 3), np.float32))
-    image = _image_from_array(PROJECTOR_IMAGE_NAME, frame, built)
+    image = _image_from_array(PROJECTOR_IMAGE_NAME if not index else f"{name} Frame", frame, built)
     _build_projector_nodes(light, intr, image)
-    obj = built.add(bpy.data.objects, bpy.data.objects.new(PROJECTOR_NAME, light))
+    obj = built.add(bpy.data.objects, bpy.data.objects.new(name, light))
     obj.matrix_world = _matrix(frames.blender_matrix_world(rig_to_world @ projector.camera_from_projector))
-    obj[PROP] = _projector_props(projector)
+    obj[PROP] = _projector_props(projector, index)
 
     # Viewport-only pyramid showing the asymmetric frustum (the spot cone is symmetric about the lens axis).
-    mesh = built.add(bpy.data.meshes, bpy.data.meshes.new(FRUSTUM_NAME))
+    frustum = FRUSTUM_NAME if not index else f"{name} Frustum"
+    mesh = built.add(bpy.data.meshes, bpy.data.meshes.new(frustum))
     verts = _frustum_vertices(intr)
     edges = np.array([[0, 1], [0, 2], [0, 3], [0, 4], [1, 2], [2, 3], [3, 4], [4, 1]], dtype=np.int32)
     mesh.vertices.add(len(verts))
@@ -325,7 +369,7 @@ def _build_projector(projector: Projector, built: _Built, rig_to_world: np.ndarr
     mesh.edges.add(len(edges))
     mesh.edges.foreach_set("vertices", edges.ravel())
     mesh.update()
-    pyramid = built.add(bpy.data.objects, bpy.data.objects.new(FRUSTUM_NAME, mesh))
+    pyramid = built.add(bpy.data.objects, bpy.data.objects.new(frustum, mesh))
     pyramid.parent = obj
     pyramid.matrix_parent_inverse = Matrix.Identity(4)
     pyramid.hide_render = True
@@ -426,23 +470,62 @@ def create_surface(scene: bpy.types.Scene, mesh: SurfaceMesh) -> bpy.types.Objec
 
 
 def create_rig(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh | None = None) -> RigObjects:
-    """Camera, projector and optionally a surface in one step: all built, or nothing changed."""
-    return create_rig_objects(scene, camera=rig.camera.intrinsics, projector=rig.projector, surface=surface)
+    """Camera, every projector of the rig and optionally a surface in one step: all built, or nothing changed."""
+    return create_rig_objects(scene, camera=rig.camera.intrinsics, projector=rig.projector, others=rig.others,
+                              surface=surface)
+
+
+def add_projector(scene: bpy.types.Scene, projector: Projector) -> bpy.types.Object:
+    """Add one more ProCam projector (light, frustum, image) at its rig pose, after the scene's projectors.
+
+    The scene must hold a ProCam camera (the rig frame) and a projector already; the new one is projector N + 1.
+    """
+    objs = find_rig_objects(scene)
+    if objs.camera is None or not objs.projectors:
+        raise RigError("add a projector to a rig: create the rig first (ProCam ▸ Create Rig)")
+    index = max(projector_index(o) for o in objs.projectors) + 1
+    rig = read_rig(scene)
+    rig.with_projectors((*rig.projectors, projector))  # refuses a projector at another's pose
+    built = _Built()
+    try:
+        obj = _build_projector(projector, built, _rig_to_world(scene), index)
+    except BaseException:
+        built.remove_all()
+        raise
+    first = objs.projectors[0]
+    if "index" not in _props(first):  # the first projector of a one-projector scene says it is the first
+        data = _props(first)
+        data["index"] = 0
+        first[PROP] = data
+    _link(scene, obj)
+    return obj
+
+
+def _split(projectors: Sequence[Projector]) -> tuple[Projector, tuple[Projector, ...]]:
+    return projectors[0], tuple(projectors[1:])
 
 
 def create_rig_objects(scene: bpy.types.Scene, *, camera: Intrinsics | None = None,
-                       projector: Projector | None = None, surface: SurfaceMesh | None = None) -> RigObjects:
-    """Build the given parts unlinked, then swap them into the scene; on any error remove what was built."""
+                       projector: Projector | None = None, surface: SurfaceMesh | None = None,
+                       others: Sequence[Projector] = ()) -> RigObjects:
+    """Build the given parts unlinked, then swap them into the scene; on any error remove what was built.
+
+    A ``projector`` (with ``others``, projectors 2…N) replaces every projector of the scene."""
     built = _Built()
     # A new camera defines the rig frame at the world origin; otherwise keep the present camera's frame.
     rig_to_world = np.eye(4) if camera is not None else _rig_to_world(scene)
+    others = tuple(others)
+    if others and projector is None:
+        raise RigError("other projectors need the first projector too")
     try:
         cam = _build_camera(camera, built) if camera is not None else None
-        proj = _build_projector(projector, built, rig_to_world) if projector is not None else None
+        projs = ([_build_projector(p, built, rig_to_world, k if others else None)
+                  for k, p in enumerate((projector, *others))] if projector is not None else [])
         surf = _build_surface(surface, built, rig_to_world) if surface is not None else None
     except BaseException:
         built.remove_all()
         raise
+    proj = projs[0] if projs else None
     # Nothing below can fail on valid input: replace, link, and set the scene's render size.
     if cam is not None:
         for o in _objects_with_role(scene, "camera"):
@@ -452,15 +535,16 @@ def create_rig_objects(scene: bpy.types.Scene, *, camera: Intrinsics | None = No
         scene.render.resolution_x, scene.render.resolution_y = camera.size
         scene.render.resolution_percentage = 100
         scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
-    if proj is not None:
+    if projs:
         for o in _objects_with_role(scene, "projector"):
             _remove_object_tree(o)
-        _link(scene, proj)
+        for o in projs:
+            _link(scene, o)
     if surf is not None:
         _link(scene, surf)
         _untag_others(scene, "surface", surf)
     now = find_rig_objects(scene)
-    return RigObjects(cam or now.camera, proj or now.projector, surf or now.surface)
+    return RigObjects(cam or now.camera, proj or now.projector, surf or now.surface, tuple(projs) or now.projectors)
 
 
 def set_surface(scene: bpy.types.Scene, obj: bpy.types.Object | None) -> bpy.types.Object:
@@ -506,21 +590,31 @@ def read_camera(scene: bpy.types.Scene) -> Camera:
     return Camera(derived)
 
 
-def read_projector(scene: bpy.types.Scene) -> Projector:
-    """The ProCam projector in the rig frame (pose relative to the ProCam camera)."""
+def read_projector(scene: bpy.types.Scene, index: int | None = None) -> Projector:
+    """A ProCam projector in the rig frame (pose relative to the ProCam camera): projector ``index`` of the rig
+    (0 = the first), or by default the one the panels work on (the active one of several, else the only one)."""
     objs = find_rig_objects(scene)
     if objs.projector is None:
         raise RigError("the scene has no ProCam projector: create the rig first (ProCam ▸ Create Rig)")
-    p = _props(objs.projector)
+    if index is None:
+        return _read_projector_object(objs, objs.projector)
+    if isinstance(index, bool) or not 0 <= index < len(objs.projectors):
+        raise RigError(f"the scene has {len(objs.projectors)} ProCam projector(s), numbered 0 to "
+                       f"{len(objs.projectors) - 1}; there is no projector {index!r}")
+    return _read_projector_object(objs, objs.projectors[index])
+
+
+def _read_projector_object(objs: RigObjects, obj: bpy.types.Object) -> Projector:
+    p = _props(obj)
     try:
         intr = Intrinsics(int(p["width"]), int(p["height"]), p["fx"], p["fy"], p["cx"], p["cy"])
     except KeyError as exc:
-        raise RigError(f"the ProCam projector lacks its stored {exc}; recreate the rig") from None
-    pose_world = _stored_or_blender_pose(objs.projector)
+        raise RigError(f"the ProCam projector {obj.name!r} lacks its stored {exc}; recreate the rig") from None
+    pose_world = _stored_or_blender_pose(obj)
     rig_to_world = _camera_world_pose(objs.camera) if objs.camera is not None else np.eye(4)
     pose = pose_world if np.array_equal(rig_to_world, np.eye(4)) else np.linalg.inv(rig_to_world) @ pose_world
     intensity = float(p.get("intensity", 1.0))
-    energy = objs.projector.data.energy
+    energy = obj.data.energy
     if abs(energy - ENERGY_PER_INTENSITY * intensity) > 1e-6 * max(1.0, energy):
         intensity = energy / ENERGY_PER_INTENSITY  # the user changed the light's power
     return Projector(intr, pose, intensity,
@@ -529,8 +623,13 @@ def read_projector(scene: bpy.types.Scene) -> Projector:
 
 
 def read_rig(scene: bpy.types.Scene) -> Rig:
-    """Camera and projector of the scene as a :class:`Rig` (exact round trip while objects are untouched)."""
-    return Rig(read_camera(scene), read_projector(scene))
+    """Camera and projectors of the scene as a :class:`Rig`, the projectors in their stored order (exact round trip
+    while objects are untouched)."""
+    camera = read_camera(scene)
+    objs = find_rig_objects(scene)
+    if not objs.projectors:
+        raise RigError("the scene has no ProCam projector: create the rig first (ProCam ▸ Create Rig)")
+    return Rig(camera, *_split([_read_projector_object(objs, o) for o in objs.projectors]))
 
 
 def read_surface(scene: bpy.types.Scene) -> SurfaceMesh:
@@ -684,7 +783,10 @@ def rig_summary(scene: bpy.types.Scene) -> dict[str, str]:
             pr = read_projector(scene)
             k = pr.intrinsics
             sx, sy = k.shift
-            out["projector"] = (f"{objs.projector.name}: {k.width}×{k.height}, throw {k.throw_ratio:.2f}, "
+            # with several, which one the panels show and work on: select another projector to switch
+            which = (f" ({objs.projectors.index(objs.projector) + 1} of {len(objs.projectors)})"
+                     if len(objs.projectors) > 1 else "")
+            out["projector"] = (f"{objs.projector.name}{which}: {k.width}×{k.height}, throw {k.throw_ratio:.2f}, "
                                 f"shift {100 * sx:+.0f}%/{100 * sy:+.0f}%")
     except Exception as exc:  # noqa: BLE001 — the panel must draw whatever state the user made
         out["error"] = str(exc)
@@ -718,27 +820,33 @@ def apply_calibration(scene: bpy.types.Scene, rig: Rig, surface: SurfaceMesh, *,
 
     A camera and projector whose stored models equal the calibration's are
     kept (the projector is only moved, its image stays); others are replaced.
+    Projectors are kept only all together (the same number, each one's model
+    equal, in rig order); otherwise the scene's projectors become the
+    calibration's.
     The reconstructed surface becomes the ProCam Surface; a surface from an
     earlier calibration is removed, the user's own surface is unmarked and
     hidden (so a render shows only the calibrated one) but kept.
     """
     objs = find_rig_objects(scene)
     keep_cam = objs.camera is not None and _same_model(objs.camera, _camera_props(rig.camera.intrinsics, np.eye(4)))
-    keep_proj = objs.projector is not None and _same_model(objs.projector, _projector_props(rig.projector))
+    # the scene's projectors, in rig order, are kept where each one's model is the calibration's projector's
+    keep_proj = len(objs.projectors) == len(rig.projectors) and all(
+        _same_model(o, _projector_props(p)) for o, p in zip(objs.projectors, rig.projectors))
     previous = [o for o in scene.objects if role(o) == "surface" or "calibration" in _props(o)]
     mesh = SurfaceMesh(surface.vertices, surface.faces, surface.uvs, surface.albedo, name=CALIBRATED_SURFACE_NAME)
     new = create_rig_objects(scene, camera=None if keep_cam else rig.camera.intrinsics,
-                             projector=None if keep_proj else rig.projector, surface=mesh)
+                             projector=None if keep_proj else rig.projector, others=() if keep_proj else rig.others,
+                             surface=mesh)
     # Nothing below can fail on valid objects: move, rename, tag, tidy.
     if keep_proj and move_projector:
-        proj = new.projector
-        proj.matrix_world = _matrix(
-            frames.blender_matrix_world(_rig_to_world(scene) @ rig.projector.camera_from_projector))
-        data = _props(proj)
-        data["pose"] = [float(v) for v in rig.projector.camera_from_projector.ravel()]
-        data["intensity"] = float(rig.projector.intensity)
-        proj[PROP] = data
-        proj.data.energy = ENERGY_PER_INTENSITY * rig.projector.intensity
+        for proj, model in zip(new.projectors, rig.projectors):
+            proj.matrix_world = _matrix(
+                frames.blender_matrix_world(_rig_to_world(scene) @ model.camera_from_projector))
+            data = _props(proj)
+            data["pose"] = [float(v) for v in model.camera_from_projector.ravel()]
+            data["intensity"] = float(model.intensity)
+            proj[PROP] = data
+            proj.data.energy = ENERGY_PER_INTENSITY * model.intensity
     new.surface.name = CALIBRATED_SURFACE_NAME
     new.surface[PROP] = {"role": "surface", "calibration": str(source)}
     for old in previous:

@@ -28,13 +28,34 @@ from .patterns import PatternSpec
 from ..rig.lens import RigLens
 
 class Device(ABC):
-    """Shows a native projector frame and returns the camera's image (float32 H×W×3, linear)."""
+    """Shows a native projector frame and returns the camera's image (float32 H×W×3, linear).
+
+    A device of several projectors lists them in :attr:`projectors` (the first is ``projector``) and shows one
+    frame on each at once with :meth:`project_all`; ``project`` and ``capture_off`` are the first projector's.
+    """
 
     projector: Projector
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        """Every projector this device shows frames on, the first (``projector``) first."""
+        return (self.projector,)
 
     @abstractmethod
     def project(self, frame: np.ndarray) -> np.ndarray:
         """Show ``frame`` (native projector resolution, float32 H×W×3 in [0, 1]) and capture."""
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        """Show ``frames[k]`` on projector ``k``, all at once, and capture once.
+
+        One frame per projector, each at its projector's native size. A device of one projector shows
+        ``frames[0]`` with :meth:`project`; a device of several that cannot show them together refuses.
+        """
+        checked = self.check_frames(frames)
+        if len(checked) > 1:
+            raise CaptureError(f"this {type(self).__name__} cannot show {len(checked)} projectors' frames at once; "
+                               "capture each projector's frames while the others show black")
+        return self.project(checked[0])
 
     def capture_off(self) -> np.ndarray:
         """Capture with the projector off; devices that cannot switch it off show a black frame."""
@@ -44,17 +65,30 @@ class Device(ABC):
     def close(self) -> None:  # noqa: B027 — a device that holds nothing needs no override
         """Release windows, cameras, renderers."""
 
-    def check_frame(self, frame: np.ndarray) -> np.ndarray:
+    def check_frame(self, frame: np.ndarray, index: int = 0) -> np.ndarray:
+        """``frame`` as float32 H×W×3, checked against projector ``index``'s native size and [0, 1]."""
         f = np.asarray(frame, dtype=np.float32)
         if f.ndim == 2:
             f = np.repeat(f[..., None], 3, axis=2)
-        w, h = self.projector.intrinsics.size
+        projectors = self.projectors
+        w, h = projectors[index].intrinsics.size
         if f.shape != (h, w, 3):
-            raise CaptureError(f"a projector frame must be {w}×{h}×3 (the native resolution), got {f.shape}; "
+            which = f"projector {index + 1}'s frame" if len(projectors) > 1 else "a projector frame"
+            raise CaptureError(f"{which} must be {w}×{h}×3 (the native resolution), got {f.shape}; "
                                "place an input image with Projector.frame_from_input")
         if not np.all(np.isfinite(f)) or f.min() < 0 or f.max() > 1:
             raise CaptureError("a projector frame must hold values in [0, 1]")
         return f
+
+    def check_frames(self, frames: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """One checked frame per projector (:meth:`check_frame`), or a :class:`CaptureError` on a wrong count."""
+        if isinstance(frames, np.ndarray) and frames.ndim != 4:
+            raise CaptureError("project_all takes a sequence of frames, one per projector, not one frame")
+        count = len(self.projectors)
+        if len(frames) != count:
+            raise CaptureError(f"this device shows {count} projector(s) and takes one frame for each, got "
+                               f"{len(frames)} frame(s)")
+        return [self.check_frame(f, k) for k, f in enumerate(frames)]
 
     def __enter__(self) -> "Device":
         return self
@@ -133,8 +167,15 @@ class LensRemovedDevice(Device):
     def __getattr__(self, name: str) -> Any:  # the live device's report, camera_size, …
         return getattr(self.device, name)
 
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        return self.device.projectors
+
     def project(self, frame: np.ndarray) -> np.ndarray:
         return self.lens.image(self.device.project(frame))
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        return self.lens.image(self.device.project_all(frames))
 
     def capture_off(self) -> np.ndarray:
         return self.lens.image(self.device.capture_off())

@@ -23,7 +23,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +106,9 @@ class _NominalDevice(Device):
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         return self.device.project(frame)
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        return self.device.project_all(frames)
 
     def capture_off(self) -> np.ndarray:
         return self.device.capture_off()
