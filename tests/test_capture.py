@@ -850,3 +850,90 @@ def test_undistorting_a_set_later_gives_what_import_with_the_rig_gives(tmp_path,
     assert main(["undistort-captures", str(tmp_path / "plain"), "--rig", str(other), "--out",
                  str(tmp_path / "x")]) == 2
     assert "calibrates a 128×96 camera" in capsys.readouterr().err
+
+
+# -- showing several projectors at once, and the check that the others were black ------------------
+
+class _TwoSidedDevice(Device):
+    """Two projectors of different resolutions: the camera's left half sees the first, its right half the second."""
+
+    def __init__(self, first: Projector, second: Projector) -> None:
+        self.projector, self.second = first, second
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        return (self.projector, self.second)
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        raise CaptureError("give both frames")
+
+    def project_all(self, frames) -> np.ndarray:
+        a, b = self.check_frames(frames)
+        img = np.zeros((CAM[1], CAM[0], 3), np.float32)
+        img[:, : CAM[0] // 2] = a.mean()
+        img[:, CAM[0] // 2:] = b.mean()
+        return img
+
+
+def test_project_all_takes_one_frame_per_projector_at_its_own_size():
+    first = small_projector()
+    second = Projector(projector_intrinsics_from_throw(*FRAME2, 1.6), look_at_pose((-0.3, 0.1, 0.0), (0, 0, 1.6)))
+    device = _TwoSidedDevice(first, second)
+    a = np.ones((FRAME[1], FRAME[0], 3), np.float32)
+    b = np.full((FRAME2[1], FRAME2[0], 3), 0.5, np.float32)
+    img = device.project_all([a, b])
+    assert img[0, 0, 0] == 1.0 and img[0, -1, 0] == 0.5
+    with pytest.raises(CaptureError, match="projector 2's frame must be 64×40"):
+        device.project_all([a, a])
+    with pytest.raises(CaptureError, match="shows 2 projector.*got 3 frame"):
+        device.project_all([a, b, b])
+    with pytest.raises(CaptureError, match="not one frame"):
+        device.project_all(a)
+    # a one-projector device shows frames[0] with project; wrappers pass project_all through
+    single = WarpDevice(first)
+    assert single.projectors == (first,)
+    np.testing.assert_array_equal(single.project_all([a]), single.project(a))
+    with pytest.raises(CaptureError, match="takes one frame for each, got 2"):
+        single.project_all([a, a])
+
+    class _Lens:
+        def image(self, img):
+            return img * 0.5
+
+    from procam.addon.capture.devices import LensRemovedDevice
+    wrapped = LensRemovedDevice(device, _Lens())  # type: ignore[arg-type]
+    assert wrapped.projectors == device.projectors
+    assert wrapped.project_all([a, b])[0, 0, 0] == 0.5
+
+
+def test_a_projector_left_on_during_anothers_captures_is_named(tmp_path):
+    from procam.addon.capture.others_black import check_others_black
+
+    cs = write_two_projector_set(tmp_path / "good")
+    assert max(check_others_black(cs).values()) < 0.01
+    assert check_others_black(cs.for_projector(0)) == {}
+    # footprints: projector 1 lights the left half, projector 2 the right; projector 2 stayed on (grey) while
+    # projector 1's black was taken
+    cam, first = small_camera(), small_projector()
+    second = cs.projectors[1]
+    shape = (CAM[1], CAM[0], 3)
+    left, right = np.zeros(shape), np.zeros(shape)
+    left[:, : CAM[0] // 2 + 4], right[:, CAM[0] // 2 - 4:] = 0.6, 0.6
+    rng = np.random.default_rng(1)
+
+    def shot(light: np.ndarray) -> np.ndarray:
+        return np.clip(0.02 + light + rng.normal(0, 0.01, shape), 0, 1)
+
+    def write(path: Path, leak: float) -> CaptureSet:
+        with CaptureSet.writer(path, cam, first, others=(second,)) as w:
+            for k, (proj, light) in enumerate(((first, left), (second, right))):
+                size = proj.intrinsics.size[::-1]
+                w.add("black", shot(leak * right if k == 0 else np.zeros(shape)), projector_index=k,
+                      frame=np.zeros((*size, 3)))
+                w.add("white", shot(light + (leak * right if k == 0 else 0)), projector_index=k,
+                      frame=np.ones((*size, 3)))
+        return CaptureSet.load(path)
+
+    assert max(check_others_black(write(tmp_path / "fine", 0.0)).values()) < 0.01
+    with pytest.raises(CaptureError, match="projector 2 was not black while projector 1's captures"):
+        check_others_black(write(tmp_path / "bad", 0.5))

@@ -17,9 +17,10 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from procam.addon.capture.format import CaptureSet  # noqa: E402
+from procam.addon.capture.others_black import BLACK_TOLERANCE, check_others_black  # noqa: E402
 from procam.addon.capture.patterns import checkerboard  # noqa: E402
 from procam.addon.cli.app import main  # noqa: E402
-from procam.addon.errors import LabError, RenderError  # noqa: E402
+from procam.addon.errors import CaptureError, LabError, RenderError  # noqa: E402
 from procam.addon.lab.effects import distort_points, parse_effects  # noqa: E402
 from procam.addon.lab.truth import LabTruth, lab_depth, make_truth  # noqa: E402
 from procam.addon.lab.cycles_device import LAB_SCENE_NAME, LabDevice  # noqa: E402
@@ -511,8 +512,6 @@ def test_truth_of_two_projectors_round_trips_and_one_projector_truth_is_unchange
         np.testing.assert_allclose(view.nominal_projector.camera_from_projector,
                                    back.nominal_projectors[k].camera_from_projector)
     assert back.for_projector(0).seed == back.seed != back.for_projector(1).seed  # noise of its own
-    with pytest.raises(LabError, match="one projector's frames at a time"):
-        LabDevice(back)
     # mixed projectors: projector 1 has its own projector effects, the camera's are everyone's
     first, second = back.for_projector(0).effects, back.for_projector(1).effects
     assert first["vignetting"].strength == 0.5 and first["response"].strength == 0
@@ -543,6 +542,7 @@ def test_cli_two_projectors_side_by_side_overlap_by_the_fraction_asked(tmp_path,
     assert len(poses) == 2 and np.linalg.norm(poses[0][:3, 3] - poses[1][:3, 3]) > 0.3
     cs = CaptureSet.load(out)
     assert len(cs.projectors) == 2 and len(cs.entries_of("surface")) == 1 and len(cs.entries_of("depth")) == 2
+    assert max(check_others_black(cs).values()) < BLACK_TOLERANCE  # each sequence taken with the other dark
     first, second = footprints(cs)
     for mask in (first, second):
         assert 0.1 < mask.mean() < 0.8  # each lights a part of what the camera sees
@@ -567,3 +567,59 @@ def test_stacked_projectors_light_nearly_the_same_area(tmp_path):
             depth_wall=False)
     first, second = footprints(CaptureSet.load(tmp_path / "set"))
     assert (first & second).sum() / (first | second).sum() > 0.8
+
+
+def test_two_projectors_shown_at_once_in_one_render():
+    """project_all lights every projector in one render: projector 1 alone is its own device's capture, both
+    together in the overlap are the sum of each alone (no effects, and below the sensor's white: a linear camera)."""
+    truth = make_truth("plane", seed=5, samples=16, camera_size=(64, 48), projector_size=(80, 60), projectors=2,
+                       overlap=0.3)
+    white = [np.ones((p.intrinsics.height, p.intrinsics.width, 3), np.float32) for p in truth.rig.projectors]
+    black = [np.zeros_like(w) for w in white]
+    grey = [np.full_like(w, 0.3) for w in white]
+    with LabDevice(truth.for_projector(0)) as alone:
+        reference = alone.project(white[0])
+    with LabDevice(truth) as device:
+        assert len(device.projectors) == 2
+        first = device.project_all([white[0], black[1]])  # shot 0: the same seeds as the one-projector device's
+        second = device.project_all([black[0], white[1]])
+        dim = [device.project_all([grey[0], black[1]]), device.project_all([black[0], grey[1]])]
+        both = device.project_all(grey)
+        dark = device.project_all(black)
+        with pytest.raises(CaptureError, match="project_all"):
+            device.project(white[0])
+        with pytest.raises(CaptureError, match="takes one frame for each, got 1"):
+            device.project_all([white[0]])
+        with pytest.raises(CaptureError, match="projector 2's frame must be 80×60"):
+            device.project_all([white[0], white[1][:30]])
+    lit = [img.mean(axis=2) > 0.5 * np.percentile(img.mean(axis=2), 99) for img in (first, second)]
+    assert 0.1 < lit[0].mean() < 0.8 and 0.1 < lit[1].mean() < 0.8
+    overlap = lit[0] & lit[1]
+    assert overlap.sum() > 20 and (lit[0] & ~lit[1]).sum() > 20
+    level = float(first.mean(axis=2)[lit[0]].mean())
+    # projector 1 with projector 2 black is what projector 1's own device captures (the same seeds)
+    assert float(np.abs(first - reference).mean(axis=2)[lit[0]].mean()) < 0.05 * level
+    assert float(dark.max()) < 0.02 * level
+    alone_each = [float(d.mean(axis=2)[overlap].mean()) for d in dim]
+    together = float(both.mean(axis=2)[overlap].mean())
+    assert together > 1.5 * max(alone_each)
+    assert together == pytest.approx(sum(alone_each), rel=0.05)
+    # where only projector 1 reaches, both together are projector 1 alone
+    only_first = lit[0] & (second.mean(axis=2) < 0.01 * level)
+    assert only_first.sum() > 20
+    assert float(both.mean(axis=2)[only_first].mean()) == pytest.approx(float(dim[0].mean(axis=2)[only_first].mean()),
+                                                                         rel=0.05)
+
+
+def test_each_projector_shown_at_once_through_its_own_effects():
+    truth = make_truth("plane", seed=5, samples=8, camera_size=(64, 48), projector_size=(80, 60), projectors=2,
+                       overlap=0.3, projector_effects="1:response=1")
+    w, b = np.ones((60, 80, 3), np.float32), np.zeros((60, 80, 3), np.float32)
+    g = np.full_like(w, 0.3)
+    with LabDevice(truth) as device:
+        shots = [device.project_all(frames) for frames in ([w, b], [g, b], [b, w], [b, g])]
+    ratios = []
+    for white, grey in (shots[:2], shots[2:]):
+        lit = white.mean(axis=2) > 0.5 * np.percentile(white.mean(axis=2), 99)
+        ratios.append(float(np.median(grey.mean(axis=2)[lit] / white.mean(axis=2)[lit])))
+    assert ratios[0] == pytest.approx(0.3, abs=0.05) and ratios[1] < 0.15, ratios  # projector 2: gamma 2.2

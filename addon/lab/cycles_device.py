@@ -14,19 +14,28 @@ The device builds its objects in a scene of its own (``bpy.data.scenes.new``)
 and removes that scene and everything it created on :meth:`LabDevice.close`,
 so it can run inside a user's Blender session without touching their scene.
 This is the lab's Blender side: it imports bpy, so the rest of the engine imports it only where it renders.
+
+Several projectors: a device opened on a truth of N projectors holds N projector lights in one scene and
+:meth:`LabDevice.project_all` shows one frame on each in one Cycles render. Each frame goes through its own
+projector's effects (:meth:`~.truth.LabTruth.effects_of`), the camera effects act once on the image of all the
+light together, as a camera's non-linear response and noise act on what it sees. ``project(frame)`` of such a
+device is refused (which projector is meant?): give every projector its frame, black for those that are off.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
 
 from ..capture.devices import Device
+from ..errors import CaptureError
 from ..capture.format import DepthInfo
 from ..errors import LabError
-from ..rig.model import Camera, Rig
+from ..rig.model import Camera, Projector, Rig
 from .effects import apply_camera, apply_projector, camera_render_intrinsics, render_settings
 import bpy
 from mathutils import Matrix, Vector
@@ -71,15 +80,12 @@ class LabDevice(Device):
 
     def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None,
                  supersample: int = 1) -> None:
-        if truth.rig.others:
-            # one device renders one projector (the others black): run_lab opens one per projector
-            raise LabError(f"this lab holds {len(truth.rig.projectors)} projectors; a lab device shows one projector's "
-                           "frames at a time (LabTruth.for_projector), and showing on several at once is not "
-                           "supported yet")
         self.truth = truth
         self.projector = truth.rig.projector
+        self._projectors = truth.rig.projectors
         self.camera = truth.rig.camera
-        self.effects = truth.effects
+        self.effects = truth.effects  # the camera's and the scene's effects (and the first projector's)
+        self._projector_effects = [truth.effects_of(k) for k in range(len(self._projectors))]
         self.samples = _whole(truth.samples if samples is None else samples, "Cycles samples", 1)
         self.seed = _whole(truth.seed if seed is None else seed, "the seed", 0)
         self._settings = render_settings(truth.effects, self.camera.intrinsics)
@@ -95,27 +101,30 @@ class LabDevice(Device):
         self._scene = bpy.data.scenes.new(LAB_SCENE_NAME)
         self._owned: list[Any] = []
         try:
-            objs = blender_rig.create_rig(self._scene, Rig(Camera(render_k), truth.rig.projector), truth.surface)
+            objs = blender_rig.create_rig(self._scene, Rig(Camera(render_k), truth.rig.projector, truth.rig.others),
+                                          truth.surface)
             if self._settings.get("glossy_weight", 0.0) > 0:
                 _add_glossy_lobe(objs.surface, self._settings["glossy_weight"], self._settings["glossy_roughness"])
         except BaseException:
             self._owned = _new_ids(before)
             self.close()
             raise
-        self._light = objs.projector
+        self._lights = objs.projectors
+        self._light = objs.projectors[0]
         self._surface = objs.surface
         self._surface_home = objs.surface.matrix_world.copy()
         #: Where the session is: ``calibration`` and ``validation`` while :func:`run_lab` captures (it sets them),
         #: ``show`` for any later use; ``session_shots`` makes a shot's number its time for ``warmup``.
         self.phase = "show"
         self.session_shots: int | None = None
-        self._projector_depth: np.ndarray | None = None
+        self._projector_depths: list[np.ndarray | None] = [None] * len(self._projectors)
         try:
             if self._settings.get("subsurface_weight", 0.0) > 0:
                 _add_subsurface(objs.surface, self._settings["subsurface_weight"],
                                 self._settings["subsurface_radius"])
-            if truth.effects["defocus_depth"].active:
-                self._projector_depth = projector_depth(truth.surface, truth.rig.projector)
+            for k, (proj, effects) in enumerate(zip(self._projectors, self._projector_effects)):
+                if effects["defocus_depth"].active:
+                    self._projector_depths[k] = projector_depth(truth.surface, proj)
             if self._settings.get("lamp_power", 0.0) > 0:
                 side, height = self._settings["lamp_position"]
                 self._add_lamp(side, height, self._settings["lamp_power"])
@@ -125,6 +134,11 @@ class LabDevice(Device):
             raise
         self._owned = _new_ids(before)
         # (Cycles' persistent data was measured: no gain here, since a frame's render time is nearly all sampling.)
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        """The lab's projectors, the first first: :meth:`project_all` shows one frame on each."""
+        return self._projectors
 
     @property
     def bounces(self) -> int:
@@ -150,12 +164,8 @@ class LabDevice(Device):
         rot = cam.matrix_world.to_3x3()
         lamp.location = cam.matrix_world.translation + rot @ Vector((side, height, 0.0))
         data.energy = 100.0
-        energy = self._light.data.energy
-        self._light.data.energy = 0.0
-        try:
+        with self._lights_off():
             probe = render_cycles(self._scene, samples=4, bounces=0, seed=1)
-        finally:
-            self._light.data.energy = energy
         top = float(np.percentile(probe.mean(axis=2), 99.5))
         if top <= 0:
             raise LabError("the lab lamp does not light the surface the camera sees; move it (lamp.side/height)")
@@ -196,22 +206,40 @@ class LabDevice(Device):
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         self._check_open()
-        f = self.check_frame(frame)
+        if len(self._projectors) > 1:
+            raise CaptureError(f"this lab device shows {len(self._projectors)} projectors: give each its frame with "
+                               "project_all (black for those that are off), or open a device on one projector's "
+                               "truth (LabTruth.for_projector)")
+        return self._show([self.check_frame(frame)])
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        """Every projector's frame at once, in one render: the light of all of them, seen by the camera once."""
+        self._check_open()
+        return self._show(self.check_frames(frames))
+
+    def _show(self, frames: list[np.ndarray]) -> np.ndarray:
         t = 1.0 if (self.session_shots is None or self.phase == "show") else self._shots / self.session_shots
-        blender_rig.set_projector_image(self._light, apply_projector(f, self.effects, self.projector,
-                                                                     depth=self._projector_depth, t=t))
+        for light, f, proj, effects, depth in zip(self._lights, frames, self._projectors, self._projector_effects,
+                                                  self._projector_depths):
+            blender_rig.set_projector_image(light, apply_projector(f, effects, proj, depth=depth, t=t))
         return self._render()
 
-    def capture_off(self) -> np.ndarray:
-        """Projector switched off, room lights on (:data:`ROOM_LIGHT`): the photo of the surface."""
-        self._check_open()
-        light = self._light.data
-        energy = light.energy
-        light.energy = 0.0
+    @contextlib.contextmanager
+    def _lights_off(self) -> Iterator[None]:
+        energies = [light.data.energy for light in self._lights]
+        for light in self._lights:
+            light.data.energy = 0.0
         try:
-            return self._render(room_light=ROOM_LIGHT)
+            yield
         finally:
-            light.energy = energy
+            for light, energy in zip(self._lights, energies):
+                light.data.energy = energy
+
+    def capture_off(self) -> np.ndarray:
+        """Projectors switched off, room lights on (:data:`ROOM_LIGHT`): the photo of the surface."""
+        self._check_open()
+        with self._lights_off():
+            return self._render(room_light=ROOM_LIGHT)
 
     def depth(self) -> tuple[np.ndarray, DepthInfo]:
         """A phone-LiDAR-like depth image at camera resolution, and how it was taken (see :func:`lab_depth`)."""
@@ -221,12 +249,12 @@ class LabDevice(Device):
         """Remove the scratch scene and every datablock the device created."""
         scene, self._scene = getattr(self, "_scene", None), None
         owned, self._owned = getattr(self, "_owned", []), []
-        light = getattr(self, "_light", None)
         try:
-            if light is not None and light.data is not None and light.data.node_tree is not None:
-                for node in light.data.node_tree.nodes:  # the frame image may have been replaced since
-                    if node.type == "TEX_IMAGE" and node.image is not None and node.image not in owned:
-                        owned.append(node.image)
+            for light in getattr(self, "_lights", ()):
+                if light.data is not None and light.data.node_tree is not None:
+                    for node in light.data.node_tree.nodes:  # the frame image may have been replaced since
+                        if node.type == "TEX_IMAGE" and node.image is not None and node.image not in owned:
+                            owned.append(node.image)
             # the first render of a session makes Blender's "Render Result" image: remove it if we made it
             owned += [im for im in bpy.data.images if im.type == "RENDER_RESULT"
                       and im.as_pointer() not in getattr(self, "_images_before", ())]
