@@ -293,8 +293,8 @@ class RelayedDevice:
     def capture_off(self) -> Any:
         return self._relay.call(self._device.capture_off)
 
-    def check_frame(self, frame: Any) -> Any:
-        return self._device.check_frame(frame)
+    def check_frame(self, frame: Any, index: int = 0) -> Any:
+        return self._device.check_frame(frame, index)
 
     def close(self) -> None:
         """The owner closes the real device on the main thread."""

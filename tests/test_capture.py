@@ -904,6 +904,14 @@ def test_project_all_takes_one_frame_per_projector_at_its_own_size():
     wrapped = LensRemovedDevice(device, _Lens())  # type: ignore[arg-type]
     assert wrapped.projectors == device.projectors
     assert wrapped.project_all([a, b])[0, 0, 0] == 0.5
+    # the effect models of a diagnosis are one projector's: several frames are refused, not sent unadapted
+    from procam.addon.gap.compensation import AdaptedDevice, EffectAdapter
+    adapted = AdaptedDevice(device, EffectAdapter({}, first))
+    assert adapted.projectors == device.projectors
+    with pytest.raises(CaptureError, match="one projector's; showing 2 projectors at once"):
+        adapted.project_all([a, b])
+    one = AdaptedDevice(single, EffectAdapter({}, first))
+    np.testing.assert_allclose(one.project_all([a]), one.project(a))
 
 
 def test_a_projector_left_on_during_anothers_captures_is_named(tmp_path):

@@ -43,6 +43,24 @@ def test_live_spec_parsing():
             LiveSpec.parse(bad)
 
 
+def test_live_rig_of_several_projectors_is_refused_before_any_window_opens():
+    spec = LiveSpec.parse("live:camera=0,display=1+2")
+    assert spec.display == 1 and spec.displays == (1, 2)
+    assert LiveSpec.parse("live:camera=0,display=1").displays == ()
+    proj = Projector(projector_intrinsics_from_throw(*SIZE, 1.2))
+    beside = proj.camera_from_projector.copy()
+    beside[0, 3] += 0.4
+    other = Projector(proj.intrinsics, beside)
+    with pytest.raises(LiveError, match="rig has 2 projectors but the live device names 1 display.*display=1\\+2"):
+        LiveDevice("live:camera=57,display=1", proj, others=(other,))  # camera 57 would fail later: not reached
+    with pytest.raises(LiveError, match="2 projectors at once .* not implemented yet"):
+        LiveDevice("live:camera=57,display=1+2", proj, others=(other,))
+    with pytest.raises(LiveError, match="2 displays .* for a rig of one projector"):
+        LiveDevice("live:camera=57,display=1+2", proj)
+    with pytest.raises(LiveError, match="not both"):
+        LiveSpec.parse("live:camera=0,display=1+2,position=3:4")
+
+
 def test_sources():
     assert parse_source("2") == 2 and parse_source("rtsp://cam/stream") == "rtsp://cam/stream"
     with pytest.raises(LiveError, match="cannot open camera 57"):

@@ -50,13 +50,14 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
 import numpy as np
 
-from ..errors import ProCamError
+from ..errors import CaptureError, ProCamError
 from ..stages.calibrate import SATURATED
 from ..stages.compensate import Compensator
 from .models import (MODELS, crosstalk_matrix, inverse_camera_curve, inverse_projector_tone, light_scale,
@@ -334,6 +335,19 @@ class AdaptedDevice:
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         return self._a.camera_to_light(self._d.project(self.send(frame)))
+
+    @property
+    def projectors(self) -> tuple[Any, ...]:
+        return tuple(self._d.projectors)
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        """Every projector's frame at once through the effects: one projector's, as :meth:`project` (the adapter
+        models one projector's effects; passing several frames through it unadapted would be silently wrong)."""
+        checked = self._d.check_frames(frames)
+        if len(checked) > 1:
+            raise CaptureError(f"the effect models of a diagnosis are one projector's; showing {len(checked)} "
+                               "projectors at once through them is not implemented yet")
+        return self.project(checked[0])
 
     def send(self, frame: np.ndarray) -> np.ndarray:
         """The native frame to give the real projector for the wanted light ``frame``."""

@@ -9,6 +9,10 @@
 * ``latency=auto|SECONDS``: measured at start by default;
 * ``size=WxH``: ask the camera for a resolution.
 
+Several projectors: ``display=1+2`` names one display per projector, in rig order. Showing several projector
+windows at once is not implemented yet: a rig of several projectors is refused with what to do (fewer displays
+than projectors first), and so is a list of displays for a rig of one.
+
 Latency: the window shows black, then white, and the time from the flip to the
 first frame that arrives brighter is one measurement; the largest of three is
 kept. Every capture then waits for frames that arrived later than the flip plus
@@ -26,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +66,8 @@ class LiveSpec:
     encoding: str = "srgb"
     latency: float | None = None  # None: measured
     size: tuple[int, int] | None = None
+    #: every display of ``display=1+2`` (one per projector, in rig order); () when one display or a position
+    displays: tuple[int, ...] = ()
 
     @staticmethod
     def parse(text: str) -> "LiveSpec":
@@ -84,7 +91,8 @@ class LiveSpec:
         if "camera" not in values:
             raise LiveError(f"live device: say which camera, e.g. live:camera=0,display=1 (got {text!r})")
         try:
-            display = int(values["display"]) if "display" in values else None
+            displays = tuple(int(v) for v in values["display"].split("+")) if "display" in values else ()
+            display = displays[0] if displays else None
             position = tuple(int(v) for v in values["position"].split(":")) if "position" in values else None
             average = int(values["average"]) if "average" in values else None
             noise = float(values["noise"]) if "noise" in values else None
@@ -107,7 +115,10 @@ class LiveSpec:
         encoding = values.get("encoding", "srgb")
         if encoding not in ("srgb", "linear"):
             raise LiveError(f"live device: encoding must be srgb or linear, got {encoding!r}")
-        return LiveSpec(parse_source(values["camera"]), display, position, average, noise, encoding, latency, size)
+        if len(displays) > 1 and position is not None:
+            raise LiveError("live device: give several displays (display=1+2) or one position, not both")
+        return LiveSpec(parse_source(values["camera"]), display, position, average, noise, encoding, latency, size,
+                        displays if len(displays) > 1 else ())
 
 
 @dataclass(frozen=True)
@@ -139,13 +150,31 @@ class LiveReport:
                 "colour_drift": self.colour_drift}
 
 
+def check_displays(spec: LiveSpec, projectors: int) -> None:
+    """Refuse, before any window opens, a live rig whose displays do not fit its projectors: one display per
+    projector, and (not implemented yet) more than one projector."""
+    displays = len(spec.displays) or 1
+    if projectors > 1 and displays < projectors:
+        raise LiveError(f"this rig has {projectors} projectors but the live device names {displays} display(s); "
+                        f"give one display per projector in rig order, e.g. display="
+                        f"{'+'.join(str(k + 1) for k in range(projectors))}")
+    if projectors > 1:
+        raise LiveError(f"showing {projectors} projectors at once through the live device (one window per display) "
+                        "is not implemented yet: capture each projector's sequence on its own, the others showing "
+                        "black, and import the captures (procam import-captures)")
+    if displays > 1:
+        raise LiveError(f"the live device names {displays} displays (display={'+'.join(map(str, spec.displays))}) "
+                        "for a rig of one projector; give its one display")
+
+
 class LiveDevice(Device):
     """A real projector (a :class:`ProjectorWindow`) and a real camera (a :class:`CameraClient`)."""
 
-    def __init__(self, spec: LiveSpec | str, projector: Projector, *, progress: Progress | None = None,
-                 check_exposure: bool = True) -> None:
+    def __init__(self, spec: LiveSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
+                 progress: Progress | None = None, check_exposure: bool = True) -> None:
         say = progress or quiet
         self.spec = spec if isinstance(spec, LiveSpec) else LiveSpec.parse(spec)
+        check_displays(self.spec, 1 + len(others))
         self.projector = projector
         self.window: ProjectorWindow | None = None
         self.camera: CameraClient | None = None
@@ -266,4 +295,4 @@ class LiveDevice(Device):
             window.close()
 
 
-__all__ = ["LiveDevice", "LiveReport", "LiveSpec"]
+__all__ = ["LiveDevice", "LiveReport", "LiveSpec", "check_displays"]
