@@ -81,16 +81,15 @@ class TransportSolve:
         """``steps`` solver steps from ``zc``; with the last capture's ``residual``, θ follows Eq. 10 towards
         it on every step, then Eq. 14 against the current prediction (as ``fast`` does between captures).
         ``f_start``: ``T zc`` when the caller has it already."""
-        view, fixed = self.view, self.fixed
         prev, y = zc, zc
         for k in range(steps):
             if self.cancel is not None and self.cancel():
                 raise Cancelled(f"compensation of {self.name!r} cancelled at solver step {self.done}")
-            f = f_start if k == 0 and f_start is not None else view.apply_compact(y, fixed)
+            f = f_start if k == 0 and f_start is not None else self.forward(y)
             if residual is not None:
                 theta = np.clip(theta + 2.0 * self.alpha * (residual - theta), f - 1.0, f)
             resid = self.target + theta - self.gain * f
-            z_new = np.clip(y + view.adjoint_compact(self.gain * resid / self.row_sums) / self.col_sums, 0.0, 1.0)
+            z_new = np.clip(self.update(y, resid), 0.0, 1.0)
             y = z_new + (k / (k + 3.0)) * (z_new - prev)
             prev = z_new
             self.done += 1
@@ -102,19 +101,34 @@ class TransportSolve:
                 self.say(f"{self.name}: solver step {self.done}, loss {value:.6f}", self.done / max(self.total, 1))
         return prev, theta
 
+    def forward(self, zc: np.ndarray) -> np.ndarray:
+        """``T z`` on the rows for the compact ``zc`` (the others' block sums held at the start's)."""
+        return self.view.apply_compact(zc, self.fixed)
+
+    def update(self, y: np.ndarray, resid: np.ndarray) -> np.ndarray:
+        """One SIRT step from ``y`` for the rows' residual ``resid`` (before the box clip): the back-projected
+        residual normalised by the row and column sums. A joint solve over several operators replaces it
+        (stages/joint.py)."""
+        return y + self.view.adjoint_compact(self.gain * resid / self.row_sums) / self.col_sums
+
+    def capture(self, zc: np.ndarray) -> np.ndarray:
+        """The device's capture of the real input ``W(z)`` for the compact ``zc``, on the rows."""
+        comp, device = self.comp, self.device
+        assert device is not None
+        x = comp.warp_w(self.view.expand(zc, self.z0))
+        return comp._check_capture(device.project(comp.rig.projector.frame_from_input(x))).reshape(-1, 3)[self.rows]
+
     def closed_loop(self, zc: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The joint phase: a capture of the real input, then the solver steps up to the next capture."""
-        comp, sched, device = self.comp, self.sched, self.device
-        assert device is not None
+        sched = self.sched
         n_capt = sched.captures or max(1, sched.iterations_joint // sched.capture_interval)
         per = max(1, sched.iterations_joint // max(n_capt, 1))
         for _ in range(n_capt):
-            x = comp.warp_w(self.view.expand(zc, self.z0))
             t_dev = time.perf_counter()
-            y = comp._check_capture(device.project(comp.rig.projector.frame_from_input(x))).reshape(-1, 3)[self.rows]
+            y = self.capture(zc)
             self.seconds_device += time.perf_counter() - t_dev
             self.captures += 1
-            f_now = self.view.apply_compact(zc, self.fixed)
+            f_now = self.forward(zc)
             residual = np.clip(f_now - y, f_now - 1.0, f_now).astype(np.float32)
             if self.captures == 1:
                 # θ starts at the first residual (fast's theta_init='capture'); later captures move it by
