@@ -158,15 +158,20 @@ class _BothAtOnce(Device):
 
     def __init__(self, joint: JointCompensator, offset: np.ndarray) -> None:
         self.joint, self.offset, self.shown = joint, offset, 0
-        self.projectors = tuple(c.rig.projector for c in joint.compensators)
+        self.projector = joint.compensators[0].rig.projector
+        self._all = tuple(c.rig.projector for c in joint.compensators)
+
+    @property
+    def projectors(self) -> tuple:
+        return self._all
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         raise AssertionError("the joint closed loop shows every projector at once")
 
-    def project_all(self, frames: list[np.ndarray]) -> np.ndarray:
+    def project_all(self, frames) -> np.ndarray:
         self.shown += 1
         out = self.offset.copy()
-        for comp, frame in zip(self.joint.compensators, frames):
+        for comp, frame in zip(self.joint.compensators, self.check_frames(frames)):
             x0, y0 = comp.rig.projector.input_offset
             x = frame[y0:y0 + comp.ih, x0:x0 + comp.iw]
             out += comp.transport.apply(comp.warp_m(x))
@@ -202,12 +207,14 @@ def test_bad_input(side):
     with pytest.raises(CompensationError, match="transport"):
         side.run(target, area, use_bias=False, schedule="fast")
 
-    class OneAtATime(Device):
+    class OneProjector(Device):
+        projector = side.compensators[0].rig.projector
+
         def project(self, frame: np.ndarray) -> np.ndarray:
             return np.zeros((CAMERA[1], CAMERA[0], 3), np.float32)
 
-    with pytest.raises(CompensationError, match="at once"):
-        side.run(target, area, device=OneAtATime())
+    with pytest.raises(CompensationError, match="drives 1 projector"):
+        side.run(target, area, device=OneProjector())
     # a diverging solve: an operator holding NaN
     broken = [Compensator(c.calibration, bounces=0) for c in side.compensators]
     for comp, good in zip(broken, side.compensators):

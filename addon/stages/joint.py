@@ -484,7 +484,8 @@ class JointCompensator:
                                     "open loop, or capture with a multi-projector device")
         if len(projectors) != len(self.compensators):
             raise CompensationError(f"the device drives {len(projectors)} projector(s) but the joint compensation "
-                                    f"has {len(self.compensators)}; give it the rig that was calibrated")
+                                    f"has {len(self.compensators)}: the closed loop shows every projector's frame at "
+                                    "once; give it the rig that was calibrated, or compensate in the open loop")
         for k, (proj, comp) in enumerate(zip(projectors, self.compensators)):
             mine = comp.rig.projector
             if (proj.intrinsics.size != mine.intrinsics.size or proj.input_size != mine.input_size
