@@ -22,7 +22,11 @@ def _configure(p: argparse.ArgumentParser) -> None:
 def precompute(args: argparse.Namespace) -> int:
     doc = run_step("precompute", run, from_arguments(
         PrecomputeOptions, args, calibration=args.calibration, force=args.force))
-    print(f"transport operator in {args.calibration}: {doc['direct_renders']} direct renders (lattice every "
-          f"{doc['spacing']}th texel), {doc['entries_per_pixel']} entries a pixel, indirect {doc['indirect_blocks'][0]}"
-          f"×{doc['indirect_blocks'][1]} blocks; {doc['megabytes']} MB, {doc['seconds']} s")
+    docs = doc.get("projectors", [doc])  # a calibration of several projectors: each one's operator
+    for k, one in enumerate(docs):
+        whose = f" (projector {k + 1}, {one.get('file')})" if len(docs) > 1 else ""
+        print(f"transport operator in {args.calibration}{whose}: {one['direct_renders']} direct renders (lattice "
+              f"every {one['spacing']}th texel), {one['entries_per_pixel']} entries a pixel, indirect "
+              f"{one['indirect_blocks'][0]}×{one['indirect_blocks'][1]} blocks; {one['megabytes']} MB, "
+              f"{one['seconds']} s")
     return 0

@@ -11,7 +11,10 @@ surface photo, scaled to match, fills in.
 
 from __future__ import annotations
 
+import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -20,7 +23,7 @@ import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..errors import CalibrationError
+from ..errors import CalibrationError, ProCamError, RigError
 from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
 from ..rig.model import Camera, Intrinsics, Rig
@@ -38,9 +41,24 @@ STAGES = ("surface", "pose", "warp")
 PROJECTOR_INTRINSICS = ("spec", "fit")
 
 
+#: The report's keys each projector has its own of (the rest, the surface's and the run's, all share); with
+#: several projectors they are listed per projector in ``report["projectors"]``, projector 1's also at the top.
+PER_PROJECTOR = ("init", "pose", "projector_intrinsics", "white_saturated_share", "warp_report", "losses")
+#: The seconds each projector spends on its own (the surface and the albedo are shared).
+PER_PROJECTOR_SECONDS = ("intrinsics", "pose", "warp")
+
+
 @dataclass
 class Calibration:
-    """A calibrated projector-camera rig and surface, ready for compensation."""
+    """A calibrated camera, projector(s) and surface, ready for compensation.
+
+    With several projectors ``rig`` holds them all (``rig.projector`` is the
+    first) and ``warp`` is the first's; ``other_warps`` are the warps of
+    ``rig.others`` and ``report["projectors"]`` each projector's own report
+    (:data:`PER_PROJECTOR`, and its ``seconds``). :meth:`for_projector` is the
+    one-projector calibration of one of them, which every one-projector step
+    reads unchanged.
+    """
 
     rig: Rig
     surface: SurfaceMesh
@@ -49,6 +67,39 @@ class Calibration:
     report: dict[str, Any] = field(default_factory=dict)
     #: the folder it was read from (None for one in memory): where its precomputed transport operator lies
     folder: str | None = None
+    #: which projector of its folder's calibration this one is (0 = the first; see :meth:`for_projector`)
+    projector_index: int = 0
+    #: the warps of projectors 2…N (``rig.others``), in order; empty with one projector
+    other_warps: tuple[Warp | None, ...] = ()
+
+    @property
+    def projector_count(self) -> int:
+        """How many projectors the calibration holds."""
+        return len(self.rig.projectors)
+
+    @property
+    def warps(self) -> tuple[Warp | None, ...]:
+        """Every projector's warp, the first's first."""
+        return (self.warp, *self.other_warps)
+
+    def for_projector(self, k: int) -> "Calibration":
+        """The one-projector calibration of projector ``k`` (0 = the first): the camera and that projector alone,
+        its warp, the shared surface, a report of its own pose and warp reports with the shared ones, the same
+        ``folder`` and ``capture_dir``. A one-projector calibration is its own ``for_projector(0)``."""
+        count = self.projector_count
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 0 <= k < count:
+            raise CalibrationError(f"the calibration has {count} projector(s), numbered 0 to {count - 1} (projector 1 "
+                                   f"to {count} in messages); there is no projector {k!r}")
+        if count == 1:
+            return self
+        k = int(k)
+        entries = self.report.get("projectors") or []
+        own = dict(entries[k]) if k < len(entries) and isinstance(entries[k], dict) else {}
+        shared = {n: v for n, v in self.report.items() if n not in PER_PROJECTOR and n != "projectors"}
+        report = {**shared, **{n: v for n, v in own.items() if n != "seconds"},
+                  "seconds": {**(shared.get("seconds") or {}), **(own.get("seconds") or {})}}
+        return Calibration(Rig(self.rig.camera, self.rig.projectors[k]), self.surface, self.warps[k],
+                           self.capture_dir, report, self.folder, projector_index=k)
 
     @property
     def stages(self) -> dict[str, str]:
@@ -91,16 +142,38 @@ ALBEDO_SPIKE = 1.5
 
 def albedo_from_captures(captures: CaptureSet, surface: SurfaceMesh, rig: Rig, *, floor: float = 0.05) -> np.ndarray:
     """Camera-aligned albedo: (white − black) / simulated irradiance of the white frame where lit."""
+    return albedo_from_projectors([(captures, rig)], surface, floor=floor)
+
+
+def _lit_albedo(captures: CaptureSet, surface: SurfaceMesh, rig: Rig,
+                floor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One projector's (albedo, NaN where it does not light; where it lights; its simulated white irradiance)."""
     white, black = captures.image("white"), captures.image("black")
     flat = SurfaceMesh(surface.vertices, surface.faces, surface.uvs, np.ones((4, 4, 3), np.float32), surface.name)
     model = ForwardModel(rig, flat, spp=4, smoothing_eps=0.0, clamp=False)
     irradiance = model.render(captures.pattern("white"))
     lit = irradiance.mean(axis=2) > floor * max(float(irradiance.mean(axis=2).max()), 1e-9)
-    albedo = np.where(lit[..., None], (white - black) / np.maximum(irradiance, 1e-6), np.nan)
-    # Outside the projector's reach only the unlit photo is known: scale it to the lit albedo where both exist (a
+    return np.where(lit[..., None], (white - black) / np.maximum(irradiance, 1e-6), np.nan), lit, irradiance
+
+
+def albedo_from_projectors(lit_by: list[tuple[CaptureSet, Rig]], surface: SurfaceMesh, *,
+                           floor: float = 0.05) -> np.ndarray:
+    """Camera-aligned albedo from every projector: each one's (white − black) / its simulated irradiance where it
+    lights (``lit_by``: each projector's one-projector capture set and rig), their mean weighted by irradiance
+    where several light (the brighter projector's reading is the less noisy one), the surface photo elsewhere."""
+    parts = [_lit_albedo(c, surface, r, floor) for c, r in lit_by]
+    if len(parts) == 1:
+        albedo, lit = parts[0][:2]
+    else:
+        weights = [np.where(m, irr.mean(axis=2), 0.0) for _, m, irr in parts]
+        total = np.sum(weights, axis=0)
+        lit = total > 0
+        summed = np.sum([w[..., None] * np.nan_to_num(a) for (a, _, _), w in zip(parts, weights)], axis=0)
+        albedo = np.where(lit[..., None], summed / np.maximum(total, 1e-12)[..., None], np.nan)
+    # Outside the projectors' reach only the unlit photo is known: scale it to the lit albedo where both exist (a
     # session without the photo, such as OpenCV's sequence, gets the lit albedo's median there).
-    photo = surface_photo(captures)
-    photo = np.zeros_like(white) if photo is None else photo
+    photo = surface_photo(lit_by[0][0])  # the surface photo is every projector's (taken once)
+    photo = np.zeros(albedo.shape, np.float32) if photo is None else photo
     both = lit & (photo.mean(axis=2) > 1e-4)
     if both.sum() > 100:
         scale = np.nanmedian(albedo[both] / np.maximum(photo[both], 1e-6), axis=0)
@@ -156,6 +229,43 @@ class CalibrationRun:
     images: dict[str, np.ndarray]
 
 
+def image_prefix(k: int) -> str:
+    """The prefix of projector ``k``'s diagnostic images: none for the first (the one-projector names), ``p2_`` …
+    for the others (``p2_pose_mask``)."""
+    return f"p{k + 1}_" if k else ""
+
+
+def _stage_of_image(name: str) -> str:
+    """A diagnostic image's name without its projector prefix (``p2_pose_mask`` → ``pose_mask``)."""
+    return re.sub(r"^p\d+_", "", name)
+
+
+@dataclass
+class _ProjectorRun:
+    """One projector's part of a calibration run: its capture set (with its intrinsics as fitted or reused), its
+    own report and seconds (the shared ones themselves with one projector), its rig once stage A ran, its warp."""
+
+    index: int
+    captures: CaptureSet
+    report: dict[str, Any]
+    seconds: dict[str, float]
+    previous: Calibration | None
+    warp_source: str | None
+    rig: Rig | None = None
+    warp: Warp | None = None
+
+
+@contextmanager
+def _naming(k: int, many: bool) -> Iterator[None]:
+    """With several projectors, what a projector's stage refuses says which projector (numbered from 1)."""
+    try:
+        yield
+    except ProCamError as exc:
+        if not many:
+            raise
+        raise CalibrationError(f"projector {k + 1}: {exc}") from None
+
+
 def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, previous: Calibration | None = None,
                        previous_images: dict[str, np.ndarray] | None = None, init: str = "graycode",
                        initial_pose: np.ndarray | None = None, seed: int = 0, depth_offset: float | None = None,
@@ -176,58 +286,170 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     keeps the capture set's. ``surface_from`` picks the surface's source
     (:data:`.surface.SURFACE_SOURCES`, :func:`.surface.surface_from_captures`); ``surface_mesh``
     is the user's mesh (a file or a mesh in its own frame) for ``'mesh'``.
+
+    A capture set of several projectors gets the surface once (from the shared
+    depth, the first projector's Gray code when the set knows the poses, or
+    the mesh), then stage A for each projector on its own captures
+    (:meth:`.CaptureSet.for_projector`), the albedo from all of them
+    (:func:`albedo_from_projectors`), and stage B for each. What one projector's
+    stage refuses names it ("projector 2: …"). Fitting the intrinsics and a
+    given start pose are one projector's and are refused there.
     """
     if projector_intrinsics not in PROJECTOR_INTRINSICS:
         raise CalibrationError(f"unknown projector intrinsics {projector_intrinsics!r}; choose one of "
                                f"{', '.join(PROJECTOR_INTRINSICS)}")
     say = progress or quiet
-    for kind in ("white", "black"):
-        if not captures.entries_of(kind):
-            raise CalibrationError(f"the capture set {captures.path} has no '{kind}' capture; calibration needs "
-                                   "white and black captures, and a checkerboard or Gray code for stage B")
+    count = len(captures.projectors)
+    many = count > 1
+    if many and projector_intrinsics == "fit" and "pose" in plan:
+        raise CalibrationError(f"fitting the projectors' intrinsics to the Gray code is not implemented yet for "
+                               f"several projectors (the capture set has {count}); calibrate them with their spec "
+                               "(projector intrinsics 'spec', the default)")
+    if many and init == "given" and "pose" in plan:
+        raise CalibrationError(f"a given start pose (init 'given', or the scene's projector) is one projector's; "
+                               f"for the {count} projectors of this capture set it is not implemented yet: start "
+                               "stage A from the Gray code (the default) or the nominal poses")
+    views = [captures.for_projector(k) for k in range(count)] if many else [captures]
+    for k, view in enumerate(views):
+        for kind in ("white", "black"):
+            if not view.entries_of(kind):
+                raise CalibrationError(("", "projector {k}: ")[many].format(k=k + 1) +
+                                       f"the capture set {captures.path} has no '{kind}' capture; calibration "
+                                       "needs white and black captures, and a checkerboard or Gray code for stage B")
     # Stage B fits its warp to a projected checkerboard by rendering; a session without one (OpenCV's
     # structured-light sequence: Gray code, white, black) gets it from the decoded Gray code instead.
-    warp_source = "checker" if captures.entries_of("checker") else "graycode" if captures.entries_of("graycode") \
-        else None
-    if "warp" in plan and warp_source is None:
-        raise CalibrationError(f"the capture set {captures.path} has neither a checkerboard nor Gray-code captures; "
-                               "stage B (warp) needs one of them")
+    warp_sources = ["checker" if v.entries_of("checker") else "graycode" if v.entries_of("graycode") else None
+                    for v in views]
+    for k, source in enumerate(warp_sources):
+        if "warp" in plan and source is None:
+            raise CalibrationError(("", "projector {k}: ")[many].format(k=k + 1) +
+                                   f"the capture set {captures.path} has neither a checkerboard nor Gray-code "
+                                   "captures; stage B (warp) needs one of them")
     reused = STAGES[:STAGES.index(plan[0])]
     if reused and previous is None:
         raise CalibrationError(f"stage {plan[0]!r} reuses the {', '.join(reused)} of an earlier calibration; "
                                "none was given")
     prev = previous
+    if prev is not None and prev.projector_count != count:
+        raise CalibrationError(f"the calibration to continue holds {prev.projector_count} projector(s), the capture "
+                               f"set {count}; run every stage (--stages all)")
+    if many and "pose" in plan:
+        # Before minutes of surface work: a projector whose light reaches nothing the camera sees is refused now.
+        for k, view in enumerate(views):
+            with _naming(k, many):
+                target_mask(view)
+    own_keys = ("init", "pose", "projector_intrinsics")
     seconds: dict[str, float] = dict(prev.report.get("seconds", {})) if prev else {}
-    state = {n: ("reused" if n in reused else "run" if n in plan else "not run") for n in STAGES}
     report: dict[str, Any] = {k: v for k, v in (prev.report if prev else {}).items()
-                              if k in ("init", "surface_report", "pose", "projector_intrinsics")}
-    saturated = white_saturation(captures)
-    report["white_saturated_share"] = saturated
+                              if k in ("surface_report", *own_keys) and not (many and k in own_keys)}
+    runs = []
+    for k, view in enumerate(views):
+        before = prev.for_projector(k) if prev is not None else None
+        if not many:
+            runs.append(_ProjectorRun(k, view, report, seconds, before, warp_sources[k]))
+            continue
+        own = {n: v for n, v in (before.report if before else {}).items() if n in own_keys}
+        own_seconds = {n: v for n, v in ((before.report.get("seconds") or {}) if before else {}).items()
+                       if n in PER_PROJECTOR_SECONDS}
+        runs.append(_ProjectorRun(k, view, own, own_seconds, before, warp_sources[k]))
+    if many:
+        seconds = {n: v for n, v in seconds.items() if n not in PER_PROJECTOR_SECONDS}
+    state = {n: ("reused" if n in reused else "run" if n in plan else "not run") for n in STAGES}
+    for run in runs:
+        run.report["white_saturated_share"] = white_saturation(run.captures)
     if captures.camera_lens is not None:
         # The camera lens import took out of the photographs: a live camera's frames must go through it too
         # (capture/devices.LensRemovedDevice), also where the capture set is no longer beside the calibration.
         report["camera_lens_removed"] = captures.camera_lens
-    if saturated > SATURATED_WARN_SHARE:
-        report["warnings"] = [
-            f"the white capture {captures.entry('white').file} is saturated on {saturated:.0%} of the lit area "
-            "(a glossy highlight or too long an exposure): the surface's albedo there is too dark; recapture "
-            "with a shorter exposure"]
-        say(f"warning: {report['warnings'][0]}", 0.0)
+    for run in runs:
+        saturated = run.report["white_saturated_share"]
+        if saturated > SATURATED_WARN_SHARE:
+            report.setdefault("warnings", []).append(
+                ("", f"projector {run.index + 1}: ")[many] +
+                f"the white capture {run.captures.entry('white').file} is saturated on {saturated:.0%} of the lit "
+                "area (a glossy highlight or too long an exposure): the surface's albedo there is too dark; "
+                "recapture with a shorter exposure")
+            say(f"warning: {report['warnings'][-1]}", 0.0)
     kept = tuple(f"{n}_" for n in reused)  # the reused stages' diagnostic images travel with them
-    images = {k: v for k, v in (previous_images or {}).items() if k.startswith(kept)} if kept else {}
+    images = {k: v for k, v in (previous_images or {}).items() if _stage_of_image(k).startswith(kept)} if kept else {}
 
     if "surface" in plan:
         t0 = time.perf_counter()
+        # The surface photo and the depth are every projector's; the Gray code triangulated is the first's.
         mesh, report["surface_report"], surface_warnings = surface_from_captures(
-            captures, surface_from, surface_mesh=surface_mesh, depth_offset=depth_offset,
+            views[0], surface_from, surface_mesh=surface_mesh, depth_offset=depth_offset,
             pose=initial_pose if init == "given" else None, progress=say)
         for w in surface_warnings:
             report.setdefault("warnings", []).append(w)
             say(f"warning: {w}", 0.0)
         seconds["surface"] = time.perf_counter() - t0
     else:
+        assert prev is not None  # reused stages come from a previous calibration (checked above)
         mesh = prev.surface
 
+    for run in runs:
+        with _naming(run.index, many):
+            mesh = _pose_stage(run, mesh, report, plan, state, init=init, initial_pose=initial_pose, seed=seed,
+                               stage_a=stage_a, projector_intrinsics=projector_intrinsics, surface_from=surface_from,
+                               surface_mesh=surface_mesh, depth_offset=depth_offset,
+                               say=_span(say, 0.1, 0.5, run.index, count, many), cancel=cancel, images=images)
+    if "pose" in plan:
+        t0 = time.perf_counter()
+        say("surface: albedo from white − black" + (" of every projector" if many else ""), 0.5)
+        mesh = replace(mesh, albedo=albedo_from_projectors([(r.captures, r.rig) for r in runs if r.rig], mesh))
+        seconds["albedo"] = time.perf_counter() - t0
+    elif state["pose"] != "reused":
+        seconds.pop("albedo", None)
+
+    for run in runs:
+        with _naming(run.index, many):
+            _warp_stage(run, mesh, plan, seed=seed, say=_span(say, 0.55, 1.0, run.index, count, many), cancel=cancel,
+                        images=images)
+        pose_doc, warp_doc = run.report.get("pose"), run.report.get("warp_report")
+        run.report["losses"] = {"pose": (pose_doc or {}).get("final_loss"),
+                                "warp": ((warp_doc or {}).get("losses") or [None])[-1]}
+    report["stages"] = state
+    path = str(captures.path.absolute())
+    if not many:
+        run = runs[0]
+        assert run.rig is not None
+        report["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
+        return CalibrationRun(Calibration(run.rig, mesh, run.warp, path, report), images)
+    totals = dict(seconds)
+    for name in PER_PROJECTOR_SECONDS:
+        spent = [r.seconds[name] for r in runs if name in r.seconds]
+        if spent:
+            totals[name] = sum(spent)
+    entries = [{**r.report, "seconds": {k: round(v, 2) for k, v in r.seconds.items()}} for r in runs]
+    # At the top, the first projector's report as a one-projector reader expects it, and every projector's below.
+    top = {**report, **runs[0].report, "seconds": {k: round(v, 2) for k, v in totals.items()}, "projectors": entries}
+    projectors = [r.rig.projector for r in runs if r.rig is not None]
+    try:
+        rig = Rig(views[0].camera, projectors[0], tuple(projectors[1:]))
+    except RigError as exc:
+        raise CalibrationError(f"the capture set's projectors cannot be told apart before stage A ({exc}); run the "
+                               "pose too (--stages surface,pose)") from None
+    return CalibrationRun(Calibration(rig, mesh, runs[0].warp, path, top,
+                                      other_warps=tuple(r.warp for r in runs[1:])), images)
+
+
+def _span(say: Progress, lo: float, hi: float, k: int, count: int, many: bool) -> Progress:
+    """Projector ``k``'s share of the progress from ``lo`` to ``hi``, its messages naming it when there are several."""
+    width = (hi - lo) / count
+    name = f"projector {k + 1}: " if many else ""
+    # The stages report fractions of the whole run (their one-projector range): map that range onto this share.
+    return lambda m, f: say(f"{name}{m}" if many and not m.startswith("warning: ") else m,
+                            lo + k * width + (min(max(f, lo), hi) - lo) / (hi - lo) * width)
+
+
+def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], plan: tuple[str, ...],
+                state: dict[str, str], *, init: str, initial_pose: np.ndarray | None, seed: int, stage_a: str,
+                projector_intrinsics: str, surface_from: str, surface_mesh: SurfaceMesh | str | Path | None,
+                depth_offset: float | None, say: Progress, cancel: Cancel | None,
+                images: dict[str, np.ndarray]) -> SurfaceMesh:
+    """Stage A of one projector (after the intrinsics fit when asked): sets ``run.rig`` and ``run.captures``; the
+    surface it returns is the one given unless the fit found the camera's focal length and made it again."""
+    captures, previous, own, seconds = run.captures, run.previous, run.report, run.seconds
     pose_iterations, start_label = None, None  # stage A's default for its start
     if "pose" in plan and projector_intrinsics == "fit":
         t0 = time.perf_counter()
@@ -235,7 +457,7 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         fit = estimate_projector_intrinsics(captures, surface_view(mesh, captures.camera.intrinsics),
                                             target_mask(captures)[0], seed=seed)
         say(f"projector intrinsics: {fit.summary()}", 0.1)
-        report["projector_intrinsics"] = fit.to_dict()
+        own["projector_intrinsics"] = fit.to_dict()
         # From here on the capture set's projector is the fitted one: stage A, the albedo and stage B all use it.
         captures = replace(captures, projector=replace(captures.projector, intrinsics=fit.fitted))
         camera = fit.camera(captures.camera.intrinsics)
@@ -253,13 +475,14 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
             start_label = "graycode (with the intrinsics fit)"
         seconds["intrinsics"] = time.perf_counter() - t0
     elif "pose" in plan:
-        report.pop("projector_intrinsics", None)
+        own.pop("projector_intrinsics", None)
         seconds.pop("intrinsics", None)
     elif previous is not None:
         # The reused pose came with the reused intrinsics (the camera's too, when they were fitted).
         captures = replace(_with_camera(captures, previous.rig.camera.intrinsics),
                            projector=replace(captures.projector, intrinsics=previous.rig.projector.intrinsics))
-    rig = Rig(captures.camera, captures.projector)  # the capture set's nominal pose until stage A runs
+    run.captures = captures
+    run.rig = Rig(captures.camera, captures.projector)  # the capture set's nominal pose until stage A runs
     if "pose" in plan:
         t0 = time.perf_counter()
         say("stage A: projector pose", 0.1)
@@ -267,47 +490,41 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
                              method=stage_a, iterations=pose_iterations,
                              progress=lambda m, f: say(f"stage A: {m}", 0.1 + 0.4 * f))
         seconds["pose"] = time.perf_counter() - t0
-        rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
-        report.update(init=start_label or pose.init, pose=pose.to_dict())
-        images.update({f"pose_{n}": im for n, im in pose.diagnostics.items()})
-
-        t0 = time.perf_counter()
-        say("surface: albedo from white − black", 0.5)
-        mesh = replace(mesh, albedo=albedo_from_captures(captures, mesh, rig))
-        seconds["albedo"] = time.perf_counter() - t0
+        run.rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
+        own.update(init=start_label or pose.init, pose=pose.to_dict())
+        images.update({f"{image_prefix(run.index)}pose_{n}": im for n, im in pose.diagnostics.items()})
     elif state["pose"] == "reused":
-        rig = prev.rig
+        assert previous is not None
+        run.rig = previous.rig
     else:
         for k in ("init", "pose"):
-            report.pop(k, None)
-        for k in ("pose", "albedo"):
-            seconds.pop(k, None)
+            own.pop(k, None)
+        seconds.pop("pose", None)
+    return mesh
 
-    warp = None
-    if "warp" in plan:
-        t0 = time.perf_counter()
-        if warp_source == "checker":
-            say("stage B: warp", 0.55)
-            fit = estimate_warp(captures, mesh, rig, cancel=cancel, seed=seed,
-                                progress=lambda m, f: say(f"stage B: {m}", 0.55 + 0.45 * f))
-        else:
-            say("stage B: warp from the Gray code (no checkerboard in the capture set)", 0.55)
-            fit = warp_from_graycode(captures, mesh, rig, seed=seed)
-        seconds["warp"] = time.perf_counter() - t0
-        warp = fit.warp
-        report["warp_report"] = {"source": warp_source,
+
+def _warp_stage(run: _ProjectorRun, mesh: SurfaceMesh, plan: tuple[str, ...], *, seed: int, say: Progress,
+                cancel: Cancel | None, images: dict[str, np.ndarray]) -> None:
+    """Stage B of one projector: sets ``run.warp`` (None when the plan leaves it out) and its report."""
+    captures, rig, seconds = run.captures, run.rig, run.seconds
+    assert rig is not None
+    if "warp" not in plan:
+        seconds.pop("warp", None)
+        return
+    t0 = time.perf_counter()
+    if run.warp_source == "checker":
+        say("stage B: warp", 0.55)
+        fit = estimate_warp(captures, mesh, rig, cancel=cancel, seed=seed,
+                            progress=lambda m, f: say(f"stage B: {m}", 0.55 + 0.45 * f))
+    else:
+        say("stage B: warp from the Gray code (no checkerboard in the capture set)", 0.55)
+        fit = warp_from_graycode(captures, mesh, rig, seed=seed)
+    seconds["warp"] = time.perf_counter() - t0
+    run.warp = warp = fit.warp
+    run.report["warp_report"] = {"source": run.warp_source,
                                  "losses": [float(v) for v in fit.losses[-1:]] if fit.losses else [],
                                  "corners_before_px": fit.corners_before_px,
                                  "corners_after_px": fit.corners_after_px}
-        images.update({f"warp_{n}": im for n, im in fit.diagnostics.items()})
-        images["warp_grid"] = grid_image(warp, warp.size)
-    else:
-        seconds.pop("warp", None)
-
-    pose_doc, warp_doc = report.get("pose"), report.get("warp_report")
-    report["losses"] = {"pose": (pose_doc or {}).get("final_loss"),
-                        "warp": ((warp_doc or {}).get("losses") or [None])[-1]}
-    report["stages"] = state
-    report["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
-    cal = Calibration(rig, mesh, warp, str(captures.path.absolute()), report)
-    return CalibrationRun(cal, images)
+    prefix = image_prefix(run.index)
+    images.update({f"{prefix}warp_{n}": im for n, im in fit.diagnostics.items()})
+    images[f"{prefix}warp_grid"] = grid_image(warp, warp.size)

@@ -112,6 +112,11 @@ class CalibrateOptions:
 BlendWriter = Callable[[Path, Rig, SurfaceMesh, dict[str, np.ndarray]], Path]
 
 
+#: scene.blend of a calibration of several projectors
+BLEND_FIRST_ONLY = ("scene.blend shows projector 1 only: the Blender rig does not place several projectors yet; "
+                    "the calibration folder holds them all")
+
+
 def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
         blend_writer: BlendWriter | None = None) -> Calibration:
     """Calibrate the capture set into ``options.out``; returns the calibration written. ``blend_writer`` writes
@@ -143,6 +148,9 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
                                     surface_from=options.surface_from, surface_mesh=options.surface_mesh,
                                     progress=part(say, 0.0, share), cancel=cancel)
         say("writing the calibration folder", share)
+        if options.with_blend and result.calibration.projector_count > 1:
+            result.calibration.report.setdefault("warnings", []).append(BLEND_FIRST_ONLY)
+            say(f"warning: {BLEND_FIRST_ONLY}", share)
         write(folder.tmp, result.calibration, result.images,
               blend_writer=blend_writer if options.with_blend else None)
     except BaseException:
@@ -157,8 +165,9 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
             # The calibration is finished and worth minutes: keep it, without the operator (compensation renders
             # its own when none is stored, and `procam precompute` adds it later).
             stopped = exc
-            for name in (layout.TRANSPORT_NPZ, layout.TRANSPORT_JSON):
-                (folder.tmp / name).unlink(missing_ok=True)
+            for k in range(result.calibration.projector_count):
+                for name in layout.transport_files(k):
+                    (folder.tmp / name).unlink(missing_ok=True)
         except BaseException:
             folder.abort()
             raise
@@ -173,31 +182,42 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
 
 def store_transport(folder: str | Path, calibration: Calibration, *, bounces: int = 1, seed: int = 0,
                     progress: Progress | None = None, cancel: Cancel | None = None) -> dict[str, Any]:
-    """Render the light-transport operator of ``calibration`` (the one written in ``folder``) and store it there:
-    ``transport.npz`` and ``transport.json`` (what it holds, how long it took, and the content hashes of the
-    calibration it belongs to), each atomically. Returns the record."""
+    """Render the light-transport operator of ``calibration`` (the one written in ``folder``, or its
+    :meth:`~.Calibration.for_projector` view of one projector; a calibration of several: its first projector's) and
+    store it there: ``layout.transport_files(k)`` of its projector ``k`` (``transport.npz`` and ``transport.json``
+    for the first: what it holds, how long it took, and the content hashes of the calibration folder it belongs to),
+    each atomically. Returns the record.
+
+    Each projector's operator is that projector lit alone: its direct light where it reaches, and its indirect
+    light everywhere in the camera, so also its light bouncing onto the other projectors' areas."""
     folder = Path(folder)
-    op = build_transport(calibration, bounces=bounces, seed=seed, progress=progress, cancel=cancel)
+    view = calibration.for_projector(0) if calibration.projector_count > 1 else calibration
+    operator_file, report_file = layout.transport_files(view.projector_index)
+    op = build_transport(view, bounces=bounces, seed=seed, progress=progress, cancel=cancel)
     ident = identity(folder)
     doc = {**op.report, "calibration_sha256": ident["sha256"], "surface_sha256": ident["surface_sha256"],
-           "file": layout.TRANSPORT_NPZ}
+           "file": operator_file}
     buf = io.BytesIO()
     np.savez(buf, **op.arrays())
-    write_atomic_bytes(folder / layout.TRANSPORT_NPZ, buf.getvalue())
-    write_atomic_bytes(folder / layout.TRANSPORT_JSON, (json.dumps(doc, indent=1) + "\n").encode())
+    write_atomic_bytes(folder / operator_file, buf.getvalue())
+    write_atomic_bytes(folder / report_file, (json.dumps(doc, indent=1) + "\n").encode())
     return doc
 
 
 def _precompute(folder: Path, calibration: Calibration, seed: int, say: Progress, cancel: Cancel | None) -> None:
-    """The transport operator into the calibration folder being written (so it appears with the calibration, or
-    not at all). An operator that cannot be built leaves the calibration standing: compensation says so and
-    renders one when it needs it."""
-    try:
-        store_transport(folder, calibration, seed=seed, progress=say, cancel=cancel)
-    except TransportError as exc:
-        if cancel is not None and cancel():
-            raise Cancelled("precomputing the transport operator was cancelled") from None
-        say(f"warning: no transport operator precomputed ({exc})", 1.0)
+    """Every projector's transport operator into the calibration folder being written (so it appears with the
+    calibration, or not at all). An operator that cannot be built leaves the calibration standing: compensation
+    says so and renders one when it needs it."""
+    count = calibration.projector_count
+    for k in range(count):
+        name = f"projector {k + 1}'s " if count > 1 else ""
+        try:
+            store_transport(folder, calibration.for_projector(k), seed=seed, cancel=cancel,
+                            progress=part(say, k / count, (k + 1) / count, name))
+        except TransportError as exc:
+            if cancel is not None and cancel():
+                raise Cancelled("precomputing the transport operator was cancelled") from None
+            say(f"warning: no {name}transport operator precomputed ({exc})", 1.0)
 
 
 def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *,
@@ -218,18 +238,28 @@ def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *,
     for name, im in clipped.items():
         write_image(diag / f"{name}.png", im)
     if blend_writer is not None:
-        blend_writer(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)
+        # Blender's rig places one projector: with several, the scene shows the first (run() says so).
+        blend_writer(folder / layout.SCENE_BLEND, cal.for_projector(0).rig if cal.projector_count > 1 else cal.rig,
+                     mesh, clipped)
 
 
 def manifest(cal: Calibration) -> dict[str, Any]:
-    """``calibration.json`` of a calibration."""
-    return {"format": KIND.format, "version": KIND.version, "capture_set": cal.capture_dir,
-            "rig": cal.rig.to_dict(),
-            "camera_from_projector": cal.rig.projector.camera_from_projector.tolist(),
-            "warp": cal.warp.to_dict() if cal.warp is not None else None,
-            "surface": {"mesh": layout.SURFACE_NPZ, "obj": layout.SURFACE_OBJ, "albedo": layout.ALBEDO_PNG,
-                        "vertices": int(len(cal.surface.vertices)), "faces": int(len(cal.surface.faces))},
-            **cal.report}
+    """``calibration.json`` of a calibration: with several projectors, the first projector's at the top level as
+    for one, and a ``projectors`` list (each projector's pose, warp and own report, in order)."""
+    doc = {"format": KIND.format, "version": KIND.version, "capture_set": cal.capture_dir,
+           "rig": cal.rig.to_dict(),
+           "camera_from_projector": cal.rig.projector.camera_from_projector.tolist(),
+           "warp": cal.warp.to_dict() if cal.warp is not None else None,
+           "surface": {"mesh": layout.SURFACE_NPZ, "obj": layout.SURFACE_OBJ, "albedo": layout.ALBEDO_PNG,
+                       "vertices": int(len(cal.surface.vertices)), "faces": int(len(cal.surface.faces))},
+           **cal.report}
+    if cal.projector_count > 1:
+        entries = list(cal.report.get("projectors") or [])
+        entries += [{}] * (cal.projector_count - len(entries))
+        doc["projectors"] = [{"camera_from_projector": p.camera_from_projector.tolist(),
+                              "warp": w.to_dict() if w is not None else None, **own}
+                             for p, w, own in zip(cal.rig.projectors, cal.warps, entries)]
+    return doc
 
 
 def _obj_text(mesh: SurfaceMesh) -> str:
@@ -277,8 +307,19 @@ def read(folder: str | Path, *, complete: bool = True) -> Calibration:
         warp = Warp.from_dict(doc["warp"]) if doc.get("warp") else None
         report = {k: v for k, v in doc.items() if k not in ("format", "version", "capture_set", "rig",
                                                              "camera_from_projector", "warp", "surface")}
-        cal = Calibration(Rig.from_dict(doc["rig"]), surface, warp, doc.get("capture_set", ""), report,
-                          str(folder.absolute()))
+        rig = Rig.from_dict(doc["rig"])
+        warps: list[Warp | None] = [warp] + [None] * len(rig.others)
+        entries = doc.get("projectors")
+        if entries is not None:
+            if not isinstance(entries, list) or len(entries) != len(rig.projectors) or \
+                    not all(isinstance(e, dict) for e in entries):
+                raise ValueError(f"'projectors' lists {len(entries) if isinstance(entries, list) else 'no'} "
+                                 f"projector entries for the rig's {len(rig.projectors)} projectors")
+            warps = [Warp.from_dict(e["warp"]) if e.get("warp") else None for e in entries]
+            report["projectors"] = [{k: v for k, v in e.items() if k not in ("camera_from_projector", "warp")}
+                                    for e in entries]
+        cal = Calibration(rig, surface, warp, doc.get("capture_set", ""), report, str(folder.absolute()),
+                          other_warps=tuple(warps[1:]))
     except (OSError, *MALFORMED) as exc:
         raise CalibrationError(f"cannot read calibration {folder}: {exc}") from None
     missing = cal.missing_stages
@@ -376,10 +417,9 @@ def _surface_lines(surf: dict[str, Any], doc: dict[str, Any], seconds: Any) -> l
     return lines
 
 
-def _summary(root: Path, doc: dict[str, Any]) -> Summary:
-    sec = doc.get("seconds", {}) or {}
-    losses = doc.get("losses", {})
-    surf = doc.get("surface_report", {}) or {}
+def _projector_lines(doc: dict[str, Any], sec: dict[str, Any], name: str = "") -> list[str]:
+    """The pose and warp lines of one projector's report (``name``: "Projector 2 " with several, else none)."""
+    losses = doc.get("losses", {}) or {}
     warp = doc.get("warp_report", {}) or {}
     before, after = warp.get("corners_before_px") or {}, warp.get("corners_after_px") or {}
     pose = doc.get("pose", {}) or {}
@@ -387,27 +427,46 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     position, axis = cfp[:3, 3], cfp[:3, 2]
     method = (pose.get("info") or {}).get("method", "ours") if isinstance(pose.get("info"), dict) else "ours"
     lines = [
-        *_surface_lines(surf, doc, sec.get("surface")),
-        f"Pose: init {doc.get('init', pose.get('init', '?'))}, stage A {method}, loss {fmt(losses.get('pose'), '.4g')} "
-        f"({fmt(sec.get('pose'), '.1f', ' s')})",
-        f"Projector at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) m, pointing "
+        f"{name + 'pose' if name else 'Pose'}: init {doc.get('init', pose.get('init', '?'))}, stage A {method}, "
+        f"loss {fmt(losses.get('pose'), '.4g')} ({fmt(sec.get('pose'), '.1f', ' s')})",
+        f"{name or 'Projector '}at ({position[0]:+.3f}, {position[1]:+.3f}, {position[2]:+.3f}) m, pointing "
         f"({axis[0]:+.4f}, {axis[1]:+.4f}, {axis[2]:+.4f})",
     ]
     intrinsics = doc.get("projector_intrinsics")
     if isinstance(intrinsics, dict) and intrinsics.get("summary"):
         lines.append(f"projector intrinsics (fitted to the Gray code): {intrinsics['summary']}")
-    lines.append(f"Warp{' (from the Gray code)' if warp.get('source') == 'graycode' else ''}: "
+    source = " (from the Gray code)" if warp.get("source") == "graycode" else ""
+    lines.append(f"{name + 'warp' if name else 'Warp'}{source}: "
                  f"corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "
                  f"loss {fmt(losses.get('warp'), '.4g')} ({fmt(sec.get('warp'), '.1f', ' s')})")
+    return lines
+
+
+def _corners(doc: dict[str, Any]) -> Any:
+    return ((doc.get("warp_report") or {}).get("corners_after_px") or {}).get("median")
+
+
+def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    sec = doc.get("seconds", {}) or {}
+    surf = doc.get("surface_report", {}) or {}
+    entries = doc.get("projectors") if isinstance(doc.get("projectors"), list) else None
+    lines = _surface_lines(surf, doc, sec.get("surface"))
+    if entries:
+        for k, entry in enumerate(entries):
+            lines += _projector_lines(entry, entry.get("seconds") or {}, f"Projector {k + 1} ")
+    else:
+        lines += _projector_lines(doc, sec)
     stages = doc.get("stages") or {n: "run" for n in STAGES}  # folders from before stages ran all three
     lines.append("stages: " + ", ".join(f"{k} {v}" for k, v in stages.items()))
     lines += [f"warning: {w}" for w in doc.get("warnings") or []]
     if sec:
         lines.append("seconds: " + ", ".join(f"{k} {fmt(v, '.1f')}" for k, v in sec.items()))
-    head = f"Calibrated: warp corners {fmt(after.get('median'), '.2f')} px"
+    head = f"Calibrated: warp corners {fmt(_corners(doc), '.2f')} px" if not entries else \
+        f"Calibrated {len(entries)} projectors: warp corners {', '.join(fmt(_corners(e), '.2f') for e in entries)} px"
     diag = root / layout.DIAGNOSTICS_DIR
     maps = sorted(p.name for p in diag.glob("*.png")) if diag.is_dir() else []
-    return Summary(True, head, tuple(lines), {"diagnostics": maps, "capture_set": doc.get("capture_set", "")})
+    return Summary(True, head, tuple(lines), {"diagnostics": maps, "capture_set": doc.get("capture_set", ""),
+                                             **({"projectors": len(entries)} if entries else {})})
 
 
 #: the transport operator's report by path, with its modification time: a precompute adds it to a calibration
@@ -415,8 +474,9 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
 _TRANSPORT: dict[Path, tuple[int, str | None]] = {}
 
 
-def _transport_line(root: Path) -> str | None:
-    path = root / layout.TRANSPORT_JSON
+def _transport_line(root: Path, k: int = 0, count: int = 1) -> str | None:
+    """The transport operator line of projector ``k`` of ``count``."""
+    path = root / layout.transport_files(k)[1]
     try:
         stamp = path.stat().st_mtime_ns
     except OSError:
@@ -425,7 +485,8 @@ def _transport_line(root: Path) -> str | None:
     if hit is None or hit[0] != stamp:
         try:
             doc = json.loads(path.read_text())
-            line = f"transport operator: {doc['megabytes']} MB in {fmt(doc.get('seconds'), '.0f', ' s')}"
+            whose = f" of projector {k + 1}" if count > 1 else ""
+            line = f"transport operator{whose}: {doc['megabytes']} MB in {fmt(doc.get('seconds'), '.0f', ' s')}"
         except (OSError, ValueError, KeyError, TypeError):
             line = None
         hit = _TRANSPORT[path] = (stamp, line)
@@ -435,5 +496,8 @@ def _transport_line(root: Path) -> str | None:
 def summary(folder: str | Path) -> Summary:
     """Key figures of a calibration folder: surface size, pose loss and position, warp corners before → after."""
     s = cached(KIND, folder, _summary, "run Calibrate or choose a calibration folder")
-    line = _transport_line(Path(folder)) if s.ok else None
-    return replace(s, lines=(*s.lines, line)) if line else s
+    if not s.ok:
+        return s
+    count = int(s.data.get("projectors", 1))
+    lines = [_transport_line(Path(folder), k, count) for k in range(count)]
+    return replace(s, lines=(*s.lines, *(line for line in lines if line)))

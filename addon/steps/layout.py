@@ -79,6 +79,16 @@ SURFACE_NPZ, SURFACE_OBJ, SURFACE_MTL, ALBEDO_PNG = "surface.npz", "surface.obj"
 DIAGNOSTICS_DIR = "diagnostics"
 #: the light-transport operator of a calibration (stages/transport.py) and its record, in the calibration folder
 TRANSPORT_NPZ, TRANSPORT_JSON = "transport.npz", "transport.json"
+
+
+def transport_files(k: int = 0) -> tuple[str, str]:
+    """The light-transport operator of projector ``k`` (0 = the first) and its record: ``transport.npz`` and
+    ``transport.json`` for the first (the one-projector names), ``transport_p2.npz`` … for the others."""
+    if k == 0:
+        return TRANSPORT_NPZ, TRANSPORT_JSON
+    return f"transport_p{k + 1}.npz", f"transport_p{k + 1}.json"
+
+
 SCENE_BLEND = "scene.blend"
 
 #: compensation, per target NAME.

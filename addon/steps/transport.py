@@ -4,7 +4,11 @@
 ``transport.npz`` (the operator) and ``transport.json`` (what it holds, how
 long it took, and the content hashes of the calibration it belongs to) into
 the calibration folder, each atomically (``calibrate.store_transport``, which
-``procam calibrate`` also runs by default). Stage C's ``transport`` schedule reads
+``procam calibrate`` also runs by default). A calibration of several
+projectors gets one operator per projector, lit alone (``layout.transport_files(k)``:
+``transport_p2.npz`` … beside the first's): each holds its projector's direct
+light and its indirect light everywhere in the camera, so also the light it
+bounces onto the other projectors' areas. Stage C's ``transport`` schedule reads
 it when its hashes match the calibration and the compensator's bounces and
 seed, and otherwise renders its own in memory (saying so), because
 compensation never writes into a calibration folder.
@@ -20,12 +24,15 @@ from typing import Any
 from ..errors import CalibrationError
 from ..imageio import read_arrays
 from ..options import option, validate
-from ..progress import Cancel, Progress, quiet
+from ..progress import Cancel, Progress, part, quiet
 from ..safepaths import inside
 from ..stages.calibrate import Calibration
 from ..stages.transport import TransportError, TransportOperator
 from . import calibrate as calibrate_step
-from .layout import TRANSPORT_JSON as REPORT_FILE, TRANSPORT_NPZ as OPERATOR_FILE
+from .layout import transport_files
+
+#: the operator's files of one projector (of the first of several), as scripts read them
+OPERATOR_FILE, REPORT_FILE = transport_files(0)
 
 
 @dataclass(frozen=True)
@@ -41,28 +48,40 @@ class PrecomputeOptions:
 
 def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Cancel | None = None
         ) -> dict[str, Any]:
-    """Render and store the operator; returns its report. An operator already there for the same calibration,
-    bounces and seed is kept unless ``force``."""
+    """Render and store the operator of every projector; returns its report (one projector), or ``{"projectors":
+    [each one's report]}`` (several). An operator already there for the same calibration, bounces and seed is kept
+    unless ``force``."""
     validate(options, CalibrationError)
     say = progress or quiet
     folder = Path(options.calibration)
     cal = calibrate_step.read(folder)
-    if not options.force and load(cal, bounces=options.bounces, seed=options.seed) is not None:
-        doc = json.loads((folder / REPORT_FILE).read_text())
-        say("the transport operator of this calibration is already there (--force renders it again)", 1.0)
-        return doc
-    return calibrate_step.store_transport(folder, cal, bounces=options.bounces, seed=options.seed, progress=say,
-                                          cancel=cancel)
+    count = cal.projector_count
+    docs = []
+    for k in range(count):
+        view = cal.for_projector(k)
+        name = f"projector {k + 1}: " if count > 1 else ""
+        if not options.force and load(view, bounces=options.bounces, seed=options.seed) is not None:
+            docs.append(json.loads((folder / transport_files(k)[1]).read_text()))
+            say(f"{name}the transport operator of this calibration is already there (--force renders it again)",
+                (k + 1) / count)
+            continue
+        docs.append(calibrate_step.store_transport(folder, view, bounces=options.bounces, seed=options.seed,
+                                                   progress=part(say, k / count, (k + 1) / count, name),
+                                                   cancel=cancel))
+    return docs[0] if count == 1 else {"projectors": docs}
 
 
 def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOperator | None:
-    """The stored operator of ``calibration`` when it belongs to it (same hashes, bounces and seed), else None."""
+    """The stored operator of ``calibration`` when it belongs to it (same hashes, bounces and seed), else None: of
+    its projector ``calibration.projector_index`` for a :meth:`~.Calibration.for_projector` view (a calibration of
+    several projectors itself: its first projector's)."""
     if not calibration.folder:
         return None
     folder = Path(calibration.folder)
+    index = calibration.projector_index if calibration.projector_count == 1 else 0
     # Fixed names, but the files may be links: the operator of another folder is not this calibration's.
     operator, report = (inside(folder, name, what="the light-transport operator file", error=TransportError)
-                        for name in (OPERATOR_FILE, REPORT_FILE))
+                        for name in transport_files(index))
     if not operator.is_file() or not report.is_file():
         return None
     try:
