@@ -62,7 +62,9 @@ class CalibrateOptions:
             Choice("given", offered=False)),
         help="starting pose for stage A: Gray-code correspondences + PnP (default), the capture set's nominal "
              "projector (kept as it is when it came from a metric rig calibration), or the ProCam Projector placed "
-             "in a .blend (--blend); from Python, 'given' starts from initial_pose")
+             "in a .blend (--blend); from Python, 'given' starts from initial_pose. With several projectors "
+             "graycode and nominal start each projector from its own; blender and given are refused there (not "
+             "implemented yet)")
     initial_pose: np.ndarray | None = None
     projector_intrinsics: str = option(
         "spec", label="Projector Lens", choices=(
@@ -71,7 +73,8 @@ class CalibrateOptions:
             Choice("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray code "
                                               "on a curved or edged surface before finding its pose (kept at the "
                                               "spec where the surface cannot tell, e.g. a flat wall)")),
-        help="the projector's focal length and principal point (default spec)")
+        help="the projector's focal length and principal point (default spec); fit is refused for a capture set "
+             "of several projectors (not implemented yet)")
     stage_a: str = option(
         "ours", choices=("ours", "paper"),
         help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the paper's "
@@ -80,7 +83,8 @@ class CalibrateOptions:
     stages: str = option(
         "all", metavar="STAGES", check=lambda text: stage_plan(text),
         help="run these stages only, comma-separated from surface,pose,warp (a contiguous run): earlier ones come "
-             "from the calibration already in --out, later ones are left to run (default: all)")
+             "from the calibration already in --out, later ones are left to run (default: all); with several "
+             "projectors each stage runs for every projector")
     depth_offset: float | None = option(
         None, min=-0.5, max=0.5, metavar="METRES", label="Depth Offset", own_field=True,
         help="the depth sensor's constant bias in metres (+ = it reads too far), subtracted from the depth; "
