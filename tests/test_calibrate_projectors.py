@@ -213,3 +213,25 @@ def test_a_calibration_of_one_projector_is_written_as_before(tmp_path):
                                  "surface", "stages"]
         else:
             assert back.for_projector(1).warp.size == warps[1].size
+
+
+def test_the_scene_holds_every_projector(two, tmp_path, run_python):
+    from procam.addon.blender.blend_file import save_calibration_blend
+
+    _, _, out, _ = two
+    cal = calibrate_step.read(out)
+    folder = tmp_path / "cal"
+    folder.mkdir()
+    calibrate_step.write(folder, cal, {}, blend_writer=save_calibration_blend)
+    proc = run_python("""
+        import sys, json, bpy
+        from procam.addon.blender import rig as blender_rig
+        bpy.ops.wm.open_mainfile(filepath=sys.argv[1], load_ui=False)
+        scene = bpy.data.scenes["ProCam Calibration"]
+        print(json.dumps([p.camera_from_projector.tolist() for p in blender_rig.read_rig(scene).projectors]))
+    """, str(folder / "scene.blend"))
+    assert proc.returncode == 0, proc.stderr
+    poses = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert len(poses) == 2
+    for k in range(2):
+        np.testing.assert_allclose(poses[k], cal.rig.projectors[k].camera_from_projector, atol=1e-4)

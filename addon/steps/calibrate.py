@@ -116,11 +116,6 @@ class CalibrateOptions:
 BlendWriter = Callable[[Path, Rig, SurfaceMesh, dict[str, np.ndarray]], Path]
 
 
-#: scene.blend of a calibration of several projectors
-BLEND_FIRST_ONLY = ("scene.blend shows projector 1 only: the Blender rig does not place several projectors yet; "
-                    "the calibration folder holds them all")
-
-
 def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
         blend_writer: BlendWriter | None = None) -> Calibration:
     """Calibrate the capture set into ``options.out``; returns the calibration written. ``blend_writer`` writes
@@ -152,9 +147,6 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
                                     surface_from=options.surface_from, surface_mesh=options.surface_mesh,
                                     progress=part(say, 0.0, share), cancel=cancel)
         say("writing the calibration folder", share)
-        if options.with_blend and result.calibration.projector_count > 1:
-            result.calibration.report.setdefault("warnings", []).append(BLEND_FIRST_ONLY)
-            say(f"warning: {BLEND_FIRST_ONLY}", share)
         write(folder.tmp, result.calibration, result.images,
               blend_writer=blend_writer if options.with_blend else None)
     except BaseException:
@@ -242,9 +234,7 @@ def write(folder: Path, cal: Calibration, images: dict[str, np.ndarray], *,
     for name, im in clipped.items():
         write_image(diag / f"{name}.png", im)
     if blend_writer is not None:
-        # Blender's rig places one projector: with several, the scene shows the first (run() says so).
-        blend_writer(folder / layout.SCENE_BLEND, cal.for_projector(0).rig if cal.projector_count > 1 else cal.rig,
-                     mesh, clipped)
+        blend_writer(folder / layout.SCENE_BLEND, cal.rig, mesh, clipped)  # every projector of the rig
 
 
 def manifest(cal: Calibration) -> dict[str, Any]:
