@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ..options import add_arguments, from_arguments
 from ..steps.demo import DemoOptions, run as demo
+from ..steps.summary import fmt
 from .app import command
 from .calibrate import blend_writer
 from .terminal import run_step
@@ -35,8 +36,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"ProCam demo — results in {args.out}/")
     print(f"  rig: camera {cam[0]}×{cam[1]}, projector {proj[0]}×{proj[1]} (lens shift 15 % up), "
           f"surface {args.surface}, lab effects: {args.effects}")
-    print(f"  calibration: projector position error {c['position_error_cm']:.2f} cm, direction error "
-          f"{c['direction_error_deg']:.3f}° (against the sealed lab truth)")
+    for k, p in enumerate(c.get("projectors") or [c]):
+        which = f"projector {k + 1}" if c.get("projectors") else "projector"
+        print(f"  calibration: {which} position error {p['position_error_cm']:.2f} cm, direction error "
+              f"{p['direction_error_deg']:.3f}° (against the sealed lab truth)")
     wc = c["warp_corners"] or {}
     if wc.get("corners_before_px") and wc.get("corners_after_px"):
         print(f"  warp: checkerboard corners median {wc['corners_before_px']['median']:.2f} px → "
@@ -48,9 +51,23 @@ def run(args: argparse.Namespace) -> int:
               f"SSIM {r['uncompensated_ssim']:.3f} → {r['ssim']:.3f} ({r['mode']}, {r['seconds']} s)")
     print(f"  mean: PSNR {m['uncompensated_psnr']:.2f} → {m['psnr']:.2f} dB (uncompensated → compensated); "
           f"{args.out}/evaluation/ holds the side-by-side images")
+    overlap = summary["compensation"].get("overlap")
+    if overlap:
+        o, u = overlap["mean"], overlap["mean_uncompensated"]
+        print(f"  overlap of the projectors: PSNR {fmt(u.get('psnr_overlap'), '.2f')} → "
+              f"{fmt(o.get('psnr_overlap'), '.2f')} dB inside it, {fmt(u.get('psnr_outside'), '.2f')} → "
+              f"{fmt(o.get('psnr_outside'), '.2f')} dB outside it; seam step {fmt(u.get('seam_step'), '.4f')} → "
+              f"{fmt(o.get('seam_step'), '.4f')}")
     g = summary["diagnosis"]
     if g.get("headline"):
         print(f"  diagnosis says: {g['headline']}")
+    if "projectors" in g:
+        for k, p in enumerate(g["projectors"]):
+            print(f"    projector {k + 1}: selected {', '.join(p.get('selected') or []) or 'none'} "
+                  f"(see {args.out}/diagnosis/projector_{k + 1}/summary.md)")
+        print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())
+              + f", total {summary['seconds_total']}")
+        return 0
     print(f"  diagnosis: held-out residual RMSE {g['residual']['rmse']:.4f} → {g['residual_after']['rmse']:.4f} "
           f"({g['residual']['psnr']:.1f} → {g['residual_after']['psnr']:.1f} dB) with the selected effects: "
           f"{', '.join(g['selected']) or 'none'} (see {args.out}/diagnosis/summary.md)")

@@ -222,16 +222,22 @@ def largest_rectangle(mask: np.ndarray, aspect: float) -> tuple[int, int, int, i
 
 def auto_area(calibration: Any, aspect: float, *, captures: Any = None, margin_px: int | None = None) -> DisplayArea:
     """The largest rectangle of ``aspect`` the calibrated projector covers (see the module docstring)."""
-    cw, ch = calibration.rig.camera.intrinsics.size
     cover = model_coverage(calibration)
     if captures is not None and captures.entries_of("white") and captures.entries_of("black"):
         real = capture_coverage(captures.image("white"), captures.image("black"))
         if real.shape == cover.shape:
             cover &= real
-    margin = max(2, round(0.015 * cw)) if margin_px is None else int(margin_px)
+    return area_inside(cover, aspect, margin_px=margin_px)
+
+
+def area_inside(cover: np.ndarray, aspect: float, *, margin_px: int | None = None,
+                what: str = "the projector covers") -> DisplayArea:
+    """The largest rectangle of ``aspect`` inside the camera pixels ``cover``, ``margin_px`` from its edge
+    (default 1.5 % of the camera's width)."""
+    margin = max(2, round(0.015 * cover.shape[1])) if margin_px is None else int(margin_px)
     rect = largest_rectangle(_erode(cover, margin), aspect)
     if rect is None:
-        raise DisplayAreaError(f"the projector covers too little of the camera image to hold a display area "
+        raise DisplayAreaError(f"{what} too little of the camera image to hold a display area "
                                f"of aspect {aspect:.3g} (margin {margin} px); give one with --area x,y,w,h")
     return DisplayArea(*rect, source="auto")
 

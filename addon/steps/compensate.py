@@ -32,7 +32,7 @@ from ..outputs import AtomicFolder, check_replaceable, file_sha256, natural_key,
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
 from . import calibrate as calibrate_step
-from . import layout
+from . import layout, projectors
 from .stage_c import StageC, StageCOptions, stage_c_inputs
 from .summary import Summary, cached, fmt
 
@@ -82,6 +82,9 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     options.stage_c.check()
     cal = calibrate_step.read(options.calibration)
     ident = calibrate_step.identity(options.calibration)
+    if cal.projector_count > 1:  # several projectors: one joint solve, a frame per projector
+        projectors.compensate(options, cal, ident, KIND, say=say, cancel=cancel, device=device)
+        return read(options.out)
     with StageC(cal, options.stage_c, device=device, progress=part(say, 0.0, 0.02)) as stage:
         # Read every target and choose its area first: a bad file or area fails before minutes of work.
         targets = [stage.load(p) for p in paths]

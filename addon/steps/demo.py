@@ -36,18 +36,33 @@ from ..capture.targets import natural_target
 from ..errors import ProCamError
 from ..imageio import write_image
 from ..lab.crosscheck import run_cross_check
+from ..lab.effects import parse_effects
 from ..lab.truth import LabTruth
 from ..options import option, same_option
 from ..outputs import folder_in_place, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..stages.display_area import choose_area
-from . import calibrate, capture, compensate, diagnose, evaluate, layout
+from . import calibrate, capture, compensate, diagnose, evaluate, layout, projectors
+from .capture import LabOptions
 from .stage_c import StageCOptions
 
 KIND = layout.DEMO
 #: The demo's stages and their share of its running time, for progress.
 PLAN = (("lab", 0.13), ("calibrate", 0.05), ("cross-check", 0.02), ("compensate", 0.2), ("evaluate", 0.05),
         ("diagnose", 0.4), ("with effects", 0.15))
+
+
+#: the strength of the tone curve of the demo's second projector (the lab's ``response``; ``realistic`` has 0.4)
+SECOND_RESPONSE = 0.9
+
+
+def second_projector(effects: str) -> str:
+    """The lab's ``--projector-effects`` of the demo's second projector: the projector effects of ``effects``
+    (every projector has them), with a tone curve of its own, as mixed projectors in a real rig have."""
+    shared = parse_effects(effects)
+    own = {n: shared[n].strength for n in shared.active if shared[n].kind.stage == "projector"}
+    own["response"] = SECOND_RESPONSE
+    return "1:" + ",".join(f"{n}={v:g}" for n, v in own.items())
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -71,6 +86,10 @@ class DemoOptions:
     schedule: str = same_option(StageCOptions, "schedule")
     iterations: int | None = same_option(StageCOptions, "iterations")
     samples: int = option(16, min=1, help="Cycles samples per pixel for the lab")
+    projectors: int = same_option(LabOptions, "projectors",
+                                  help="projectors side by side, overlapping by a fifth (default 1); above 1 the "
+                                       "second has a tone curve of its own, their inputs are solved together and the "
+                                       "evaluation reports the overlap")
     seed: int = option(0, min=0, help="seed of every random stream")
     force: bool = False
 
@@ -111,9 +130,13 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
                          inputs=()) as out:
         t0 = time.perf_counter()
         truth_path = out / "lab-truth.json"
-        capture.run_lab(capture.LabOptions(out / "captures", surface=options.surface, effects=options.effects,
-                                           seed=options.seed, samples=options.samples, truth=truth_path,
-                                           camera_size=cam, projector_size=proj), spans["lab"], cancel)
+        several = options.projectors > 1
+        # Mixed projectors are the rule in a real rig: the second one's tone curve is its own.
+        capture.run_lab(LabOptions(out / "captures", surface=options.surface, effects=options.effects,
+                                   seed=options.seed, samples=options.samples, truth=truth_path,
+                                   camera_size=cam, projector_size=proj, projectors=options.projectors,
+                                   projector_effects=second_projector(options.effects) if several else ""),
+                        spans["lab"], cancel)
         truth = LabTruth.load(truth_path)
         seconds["lab"] = time.perf_counter() - t0
 
@@ -122,15 +145,18 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
                                                        with_blend=blend_writer is not None),
                             spans["calibrate"], cancel, blend_writer=blend_writer)
         seconds["calibrate"] = time.perf_counter() - t0
-        est, true = cal.rig.projector, truth.rig.projector
-        ang = np.degrees(np.arccos(np.clip(est.direction @ true.direction, -1, 1)))
-        summary["calibration"] = {"position_error_cm": 100 * float(np.linalg.norm(est.position - true.position)),
-                                  "direction_error_deg": float(ang), "seconds": cal.report.get("seconds"),
+        summary["calibration"] = {**pose_errors(cal.rig.projector, truth.rig.projector),
+                                  "seconds": cal.report.get("seconds"),
                                   "warp_corners": cal.report.get("warp_report")}
+        if several:
+            summary["calibration"]["projectors"] = [
+                {**pose_errors(cal.rig.projectors[k], truth.rig.projectors[k]),
+                 "warp_corners": cal.for_projector(k).report.get("warp_report")} for k in range(options.projectors)]
 
         t0 = time.perf_counter()
         spans["cross-check"]("Cycles vs Mitsuba on the true rig, direct light", 0.0)
-        check = run_cross_check(truth.rig, truth.surface, bounces=0, samples=32, spp=32, seed=options.seed)
+        check = run_cross_check(truth.for_projector(0).rig, truth.surface, bounces=0, samples=32, spp=32,
+                                seed=options.seed)
         (out / "cross-check").mkdir()
         for name, img in check.images.items():
             write_image(out / "cross-check" / f"{name}.png", img)
@@ -140,7 +166,7 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         seconds["cross_check"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        area = choose_area(cal, aspect=4 / 3)
+        area = projectors.joint_area(projectors.views_of(cal), 4 / 3) if several else choose_area(cal, aspect=4 / 3)
         (out / "targets").mkdir()
         targets = tuple(write_image(out / "targets" / f"{name}.png", natural_target(name, area.size))
                         for name in options.targets)
@@ -156,16 +182,24 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
                                                         out / "evaluation"), spans["evaluate"], cancel)
         seconds["evaluate"] = time.perf_counter() - t0
         summary["compensation"] = {"area": view.doc.get("area"), **_measured(view, metrics)}
+        if several:
+            summary["compensation"]["overlap"] = {"mean": metrics["mean"],
+                                                  "mean_uncompensated": metrics["mean_uncompensated"]}
 
         t0 = time.perf_counter()
         # 192×144 working images, as scripts/bench_diagnosis.py measured the diagnosis.
         gap = diagnose.run(diagnose.DiagnoseOptions(out / "calibration", out / "diagnosis",
                                                     scale=min(1.0, 0.3 / scale)), spans["diagnose"], cancel)
-        summary["diagnosis"] = {"headline": gap.get("headline", ""), "residual": gap["residual"],
-                                "residual_after": gap["residual_after"],
-                                "selected": gap["selected"], "selected_params": gap["selected_params"],
-                                "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
-                                "regions": gap["regions"][:3], "warnings": gap.get("warnings", [])}
+        if several:
+            summary["diagnosis"] = {"headline": gap["headline"], "differs": gap["differs"],
+                                    "ranking": gap["ranking"][:4], "projectors": gap["projectors"]}
+            gap = {"compensation": {"effects": []}}  # effect models around stage C: one projector only, for now
+        else:
+            summary["diagnosis"] = {"headline": gap.get("headline", ""), "residual": gap["residual"],
+                                    "residual_after": gap["residual_after"],
+                                    "selected": gap["selected"], "selected_params": gap["selected_params"],
+                                    "absorbed": gap["absorbed"], "compensation": gap["compensation"]["effects"],
+                                    "regions": gap["regions"][:3], "warnings": gap.get("warnings", [])}
         seconds["diagnose"] = time.perf_counter() - t0
 
         if gap["compensation"]["effects"]:
@@ -186,6 +220,13 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
         write_manifest(out / KIND.manifest, summary)
     say("done", 1.0)
     return summary
+
+
+def pose_errors(estimated: Any, true: Any) -> dict[str, float]:
+    """A calibrated projector's position (cm) and direction (degrees) error against the lab's truth."""
+    ang = np.degrees(np.arccos(np.clip(estimated.direction @ true.direction, -1, 1)))
+    return {"position_error_cm": 100 * float(np.linalg.norm(estimated.position - true.position)),
+            "direction_error_deg": float(ang)}
 
 
 def _measured(view: Any, metrics: dict[str, Any]) -> dict[str, Any]:

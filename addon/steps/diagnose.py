@@ -78,6 +78,15 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
         raise DiagnosisError(f"{exc}; the diagnosis compares the model with those captures") from None
     folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                           inputs=(options.calibration, captures.path), error=ProCamError)
+    if cal.projector_count > 1:
+        try:
+            doc = _run_projectors(options, cal, captures, folder.tmp, say, cancel)
+        except BaseException:
+            folder.abort()
+            raise
+        folder.commit()
+        say("done", 1.0)
+        return doc
     try:
         found = diagnose(cal, captures, source=str(Path(options.calibration).absolute()),
                          format=(KIND.format, KIND.version), scale=options.scale, spp=options.spp,
@@ -94,6 +103,85 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     folder.commit()
     say("done", 1.0)
     return found.doc
+
+
+def projector_folder(index: int) -> str:
+    """The sub-folder of a diagnosis of several projectors that holds projector ``index``'s (0-based) diagnosis."""
+    return f"projector_{index + 1}"
+
+
+#: An effect is said to differ on one projector when it removes this much more of that projector's held-out residual
+#: than of any other projector's (shares of the RMSE, alone): below it, the projectors agree on that effect.
+DIFFERS_BY = 0.05
+
+
+def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path, say: Progress,
+                    cancel: Cancel | None) -> dict[str, Any]:
+    """Each projector diagnosed on its own patterns (its calibration view and its captures) into
+    ``projector_K/``, and ``gap.json`` saying which projector differs and by which effect."""
+    count = cal.projector_count
+    docs = []
+    for k in range(count):
+        sub = tmp / projector_folder(k)
+        sub.mkdir()
+        say(f"projector {k + 1}/{count}", k / count)
+        found = diagnose(cal.for_projector(k), captures.for_projector(k),
+                         source=str(Path(options.calibration).absolute()), format=(KIND.format, KIND.version),
+                         scale=options.scale, spp=options.spp, candidates=options.candidates(),
+                         min_share=options.min_share, max_effects=options.max_effects,
+                         progress=part(say, k / count, (k + 0.98) / count, f"projector {k + 1}: "), cancel=cancel)
+        write_manifest(sub / KIND.manifest, found.doc)
+        for name, image in found.images.items():
+            write_image(sub / name, image)
+        write_atomic_bytes(sub / layout.DIAGNOSIS_SUMMARY, found.summary.encode())
+        docs.append(found.doc)
+    doc = {"format": KIND.format, "version": KIND.version, "source": str(Path(options.calibration).absolute()),
+           "projector_count": count, **attribute(docs),
+           "projectors": [{"folder": projector_folder(k), "headline": d.get("headline"),
+                           "selected": d.get("selected") or [], "residual": d.get("residual"),
+                           "residual_after": d.get("residual_after")} for k, d in enumerate(docs)]}
+    write_manifest(tmp / KIND.manifest, doc)
+    lines = [f"# ProCam sim-to-real diagnosis of {count} projectors", "", f"**{doc['headline']}**", ""]
+    lines += [f"- projector {k + 1}: {d.get('headline')} ([details]({projector_folder(k)}/{layout.DIAGNOSIS_SUMMARY}))"
+              for k, d in enumerate(docs)]
+    write_atomic_bytes(tmp / layout.DIAGNOSIS_SUMMARY, ("\n".join(lines) + "\n").encode())
+    return doc
+
+
+def _reductions(doc: dict[str, Any]) -> dict[str, float]:
+    """Each effect's share of the held-out residual it removes alone, from one projector's ``gap.json``."""
+    out = {}
+    for e in doc.get("effects") or []:
+        if isinstance(e, dict) and isinstance(e.get("reduction"), (int, float)) and not e.get("error"):
+            out[str(e["name"])] = float(e["reduction"])
+    return out
+
+
+def attribute(docs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Which projector differs, and by which effect: among the effects a projector's own diagnosis selected, the one
+    that removes the most more of its residual than of any other projector's (:data:`DIFFERS_BY`). Returns
+    ``headline``, ``differs`` ({projector (1-based), effect, its reduction, the others' best}, or None) and
+    ``ranking`` (every selected effect by that margin, first = the one named)."""
+    reductions = [_reductions(d) for d in docs]
+    ranking: list[dict[str, Any]] = []
+    for k, d in enumerate(docs):
+        for name in d.get("selected") or []:
+            mine = reductions[k].get(name, 0.0)
+            others = max((r.get(name, 0.0) for j, r in enumerate(reductions) if j != k), default=0.0)
+            ranking.append({"projector": k + 1, "effect": str(name), "reduction": round(mine, 4),
+                            "others": round(others, 4), "margin": round(mine - others, 4)})
+    ranking.sort(key=lambda r: -r["margin"])
+    top = ranking[0] if ranking and ranking[0]["margin"] >= DIFFERS_BY else None
+    if top is not None:
+        head = (f"Projector {top['projector']} differs from the others by its {top['effect'].replace('_', ' ')}: "
+                f"modelling it removes {top['reduction']:.0%} of projector {top['projector']}'s residual and at most "
+                f"{top['others']:.0%} of another's; see projector_{top['projector']}/summary.md for what to do.")
+    else:
+        shared = sorted({str(r["effect"]) for r in ranking})
+        head = ("The projectors agree: " + (f"each shows {', '.join(shared)} alike" if shared else
+                                             "none shows an effect the others do not") + ".")
+    return {"headline": head, "differs": top, "ranking": ranking,
+            "selected": list(dict.fromkeys(r["effect"] for r in ranking))}
 
 
 @dataclass
@@ -174,7 +262,26 @@ def _lines(root: Path, doc: dict[str, Any], notes: list[str], brief: list[int]) 
     return tuple(lines)
 
 
+def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
+    lines = []
+    for k, p in enumerate(doc.get("projectors") or []):
+        res, after = (p or {}).get("residual") or {}, (p or {}).get("residual_after") or {}
+        lines.append(f"projector {k + 1}: residual RMSE {fmt(res.get('rmse'), '.4f')} → "
+                     f"{fmt(after.get('rmse'), '.4f')}, selected {', '.join(p.get('selected') or []) or 'none'}; "
+                     f"{p.get('headline', '')}")
+    for r in (doc.get("ranking") or [])[:4]:
+        lines.append(f"{r.get('effect')} on projector {r.get('projector')}: removes {fmt(r.get('reduction'), '.0%')} "
+                     f"of its residual, {fmt(r.get('others'), '.0%')} of another's at most")
+    head = str(doc.get("headline") or "")
+    maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
+    return Summary(True, head, tuple(lines), {"effects": [], "selected": doc.get("selected") or [], "regions": [],
+                                              "maps": maps, "summary": layout.DIAGNOSIS_SUMMARY,
+                                              "notes": [head], "brief": len(lines)})
+
+
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
+    if doc.get("projector_count", 1) > 1:
+        return _summary_projectors(root, doc)
     residual = doc.get("residual") or {}
     effects = [e for e in doc.get("effects", []) if isinstance(e, dict) and "name" in e]
     selected = [str(s) for s in doc.get("selected", [])]

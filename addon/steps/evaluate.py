@@ -61,7 +61,7 @@ from ..stages.range import RangeMap, capture_noise_mse, ceiling_gap_at_limit, no
 from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
-from . import layout
+from . import layout, projectors
 from .show_work import source_record
 from .stage_c import StageCOptions, device_inputs, device_pipeline
 from .summary import Summary, cached, fmt
@@ -113,6 +113,8 @@ class InputRecord:
     #: the file the input was computed from and its SHA-256 (None where an older ProCam recorded none)
     source: str | None = None
     sha256: str | None = None
+    #: with several projectors: each projector's native frame, in projector order
+    frames: tuple[Path, ...] = ()
 
 
 def _read_manifest(manifest: Path, fmt: str, what: str) -> dict[str, Any]:
@@ -160,8 +162,12 @@ class CompensationInputs:
             inp = inside(root, r["input"], what=f"the input of target {name!r}", error=InputsError) \
                 if r.get("input") else None
             sha = r.get("file_sha256")
+            several = r.get("projectors") if isinstance(r.get("projectors"), list) else []
+            frames = tuple(inside(root, (p if isinstance(p, dict) else {}).get("frame"),
+                                  what=f"the frame of projector {k + 1} of target {name!r}", error=InputsError)
+                           for k, p in enumerate(several))
             records[name] = InputRecord(name, frame, inp, area, r.get("mode"), str(r.get("file") or ""),
-                                        sha if isinstance(sha, str) else None)
+                                        sha if isinstance(sha, str) else None, frames)
         return CompensationInputs(root, doc, records)
 
     @staticmethod
@@ -220,11 +226,50 @@ class CompensationInputs:
             if list(have[key]) != value:
                 raise MismatchError(f"the inputs in {self.path} are for {key.replace('_', ' ')} {have[key]}, but the "
                                     f"calibration has {value}: they come from another rig or capture set")
+        self.check_projectors(calibration)
         if calibration_dir is not None and doc.get("calibration"):
             if self._resolved(doc["calibration"]) != self._resolved(calibration_dir):
                 notes.append(f"the inputs were computed with the calibration {doc['calibration']}, evaluated here "
                              f"with {calibration_dir} (same capture set)")
         return notes
+
+    def check_projectors(self, calibration: Any) -> None:
+        """Refuse inputs made for another number of projectors, or another size of any of them."""
+        want = [{"frame_size": list(p.intrinsics.size), "input_size": list(p.input_size),
+                 "input_offset": list(p.input_offset)} for p in calibration.rig.projectors]
+        have = self.doc.get("projectors")
+        have = have if isinstance(have, list) else [self.doc.get("projector")]
+        if len(have) != len(want):
+            raise MismatchError(f"the inputs in {self.path} are for {len(have)} projector(s), but the calibration "
+                                f"has {len(want)}: evaluate with the calibration the inputs were made with")
+        for k, (a, b) in enumerate(zip(have, want)):
+            if k and a != b:  # the first projector's record is checked field by field by check_against
+                raise MismatchError(f"the inputs in {self.path} are for projector {k + 1} of {a}, but the "
+                                    f"calibration's is {b}: they come from another rig")
+
+    def frames(self, name: str, projectors: Any) -> list[np.ndarray]:
+        """Every projector's native frame of a target of a compensation of several projectors, checked against
+        each projector's size."""
+        rec = self.record(name)
+        if len(rec.frames) != len(projectors):
+            raise MismatchError(f"{self.path}: target {name!r} has frames of {len(rec.frames)} projector(s), but the "
+                                f"calibration has {len(projectors)}: evaluate with the calibration the inputs were "
+                                "made with")
+        out = []
+        for k, (path, proj) in enumerate(zip(rec.frames, projectors)):
+            if not path.is_file():
+                raise InputsError(f"the frame of projector {k + 1} of {name!r} is missing ({path}); run procam "
+                                  "compensate again")
+            try:
+                img = read_image(path, channels=3)
+            except ImageError as exc:
+                raise InputsError(f"the frame {path} is unreadable ({exc}); run procam compensate again") from None
+            fw, fh = proj.intrinsics.size
+            if img.shape[:2] != (fh, fw):
+                raise MismatchError(f"{path} is {img.shape[1]}×{img.shape[0]}, but projector {k + 1}'s frame is "
+                                    f"{fw}×{fh}: the inputs come from another rig")
+            out.append(img)
+        return out
 
     def check_targets(self, names: list[str], paths: "tuple[Path, ...] | list[Path]") -> list[str]:
         """Refuse a target whose contents differ from the file its input was computed from (same name, another
@@ -521,9 +566,16 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
             raise EvaluationError("evaluation projects through a device: give lab:TRUTH_FILE, "
                                   "folder:CAPTURE_DIR or live:camera=…")
         device = device_pipeline(options.device, cal, device=device, progress=say)
-        result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
-                                 notes=notes, classical=options.classical, repeat=options.repeat, progress=say,
-                                 cancel=cancel)
+        if cal.projector_count > 1:  # every projector's frame shown at once; overlap figures
+            if options.classical or isinstance(targets, VideoTargets):
+                raise EvaluationError("the classical baseline and a show's video are not evaluated for several "
+                                      "projectors yet: evaluate without --classical, on the target images")
+            result = EvaluationRun(*projectors.evaluate(cal, inputs, targets, device, folder.tmp, notes=notes,
+                                                        repeat=options.repeat, progress=say, cancel=cancel))
+        else:
+            result = evaluate_folder(cal, inputs, targets, device, folder.tmp, calibration_dir=options.calibration,
+                                     notes=notes, classical=options.classical, repeat=options.repeat,
+                                     progress=say, cancel=cancel)
         result.doc["device"] = options.device
         write_manifest(folder.tmp / KIND.manifest, result.doc)
     except BaseException:
@@ -591,12 +643,24 @@ def _target_line(t: dict[str, Any]) -> str:
                if t.get("ceiling_gap_at_limit") is not None else ""))
 
 
+def _overlap_line(doc: dict[str, Any]) -> str:
+    """The figures of several projectors: inside the overlaps, outside them, along their edges."""
+    m, u = doc.get("mean") or {}, doc.get("mean_uncompensated") or {}
+    return (f"{doc.get('projector_count')} projectors: PSNR inside the overlap {fmt(u.get('psnr_overlap'), '.2f')} → "
+            f"{fmt(m.get('psnr_overlap'), '.2f')} dB, outside it {fmt(u.get('psnr_outside'), '.2f')} → "
+            f"{fmt(m.get('psnr_outside'), '.2f')} dB, along its edge {fmt(u.get('psnr_border'), '.2f')} → "
+            f"{fmt(m.get('psnr_border'), '.2f')} dB; seam step {fmt(u.get('seam_step'), '.4f')} → "
+            f"{fmt(m.get('seam_step'), '.4f')} (uncompensated → compensated)")
+
+
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     view = EvaluationView(root, doc)
     mean, plain = view.mean, view.mean_uncompensated
     head = (f"PSNR {fmt(plain.get('psnr'), '.2f')} → {fmt(mean.get('psnr'), '.2f')} dB, SSIM "
             f"{fmt(plain.get('ssim'), '.3f')} → {fmt(mean.get('ssim'), '.3f')} (uncompensated → compensated)")
     lines = [_target_line(t) for t in view.targets]
+    if doc.get("projector_count", 1) > 1:
+        lines.append(_overlap_line(doc))
     mapped = doc.get("range")
     if isinstance(mapped, dict):
         lines.append(f"targets mapped by the compensation's range: {fmt(mapped.get('gain'), '.3f')}·t "

@@ -1,0 +1,570 @@
+"""Several projectors in one show: stage C solved for every projector at once, its folder, and its evaluation.
+
+A calibration of N projectors (``Calibration.projector_count > 1``) reaches
+here from ``procam compensate`` and ``procam evaluate``. Every projector has
+its own calibration view (``Calibration.for_projector``: its pose, warp and
+light-transport operator), and the camera sees their sum; stage C solves all
+inputs together on the operators (``stages/joint.py``), so the overlaps are
+blended by the optimisation and a blend prior keeps each projector's share
+falling smoothly towards its frame edge.
+
+What is shared and what is not:
+
+* the **display area** is the largest rectangle of the target's aspect inside
+  the union of the projectors' footprints (model coverage ∩ captured
+  white − black of each projector), not inside one projector's;
+* the **range** (``--range auto``) is fitted against what the projectors reach
+  together: black = the surface lit by every projector's black, white = that
+  plus each projector's own white − black (:func:`combined_black_white`);
+* **θ** in the open loop is the sum of the projectors' open-loop biases (each
+  projector's black level and model error add in light); in the closed loop
+  the device shows every projector's frame at once (``Device.project_all``)
+  and θ follows those captures.
+
+The compensation folder holds, per target ``NAME``, ``NAME_input_pK.png`` and
+``NAME_frame_pK.png`` for projectors K = 1…N (named from 1, as a crew counts
+them), the shared ``NAME_simulated.png`` and ``NAME_target.png``, and
+``compensation.json`` recording each projector's files, its share of the light
+and the rig every input is for. Only the ``transport`` schedule solves several
+projectors; the render-based ones, the diagnosed effect models and a show are
+refused with a message (not built yet for several projectors).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..capture.devices import Device
+from ..capture.format import CaptureSet
+from ..errors import Cancelled, CaptureError, ProCamError
+from ..imageio import write_image
+from ..outputs import AtomicFolder, file_sha256, output_names, write_manifest
+from ..progress import Cancel, Progress, check, part, quiet
+from ..stages.bias import BiasModel
+from ..stages.calibrate import Calibration
+from ..stages.compensate import Compensator, CompensationError
+from ..stages.display_area import (DisplayArea, TargetAspectWarning, area_inside, capture_coverage, choose_area,
+                                   fit_target, load_target, model_coverage)
+from ..stages.joint import JointCompensator, JointResult
+from ..stages.metrics import check_capture, psnr, side_by_side, ssim
+from ..stages.range import (RangeError, RangeMap, capture_noise_mse, fit_range, noise_ceiling, parse_range,
+                            range_ceiling)
+from . import calibrate as calibrate_step
+from . import layout
+from . import transport as transport_step
+from .stage_c import StageCOptions, device_pipeline, stage_c_inputs
+
+
+def projector_files(name: str, count: int) -> dict[str, Any]:
+    """The files ``procam compensate`` writes for target ``name`` with ``count`` projectors."""
+    return {"projectors": [{"input": f"{name}_input_p{k + 1}.png", "frame": f"{name}_frame_p{k + 1}.png"}
+                           for k in range(count)],
+            "simulated": f"{name}_simulated.png", "target": f"{name}_target.png"}
+
+
+def views_of(calibration: Calibration) -> list[Calibration]:
+    """Each projector's one-projector calibration."""
+    return [calibration.for_projector(k) for k in range(calibration.projector_count)]
+
+
+def captures_views(captures: CaptureSet | None, count: int) -> list[CaptureSet] | None:
+    """Each projector's one-projector view of the capture set (None when the set cannot be read)."""
+    return None if captures is None else [captures.for_projector(k) for k in range(count)]
+
+
+def footprints(views: list[Calibration], captures: list[CaptureSet] | None = None) -> np.ndarray:
+    """(N, H, W) bool: the camera pixels each projector lights, by its model and, when its captures are there,
+    by its captured white − black too."""
+    out = []
+    for k, view in enumerate(views):
+        cover = model_coverage(view)
+        if captures is not None:
+            real = capture_coverage(captures[k].image("white"), captures[k].image("black"))
+            if real.shape == cover.shape:
+                cover &= real
+        out.append(cover)
+    return np.stack(out)
+
+
+def joint_area(views: list[Calibration], aspect: float, *, captures: list[CaptureSet] | None = None,
+               margin_px: int | None = None) -> DisplayArea:
+    """The largest rectangle of ``aspect`` inside the union of the projectors' footprints."""
+    return area_inside(footprints(views, captures).any(axis=0), aspect, margin_px=margin_px,
+                       what="the projectors together cover")
+
+
+def ambient(captures: CaptureSet, blacks: list[np.ndarray]) -> np.ndarray:
+    """The room's light on the surface with every projector off: the surface photo when the set has one, else the
+    darkest of the projectors' black captures (each holds the room plus that projector's black level)."""
+    if captures.entries_of("surface"):
+        photo = captures.image("surface")
+        if photo.shape == blacks[0].shape:
+            return np.minimum(photo, np.min(blacks, axis=0))
+    return np.min(blacks, axis=0)
+
+
+def combined_black_white(captures: CaptureSet) -> tuple[np.ndarray, np.ndarray]:
+    """What the camera sees with every projector black and every projector white, from each projector's own
+    white and black captures (taken while the others showed black): light adds, the room's light once."""
+    count = len(captures.projectors)
+    views = [captures.for_projector(k) for k in range(count)]
+    blacks = [v.image("black") for v in views]
+    whites = [v.image("white") for v in views]
+    room = ambient(captures, blacks)
+    black = room + sum(b - room for b in blacks)
+    white = black + sum(w - b for w, b in zip(whites, blacks))
+    return black.astype(np.float32), white.astype(np.float32)
+
+
+def overlap_masks(cover: np.ndarray, area: DisplayArea) -> dict[str, np.ndarray]:
+    """Inside the display area (area-size masks): ``overlap`` (lit by two projectors or more), ``outside`` (by one)
+    and ``border``, a band of 2 px either side of the overlap's edge — where a seam would show."""
+    count = area.crop(cover.sum(axis=0).astype(np.float32)[..., None])[..., 0]
+    overlap = count >= 2
+    single = count == 1
+    kernel = np.ones((5, 5), np.uint8)
+    edge = cv2.dilate(overlap.astype(np.uint8), kernel) != cv2.erode(overlap.astype(np.uint8), kernel)
+    return {"overlap": overlap, "outside": single, "border": edge & (count >= 1)}
+
+
+def _psnr_in(image: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float | None:
+    if mask.sum() < 16:
+        return None
+    return round(float(psnr(image[mask], target[mask])), 2)
+
+
+def seam_step(capture: np.ndarray, target: np.ndarray, overlap: np.ndarray, band: int = 3) -> float | None:
+    """The error's step across the overlap's edge: the mean over its edge pixels of |e_in − e_out|, e the capture's
+    error (capture − target, channels averaged) averaged over ``band`` px inside and outside the edge (linear,
+    0–1). A seam shows as a step; a smooth blend has none."""
+    err = (np.asarray(capture, np.float32) - np.asarray(target, np.float32)).mean(axis=2)
+    ov = overlap.astype(np.uint8)
+    kernel = np.ones((2 * band + 1, 2 * band + 1), np.uint8)
+    inner = ov.astype(bool) & ~cv2.erode(ov, kernel).astype(bool)
+    outer = cv2.dilate(ov, kernel).astype(bool) & ~ov.astype(bool)
+    edge = ov.astype(bool) & ~cv2.erode(ov, np.ones((3, 3), np.uint8)).astype(bool)
+    if edge.sum() < 8 or inner.sum() < 8 or outer.sum() < 8:
+        return None
+    win = (4 * band + 1, 4 * band + 1)
+    mean_in = cv2.boxFilter(err * inner, -1, win, normalize=False) / np.maximum(
+        cv2.boxFilter(inner.astype(np.float32), -1, win, normalize=False), 1e-6)
+    mean_out = cv2.boxFilter(err * outer, -1, win, normalize=False) / np.maximum(
+        cv2.boxFilter(outer.astype(np.float32), -1, win, normalize=False), 1e-6)
+    both = edge & (cv2.boxFilter(outer.astype(np.float32), -1, win, normalize=False) > 0)
+    if both.sum() < 8:
+        return None
+    return round(float(np.mean(np.abs(mean_in - mean_out)[both])), 5)
+
+
+def region_scores(capture: np.ndarray, target: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, Any]:
+    """PSNR inside the overlap, outside it and on its border band, and the seam step (area crops)."""
+    return {"psnr_overlap": _psnr_in(capture, target, masks["overlap"]),
+            "psnr_outside": _psnr_in(capture, target, masks["outside"]),
+            "psnr_border": _psnr_in(capture, target, masks["border"]),
+            "seam_step": seam_step(capture, target, masks["overlap"]),
+            "overlap_share": round(float(masks["overlap"].mean()), 4)}
+
+
+@dataclass
+class JointTarget:
+    """Stage C's answer for one target on every projector, as a step writes it."""
+
+    result: JointResult
+    fitted: np.ndarray  # the target fitted to the area (area size), range-mapped
+    area: DisplayArea
+    warnings: list[str]
+
+
+class JointStage:
+    """Stage C of one calibration of several projectors for a run of targets (module doc); a context manager that
+    closes the device it opened."""
+
+    def __init__(self, calibration: Calibration, options: StageCOptions, *, device: Device | None = None,
+                 progress: Progress | None = None) -> None:
+        say = progress or quiet
+        count = calibration.projector_count
+        schedule = options.check()
+        if not schedule.transport:
+            raise CompensationError(f"several projectors are solved together on their light-transport operators "
+                                    f"only: compensate with --schedule transport (the {schedule.name!r} schedule "
+                                    "renders one projector)")
+        if options.effects not in ("", "none"):
+            raise CompensationError("diagnosed effect models around stage C (--effects) are not implemented for "
+                                    f"several projectors yet; this calibration has {count}: compensate without them")
+        self.calibration, self.options, self.schedule = calibration, options, schedule
+        self.views = views_of(calibration)
+        full = calibrate_step.captures_of(calibration, required=False)
+        self.captures = full
+        self.capture_views = captures_views(full, count)
+        self.user_area = choose_area(calibration, aspect=1.0, user=options.area) if options.area else None
+        self.areas: dict[str, DisplayArea] = {}
+        self._cover: np.ndarray | None = None
+        given = parse_range(options.range)
+        self.range_map: RangeMap | None = given if isinstance(given, RangeMap) else None
+        self._owned = device is None
+        self.device = device_pipeline(options.device, calibration, device=device,
+                                      progress=part(say, 0.0, 0.0, "device: ")) \
+            if options.mode == "closed-loop" else None
+        try:
+            if self.device is not None and len(getattr(self.device, "projectors", (None,))) != count:
+                raise CaptureError(f"the device {options.device} shows {len(self.device.projectors)} projector(s), "
+                                   f"but the calibration has {count}: give a device of this rig")
+            self.compensators = []
+            for k, view in enumerate(self.views):
+                say(f"projector {k + 1}/{count}: loading the calibrated scene", 0.0)
+                comp = Compensator(view, bounces=options.bounces, spp=options.spp, seed=options.seed)
+                op = transport_step.load(view, bounces=options.bounces, seed=options.seed)
+                if op is None:
+                    say(f"projector {k + 1}: no precomputed transport operator: rendering it now (procam "
+                        "precompute stores it once)", 0.0)
+                else:
+                    comp.transport = op
+                self.compensators.append(comp)
+            self.joint = JointCompensator(self.compensators)
+            self.biases: list[BiasModel] | None = None
+            self.black: np.ndarray | None = None
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def count(self) -> int:
+        return len(self.views)
+
+    def coverage(self) -> np.ndarray:
+        """(N, H, W) each projector's footprint in the camera, computed once."""
+        if self._cover is None:
+            self._cover = footprints(self.views, self.capture_views)
+        return self._cover
+
+    def estimate_bias(self) -> list[BiasModel]:
+        """Each projector's open-loop θ model, from its own white, black and validation captures."""
+        if self.capture_views is None:
+            raise CompensationError(f"open-loop compensation needs the calibration's capture set to estimate θ, "
+                                    f"but it cannot be read at {self.calibration.capture_dir!r}: put it back")
+        self.biases = [comp.estimate_bias(view) for comp, view in zip(self.compensators, self.capture_views)]
+        # What every θ_k holds once and their sum K times: the darkest black capture (the room's light, with the
+        # other projectors' black levels where they showed black while it was taken).
+        self.black = np.min([v.image("black") for v in self.capture_views], axis=0)
+        return self.biases
+
+    def area_for(self, image: np.ndarray) -> DisplayArea:
+        """The user's area, the capture set's, else the largest of the target's aspect the projectors cover."""
+        if self.user_area is not None:
+            return self.user_area
+        if self.captures is not None and self.captures.target_area is not None:
+            return choose_area(self.calibration, aspect=1.0, captures=self.captures)
+        aspect = image.shape[1] / image.shape[0]
+        key = f"{aspect:.4f}"
+        if key not in self.areas:
+            self.areas[key] = joint_area(self.views, aspect, captures=self.capture_views)
+        return self.areas[key]
+
+    def fix_range(self, images: list[np.ndarray]) -> RangeMap | None:
+        """``--range auto`` fitted against what the projectors reach together (:func:`combined_black_white`)."""
+        if parse_range(self.options.range) != "auto":
+            return self.range_map
+        if self.captures is None:
+            raise RangeError("--range auto needs the white and black captures of the calibration's capture set, "
+                             f"which cannot be read at {self.calibration.capture_dir!r}: put it back, or give "
+                             "--range GAIN,OFFSET")
+        black, white = combined_black_white(self.captures)
+        fitted, blacks, whites = [], [], []
+        for image in images:
+            area = self.area_for(image)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", TargetAspectWarning)
+                fitted.append(fit_target(image, area))
+            blacks.append(area.crop(black))
+            whites.append(area.crop(white))
+        self.range_map = fit_range(fitted, blacks, whites)
+        return self.range_map
+
+    def fitted(self, image: np.ndarray, area: DisplayArea, what: str = "the target") -> np.ndarray:
+        out = fit_target(image, area, what=what)
+        return out if self.range_map is None else self.range_map.apply(out)
+
+    def compensate(self, image: np.ndarray, *, name: str, what: str, progress: Progress | None = None,
+                   cancel: Cancel | None = None, blend: str = "derived") -> JointTarget:
+        """Stage C for one target on every projector at once."""
+        o = self.options
+        if o.mode == "open-loop" and self.biases is None:
+            self.estimate_bias()
+        area = self.area_for(image)
+        args = o.run_arguments()
+        args.pop("lr", None)
+        args.pop("alpha", None)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", TargetAspectWarning)
+            fitted = self.fitted(image, area, what)
+            res = self.joint.run(fitted, area, device=self.device, biases=self.biases if o.mode == "open-loop"
+                                 else None, black=self.black if o.mode == "open-loop" else None,
+                                 use_bias=o.use_bias, blend=blend, progress=progress, cancel=cancel, name=name,
+                                 **args)
+        return JointTarget(res, fitted, area, [str(w.message) for w in caught])
+
+    def settings(self) -> dict[str, Any]:
+        """What decides the pixels of every target."""
+        o, s = self.options, self.schedule
+        return {"mode": o.mode, "device": o.device_spec, "schedule": s.name,
+                "iterations": {"total": s.iterations_z + s.iterations_joint, "z": s.iterations_z,
+                               "joint": s.iterations_joint},
+                "bounces": o.bounces, "spp": o.spp, "seed": o.seed, "area_given": list(o.area) if o.area else None,
+                "target_encoding": o.target_encoding, "blend": "derived",
+                "range": None if self.range_map is None else self.range_map.to_dict(), "effects": None}
+
+    def rig_record(self) -> dict[str, Any]:
+        """The rig the inputs are for: every projector's frame, input size and offset, and the camera's size."""
+        projectors = [{"frame_size": list(p.intrinsics.size), "input_size": list(p.input_size),
+                       "input_offset": list(p.input_offset)} for p in self.calibration.rig.projectors]
+        return {"projector": projectors[0], "projectors": projectors,
+                "camera_size": list(self.calibration.rig.camera.intrinsics.size)}
+
+    def close(self) -> None:
+        if self._owned and self.device is not None:
+            self.device.close()
+        self.device = None
+
+    def __enter__(self) -> "JointStage":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> dict[str, Any]:
+    """One target's files into ``tmp`` and its record (the first projector's files also under the one-projector
+    keys, so a reader of one projector's folder finds projector 1's)."""
+    res = done.result
+    files = projector_files(name, stage.count)
+    for k, entry in enumerate(files["projectors"]):
+        write_image(tmp / entry["input"], res.x_inputs[k])
+        write_image(tmp / entry["frame"], res.x_frames[k])
+    write_image(tmp / files["simulated"], res.simulated)
+    write_image(tmp / files["target"], done.fitted)
+    shares = res.report.get("share_of_light") or [None] * stage.count
+    projectors = [{**entry, "share": shares[k]} for k, entry in enumerate(files["projectors"])]
+    return {"name": name, "status": "done", "warnings": done.warnings, "mode": res.mode,
+            "area": done.area.to_dict(), "input": projectors[0]["input"], "frame": projectors[0]["frame"],
+            "simulated": files["simulated"], "target": files["target"], "projectors": projectors,
+            "seconds": round(res.seconds, 2), "captures": res.captures,
+            "losses": [round(float(v), 7) for v in res.losses],
+            "psnr_simulated_start": res.report.get("psnr_simulated_start"),
+            "psnr_simulated": res.report.get("psnr_simulated"),
+            "psnr_simulated_overlap": res.report.get("psnr_overlap"),
+            "psnr_simulated_outside": res.report.get("psnr_outside_overlap")}
+
+
+def compensate_targets(stage: JointStage, tmp: Path, targets: list[tuple[np.ndarray, str]], names: list[str],
+                       paths: list[Path], hashes: list[str], say: Progress, cancel: Cancel | None
+                       ) -> tuple[list[dict[str, Any]], ProCamError | None, BaseException | None]:
+    """Every target into ``tmp``: the records, the failure that stopped the run and the cancel (finished kept)."""
+    records: list[dict[str, Any]] = []
+    n = len(paths)
+    for i, ((image, note), name, path, sha) in enumerate(zip(targets, names, paths, hashes)):
+        try:
+            check(cancel, "compensation was cancelled")
+            area = stage.area_for(image)
+            say(f"target {i + 1}/{n}: {name} on {stage.count} projectors ({area.width}×{area.height} at "
+                f"{area.x},{area.y})", 0.05 + 0.95 * i / n)
+            done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
+                                    progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
+                                                  f"target {i + 1}/{n} {name}: "))
+            for w in done.warnings:
+                say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / n)
+            record = write_target(stage, tmp, done, name)
+        except (Cancelled, KeyboardInterrupt) as exc:
+            files = projector_files(name, stage.count)
+            for f in [files["simulated"], files["target"], *(v for e in files["projectors"] for v in e.values())]:
+                (tmp / f).unlink(missing_ok=True)
+            return records, None, exc
+        except ProCamError as exc:
+            records.append({"name": name, "file": str(path.absolute()), "file_sha256": sha, "status": "failed",
+                            "error": str(exc)})
+            return records, exc, None
+        records.append({**record, "file": str(path.absolute()), "file_sha256": sha, "encoding": note})
+    return records, None, None
+
+
+def compensate(options: Any, calibration: Calibration, ident: dict[str, str], kind: Any, *, say: Progress,
+               cancel: Cancel | None, device: Device | None = None) -> None:
+    """``procam compensate`` of a calibration of several projectors (``options``: its CompensateOptions, ``kind``
+    its folder kind): every target solved on all projectors into one folder, atomically; the finished targets kept
+    on a failure or a cancel, as for one projector."""
+    paths = list(options.targets)
+    with JointStage(calibration, options.stage_c, device=device, progress=part(say, 0.0, 0.02)) as stage:
+        targets = [read_target(stage, p) for p in paths]
+        hashes = [file_sha256(p) for p in paths]
+        for image, _ in targets:
+            stage.area_for(image)
+        if stage.fix_range([image for image, _ in targets]) is not None:
+            r = stage.range_map
+            assert r is not None
+            say(f"range: targets mapped to {r.gain:.3f}·t + {r.offset:+.3f} ({r.rule}), against what the "
+                f"{stage.count} projectors reach together", 0.03)
+        if stage.options.mode == "open-loop":
+            say("estimating θ of each projector from its validation captures (open loop)", 0.02)
+            stage.estimate_bias()
+        names = output_names(paths)
+        folder = AtomicFolder(options.out, force=options.force, what=kind.what, replaceable=kind.holds,
+                              inputs=(options.calibration, calibration.capture_dir, *paths,
+                                      *stage_c_inputs(options.stage_c)))
+        try:
+            records, failure, stopped = compensate_targets(stage, folder.tmp, targets, names, paths, hashes, say,
+                                                           cancel)
+            finished = sum(r["status"] == "done" for r in records)
+            if stopped is not None and not finished:
+                raise stopped
+            if stopped is not None:
+                records.append({"name": names[len(records)], "file": str(paths[len(records)].absolute()),
+                                "status": "cancelled", "error": "cancelled before it finished"})
+            areas = [r["area"] for r in records if r.get("area")]
+            write_manifest(folder.tmp / kind.manifest, {
+                "format": kind.format, "version": kind.version,
+                "calibration": ident["path"], "calibration_sha256": ident["sha256"],
+                "capture_set": calibration.capture_dir, "projector_count": stage.count, **stage.settings(),
+                "open_loop_bias": None if stage.biases is None else [
+                    {"kind": b.kind, **b.report} for b in stage.biases],
+                **stage.rig_record(),
+                "area": areas[0] if areas and all(a == areas[0] for a in areas) else None,
+                "complete": failure is None and stopped is None, "targets": records})
+        except BaseException:
+            folder.abort()
+            raise
+        folder.commit()
+    if stopped is not None:
+        raise Cancelled(f"compensation was cancelled after {finished} of {len(paths)} target(s); the finished ones "
+                        f"are kept in {options.out} (marked incomplete): run the same command with --force to "
+                        "redo it whole", kept=True)
+    say("done", 1.0)
+    if failure is not None:
+        raise failure
+
+
+def read_target(stage: JointStage, path: Path) -> tuple[np.ndarray, str]:
+    """A target image as stage C reads it (linear light; the note says how it was decoded)."""
+    return load_target(path, encoding=stage.options.target_encoding)
+
+
+# -- evaluation -------------------------------------------------------------------------------------------------
+
+def uncompensated_frames(stage_views: list[Compensator], placed: np.ndarray, cover: np.ndarray) -> list[np.ndarray]:
+    """The uncompensated baseline of several projectors: each shows the target carried into it by the calibrated
+    geometry, divided where it overlaps by the number of projectors lighting the pixel (a hard split, no blend),
+    so that the overlap is not twice as bright."""
+    count = np.maximum(cover.sum(axis=0), 1).astype(np.float32)[..., None]
+    frames = []
+    for k, comp in enumerate(stage_views):
+        share = placed * cover[k][..., None] / count
+        x = comp.warp_w(comp.initial_input(share.astype(np.float32), how="geometric"))
+        frames.append(comp.rig.projector.frame_from_input(x))
+    return frames
+
+
+def project_all(device: Device, frames: list[np.ndarray], camera_size: tuple[int, int]) -> np.ndarray:
+    """Every projector's frame shown at once; the capture, checked."""
+    return check_capture(device.project_all(frames), camera_size)
+
+
+def score(capture: np.ndarray, fitted: np.ndarray, area: DisplayArea, masks: dict[str, np.ndarray]
+          ) -> dict[str, Any]:
+    """PSNR/SSIM of a capture in the area, and inside/outside the overlap and along its border."""
+    crop = area.crop(capture)
+    return {"psnr": round(float(psnr(crop, fitted)), 4), "ssim": round(float(ssim(crop, fitted)), 5),
+            **region_scores(crop, fitted, masks)}
+
+
+def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.ndarray, str]], device: Device,
+             out: Path, *, notes: list[str], repeat: bool = True, progress: Progress | None = None,
+             cancel: Cancel | None = None) -> tuple[dict[str, Any], ProCamError | None]:
+    """``procam evaluate`` of a compensation of several projectors: every projector's frame shown at once through
+    ``device``, the capture scored over the area, inside the overlaps, outside them and along their borders, next to
+    the uncompensated baseline, and the range ceiling of the projectors together. Writes the comparison images
+    into ``out``; returns ``metrics.json``'s document and the failure that stopped it (finished targets kept)."""
+    say = progress or quiet
+    inputs.check_projectors(calibration)
+    cam = calibration.rig.camera.intrinsics.size
+    projectors = list(calibration.rig.projectors)
+    for name, _, _ in targets:
+        inputs.record(name)
+        inputs.frames(name, projectors)  # every frame read before the first projection
+    if len(getattr(device, "projectors", (None,))) != len(projectors):
+        raise CaptureError(f"the device shows {len(getattr(device, 'projectors', (None,)))} projector(s), but the "
+                           f"calibration has {len(projectors)}: give the device of this rig")
+    views = views_of(calibration)
+    comps = [Compensator(v, bounces=0, spp=4) for v in views]
+    captures = calibrate_step.captures_of(calibration)
+    assert captures is not None
+    cover = footprints(views, captures_views(captures, len(views)))
+    black, white = combined_black_white(captures)
+    range_map = RangeMap.from_dict(inputs.doc.get("range"))
+    rows: list[dict[str, Any]] = []
+    failure: ProCamError | None = None
+    for i, (name, image, note) in enumerate(targets):
+        rec = inputs.record(name)
+        area = rec.area.check(cam)
+        files = {k: v.format(name=name) for k, v in layout.EVALUATION_FILES.items() if k != "classical"}
+        check(cancel, "evaluation was cancelled; nothing was written")
+        say(f"target {i + 1}/{len(targets)}: {name} on {len(projectors)} projectors", 0.05 + 0.95 * i / len(targets))
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", TargetAspectWarning)
+                fitted = fit_target(image, area, what=f"target {name!r}")
+            if range_map is not None:
+                fitted = range_map.apply(fitted)
+            masks = overlap_masks(cover, area)
+            frames = inputs.frames(name, projectors)
+            got = project_all(device, frames, cam)
+            placed = area.place(fitted, cam)
+            plain = project_all(device, uncompensated_frames(comps, placed, cover), cam)
+            row: dict[str, Any] = {"name": name, **score(got, fitted, area, masks),
+                                   "uncompensated": score(plain, fitted, area, masks),
+                                   "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)),
+                                                          2)}
+            if repeat:
+                again = project_all(device, frames, cam)
+                if not np.array_equal(again, got):
+                    noise = capture_noise_mse(area.crop(got), area.crop(again))
+                    row["capture_noise_rmse"] = round(noise ** 0.5, 5)
+                    row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
+        except ProCamError as exc:
+            failure = exc
+            rows.append({"name": name, "status": "failed", "error": str(exc)})
+            say(f"{name}: failed: {exc}", 1.0)
+            break
+        row.update(warnings=[str(w.message) for w in caught], target_encoding=note, area=area.to_dict(),
+                   mode=rec.mode, image=files["image"], status="done")
+        write_image(out / files["image"], side_by_side(fitted, area.crop(plain), area.crop(got)))
+        write_image(out / files["capture"], got)
+        write_image(out / files["uncompensated"], plain)
+        rows.append(row)
+    done = [r for r in rows if r.get("status") == "done"]
+
+    def mean(key: str, of: str | None = None) -> float | None:
+        vals = [(r[of] if of else r).get(key) for r in done]
+        vals = [v for v in vals if isinstance(v, (int, float))]
+        return round(float(np.mean(vals)), 4) if vals else None
+
+    keys = ("psnr", "ssim", "psnr_overlap", "psnr_outside", "psnr_border", "seam_step")
+    doc = {"format": layout.EVALUATION.format, "version": layout.EVALUATION.version,
+           "inputs": str(inputs.path.absolute()), "capture_set": calibration.capture_dir, "notes": notes,
+           "projector_count": len(projectors),
+           "measure": "PSNR (dB, peak 1) and SSIM of the capture with every projector's frame shown at once, inside "
+                      "the display area against the target fitted to it (and range-mapped); psnr_overlap / "
+                      "psnr_outside: inside the area where two or more projectors light the surface / where one "
+                      "does; psnr_border: a 2-px band either side of the overlap's edge; seam_step: the mean "
+                      "absolute step of the capture's error across the overlap's edge (linear 0–1; a seam is a "
+                      "step); uncompensated: each projector showing the target as is, split evenly where they "
+                      "overlap; range_ceiling: the target clipped to what the projectors reach together",
+           "range": None if range_map is None else range_map.to_dict(),
+           "targets": rows, "mean": {k: mean(k) for k in keys},
+           "mean_uncompensated": {k: mean(k, "uncompensated") for k in keys},
+           "mean_range_ceiling": mean("range_ceiling"), "mean_noise_ceiling": mean("noise_ceiling"),
+           "flicker": None, "complete": failure is None}
+    return doc, failure

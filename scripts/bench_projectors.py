@@ -1,0 +1,283 @@
+#!/usr/bin/env python3
+"""Several projectors on the lab: joint compensation against the edge-blend ramps users know, the overlap, the pose.
+
+Usage: ``.venv/bin/python scripts/bench_projectors.py [--surfaces curve,vedge] [--scale 0.5] [--samples 16]
+[--iterations N] [--targets 6] [--parts side,stacked,shift,timing] [--work DIR]``
+
+``side``: two projectors side by side, 20 % overlap, ``realistic`` lab effects, projector 2 with a tone curve of
+its own (``--projector-effects 1:…,response=0.9``, its other projector effects realistic's), on each surface:
+``procam lab``, ``procam calibrate`` (each projector's pose error against the sealed truth), then six natural
+photographs compensated closed loop through the lab (``procam compensate`` + ``procam evaluate``: PSNR overall,
+inside the overlap, outside it, the seam step), and in the open loop three ways on the same operators, each
+projected through the lab: jointly with the derived blend prior, jointly without it, and each projector alone on its
+linear edge-blend ramp (the baseline).
+``stacked``: two projectors on the same area, bright targets: the range ceiling of both together against one
+projector's, and ours.
+``shift``: projector 2's calibrated pose moved sideways by one camera pixel after calibration (its operator rendered
+again): how much the overlap loses, with the blend prior and without, in the open loop.
+``timing``: seconds per target of the joint solve against one projector's, on the same calibration.
+``--work DIR`` keeps and reuses every folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from procam.addon.capture.targets import DEFAULT_TARGETS, natural_target
+from procam.addon.cli.app import main as procam
+from procam.addon.imageio import write_image
+from procam.addon.lab.truth import LabTruth
+from procam.addon.stages.joint import JointCompensator, ramp_baseline
+from procam.addon.stages.range import range_ceiling
+from procam.addon.stages.transport import build_transport
+from procam.addon.steps import calibrate as calibrate_step
+from procam.addon.steps import projectors
+from procam.addon.steps.demo import second_projector
+from procam.addon.steps.stage_c import StageCOptions, device_pipeline
+
+SECOND = second_projector("realistic")
+
+
+def step(args: list[str], done: Path) -> None:
+    if done.exists():
+        return
+    if procam(args) != 0:
+        raise SystemExit(f"procam {args[0]} failed")
+
+
+def lab(work: Path, surface: str, layout: str, args: argparse.Namespace) -> tuple[Path, Path]:
+    """The lab set and its calibration (made once in ``work``)."""
+    caps, truth, cal = work / "lab", work / "lab.truth.json", work / "cal"
+    step(["lab", "--surface", surface, "--projectors", "2", "--layout", layout, "--overlap", "0.2", "--effects",
+          "realistic", "--projector-effects", SECOND, "--scale", str(args.scale), "--samples", str(args.samples),
+          "--out", str(caps), "--truth", str(truth)], caps)
+    step(["calibrate", str(caps), "--out", str(cal)], cal)
+    return cal, truth
+
+
+def pose_line(cal: Any, truth: LabTruth) -> str:
+    out = []
+    for k, (est, true) in enumerate(zip(cal.rig.projectors, truth.rig.projectors)):
+        ang = np.degrees(np.arccos(np.clip(est.direction @ true.direction, -1, 1)))
+        out.append(f"projector {k + 1}: {100 * np.linalg.norm(est.position - true.position):.2f} cm, {ang:.3f}°")
+    return "; ".join(out)
+
+
+def targets_for(work: Path, area: Any, count: int, bright: bool = False) -> list[Path]:
+    (work / "targets").mkdir(exist_ok=True)
+    paths = []
+    for name in DEFAULT_TARGETS[:count]:
+        img = natural_target(name, area.size)
+        if bright:  # the case where one projector clips: each scaled so that its 99.5th percentile is 1
+            img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
+        paths.append(write_image(work / "targets" / f"{name}.png", img))
+    return paths
+
+
+class Harness:
+    """The open-loop solves of one calibration of several projectors, each projected through the lab and scored."""
+
+    def __init__(self, cal_dir: Path, truth: Path, iterations: int | None) -> None:
+        self.cal = calibrate_step.read(cal_dir)
+        self.options = StageCOptions(iterations=iterations)
+        self.stage = projectors.JointStage(self.cal, self.options)
+        self.stage.estimate_bias()
+        self.device = device_pipeline(f"lab:{truth}", self.cal)
+        self.cam = self.cal.rig.camera.intrinsics.size
+
+    def fitted(self, path: Path) -> tuple[np.ndarray, Any]:
+        image, _ = projectors.read_target(self.stage, path)
+        area = self.stage.area_for(image)
+        return self.stage.fitted(image, area), area
+
+    def score(self, frames: list[np.ndarray], fitted: np.ndarray, area: Any) -> dict[str, Any]:
+        masks = projectors.overlap_masks(self.stage.coverage(), area)
+        capture = projectors.project_all(self.device, frames, self.cam)
+        return projectors.score(capture, fitted, area, masks)
+
+    def solve(self, joint: JointCompensator, fitted: np.ndarray, area: Any, how: str) -> Any:
+        args = self.options.run_arguments()
+        args.pop("schedule")
+        common = {"biases": self.stage.biases, "black": self.stage.black, **args}
+        if how == "ramps":
+            args.pop("capture_every", None)
+            return ramp_baseline(joint, fitted, area, **common)
+        return joint.run(fitted, area, blend=how, **common)
+
+    def close(self) -> None:
+        self.device.close()
+
+
+def mean(rows: list[dict[str, Any]], key: str) -> float:
+    vals = [r[key] for r in rows if isinstance(r.get(key), (int, float))]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def side(work: Path, surface: str, args: argparse.Namespace) -> None:
+    cal_dir, truth_path = lab(work, surface, "side-by-side", args)
+    truth = LabTruth.load(truth_path)
+    h = Harness(cal_dir, truth_path, args.iterations)
+    try:
+        area = h.stage.area_for(np.zeros((300, 400, 3), np.float32))
+        paths = targets_for(work, area, args.targets)
+        iters = [] if args.iterations is None else ["--iterations", str(args.iterations)]
+        comp, ev = work / "comp", work / "eval"
+        step(["compensate", str(cal_dir), *map(str, paths), "--device", f"lab:{truth_path}", *iters, "--out",
+              str(comp)], comp)
+        step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
+              f"lab:{truth_path}", "--out", str(ev)], ev)
+        closed = json.loads((ev / "metrics.json").read_text())
+        rows: dict[str, list[dict[str, Any]]] = {"derived": [], "none": [], "ramps": []}
+        for path in paths:
+            fitted, area = h.fitted(path)
+            for how in rows:
+                res = h.solve(h.stage.joint, fitted, area, how)
+                rows[how].append(h.score(res.x_frames, fitted, area))
+    finally:
+        h.close()
+    print(f"\n{surface}, two projectors side by side, 20 % overlap, realistic, projector 2: {SECOND[2:]}, scale "
+          f"{args.scale}: pose {pose_line(h.cal, truth)}")
+    print("| | PSNR | inside the overlap | outside it | along its edge | seam step |")
+    print("|---|---|---|---|---|---|")
+    m, u = closed["mean"], closed["mean_uncompensated"]
+    for label, r in (("uncompensated (split evenly)", u), ("ours, closed loop", m)):
+        print(f"| {label} | {r['psnr']:.2f} | {r['psnr_overlap']:.2f} | {r['psnr_outside']:.2f} | "
+              f"{r['psnr_border']:.2f} | {r['seam_step']:.4f} |")
+    for how, label in (("derived", "ours, open loop"), ("none", "ours, open loop, no blend prior"),
+                       ("ramps", "each alone on edge-blend ramps, open loop")):
+        r = rows[how]
+        print(f"| {label} | {mean(r, 'psnr'):.2f} | {mean(r, 'psnr_overlap'):.2f} | {mean(r, 'psnr_outside'):.2f} | "
+              f"{mean(r, 'psnr_border'):.2f} | {mean(r, 'seam_step'):.4f} |")
+    d, ramps = rows["derived"], rows["ramps"]
+    print(f"inside the overlap: closed loop {m['psnr_overlap'] - m['psnr_outside']:+.2f} dB against outside it; open "
+          f"loop ours {mean(d, 'psnr_overlap') - mean(ramps, 'psnr_overlap'):+.2f} dB against the ramps")
+
+
+def stacked(work: Path, surface: str, args: argparse.Namespace) -> None:
+    cal_dir, truth_path = lab(work, surface, "stacked", args)
+    cal = calibrate_step.read(cal_dir)
+    captures = calibrate_step.captures_of(cal)
+    assert captures is not None
+    stage = projectors.JointStage(cal, StageCOptions())
+    area = stage.area_for(np.zeros((300, 400, 3), np.float32))
+    paths = targets_for(work, area, args.targets, bright=True)
+    black, white = projectors.combined_black_white(captures)
+    one = captures.for_projector(0)
+    b1, w1 = one.image("black"), one.image("white")
+    iters = [] if args.iterations is None else ["--iterations", str(args.iterations)]
+    comp, ev = work / "comp", work / "eval"
+    step(["compensate", str(cal_dir), *map(str, paths), "--device", f"lab:{truth_path}", *iters, "--out",
+          str(comp)], comp)
+    step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
+          f"lab:{truth_path}", "--out", str(ev)], ev)
+    rows = json.loads((ev / "metrics.json").read_text())["targets"]
+    print(f"\n{surface}, two projectors stacked on one area, bright targets (99.5th percentile at 1), scale "
+          f"{args.scale}")
+    print("| Target | range ceiling, one projector | both | ours (closed loop) |")
+    print("|---|---|---|---|")
+    ones, boths, ours = [], [], []
+    for path, row in zip(paths, rows):
+        fitted, _ = projectors.read_target(stage, path)
+        fitted = projectors.fit_target(fitted, area)
+        ones.append(range_ceiling(fitted, area.crop(b1), area.crop(w1)))
+        boths.append(range_ceiling(fitted, area.crop(black), area.crop(white)))
+        ours.append(row["psnr"])
+        print(f"| {row['name']} | {ones[-1]:.2f} | {boths[-1]:.2f} | {ours[-1]:.2f} |")
+    print(f"| mean | {np.mean(ones):.2f} | {np.mean(boths):.2f} | {np.mean(ours):.2f} |")
+    print(f"both projectors' ceiling {np.mean(boths) - np.mean(ones):+.2f} dB above one's; ours "
+          f"{np.mean(ours) - np.mean(boths):+.2f} dB from it")
+
+
+def shift(work: Path, surface: str, args: argparse.Namespace) -> None:
+    cal_dir, truth_path = lab(work, surface, "side-by-side", args)
+    h = Harness(cal_dir, truth_path, args.iterations)
+    try:
+        cal = h.cal
+        second = cal.for_projector(1)
+        f_cam = cal.rig.camera.intrinsics.fx
+        depth = float(np.median(cal.surface.vertices[:, 2]))
+        step_m = depth / f_cam  # one camera pixel on the surface, for a projector moved parallel to it
+        proj = second.rig.projector
+        pose = proj.camera_from_projector.copy()
+        pose[:3, 3] += step_m * pose[:3, 0]
+        moved = replace(second, rig=replace(second.rig, projector=proj.with_pose(pose)))
+        comps = list(h.stage.compensators)
+        comp1 = type(comps[1])(moved, bounces=1, spp=4, seed=0)
+        comp1.transport = build_transport(moved, bounces=1, seed=0)
+        joint_moved = JointCompensator([comps[0], comp1])
+        paths = targets_for(work, h.stage.area_for(np.zeros((300, 400, 3), np.float32)), args.targets)
+        rows: dict[tuple[str, str], list[dict[str, Any]]] = {}
+        for path in paths:
+            fitted, area = h.fitted(path)
+            for which, joint in (("calibrated", h.stage.joint), ("moved", joint_moved)):
+                for how in ("derived", "none"):
+                    res = h.solve(joint, fitted, area, how)
+                    rows.setdefault((which, how), []).append(h.score(res.x_frames, fitted, area))
+    finally:
+        h.close()
+    print(f"\n{surface}: projector 2's calibrated pose moved {1000 * step_m:.2f} mm sideways (one camera pixel on "
+          f"the surface) after calibration, open loop, {len(paths)} targets; PSNR inside the overlap / seam step")
+    for how, label in (("derived", "with the blend prior"), ("none", "without it")):
+        a, b = rows[("calibrated", how)], rows[("moved", how)]
+        print(f"{label}: {mean(a, 'psnr_overlap'):.2f} → {mean(b, 'psnr_overlap'):.2f} dB "
+              f"({mean(b, 'psnr_overlap') - mean(a, 'psnr_overlap'):+.2f} dB), seam step "
+              f"{mean(a, 'seam_step'):.4f} → {mean(b, 'seam_step'):.4f}")
+
+
+def timing(work: Path, surface: str, args: argparse.Namespace) -> None:
+    cal_dir, truth_path = lab(work, surface, "side-by-side", args)
+    h = Harness(cal_dir, truth_path, args.iterations)
+    try:
+        paths = targets_for(work, h.stage.area_for(np.zeros((300, 400, 3), np.float32)), args.targets)
+        one = h.stage.compensators[0]
+        joint_s, one_s = [], []
+        for path in paths:
+            fitted, area = h.fitted(path)
+            t0 = time.perf_counter()
+            h.solve(h.stage.joint, fitted, area, "derived")
+            joint_s.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            one.run(fitted, area, open_loop_theta=h.stage.biases[0], verify=False,
+                    **h.options.run_arguments())
+            one_s.append(time.perf_counter() - t0)
+    finally:
+        h.close()
+    cam = h.cam
+    both, alone = float(np.median(joint_s[1:] or joint_s)), float(np.median(one_s[1:] or one_s))
+    print(f"\n{surface}, camera {cam[0]}×{cam[1]}, transport schedule, open loop, median after a first warm-up "
+          f"target: joint {both:.2f} s per target, one projector {alone:.2f} s ({both / alone:.2f}×)")
+
+
+PARTS = {"side": side, "stacked": stacked, "shift": shift, "timing": timing}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--surfaces", default="curve,vedge")
+    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--samples", type=int, default=16)
+    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--targets", type=int, default=6)
+    ap.add_argument("--parts", default="side,stacked,shift,timing")
+    ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        for part in args.parts.split(","):
+            for surface in args.surfaces.split(","):
+                layout = "stacked" if part == "stacked" else "side-by-side"
+                folder = work / f"{surface}-{layout}"
+                folder.mkdir(parents=True, exist_ok=True)
+                PARTS[part](folder, surface, args)
+
+
+if __name__ == "__main__":
+    main()

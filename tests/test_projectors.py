@@ -1,0 +1,160 @@
+"""Several projectors in one show: the overlap figures, the combined range, the per-projector diagnosis verdict, and
+the whole path (lab → calibration → joint compensation → evaluation) on a small two-projector lab."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from procam.addon.stages.display_area import DisplayArea
+from procam.addon.steps import diagnose as diagnose_step
+from procam.addon.steps import projectors
+
+
+def test_seam_step_sees_a_step_at_the_overlap_edge_and_not_a_smooth_blend():
+    h, w = 60, 90
+    overlap = np.zeros((h, w), bool)
+    overlap[:, 40:60] = True
+    target = np.full((h, w, 3), 0.5, np.float32)
+    seam = target.copy()
+    seam[:, 40:60] += 0.1  # the overlap 0.1 too bright: a visible step at both edges
+    ramp = target.copy()
+    ramp += (0.1 * np.clip(1 - np.abs(np.arange(w) - 50) / 30, 0, 1)).astype(np.float32)[None, :, None]
+    assert projectors.seam_step(seam, target, overlap) == pytest.approx(0.1, abs=0.02)
+    assert projectors.seam_step(ramp, target, overlap) < 0.03
+    assert projectors.seam_step(target, target, overlap) == 0.0
+    assert projectors.seam_step(seam, target, np.zeros_like(overlap)) is None  # no overlap: no seam to measure
+
+
+def test_overlap_masks_split_the_area_by_how_many_projectors_light_it():
+    cover = np.zeros((2, 40, 60), bool)
+    cover[0, :, :35] = True
+    cover[1, :, 25:] = True
+    area = DisplayArea(5, 5, 50, 30)
+    masks = projectors.overlap_masks(cover, area)
+    assert masks["overlap"].shape == (30, 50)
+    assert masks["overlap"][:, 20:30].all() and not masks["overlap"][:, :20].any()
+    assert masks["outside"][:, :20].all() and not masks["outside"][:, 20:30].any()
+    assert masks["border"][:, 18:22].all() and not masks["border"][:, 24:27].any()
+    scores = projectors.region_scores(np.full((30, 50, 3), 0.5, np.float32), np.full((30, 50, 3), 0.5, np.float32),
+                                      masks)
+    assert scores["overlap_share"] == pytest.approx(0.2)
+
+
+class _Captures:
+    """Two projectors' white and black captures (what CaptureSet.for_projector gives), and the room's photo."""
+
+    def __init__(self, room: float, blacks: list[float], whites: list[float], photo: bool = True) -> None:
+        self.projectors = [object()] * len(blacks)
+        self.room, self.blacks, self.whites, self.photo = room, blacks, whites, photo
+
+    def for_projector(self, k: int) -> "_Captures":
+        view = _Captures(self.room, [self.blacks[k]], [self.whites[k]], self.photo)
+        return view
+
+    def entries_of(self, kind: str) -> list[str]:
+        return ["surface"] if kind == "surface" and self.photo else []
+
+    def image(self, kind: str) -> np.ndarray:
+        value = {"surface": self.room, "black": self.blacks[0], "white": self.whites[0]}[kind]
+        return np.full((4, 4, 3), value, np.float32)
+
+
+@pytest.mark.parametrize("photo", [True, False])
+def test_projectors_together_reach_the_sum_of_their_light_with_the_room_counted_once(photo):
+    room = 0.02 if photo else 0.03  # without the photo the darkest black stands for the room
+    caps = _Captures(room, [0.03, 0.05], [0.4, 0.3], photo)
+    black, white = projectors.combined_black_white(caps)
+    assert black[0, 0, 0] == pytest.approx(room + (0.03 - room) + (0.05 - room))
+    assert white[0, 0, 0] == pytest.approx(black[0, 0, 0] + (0.4 - 0.03) + (0.3 - 0.05))
+
+
+def _gap(selected: list[str], reductions: dict[str, float]) -> dict:
+    return {"selected": selected, "effects": [{"name": n, "reduction": r} for n, r in reductions.items()],
+            "headline": "…"}
+
+
+def test_the_projector_whose_effect_stands_out_is_named_with_it():
+    docs = [_gap(["vignetting"], {"vignetting": 0.30, "response": 0.02}),
+            _gap(["response", "vignetting"], {"vignetting": 0.28, "response": 0.45})]
+    verdict = diagnose_step.attribute(docs)
+    assert verdict["differs"]["projector"] == 2 and verdict["differs"]["effect"] == "response"
+    assert verdict["headline"].startswith("Projector 2 differs from the others by its response")
+    assert verdict["ranking"][0]["effect"] == "response"
+    same = diagnose_step.attribute([_gap(["vignetting"], {"vignetting": 0.3}),
+                                    _gap(["vignetting"], {"vignetting": 0.29})])
+    assert same["differs"] is None and same["headline"] == "The projectors agree: each shows vignetting alike."
+    none = diagnose_step.attribute([_gap([], {}), _gap([], {})])
+    assert none["differs"] is None and "none shows" in none["headline"]
+
+
+# -- the whole path on a small lab -------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def two_projectors(tmp_path_factory):
+    """A two-projector lab set (curve, 20 % overlap, camera 128×96), calibrated, and two targets."""
+    from procam.addon.capture.targets import natural_target
+    from procam.addon.cli.app import main as procam
+    from procam.addon.imageio import write_image
+
+    root = tmp_path_factory.mktemp("two")
+    assert procam(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--effects", "realistic",
+                   "--projector-effects", "1:response=0.9", "--scale", "0.2", "--samples", "4", "--out",
+                   str(root / "lab"), "--truth", str(root / "lab.truth.json")]) == 0
+    assert procam(["calibrate", str(root / "lab"), "--out", str(root / "cal")]) == 0
+    targets = [write_image(root / f"{n}.png", natural_target(n, (120, 90))) for n in ("city", "forest")]
+    return root, targets
+
+
+def test_two_projectors_are_compensated_together_and_evaluated_in_and_out_of_their_overlap(two_projectors, capsys):
+    import json
+
+    from procam.addon.cli.app import main as procam
+    from procam.addon.imageio import read_image
+    from procam.addon.steps import compensate as compensate_step
+
+    root, targets = two_projectors
+    device = f"lab:{root / 'lab.truth.json'}"
+    assert procam(["compensate", str(root / "cal"), *map(str, targets), "--device", device, "--iterations", "20",
+                   "--out", str(root / "comp")]) == 0
+    doc = json.loads((root / "comp" / "compensation.json").read_text())
+    assert doc["projector_count"] == 2 and len(doc["projectors"]) == 2 and doc["mode"] == "closed-loop"
+    for t in doc["targets"]:
+        assert [p["frame"] for p in t["projectors"]] == [f"{t['name']}_frame_p1.png", f"{t['name']}_frame_p2.png"]
+        assert sum(p["share"] for p in t["projectors"]) == pytest.approx(1.0, abs=0.01)
+        assert min(p["share"] for p in t["projectors"]) > 0.2  # both projectors carry the image
+        for k, p in enumerate(t["projectors"]):
+            frame = read_image(root / "comp" / p["frame"])
+            assert frame.shape[1::-1] == tuple(doc["projectors"][k]["frame_size"])
+    assert compensate_step.read(root / "comp").targets[0].frame_path.name == "city_frame_p1.png"
+    assert procam(["evaluate", str(root / "cal"), "--inputs", str(root / "comp"), "--targets", *map(str, targets),
+                   "--device", device, "--out", str(root / "eval")]) == 0
+    out = capsys.readouterr().out
+    assert "2 projectors: PSNR inside the overlap" in out
+    metrics = json.loads((root / "eval" / "metrics.json").read_text())
+    m, u = metrics["mean"], metrics["mean_uncompensated"]
+    assert m["psnr"] > u["psnr"] + 5 and m["psnr_overlap"] > u["psnr_overlap"] + 5
+    # the joint solve blends the overlap: no worse than where one projector lights alone, and no seam at its edge
+    assert m["psnr_overlap"] > m["psnr_outside"] - 0.5
+    assert m["seam_step"] < u["seam_step"]
+    # a one-projector schedule or a one-projector device is refused, saying why
+    assert procam(["compensate", str(root / "cal"), str(targets[0]), "--schedule", "fast", "--out",
+                   str(root / "fast")]) == 2
+    assert "--schedule transport" in capsys.readouterr().err
+    assert not (root / "fast").exists()
+
+
+def test_each_projector_is_diagnosed_on_its_own_patterns(two_projectors):
+    from procam.addon.steps import diagnose as diagnose_step
+
+    root, _ = two_projectors
+    doc = diagnose_step.run(diagnose_step.DiagnoseOptions(root / "cal", root / "diag", scale=0.5, spp=8,
+                                                          effects="response,vignetting", max_effects=2))
+    assert doc["projector_count"] == 2 and len(doc["projectors"]) == 2
+    for k in (1, 2):
+        assert (root / "diag" / f"projector_{k}" / "gap.json").is_file()
+        assert (root / "diag" / f"projector_{k}" / "residual_abs.png").is_file()
+    # projector 2 alone has a tone curve (and none of projector 1's vignetting): the verdict names one of them
+    assert doc["differs"] is not None
+    assert (doc["differs"]["projector"], doc["differs"]["effect"]) in ((2, "response"), (1, "vignetting"))
+    assert diagnose_step.summary(root / "diag").headline == doc["headline"]
