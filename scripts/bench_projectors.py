@@ -106,11 +106,13 @@ class Harness:
     def solve(self, joint: JointCompensator, fitted: np.ndarray, area: Any, how: str) -> Any:
         args = self.options.run_arguments()
         args.pop("schedule")
-        common = {"biases": self.stage.biases, "black": self.stage.black, **args}
-        if how == "ramps":
+        open_loop = {"biases": self.stage.biases, "black": self.stage.black}
+        if how.startswith("ramps"):
             args.pop("capture_every", None)
-            return ramp_baseline(joint, fitted, area, **common)
-        return joint.run(fitted, area, blend=how, **common)
+            if how == "ramps-closed":
+                return ramp_baseline(joint, fitted, area, device=self.device, **args)
+            return ramp_baseline(joint, fitted, area, **open_loop, **args)
+        return joint.run(fitted, area, blend=how, **open_loop, **args)
 
     def close(self) -> None:
         self.device.close()
@@ -135,7 +137,7 @@ def side(work: Path, surface: str, args: argparse.Namespace) -> None:
         step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
               f"lab:{truth_path}", "--out", str(ev)], ev)
         closed = json.loads((ev / "metrics.json").read_text())
-        rows: dict[str, list[dict[str, Any]]] = {"derived": [], "none": [], "ramps": []}
+        rows: dict[str, list[dict[str, Any]]] = {"derived": [], "none": [], "ramps": [], "ramps-closed": []}
         for path in paths:
             fitted, area = h.fitted(path)
             for how in rows:
@@ -151,14 +153,16 @@ def side(work: Path, surface: str, args: argparse.Namespace) -> None:
     for label, r in (("uncompensated (split evenly)", u), ("ours, closed loop", m)):
         print(f"| {label} | {r['psnr']:.2f} | {r['psnr_overlap']:.2f} | {r['psnr_outside']:.2f} | "
               f"{r['psnr_border']:.2f} | {r['seam_step']:.4f} |")
-    for how, label in (("derived", "ours, open loop"), ("none", "ours, open loop, no blend prior"),
+    for how, label in (("ramps-closed", "each alone on edge-blend ramps, closed loop each"),
+                       ("derived", "ours, open loop"), ("none", "ours, open loop, no blend prior"),
                        ("ramps", "each alone on edge-blend ramps, open loop")):
         r = rows[how]
         print(f"| {label} | {mean(r, 'psnr'):.2f} | {mean(r, 'psnr_overlap'):.2f} | {mean(r, 'psnr_outside'):.2f} | "
               f"{mean(r, 'psnr_border'):.2f} | {mean(r, 'seam_step'):.4f} |")
-    d, ramps = rows["derived"], rows["ramps"]
-    print(f"inside the overlap: closed loop {m['psnr_overlap'] - m['psnr_outside']:+.2f} dB against outside it; open "
-          f"loop ours {mean(d, 'psnr_overlap') - mean(ramps, 'psnr_overlap'):+.2f} dB against the ramps")
+    d, ramps, closed_ramps = rows["derived"], rows["ramps"], rows["ramps-closed"]
+    print(f"inside the overlap: ours closed loop {m['psnr_overlap'] - m['psnr_outside']:+.2f} dB against outside it, "
+          f"{m['psnr_overlap'] - mean(closed_ramps, 'psnr_overlap'):+.2f} dB against the ramps closed loop; open "
+          f"loop ours {mean(d, 'psnr_overlap') - mean(ramps, 'psnr_overlap'):+.2f} dB against the ramps open loop")
 
 
 def stacked(work: Path, surface: str, args: argparse.Namespace) -> None:

@@ -162,7 +162,8 @@ FLAGS = {
                "--device --force --input-height --input-width --layout --no-exposure-check --no-graycode "
                "--no-validation --out --projector-height --projector-width --restart --rig --seed --shift-x --shift-y "
                "--throw-ratio",
-    "demo": "--effects --force --full --iterations --out --projectors --samples --scale --schedule --seed --surface --targets",
+    "demo": "--effects --force --full --iterations --out --projectors --samples --scale --schedule --seed --surface "
+            "--targets",
     "evaluate": "--classical --device --force --inputs --no-repeat --out --target-encoding --targets",
     "export-frames": "--first --force --out",
     "import-captures": "--camera-fov --camera-height --camera-width --depth --depth-native-height "

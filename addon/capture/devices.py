@@ -97,6 +97,31 @@ class Device(ABC):
         self.close()
 
 
+class OneProjector(Device):
+    """Projector ``index`` of a device of several, the others showing black: how each projector of a rig is captured
+    on its own (its sequence, or its own closed loop), through a device that shows them all at once. Closing it
+    leaves the device open (its owner closes it)."""
+
+    def __init__(self, device: Device, index: int) -> None:
+        count = len(device.projectors)
+        if not 0 <= index < count:
+            raise CaptureError(f"the device shows {count} projector(s); there is no projector {index + 1}")
+        self.device, self.index = device, index
+        self.projector = device.projectors[index]
+
+    def _black(self, k: int) -> np.ndarray:
+        w, h = self.device.projectors[k].intrinsics.size
+        return np.zeros((h, w, 3), np.float32)
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        frame = self.check_frame(frame)
+        return self.device.project_all([frame if k == self.index else self._black(k)
+                                        for k in range(len(self.device.projectors))])
+
+    def capture_off(self) -> np.ndarray:
+        return self.device.capture_off()
+
+
 def capture_sequence(device: Device, sequence: Sequence[PatternSpec], out_dir: str | Path, camera: Camera, *,
                      force: bool = False, depth: np.ndarray | None = None, depth_info: DepthInfo | None = None,
                      notes: dict[str, Any] | None = None, **writer_args: Any) -> CaptureSet:

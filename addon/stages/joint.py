@@ -59,7 +59,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from ..capture.devices import Device
+from ..capture.devices import Device, OneProjector
 from ..progress import Cancel, Progress
 from .bias import BiasModel
 from .compensate import CompensationResult, Compensator
@@ -583,35 +583,46 @@ def ramp_baseline(joint: JointCompensator, target: np.ndarray, area: DisplayArea
                   schedule: str | Schedule = "transport", biases: Sequence[BiasModel] | None = None,
                   use_bias: bool = True, black: np.ndarray | None = None, iterations_z: int | None = None,
                   iterations_joint: int | None = None, progress: Progress | None = None,
-                  cancel: Cancel | None = None, name: str = "target") -> JointResult:
+                  cancel: Cancel | None = None, name: str = "target", device: Device | None = None) -> JointResult:
     """The blend users know, for comparison: each projector compensated alone (its own transport solve) on the
     target times a linear edge-blend ramp across the overlap, in the open loop or with no θ. The ramps are the
     classic distance blend (:func:`blend_shares` with every certainty 1): across a strip-shaped overlap each falls
     linearly from 1 to 0, they sum to 1, and outside the overlap the one projector lighting a pixel has all of it.
     Projector k's solve asks for its ramp's share of target + θ, so the sum of what they show is the target. The
-    answer is a :class:`JointResult`, measured as the joint solve's."""
+    answer is a :class:`JointResult`, measured as the joint solve's. With ``device`` (one showing every projector)
+    each projector runs its own closed loop with the others black (:class:`~..capture.devices.OneProjector`), as
+    projectors are compensated one by one before they are blended: each loop's θ then holds the others' black
+    level and the room once more, which the overlap shows K times (the black uplift edge blending is known for)."""
     t_start = time.perf_counter()
     say = progress or (lambda msg, frac: None)
     comps = joint.compensators
     area, placed = joint._place(target, area, name)
-    mode, gains, theta = joint._mode(None, use_bias, biases, black)
+    if device is not None:
+        joint._check_device(device)
+    mode, gains, theta = joint._mode(None, use_bias and device is None, biases, black)
+    if device is not None and use_bias:
+        mode = "closed-loop"
     ramps = blend_shares(joint.operators)
-    zs, losses, seconds_device = [], [], 0.0
+    zs, losses, seconds_device, captures = [], [], 0.0, 0
     for k, (comp, g, ramp) in enumerate(zip(comps, gains, ramps)):
         share = np.asarray(ramp, np.float32)[..., None]
         own = BiasModel(share * theta, g, "ramp share")
         res: CompensationResult = comp.run(area.crop(share * placed), area, schedule=schedule,
                                            iterations_z=iterations_z, iterations_joint=iterations_joint,
-                                           open_loop_theta=own, use_bias=mode != "none", progress=say,
+                                           open_loop_theta=None if mode == "closed-loop" else own,
+                                           device=OneProjector(device, k) if mode == "closed-loop" else None,
+                                           use_bias=mode != "none", progress=say,
                                            cancel=cancel, name=f"{name}, projector {k + 1}", verify=False)
         zs.append(res.z)
         losses.extend(res.losses)
+        captures += res.captures
+        seconds_device += float(res.report.get("seconds_device") or 0.0)
     views = [comp.transport_view(area) for comp in comps]
     stacked = JointRows(views, [None if g is None else g.reshape(-1, 3)[views[0].rows] for g in gains])
     report = {"solver": "each projector alone on its edge-blend ramp of the target (transport schedule)",
               "blend": "ramps", "bias": joint.last_bias}
     return _finish(comps, stacked, zs, theta.reshape(-1, 3)[stacked.rows], placed, area, joint.overlap(), losses,
-                   mode, 0, report, t_start, seconds_device)
+                   mode, captures, report, t_start, seconds_device)
 
 
 __all__ = ["BLENDS", "BLEND_WEIGHT", "JointCompensator", "JointResult", "JointRows", "JointSolve",
