@@ -39,11 +39,13 @@ def apply_view(context: bpy.types.Context, view: CalibrationView) -> str:
     for name, image in view.images.items():
         blender_rig.set_image(IMAGE_PREFIX + name, image)
     context.scene.procam_calibration_dir = str(view.folder)
-    pos = objs.projector.matrix_world.translation
     todo = f"; still to run: {', '.join(cal.missing_stages)}" if cal.missing_stages else ""
     todo += "".join(f"; warning: {w}" for w in cal.warnings)
-    return (f"Calibration {view.folder.name}: {objs.projector.name!r} "
-            f"{'at' if posed else 'left at'} ({pos[0]:+.3f}, {pos[1]:+.3f}, {pos[2]:+.3f}), surface "
+    # every projector of the calibration, in rig order (one: the scene's only one)
+    placed = ", ".join(f"{o.name!r} {'at' if posed else 'left at'} "
+                       f"({o.matrix_world.translation[0]:+.3f}, {o.matrix_world.translation[1]:+.3f}, "
+                       f"{o.matrix_world.translation[2]:+.3f})" for o in objs.projectors)
+    return (f"Calibration {view.folder.name}: {placed}, surface "
             f"{len(cal.surface.faces)} faces, {len(view.images)} images{todo}")
 
 

@@ -29,6 +29,14 @@ from .live import WINDOW_NEEDS_MAIN_THREAD, live_device
 from .messages import sidebar_text
 
 
+def input_images(target: compensate_step.CompensatedTarget) -> list[tuple[str, Path]]:
+    """The Blender names and files of a target's compensated inputs: ``ProCam NAME input`` for one projector,
+    ``ProCam NAME input pK`` for each of several (K from 1)."""
+    if len(target.input_paths) == 1:
+        return [(f"ProCam {target.name} input", target.input_path)]
+    return [(f"ProCam {target.name} input p{k + 1}", path) for k, path in enumerate(target.input_paths)]
+
+
 def scene_device(scene: bpy.types.Scene) -> str | None:
     """The device Compensate's mode names: the Live panel's rig in Live mode, else the Device field (None: empty)."""
     if scene.procam_compensation_mode == "LIVE":
@@ -119,10 +127,23 @@ class PROCAM_OT_compensate(_DeviceJob, bpy.types.Operator):
     def apply(self, context: bpy.types.Context, result: object) -> str:
         view: compensate_step.CompensationView = result
         for t in view.targets:
-            blender_rig.load_image_file(t.input_path, f"ProCam {t.name} input")
+            for name, path in input_images(t):
+                blender_rig.load_image_file(path, name)
             blender_rig.load_image_file(t.simulated_path, f"ProCam {t.name} simulated")
         context.scene.procam_compensation_dir = str(view.folder)
-        return f"Compensated {len(view.targets)} target(s) ({view.mode}) into {view.folder}"
+        count = view.projector_count
+        if count == 1:
+            return f"Compensated {len(view.targets)} target(s) ({view.mode}) into {view.folder}"
+        shown, scene_count = "", len(blender_rig.find_rig_objects(context.scene).projectors)
+        if view.targets and scene_count == count:
+            # each projector shows its own frame of the first target, as Preview on Projector puts them
+            blender_rig.set_projector_frames(context.scene, view.targets[0].frame_paths)
+            shown = f"; each projector shows its frame of {view.targets[0].name} (render F12 to preview)"
+        elif view.targets:
+            shown = (f"; the scene has {scene_count} ProCam projector(s): Load Calibration to see each projector's "
+                     "frame")
+        return (f"Compensated {len(view.targets)} target(s) on {count} projectors ({view.mode}) into "
+                f"{view.folder}{shown}")
 
 
 class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
@@ -157,7 +178,11 @@ class PROCAM_OT_evaluate(_DeviceJob, bpy.types.Operator):
         folder = paths.resolve(context.scene.procam_evaluation_dir, "evaluation folder")
         for name, image in evaluate_step.read(folder).comparisons():
             blender_rig.load_image_file(image, f"ProCam {name} comparison")
-        return f"Evaluation: {evaluate_step.summary(folder).headline}"
+        summary = evaluate_step.summary(folder)
+        # several projectors: the figures inside and outside their overlap, not only the area's mean
+        overlap = [line for line in summary.lines if line.endswith("(uncompensated → compensated)")
+                   and " projectors: " in line]
+        return f"Evaluation: {summary.headline}" + "".join(f"; {line}" for line in overlap)
 
 
 class PROCAM_OT_prepare_show(_DeviceJob, bpy.types.Operator):
@@ -261,7 +286,8 @@ class PROCAM_OT_remove_target(bpy.types.Operator):
 
 
 class PROCAM_OT_preview_compensated(bpy.types.Operator):
-    """Put a compensated projector frame on the ProCam Projector; render (F12) to preview it on the surface"""
+    """Put a compensated projector frame on the ProCam Projector (each projector its own, with several); render
+    (F12) to preview it on the surface"""
 
     bl_idname = "procam.preview_compensated"
     bl_label = "Preview on Projector"
@@ -290,11 +316,15 @@ class PROCAM_OT_preview_compensated(bpy.types.Operator):
                 names = ", ".join(t.name for t in view.targets) or "none"
                 raise ProCamError(f"no compensated target {self.target!r} in {view.folder} (finished: {names})")
             t = chosen[0]
-            projector = blender_rig.find_rig_objects(scene).projector
-            image = blender_rig.set_projector_image(projector, t.frame_path)
+            if len(t.frame_paths) > 1:  # several projectors: each shows its own frame, or none changes
+                images = blender_rig.set_projector_frames(scene, t.frame_paths)
+            else:
+                projector = blender_rig.find_rig_objects(scene).projector
+                images = [blender_rig.set_projector_image(projector, t.frame_path)]
         except ProCamError as exc:
             self.report({"ERROR"}, sidebar_text(str(exc)))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Projector shows the compensated {t.name} ({image.size[0]}×{image.size[1]}); "
-                              "render (F12) to preview it on the surface")
+        sizes = ", ".join(f"{i.size[0]}×{i.size[1]}" for i in images)
+        who = "Projector shows" if len(images) == 1 else f"Each of the {len(images)} projectors shows its frame of"
+        self.report({"INFO"}, f"{who} the compensated {t.name} ({sizes}); render (F12) to preview it on the surface")
         return {"FINISHED"}

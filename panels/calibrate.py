@@ -42,7 +42,21 @@ class PROCAM_PT_calibrate(bpy.types.Panel):
             sub = layout.column(align=True)
             sub.label(text="Diagnostic images:")
             root = bpy.path.abspath(scene.procam_calibration_dir)
-            for name in summary.data["diagnostics"]:
-                op = sub.operator("procam.show_image", text=name.removesuffix(".png"), icon="IMAGE_DATA")
-                op.filepath = f"{root.rstrip('/')}/diagnostics/{name}"
-                op.name = f"ProCam Calibration {name.removesuffix('.png')}"
+            count = int(summary.data.get("projectors", 1))
+            for k, names in enumerate(by_projector(summary.data["diagnostics"], count)):
+                if count > 1:  # several projectors: each one's images under its number
+                    sub.label(text=f"Projector {k + 1}:", icon="LIGHT_SPOT")
+                for name in names:
+                    op = sub.operator("procam.show_image", text=name.removesuffix(".png"), icon="IMAGE_DATA")
+                    op.filepath = f"{root.rstrip('/')}/diagnostics/{name}"
+                    op.name = f"ProCam Calibration {name.removesuffix('.png')}"
+
+
+def by_projector(names: list[str], count: int) -> list[list[str]]:
+    """The diagnostic image names of each projector: projector k ≥ 2's carry the prefix ``pK_``, the first's none."""
+    out: list[list[str]] = [[] for _ in range(max(1, count))]
+    for name in names:
+        head = name.split("_", 1)[0]
+        k = int(head[1:]) - 1 if count > 1 and head[:1] == "p" and head[1:].isdigit() else 0
+        out[k if 0 <= k < len(out) else 0].append(name)
+    return out

@@ -58,11 +58,19 @@ class PROCAM_PT_compensate(bpy.types.Panel):
             return
         root = bpy.path.abspath(scene.procam_compensation_dir).rstrip("/")
         col = layout.column(align=True)
+        count = int(summary.data.get("projector_count", 1))
+        if count > 1:  # every projector has its own input: one button each, numbered as the rig counts them
+            col.label(text=f"Inputs of projectors 1–{count}; Preview puts each on its projector", icon="LIGHT_SPOT")
         for t in summary.data.get("targets", []):
             row = col.row(align=True)
             row.label(text=t["name"])
-            op = row.operator("procam.show_image", text="", icon="IMAGE_DATA")
-            op.filepath, op.name = f"{root}/{t['input']}", f"ProCam {t['name']} input"
+            several = t.get("projectors") if count > 1 and isinstance(t.get("projectors"), list) else None
+            if several is None:
+                op = row.operator("procam.show_image", text="", icon="IMAGE_DATA")
+                op.filepath, op.name = f"{root}/{t['input']}", f"ProCam {t['name']} input"
+            for k, p in enumerate(several or []):
+                op = row.operator("procam.show_image", text=str(k + 1), icon="IMAGE_DATA")
+                op.filepath, op.name = f"{root}/{p.get('input', '')}", f"ProCam {t['name']} input p{k + 1}"
             op = row.operator("procam.show_image", text="", icon="CAMERA_DATA")
             op.filepath, op.name = f"{root}/{t['simulated']}", f"ProCam {t['name']} simulated"
             row.operator("procam.preview_compensated", text="", icon="LIGHT_SPOT").target = t["name"]

@@ -5,6 +5,7 @@ from dataclasses import replace
 import bpy
 
 from ..addon.steps import diagnose as diagnose_step
+from ..addon.steps.summary import Summary
 from ..addon.steps.summary import fmt as _num
 from ..operators.messages import DIAGNOSE_FIELDS, sidebar_text
 from .step_state import draw_state, wrapped
@@ -34,6 +35,11 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         layout.operator("procam.diagnose", icon="VIEWZOOM")
         if not done:
             return
+        if summary.data.get("projector_count", 1) > 1:
+            # several projectors: the headline names the one that differs, a line per projector is drawn above;
+            # each projector's effects and regions are in its own folder (its maps below, its summary in Open)
+            draw_files(layout, scene, summary)
+            return
         selected = set(summary.data["selected"])
         box = layout.box()
         box.label(text="Effects (selected first, as the diagnosis ranks them):")
@@ -50,13 +56,23 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         for r in summary.data["regions"]:
             wrapped(box, f"{100 * float(r.get('share', 0) or 0):.0f}% {r.get('description', '')} "
                          f"{tuple(r.get('bbox', ()))}", icon="SELECT_SET")
-        root = bpy.path.abspath(scene.procam_diagnosis_dir).rstrip("/")
-        if summary.data.get("summary"):
-            op = layout.operator("procam.show_text", text="Open Summary", icon="TEXT")
-            op.filepath, op.name = f"{root}/{summary.data['summary']}", "ProCam diagnosis summary"
-        if summary.data["maps"]:
-            col = layout.column(align=True)
-            col.label(text="Residual maps:")
-            for rel in summary.data["maps"]:
-                op = col.operator("procam.show_image", text=rel.removesuffix(".png"), icon="IMAGE_DATA")
-                op.filepath, op.name = f"{root}/{rel}", f"ProCam diagnosis {rel.removesuffix('.png')}"
+        draw_files(layout, scene, summary)
+
+
+def draw_files(layout: bpy.types.UILayout, scene: bpy.types.Scene, summary: Summary) -> None:
+    """The summary text and the residual maps (with several projectors, under each projector's number)."""
+    root = bpy.path.abspath(scene.procam_diagnosis_dir).rstrip("/")
+    if summary.data.get("summary"):
+        op = layout.operator("procam.show_text", text="Open Summary", icon="TEXT")
+        op.filepath, op.name = f"{root}/{summary.data['summary']}", "ProCam diagnosis summary"
+    if summary.data["maps"]:
+        col = layout.column(align=True)
+        col.label(text="Residual maps:")
+        folder = None
+        for rel in summary.data["maps"]:
+            if "/" in rel and rel.split("/", 1)[0] != folder:  # projector_K/…: a heading per projector
+                folder = rel.split("/", 1)[0]
+                col.label(text=folder.replace("projector_", "Projector ") + ":", icon="LIGHT_SPOT")
+            op = col.operator("procam.show_image", text=rel.removesuffix(".png").split("/")[-1],
+                              icon="IMAGE_DATA")
+            op.filepath, op.name = f"{root}/{rel}", f"ProCam diagnosis {rel.removesuffix('.png')}"

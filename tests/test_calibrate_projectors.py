@@ -235,3 +235,33 @@ def test_the_scene_holds_every_projector(two, tmp_path, run_python):
     assert len(poses) == 2
     for k in range(2):
         np.testing.assert_allclose(poses[k], cal.rig.projectors[k].camera_from_projector, atol=1e-4)
+
+
+def test_a_projector_left_on_during_anothers_sequence_is_refused_by_name(tmp_path):
+    """Projector 2 showed grey while projector 1's black capture was taken: calibrate refuses, naming both, before
+    any stage runs (the set has no Gray code or checkerboard: the check comes first), and writes nothing."""
+    from procam.addon.errors import CaptureError
+
+    rig = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2).rig
+    shape = (48, 64, 3)
+    left, right = np.zeros(shape), np.zeros(shape)
+    left[:, :36], right[:, 28:] = 0.6, 0.6  # projector 1 lights the left, projector 2 the right
+    rng = np.random.default_rng(3)
+
+    def write(path: Path, leak: float) -> Path:
+        with CaptureSet.writer(path, rig.camera, rig.projector, others=rig.others) as w:
+            for k, (proj, light) in enumerate(zip(rig.projectors, (left, right))):
+                size = (*proj.intrinsics.size[::-1], 3)
+                on = leak * right if k == 0 else 0.0
+                w.add("black", np.clip(0.02 + on + rng.normal(0, 0.01, shape), 0, 1), projector_index=k,
+                      frame=np.zeros(size))
+                w.add("white", np.clip(0.02 + light + on + rng.normal(0, 0.01, shape), 0, 1), projector_index=k,
+                      frame=np.ones(size))
+        return path
+
+    with pytest.raises(CaptureError, match="projector 2 was not black while projector 1's captures were taken"):
+        calibrate_step.run(CalibrateOptions(write(tmp_path / "leak", 0.5), tmp_path / "cal", with_blend=False))
+    assert not (tmp_path / "cal").exists()
+    # the same set taken properly gets past the check, to the next refusal (no pattern for stage B)
+    with pytest.raises(CalibrationError, match="neither a checkerboard nor Gray-code"):
+        calibrate_step.run(CalibrateOptions(write(tmp_path / "fine", 0.0), tmp_path / "cal", with_blend=False))

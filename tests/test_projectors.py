@@ -158,3 +158,64 @@ def test_each_projector_is_diagnosed_on_its_own_patterns(two_projectors):
     assert doc["differs"] is not None
     assert (doc["differs"]["projector"], doc["differs"]["effect"]) in ((2, "response"), (1, "vignetting"))
     assert diagnose_step.summary(root / "diag").headline == doc["headline"]
+
+
+def test_a_projector_whose_light_misses_the_area_shows_black_and_the_others_go_on(two_projectors, tmp_path):
+    """A user area that only projector 1 reaches (projector 1 lights columns 16–68 of the 128×96 camera, projector 2
+    56–111): the target is solved on projector 1, projector 2's frame is black with no share of the light, and the
+    record and the summary say so; an area neither reaches is refused, nothing written."""
+    import json
+
+    from procam.addon.stages.compensate import CompensationError
+    from procam.addon.imageio import read_image
+    from procam.addon.steps import compensate as compensate_step
+    from procam.addon.steps.stage_c import StageCOptions
+
+    root, targets = two_projectors
+    out = tmp_path / "left"
+    compensate_step.run(compensate_step.CompensateOptions(root / "cal", (targets[0],), out, StageCOptions(
+        iterations=10, area=(20, 30, 30, 30))))
+    t = json.loads((out / "compensation.json").read_text())["targets"][0]
+    assert t["status"] == "done" and [p["share"] for p in t["projectors"]] == [1.0, 0.0]
+    assert any(w.startswith("projector 2 lights nothing inside the display area") for w in t["warnings"])
+    assert read_image(out / "city_frame_p2.png").max() == 0.0 and read_image(out / "city_frame_p1.png").max() > 0.1
+    assert t["psnr_simulated"] > t["psnr_simulated_start"]
+    assert "projector 2 lights nothing" in " ".join(compensate_step.summary(out).lines)
+    with pytest.raises(CompensationError, match="none of the 2 projectors lights the display area"):
+        compensate_step.run(compensate_step.CompensateOptions(root / "cal", (targets[0],), tmp_path / "none",
+                                                              StageCOptions(iterations=10, area=(0, 0, 10, 10))))
+    assert not (tmp_path / "none").exists()
+
+
+def test_inputs_of_another_number_of_projectors_are_refused_before_projecting(two_projectors, tmp_path, capsys):
+    """A two-projector compensation evaluated with a one-projector calibration, and a one-projector one with the
+    two-projector calibration: refused, naming both numbers, nothing written."""
+    import json
+    import shutil
+
+    from procam.addon.cli.app import main as procam
+    from procam.addon.steps.calibrate import read as read_calibration
+    from procam.addon.steps.evaluate import CompensationInputs, MismatchError
+
+    root, targets = two_projectors
+    cal = read_calibration(root / "cal")
+    comp = tmp_path / "comp"
+    assert procam(["compensate", str(root / "cal"), str(targets[0]), "--iterations", "4", "--out", str(comp)]) == 0
+    inputs = CompensationInputs.load(comp)
+    inputs.check_against(cal)  # its own calibration: accepted
+    with pytest.raises(MismatchError, match="are for 2 projector.*the calibration has 1"):
+        inputs.check_against(cal.for_projector(0))
+    one = tmp_path / "one"  # the same folder as one projector's: the projectors list dropped
+    shutil.copytree(comp, one)
+    doc = json.loads((one / "compensation.json").read_text())
+    del doc["projectors"]
+    for t in doc["targets"]:
+        del t["projectors"]
+    (one / "compensation.json").write_text(json.dumps(doc))
+    with pytest.raises(MismatchError, match="are for 1 projector.*the calibration has 2"):
+        CompensationInputs.load(one).check_against(cal)
+    device = f"lab:{root / 'lab.truth.json'}"
+    assert procam(["evaluate", str(root / "cal"), "--inputs", str(one), "--targets", str(targets[0]), "--device",
+                   device, "--out", str(tmp_path / "eval")]) == 2
+    assert "are for 1 projector(s), but the calibration has 2" in capsys.readouterr().err
+    assert not (tmp_path / "eval").exists()

@@ -720,6 +720,30 @@ def set_projector_image(obj: bpy.types.Object, frame: np.ndarray | str | Path) -
     which case it is placed at the input offset in a black frame.
     """
     node = _projector_frame_node(obj)
+    return _show_frame(obj, node, _native_frame(obj, frame))
+
+
+def set_projector_frames(scene: bpy.types.Scene, frames: Sequence[np.ndarray | str | Path]) -> list[bpy.types.Image]:
+    """Every ProCam projector of the scene shows its own frame: ``frames[k]`` on projector k (rig order).
+
+    All frames are read and checked against their projector first: a wrong count or size changes no projector.
+    """
+    objs = find_rig_objects(scene)
+    if len(objs.projectors) != len(frames):
+        raise RigError(f"the scene has {len(objs.projectors)} ProCam projector(s), but there are frames for "
+                       f"{len(frames)}: load the calibration they were made with (ProCam ▸ Load Calibration)")
+    nodes = [_projector_frame_node(o) for o in objs.projectors]
+    full = []
+    for k, (obj, frame) in enumerate(zip(objs.projectors, frames)):
+        try:
+            full.append(_native_frame(obj, frame))
+        except ImageError as exc:
+            raise ImageError(f"projector {k + 1} ({obj.name!r}): {exc}") from None
+    return [_show_frame(o, n, f) for o, n, f in zip(objs.projectors, nodes, full)]
+
+
+def _native_frame(obj: bpy.types.Object, frame: np.ndarray | str | Path) -> np.ndarray:
+    """A frame for the projector ``obj`` at its native size, checked (a frame of its input size is placed)."""
     p = _props(obj)
     w, h = int(p["width"]), int(p["height"])
     if isinstance(frame, (str, Path)):
@@ -736,15 +760,18 @@ def set_projector_image(obj: bpy.types.Object, frame: np.ndarray | str | Path) -
         raise ImageError("the projector frame holds NaN or infinite values")
     iw, ih = (int(v) for v in p.get("input_size", (w, h)))
     if img.shape[:2] == (h, w):
-        full = img
-    elif img.shape[:2] == (ih, iw):
-        projector = read_projector_from_object(obj)
-        full = projector.frame_from_input(img)
-    else:
-        size = f"{w}×{h}" + (f" (native) or {iw}×{ih} (input)" if (iw, ih) != (w, h) else "")
-        raise ImageError(f"the projector frame must be {size} pixels, got {img.shape[1]}×{img.shape[0]}; "
-                         "resize it or use the projector's resolution")
-    image = _image_from_array(PROJECTOR_IMAGE_NAME, np.clip(full, 0.0, None), image=node.image)
+        return img
+    if img.shape[:2] == (ih, iw):
+        return read_projector_from_object(obj).frame_from_input(img)
+    size = f"{w}×{h}" + (f" (native) or {iw}×{ih} (input)" if (iw, ih) != (w, h) else "")
+    raise ImageError(f"the projector frame must be {size} pixels, got {img.shape[1]}×{img.shape[0]}; "
+                     "resize it or use the projector's resolution")
+
+
+def _show_frame(obj: bpy.types.Object, node: Any, full: np.ndarray) -> bpy.types.Image:
+    # a new image (another size) keeps the projector's own image name: several projectors never share one
+    name = node.image.name if node.image is not None else PROJECTOR_IMAGE_NAME
+    image = _image_from_array(name, np.clip(full, 0.0, None), image=node.image)
     if node.image is not image:
         old = node.image
         node.image = image

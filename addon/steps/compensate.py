@@ -199,6 +199,15 @@ class CompensatedTarget:
     psnr_simulated: float
     seconds: float
     mode: str
+    #: every projector's native frame and input, in rig order (one projector: ``frame_path`` and ``input_path``)
+    frame_paths: tuple[Path, ...] = ()
+    input_paths: tuple[Path, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.frame_paths:
+            self.frame_paths = (self.frame_path,)
+        if not self.input_paths:
+            self.input_paths = (self.input_path,)
 
 
 @dataclass
@@ -213,6 +222,12 @@ class CompensationView:
     def mode(self) -> str | None:
         mode = self.doc.get("mode")
         return mode if isinstance(mode, str) else None
+
+    @property
+    def projector_count(self) -> int:
+        """How many projectors the frames are for (1 for a folder of one projector)."""
+        several = self.doc.get("projectors")
+        return len(several) if isinstance(several, list) and several else 1
 
 
 def read(folder: str | Path) -> CompensationView:
@@ -233,8 +248,12 @@ def read(folder: str | Path) -> CompensationView:
             # The files a record names are this folder's own: never a path that leads out of it.
             image, frame, simulated = (inside(folder, t[key], what=f"the {key} image of target {name!r}")
                                        for key in ("input", "frame", "simulated"))
+            several = t.get("projectors") if isinstance(t.get("projectors"), list) else []
+            frames, inputs = (tuple(inside(folder, p[key], what=f"the {key} image of projector {k + 1} of target "
+                                                                 f"{name!r}") for k, p in enumerate(several))
+                              for key in ("frame", "input"))
             out.append(CompensatedTarget(name, image, frame, simulated, float(t.get("psnr_simulated", float("nan"))),
-                                         float(t.get("seconds", 0.0)), str(t.get("mode", ""))))
+                                         float(t.get("seconds", 0.0)), str(t.get("mode", "")), frames, inputs))
         except (KeyError, TypeError, ValueError) as exc:
             raise ProCamError(f"{path}: a target record is malformed ({exc})") from None
     return CompensationView(folder, doc, out)
@@ -248,16 +267,34 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     if isinstance(effects, dict):
         lines.append(f"effect models: {', '.join(effects.get('used') or []) or 'none'}"
                      + (f"; not inverted: {', '.join(effects['not_inverted'])}" if effects.get("not_inverted") else ""))
+    several = doc.get("projectors") if isinstance(doc.get("projectors"), list) else []
+    count = len(several) or 1
     for t in targets:
         if t.get("status") == "done":
             lines.append(f"{t['name']}: simulated PSNR {fmt(t.get('psnr_simulated_start'), '.1f')} → "
                          f"{fmt(t.get('psnr_simulated'), '.1f')} dB in the display area, {t.get('mode', '?')}, "
-                         f"{fmt(t.get('seconds'), '.1f', ' s')}")
+                         f"{fmt(t.get('seconds'), '.1f', ' s')}" + _shares(t, count))
         else:
             lines.append(f"{t.get('name', '?')}: {t.get('status', '?')} — {t.get('error', '')}")
+        if count > 1:  # what several projectors warn of (one that lights nothing in the area) is said here
+            lines += [f"{t.get('name', '?')}: warning: {w}" for w in (t.get("warnings") or [])]
     mode = doc.get("mode")
     head = f"{len(done)}/{len(targets)} targets compensated ({mode if isinstance(mode, str) else 'mixed modes'})"
-    return Summary(True, head, tuple(lines), {"targets": done, "complete": doc.get("complete", True)})
+    if count > 1:
+        head += f" on {count} projectors"
+    return Summary(True, head, tuple(lines), {"targets": done, "complete": doc.get("complete", True),
+                                             "projector_count": count})
+
+
+def _shares(record: dict[str, Any], count: int) -> str:
+    """Each projector's share of the light of a target of several projectors ("" for one)."""
+    several = record.get("projectors") if isinstance(record.get("projectors"), list) else []
+    if count < 2 or not several:
+        return ""
+    shares = [p.get("share") if isinstance(p, dict) else None for p in several]
+    return "; share of the light " + ", ".join(
+        f"projector {k + 1} {fmt(100 * v if isinstance(v, (int, float)) else None, '.0f', '%')}"
+        for k, v in enumerate(shares))
 
 
 def summary(folder: str | Path) -> Summary:

@@ -275,6 +275,7 @@ def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
     head = str(doc.get("headline") or "")
     maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
     return Summary(True, head, tuple(lines), {"effects": [], "selected": doc.get("selected") or [], "regions": [],
+                                              "projector_count": int(doc.get("projector_count") or 1),
                                               "maps": maps, "summary": layout.DIAGNOSIS_SUMMARY,
                                               "notes": [head], "brief": len(lines)})
 

@@ -44,6 +44,10 @@ def run_frames(options: ExportFramesOptions, progress: Progress | None = None, c
     view = compensate_step.read(options.compensation)
     if not view.targets:
         raise ImageError(f"{options.compensation} holds no finished targets to export; run Compensate first")
+    if view.projector_count > 1:  # one sequence of projector 1's frames would pass for the whole show
+        raise ImageError(f"{options.compensation} holds the frames of {view.projector_count} projectors; exporting "
+                         "them as numbered sequences is not implemented yet for several projectors: each "
+                         "projector's frame of target NAME is NAME_frame_pK.png in that folder (K from 1)")
     for t in view.targets:
         if not t.frame_path.is_file():
             raise ImageError(f"compensated frame {t.frame_path} is missing; run Compensate again")

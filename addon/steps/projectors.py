@@ -33,7 +33,7 @@ refused with a message (not built yet for several projectors).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -227,6 +227,7 @@ class JointStage:
                     comp.transport = op
                 self.compensators.append(comp)
             self.joint = JointCompensator(self.compensators)
+            self._subsets: dict[tuple[int, ...], JointCompensator] = {}
             self.biases: list[BiasModel] | None = None
             self.black: np.ndarray | None = None
         except BaseException:
@@ -266,6 +267,22 @@ class JointStage:
             self.areas[key] = joint_area(self.views, aspect, captures=self.capture_views)
         return self.areas[key]
 
+    def lit_in(self, area: DisplayArea) -> list[int]:
+        """How many camera pixels of ``area`` each projector lights (its footprint, :meth:`coverage`)."""
+        cover = self.coverage()[:, area.y:area.y + area.height, area.x:area.x + area.width]
+        return [int(n) for n in cover.sum(axis=(1, 2))]
+
+    def dark_in(self, area: DisplayArea) -> list[int]:
+        """The projectors (0-based) whose light misses ``area``: fewer than :data:`MIN_LIT` of its pixels lit. All of
+        them: refused (:class:`CompensationError`), as no projector can show the target there."""
+        lit = self.lit_in(area)
+        dark = [k for k, n in enumerate(lit) if n < MIN_LIT]
+        if len(dark) == self.count:
+            raise CompensationError(f"none of the {self.count} projectors lights the display area "
+                                    f"({area.width}×{area.height} at {area.x},{area.y}; pixels lit: "
+                                    f"{', '.join(map(str, lit))}): choose an area inside their footprints")
+        return dark
+
     def fix_range(self, images: list[np.ndarray]) -> RangeMap | None:
         """``--range auto`` fitted against what the projectors reach together (:func:`combined_black_white`)."""
         if parse_range(self.options.range) != "auto":
@@ -300,14 +317,29 @@ class JointStage:
         args = o.run_arguments()
         args.pop("lr", None)
         args.pop("alpha", None)
+        # A projector whose light misses the area has nothing to solve for there: the others are solved together
+        # and it shows black (its operator holds no light in the area, so it cannot join the solve).
+        dark = self.dark_in(area)
+        keep = [k for k in range(self.count) if k not in dark]
+        joint, device, biases = self.joint, self.device, self.biases
+        if dark:
+            joint = self._subsets.get(tuple(keep)) or self._subsets.setdefault(
+                tuple(keep), JointCompensator([self.compensators[k] for k in keep]))
+            device = None if device is None else _OthersBlack(device, keep)
+            biases = None if biases is None else [biases[k] for k in keep]
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = self.fitted(image, area, what)
-            res = self.joint.run(fitted, area, device=self.device, biases=self.biases if o.mode == "open-loop"
-                                 else None, black=self.black if o.mode == "open-loop" else None,
-                                 use_bias=o.use_bias, blend=blend, progress=progress, cancel=cancel, name=name,
-                                 **args)
-        return JointTarget(res, fitted, area, [str(w.message) for w in caught])
+            res = joint.run(fitted, area, device=device, biases=biases if o.mode == "open-loop" else None,
+                            black=self.black if o.mode == "open-loop" else None, use_bias=o.use_bias, blend=blend,
+                            progress=progress, cancel=cancel, name=name, **args)
+        notes = [str(w.message) for w in caught]
+        if dark:
+            res = _with_black(res, keep, list(self.calibration.rig.projectors))
+            notes += [f"projector {k + 1} lights nothing inside the display area ({area.width}×{area.height} at "
+                      f"{area.x},{area.y}): its frame is black, the other projectors show the target there"
+                      for k in dark]
+        return JointTarget(res, fitted, area, notes)
 
     def settings(self) -> dict[str, Any]:
         """What decides the pixels of every target."""
@@ -336,6 +368,49 @@ class JointStage:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: Fewer camera pixels of the display area than this lit by a projector, and it is left out of the solve (black).
+MIN_LIT = 16
+
+
+def _black_input(projector: Any) -> np.ndarray:
+    w, h = projector.input_size
+    return np.zeros((h, w, 3), np.float32)
+
+
+class _OthersBlack:
+    """A device of every projector seen as one of the projectors ``keep`` (0-based): the others always show black."""
+
+    def __init__(self, device: Any, keep: list[int]) -> None:
+        self._device, self._keep = device, keep
+        self.projectors = tuple(device.projectors[k] for k in keep)
+
+    def project_all(self, frames: Any) -> Any:
+        full = [p.frame_from_input(_black_input(p)) for p in self._device.projectors]
+        for k, frame in zip(self._keep, frames):
+            full[k] = frame
+        return self._device.project_all(full)
+
+    def check_frame(self, frame: Any, index: int = 0) -> Any:
+        return self._device.check_frame(frame, self._keep[index])
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._device, name)
+
+
+def _with_black(res: JointResult, keep: list[int], projectors: list[Any]) -> JointResult:
+    """A joint answer of the projectors ``keep`` as one of all ``projectors``: the others' inputs black, share 0."""
+    inputs = [_black_input(p) for p in projectors]
+    frames = [p.frame_from_input(x) for p, x in zip(projectors, inputs)]
+    zs = [x.copy() for x in inputs]
+    shares: list[Any] = [0.0] * len(projectors)
+    for i, k in enumerate(keep):
+        inputs[k], frames[k], zs[k] = res.x_inputs[i], res.x_frames[i], res.z[i]
+        shares[k] = (res.report.get("share_of_light") or [None] * len(keep))[i]
+    report = {**res.report, "projectors": len(projectors), "share_of_light": shares,
+              "dark_projectors": [k + 1 for k in range(len(projectors)) if k not in keep]}
+    return replace(res, x_inputs=inputs, x_frames=frames, z=zs, report=report)
 
 
 def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> dict[str, Any]:
@@ -402,7 +477,7 @@ def compensate(options: Any, calibration: Calibration, ident: dict[str, str], ki
         targets = [read_target(stage, p) for p in paths]
         hashes = [file_sha256(p) for p in paths]
         for image, _ in targets:
-            stage.area_for(image)
+            stage.dark_in(stage.area_for(image))  # an area no projector lights fails before any folder is made
         if stage.fix_range([image for image, _ in targets]) is not None:
             r = stage.range_map
             assert r is not None
