@@ -172,7 +172,8 @@ class CompensationInputs:
 
     @staticmethod
     def _load_show(root: Path) -> "CompensationInputs":
-        """A show folder's finished frames, named by the stems of their target images."""
+        """A show folder's finished frames, named by the stems of their target images; a show of several
+        projectors gives each frame's files of every projector (``frames``), in projector order."""
         manifest = root / layout.SHOW.manifest
         show = _read_manifest(manifest, layout.SHOW.format, "show")
         video = show.get("video") or None
@@ -181,6 +182,8 @@ class CompensationInputs:
                "calibration": cal.get("path"), "camera_size": show.get("camera_size"),
                "projector": show.get("projector"), "range": (show.get("settings") or {}).get("range"),
                "video": video}
+        if isinstance(show.get("projectors"), list):
+            doc["projectors"] = show["projectors"]
         records: dict[str, InputRecord] = {}
         frames = [e for e in (show.get("frames") or {}).values() if isinstance(e, dict) and e.get("status") == "done"]
         for e in sorted(frames, key=lambda e: int(e.get("number", 0))):
@@ -189,9 +192,12 @@ class CompensationInputs:
                 name = Path(str(e["file"])).stem if video else output_names([str(e["source"])])[0]
                 file = inside(root, e["file"], what=f"the file of frame {name!r}", error=InputsError)
                 sha = None if video else e.get("source_sha256")  # a video is checked whole (video_targets)
+                several = e.get("projectors") if isinstance(e.get("projectors"), list) else []
+                files = tuple(inside(root, p["file"], what=f"the file of projector {k + 1} of frame {name!r}",
+                                     error=InputsError) for k, p in enumerate(several))
                 records[name] = InputRecord(name, file, None, DisplayArea.from_dict(e["area"]),
                                             e.get("mode"), str(e.get("source") or ""),
-                                            sha if isinstance(sha, str) else None)
+                                            sha if isinstance(sha, str) else None, files)
             except (KeyError, TypeError, ValueError, ProCamError) as exc:
                 raise InputsError(f"{manifest}: a frame record is malformed ({exc})") from None
         return CompensationInputs(root, doc, records)

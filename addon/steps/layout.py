@@ -112,6 +112,16 @@ def frame_name(number: int, digits: int = 4) -> str:
     return f"{FRAME_PREFIX}{number:0{digits}d}.png"
 
 
+#: with several projectors, each projector's sequence lies in its own folder (K from 1)
+PROJECTOR_FOLDER = "projector_{k}"
+
+
+def projector_frame_name(number: int, digits: int, projector: int) -> str:
+    """The file of frame ``number`` of projector index ``projector`` (from 0) in a sequence of several projectors:
+    ``projector_1/frame_0001.png``, each folder numbered as one projector's sequence is."""
+    return f"{PROJECTOR_FOLDER.format(k=projector + 1)}/{frame_name(number, digits)}"
+
+
 def target_files(name: str) -> dict[str, str]:
     """The files ``procam compensate`` writes for the target ``name``."""
     return {k: v.format(name=name) for k, v in TARGET_FILES.items()}

@@ -249,11 +249,60 @@ class JointStage:
         if self.capture_views is None:
             raise CompensationError(f"open-loop compensation needs the calibration's capture set to estimate θ, "
                                     f"but it cannot be read at {self.calibration.capture_dir!r}: put it back")
-        self.biases = [comp.estimate_bias(view) for comp, view in zip(self.compensators, self.capture_views)]
+        self.use_biases([comp.estimate_bias(view) for comp, view in zip(self.compensators, self.capture_views)])
+        assert self.biases is not None
+        return self.biases
+
+    def use_biases(self, biases: list[BiasModel]) -> None:
+        """Open-loop θ models estimated before (a show's, read back when it resumes) instead of estimating them."""
+        if len(biases) != self.count:
+            raise CompensationError(f"{len(biases)} open-loop θ model(s) for {self.count} projectors")
+        if self.capture_views is None:
+            raise CompensationError(f"open-loop compensation needs the calibration's capture set, but it cannot be "
+                                    f"read at {self.calibration.capture_dir!r}: put it back")
+        self.biases = list(biases)
         # What every θ_k holds once and their sum K times: the darkest black capture (the room's light, with the
         # other projectors' black levels where they showed black while it was taken).
         self.black = np.min([v.image("black") for v in self.capture_views], axis=0)
-        return self.biases
+
+    def initial_inputs(self, image: np.ndarray) -> list[np.ndarray]:
+        """Each projector's z that :meth:`compensate` starts a target from on its own (its share of target + θ
+        over its white, the joint solve's own start): with :meth:`start_from_frames`, a warm start carries the
+        previous frame's correction over, per projector."""
+        o = self.options
+        open_loop = o.mode == "open-loop"
+        if open_loop and self.biases is None:
+            self.estimate_bias()
+        area = self.area_for(image)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", TargetAspectWarning)  # said when the target is compensated
+            fitted = self.fitted(image, area)
+        # The joint solve's own start, built by its own steps (no second copy of them to drift): θ is zero in the
+        # closed loop's start as in no-bias mode. A projector dark in the area starts (and stays) black.
+        _, keep, joint, _, biases = self._solver(area)
+        area, placed = joint._place(fitted, area, "the target")
+        _, gains, theta = joint._mode(None, open_loop, biases if open_loop else None,
+                                      self.black if open_loop else None)
+        out = [np.zeros((comp.ih, comp.iw, 3), np.float32) for comp in self.compensators]
+        for k, z in zip(keep, joint._starts(placed, theta, gains, joint.shares())):
+            out[k] = z
+        return out
+
+    def start_from_frames(self, frames: list[np.ndarray]) -> list[np.ndarray]:
+        """Each projector's virtual input z whose native frame is ``frames[k]`` (as :meth:`compensate` made it):
+        its input area cut out, its warp undone (z = M(x))."""
+        if len(frames) != self.count:
+            raise CompensationError(f"{len(frames)} frames to start from for {self.count} projectors")
+        out = []
+        for k, (comp, frame) in enumerate(zip(self.compensators, frames)):
+            proj = comp.rig.projector
+            (x0, y0), (w, h) = proj.input_offset, proj.input_size
+            if frame.shape[:2] != tuple(proj.intrinsics.size)[::-1]:
+                raise CompensationError(f"a frame of projector {k + 1} to start from must be "
+                                        f"{proj.intrinsics.size[0]}×{proj.intrinsics.size[1]}, got "
+                                        f"{frame.shape[1]}×{frame.shape[0]}")
+            out.append(comp.warp_m(np.asarray(frame[y0:y0 + h, x0:x0 + w, :3], np.float32)))
+        return out
 
     def area_for(self, image: np.ndarray) -> DisplayArea:
         """The user's area, the capture set's, else the largest of the target's aspect the projectors cover."""
@@ -307,9 +356,24 @@ class JointStage:
         out = fit_target(image, area, what=what)
         return out if self.range_map is None else self.range_map.apply(out)
 
+    def _solver(self, area: DisplayArea) -> tuple[list[int], list[int], JointCompensator, Device | None,
+                                                  list[BiasModel] | None]:
+        """The projectors dark in ``area`` and those kept, and the joint solve, device and θ models of the kept."""
+        dark = self.dark_in(area)
+        keep = [k for k in range(self.count) if k not in dark]
+        joint, device, biases = self.joint, self.device, self.biases
+        if dark:
+            joint = self._subsets.get(tuple(keep)) or self._subsets.setdefault(
+                tuple(keep), JointCompensator([self.compensators[k] for k in keep]))
+            device = None if device is None else _OthersBlack(device, keep)
+            biases = None if biases is None else [biases[k] for k in keep]
+        return dark, keep, joint, device, biases
+
     def compensate(self, image: np.ndarray, *, name: str, what: str, progress: Progress | None = None,
-                   cancel: Cancel | None = None, blend: str = "derived") -> JointTarget:
-        """Stage C for one target on every projector at once."""
+                   cancel: Cancel | None = None, blend: str = "derived",
+                   start: list[np.ndarray] | None = None) -> JointTarget:
+        """Stage C for one target on every projector at once; ``start``: each projector's z to start from (a warm
+        start, :meth:`initial_inputs`), else the joint solve's own start."""
         o = self.options
         if o.mode == "open-loop" and self.biases is None:
             self.estimate_bias()
@@ -319,20 +383,14 @@ class JointStage:
         args.pop("alpha", None)
         # A projector whose light misses the area has nothing to solve for there: the others are solved together
         # and it shows black (its operator holds no light in the area, so it cannot join the solve).
-        dark = self.dark_in(area)
-        keep = [k for k in range(self.count) if k not in dark]
-        joint, device, biases = self.joint, self.device, self.biases
-        if dark:
-            joint = self._subsets.get(tuple(keep)) or self._subsets.setdefault(
-                tuple(keep), JointCompensator([self.compensators[k] for k in keep]))
-            device = None if device is None else _OthersBlack(device, keep)
-            biases = None if biases is None else [biases[k] for k in keep]
+        dark, keep, joint, device, biases = self._solver(area)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = self.fitted(image, area, what)
             res = joint.run(fitted, area, device=device, biases=biases if o.mode == "open-loop" else None,
                             black=self.black if o.mode == "open-loop" else None, use_bias=o.use_bias, blend=blend,
-                            progress=progress, cancel=cancel, name=name, **args)
+                            progress=progress, cancel=cancel, name=name,
+                            start=None if start is None else [start[k] for k in keep], **args)
         notes = [str(w.message) for w in caught]
         if dark:
             res = _with_black(res, keep, list(self.calibration.rig.projectors))

@@ -38,6 +38,28 @@ cold, so the chunks are independent and can run side by side on a cluster
 (:mod:`.show_cluster`, ``workers``/``cluster``), and a single process cuts
 them the same way: the frames are byte-identical either way. The process
 running the show is the only writer of the folder.
+
+**Several projectors** (a calibration with ``projector_count`` N > 1): stage C
+solves every projector's input at once (:class:`.projectors.JointStage`, the
+joint solve of ``stages/joint.py``) and the folder holds one sequence per
+projector, each numbered as one projector's show is, so that each folder is
+what a media server plays on that projector's output::
+
+    projector_1/frame_0001.png …   projector 1's frames (K counted from 1)
+    projector_2/frame_0001.png …
+    show.json                      each frame's entry lists every projector's file, size and SHA-256 under
+                                   ``projectors`` (projector 1's also under the one-projector keys)
+    open_loop_bias_p1.npz …        each projector's θ model, estimated once (open loop), reused on resume
+
+A frame counts as finished only when every projector's file is there and
+matches its entry; the files are written one by one under temporary names,
+and the entry only after the last, so a crash in between redoes the frame.
+Each projector's warm start reads back its own previous 16-bit frame and
+undoes its own warp. A show folder resumed with a calibration of another
+number of projectors, other projector sizes or other contents is refused,
+naming what changed (``--force`` redoes it). Not yet for several projectors:
+``--workers``/``--cluster`` (refused before anything is written), and what
+``JointStage`` refuses (render schedules, ``--effects``).
 """
 
 from __future__ import annotations
@@ -71,7 +93,8 @@ from ..video import VideoReader, frame_count, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
-from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
+from .projectors import JointStage, read_target
+from .show_work import FrameJob, FrameOutcome, compute_frame, compute_joint_frame, source_record
 from .stage_c import StageC, StageCOptions
 from .summary import Summary, cached, fmt
 
@@ -194,6 +217,24 @@ def list_frames(inputs: Sequence[str | Path]) -> list[SourceFrame]:
 def frame_digits(frames: Sequence[SourceFrame]) -> int:
     """Zero padding for the output names: 4, or more when the frame numbers need it."""
     return max(4, *(len(str(f.number)) for f in frames)) if frames else 4
+
+
+def frame_files(number: int, digits: int, count: int = 1) -> list[str]:
+    """The file(s) of frame ``number``: ``frame_0001.png`` for one projector, else one per projector
+    (``projector_1/frame_0001.png``, …)."""
+    if count == 1:
+        return [layout.frame_name(number, digits)]
+    return [layout.projector_frame_name(number, digits, k) for k in range(count)]
+
+
+def bias_files(count: int) -> list[str]:
+    """The open-loop θ file(s) of a show of ``count`` projectors."""
+    return [BIAS_FILE] if count == 1 else [f"open_loop_bias_p{k + 1}.npz" for k in range(count)]
+
+
+#: the files a show of several projectors keeps in its folders (what --force may remove)
+_FRAME_FILE = re.compile(rf"(projector_\d+/)?{FRAME_PREFIX}\d+\.png")
+_PROJECTOR_DIR = re.compile(r"projector_\d+")
 
 
 # -- settings and manifest -----------------------------------------------------------------------
@@ -360,8 +401,13 @@ class ShowFolder:
     def _read(self, manifest: Path, force: bool) -> dict[str, Any] | None:
         # Temporary files of a run that died mid-write (frames and manifest are written as .NAME.*.suffix).
         for q in self.path.iterdir():
-            if q.name.startswith((f".{FRAME_PREFIX}", ".show.", ".open_loop_bias.")) and q.is_file():
+            if q.name.startswith((f".{FRAME_PREFIX}", ".show.", ".open_loop_bias.", ".open_loop_bias_p")) \
+                    and q.is_file():
                 q.unlink(missing_ok=True)
+            elif _PROJECTOR_DIR.fullmatch(q.name) and q.is_dir():
+                for t in q.iterdir():
+                    if t.name.startswith(f".{FRAME_PREFIX}") and t.is_file():
+                        t.unlink(missing_ok=True)
         if not manifest.is_file():
             return None
         try:
@@ -393,6 +439,29 @@ class ShowFolder:
         # rather than refused: the file it names is never read, and the rerun gives the complete show asked for.
         if name is not None and entry.get("file") != name:
             return f"its manifest entry names {entry.get('file')!r}, not {name}"
+        return self._intact(entry)
+
+    def verified_all(self, entry: dict[str, Any] | None, names: list[str]) -> str | None:
+        """:meth:`verified` for a frame of ``len(names)`` projectors: every projector's file must be the one
+        named, there and intact (one missing or damaged file redoes the frame)."""
+        if len(names) == 1:
+            return self.verified(entry, names[0])
+        if not entry or entry.get("status") != "done":
+            return "not finished" if not entry else f"{entry.get('status')} before"
+        files = entry.get("projectors")
+        if not isinstance(files, list) or len(files) != len(names):
+            return f"its manifest entry does not list the files of {len(names)} projectors"
+        for k, (f, name) in enumerate(zip(files, names)):
+            if not isinstance(f, dict) or f.get("file") != name:
+                return f"its manifest entry names {f.get('file') if isinstance(f, dict) else f!r} for projector " \
+                       f"{k + 1}, not {name}"
+            why = self._intact(f)
+            if why is not None:
+                return f"projector {k + 1}: {why}"
+        return None
+
+    def _intact(self, entry: dict[str, Any]) -> str | None:
+        """None when the file an entry names is in this folder with its recorded size and SHA-256."""
         try:
             path = inside(self.path, entry.get("file"), what="a finished frame", error=SequenceError)
         except SequenceError:
@@ -475,6 +544,10 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     mode = sc.mode
     options.check(mode)
     cal = calibrate_step.read(options.calibration)  # says how to make one when the folder is not a calibration
+    if cal.projector_count > 1 and (options.workers is not None or options.cluster):
+        raise SequenceError(f"--workers/--cluster is not implemented yet for several projectors (the calibration "
+                            f"{options.calibration} has {cal.projector_count}): drop it to compute the frames in "
+                            "this process")
     ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
     say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
@@ -494,35 +567,90 @@ def _prepare(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions,
              ident: dict[str, str], digits: int, say: Progress, cancel: Cancel | None, device: Device | None,
              compensator: Compensator | None) -> ShowResult:
     """:func:`run` once the request is checked: stage C loaded, the range fixed, the settings made."""
+    if cal.projector_count > 1:
+        # Every projector solved at once; a one-projector compensator given to reuse does not apply.
+        with JointStage(cal, sc, device=device, progress=say) as joint:
+            _fix_range(joint, frames, say)
+            settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=None,
+                                   range_map=joint.range_map, warm=options.warm())
+            settings["blend"] = "derived"  # the joint solve's blend prior (stages/joint.py)
+            return _run(options, frames, joint, cal, ident, settings, digits, say, cancel)
     with StageC(cal, sc, device=device, compensator=compensator) as stage:
         effects = stage.adapter.params if stage.adapter is not None else None
-        if sc.range == "auto":
-            # One map for the whole show, from an even sample of its frames (a per-frame fit would flicker).
-            sample = frames[::max(1, -(-len(frames) // RANGE_SAMPLE))]
-            say(f"range: fitting one gain and offset to {len(sample)} of the {len(frames)} frames", 0.0)
-            readers: dict[Path, VideoReader] = {}
-            try:
-                stage.fix_range([_load(stage, f, readers)[0] for f in sample])
-            finally:
-                for r in readers.values():
-                    r.close()
+        _fix_range(stage, frames, say)
         settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects,
                                range_map=stage.range_map, warm=options.warm())
         return _run(options, frames, stage, cal, ident, settings, digits, say, cancel)
 
 
-def _load(stage: StageC, frame: SourceFrame, readers: dict[Path, VideoReader]) -> tuple[np.ndarray, str]:
+def _fix_range(stage: StageC | JointStage, frames: list[SourceFrame], say: Progress) -> None:
+    """``--range auto``: one map for the whole show, from an even sample of its frames (a per-frame fit would
+    flicker)."""
+    if stage.options.range != "auto":
+        return
+    sample = frames[::max(1, -(-len(frames) // RANGE_SAMPLE))]
+    say(f"range: fitting one gain and offset to {len(sample)} of the {len(frames)} frames", 0.0)
+    readers: dict[Path, VideoReader] = {}
+    try:
+        stage.fix_range([_load(stage, f, readers)[0] for f in sample])
+    finally:
+        for r in readers.values():
+            r.close()
+
+
+def _load(stage: StageC | JointStage, frame: SourceFrame, readers: dict[Path, VideoReader]
+          ) -> tuple[np.ndarray, str]:
     """A target as stage C reads it: an image file, or a frame of a video (readers kept open by path)."""
     if frame.index is None:
-        return stage.load(frame.path)
+        return read_target(stage, frame.path) if isinstance(stage, JointStage) else stage.load(frame.path)
     reader = readers.get(frame.path) or readers.setdefault(frame.path, VideoReader(frame.path))
     return load_video_frame(reader, frame.index, encoding=stage.options.target_encoding)
 
 
-def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: Any, ident: dict[str, str],
-         settings: dict[str, Any], digits: int, say: Progress, cancel: Cancel | None) -> ShowResult:
+def _rig_changes(old: dict[str, Any], rig: dict[str, Any]) -> list[str]:
+    """What differs between the projectors a show's manifest was made for and ``rig`` (a stage's rig record):
+    projectors added or removed, a projector's frame or input size or offset."""
+    def listed(doc: dict[str, Any]) -> list[Any]:
+        return list(doc["projectors"]) if isinstance(doc.get("projectors"), list) else [doc.get("projector")]
+
+    before, after = listed(old), listed(rig)
+    out = []
+    if len(before) != len(after):
+        n, m = len(before), len(after)
+        which = ", ".join(f"projector {k + 1}" for k in range(min(n, m), max(n, m)))
+        out.append(f"{which} {'added' if m > n else 'removed'}: the show was made for {n} projector"
+                   f"{'s' if n > 1 else ''}, the calibration has {m}")
+    for k, (a, b) in enumerate(zip(before, after)):
+        if not isinstance(a, dict):
+            continue  # an older manifest that recorded no rig: the calibration's checksum says the rest
+        for key in ("frame_size", "input_size", "input_offset"):
+            if a.get(key) is not None and list(a[key]) != list(b[key]):
+                out.append(f"projector {k + 1}'s {key.replace('_', ' ')} {a[key]} → {b[key]}")
+    return out
+
+
+def _remove_frames(folder: Path, entries: Sequence[dict[str, Any]]) -> None:
+    """--force: the frames (every projector's) and θ files of an earlier show, so the folder never mixes two."""
+    for e in entries:
+        files = [e.get("file")] + [p.get("file") for p in e.get("projectors") or [] if isinstance(p, dict)]
+        for name in files:
+            if isinstance(name, str) and _FRAME_FILE.fullmatch(name):
+                (folder / name).unlink(missing_ok=True)
+    for q in folder.iterdir():
+        if q.name == BIAS_FILE or re.fullmatch(r"open_loop_bias_p\d+\.npz", q.name):
+            q.unlink(missing_ok=True)
+        elif _PROJECTOR_DIR.fullmatch(q.name) and q.is_dir() and not any(q.iterdir()):
+            q.rmdir()
+
+
+def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointStage, cal: Any,
+         ident: dict[str, str], settings: dict[str, Any], digits: int, say: Progress,
+         cancel: Cancel | None) -> ShowResult:
     """:func:`run` once the frames, the settings and stage C are ready: the folder's bookkeeping."""
-    force, mode, effects = options.force, stage.options.mode, stage.adapter
+    force, mode = options.force, stage.options.mode
+    effects = stage.adapter if isinstance(stage, StageC) else None
+    count = stage.count if isinstance(stage, JointStage) else 1
+    rig = stage.rig_record()
     schedule = stage.schedule
     log = lambda msg: say(msg, 0.0)  # noqa: E731 — a message between frames, before the frame progress
     folder = ShowFolder(options.out)
@@ -541,7 +669,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                     r["status"] = "interrupted"
                     log(f"run {r.get('run')} (started {r.get('started')}) was interrupted before it finished "
                         "(its process ended: killed, or the machine stopped); resuming it")
-            diffs = _differences(old.get("settings", {}), settings)
+            diffs = _rig_changes(old, rig) + _differences(old.get("settings", {}), settings)
             current = {str(f.number): f for f in frames}
             # An entry that is not a record (a damaged or hand-edited show.json) is no finished frame: redone.
             listed = old.get("frames")
@@ -566,11 +694,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                 areas = dict(old.get("areas", {}))
             else:
                 # --force: every frame is redone; remove the old ones so the folder never mixes two settings.
-                for e in old_frames.values():
-                    name = str(e.get("file", ""))
-                    if re.fullmatch(rf"{FRAME_PREFIX}\d+\.png", name):
-                        (folder.path / name).unlink(missing_ok=True)
-                (folder.path / BIAS_FILE).unlink(missing_ok=True)
+                _remove_frames(folder.path, list(old_frames.values()))
                 if diffs:
                     log("--force: redoing every frame (settings changed: " + "; ".join(diffs) + ")")
                 else:
@@ -591,14 +715,18 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
                          "spp": stage.options.spp, "seed": stage.options.seed},
             # What the simulation f̂ models, and the diagnosed effect models around it (addon/gap).
             "effects": {"direct_light": True,
-                        "interreflection_bounces": stage.bounces,
+                        "interreflection_bounces": stage.bounces if isinstance(stage, StageC) else
+                        stage.options.bounces,
                         "bias": mode if mode != "open-loop" else "open-loop (see open_loop_bias)",
-                        "warp": cal.warp is not None,
+                        "warp": cal.warp is not None if isinstance(stage, StageC) else
+                        [v.warp is not None for v in stage.views],
                         "effect_models": effects.used if effects is not None else [],
                         "not_inverted": effects.not_used if effects is not None else {},
                         "params": effects.params if effects is not None else {}},
-            **stage.rig_record(),
-            "frame_pattern": f"{FRAME_PREFIX}{'#' * digits}.png", "frame_format": "PNG, 16-bit RGB, linear",
+            **rig, "projector_count": count,
+            "frame_pattern": (f"{FRAME_PREFIX}{'#' * digits}.png" if count == 1 else
+                              f"{layout.PROJECTOR_FOLDER.format(k='K')}/{FRAME_PREFIX}{'#' * digits}.png"),
+            "frame_format": "PNG, 16-bit RGB, linear",
             "settings": settings, "areas": areas, "frames": frames_doc, "complete": False, **history}
         if frames[0].index is not None:  # the video's identity: a changed video is noticed like a changed image
             folder.doc["video"] = {**source_record(frames[0].path), "frames": len(frames)}
@@ -614,7 +742,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
             entry = frames_doc.get(str(f.number))
             prev = prev_of.get(f.number)
             changed = not entry or entry.get("status") != "done"  # no answer yet: whoever started from it, didn't
-            why = folder.verified(entry, layout.frame_name(f.number, digits))
+            why = folder.verified_all(entry, frame_files(f.number, digits, count))
             if why is None and entry.get("warm_start") != prev:
                 # Computed cold while its predecessor had no answer (it had failed), or started from a frame that
                 # no longer precedes it: a fresh run starts it from its predecessor, so it is redone to match.
@@ -642,7 +770,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC, cal: An
         try:
             if todo:
                 _run_frames(todo, frames, folder, result, run, stage, digits, options=options, ident=ident,
-                            say=say, cancel=cancel)
+                            say=say, cancel=cancel, count=count)
             run["status"] = "complete" if not result.failed else "incomplete"
         except Cancelled as exc:
             run["status"] = "cancelled"
@@ -680,40 +808,62 @@ def _procam_version() -> str:
         return "unknown"
 
 
-def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: ShowFolder, result: ShowResult,
-                run: dict[str, Any], stage: StageC, digits: int, *, options: ShowOptions, ident: dict[str, str],
-                say: Progress, cancel: Cancel | None) -> None:
-    """The frame loop of :func:`run` (split out to keep the bookkeeping above readable): in this process, or as
-    tasks on a cluster; either way this process alone writes the frames and the manifest, as they finish."""
-    doc = folder.doc
-    frames_doc, areas = doc["frames"], doc["areas"]
-    stage.areas.update({k: DisplayArea.from_dict(v) for k, v in areas.items()})
-    if stage.options.mode == "open-loop":
+def _open_loop_bias(stage: StageC | JointStage, folder: ShowFolder, say: Progress) -> dict[str, Any] | list[Any]:
+    """The open loop's θ: read back from the show folder when an earlier run estimated it, else estimated once
+    and kept there (one file per projector with several); its manifest record."""
+    if isinstance(stage, StageC):
         bias_path = folder.path / BIAS_FILE
         stage.bias = _load_bias(bias_path) if bias_path.is_file() else None
         if stage.bias is None:
             say("estimating θ from the validation captures (open loop, once for the whole show)", 0.0)
             _save_bias(bias_path, stage.estimate_bias())
         bias = stage.bias
-        doc["open_loop_bias"] = {"file": BIAS_FILE, "kind": bias.kind, **bias.report}
+        return {"file": BIAS_FILE, "kind": bias.kind, **bias.report}
+    files = bias_files(stage.count)
+    kept = [_load_bias(folder.path / f) if (folder.path / f).is_file() else None for f in files]
+    if all(b is not None for b in kept):
+        stage.use_biases([b for b in kept if b is not None])
+    else:
+        say(f"estimating θ of each of the {stage.count} projectors from its validation captures (open loop, once "
+            "for the whole show)", 0.0)
+        for f, b in zip(files, stage.estimate_bias()):
+            _save_bias(folder.path / f, b)
+    assert stage.biases is not None
+    return [{"projector": k + 1, "file": f, "kind": b.kind, **b.report}
+            for k, (f, b) in enumerate(zip(files, stage.biases))]
+
+
+def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: ShowFolder, result: ShowResult,
+                run: dict[str, Any], stage: StageC | JointStage, digits: int, *, options: ShowOptions,
+                ident: dict[str, str], say: Progress, cancel: Cancel | None, count: int = 1) -> None:
+    """The frame loop of :func:`run` (split out to keep the bookkeeping above readable): in this process, or as
+    tasks on a cluster; either way this process alone writes the frames and the manifest, as they finish."""
+    doc = folder.doc
+    frames_doc, areas = doc["frames"], doc["areas"]
+    stage.areas.update({k: DisplayArea.from_dict(v) for k, v in areas.items()})
+    if stage.options.mode == "open-loop":
+        doc["open_loop_bias"] = _open_loop_bias(stage, folder, say)
 
     prev_of = warm_from(frames, options)
     by_number = {f.number: f for f in frames}
     jobs = []
     for f in todo:
         p = by_number.get(prev_of.get(f.number, -1))
-        jobs.append(FrameJob(f.number, f.path, layout.frame_name(f.number, digits), f.index,
+        jobs.append(FrameJob(f.number, f.path, frame_files(f.number, digits, count)[0], f.index,
                              p.number if p else None, p.path if p else None, p.index if p else None))
-    # A frame warm-started from one finished in an earlier run starts from that frame's file, as verified.
+    # A frame warm-started from one finished in an earlier run starts from that frame's file(s), as verified.
     numbers = {j.number for j in jobs}
-    starts: dict[int, bytes | None] = {}
+    starts: dict[int, list[bytes]] = {}
     for j in jobs:
         if j.prev is not None and j.prev not in numbers:
             entry = frames_doc[str(j.prev)]
-            data = inside(folder.path, entry["file"], what="a finished frame", error=SequenceError).read_bytes()
-            if hashlib.sha256(data).hexdigest() != entry["sha256"]:
-                raise SequenceError(f"{entry['file']} changed while the show ran; rerun to redo it")
-            starts[j.number] = data
+            files = entry["projectors"] if count > 1 else [entry]
+            starts[j.number] = []
+            for f in files:
+                data = inside(folder.path, f["file"], what="a finished frame", error=SequenceError).read_bytes()
+                if hashlib.sha256(data).hexdigest() != f["sha256"]:
+                    raise SequenceError(f"{f['file']} changed while the show ran; rerun to redo it")
+                starts[j.number].append(data)
 
     n = len(jobs)
     finished = 0
@@ -737,7 +887,13 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
             return
         # A full or vanished disk fails every frame alike: stop here rather than record failures.
         try:
-            write_atomic_bytes(folder.path / out.entry["file"], out.png)
+            if count == 1:
+                write_atomic_bytes(folder.path / out.entry["file"], out.png)
+            else:
+                # Every projector's file first, the entry after the last: a crash in between redoes the frame.
+                for f, png in zip(out.entry["projectors"], out.pngs):
+                    (folder.path / f["file"]).parent.mkdir(exist_ok=True)
+                    write_atomic_bytes(folder.path / f["file"], png)
         except (OSError, ProCamError) as exc:
             raise SequenceError(f"cannot write frame {number} into {folder.path}: {exc}; the finished frames "
                                 "are kept, rerun to resume") from None
@@ -754,7 +910,9 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
             finished / n)
 
     if options.workers is not None or options.cluster:
-        _run_on_cluster(jobs, starts, stage, options, ident, areas, record, say, cancel)
+        assert isinstance(stage, StageC)  # several projectors are refused with a cluster before anything is done
+        _run_on_cluster(jobs, {n: b[0] for n, b in starts.items()}, stage, options, ident, areas, record, say,
+                        cancel)
         return
     readers: dict[Path, VideoReader] = {}
     last: FrameOutcome | None = None
@@ -764,9 +922,17 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
                           "this run)")
             say(f"frame {job.number}: {job.path.name}" + (f" #{job.index + 1}" if job.index is not None else ""),
                 i / n)
-            start = last.png if last is not None and last.number == job.prev else starts.pop(job.number, None)
-            last = compute_frame(stage, job, start, readers=readers, cancel=cancel,
-                                 progress=lambda msg, frac, i=i: say(msg, (i + min(max(frac, 0.0), 0.999)) / n))
+            start: list[bytes] | None
+            if last is not None and last.number == job.prev:  # computed just now (None: it failed)
+                start = (last.pngs or [last.png]) if last.png is not None else None
+            else:
+                start = starts.pop(job.number, None)
+            step = lambda msg, frac, i=i: say(msg, (i + min(max(frac, 0.0), 0.999)) / n)  # noqa: E731
+            if isinstance(stage, JointStage):
+                last = compute_joint_frame(stage, job, digits, start, readers=readers, cancel=cancel, progress=step)
+            else:
+                last = compute_frame(stage, job, start[0] if start else None, readers=readers, cancel=cancel,
+                                     progress=step)
             record(last)
     finally:
         for r in readers.values():

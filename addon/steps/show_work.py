@@ -37,7 +37,10 @@ from ..errors import ImageError, ProCamError
 from ..imageio import check_image_bytes
 from ..outputs import file_sha256
 from ..progress import Cancel, Progress, quiet
+from ..stages.display_area import load_target
 from ..video import VideoReader, load_video_frame
+from .layout import projector_frame_name
+from .projectors import JointStage
 from .stage_c import StageC
 
 
@@ -65,6 +68,8 @@ class FrameOutcome:
     error: str | None = None
     warnings: list[str] = field(default_factory=list)
     areas: dict[str, Any] = field(default_factory=dict)
+    #: with several projectors: each projector's PNG bytes, in projector order (``png`` is projector 1's)
+    pngs: list[bytes] = field(default_factory=list)
 
 
 def encode_png16(frame: np.ndarray) -> bytes:
@@ -101,9 +106,11 @@ def source_record(path: Path) -> dict[str, Any]:
             "source_sha256": _HASHES[key]}
 
 
-def _load(stage: StageC, path: Path, index: int | None, readers: dict[Path, VideoReader]) -> tuple[np.ndarray, str]:
+def _load(stage: StageC | JointStage, path: Path, index: int | None, readers: dict[Path, VideoReader]
+          ) -> tuple[np.ndarray, str]:
     if index is None:
-        return stage.load(path)
+        return stage.load(path) if isinstance(stage, StageC) else load_target(path,
+                                                                              encoding=stage.options.target_encoding)
     reader = readers.get(path) or readers.setdefault(path, VideoReader(path))
     return load_video_frame(reader, index, encoding=stage.options.target_encoding)
 
@@ -153,3 +160,58 @@ def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers:
              "seconds": round(res.seconds, 2), "seconds_total": round(time.perf_counter() - t0, 2)}
     return FrameOutcome(job.number, png, entry, None, warnings,
                         {k: a.to_dict() for k, a in stage.areas.items()})
+
+
+def compute_joint_frame(stage: JointStage, job: FrameJob, digits: int, start: list[bytes] | None, *,
+                        readers: dict[Path, VideoReader], progress: Progress | None = None,
+                        cancel: Cancel | None = None) -> FrameOutcome:
+    """:func:`compute_frame` on every projector of a calibration of several at once (the joint solve). ``start``:
+    each projector's 16-bit PNG bytes of frame ``job.prev``; frame n starts, per projector, from its own usual
+    start plus frame n−1's answer minus frame n−1's usual start, as one projector's frames do. The outcome's
+    ``pngs`` hold each projector's frame and its entry lists them under ``projectors`` (projector 1's also under
+    the one-projector keys, as the compensation folder of several projectors does)."""
+    say = progress or quiet
+    t0 = time.perf_counter()
+    try:
+        try:
+            source = source_record(job.path)
+        except OSError as exc:
+            raise ImageError(f"cannot read the target {job.path}: {exc.strerror or exc}") from None
+        img, note = _load(stage, job.path, job.index, readers)
+        if job.index is not None:
+            source["video_frame"] = job.index + 1
+        z0 = None
+        if start is not None and job.prev_path is not None:
+            before, _ = _load(stage, job.prev_path, job.prev_index, readers)
+            answers = stage.start_from_frames([decode_png16(b) for b in start])
+            z0 = [np.clip(now + answer - then, 0.0, 1.0) for now, answer, then in
+                  zip(stage.initial_inputs(img), answers, stage.initial_inputs(before))]
+        done = stage.compensate(img, name=f"frame {job.number}", what=f"target {job.path.name}", cancel=cancel,
+                                progress=say, start=z0)
+        pngs = [encode_png16(frame) for frame in done.result.x_frames]
+    except ProCamError as exc:
+        return FrameOutcome(job.number, None, {"number": job.number, "source": str(job.path.absolute()),
+                                               "status": "failed", "error": str(exc)}, str(exc))
+    res = done.result
+    warnings = list(done.warnings)
+    if job.prev is not None and z0 is None:
+        warnings.append(f"computed cold: frame {job.prev} has no answer to start from; it is redone when frame "
+                        f"{job.prev} is")
+    shares = res.report.get("share_of_light") or [None] * len(pngs)
+    projectors = [{"projector": k + 1, "file": projector_frame_name(job.number, digits, k), "bytes": len(png),
+                   "sha256": hashlib.sha256(png).hexdigest(), "share": shares[k]} for k, png in enumerate(pngs)]
+    first = projectors[0]
+    entry = {"number": job.number, "file": first["file"], **source, "status": "done",
+             "bytes": first["bytes"], "sha256": first["sha256"], "projectors": projectors,
+             "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": warnings,
+             "warm_start": job.prev if z0 is not None else None,
+             "warm_start_missing": job.prev if job.prev is not None and z0 is None else None,
+             "psnr_model_start": round(res.report["psnr_simulated_start"], 3),
+             "psnr_model": round(res.report["psnr_simulated"], 3),
+             "psnr_model_overlap": res.report.get("psnr_overlap"),
+             "psnr_model_outside": res.report.get("psnr_outside_overlap"),
+             "loss_first": res.losses[0] if res.losses else None,
+             "loss_last": res.losses[-1] if res.losses else None, "captures": res.captures,
+             "seconds": round(res.seconds, 2), "seconds_total": round(time.perf_counter() - t0, 2)}
+    return FrameOutcome(job.number, pngs[0], entry, None, warnings,
+                        {k: a.to_dict() for k, a in stage.areas.items()}, pngs)
