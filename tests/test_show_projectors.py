@@ -1,0 +1,170 @@
+"""``procam show`` of a calibration of two projectors: one sequence per projector, resumable, refused when the rig
+changed; evaluate reads it and export-frames writes one sequence per projector.
+
+A small two-projector lab (camera 128×96, open loop, a few iterations): these tests check the bookkeeping and
+the warm start, not compensation quality.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from procam.addon.cli.app import EXIT_OK, EXIT_USER, main
+
+FAST = ["--iterations", "6"]
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    """A calibrated two-projector lab (curve, 20 % overlap) and a sequence of three target frames."""
+    from procam.addon.capture.patterns import smooth_random
+    from procam.addon.imageio import write_image
+
+    root = tmp_path_factory.mktemp("show2")
+    assert main(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--scale", "0.2",
+                 "--samples", "4", "--out", str(root / "lab"), "--truth", str(root / "lab.truth.json")]) == EXIT_OK
+    assert main(["calibrate", str(root / "lab"), "--out", str(root / "cal")]) == EXIT_OK
+    seq = root / "frames"
+    seq.mkdir()
+    for n in (1, 2, 3):
+        write_image(seq / f"shot_{n:04d}.png", (0.05 + 0.4 * smooth_random((120, 90), n, 20.0)).astype(np.float32))
+    return root
+
+
+def _manifest(out: Path) -> dict:
+    return json.loads((out / "show.json").read_text())
+
+
+def _frames(out: Path) -> dict[str, bytes]:
+    """Every frame and θ file of a show, by its path in the folder."""
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*"))
+            if p.is_file() and p.name != "show.json"}
+
+
+def _projector_1_alone(cal: Path, dest: Path) -> Path:
+    """The same calibration folder with projector 1 alone (a calibration of one projector, other contents)."""
+    shutil.copytree(cal, dest)
+    doc = json.loads((dest / "calibration.json").read_text())
+    del doc["projectors"], doc["rig"]["projectors"]
+    (dest / "calibration.json").write_text(json.dumps(doc))
+    return dest
+
+
+def test_a_show_of_two_projectors_is_one_sequence_per_projector_and_resumes_exactly(rig, tmp_path, capsys):
+    from procam.addon.errors import Cancelled
+    from procam.addon.imageio import read_image
+    from procam.addon.steps import show as show_step
+    from procam.addon.steps.stage_c import StageCOptions
+
+    cal, seq = rig / "cal", rig / "frames"
+    out = tmp_path / "show"
+    args = ["show", str(cal), str(seq), "--out", str(out), *FAST]
+    assert main(args) == EXIT_OK
+    doc = _manifest(out)
+    assert doc["projector_count"] == 2 and doc["complete"] and doc["frame_pattern"] == "projector_K/frame_####.png"
+    files = _frames(out)
+    assert sorted(files) == ["open_loop_bias_p1.npz", "open_loop_bias_p2.npz",
+                             *(f"projector_{k}/frame_000{n}.png" for k in (1, 2) for n in (1, 2, 3))]
+    for n in ("1", "2", "3"):
+        entry = doc["frames"][n]
+        assert [p["file"] for p in entry["projectors"]] == [f"projector_{k}/frame_000{n}.png" for k in (1, 2)]
+        for k, p in enumerate(entry["projectors"]):
+            data = files[p["file"]]
+            assert (p["bytes"], p["sha256"]) == (len(data), hashlib.sha256(data).hexdigest())
+            frame = read_image(out / p["file"])
+            assert frame.shape[1::-1] == tuple(doc["projectors"][k]["frame_size"])
+        assert sum(p["share"] for p in entry["projectors"]) == pytest.approx(1.0, abs=0.01)
+    # Each projector warm-starts from its own previous frame: frames 2 and 3 start far closer than cold ones.
+    assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, 2]
+    cold = tmp_path / "cold"
+    assert main(["show", str(cal), str(seq), "--out", str(cold), *FAST, "--cold-start"]) == EXIT_OK
+    for n in ("2", "3"):
+        assert doc["frames"][n]["psnr_model_start"] > _manifest(cold)["frames"][n]["psnr_model_start"] + 2.0
+
+    # A rerun does nothing and changes no byte.
+    assert main(args) == EXIT_OK
+    assert (_manifest(out)["runs"][-1]["done"], _manifest(out)["runs"][-1]["skipped"]) == (0, 3)
+    assert _frames(out) == files
+    # One projector's file of a frame missing: that frame alone is redone, to the same bytes.
+    (out / "projector_2" / "frame_0002.png").unlink()
+    assert main(args) == EXIT_OK
+    assert (_manifest(out)["runs"][-1]["done"], _manifest(out)["runs"][-1]["skipped"]) == (1, 2)
+    assert _frames(out) == files
+
+    # Cancelled once frame 1 is finished: frame 1 kept whole, then a rerun resumes to a fresh run's bytes.
+    cut = tmp_path / "cut"
+    options = show_step.ShowOptions(cal, (seq,), cut, StageCOptions(iterations=6))
+    with pytest.raises(Cancelled):
+        show_step.run(options, cancel=lambda: "1" in _manifest(cut)["frames"])
+    assert list(_manifest(cut)["frames"]) == ["1"] and _manifest(cut)["runs"][-1]["status"] == "cancelled"
+    assert not (cut / "projector_1" / "frame_0002.png").exists()
+    assert not [p.name for p in cut.rglob(".*")]  # no temporary file left behind
+    result = show_step.run(options)
+    assert (result.done, result.skipped) == ([2, 3], [1])
+    assert _frames(cut) == files
+
+    # The folder resumed with another rig: refused, naming the projectors; nothing changed.
+    one = _projector_1_alone(cal, tmp_path / "cal1")
+    capsys.readouterr()
+    assert main(["show", str(one), str(seq), "--out", str(out), *FAST]) == EXIT_USER
+    err = capsys.readouterr().err
+    assert "projector 2 removed: the show was made for 2 projectors, the calibration has 1" in err
+    assert "--force" in err and _frames(out) == files
+    # A cluster is refused for several projectors before anything is written.
+    assert main(["show", str(cal), str(seq), "--out", str(tmp_path / "cluster"), "--workers", "2"]) == EXIT_USER
+    assert "not implemented yet for several projectors" in capsys.readouterr().err
+    assert not (tmp_path / "cluster").exists()
+
+    # evaluate measures the show's frames of both projectors at once.
+    device = f"lab:{rig / 'lab.truth.json'}"
+    assert main(["evaluate", str(cal), "--inputs", str(out), "--targets", *map(str, sorted(seq.glob("*.png"))),
+                 "--device", device, "--out", str(tmp_path / "eval"), "--no-repeat"]) == EXIT_OK
+    metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert metrics["projector_count"] == 2 and len(metrics["targets"]) == 3
+    assert metrics["mean"]["psnr"] > metrics["mean_uncompensated"]["psnr"] + 3
+    # a one-projector calibration cannot evaluate it
+    assert main(["evaluate", str(one), "--inputs", str(out), "--targets", str(seq / "shot_0001.png"),
+                 "--device", device, "--out", str(tmp_path / "eval1")]) == EXIT_USER
+    assert "for 2 projector(s), but the calibration has 1" in capsys.readouterr().err
+
+
+def test_a_one_projector_show_resumed_with_two_is_refused_naming_the_added_projector(rig, tmp_path, capsys):
+    cal, seq = rig / "cal", rig / "frames"
+    one = _projector_1_alone(cal, tmp_path / "cal1")
+    out = tmp_path / "show"
+    # Projector 1 alone cannot read the two projectors' capture set: no θ, and an area given.
+    args = [str(seq / "shot_0001.png"), "--out", str(out), *FAST, "--no-bias", "--area", "24,24,63,47"]
+    assert main(["show", str(one), *args]) == EXIT_OK
+    before = _frames(out)
+    assert list(before) == ["frame_0001.png"]
+    capsys.readouterr()
+    assert main(["show", str(cal), *args]) == EXIT_USER
+    assert "projector 2 added: the show was made for 1 projector, the calibration has 2" in capsys.readouterr().err
+    assert _frames(out) == before
+    # --force redoes it for the two projectors, and the one-projector frame is gone.
+    assert main(["show", str(cal), *args, "--force"]) == EXIT_OK
+    assert sorted(_frames(out)) == ["projector_1/frame_0001.png", "projector_2/frame_0001.png"]
+
+
+def test_export_frames_of_two_projectors_writes_one_sequence_per_projector(rig, tmp_path):
+    cal, seq = rig / "cal", rig / "frames"
+    comp = tmp_path / "comp"
+    targets = [str(seq / "shot_0001.png"), str(seq / "shot_0002.png")]
+    assert main(["compensate", str(cal), *targets, *FAST, "--out", str(comp)]) == EXIT_OK
+    out = tmp_path / "frames"
+    assert main(["export-frames", str(comp), "--out", str(out)]) == EXIT_OK
+    doc = json.loads((out / "frames.json").read_text())
+    assert doc["projector_count"] == 2
+    assert [[p["file"] for p in f["projectors"]] for f in doc["frames"]] == [
+        ["projector_1/frame_0001.png", "projector_2/frame_0001.png"],
+        ["projector_1/frame_0002.png", "projector_2/frame_0002.png"]]
+    for n, name in ((1, "shot_0001"), (2, "shot_0002")):
+        for k in (1, 2):
+            assert (out / f"projector_{k}" / f"frame_000{n}.png").read_bytes() == \
+                (comp / f"{name}_frame_p{k}.png").read_bytes()
