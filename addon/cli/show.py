@@ -28,7 +28,9 @@ from .terminal import print_summary, run_step
 EPILOG = """\
 TARGETS is a folder of images, a numbered pattern (frames/shot_####.png or frames/shot_%04d.png), a list of
 image files, or one video file (.mp4, .mov, .avi, .mkv, …; frames 1…N, 8-bit sRGB like 8-bit images). Output
-frame N is OUT/frame_NNNN.png, numbered like the input frames.
+frame N is OUT/frame_NNNN.png, numbered like the input frames; with a calibration of several projectors, one
+sequence per projector: OUT/projector_1/frame_NNNN.png, OUT/projector_2/frame_NNNN.png, … (all solved together;
+--workers/--cluster not yet).
 
 Each frame's stage C starts from the previous frame's answer (warm start), within chunks of --chunk frames by
 frame number (1–24, 25–48, …); --cold-start starts every frame from the target alone. --workers N computes the

@@ -25,9 +25,12 @@ The compensation folder holds, per target ``NAME``, ``NAME_input_pK.png`` and
 ``NAME_frame_pK.png`` for projectors K = 1…N (named from 1, as a crew counts
 them), the shared ``NAME_simulated.png`` and ``NAME_target.png``, and
 ``compensation.json`` recording each projector's files, its share of the light
-and the rig every input is for. Only the ``transport`` schedule solves several
-projectors; the render-based ones, the diagnosed effect models and a show are
-refused with a message (not built yet for several projectors).
+and the rig every input is for. ``procam show`` runs :class:`JointStage` on every
+frame (``steps/show.py``: one sequence per projector, warm-started per projector
+through :meth:`JointStage.initial_inputs` and :meth:`JointStage.start_from_frames`).
+Only the ``transport`` schedule solves several projectors; the render-based ones
+and the diagnosed effect models are refused with a message (not built yet for
+several projectors).
 """
 
 from __future__ import annotations

@@ -891,8 +891,8 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
                 write_atomic_bytes(folder.path / out.entry["file"], out.png)
             else:
                 # Every projector's file first, the entry after the last: a crash in between redoes the frame.
-                for f, png in zip(out.entry["projectors"], out.pngs):
-                    (folder.path / f["file"]).parent.mkdir(exist_ok=True)
+                for k, (f, png) in enumerate(zip(out.entry["projectors"], out.pngs)):
+                    (folder.path / layout.PROJECTOR_FOLDER.format(k=k + 1)).mkdir(exist_ok=True)
                     write_atomic_bytes(folder.path / f["file"], png)
         except (OSError, ProCamError) as exc:
             raise SequenceError(f"cannot write frame {number} into {folder.path}: {exc}; the finished frames "
