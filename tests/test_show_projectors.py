@@ -168,3 +168,20 @@ def test_export_frames_of_two_projectors_writes_one_sequence_per_projector(rig, 
         for k in (1, 2):
             assert (out / f"projector_{k}" / f"frame_000{n}.png").read_bytes() == \
                 (comp / f"{name}_frame_p{k}.png").read_bytes()
+
+
+def test_a_video_show_of_two_projectors_is_evaluated_against_the_video(rig, tmp_path):
+    from tests.test_show import _video
+
+    clip = _video(tmp_path / "clip.avi", 2)
+    out = tmp_path / "show"
+    assert main(["show", str(rig / "cal"), str(clip), "--out", str(out), *FAST]) == EXIT_OK
+    assert sorted(_frames(out)) == ["open_loop_bias_p1.npz", "open_loop_bias_p2.npz", "projector_1/frame_0001.png",
+                                    "projector_1/frame_0002.png", "projector_2/frame_0001.png",
+                                    "projector_2/frame_0002.png"]
+    assert _manifest(out)["frames"]["2"]["warm_start"] == 1
+    assert main(["evaluate", str(rig / "cal"), "--inputs", str(out), "--targets", str(clip), "--device",
+                 f"lab:{rig / 'lab.truth.json'}", "--out", str(tmp_path / "eval"), "--no-repeat"]) == EXIT_OK
+    metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert [t["name"] for t in metrics["targets"]] == ["frame_0001", "frame_0002"]
+    assert metrics["mean"]["psnr"] > metrics["mean_uncompensated"]["psnr"] + 3

@@ -573,9 +573,9 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
                                   "folder:CAPTURE_DIR or live:camera=…")
         device = device_pipeline(options.device, cal, device=device, progress=say)
         if cal.projector_count > 1:  # every projector's frame shown at once; overlap figures
-            if options.classical or isinstance(targets, VideoTargets):
-                raise EvaluationError("the classical baseline and a show's video are not evaluated for several "
-                                      "projectors yet: evaluate without --classical, on the target images")
+            if options.classical:
+                raise EvaluationError("the classical baseline is not evaluated for several projectors yet: "
+                                      "evaluate without --classical")
             result = EvaluationRun(*projectors.evaluate(cal, inputs, targets, device, folder.tmp, notes=notes,
                                                         repeat=options.repeat, progress=say, cancel=cancel))
         else:
