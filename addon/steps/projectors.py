@@ -359,7 +359,7 @@ class JointStage:
         out = fit_target(image, area, what=what)
         return out if self.range_map is None else self.range_map.apply(out)
 
-    def _solver(self, area: DisplayArea) -> tuple[list[int], list[int], JointCompensator, Device | None,
+    def _solver(self, area: DisplayArea) -> tuple[list[int], list[int], JointCompensator, Any,
                                                   list[BiasModel] | None]:
         """The projectors dark in ``area`` and those kept, and the joint solve, device and θ models of the kept."""
         dark = self.dark_in(area)
