@@ -16,6 +16,8 @@ projector's, and ours.
 ``shift``: projector 2's calibrated pose moved sideways by one camera pixel after calibration (its operator rendered
 again): how much the overlap loses, with the blend prior and without, in the open loop.
 ``timing``: seconds per target of the joint solve against one projector's, on the same calibration.
+``diagnosis``: an effect injected into projector 2 only (five, at strength 0.6, on each surface, the camera's effects
+shared): ``procam diagnose`` must name it first and attribute it to projector 2.
 ``--work DIR`` keeps and reuses every folder.
 """
 
@@ -260,7 +262,35 @@ def timing(work: Path, surface: str, args: argparse.Namespace) -> None:
           f"target: joint {both:.2f} s per target, one projector {alone:.2f} s ({both / alone:.2f}×)")
 
 
-PARTS = {"side": side, "stacked": stacked, "shift": shift, "timing": timing}
+#: effects injected into projector 2 only (lab name → the diagnosis's model that should name it)
+INJECTED = {"response": "response", "crosstalk": "crosstalk", "vignetting": "vignetting", "defocus": "defocus",
+            "response_scurve": "response"}
+#: what both projectors share in the diagnosis part: the camera's noise and tone curve, bounce light
+SHARED = "noise=0.4,camera_response=0.3,interreflection=0.75"
+
+
+def diagnosis(work: Path, surface: str, args: argparse.Namespace) -> None:
+    """Each of :data:`INJECTED` given to projector 2 alone (strength 0.6): is it named first, and on projector 2?"""
+    hits = []
+    for effect, model in INJECTED.items():
+        case = work / f"diagnosis-{effect}"
+        caps, truth, cal, diag = case / "lab", case / "lab.truth.json", case / "cal", case / "diag"
+        case.mkdir(parents=True, exist_ok=True)
+        step(["lab", "--surface", surface, "--projectors", "2", "--overlap", "0.2", "--effects", SHARED,
+              "--projector-effects", f"1:{effect}=0.6", "--scale", str(args.scale), "--samples", str(args.samples),
+              "--out", str(caps), "--truth", str(truth)], caps)
+        step(["calibrate", str(caps), "--out", str(cal)], cal)
+        step(["diagnose", str(cal), "--out", str(diag)], diag)
+        doc = json.loads((diag / "gap.json").read_text())
+        top = doc.get("differs") or {}
+        hit = top.get("projector") == 2 and top.get("effect") == model
+        hits.append(hit)
+        print(f"{surface}, {effect}=0.6 on projector 2: {'named' if hit else 'MISSED'} — {doc['headline']}",
+              flush=True)
+    print(f"{surface}: {sum(hits)} of {len(hits)} named first and on projector 2", flush=True)
+
+
+PARTS = {"side": side, "stacked": stacked, "shift": shift, "timing": timing, "diagnosis": diagnosis}
 
 
 def main() -> None:
