@@ -61,3 +61,22 @@ def test_diagnose_accepts_the_demos_calibration(demo, tmp_path):
     gap = json.loads((out / "gap.json").read_text())
     assert gap["residual_after"]["rmse"] < gap["residual"]["rmse"]
     assert f"`{demo / 'calibration'}`" in (out / "summary.md").read_text()
+
+
+def test_demo_of_two_projectors_reports_the_overlap_and_each_projector(tmp_path, capsys):
+    out = tmp_path / "demo2"
+    code = main(["demo", "--out", str(out), "--projectors", "2", "--scale", "0.2", "--iterations", "20",
+                 "--samples", "4", "--targets", "city"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "projector 2 position error" in printed and "overlap of the projectors" in printed
+    summary = json.loads((out / "summary.json").read_text())
+    poses = summary["calibration"]["projectors"]
+    assert len(poses) == 2 and all(p["position_error_cm"] < 2.0 for p in poses)
+    overlap = summary["compensation"]["overlap"]
+    assert overlap["mean"]["psnr_overlap"] > overlap["mean_uncompensated"]["psnr_overlap"] + 3.0
+    assert len(summary["diagnosis"]["projectors"]) == 2 and summary["diagnosis"]["headline"]
+    for k in (1, 2):
+        assert (out / "diagnosis" / f"projector_{k}" / "gap.json").is_file()
+        assert (out / "compensation" / f"city_frame_p{k}.png").is_file()
+    assert "with_effects" not in summary  # effect models around stage C: one projector only
