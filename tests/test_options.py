@@ -166,7 +166,7 @@ FLAGS = {
             "--targets",
     "evaluate": "--classical --device --force --inputs --no-repeat --out --target-encoding --targets",
     "export-frames": "--first --force --out",
-    "import-captures": "--camera-fov --camera-height --camera-width --depth --depth-native-height "
+    "import-captures": "--add-to --camera-fov --camera-height --camera-width --depth --depth-native-height "
                        "--depth-native-width --depth-units --encoding --force --no-exposure-check --out --rig",
     "lab-board": "--board --effects --force --out --poses --samples --scale --seed --square --supersample --truth",
     "lab": "--camera-fov-error --effects --force --full-binary --layout --no-graycode --nominal-error --out "
@@ -174,7 +174,7 @@ FLAGS = {
            "--surface --truth",
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
-                "--projector-height --projector-width --seed --shift-x --shift-y --throw-ratio",
+                "--projector-height --projector-number --projector-width --seed --shift-x --shift-y --throw-ratio",
     "precompute": "--bounces --force --seed",
     "show": "--area --bounces --capture-every --chunk --cluster --cold-start --connect-timeout --device --diagnosis "
             "--effects --fail-fast --force --iterations --lr --no-bias --out --range --schedule --seed --spp "

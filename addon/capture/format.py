@@ -48,7 +48,7 @@ import hashlib
 import json
 import math
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -591,7 +591,8 @@ class CaptureSetWriter:
     stored as 0 (``read_image`` refuses NaN) and loaded back as NaN.
     ``inputs``: what the run reads, never replaced (:func:`..outputs.check_replaceable`).
     ``others``: projectors 2…N of a multi-projector set; :meth:`add`'s ``projector_index`` says which projector
-    showed a capture.
+    showed a capture. ``check``: a check of the finished set (loaded from the hidden folder it was written in)
+    before it is moved into place; what it raises leaves nothing behind.
     """
 
     def __init__(self, path: str | Path, camera: Camera, projector: Projector, *, others: Iterable[Projector] = (),
@@ -599,8 +600,9 @@ class CaptureSetWriter:
                  camera_status: str = "nominal", projector_status: str = "nominal",
                  projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
                  camera_lens: dict[str, Any] | None = None, force: bool = False,
-                 inputs: Iterable[str | Path | None] = ()) -> None:
+                 inputs: Iterable[str | Path | None] = (), check: Callable[["CaptureSet"], Any] | None = None) -> None:
         self.others = tuple(others)
+        self._check = check
         self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, inputs=inputs,
                                     error=CaptureError)
         self.path = Path(path)
@@ -720,7 +722,9 @@ class CaptureSetWriter:
             doc = self.to_dict()
             write_atomic_bytes(self._tmp / MANIFEST, (json.dumps(doc, indent=1, allow_nan=False) + "\n").encode())
             # Reading back everything we wrote is the cheapest proof the set is complete.
-            CaptureSet.load(self._tmp)
+            written = CaptureSet.load(self._tmp)
+            if self._check is not None:
+                self._check(written)
         except BaseException:
             self._folder.abort()
             raise

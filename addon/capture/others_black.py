@@ -30,7 +30,8 @@ def _mean_of(captures: CaptureSet, kind: str) -> np.ndarray | None:
     return np.mean([read_image(captures.file(e)) for e in entries], axis=0).mean(axis=2)
 
 
-def check_others_black(captures: CaptureSet, *, tolerance: float = BLACK_TOLERANCE) -> dict[tuple[int, int], float]:
+def check_others_black(captures: CaptureSet, *, tolerance: float = BLACK_TOLERANCE,
+                       where: str | None = None) -> dict[tuple[int, int], float]:
     """Refuse a multi-projector capture set in which a projector was not black while another's sequence was taken.
 
     For every pair of projectors (k, j): the mean of projector k's black capture minus projector j's own black
@@ -38,6 +39,7 @@ def check_others_black(captures: CaptureSet, *, tolerance: float = BLACK_TOLERAN
     white over black there. Above ``tolerance`` a :class:`CaptureError` says that projector j (numbered from 1)
     was not black while projector k's captures were taken. Returns every pair's excess (projectors numbered from
     0); a one-projector set, or a projector without a black and a white capture, has nothing to compare.
+    ``where`` names the set in the message (default its folder; a set not yet in place is named by its final one).
     """
     count = len(captures.projectors)
     if count < 2:
@@ -67,7 +69,7 @@ def check_others_black(captures: CaptureSet, *, tolerance: float = BLACK_TOLERAN
         (k, j), worst = max(excess.items(), key=lambda item: item[1])
         if worst > tolerance:
             raise CaptureError(
-                f"capture set {captures.path}: projector {k + 1}'s black capture is brighter inside projector "
+                f"capture set {where or captures.path}: projector {k + 1}'s black capture is brighter inside projector "
                 f"{j + 1}'s footprint than projector {j + 1}'s own black capture, by {worst:.0%} of projector "
                 f"{j + 1}'s white: projector {j + 1} was not black while projector {k + 1}'s captures were taken. "
                 f"Show black on every other projector and capture projector {k + 1}'s sequence again")

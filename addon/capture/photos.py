@@ -5,7 +5,9 @@ orientation, exposure), reads the depth and aligns it, and writes a capture
 set; with a rig calibration's lens it takes the camera's distortion out of
 every photograph and records the lens (:data:`LENS_REMOVED`);
 :func:`undistort_captures` does the same for a set imported before, and
-:func:`removed_lens` says which lens a set had taken out.
+:func:`removed_lens` says which lens a set had taken out. :func:`add_projector_captures` makes a new set of
+several projectors: an existing set's captures and one more projector's photographs, taken by the same camera
+while the other projectors showed black.
 """
 
 from __future__ import annotations
@@ -25,9 +27,10 @@ from ..progress import Progress, quiet
 from ..rig.model import Camera, Projector, intrinsics_from_fov
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
-from .format import CAMERA_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
+from .others_black import check_others_black
+from .format import CAMERA_KINDS, SHARED_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
 from ..rig.lens import RigLens
-from .sequence import load_sequence, sequence_frame
+from .sequence import SequenceInfo, load_sequence, sequence_frame
 
 ENCODINGS = ("auto", "srgb", "linear")
 
@@ -241,14 +244,15 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
     if depth is not None and depth_path is not None:
         raise CaptureError("give a depth array or a depth file, not both")
     seq = load_sequence(sequence_dir)
+    if seq.projector_index:
+        number = seq.projector_index + 1
+        raise CaptureError(f"{sequence_dir} is projector {number}'s sequence (exported with --projector-number "
+                           f"{number}, without the surface photo): add its photographs to the capture set of "
+                           f"projectors 1 to {number - 1}, `procam import-captures {sequence_dir} {captures_dir} "
+                           "--add-to SET --out NEW_SET`")
     projector = projector or seq.projector
     camera = camera or seq.camera
-    files = list_captures(captures_dir, [f["file"] for f in seq.frames])
-    if len(files) != len(seq.frames):
-        raise CaptureError(f"the sequence has {len(seq.frames)} frames but {captures_dir} holds {len(files)} "
-                           f"captures ({files[0].name} … {files[-1].name}); one capture per frame is needed")
-    orientation = check_orientations(files)
-    first, first_enc = _load_capture(files[0], encoding)
+    files, orientation, first, first_enc = _photographs(seq, captures_dir, encoding)
     size = (first.shape[1], first.shape[0])
     if camera is None:
         camera = Camera(intrinsics_from_fov(size[0], size[1], camera_fov))
@@ -278,32 +282,12 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
         notes["camera"] = f"{LENS_REMOVED}: {undistort.source}"
         status = {"camera_status": "calibrated", "projector_status": "calibrated",
                   "projector_pose_known": undistort.pose_known}
-    shots: list[Shot] = []
-    kept: dict[str, np.ndarray] = {}  # the first white, black and surface photographs, for the depth's alignment
     with CaptureSetWriter(out_capture_dir, camera, projector, depth_info=depth_info, notes=notes, force=force,
                           inputs=(sequence_dir, captures_dir, depth_path, *inputs),
                           camera_lens=None if undistort is None else undistort.to_dict(),
                           **status) as writer:
-        for i, (frame, path) in enumerate(zip(seq.frames, files)):
-            say(f"importing {path.name}", i / len(files))
-            img, enc = (first, first_enc) if i == 0 else _load_capture(path, encoding)
-            if (img.shape[1], img.shape[0]) != camera.intrinsics.size:
-                raise CaptureError(_size_message(path, img, camera))
-            if undistort is not None:
-                img = undistort.image(img)
-            pattern = None
-            if frame["kind"] != "surface":
-                try:
-                    pattern = read_image(sequence_frame(seq, frame))
-                except ImageError as exc:
-                    raise CaptureError(f"pattern frame {frame['file']} of the sequence is unreadable: {exc}") from None
-            params = dict(frame.get("params") or {})
-            writer.add(frame["kind"], img, name=frame["name"], frame=pattern, source=path.name,
-                       source_encoding=enc, **params)
-            if frame["kind"] in ("white", "black", "checker", "graycode"):
-                shots.append(Shot(frame["kind"], params, reduce_image(img), path.name))
-            if frame["kind"] in ("white", "black", "surface") and depth is not None:
-                kept.setdefault(frame["kind"], img)
+        shots, kept = _add_photographs(writer, seq, files, (first, first_enc), encoding, undistort, say,
+                                       keep=depth is not None)
         if depth is not None:
             d = np.asarray(depth, dtype=np.float32)
             if undistort is not None and not (reading is not None and reading.projected):
@@ -315,6 +299,184 @@ def import_captures(sequence_dir: str | Path, captures_dir: str | Path, camera: 
             report = check_exposure(shots, where=f"photographs in {Path(captures_dir)}")
             writer.notes["exposure"] = report.notes()
     return CaptureSet.load(out_capture_dir, verify_images=False)
+
+
+def _photographs(seq: SequenceInfo, captures_dir: str | Path, encoding: str
+                 ) -> tuple[list[Path], int, np.ndarray, str]:
+    """The photographs of ``seq``'s frames in ``captures_dir``, in frame order, checked one per frame and all
+    the same way up; with their EXIF orientation, and the first one read (with how it was encoded)."""
+    files = list_captures(captures_dir, [f["file"] for f in seq.frames])
+    if len(files) != len(seq.frames):
+        raise CaptureError(f"the sequence has {len(seq.frames)} frames but {captures_dir} holds {len(files)} "
+                           f"captures ({files[0].name} … {files[-1].name}); one capture per frame is needed")
+    orientation = check_orientations(files)
+    first, first_enc = _load_capture(files[0], encoding)
+    return files, orientation, first, first_enc
+
+
+def _add_photographs(writer: CaptureSetWriter, seq: SequenceInfo, files: list[Path], first: tuple[np.ndarray, str],
+                     encoding: str, undistort: RigLens | None, say: Progress, *, projector_index: int = 0,
+                     keep: bool = False) -> tuple[list[Shot], dict[str, np.ndarray]]:
+    """Each photograph into ``writer`` as the capture of its frame, shown by projector ``projector_index`` (its
+    entries named ``NAME_pK`` after the first projector's, as the lab names them; the surface frame of a
+    sequence added to a set that has its surface photo already is left out). Returns the shots of the exposure
+    check and, with ``keep``, the first white, black and surface photographs, for the depth's alignment."""
+    shots: list[Shot] = []
+    kept: dict[str, np.ndarray] = {}
+    camera = writer.camera
+    for i, (frame, path) in enumerate(zip(seq.frames, files)):
+        say(f"importing {path.name}", i / len(files))
+        if projector_index and frame["kind"] in SHARED_KINDS:
+            continue
+        img, enc = first if i == 0 else _load_capture(path, encoding)
+        if (img.shape[1], img.shape[0]) != camera.intrinsics.size:
+            raise CaptureError(_size_message(path, img, camera))
+        if undistort is not None:
+            img = undistort.image(img)
+        pattern = None
+        if frame["kind"] != "surface":
+            try:
+                pattern = read_image(sequence_frame(seq, frame))
+            except ImageError as exc:
+                raise CaptureError(f"pattern frame {frame['file']} of the sequence is unreadable: {exc}") from None
+        params = dict(frame.get("params") or {})
+        name = f"{frame['name']}_p{projector_index}" if projector_index else frame["name"]
+        writer.add(frame["kind"], img, name=name, frame=pattern, source=path.name, source_encoding=enc,
+                   projector_index=projector_index, **params)
+        if frame["kind"] in ("white", "black", "checker", "graycode"):
+            shots.append(Shot(frame["kind"], params, reduce_image(img), path.name))
+        if frame["kind"] in ("white", "black", "surface") and keep:
+            kept.setdefault(frame["kind"], img)
+    return shots, kept
+
+
+def _check_new_projector(base: CaptureSet, seq: SequenceInfo, captures_dir: Path) -> None:
+    """Refuse a sequence, or photographs, that are not a new projector's: each projector is added once, in order,
+    and a sequence without a projector number only when its size tells it from every projector of ``base``."""
+    index = len(base.projectors)
+    number = seq.projector_index + 1
+    if seq.projector_index and seq.projector_index < index:
+        raise CaptureError(f"{seq.path} is projector {number}'s sequence, and {base.path} holds projector {number}'s "
+                           f"captures already: each projector is added once. Add projector {index + 1}'s (its "
+                           f"patterns exported with --projector-number {index + 1})")
+    if seq.projector_index > index:
+        raise CaptureError(f"{seq.path} is projector {number}'s sequence, but {base.path} holds {index} "
+                           f"projector(s): add projector {index + 1} first, the projectors in their order")
+    size = seq.projector.intrinsics.size
+    if not seq.projector_index:
+        same = [k for k, p in enumerate(base.projectors) if p.intrinsics.size == size]
+        if same:
+            raise CaptureError(
+                f"{seq.path} was exported without a projector number, for a {size[0]}×{size[1]} projector as "
+                f"projector {same[0] + 1} of {base.path} is: it may be that projector's sequence again. Export "
+                f"projector {index + 1}'s patterns with `procam patterns … --projector-number {index + 1}`, "
+                "photograph them while the other projectors show black, and add those")
+    here = Path(captures_dir).resolve()
+    imported = [base.notes.get("captures"), *(a.get("captures") for a in _added(base.notes))]
+    for k, folder in enumerate(imported):
+        if folder and Path(str(folder)) == here:
+            raise CaptureError(f"the photographs in {captures_dir} are in {base.path} already (projector "
+                               f"{k + 1}'s); give the photographs of projector {index + 1}'s sequence")
+
+
+def _added(notes: dict[str, Any]) -> list[dict[str, Any]]:
+    """The records of the projectors added to a set after its first (``notes["added_projectors"]``)."""
+    added = notes.get("added_projectors")
+    return [a for a in added if isinstance(a, dict)] if isinstance(added, list) else []
+
+
+def _check_same_lens(base: CaptureSet, undistort: RigLens | None) -> None:
+    """Refuse photographs of a new projector that would not become the pinhole camera of ``base``'s: the same
+    calibrated lens taken out of them (a rig file whose camera is the same), or none out of either."""
+    have = removed_lens(base)
+    if have is None and undistort is None:
+        return
+    if have is not None and undistort is None:
+        raise CaptureError(f"the camera's lens distortion was taken out of the photographs of {base.path} "
+                           f"({have.source}); take the same lens out of this projector's: give --rig, a rig "
+                           "calibration of this projector with that same camera calibration")
+    if have is None or undistort is None:
+        raise CaptureError(f"the photographs of {base.path} kept the camera's lens distortion (imported without "
+                           "--rig), but --rig would take it out of this projector's, and one camera must see every "
+                           "projector: add them without --rig (`procam undistort-captures` takes the lens out of the "
+                           "whole set afterwards), or import every projector's photographs with --rig")
+    if (have.camera.to_dict() != undistort.camera.to_dict()
+            or np.shape(have.distortion) != np.shape(undistort.distortion)
+            or not np.array_equal(np.asarray(have.distortion, float), np.asarray(undistort.distortion, float))):
+        raise CaptureError(f"the rig calibration {undistort.source} has another camera lens than the one taken out "
+                           f"of the photographs of {base.path} ({have.source}): every projector's photographs must go "
+                           "through one camera calibration. Use rig files that share it, or add the photographs "
+                           "without --rig to a set imported without it and take the lens out of the whole set with "
+                           "`procam undistort-captures SET --rig RIG`")
+
+
+def add_projector_captures(base: CaptureSet, sequence_dir: str | Path, captures_dir: str | Path,
+                           out_capture_dir: str | Path, *, projector: Projector | None = None,
+                           encoding: str = "auto", undistort: RigLens | None = None, check_session: bool = True,
+                           progress: Progress | None = None, force: bool = False,
+                           inputs: Iterable[str | Path | None] = ()) -> CaptureSet:
+    """A NEW capture set: every capture of ``base`` and one more projector's, the photographs in ``captures_dir``
+    of the sequence in ``sequence_dir``, taken by ``base``'s camera while every other projector showed black.
+
+    ``base`` is an input: it is read, never changed or replaced (``out_capture_dir`` may not be it). The new
+    projector is projector ``len(base.projectors)`` (numbered from 0): the sequence must be its own
+    (:func:`_check_new_projector`), photographed at ``base``'s camera size, through the same calibrated lens
+    as ``base``'s photographs (``undistort``) or none (:func:`_check_same_lens`). ``projector`` (default the
+    sequence's) is its model, e.g. from its rig file. The surface photo, the depth and the targets are
+    ``base``'s; a surface frame in the sequence is left out. The finished set must pass
+    :func:`.others_black.check_others_black` before it is moved into place; any problem raises a
+    :class:`CaptureError` and nothing is written.
+    """
+    say = progress or quiet
+    if encoding not in ENCODINGS:
+        raise CaptureError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    seq = load_sequence(sequence_dir)
+    index = len(base.projectors)
+    _check_new_projector(base, seq, Path(captures_dir))
+    _check_same_lens(base, undistort)
+    files, orientation, first, first_enc = _photographs(seq, captures_dir, encoding)
+    size, cam = (first.shape[1], first.shape[0]), base.camera.intrinsics.size
+    if size != cam:
+        turned = " (turned by 90°)" if size == cam[::-1] else ""
+        raise CaptureError(f"the photographs in {captures_dir} are {size[0]}×{size[1]} pixels{turned} "
+                           f"({files[0].name}), but {base.path}'s camera took {cam[0]}×{cam[1]}: every projector's "
+                           "sequence must be photographed by the same camera, unmoved, at the same size and the "
+                           "same way up")
+    pose_known = base.projector_pose_known and undistort is not None and undistort.pose_known
+    record: dict[str, Any] = {"projector": index, "sequence": str(Path(sequence_dir).resolve()),
+                              "captures": str(Path(captures_dir).resolve()), "encoding": encoding,
+                              "added_to": str(Path(base.path).resolve())}
+    if orientation != 1:
+        record["orientation"] = f"EXIF orientation {orientation} ({ORIENTATIONS[orientation]}) applied"
+    if base.projector_pose_known and not pose_known:
+        warning = (f"projector {index + 1}'s pose is not known (no metric rig file), so the set no longer knows "
+                   "any projector's pose: calibration finds every pose")
+        say(f"warning: {warning}", 0.0)
+        record["warning"] = warning
+    notes = {**base.notes, "added_projectors": [*_added(base.notes), record]}
+    out = Path(out_capture_dir)
+    with CaptureSetWriter(out, base.camera, base.projector, others=(*base.others, projector or seq.projector),
+                          depth_info=base.depth_info, target_area=base.target_area,
+                          camera_status=base.camera_status,
+                          projector_status=("calibrated" if base.projector_status == "calibrated"
+                                            and undistort is not None else "nominal"),
+                          projector_pose_known=pose_known, notes=notes, camera_lens=base.camera_lens, force=force,
+                          inputs=(base.path, sequence_dir, captures_dir, *inputs),
+                          check=lambda written: check_others_black(written, where=str(out))) as writer:
+        say(f"copying the {len(base.entries)} images of {base.path}", 0.0)
+        for e in base.entries:
+            if e.kind == "depth":
+                writer.add_depth(base._read_depth(e), name=e.name, suffix=Path(e.file).suffix, **e.params)
+                continue
+            pattern = base._read(e.pattern) if e.pattern else None
+            writer.add(e.kind, base._read(e.file), name=e.name, frame=pattern, projector_index=e.projector,
+                       **e.params)
+        shots, _ = _add_photographs(writer, seq, files, (first, first_enc), encoding, undistort, say,
+                                    projector_index=index)
+        if check_session:
+            say("checking that exposure and white balance stayed fixed", 1.0)
+            record["exposure"] = check_exposure(shots, where=f"photographs in {Path(captures_dir)}").notes()
+    return CaptureSet.load(out, verify_images=False)
 
 
 def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *, force: bool = False,

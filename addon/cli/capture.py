@@ -5,6 +5,11 @@ tools.
 resolution; the user shows and photographs them; ``import-captures`` turns the
 photographs into a capture set that calibration reads; ``undistort-captures`` takes a
 board-calibrated camera lens out of a capture set made before the camera was calibrated.
+
+Several projectors, one projector at a time: ``patterns --projector-number K`` for each projector, then
+``import-captures SEQ1 PHOTOS1 --out SET1`` and ``import-captures SEQ2 PHOTOS2 --add-to SET1 --out SET2`` …,
+each run a new set of one more projector; a set is never changed in place, so a calibration made from SET1 still
+reads the set it was made from.
 """
 
 from __future__ import annotations
@@ -37,8 +42,8 @@ def _configure_patterns(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing sequence folder at --out")
 
 
-@command("patterns", "Export the numbered calibration pattern sequence for your own projection/capture tools.",
-         _configure_patterns)
+@command("patterns", "Export the numbered calibration pattern sequence for your own projection/capture tools "
+         "(several projectors: one sequence each, --projector-number K).", _configure_patterns)
 def patterns(args: argparse.Namespace) -> int:
     projector = projector_from_args(args)
     w, h = projector.intrinsics.size
@@ -69,8 +74,8 @@ def _configure_import(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing capture set at --out")
 
 
-@command("import-captures", "Import numbered captures of an exported pattern sequence as a capture set.",
-         _configure_import)
+@command("import-captures", "Import numbered captures of an exported pattern sequence as a capture set "
+         "(several projectors: add each further projector's with --add-to SET into a new set).", _configure_import)
 def import_photographs(args: argparse.Namespace) -> int:
     camera = from_arguments(CameraSize, args).camera(args.camera_fov)
     cs = run_step("import-captures", run_import, from_arguments(
@@ -78,6 +83,10 @@ def import_photographs(args: argparse.Namespace) -> int:
         camera=camera, depth_native_size=depth_native_size(args), force=args.force))
     w, h = cs.camera.intrinsics.size
     print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
+    if args.add_to is not None:
+        sizes = ", ".join(f"{k + 1}: {p.intrinsics.width}×{p.intrinsics.height}" for k, p in enumerate(cs.projectors))
+        print(f"  {len(cs.projectors)} projectors ({sizes}): {args.add_to}'s captures and projector "
+              f"{len(cs.projectors)}'s; {args.add_to} is left as it was")
     if args.rig is not None:
         pose = ("from the rig (use calibrate --init nominal to keep it)" if cs.projector_pose_known
                 else "left to calibrate (the rig is in board squares)")

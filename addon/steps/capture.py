@@ -24,7 +24,7 @@ import numpy as np
 
 from ..rig.lens import RigLens
 from ..capture.sequence import export_sequence, load_sequence
-from ..capture.photos import import_captures, undistort_captures
+from ..capture.photos import add_projector_captures, import_captures, undistort_captures
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, LabError, RigError
 from ..lab.board import BoardTruth, default_supersample, render_board_sessions
@@ -215,6 +215,11 @@ class PatternsOptions:
              "structured-light order (Gray code, each bit then its inverse, x then y; then white and black; no "
              "surface photo or checkerboard), as procam calibrate-rig's board sessions use: import such photographs "
              "with it")
+    projector_number: int = option(
+        1, min=1, max=MAX_PROJECTORS, metavar="K",
+        help="several projectors: the sequence of projector K (default 1), for its own size and lens; 2 and above "
+             "leave out the surface photo (taken once, with projector 1's) and are recorded, so that import-captures "
+             "--add-to tells the projectors' sequences apart")
     force: bool = False
 
 
@@ -248,7 +253,8 @@ def run_patterns(options: PatternsOptions, progress: Progress | None = None,
     (progress or quiet)("writing the pattern frames", 0.0)
     out = export_sequence(options.projector, options.out, checker_size=options.checker, area=options.area,
                           seed=options.seed, camera=options.camera, graycode=options.graycode,
-                          validation=options.validation, layout=options.layout, force=options.force)
+                          validation=options.validation, layout=options.layout,
+                          projector_index=options.projector_number - 1, force=options.force)
     (progress or quiet)(f"{len(load_sequence(out).frames)} frames", 1.0)
     return out
 
@@ -337,6 +343,12 @@ class ImportOptions(PhotoSettings):
                            help="how the captures are encoded; auto: 8-bit files are sRGB, 16-bit/float are linear")
     #: a depth map already in memory (metres, aligned with the camera up to a few pixels)
     depth: np.ndarray | None = None
+    add_to: Path | None = option(
+        None, metavar="SET",
+        help="several projectors: a NEW capture set at --out holding SET's captures and this projector's (the "
+             "next one, numbered after SET's), photographed by SET's camera while every other projector showed "
+             "black; SET is read, never changed (--out must be another folder). The depth and the surface photo "
+             "are SET's; with --rig, the same camera calibration as SET's")
     force: bool = False
 
 
@@ -390,11 +402,15 @@ def run_undistort(options: UndistortOptions, progress: Progress | None = None,
 
 def run_import(options: ImportOptions, progress: Progress | None = None,
                cancel: Cancel | None = None) -> CaptureSet:
-    """Turn photographs of an exported pattern sequence into a new capture set."""
+    """Turn photographs of an exported pattern sequence into a new capture set (with ``add_to``: a new capture
+    set of that set's projectors and this one, :func:`_run_add`)."""
     validate(options, CaptureError)
     check_replaceable(options.out, force=options.force, what=layout.CAPTURES.what, replaceable=layout.CAPTURES.holds,
-                      inputs=(options.sequence_dir, options.photos_dir, options.depth_path, options.rig),
+                      inputs=(options.sequence_dir, options.photos_dir, options.depth_path, options.rig,
+                              options.add_to),
                       error=CaptureError)
+    if options.add_to is not None:
+        return _run_add(options, options.add_to, progress)
     camera, projector, lens = options.camera, None, None
     if options.rig is not None:
         camera, projector, lens = rig_models(options.rig, load_sequence(options.sequence_dir).projector, camera)
@@ -405,3 +421,27 @@ def run_import(options: ImportOptions, progress: Progress | None = None,
                            depth_native_size=options.depth_native_size, undistort=lens,
                            check_session=options.check_exposure, progress=progress, force=options.force,
                            inputs=(options.rig,))
+
+
+def _run_add(options: ImportOptions, add_to: Path, progress: Progress | None) -> CaptureSet:
+    """One more projector's photographs and the captures of the set ``add_to`` as a new capture set at
+    ``options.out`` (:func:`..capture.photos.add_projector_captures`); ``add_to`` is never changed."""
+    if options.depth is not None or options.depth_path is not None or options.depth_native_size is not None:
+        raise CaptureError(f"the depth is taken once, with the first projector's photographs: a projector added to "
+                           f"{add_to} keeps its depth; import without --depth")
+    base = CaptureSet.load(add_to)
+    if len(base.projectors) >= MAX_PROJECTORS:
+        raise CaptureError(f"{add_to} holds {len(base.projectors)} projectors, the most a capture set takes "
+                           f"({MAX_PROJECTORS})")
+    cam = base.camera.intrinsics.size
+    if options.camera is not None and options.camera.intrinsics.size != cam:
+        size = options.camera.intrinsics.size
+        raise CaptureError(f"the camera given is {size[0]}×{size[1]}, but {add_to}'s camera is {cam[0]}×{cam[1]}: "
+                           "every projector's sequence must be photographed by the same camera")
+    projector, lens = None, None
+    if options.rig is not None:
+        _, projector, lens = rig_models(options.rig, load_sequence(options.sequence_dir).projector, base.camera)
+    (progress or quiet)("matching the photographs to their frames", 0.0)
+    return add_projector_captures(base, options.sequence_dir, options.photos_dir, options.out, projector=projector,
+                                  encoding=options.encoding, undistort=lens, check_session=options.check_exposure,
+                                  progress=progress, force=options.force, inputs=(options.rig,))
