@@ -81,6 +81,8 @@ def test_two_projectors_imported_one_at_a_time_make_one_new_set(session, capsys)
             "it may be that projector's sequence again")
     seq3 = patterns(root / "seq3", (72, 54), "--projector-number", "3")
     refused([str(seq3), str(photos2), "--add-to", str(set1), "--out", str(root / "x")], "add projector 2 first")
+    refused([str(seq2), str(photos1), "--add-to", str(set1), "--out", str(root / "x")],
+            "are in " + str(set1) + " already (projector 1's)")
     refused([str(seq2), str(photos2), "--out", str(root / "x")], "--add-to SET --out NEW_SET")
     depth = root / "depth.npy"
     np.save(depth, np.full(CAM[::-1], 1.5, np.float32))
@@ -145,3 +147,9 @@ def test_every_projector_goes_through_one_camera_calibration(tmp_path, capsys):
     assert (two.camera_status, two.projector_status, two.projector_pose_known) == ("calibrated", "calibrated", True)
     assert two.projectors[1].intrinsics.size == SECOND and two.projectors[1].intrinsics.cy == 80.5  # rig 2's K
     assert two.camera_lens == CaptureSet.load(tmp_path / "set1").camera_lens
+    # Added without lenses, the lens comes out of the whole set of two afterwards, each projector's photographs alike
+    assert main([*add, str(tmp_path / "plain"), "--out", str(tmp_path / "plain2")]) == 0
+    assert main(["undistort-captures", str(tmp_path / "plain2"), "--rig", str(rig1), "--out", str(tmp_path / "u")]) == 0
+    undistorted = CaptureSet.load(tmp_path / "u")
+    assert len(undistorted.projectors) == 2 and undistorted.camera_lens["distortion"] == two.camera_lens["distortion"]
+    assert np.allclose(undistorted.for_projector(1).image("white"), two.for_projector(1).image("white"), atol=1e-4)
