@@ -37,7 +37,9 @@ from procam.addon.capture.targets import DEFAULT_TARGETS, natural_target
 from procam.addon.cli.app import main as procam
 from procam.addon.imageio import write_image
 from procam.addon.lab.truth import LabTruth
+from procam.addon.capture.devices import OneProjector
 from procam.addon.stages.joint import JointCompensator, ramp_baseline
+from procam.addon.stages.metrics import psnr
 from procam.addon.stages.range import range_ceiling
 from procam.addon.stages.transport import build_transport
 from procam.addon.steps import calibrate as calibrate_step
@@ -169,37 +171,48 @@ def side(work: Path, surface: str, args: argparse.Namespace) -> None:
 
 def stacked(work: Path, surface: str, args: argparse.Namespace) -> None:
     cal_dir, truth_path = lab(work, surface, "stacked", args)
-    cal = calibrate_step.read(cal_dir)
-    captures = calibrate_step.captures_of(cal)
-    assert captures is not None
-    stage = projectors.JointStage(cal, StageCOptions())
-    area = stage.area_for(np.zeros((300, 400, 3), np.float32))
-    paths = targets_for(work, area, args.targets, bright=True)
-    black, white = projectors.combined_black_white(captures)
-    one = captures.for_projector(0)
-    b1, w1 = one.image("black"), one.image("white")
-    iters = [] if args.iterations is None else ["--iterations", str(args.iterations)]
-    comp, ev = work / "comp", work / "eval"
-    step(["compensate", str(cal_dir), *map(str, paths), "--device", f"lab:{truth_path}", *iters, "--out",
-          str(comp)], comp)
-    step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
-          f"lab:{truth_path}", "--out", str(ev)], ev)
-    rows = json.loads((ev / "metrics.json").read_text())["targets"]
+    h = Harness(cal_dir, truth_path, args.iterations)
+    try:
+        captures = calibrate_step.captures_of(h.cal)
+        assert captures is not None
+        area = h.stage.area_for(np.zeros((300, 400, 3), np.float32))
+        paths = targets_for(work, area, args.targets, bright=True)
+        black, white = projectors.combined_black_white(captures)
+        one = captures.for_projector(0)
+        b1, w1 = one.image("black"), one.image("white")
+        iters = [] if args.iterations is None else ["--iterations", str(args.iterations)]
+        comp, ev = work / "comp", work / "eval"
+        step(["compensate", str(cal_dir), *map(str, paths), "--device", f"lab:{truth_path}", *iters, "--out",
+              str(comp)], comp)
+        step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
+              f"lab:{truth_path}", "--out", str(ev)], ev)
+        rows = json.loads((ev / "metrics.json").read_text())["targets"]
+        alone = OneProjector(h.device, 0)
+        first = h.stage.compensators[0]
+        args_c = h.options.run_arguments()
+        ones, boths, noises, singles, ours = [], [], [], [], []
+        for path, row in zip(paths, rows):
+            fitted, area = h.fitted(path)
+            ones.append(range_ceiling(fitted, area.crop(b1), area.crop(w1)))
+            boths.append(range_ceiling(fitted, area.crop(black), area.crop(white)))
+            noises.append(row.get("noise_ceiling", float("nan")))
+            # projector 1 alone, its own closed loop with projector 2 black: what stacking adds to
+            res = first.run(fitted, area, device=alone, verify=False, **args_c)
+            singles.append(psnr(area.crop(alone.project(res.x_frame)), fitted))
+            ours.append(row["psnr"])
+    finally:
+        h.close()
     print(f"\n{surface}, two projectors stacked on one area, bright targets (99.5th percentile at 1), scale "
-          f"{args.scale}")
-    print("| Target | range ceiling, one projector | both | ours (closed loop) |")
-    print("|---|---|---|---|")
-    ones, boths, ours = [], [], []
-    for path, row in zip(paths, rows):
-        fitted, _ = projectors.read_target(stage, path)
-        fitted = projectors.fit_target(fitted, area)
-        ones.append(range_ceiling(fitted, area.crop(b1), area.crop(w1)))
-        boths.append(range_ceiling(fitted, area.crop(black), area.crop(white)))
-        ours.append(row["psnr"])
-        print(f"| {row['name']} | {ones[-1]:.2f} | {boths[-1]:.2f} | {ours[-1]:.2f} |")
-    print(f"| mean | {np.mean(ones):.2f} | {np.mean(boths):.2f} | {np.mean(ours):.2f} |")
-    print(f"both projectors' ceiling {np.mean(boths) - np.mean(ones):+.2f} dB above one's; ours "
-          f"{np.mean(ours) - np.mean(boths):+.2f} dB from it")
+          f"{args.scale}, closed loop")
+    print("| Target | range ceiling, projector 1 alone | both | both, through the camera's noise | projector 1 alone "
+          "| ours, both |")
+    print("|---|---|---|---|---|---|")
+    for path, *vals in zip(paths, ones, boths, noises, singles, ours):
+        print(f"| {path.stem} | " + " | ".join(f"{v:.2f}" for v in vals) + " |")
+    print("| mean | " + " | ".join(f"{np.mean(v):.2f}" for v in (ones, boths, noises, singles, ours)) + " |")
+    print(f"both projectors' range ceiling {np.mean(boths) - np.mean(ones):+.2f} dB above one's; ours "
+          f"{np.mean(ours) - np.mean(singles):+.2f} dB above one projector compensated alone, "
+          f"{np.mean(noises) - np.mean(ours):.2f} dB below the noise ceiling")
 
 
 def shift(work: Path, surface: str, args: argparse.Namespace) -> None:
