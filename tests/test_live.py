@@ -68,6 +68,8 @@ def test_live_rig_of_several_projectors_is_refused_before_any_window_opens(monke
         LiveDevice("live:camera=57,display=0+1+2", proj, others=(other,))
     with pytest.raises(LiveError, match="not both"):
         LiveSpec.parse("live:camera=0,display=1+2,position=3:4")
+    assert main(["live-check", "--device", "live:camera=57,display=1", "--projector-width", "64",
+                 "--projector-height", "48", "--projectors", "2"]) == 2
     # Stage C and evaluation open a live device of every projector of the calibration's rig.
     monkeypatch.setattr(stage_c, "camera_lens_of", lambda calibration: None)
     calibration = SimpleNamespace(rig=SimpleNamespace(projector=proj, others=(other,)))

@@ -108,6 +108,9 @@ def test_live_capture_of_two_projectors_writes_one_capture_set(xvfb, tmp_path, c
         assert any(m.startswith("capturing projector 2's frame") for m in calls)  # stopped inside projector 2's
         kept = [len(list((tmp_path / "set.session" / d).glob("*.png"))) for d in ("photos", "photos_p2")]
         assert kept[0] > 0 and kept[1] > 0 and sum(kept) == 41
+        # the session of two projectors is not resumed as one of one
+        assert main(["capture", "--device", one, *args[:-2]]) == 2
+        assert "other settings (projectors" in capsys.readouterr().err
         assert main(["capture", "--device", device, *args]) == 0
         out = capsys.readouterr()
         assert "resuming the live session" in out.err and "of 2 projectors" in out.out

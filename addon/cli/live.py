@@ -24,6 +24,7 @@ from .terminal import run_step
 
 def _configure_check(p: argparse.ArgumentParser) -> None:
     add_arguments(p, LiveCheckOptions)
+    add_arguments(p, LiveRigSheet)
 
 
 @command("live-check", "Open a live projector window and camera: latency, noise, exposure lock.", _configure_check)
@@ -34,8 +35,9 @@ def live_check(args: argparse.Namespace) -> int:
             print(f"display {i}: {w}×{h}" + (f" at {hz:.0f} Hz" if hz else ""))
         return 0
     projector = options.projector()
+    others = from_arguments(LiveRigSheet, args).others(projector)
     device = run_step("live-check", lambda o, progress=None, cancel=None: LiveDevice(
-        o, projector, progress=progress, check_exposure=options.check_exposure), options.device)
+        o, projector, others=others, progress=progress, check_exposure=options.check_exposure), options.device)
     try:
         print("\n".join(device.report.lines()))
     finally:

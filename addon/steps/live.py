@@ -181,7 +181,7 @@ def open_session(options: LiveCaptureOptions) -> tuple[dict[str, Any], int]:
         doc = _read_session(session)
         if doc.get("settings") != json.loads(json.dumps(options.settings())):
             if not options.restart:
-                raise CaptureError(f"{session} holds a live session with other settings (projector, patterns or "
+                raise CaptureError(f"{session} holds a live session with other settings (projectors, patterns or "
                                    "seed): give the same settings to resume it, or --restart to discard its "
                                    f"{_photos_taken(session)} photographs")
             shutil.rmtree(session)
