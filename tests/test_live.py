@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from procam.addon.live.device import LiveDevice, LiveSpec
 from procam.addon.live.loopback import LoopbackCamera, LoopbackRig, painted_wall
 from procam.addon.live.window import ProjectorWindow, list_displays
 from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
+from procam.addon.steps import stage_c
 from procam.addon.steps.live import LiveCaptureOptions, run_live_capture
 from tests.conftest import XVFB_SCREEN as SCREEN  # the screen of the shared xvfb fixture
 
@@ -43,22 +45,42 @@ def test_live_spec_parsing():
             LiveSpec.parse(bad)
 
 
-def test_live_rig_of_several_projectors_is_refused_before_any_window_opens():
+def test_live_rig_of_several_projectors_is_refused_before_any_window_opens(monkeypatch):
     spec = LiveSpec.parse("live:camera=0,display=1+2")
-    assert spec.display == 1 and spec.displays == (1, 2)
+    assert spec.display == 1 and spec.displays == (1, 2) and spec.windows == 2
+    assert spec.placements() == [(1, None), (2, None)]
     assert LiveSpec.parse("live:camera=0,display=1").displays == ()
+    spec = LiveSpec.parse("live:camera=0,position=40:30+300:30")
+    assert spec.position == (40, 30) and spec.positions == ((40, 30), (300, 30))
+    assert spec.placements() == [(None, (40, 30)), (None, (300, 30))]
+    assert LiveSpec.parse("live:camera=0,position=4:3").placements() == [(None, (4, 3))]
     proj = Projector(projector_intrinsics_from_throw(*SIZE, 1.2))
     beside = proj.camera_from_projector.copy()
     beside[0, 3] += 0.4
     other = Projector(proj.intrinsics, beside)
     with pytest.raises(LiveError, match="rig has 2 projectors but the live device names 1 display.*display=1\\+2"):
         LiveDevice("live:camera=57,display=1", proj, others=(other,))  # camera 57 would fail later: not reached
-    with pytest.raises(LiveError, match="2 projectors at once .* not implemented yet"):
-        LiveDevice("live:camera=57,display=1+2", proj, others=(other,))
+    with pytest.raises(LiveError, match="rig has 3 projectors but the live device names 2 display"):
+        LiveDevice("live:camera=57,position=1:1+300:1", proj, others=(other, other))
     with pytest.raises(LiveError, match="2 displays .* for a rig of one projector"):
         LiveDevice("live:camera=57,display=1+2", proj)
+    with pytest.raises(LiveError, match="3 displays \\(0\\+1\\+2\\) for a rig of 2 projectors"):
+        LiveDevice("live:camera=57,display=0+1+2", proj, others=(other,))
     with pytest.raises(LiveError, match="not both"):
         LiveSpec.parse("live:camera=0,display=1+2,position=3:4")
+    assert main(["live-check", "--device", "live:camera=57,display=1", "--projector-width", "64",
+                 "--projector-height", "48", "--projectors", "2"]) == 2
+    # Stage C and evaluation open a live device of every projector of the calibration's rig.
+    monkeypatch.setattr(stage_c, "camera_lens_of", lambda calibration: None)
+    calibration = SimpleNamespace(rig=SimpleNamespace(projector=proj, others=(other,)))
+    with pytest.raises(LiveError, match="rig has 2 projectors but the live device names 1 display"):
+        stage_c.device_pipeline("live:camera=57,display=1", calibration)
+    with pytest.raises(LiveError, match="display 1 is named twice"):
+        LiveSpec.parse("live:camera=0,display=1+1")
+    with pytest.raises(LiveError, match="position 3:4 is named twice"):
+        LiveSpec.parse("live:camera=0,position=3:4+3:4")
+    with pytest.raises(LiveError, match="position is X:Y"):
+        LiveSpec.parse("live:camera=0,position=3:4+5")
 
 
 def test_sources():

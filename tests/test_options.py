@@ -88,7 +88,7 @@ def _options_classes():
     from procam.addon.steps.diagnose import DiagnoseOptions
     from procam.addon.steps.evaluate import EvaluateOptions
     from procam.addon.steps.export import ExportFramesOptions
-    from procam.addon.steps.live import LiveCaptureOptions, LiveCheckOptions
+    from procam.addon.steps.live import LiveCaptureOptions, LiveCheckOptions, LiveRigSheet
     from procam.addon.steps.rig import RigOptions
     from procam.addon.steps.show import ShowOptions
     from procam.addon.steps.transport import PrecomputeOptions
@@ -103,7 +103,7 @@ def _options_classes():
             (PatternsOptions, [capture, live]), (ProjectorSheet, [capture, live]), (PhotoSettings, [capture, live]),
             (DepthSensorSize, [capture, live]), (CameraSize, [capture]), (ImportOptions, [capture]),
             (UndistortOptions, [capture]), (LiveCaptureOptions, [live]), (LiveCheckOptions, [live]),
-            (RigOptions, [cli / "rig.py"])]
+            (LiveRigSheet, [live]), (RigOptions, [cli / "rig.py"])]
 
 
 #: the sidebar's and the dialogs' tables of names and properties
@@ -111,7 +111,7 @@ SIDEBAR_TABLES = ("panels/properties.py", "panels/board.py", "operators/messages
                   "operators/capture_io.py", "operators/live.py", "operators/calibrate_rig.py")
 
 
-@pytest.mark.parametrize("index", range(20))
+@pytest.mark.parametrize("index", range(21))
 def test_no_declared_option_is_declared_a_second_time(index):
     """A declared option's flag is added to no parser by hand, its scene property made by no hand, and its name in
     messages written in no table: the declaration on the Options class is the only one. (``--diagnosis`` is named
@@ -160,8 +160,8 @@ FLAGS = {
     "calibrate-rig": "--board --camera-distortion --force --out --projector --projector-distortion --square --window",
     "capture": "--area --camera-fov --checker --depth --depth-native-height --depth-native-width --depth-units "
                "--device --force --input-height --input-width --layout --no-exposure-check --no-graycode "
-               "--no-validation --out --projector-height --projector-width --restart --rig --seed --shift-x --shift-y "
-               "--throw-ratio",
+               "--no-validation --out --projector-height --projector-width --projectors --restart --rig --seed "
+               "--shift-x --shift-y --throw-ratio",
     "demo": "--effects --force --full --iterations --out --projectors --samples --scale --schedule --seed --surface "
             "--targets",
     "evaluate": "--classical --device --force --inputs --no-repeat --out --target-encoding --targets",
@@ -172,7 +172,7 @@ FLAGS = {
     "lab": "--camera-fov-error --effects --force --full-binary --layout --no-graycode --nominal-error --out "
            "--overlap --projector-effects --projector-shift --projectors --samples --scale --seed --supersample "
            "--surface --truth",
-    "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width",
+    "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width --projectors",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
                 "--projector-height --projector-number --projector-width --seed --shift-x --shift-y --throw-ratio",
     "precompute": "--bounces --force --seed",

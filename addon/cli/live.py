@@ -4,7 +4,8 @@ The live device is ``live:camera=SOURCE,display=N`` (``addon/live/device.py``
 lists its options). ``live-check`` opens it, measures latency, noise and
 whether exposure is locked, and says what it found; ``capture`` shows and
 captures the whole calibration sequence and writes a capture set, resuming an
-interrupted session.
+interrupted session; ``--projectors N`` with one display each (``display=1+2``)
+captures every projector's sequence, the others black, into one capture set.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ from ..live.device import LiveDevice
 from ..live.window import list_displays
 from ..options import add_arguments, declared, from_arguments
 from ..steps.capture import PatternsOptions, PhotoSettings
-from ..steps.live import LiveCaptureOptions, LiveCheckOptions, run_live_capture
+from ..steps.live import LiveCaptureOptions, LiveCheckOptions, LiveRigSheet, run_live_capture
 from .app import command
 from .capture import add_camera_options, add_projector_options, depth_native_size, projector_from_args
 from .terminal import run_step
 
 def _configure_check(p: argparse.ArgumentParser) -> None:
     add_arguments(p, LiveCheckOptions)
+    add_arguments(p, LiveRigSheet)
 
 
 @command("live-check", "Open a live projector window and camera: latency, noise, exposure lock.", _configure_check)
@@ -33,8 +35,9 @@ def live_check(args: argparse.Namespace) -> int:
             print(f"display {i}: {w}×{h}" + (f" at {hz:.0f} Hz" if hz else ""))
         return 0
     projector = options.projector()
+    others = from_arguments(LiveRigSheet, args).others(projector)
     device = run_step("live-check", lambda o, progress=None, cancel=None: LiveDevice(
-        o, projector, progress=progress, check_exposure=options.check_exposure), options.device)
+        o, projector, others=others, progress=progress, check_exposure=options.check_exposure), options.device)
     try:
         print("\n".join(device.report.lines()))
     finally:
@@ -45,6 +48,7 @@ def live_check(args: argparse.Namespace) -> int:
 def _configure_capture(p: argparse.ArgumentParser) -> None:
     add_arguments(p, LiveCaptureOptions, exclude=[d.name for d in declared(PhotoSettings)] + ["restart"])
     add_projector_options(p)
+    add_arguments(p, LiveRigSheet)
     # accepted as patterns takes it; the live session shows the procam layout
     add_arguments(p, PatternsOptions, only=("layout",))
     add_camera_options(p)
@@ -57,9 +61,12 @@ def _configure_capture(p: argparse.ArgumentParser) -> None:
 @command("capture", "Show and capture the calibration sequence live (resumes an interrupted session).",
          _configure_capture)
 def capture(args: argparse.Namespace) -> int:
-    options = from_arguments(LiveCaptureOptions, args, projector=projector_from_args(args), out=args.out,
-                             depth_native_size=depth_native_size(args), force=args.force)
+    projector = projector_from_args(args)
+    options = from_arguments(LiveCaptureOptions, args, projector=projector, out=args.out,
+                             depth_native_size=depth_native_size(args), force=args.force,
+                             others=from_arguments(LiveRigSheet, args).others(projector))
     cs = run_step("capture", run_live_capture, options)
     w, h = cs.camera.intrinsics.size
-    print(f"wrote capture set {cs.path}: {len(cs)} images, camera {w}×{h}")
+    many = f" of {len(cs.projectors)} projectors" if cs.others else ""
+    print(f"wrote capture set {cs.path}: {len(cs)} images{many}, camera {w}×{h}")
     return 0

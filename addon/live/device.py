@@ -9,15 +9,22 @@
 * ``latency=auto|SECONDS``: measured at start by default;
 * ``size=WxH``: ask the camera for a resolution.
 
-Several projectors: ``display=1+2`` names one display per projector, in rig order. Showing several projector
-windows at once is not implemented yet: a rig of several projectors is refused with what to do (fewer displays
-than projectors first), and so is a list of displays for a rig of one.
+Several projectors: ``display=1+2`` names one display per projector, in rig order (or ``position=X:Y+X:Y``, one
+desktop position per projector). Each projector gets its own borderless window of its native size, all open at
+once in this process (``window.py``); :meth:`LiveDevice.project_all` draws every window, flips them one after the
+other and captures once, after the last flip plus the latency. Fewer displays than projectors, more displays
+than projectors, or one display named twice is refused before any window opens. ``project`` (one frame) is
+refused on a device of several projectors, as the lab's device refuses it: which projector it would mean, and
+what the others show, is for the caller to say (``capture.devices.OneProjector``: one projector, the others
+black).
 
 Latency: the window shows black, then white, and the time from the flip to the
 first frame that arrives brighter is one measurement; the largest of three is
-kept. Every capture then waits for frames that arrived later than the flip plus
-that latency plus one camera frame (the frame being exposed while the image
-changed is a mix of both), so a capture never holds the previous pattern.
+kept. With several projectors each measurement lights one projector (the others
+black), in turn, at least once each, so the wait covers the slowest of them.
+Every capture then waits for frames that arrived later than the (last) flip
+plus that latency plus one camera frame (the frame being exposed while the
+image changed is a mix of both), so a capture never holds the previous pattern.
 
 Locked exposure: the camera is asked for manual exposure, white balance and
 focus; then white is captured right after it shows and again after
@@ -68,10 +75,26 @@ class LiveSpec:
     size: tuple[int, int] | None = None
     #: every display of ``display=1+2`` (one per projector, in rig order); () when one display or a position
     displays: tuple[int, ...] = ()
+    #: every position of ``position=X:Y+X:Y`` (one per projector, in rig order); () when one position or a display
+    positions: tuple[tuple[int, int], ...] = ()
+
+    @property
+    def windows(self) -> int:
+        """How many projector windows this names (one per display or position)."""
+        return len(self.displays) or len(self.positions) or 1
+
+    def placements(self) -> list[tuple[int | None, tuple[int, int] | None]]:
+        """``(display, position)`` of each window, in rig order (one of the two None)."""
+        if self.displays:
+            return [(d, None) for d in self.displays]
+        if self.positions:
+            return [(None, p) for p in self.positions]
+        return [(self.display, self.position)]
 
     @staticmethod
     def parse(text: str) -> "LiveSpec":
-        """``camera=SOURCE,display=N|position=X:Y[,average=N|noise=σ][,encoding=…][,latency=…][,size=WxH]``."""
+        """``camera=SOURCE,display=N|position=X:Y[,average=N|noise=σ][,encoding=…][,latency=…][,size=WxH]``;
+        several projectors: ``display=N+N…`` or ``position=X:Y+X:Y…``."""
         body = text[5:] if text.startswith("live:") else text
         known = ("camera", "display", "position", "average", "noise", "encoding", "latency", "size")
         values: dict[str, str] = {}
@@ -93,7 +116,9 @@ class LiveSpec:
         try:
             displays = tuple(int(v) for v in values["display"].split("+")) if "display" in values else ()
             display = displays[0] if displays else None
-            position = tuple(int(v) for v in values["position"].split(":")) if "position" in values else None
+            positions = tuple(tuple(int(v) for v in one.split(":")) for one in values["position"].split("+")) \
+                if "position" in values else ()
+            position = positions[0] if positions else None
             average = int(values["average"]) if "average" in values else None
             noise = float(values["noise"]) if "noise" in values else None
             latency = None if values.get("latency", "auto") == "auto" else float(values["latency"])
@@ -102,7 +127,7 @@ class LiveSpec:
             raise LiveError(f"live device: a value in {text!r} is not a number ({exc})") from None
         if display is None and position is None:
             display = 0
-        if position is not None and len(position) != 2 or size is not None and len(size) != 2:
+        if any(len(p) != 2 for p in positions) or size is not None and len(size) != 2:
             raise LiveError("live device: position is X:Y and size is WIDTHxHEIGHT")
         if average is not None and noise is not None:
             raise LiveError("live device: give average=N or noise=σ, not both")
@@ -115,10 +140,18 @@ class LiveSpec:
         encoding = values.get("encoding", "srgb")
         if encoding not in ("srgb", "linear"):
             raise LiveError(f"live device: encoding must be srgb or linear, got {encoding!r}")
-        if len(displays) > 1 and position is not None:
-            raise LiveError("live device: give several displays (display=1+2) or one position, not both")
+        if displays and positions:
+            raise LiveError("live device: give displays (display=1+2) or desktop positions (position=X:Y+X:Y), "
+                            "not both")
+        for named, what in ((displays, "display"), (positions, "position")):
+            twice = sorted({":".join(map(str, v)) if isinstance(v, tuple) else str(v)
+                            for v in named if named.count(v) > 1})
+            if twice:
+                raise LiveError(f"live device: {what} {', '.join(twice)} is named twice in {text!r}; give each "
+                                f"projector its own {what}")
         return LiveSpec(parse_source(values["camera"]), display, position, average, noise, encoding, latency, size,
-                        displays if len(displays) > 1 else ())
+                        displays if len(displays) > 1 else (),
+                        tuple((int(x), int(y)) for x, y in positions) if len(positions) > 1 else ())
 
 
 @dataclass(frozen=True)
@@ -151,24 +184,32 @@ class LiveReport:
 
 
 def check_displays(spec: LiveSpec, projectors: int) -> None:
-    """Refuse, before any window opens, a live rig whose displays do not fit its projectors: one display per
-    projector, and (not implemented yet) more than one projector."""
-    displays = len(spec.displays) or 1
-    if projectors > 1 and displays < projectors:
-        raise LiveError(f"this rig has {projectors} projectors but the live device names {displays} display(s); "
+    """Refuse, before any window opens, a live rig whose windows do not fit its projectors: one display (or
+    position) per projector, in rig order."""
+    windows = spec.windows
+    if windows < projectors:
+        raise LiveError(f"this rig has {projectors} projectors but the live device names {windows} display(s); "
                         f"give one display per projector in rig order, e.g. display="
-                        f"{'+'.join(str(k + 1) for k in range(projectors))}")
-    if projectors > 1:
-        raise LiveError(f"showing {projectors} projectors at once through the live device (one window per display) "
-                        "is not implemented yet: capture each projector's sequence on its own, the others showing "
-                        "black, and import the captures (procam import-captures)")
-    if displays > 1:
-        raise LiveError(f"the live device names {displays} displays (display={'+'.join(map(str, spec.displays))}) "
-                        "for a rig of one projector; give its one display")
+                        f"{'+'.join(str(k + 1) for k in range(projectors))} (or one desktop position each, "
+                        "position=X:Y+X:Y)")
+    if windows > projectors:
+        named = "+".join(map(str, spec.displays)) if spec.displays else \
+            "+".join(f"{x}:{y}" for x, y in spec.positions)
+        rig = "a rig of one projector" if projectors == 1 else f"a rig of {projectors} projectors"
+        raise LiveError(f"the live device names {windows} displays ({named}) for {rig}; give one display per "
+                        "projector")
+
+
+def _black(projector: Projector) -> np.ndarray:
+    w, h = projector.intrinsics.size
+    return np.zeros((h, w, 3), dtype=np.float32)
 
 
 class LiveDevice(Device):
-    """A real projector (a :class:`ProjectorWindow`) and a real camera (a :class:`CameraClient`)."""
+    """Real projectors (one :class:`ProjectorWindow` each) and a real camera (a :class:`CameraClient`).
+
+    ``others``: projectors 2…N of a rig of several, each shown in the window of its own display (``spec``'s
+    ``display=1+2``); :meth:`project_all` shows them all at once and captures once."""
 
     def __init__(self, spec: LiveSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
                  progress: Progress | None = None, check_exposure: bool = True) -> None:
@@ -176,12 +217,15 @@ class LiveDevice(Device):
         self.spec = spec if isinstance(spec, LiveSpec) else LiveSpec.parse(spec)
         check_displays(self.spec, 1 + len(others))
         self.projector = projector
-        self.window: ProjectorWindow | None = None
+        self.others = tuple(others)
+        self.windows: list[ProjectorWindow] = []
         self.camera: CameraClient | None = None
         try:
-            say("opening the projector window", 0.0)
-            self.window = ProjectorWindow(projector.intrinsics.size, display=self.spec.display,
-                                          position=self.spec.position)
+            many = len(self.projectors) > 1
+            for k, (proj, (display, position)) in enumerate(zip(self.projectors, self.spec.placements())):
+                say(f"opening projector {k + 1}'s window" if many else "opening the projector window", 0.0)
+                self.windows.append(ProjectorWindow(proj.intrinsics.size, display=display, position=position,
+                                                    title=f"ProCam projector {k + 1}" if many else "ProCam projector"))
             say("opening the camera", 0.1)
             self.camera = CameraClient(self.spec.camera, size=self.spec.size)
             locked = self.camera.lock()
@@ -201,18 +245,27 @@ class LiveDevice(Device):
             raise
 
     @property
+    def projectors(self) -> tuple[Projector, ...]:
+        return (self.projector, *self.others)
+
+    @property
     def camera_size(self) -> tuple[int, int] | None:
         """The camera's frame size (width, height), checked against a calibration before stage C starts."""
         return self.camera.size if self.camera is not None else None
 
     # -- capture -------------------------------------------------------------------------------------------------
 
-    def _show(self, frame: np.ndarray) -> float:
-        assert self.window is not None
-        return self.window.show(frame)
+    def _show(self, frames: Sequence[np.ndarray]) -> float:
+        """Every window's frame drawn, then the windows flipped one after the other: the last flip's time, after
+        which every window shows its frame."""
+        if not self.windows:
+            raise LiveError("the live device is closed")
+        for window, frame in zip(self.windows, frames):
+            window.put(frame)
+        return max(window.flip() for window in self.windows)
 
     def _settled_after(self, shown: float) -> float:
-        """The moment after which every camera frame shows what the window flipped at ``shown``."""
+        """The moment after which every camera frame shows what the windows flipped at ``shown``."""
         assert self.camera is not None
         return shown + self.latency_s + self.camera.frame_period()
 
@@ -220,29 +273,49 @@ class LiveDevice(Device):
         mean = np.mean(frames, axis=0, dtype=np.float64).astype(np.float32)
         return srgb_to_linear(mean) if self.spec.encoding == "srgb" else mean
 
-    def project(self, frame: np.ndarray) -> np.ndarray:
+    def _capture(self, frames: Sequence[np.ndarray]) -> np.ndarray:
         assert self.camera is not None
-        shown = self._show(self.check_frame(frame))
+        shown = self._show(frames)
         return self._linear(self.camera.frames_after(self._settled_after(shown), self.average,
                                                      timeout=self.latency_s + 5.0))
 
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        if self.others:
+            raise LiveError(f"this live device shows {len(self.projectors)} projectors: give each its frame with "
+                            "project_all (black for those that are off), or show one projector with the others "
+                            "black through capture.devices.OneProjector")
+        return self._capture([self.check_frame(frame)])
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        """Every projector's frame in its own window at once (each checked at its projector's size), and one
+        capture taken once all of them have been shown for the measured latency."""
+        return self._capture(self.check_frames(frames))
+
+    def capture_off(self) -> np.ndarray:
+        """Every projector black (a window cannot switch its projector off)."""
+        return self._capture([_black(p) for p in self.projectors])
+
     # -- measurements at start -----------------------------------------------------------------------------------
 
-    def _flat(self, value: float) -> np.ndarray:
-        w, h = self.projector.intrinsics.size
-        return np.full((h, w, 3), value, dtype=np.float32)
+    def _flat(self, value: float, lit: int | None = None) -> list[np.ndarray]:
+        """A flat frame of ``value`` on every projector, or only on projector ``lit`` (the others black)."""
+        return [_black(p) + np.float32(value if lit is None or k == lit else 0.0)
+                for k, p in enumerate(self.projectors)]
 
     def _latency(self, say: Progress) -> tuple[float, tuple[float, ...]]:
         assert self.camera is not None
         if self.spec.latency is not None:
             return float(self.spec.latency), (float(self.spec.latency),)
         found: list[float] = []
-        for k in range(3):
-            say(f"measuring the camera latency ({k + 1}/3)", 0.2 + 0.1 * k)
+        count = len(self.projectors)
+        rounds = max(3, count)  # every projector lit at least once: the slowest one's latency is waited out
+        for k in range(rounds):
+            lit = k % count
+            say(f"measuring the camera latency ({k + 1}/{rounds})", 0.2 + 0.3 * k / rounds)
             self._show(self._flat(0.0))
             time.sleep(0.3 + 1.5 * (max(found) if found else 0.5))  # until black has surely come through
             dark = float(np.mean(self.camera.frames_after(time.perf_counter() - 0.05, 1)[0]))
-            t_white = self._show(self._flat(1.0))
+            t_white = self._show(self._flat(1.0, lit))
             seen, t = None, t_white
             while seen is None and time.perf_counter() < t_white + LATENCY_TIMEOUT:
                 for stamp, img in self.camera.stamped_after(t):
@@ -252,9 +325,11 @@ class LiveDevice(Device):
                         break
                 time.sleep(0.002)
             if seen is None:
-                raise LiveError(f"the camera did not see the projector: a full white frame raised its picture's "
+                which = f"projector {lit + 1}" if count > 1 else "the projector"
+                window = f"projector {lit + 1}'s window" if count > 1 else "the window"
+                raise LiveError(f"the camera did not see {which}: a full white frame raised its picture's "
                                 f"mean by less than 2 % within {LATENCY_TIMEOUT:.0f} s. Point the camera at the "
-                                "projected image, check that the projector shows the window (display index), and "
+                                f"projected image, check that the projector shows {window} (display index), and "
                                 "open the lens")
             found.append(seen - t_white)
         return max(found), tuple(found)
@@ -275,9 +350,9 @@ class LiveDevice(Device):
 
     def _exposure_drift(self, say: Progress) -> tuple[float, float]:
         say("checking that the camera's exposure and white balance are locked", 0.8)
-        first = self.project(self._flat(1.0))
+        first = self._capture(self._flat(1.0))
         time.sleep(ADAPT_S)
-        second = self.project(self._flat(1.0))
+        second = self._capture(self._flat(1.0))
         lit = first.mean(axis=2) > 0.05 * max(float(first.mean(axis=2).max()), 1e-6)
         if lit.sum() < 16:
             return 0.0, 0.0
@@ -288,10 +363,10 @@ class LiveDevice(Device):
 
     def close(self) -> None:
         camera, self.camera = getattr(self, "camera", None), None
-        window, self.window = getattr(self, "window", None), None
+        windows, self.windows = getattr(self, "windows", []), []
         if camera is not None:
             camera.close()
-        if window is not None:
+        for window in windows:
             window.close()
 
 

@@ -19,6 +19,14 @@ scanned the frame out (vsync, compositor and the projector's own input lag
 differ per machine), so the live device measures the whole chain from this
 time to the camera seeing the change, once, and waits it out on every capture
 (``device.py``).
+
+Several projectors: one :class:`ProjectorWindow` per projector display, all
+in this process. pygame-ce's ``Window`` is SDL2's multi-window API (each window
+its own surface and flip, one event queue for all), so no helper process, pipe
+or second SDL is needed, and the flips of all windows are timed on one clock
+by the thread that captures. The device draws every window first
+(:meth:`ProjectorWindow.put`) and then flips them one after the other
+(:meth:`ProjectorWindow.flip`), so the last flip's time bounds them all.
 """
 
 from __future__ import annotations
@@ -111,9 +119,10 @@ class ProjectorWindow:
                 raise LiveError("the projector window was closed (Esc): the live session stops here; run the "
                                 "same command again to resume where it stopped")
 
-    def show(self, frame: np.ndarray) -> float:
-        """Show ``frame`` (H×W×3 floats in [0, 1], the native size) and return when the flip returned
-        (``time.perf_counter``). Values become 8-bit levels with no transfer curve."""
+    def put(self, frame: np.ndarray) -> None:
+        """Draw ``frame`` (H×W×3 floats in [0, 1], the native size) into the window's buffer without showing it
+        yet: several windows are drawn first and flipped one right after the other (``device.py``). Values
+        become 8-bit levels with no transfer curve."""
         f = np.asarray(frame)
         w, h = self.size
         if f.shape[:2] != (h, w):
@@ -123,9 +132,17 @@ class ProjectorWindow:
             levels = levels[..., None]
         self._buffer[...] = levels.transpose(1, 0, 2)
         self._pg.surfarray.blit_array(self._surface, self._buffer)
+
+    def flip(self) -> float:
+        """Show what :meth:`put` drew and return when the flip returned (``time.perf_counter``)."""
         self._window.flip()
         self._pump()
         return time.perf_counter()
+
+    def show(self, frame: np.ndarray) -> float:
+        """Show ``frame`` (:meth:`put`, then :meth:`flip`) and return when the flip returned."""
+        self.put(frame)
+        return self.flip()
 
     def frame_period(self) -> float:
         """One refresh of the display, seconds (60 Hz where SDL does not know)."""

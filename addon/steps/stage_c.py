@@ -12,6 +12,7 @@ decides how its folder grows.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -188,9 +189,10 @@ def camera_lens_of(calibration: Calibration) -> RigLens | None:
 
 
 def open_device(spec: str | None, projector: Projector | None = None,
-                progress: Progress | None = None) -> Device | None:
+                progress: Progress | None = None, *, others: Sequence[Projector] = ()) -> Device | None:
     """A capture device as it is, from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed
-    captures) or ``live:…`` (the projector window and camera; ``projector`` gives the window its size). Stage C and
+    captures) or ``live:…`` (the projector window and camera; ``projector`` gives the window its size, ``others``
+    the windows of projectors 2…N of a rig of several, one display each). Stage C and
     evaluation project through :func:`device_pipeline`, which opens it and puts the calibration's lens after it."""
     if not spec:
         return None
@@ -198,7 +200,7 @@ def open_device(spec: str | None, projector: Projector | None = None,
     if kind == "live":
         if projector is None:
             raise CaptureError("a live device needs the calibrated projector to size its window")
-        return LiveDevice(spec, projector, progress=progress)
+        return LiveDevice(spec, projector, others=others, progress=progress)
     if kind == "folder":
         return FolderDevice(Path(where))
     from ..lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
@@ -222,7 +224,7 @@ def device_pipeline(spec: str | None, calibration: Calibration, *, device: Devic
     # Read before a window opens, so that a capture set that cannot say which lens it lost is refused first.
     lens = None if device_kind(spec) == "folder" else camera_lens_of(calibration)
     if device is None:
-        device = open_device(spec, calibration.rig.projector, progress)
+        device = open_device(spec, calibration.rig.projector, progress, others=calibration.rig.others)
     if lens is not None:
         (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
                             f"({lens.source})", 0.0)
