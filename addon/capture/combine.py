@@ -54,13 +54,9 @@ def combine_projector_sets(sets: Sequence[CaptureSet], out: str | Path, *, force
                 if k and e.kind in SHARED_KINDS:
                     continue  # taken once, from the first projector's set
                 say(f"projector {k + 1}: {e.name}", done / max(total, 1))
-                if e.kind == "depth":
-                    writer.add_depth(cs._read_depth(e), name=e.name, suffix=Path(e.file).suffix, **e.params)
-                    continue
-                pattern = cs._read(e.pattern) if e.pattern else None
                 # projector k's names carry _pK, as the lab names them, so every projector's files stay apart
-                writer.add(e.kind, cs._read(e.file), name=e.name if k == 0 else f"{e.name}_p{k}", frame=pattern,
-                           projector_index=0 if e.kind in SHARED_KINDS else k, **e.params)
+                writer.copy(cs, e, name=e.name if k == 0 else f"{e.name}_p{k}",
+                            projector_index=0 if e.kind in SHARED_KINDS else k)
     return CaptureSet.load(out, verify_images=False)
 
 

@@ -711,6 +711,21 @@ class CaptureSetWriter:
         self._names.add(name)
         return entry
 
+    def copy(self, source: "CaptureSet", entry: Entry, *, name: str | None = None, projector_index: int | None = None,
+             image: Callable[[Entry, np.ndarray], np.ndarray] | None = None) -> Entry:
+        """Add ``entry`` of the set ``source``: its image (through ``image(entry, pixels)`` when given; a depth
+        map's too), projected pattern and parameters, under ``name`` (default its own) and as projector
+        ``projector_index``'s (default its own)."""
+        if entry.kind == "depth":
+            depth = source._read_depth(entry)
+            return self.add_depth(depth if image is None else image(entry, depth), name=name or entry.name,
+                                  suffix=Path(entry.file).suffix, **entry.params)
+        pixels = source._read(entry.file)
+        pattern = source._read(entry.pattern) if entry.pattern else None
+        return self.add(entry.kind, pixels if image is None else image(entry, pixels), name=name or entry.name,
+                        frame=pattern, projector_index=entry.projector if projector_index is None else projector_index,
+                        **entry.params)
+
     def to_dict(self) -> dict[str, Any]:
         return CaptureSet(self.path, self.camera, self.projector, self.entries, self.depth_info, self.target_area,
                           self.camera_status, self.projector_status, self.projector_pose_known, "linear",

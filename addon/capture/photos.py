@@ -28,7 +28,7 @@ from ..rig.model import Camera, Projector, intrinsics_from_fov
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
 from .others_black import check_others_black
-from .format import CAMERA_KINDS, SHARED_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, srgb_to_linear
+from .format import CAMERA_KINDS, SHARED_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, Entry, srgb_to_linear
 from ..rig.lens import RigLens
 from .sequence import SequenceInfo, load_sequence, sequence_frame
 
@@ -465,12 +465,7 @@ def add_projector_captures(base: CaptureSet, sequence_dir: str | Path, captures_
                           check=lambda written: check_others_black(written, where=str(out))) as writer:
         say(f"copying the {len(base.entries)} images of {base.path}", 0.0)
         for e in base.entries:
-            if e.kind == "depth":
-                writer.add_depth(base._read_depth(e), name=e.name, suffix=Path(e.file).suffix, **e.params)
-                continue
-            pattern = base._read(e.pattern) if e.pattern else None
-            writer.add(e.kind, base._read(e.file), name=e.name, frame=pattern, projector_index=e.projector,
-                       **e.params)
+            writer.copy(base, e)
         shots, _ = _add_photographs(writer, seq, files, (first, first_enc), encoding, undistort, say,
                                     projector_index=index)
         if check_session:
@@ -503,17 +498,14 @@ def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *
                           projector_status=captures.projector_status,
                           projector_pose_known=captures.projector_pose_known, notes=notes,
                           camera_lens=lens.to_dict(), force=force, inputs=(captures.path, *inputs)) as writer:
+        def undistorted(e: Entry, image: np.ndarray) -> np.ndarray:
+            if e.kind == "depth":
+                return lens.image(image, nearest=True)
+            return np.clip(lens.image(image), 0.0, 1.0) if e.kind in CAMERA_KINDS else image
+
         for i, e in enumerate(captures.entries):
             say(f"undistorting {e.name}", i / max(len(captures.entries), 1))
-            if e.kind == "depth":
-                writer.add_depth(lens.image(captures._read_depth(e), nearest=True), name=e.name,
-                                 suffix=Path(e.file).suffix, **e.params)
-                continue
-            image = captures._read(e.file)
-            if e.kind in CAMERA_KINDS:
-                image = np.clip(lens.image(image), 0.0, 1.0)
-            pattern = captures._read(e.pattern) if e.pattern else None
-            writer.add(e.kind, image, name=e.name, frame=pattern, projector_index=e.projector, **e.params)
+            writer.copy(captures, e, image=undistorted)
     return CaptureSet.load(out, verify_images=False)
 
 
