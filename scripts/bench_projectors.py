@@ -43,6 +43,7 @@ from procam.addon.stages.metrics import psnr
 from procam.addon.stages.range import range_ceiling
 from procam.addon.stages.transport import build_transport
 from procam.addon.steps import calibrate as calibrate_step
+from procam.addon.steps import diagnose as diagnose_step
 from procam.addon.steps import projectors
 from procam.addon.steps.demo import second_projector
 from procam.addon.steps.stage_c import StageCOptions, device_pipeline
@@ -294,7 +295,10 @@ def diagnosis(work: Path, surface: str, args: argparse.Namespace) -> None:
               "--out", str(caps), "--truth", str(truth)], caps)
         step(["calibrate", str(caps), "--out", str(cal)], cal)
         step(["diagnose", str(cal), "--out", str(diag)], diag)
-        doc = json.loads((diag / "gap.json").read_text())
+        # the verdict of this code on the projectors' own diagnoses (a folder kept from an earlier run is judged again)
+        count = json.loads((diag / "gap.json").read_text())["projector_count"]
+        doc = diagnose_step.attribute([json.loads((diag / diagnose_step.projector_folder(k) / "gap.json").read_text())
+                                       for k in range(count)])
         top = doc.get("differs") or {}
         hit = top.get("projector") == 2 and top.get("effect") == model
         hits.append(hit)

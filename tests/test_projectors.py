@@ -219,3 +219,13 @@ def test_inputs_of_another_number_of_projectors_are_refused_before_projecting(tw
                    device, "--out", str(tmp_path / "eval")]) == 2
     assert "are for 1 projector(s), but the calibration has 2" in capsys.readouterr().err
     assert not (tmp_path / "eval").exists()
+
+
+def test_a_camera_or_surface_effect_is_never_one_projectors_difference():
+    """The camera and the surface are shared: a diagnosis that ranks the camera's tone curve high on one projector's
+    patterns only (the other's own tone curve took it) does not make it that projector's difference."""
+    docs = [_gap(["camera_response", "vignetting"], {"camera_response": 0.9, "vignetting": 0.2, "response": 0.0}),
+            _gap(["response", "vignetting"], {"camera_response": 0.0, "vignetting": 0.2, "response": 0.6})]
+    verdict = diagnose_step.attribute(docs)
+    assert verdict["differs"]["projector"] == 2 and verdict["differs"]["effect"] == "response"
+    assert all(r["effect"] != "camera_response" for r in verdict["ranking"])

@@ -110,6 +110,10 @@ def projector_folder(index: int) -> str:
     return f"projector_{index + 1}"
 
 
+#: The effects that belong to a projector (its lamp, lens and electronics): the only ones by which one projector of
+#: a rig can differ from another. The camera's (camera_response, distortion) and the surface's (interreflection,
+#: glossy, depth_noise) are shared by every projector's patterns, however differently each diagnosis ranks them.
+PROJECTOR_EFFECTS = ("response", "crosstalk", "black_level", "vignetting", "defocus")
 #: An effect is said to differ on one projector when it removes this much more of that projector's held-out residual
 #: than of any other projector's (shares of the RMSE, alone): below it, the projectors agree on that effect.
 DIFFERS_BY = 0.05
@@ -158,14 +162,17 @@ def _reductions(doc: dict[str, Any]) -> dict[str, float]:
 
 
 def attribute(docs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Which projector differs, and by which effect: among the effects a projector's own diagnosis selected, the one
-    that removes the most more of its residual than of any other projector's (:data:`DIFFERS_BY`). Returns
+    """Which projector differs, and by which effect: among the projector effects (:data:`PROJECTOR_EFFECTS`) a
+    projector's own diagnosis selected, the one that removes the most more of its residual than of any other
+    projector's (:data:`DIFFERS_BY`). Returns
     ``headline``, ``differs`` ({projector (1-based), effect, its reduction, the others' best}, or None) and
     ``ranking`` (every selected effect by that margin, first = the one named)."""
     reductions = [_reductions(d) for d in docs]
     ranking: list[dict[str, Any]] = []
     for k, d in enumerate(docs):
         for name in d.get("selected") or []:
+            if name not in PROJECTOR_EFFECTS:
+                continue
             mine = reductions[k].get(name, 0.0)
             others = max((r.get(name, 0.0) for j, r in enumerate(reductions) if j != k), default=0.0)
             ranking.append({"projector": k + 1, "effect": str(name), "reduction": round(mine, 4),
