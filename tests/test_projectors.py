@@ -69,23 +69,46 @@ def test_projectors_together_reach_the_sum_of_their_light_with_the_room_counted_
     assert white[0, 0, 0] == pytest.approx(black[0, 0, 0] + (0.4 - 0.03) + (0.3 - 0.05))
 
 
-def _gap(selected: list[str], reductions: dict[str, float]) -> dict:
-    return {"selected": selected, "effects": [{"name": n, "reduction": r} for n, r in reductions.items()],
+def _gap(selected: list[str], fitted: dict[str, dict[str, float]]) -> dict:
+    """One projector's gap.json as attribute reads it: the effects selected and each one's parameters fitted."""
+    return {"selected": selected, "effects": [{"name": n, "params": p} for n, p in fitted.items()],
             "headline": "…"}
 
 
-def test_the_projector_whose_effect_stands_out_is_named_with_it():
-    docs = [_gap(["vignetting"], {"vignetting": 0.30, "response": 0.02}),
-            _gap(["response", "vignetting"], {"vignetting": 0.28, "response": 0.45})]
+def _response(gamma: float) -> dict[str, float]:
+    return {"gamma_r": gamma, "gamma_g": gamma, "gamma_b": gamma, "contrast": 0.0, "pivot": 0.5}
+
+
+def _vignetting(falloff: float) -> dict[str, float]:
+    return {"falloff": falloff, "exponent": 2.0}
+
+
+def test_the_projector_whose_fitted_effect_stands_out_is_named_with_it():
+    # the plane's figures: the camera's tone curve alone fits γ 0.78 on projector 1, projector 2's own curve on top 1.3
+    docs = [_gap(["camera_response", "response", "vignetting"],
+                 {"response": _response(0.78), "vignetting": _vignetting(0.10)}),
+            _gap(["response", "vignetting"], {"response": _response(1.30), "vignetting": _vignetting(0.11)})]
     verdict = diagnose_step.attribute(docs)
     assert verdict["differs"]["projector"] == 2 and verdict["differs"]["effect"] == "response"
     assert verdict["headline"].startswith("Projector 2 differs from the others by its response")
     assert verdict["ranking"][0]["effect"] == "response"
-    same = diagnose_step.attribute([_gap(["vignetting"], {"vignetting": 0.3}),
-                                    _gap(["vignetting"], {"vignetting": 0.29})])
+    same = diagnose_step.attribute([_gap(["vignetting"], {"vignetting": _vignetting(0.3)}),
+                                    _gap(["vignetting"], {"vignetting": _vignetting(0.31)})])
     assert same["differs"] is None and same["headline"] == "The projectors agree: each shows vignetting alike."
     none = diagnose_step.attribute([_gap([], {}), _gap([], {})])
     assert none["differs"] is None and "none shows" in none["headline"]
+
+
+def test_a_camera_or_surface_effect_is_never_one_projectors_difference():
+    """The camera and the surface are shared: an effect of theirs is never one projector's difference, however
+    differently the projectors' diagnoses fit it."""
+    docs = [_gap(["camera_response", "vignetting"], {"camera_response": {"curve": 0.9},
+                                                     "vignetting": _vignetting(0.1)}),
+            _gap(["camera_response", "vignetting"], {"camera_response": {"curve": 0.0},
+                                                     "vignetting": _vignetting(0.1)})]
+    verdict = diagnose_step.attribute(docs)
+    assert verdict["differs"] is None
+    assert all(r["effect"] != "camera_response" for r in verdict["ranking"])
 
 
 # -- the whole path on a small lab -------------------------------------------------------------------------------
@@ -220,12 +243,3 @@ def test_inputs_of_another_number_of_projectors_are_refused_before_projecting(tw
     assert "are for 1 projector(s), but the calibration has 2" in capsys.readouterr().err
     assert not (tmp_path / "eval").exists()
 
-
-def test_a_camera_or_surface_effect_is_never_one_projectors_difference():
-    """The camera and the surface are shared: a diagnosis that ranks the camera's tone curve high on one projector's
-    patterns only (the other's own tone curve took it) does not make it that projector's difference."""
-    docs = [_gap(["camera_response", "vignetting"], {"camera_response": 0.9, "vignetting": 0.2, "response": 0.0}),
-            _gap(["response", "vignetting"], {"camera_response": 0.0, "vignetting": 0.2, "response": 0.6})]
-    verdict = diagnose_step.attribute(docs)
-    assert verdict["differs"]["projector"] == 2 and verdict["differs"]["effect"] == "response"
-    assert all(r["effect"] != "camera_response" for r in verdict["ranking"])

@@ -14,11 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import ProCamError
 from ..gap.data import DiagnosisError
 from ..gap.diagnose import diagnose
 from ..gap.fit import MAX_EFFECTS, MIN_SHARE
-from ..gap.models import NAMES
+from ..gap.models import MODELS, NAMES
 from ..imageio import write_atomic_bytes, write_image
 from ..options import option, validate
 from ..outputs import AtomicFolder, check_replaceable, write_manifest
@@ -114,8 +116,8 @@ def projector_folder(index: int) -> str:
 #: a rig can differ from another. The camera's (camera_response, distortion) and the surface's (interreflection,
 #: glossy, depth_noise) are shared by every projector's patterns, however differently each diagnosis ranks them.
 PROJECTOR_EFFECTS = ("response", "crosstalk", "black_level", "vignetting", "defocus")
-#: An effect is said to differ on one projector when it removes this much more of that projector's held-out residual
-#: than of any other projector's (shares of the RMSE, alone): below it, the projectors agree on that effect.
+#: An effect is said to differ on one projector when its fitted parameters lie this far from the other projectors'
+#: (the largest parameter difference, as a share of that parameter's range in the model): below it they agree.
 DIFFERS_BY = 0.05
 
 
@@ -152,37 +154,50 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
     return doc
 
 
-def _reductions(doc: dict[str, Any]) -> dict[str, float]:
-    """Each effect's share of the held-out residual it removes alone, from one projector's ``gap.json``."""
+def _fitted(doc: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Each effect's parameters as one projector's diagnosis fitted it alone, in its model's order."""
     out = {}
     for e in doc.get("effects") or []:
-        if isinstance(e, dict) and isinstance(e.get("reduction"), (int, float)) and not e.get("error"):
-            out[str(e["name"])] = float(e["reduction"])
+        if not isinstance(e, dict) or e.get("error") or e.get("name") not in MODELS:
+            continue
+        params, model = e.get("params"), MODELS[str(e["name"])]
+        if isinstance(params, dict) and all(isinstance(params.get(n), (int, float)) for n in model.params):
+            out[model.name] = np.array([float(params[n]) for n in model.params])
     return out
 
 
 def attribute(docs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Which projector differs, and by which effect: among the projector effects (:data:`PROJECTOR_EFFECTS`) a
-    projector's own diagnosis selected, the one that removes the most more of its residual than of any other
-    projector's (:data:`DIFFERS_BY`). Returns
-    ``headline``, ``differs`` ({projector (1-based), effect, its reduction, the others' best}, or None) and
-    ``ranking`` (every selected effect by that margin, first = the one named)."""
-    reductions = [_reductions(d) for d in docs]
+    """Which projector differs, and by which effect, from each projector's own diagnosis.
+
+    For each projector effect (:data:`PROJECTOR_EFFECTS`) some projector's diagnosis selected, each projector's
+    fitted parameters are compared with the median of the others', as a share of each parameter's range: the
+    camera's and the room's share in what every fit absorbs cancels in that difference (on the plane, projector
+    1's tone curve fitted γ 0.78 with the camera's curve alone, projector 2's 1.3 with its own on top), which
+    shares of each projector's residual do not (both fits remove ~97 % of theirs). With two projectors the
+    difference is the same for both; the one whose parameters lie further from no effect at all is named. The
+    effect and projector of the largest difference are named when it reaches :data:`DIFFERS_BY`. Returns
+    ``headline``, ``differs`` ({projector (1-based), effect, difference, from_none}, or None), ``ranking`` (first =
+    the one named) and ``selected``."""
+    fitted = [_fitted(d) for d in docs]
+    names = sorted({str(n) for d in docs for n in d.get("selected") or [] if n in PROJECTOR_EFFECTS})
     ranking: list[dict[str, Any]] = []
-    for k, d in enumerate(docs):
-        for name in d.get("selected") or []:
-            if name not in PROJECTOR_EFFECTS:
-                continue
-            mine = reductions[k].get(name, 0.0)
-            others = max((r.get(name, 0.0) for j, r in enumerate(reductions) if j != k), default=0.0)
-            ranking.append({"projector": k + 1, "effect": str(name), "reduction": round(mine, 4),
-                            "others": round(others, 4), "margin": round(mine - others, 4)})
-    ranking.sort(key=lambda r: -r["margin"])
-    top = ranking[0] if ranking and ranking[0]["margin"] >= DIFFERS_BY else None
+    for name in names:
+        have = [f.get(name) for f in fitted]
+        if any(v is None for v in have) or len(have) < 2:
+            continue
+        model = MODELS[name]
+        span = np.maximum(np.asarray(model.upper) - np.asarray(model.lower), 1e-9)
+        for k, mine in enumerate(have):
+            others = np.median([v for j, v in enumerate(have) if j != k], axis=0)
+            ranking.append({"projector": k + 1, "effect": name,
+                            "difference": round(float(np.max(np.abs(mine - others) / span)), 4),
+                            "from_none": round(float(np.max(np.abs(mine - np.asarray(model.identity)) / span)), 4)})
+    ranking.sort(key=lambda r: (-r["difference"], -r["from_none"]))
+    top = ranking[0] if ranking and ranking[0]["difference"] >= DIFFERS_BY else None
     if top is not None:
         head = (f"Projector {top['projector']} differs from the others by its {top['effect'].replace('_', ' ')}: "
-                f"modelling it removes {top['reduction']:.0%} of projector {top['projector']}'s residual and at most "
-                f"{top['others']:.0%} of another's; see projector_{top['projector']}/summary.md for what to do.")
+                f"its fitted parameters lie {top['difference']:.0%} of their range from the others'; see "
+                f"projector_{top['projector']}/summary.md for what to do.")
     else:
         shared = sorted({str(r["effect"]) for r in ranking})
         head = ("The projectors agree: " + (f"each shows {', '.join(shared)} alike" if shared else
@@ -277,8 +292,8 @@ def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
                      f"{fmt(after.get('rmse'), '.4f')}, selected {', '.join(p.get('selected') or []) or 'none'}; "
                      f"{p.get('headline', '')}")
     for r in (doc.get("ranking") or [])[:4]:
-        lines.append(f"{r.get('effect')} on projector {r.get('projector')}: removes {fmt(r.get('reduction'), '.0%')} "
-                     f"of its residual, {fmt(r.get('others'), '.0%')} of another's at most")
+        lines.append(f"{r.get('effect')} on projector {r.get('projector')}: fitted {fmt(r.get('difference'), '.0%')} "
+                     f"of its range from the others', {fmt(r.get('from_none'), '.0%')} from none")
     head = str(doc.get("headline") or "")
     maps = [str(p.relative_to(root)) for p in sorted(root.rglob("*.png"))]
     return Summary(True, head, tuple(lines), {"effects": [], "selected": doc.get("selected") or [], "regions": [],
