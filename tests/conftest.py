@@ -57,6 +57,29 @@ _LAB_SETS: dict[tuple, tuple[Path, Path]] = {}
 
 
 @pytest.fixture(scope="session")
+def _two_projector_lab(tmp_path_factory) -> Path:
+    from procam.addon.cli.app import main
+
+    root = tmp_path_factory.mktemp("two-projectors")
+    assert main(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--projector-effects",
+                 "1:response=0.9", "--scale", "0.2", "--samples", "4", "--out", str(root / "lab"), "--truth",
+                 str(root / "lab.truth.json")]) == 0
+    assert main(["calibrate", str(root / "lab"), "--out", str(root / "cal"), "--no-blend-output"]) == 0
+    return root
+
+
+@pytest.fixture(scope="module")
+def two_projector_lab(_two_projector_lab, tmp_path_factory) -> Path:
+    """A folder of its own per test module holding ``lab/`` (two projectors side by side on the curve, 20 %
+    overlap, camera 128×96, projectors 160×120, 4 spp; projector 2 alone with a tone curve), ``lab.truth.json`` and
+    ``cal/`` (calibrated, both transport operators): rendered and calibrated once a session, copied per module so
+    that no module sees another's outputs."""
+    root = tmp_path_factory.mktemp("two")
+    shutil.copytree(_two_projector_lab, root, dirs_exist_ok=True)
+    return root
+
+
+@pytest.fixture(scope="session")
 def lab_set(tmp_path_factory) -> Callable[..., tuple[Path, Path]]:
     """Render (once per session and set of arguments) a small lab capture set; returns (capture dir, truth file).
 

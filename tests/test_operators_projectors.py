@@ -16,15 +16,11 @@ from tests.test_panels import draw_all  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def two(tmp_path_factory):
+def two(two_projector_lab):
     """A two-projector lab (curve, 20 % overlap, camera 128×96, projectors 160×120), calibrated, two targets."""
     from procam.addon.capture.targets import natural_target
-    from procam.addon.cli.app import main as procam
 
-    root = tmp_path_factory.mktemp("two")
-    assert procam(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--scale", "0.2",
-                   "--samples", "4", "--out", str(root / "lab"), "--truth", str(root / "lab.truth.json")]) == 0
-    assert procam(["calibrate", str(root / "lab"), "--out", str(root / "cal"), "--no-blend-output"]) == 0
+    root = two_projector_lab
     targets = [write_image(root / f"{n}.png", natural_target(n, (120, 90))) for n in ("city", "forest")]
     return root, targets
 

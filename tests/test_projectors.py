@@ -114,17 +114,12 @@ def test_a_camera_or_surface_effect_is_never_one_projectors_difference():
 # -- the whole path on a small lab -------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def two_projectors(tmp_path_factory):
-    """A two-projector lab set (curve, 20 % overlap, camera 128×96), calibrated, and two targets."""
+def two_projectors(two_projector_lab):
+    """The shared two-projector lab, calibrated (projector 2 alone with a tone curve), and two targets."""
     from procam.addon.capture.targets import natural_target
-    from procam.addon.cli.app import main as procam
     from procam.addon.imageio import write_image
 
-    root = tmp_path_factory.mktemp("two")
-    assert procam(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--effects", "realistic",
-                   "--projector-effects", "1:response=0.9", "--scale", "0.2", "--samples", "4", "--out",
-                   str(root / "lab"), "--truth", str(root / "lab.truth.json")]) == 0
-    assert procam(["calibrate", str(root / "lab"), "--out", str(root / "cal")]) == 0
+    root = two_projector_lab
     targets = [write_image(root / f"{n}.png", natural_target(n, (120, 90))) for n in ("city", "forest")]
     return root, targets
 

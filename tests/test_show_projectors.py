@@ -21,15 +21,12 @@ FAST = ["--iterations", "6"]
 
 
 @pytest.fixture(scope="module")
-def rig(tmp_path_factory):
+def rig(two_projector_lab):
     """A calibrated two-projector lab (curve, 20 % overlap) and a sequence of three target frames."""
     from procam.addon.capture.patterns import smooth_random
     from procam.addon.imageio import write_image
 
-    root = tmp_path_factory.mktemp("show2")
-    assert main(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--scale", "0.2",
-                 "--samples", "4", "--out", str(root / "lab"), "--truth", str(root / "lab.truth.json")]) == EXIT_OK
-    assert main(["calibrate", str(root / "lab"), "--out", str(root / "cal")]) == EXIT_OK
+    root = two_projector_lab
     seq = root / "frames"
     seq.mkdir()
     for n in (1, 2, 3):
