@@ -38,6 +38,7 @@ from procam.addon.cli.app import main as procam
 from procam.addon.imageio import write_image
 from procam.addon.lab.truth import LabTruth
 from procam.addon.capture.devices import OneProjector
+from procam.addon.gap.overlap import overlap_falloffs
 from procam.addon.stages.joint import JointCompensator, ramp_baseline
 from procam.addon.stages.metrics import psnr
 from procam.addon.stages.range import range_ceiling
@@ -297,8 +298,10 @@ def diagnosis(work: Path, surface: str, args: argparse.Namespace) -> None:
         step(["diagnose", str(cal), "--out", str(diag)], diag)
         # the verdict of this code on the projectors' own diagnoses (a folder kept from an earlier run is judged again)
         count = json.loads((diag / "gap.json").read_text())["projector_count"]
+        calibration = calibrate_step.read(cal)
         doc = diagnose_step.attribute([json.loads((diag / diagnose_step.projector_folder(k) / "gap.json").read_text())
-                                       for k in range(count)])
+                                       for k in range(count)],
+                                      overlap_falloffs(calibration, calibrate_step.captures_of(calibration)))
         top = doc.get("differs") or {}
         hit = top.get("projector") == 2 and top.get("effect") == model
         hits.append(hit)

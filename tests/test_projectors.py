@@ -238,3 +238,24 @@ def test_inputs_of_another_number_of_projectors_are_refused_before_projecting(tw
     assert "are for 1 projector(s), but the calibration has 2" in capsys.readouterr().err
     assert not (tmp_path / "eval").exists()
 
+
+
+def test_the_overlap_measures_each_projectors_falloff_that_calibration_absorbed():
+    from procam.addon.gap.overlap import fit_falloffs
+
+    rng = np.random.default_rng(0)
+    ys, xs = np.mgrid[0:40, 0:30] / np.array([39.0, 29.0])[:, None, None]
+    rho_1 = np.sqrt((0.6 + 0.4 * xs) ** 2 + (ys - 0.5) ** 2)  # the overlap: projector 1's right edge …
+    rho_2 = np.sqrt((1.0 - 0.4 * xs) ** 2 + (ys - 0.5) ** 2)  # … projector 2's left edge
+    ratio = 0.1 + np.log(1 - 0.2 * rho_2 ** 2) - np.log(1 - 0.0 * rho_1 ** 2) + rng.normal(0, 0.003, xs.shape)
+    f_1, f_2 = fit_falloffs(ratio, rho_1, rho_2)
+    assert f_1 == pytest.approx(0.0, abs=0.03) and f_2 == pytest.approx(0.2, abs=0.04)
+    # radii whose squares add up to a constant pin only the sum of the falloffs: nothing is said
+    assert fit_falloffs(ratio, rho_1, np.sqrt(2.0 - rho_1 ** 2)) is None
+    assert fit_falloffs(ratio[:5, :5], rho_1[:5, :5], rho_2[:5, :5]) is None  # too few pixels
+    # the verdict takes the overlap's falloffs over the fits of each projector's own patterns
+    docs = [_gap(["vignetting"], {"vignetting": _vignetting(-0.04)}),
+            _gap(["vignetting"], {"vignetting": _vignetting(-0.04)})]
+    assert diagnose_step.attribute(docs)["differs"] is None
+    verdict = diagnose_step.attribute(docs, [f_1, f_2])
+    assert (verdict["differs"]["projector"], verdict["differs"]["effect"]) == (2, "vignetting")

@@ -21,6 +21,7 @@ from ..gap.data import DiagnosisError
 from ..gap.diagnose import diagnose
 from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import MODELS, NAMES
+from ..gap.overlap import overlap_falloffs
 from ..imageio import write_atomic_bytes, write_image
 from ..options import option, validate
 from ..outputs import AtomicFolder, check_replaceable, write_manifest
@@ -141,8 +142,10 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
             write_image(sub / name, image)
         write_atomic_bytes(sub / layout.DIAGNOSIS_SUMMARY, found.summary.encode())
         docs.append(found.doc)
+    say("the overlaps: each projector's vignetting, which calibration took into the albedo", 0.99)
+    falloffs = overlap_falloffs(cal, captures)
     doc = {"format": KIND.format, "version": KIND.version, "source": str(Path(options.calibration).absolute()),
-           "projector_count": count, **attribute(docs),
+           "projector_count": count, **attribute(docs, falloffs), "overlap_vignetting": falloffs,
            "projectors": [{"folder": projector_folder(k), "headline": d.get("headline"),
                            "selected": d.get("selected") or [], "residual": d.get("residual"),
                            "residual_after": d.get("residual_after")} for k, d in enumerate(docs)]}
@@ -166,7 +169,7 @@ def _fitted(doc: dict[str, Any]) -> dict[str, np.ndarray]:
     return out
 
 
-def attribute(docs: list[dict[str, Any]]) -> dict[str, Any]:
+def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = None) -> dict[str, Any]:
     """Which projector differs, and by which effect, from each projector's own diagnosis.
 
     For each projector effect (:data:`PROJECTOR_EFFECTS`) some projector's diagnosis selected, each projector's
@@ -177,11 +180,17 @@ def attribute(docs: list[dict[str, Any]]) -> dict[str, Any]:
     difference is the same for both; the one whose parameters lie further from no effect at all is named. The
     effect and projector of the largest difference are named when it reaches :data:`DIFFERS_BY`. Returns
     ``headline``, ``differs`` ({projector (1-based), effect, difference, from_none}, or None), ``ranking`` (first =
-    the one named) and ``selected``."""
+    the one named) and ``selected``. ``falloffs``: each projector's vignetting as the overlaps measured it
+    (:func:`..gap.overlap.overlap_falloffs`), which replaces the fits of a projector's own patterns, where
+    calibration took the falloff into the albedo."""
     fitted = [_fitted(d) for d in docs]
-    names = sorted({str(n) for d in docs for n in d.get("selected") or [] if n in PROJECTOR_EFFECTS})
+    names = {str(n) for d in docs for n in d.get("selected") or [] if n in PROJECTOR_EFFECTS}
+    if falloffs is not None and len(falloffs) == len(docs) and all(f is not None for f in falloffs):
+        for f, fit in zip(falloffs, fitted):
+            fit["vignetting"] = np.array([float(f), 2.0])
+        names.add("vignetting")
     ranking: list[dict[str, Any]] = []
-    for name in names:
+    for name in sorted(names):
         have = [f.get(name) for f in fitted]
         if any(v is None for v in have) or len(have) < 2:
             continue
