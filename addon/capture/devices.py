@@ -97,29 +97,49 @@ class Device(ABC):
         self.close()
 
 
-class OneProjector(Device):
-    """Projector ``index`` of a device of several, the others showing black: how each projector of a rig is captured
-    on its own (its sequence, or its own closed loop), through a device that shows them all at once. Closing it
-    leaves the device open (its owner closes it)."""
+class SomeProjectors(Device):
+    """Projectors ``keep`` (numbered from 0, in that order) of a device of several, the others showing black: how one
+    projector of a rig is captured on its own (its sequence, its own closed loop), or a solve that leaves out a
+    projector lighting nothing where it works. Closing it leaves the device open (its owner closes it)."""
 
-    def __init__(self, device: Device, index: int) -> None:
+    def __init__(self, device: Device, keep: Sequence[int]) -> None:
         count = len(device.projectors)
-        if not 0 <= index < count:
-            raise CaptureError(f"the device shows {count} projector(s); there is no projector {index + 1}")
-        self.device, self.index = device, index
-        self.projector = device.projectors[index]
+        bad = [k for k in keep if not 0 <= k < count]
+        if bad or not keep:
+            raise CaptureError(f"the device shows {count} projector(s); there is no projector "
+                               f"{', '.join(str(k + 1) for k in bad) or '(none chosen)'}")
+        self.device, self.keep = device, [int(k) for k in keep]
+        self.projector = device.projectors[self.keep[0]]
 
-    def _black(self, k: int) -> np.ndarray:
-        w, h = self.device.projectors[k].intrinsics.size
-        return np.zeros((h, w, 3), np.float32)
+    def __getattr__(self, name: str) -> Any:  # the live device's report, camera_size, …
+        if name in ("device", "keep"):  # not set yet: no recursion through the lookup below
+            raise AttributeError(name)
+        return getattr(self.device, name)
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        return tuple(self.device.projectors[k] for k in self.keep)
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        shown = [np.zeros((p.intrinsics.height, p.intrinsics.width, 3), np.float32) for p in self.device.projectors]
+        for k, frame in zip(self.keep, self.check_frames(frames)):
+            shown[k] = frame
+        return self.device.project_all(shown)
 
     def project(self, frame: np.ndarray) -> np.ndarray:
-        frame = self.check_frame(frame)
-        return self.device.project_all([frame if k == self.index else self._black(k)
-                                        for k in range(len(self.device.projectors))])
+        if len(self.keep) != 1:
+            raise CaptureError(f"this device shows {len(self.keep)} projectors: give each its frame with project_all")
+        return self.project_all([frame])
 
     def capture_off(self) -> np.ndarray:
         return self.device.capture_off()
+
+
+class OneProjector(SomeProjectors):
+    """Projector ``index`` of a device of several, the others showing black."""
+
+    def __init__(self, device: Device, index: int) -> None:
+        super().__init__(device, [index])
 
 
 def capture_sequence(device: Device, sequence: Sequence[PatternSpec], out_dir: str | Path, camera: Camera, *,

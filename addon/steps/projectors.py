@@ -43,7 +43,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..capture.devices import Device
+from ..capture.devices import Device, SomeProjectors
 from ..capture.format import CaptureSet
 from ..errors import Cancelled, CaptureError, ProCamError
 from ..imageio import write_image
@@ -368,7 +368,7 @@ class JointStage:
         if dark:
             joint = self._subsets.get(tuple(keep)) or self._subsets.setdefault(
                 tuple(keep), JointCompensator([self.compensators[k] for k in keep]))
-            device = None if device is None else _OthersBlack(device, keep)
+            device = None if device is None else SomeProjectors(device, keep)
             biases = None if biases is None else [biases[k] for k in keep]
         return dark, keep, joint, device, biases
 
@@ -438,26 +438,6 @@ MIN_LIT = 16
 def _black_input(projector: Any) -> np.ndarray:
     w, h = projector.input_size
     return np.zeros((h, w, 3), np.float32)
-
-
-class _OthersBlack:
-    """A device of every projector seen as one of the projectors ``keep`` (0-based): the others always show black."""
-
-    def __init__(self, device: Any, keep: list[int]) -> None:
-        self._device, self._keep = device, keep
-        self.projectors = tuple(device.projectors[k] for k in keep)
-
-    def project_all(self, frames: Any) -> Any:
-        full = [p.frame_from_input(_black_input(p)) for p in self._device.projectors]
-        for k, frame in zip(self._keep, frames):
-            full[k] = frame
-        return self._device.project_all(full)
-
-    def check_frame(self, frame: Any, index: int = 0) -> Any:
-        return self._device.check_frame(frame, self._keep[index])
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._device, name)
 
 
 def _with_black(res: JointResult, keep: list[int], projectors: list[Any]) -> JointResult:
