@@ -122,6 +122,9 @@ class EffectAdapter:
     #: stage C's solve holds the fitted blur (:meth:`blur_in_solve`): the input it answers is the one to send
     #: before the blur, so :meth:`input_for` does not pre-sharpen it again
     defocus_in_solver: bool = False
+    #: whether the camera side is inverted (:meth:`camera_to_light`); off for one projector of several, whose
+    #: camera is every projector's (:func:`projector_adapter`)
+    camera_side: bool = True
     _glossy_gain: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -210,7 +213,7 @@ class EffectAdapter:
     def glossy_gain(self) -> np.ndarray | None:
         """The glossy model's gain at the camera size where the white capture clipped (None: no glossy model, or
         nothing clipped)."""
-        if "glossy" not in self.params or not (self.clipped_white or {}).get("pixels"):
+        if not self.camera_side or "glossy" not in self.params or not (self.clipped_white or {}).get("pixels"):
             return None
         if self._glossy_gain is None:
             cw = self.clipped_white
@@ -232,6 +235,8 @@ class EffectAdapter:
         when ``image`` is a whole camera image) divides the light last.
         """
         y = np.asarray(image, np.float32)
+        if not self.camera_side:
+            return y
         curve = self._p("camera_response")
         if curve is not None:
             y = inverse_camera_curve(y, curve[0])
@@ -351,12 +356,41 @@ class AdaptedDevice:
 
     def send(self, frame: np.ndarray) -> np.ndarray:
         """The native frame to give the real projector for the wanted light ``frame``."""
-        f = np.array(frame, np.float32)
-        p = self._a.projector
-        x0, y0 = p.input_offset
-        iw, ih = p.input_size
-        f[y0:y0 + ih, x0:x0 + iw] = self._a.input_for(f[y0:y0 + ih, x0:x0 + iw])
-        return f
+        return send_through(self._a, frame)
+
+
+def send_through(adapter: EffectAdapter, frame: np.ndarray) -> np.ndarray:
+    """The native frame to give ``adapter``'s projector for the wanted light ``frame`` (g⁻¹ on its input area)."""
+    f = np.array(frame, np.float32)
+    p = adapter.projector
+    x0, y0 = p.input_offset
+    iw, ih = p.input_size
+    f[y0:y0 + ih, x0:x0 + iw] = adapter.input_for(f[y0:y0 + ih, x0:x0 + iw])
+    return f
+
+
+class AdaptedProjectors:
+    """A device of several projectors seen through each projector's own effect models (closed loop of a joint
+    solve): projector k's frame sent as g_k⁻¹ of it (``adapters[k]``; None: as it is); the capture as the camera
+    gives it, the camera's effects being left to θ for several projectors (:func:`projector_adapter`)."""
+
+    def __init__(self, device: Any, adapters: Sequence[EffectAdapter | None]) -> None:
+        if len(adapters) != len(device.projectors):
+            raise CaptureError(f"{len(adapters)} projectors' effect models for a device of "
+                               f"{len(device.projectors)} projector(s)")
+        self._d, self._adapters = device, list(adapters)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._d, name)
+
+    @property
+    def projectors(self) -> tuple[Any, ...]:
+        return tuple(self._d.projectors)
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        if len(frames) != len(self._adapters):
+            raise CaptureError(f"{len(frames)} frames for a device of {len(self._adapters)} projectors")
+        return self._d.project_all([f if a is None else send_through(a, f) for a, f in zip(self._adapters, frames)])
 
 
 def _checked_params(params: Any, where: str) -> dict[str, dict[str, float]]:
@@ -425,3 +459,34 @@ def adapter_from_options(effects: str | None, diagnosis: dict[str, Any] | None, 
         raise ProCamError(f"{where} has no fitted parameters for {', '.join(missing)} "
                           "(it failed to fit or was not a candidate); rerun procam diagnose with it")
     return adapter
+
+
+#: What one projector of several inverts from its own diagnosis: the effects of its lamp, lens and electronics
+#: (``steps/diagnose.py`` PROJECTOR_EFFECTS), each on its own frame; its blur held in the joint solve.
+PROJECTOR_SIDE = ("response", "crosstalk", "black_level", "vignetting", "defocus")
+#: Why the other effects are not inverted for one projector of several.
+SHARED_EFFECT = ("the camera's and the surface's effects are every projector's, but each projector's diagnosis "
+                 "fits its own parameters for them; not inverted for several projectors (θ holds what they leave)")
+
+
+def projector_adapter(effects: str | None, diagnosis: dict[str, Any] | None, projector: Any,
+                      where: str = "the diagnosis") -> EffectAdapter | None:
+    """One projector's adapter in a rig of several, from its own diagnosis (``gap.json`` of ``projector_K/``): the
+    effects of :data:`PROJECTOR_SIDE` only, inverted on its frame (g⁻¹; a black level's projector part only) with
+    its lens's blur held in the joint solve (:meth:`EffectAdapter.blur_in_solve`), and the camera side off. With
+    ``auto`` the others the diagnosis would invert are reported as not used; named, they are refused."""
+    if effects_wanted(effects) and (effects or "").strip().lower() != "auto":
+        shared = [n.strip() for n in (effects or "").split(",")
+                  if n.strip() in MODELS and n.strip() not in PROJECTOR_SIDE]
+        if shared:
+            raise ProCamError(f"--effects {', '.join(shared)}: with several projectors only each projector's own "
+                              f"effects are inverted ({', '.join(PROJECTOR_SIDE)}); {SHARED_EFFECT}. Name those, or "
+                              "use --effects auto")
+    adapter = adapter_from_options(effects, diagnosis, projector, where)
+    if adapter is None:
+        return None
+    left = {n: SHARED_EFFECT for n in adapter.params if n not in PROJECTOR_SIDE}
+    mine = EffectAdapter({n: v for n, v in adapter.params.items() if n in PROJECTOR_SIDE}, projector,
+                         camera_side=False)
+    mine.not_used.update(left)
+    return mine

@@ -145,6 +145,8 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
     say("the overlaps: each projector's vignetting, which calibration took into the albedo", 0.99)
     falloffs = overlap_falloffs(cal, captures)
     doc = {"format": KIND.format, "version": KIND.version, "source": str(Path(options.calibration).absolute()),
+           # which calibration the effects were fitted on: compensation with them refuses another
+           "calibration_sha256": calibrate_step.identity(options.calibration)["sha256"],
            "projector_count": count, **attribute(docs, falloffs), "overlap_vignetting": falloffs,
            "projectors": [{"folder": projector_folder(k), "headline": d.get("headline"),
                            "selected": d.get("selected") or [], "residual": d.get("residual"),

@@ -29,8 +29,21 @@ and the rig every input is for. ``procam show`` runs :class:`JointStage` on ever
 frame (``steps/show.py``: one sequence per projector, warm-started per projector
 through :meth:`JointStage.initial_inputs` and :meth:`JointStage.start_from_frames`).
 Only the ``transport`` schedule solves several projectors; the render-based ones
-and the diagnosed effect models are refused with a message (not built yet for
-several projectors).
+are refused with a message.
+
+**Diagnosed effect models** (``--effects auto|NAME,… --diagnosis DIR``, DIR a
+diagnosis of this calibration's N projectors, ``projector_K/gap.json`` each):
+each projector's own effects are read from its own diagnosis
+(:func:`effect_adapters`) and only those of its lamp, lens and electronics
+(:data:`..gap.compensation.PROJECTOR_SIDE`): its lens's blur is held in the joint
+solve (``T_k B_k``, the answer being the input before the blur, as for one
+projector), its tone curve, colour mixing, vignetting and black level's
+projector part are inverted on its own frame (g_k⁻¹, in the closed loop through
+:class:`..gap.compensation.AdaptedProjectors`). The camera's and the surface's
+effects (camera curve, glossy lobe, bounce light, depth error) are every
+projector's at once while each projector's diagnosis fits its own parameters for
+them: ``auto`` leaves them out (said in the record), naming one is refused.
+``compensation.json`` records per projector what was used.
 """
 
 from __future__ import annotations
@@ -46,6 +59,7 @@ import numpy as np
 from ..capture.devices import Device, SomeProjectors
 from ..capture.format import CaptureSet
 from ..errors import Cancelled, CaptureError, ProCamError
+from ..gap.compensation import AdaptedCaptures, AdaptedProjectors, EffectAdapter, effects_wanted, projector_adapter
 from ..imageio import write_image
 from ..outputs import AtomicFolder, file_sha256, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
@@ -59,6 +73,7 @@ from ..stages.metrics import check_capture, psnr, side_by_side, ssim
 from ..stages.range import (RangeError, RangeMap, capture_noise_mse, fit_range, noise_ceiling, parse_range,
                             range_ceiling)
 from . import calibrate as calibrate_step
+from . import diagnose as diagnose_step
 from . import layout
 from . import transport as transport_step
 from .stage_c import StageCOptions, device_pipeline, stage_c_inputs
@@ -184,6 +199,44 @@ class JointTarget:
     warnings: list[str]
 
 
+def effect_adapters(options: StageCOptions, calibration: Calibration) -> list[EffectAdapter | None] | None:
+    """Each projector's diagnosed effect models for ``options.effects`` (None: none asked for), read from its own
+    diagnosis in the folder ``procam diagnose`` wrote for this calibration of several projectors
+    (``projector_K/gap.json``); a diagnosis of another number of projectors or of another calibration is refused."""
+    if not effects_wanted(options.effects):
+        return None
+    if options.diagnosis is None:
+        raise ProCamError(f"--effects {options.effects} needs --diagnosis DIR: the folder `procam diagnose CALIB "
+                          "--out DIR` wrote, where the effects' parameters were fitted")
+    folder = Path(options.diagnosis)
+    top = diagnose_step.read(folder).doc
+    count = calibration.projector_count
+    try:
+        theirs = int(top.get("projector_count") or 1)
+    except (TypeError, ValueError):
+        raise ProCamError(f"the diagnosis in {folder} is malformed (projector_count); run procam diagnose again") \
+            from None
+    again = "diagnose this calibration (procam diagnose CALIB --out DIR) and give that folder to --diagnosis"
+    if theirs != count:
+        raise ProCamError(f"the diagnosis in {folder} is of {theirs} projector(s), but the calibration has {count}: "
+                          + again)
+    if calibration.folder is not None:
+        sha, source = top.get("calibration_sha256"), top.get("source")
+        if sha is not None and sha != calibrate_step.identity(calibration.folder)["sha256"]:
+            raise ProCamError(f"the diagnosis in {folder} was made on another calibration ({source}; its "
+                              f"calibration.json differs from {calibration.folder}'s): {again}")
+        if sha is None and source and Path(str(source)).resolve() != Path(calibration.folder).resolve():
+            raise ProCamError(f"the diagnosis in {folder} was made on another calibration ({source}, not "
+                              f"{calibration.folder}): {again}")
+    adapters = []
+    for k in range(count):
+        sub = folder / diagnose_step.projector_folder(k)
+        doc = diagnose_step.read(sub).doc
+        adapters.append(projector_adapter(options.effects, doc, calibration.for_projector(k).rig.projector,
+                                          where=f"projector {k + 1}'s diagnosis in {sub}"))
+    return adapters
+
+
 class JointStage:
     """Stage C of one calibration of several projectors for a run of targets (module doc); a context manager that
     closes the device it opened."""
@@ -197,10 +250,9 @@ class JointStage:
             raise CompensationError(f"several projectors are solved together on their light-transport operators "
                                     f"only: compensate with --schedule transport (the {schedule.name!r} schedule "
                                     "renders one projector)")
-        if options.effects not in ("", "none"):
-            raise CompensationError("diagnosed effect models around stage C (--effects) are not implemented for "
-                                    f"several projectors yet; this calibration has {count}: compensate without them")
         self.calibration, self.options, self.schedule = calibration, options, schedule
+        #: each projector's diagnosed effect models (module doc), None without --effects
+        self.adapters = effect_adapters(options, calibration)
         self.views = views_of(calibration)
         full = calibrate_step.captures_of(calibration, required=False)
         self.captures = full
@@ -211,8 +263,8 @@ class JointStage:
         given = parse_range(options.range)
         self.range_map: RangeMap | None = given if isinstance(given, RangeMap) else None
         self._owned = device is None
-        self.device = device_pipeline(options.device, calibration, device=device,
-                                      progress=part(say, 0.0, 0.0, "device: ")) \
+        self.device: Any = device_pipeline(options.device, calibration, device=device,
+                                           progress=part(say, 0.0, 0.0, "device: ")) \
             if options.mode == "closed-loop" else None
         try:
             if self.device is not None and len(getattr(self.device, "projectors", (None,))) != count:
@@ -228,7 +280,12 @@ class JointStage:
                         "precompute stores it once)", 0.0)
                 else:
                     comp.transport = op
+                adapter = None if self.adapters is None else self.adapters[k]
+                if adapter is not None:
+                    adapter.blur_in_solve(comp)  # its lens's blur held in the joint solve: T_k B_k
                 self.compensators.append(comp)
+            if self.device is not None and self.adapters is not None:
+                self.device = AdaptedProjectors(self.device, self.adapters)
             self.joint = JointCompensator(self.compensators)
             self._subsets: dict[tuple[int, ...], JointCompensator] = {}
             self.biases: list[BiasModel] | None = None
@@ -252,7 +309,10 @@ class JointStage:
         if self.capture_views is None:
             raise CompensationError(f"open-loop compensation needs the calibration's capture set to estimate θ, "
                                     f"but it cannot be read at {self.calibration.capture_dir!r}: put it back")
-        self.use_biases([comp.estimate_bias(view) for comp, view in zip(self.compensators, self.capture_views)])
+        views: list[Any] = list(self.capture_views)
+        if self.adapters is not None:  # each projector's captures paired with the light it emitted
+            views = [v if a is None else AdaptedCaptures(v, a) for v, a in zip(views, self.adapters)]
+        self.use_biases([comp.estimate_bias(view) for comp, view in zip(self.compensators, views)])
         assert self.biases is not None
         return self.biases
 
@@ -304,7 +364,11 @@ class JointStage:
                 raise CompensationError(f"a frame of projector {k + 1} to start from must be "
                                         f"{proj.intrinsics.size[0]}×{proj.intrinsics.size[1]}, got "
                                         f"{frame.shape[1]}×{frame.shape[0]}")
-            out.append(comp.warp_m(np.asarray(frame[y0:y0 + h, x0:x0 + w, :3], np.float32)))
+            x = np.asarray(frame[y0:y0 + h, x0:x0 + w, :3], np.float32)
+            adapter = None if self.adapters is None else self.adapters[k]
+            if adapter is not None:  # the light the frame makes (before the lens's blur when the solve holds it)
+                x = np.clip(adapter.emitted(x, blur=not adapter.defocus_in_solver), 0.0, 1.0)
+            out.append(comp.warp_m(x))
         return out
 
     def area_for(self, image: np.ndarray) -> DisplayArea:
@@ -395,6 +459,12 @@ class JointStage:
                             progress=progress, cancel=cancel, name=name,
                             start=None if start is None else [start[k] for k in keep], **args)
         notes = [str(w.message) for w in caught]
+        if self.adapters is not None:  # the inputs the solve answered are light: each projector sends g_k⁻¹ of it
+            inputs, frames = list(res.x_inputs), list(res.x_frames)
+            for i, k in enumerate(keep):
+                if (adapter := self.adapters[k]) is not None:
+                    inputs[i], frames[i] = adapter.input_for(res.x_inputs[i]), adapter.frame_to_send(res.x_inputs[i])
+            res = replace(res, x_inputs=inputs, x_frames=frames)
         if dark:
             res = _with_black(res, keep, list(self.calibration.rig.projectors))
             notes += [f"projector {k + 1} lights nothing inside the display area ({area.width}×{area.height} at "
@@ -410,7 +480,17 @@ class JointStage:
                                "joint": s.iterations_joint},
                 "bounces": o.bounces, "spp": o.spp, "seed": o.seed, "area_given": list(o.area) if o.area else None,
                 "target_encoding": o.target_encoding, "blend": "derived",
-                "range": None if self.range_map is None else self.range_map.to_dict(), "effects": None}
+                "range": None if self.range_map is None else self.range_map.to_dict(), "effects": self.effects()}
+
+    def effects(self) -> dict[str, Any] | None:
+        """The diagnosed effect models used, per projector (None without --effects): the diagnosis folder, and for
+        projector K the effects used, those not inverted and why, their parameters and the blur held in the solve."""
+        if self.adapters is None:
+            return None
+        return {"diagnosis": str(Path(self.options.diagnosis or "").absolute()), "projectors": [
+            {"used": [], "not_inverted": {}, "params": {}, "input_blur": None} if a is None else
+            {"used": a.used, "not_inverted": a.not_used, "params": a.params,
+             "input_blur": comp.input_blur} for a, comp in zip(self.adapters, self.compensators)]}
 
     def rig_record(self) -> dict[str, Any]:
         """The rig the inputs are for: every projector's frame, input size and offset, and the camera's size."""
@@ -466,6 +546,9 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
     write_image(tmp / files["target"], done.fitted)
     shares = res.report.get("share_of_light") or [None] * stage.count
     projectors = [{**entry, "share": shares[k]} for k, entry in enumerate(files["projectors"])]
+    if stage.adapters is not None:  # the lens's blur each projector's solve held (its σ, input texels)
+        for entry, comp in zip(projectors, stage.compensators):
+            entry["input_blur"] = comp.input_blur
     return {"name": name, "status": "done", "warnings": done.warnings, "mode": res.mode,
             "area": done.area.to_dict(), "input": projectors[0]["input"], "frame": projectors[0]["frame"],
             "simulated": files["simulated"], "target": files["target"], "projectors": projectors,

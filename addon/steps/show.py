@@ -59,7 +59,8 @@ undoes its own warp. A show folder resumed with a calibration of another
 number of projectors, other projector sizes or other contents is refused,
 naming what changed (``--force`` redoes it). Not yet for several projectors:
 ``--workers``/``--cluster`` (refused before anything is written), and what
-``JointStage`` refuses (render schedules, ``--effects``).
+``JointStage`` refuses (render schedules; of the diagnosed effect models, the
+camera's and the surface's). Each projector's effect models are in the settings.
 """
 
 from __future__ import annotations
@@ -571,7 +572,7 @@ def _prepare(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions,
         # Every projector solved at once; a one-projector compensator given to reuse does not apply.
         with JointStage(cal, sc, device=device, progress=say) as joint:
             _fix_range(joint, frames, say)
-            settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=None,
+            settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=joint.effects(),
                                    range_map=joint.range_map, warm=options.warm())
             settings["blend"] = "derived"  # the joint solve's blend prior (stages/joint.py)
             return _run(options, frames, joint, cal, ident, settings, digits, say, cancel)
@@ -722,7 +723,9 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointS
                         [v.warp is not None for v in stage.views],
                         "effect_models": effects.used if effects is not None else [],
                         "not_inverted": effects.not_used if effects is not None else {},
-                        "params": effects.params if effects is not None else {}},
+                        "params": effects.params if effects is not None else {},
+                        **({"projectors": (stage.effects() or {}).get("projectors")}
+                           if isinstance(stage, JointStage) else {})},
             **rig, "projector_count": count,
             "frame_pattern": (f"{FRAME_PREFIX}{'#' * digits}.png" if count == 1 else
                               f"{layout.PROJECTOR_FOLDER.format(k='K')}/{FRAME_PREFIX}{'#' * digits}.png"),

@@ -1,0 +1,131 @@
+"""Diagnosed effect models around the joint solve of several projectors: each projector's own effects from its own
+diagnosis (its lens's blur held in the solve, its tone curve inverted on its frame), the camera's left out, and a
+diagnosis of another rig refused."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from procam.addon.steps import layout
+
+KIND = layout.DIAGNOSIS
+
+
+def _write(folder: Path, doc: dict[str, Any]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / KIND.manifest).write_text(json.dumps({"format": KIND.format, "version": KIND.version, **doc}))
+
+
+def _projector_doc(params: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """One projector's gap.json as compensation reads it: what ``--effects auto`` inverts, and the fitted ones."""
+    return {"selected": list(params), "selected_params": params, "compensation": {"params": params},
+            "effects": [{"name": n, "params": p} for n, p in params.items()]}
+
+
+def diagnosis_of_two(folder: Path, cal: Path, params: list[dict[str, dict[str, float]]], *,
+                     count: int = 2, sha: str | None = None) -> Path:
+    """A diagnosis folder of ``count`` projectors of the calibration ``cal`` (``projector_K/gap.json`` each)."""
+    from procam.addon.steps import calibrate as calibrate_step
+
+    _write(folder, {"source": str(cal), "projector_count": count,
+                    "calibration_sha256": sha or calibrate_step.identity(cal)["sha256"]})
+    for k, p in enumerate(params):
+        _write(folder / f"projector_{k + 1}", _projector_doc(p))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def rig(two_projector_lab) -> tuple[Path, Path]:
+    from procam.addon.imageio import write_image
+    from procam.addon.capture.targets import natural_target
+
+    root = two_projector_lab
+    return root, write_image(root / "city.png", natural_target("city", (120, 90)))
+
+
+def test_each_projector_holds_its_own_lens_blur_in_the_joint_solve(rig, tmp_path):
+    """Projector 1's diagnosis fitted a blur of 0.8 texel and a camera curve, projector 2's a blur of 1.2: each
+    projector's compensator solves through its own blur (all its texels unknowns), the camera curve is left out and
+    said so, and compensation.json records per projector what was used."""
+    from procam.addon.cli.app import main as procam
+
+    root, target = rig
+    diag = diagnosis_of_two(tmp_path / "diag", root / "cal", [
+        {"defocus": {"sigma": 0.8}, "camera_response": {"curve": 0.3}}, {"defocus": {"sigma": 1.2}}])
+    out = tmp_path / "comp"
+    assert procam(["compensate", str(root / "cal"), str(target), "--iterations", "3", "--effects", "auto",
+                   "--diagnosis", str(diag), "--out", str(out)]) == 0
+    doc = json.loads((out / "compensation.json").read_text())
+    mine = doc["effects"]["projectors"]
+    assert [p["input_blur"] for p in mine] == [0.8, 1.2]
+    assert [p["used"] for p in mine] == [["defocus"], ["defocus"]]
+    assert "camera_response" in mine[0]["not_inverted"] and "camera_response" not in mine[0]["params"]
+    assert [p["input_blur"] for p in doc["targets"][0]["projectors"]] == [0.8, 1.2]
+    # without effects the record is as before: no effects, no blur
+    plain = tmp_path / "plain"
+    assert procam(["compensate", str(root / "cal"), str(target), "--iterations", "3", "--out", str(plain)]) == 0
+    doc = json.loads((plain / "compensation.json").read_text())
+    assert doc["effects"] is None and "input_blur" not in doc["targets"][0]["projectors"][0]
+
+
+def test_the_joint_solve_runs_on_the_blurred_operators(rig, tmp_path):
+    """The σ of each projector reaches its transport view (``T_k B_k``, every texel an unknown)."""
+    from procam.addon.stages.transport import BlurredRows
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps.projectors import JointStage
+    from procam.addon.steps.stage_c import StageCOptions
+
+    root, _ = rig
+    diag = diagnosis_of_two(tmp_path / "diag", root / "cal", [{"defocus": {"sigma": 0.7}}, {}])
+    cal = calibrate_step.read(root / "cal")
+    with JointStage(cal, StageCOptions(effects="auto", diagnosis=diag)) as stage:
+        area = stage.area_for(np.zeros((90, 120, 3), np.float32))
+        first, second = (comp.transport_view(area) for comp in stage.compensators)
+        assert isinstance(first, BlurredRows) and first.sigma == 0.7 and not isinstance(second, BlurredRows)
+        assert stage.effects()["projectors"][1] == {"used": [], "not_inverted": {}, "params": {}, "input_blur": None}
+
+
+def test_each_projectors_frame_goes_through_its_own_tone_curve_inverse():
+    """In the closed loop projector k's frame is sent as g_k⁻¹ of it; a projector without effects as it is."""
+    from procam.addon.gap.compensation import AdaptedProjectors, projector_adapter
+    from procam.addon.rig.model import Intrinsics, Projector
+
+    proj = Projector(Intrinsics(40, 30, 50.0, 50.0, 20.0, 15.0))
+    curve = {"response": {"gamma_r": 2.0, "gamma_g": 2.0, "gamma_b": 2.0}}
+    adapter = projector_adapter("auto", _projector_doc(curve), proj)
+    assert adapter is not None and adapter.used == ["response"]
+
+    class Rig:
+        projectors = (proj, proj)
+
+        def project_all(self, frames: list[np.ndarray]) -> list[np.ndarray]:
+            return frames
+
+    frame = np.full((30, 40, 3), 0.25, np.float32)
+    sent = AdaptedProjectors(Rig(), [adapter, None]).project_all([frame, frame])
+    assert np.allclose(sent[0], 0.5, atol=1e-3) and np.array_equal(sent[1], frame)  # (0.25)^(1/2) = 0.5
+
+
+def test_a_diagnosis_of_another_rig_or_a_shared_effect_named_is_refused(rig, tmp_path, capsys):
+    """A diagnosis of one projector for a calibration of two, one of another calibration, and a camera effect named
+    for several projectors: refused with what to do, nothing written."""
+    from procam.addon.cli.app import main as procam
+
+    root, target = rig
+    base = ["compensate", str(root / "cal"), str(target), "--iterations", "2", "--out", str(tmp_path / "c")]
+    one = tmp_path / "one"
+    _write(one, _projector_doc({"defocus": {"sigma": 0.8}}))  # a one-projector diagnosis: no projector_count
+    assert procam(base + ["--effects", "auto", "--diagnosis", str(one)]) == 2
+    assert "is of 1 projector(s), but the calibration has 2" in capsys.readouterr().err
+    other = diagnosis_of_two(tmp_path / "other", root / "cal", [{}, {}], sha="0" * 64)
+    assert procam(base + ["--effects", "auto", "--diagnosis", str(other)]) == 2
+    assert "made on another calibration" in capsys.readouterr().err
+    both = diagnosis_of_two(tmp_path / "both", root / "cal", [{"camera_response": {"curve": 0.3}}] * 2)
+    assert procam(base + ["--effects", "camera_response", "--diagnosis", str(both)]) == 2
+    assert "only each projector's own effects" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
