@@ -5,6 +5,7 @@ diagnosis of another rig refused."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +72,15 @@ def test_each_projector_holds_its_own_lens_blur_in_the_joint_solve(rig, tmp_path
     assert procam(["compensate", str(root / "cal"), str(target), "--iterations", "3", "--out", str(plain)]) == 0
     doc = json.loads((plain / "compensation.json").read_text())
     assert doc["effects"] is None and "input_blur" not in doc["targets"][0]["projectors"][0]
+
+    # show shares the joint stage: each projector's effects recorded, and part of its resumable settings
+    (tmp_path / "frames").mkdir()
+    shutil.copy(target, tmp_path / "frames" / "shot_0001.png")
+    show = ["show", str(root / "cal"), str(tmp_path / "frames"), "--out", str(tmp_path / "show"), "--iterations", "2"]
+    assert procam(show + ["--effects", "auto", "--diagnosis", str(diag)]) == 0
+    manifest = json.loads((tmp_path / "show" / "show.json").read_text())
+    assert [p["input_blur"] for p in manifest["effects"]["projectors"]] == [0.8, 1.2]
+    assert procam(show) == 2  # other effects than the finished frames': refused without --force
 
 
 def test_the_joint_solve_runs_on_the_blurred_operators(rig, tmp_path):
