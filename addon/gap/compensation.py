@@ -380,7 +380,9 @@ class AdaptedProjectors:
                                f"{len(device.projectors)} projector(s)")
         self._d, self._adapters = device, list(adapters)
 
-    def __getattr__(self, name: str) -> Any:
+    def __getattr__(self, name: str) -> Any:  # the device's camera_size, close, …
+        if name in ("_d", "_adapters"):  # not set yet: no recursion through the lookup below
+            raise AttributeError(name)
         return getattr(self._d, name)
 
     @property
