@@ -777,7 +777,7 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     class Camera_(Device):
         opened = 0
 
-        def __init__(self, spec, projector, progress=None):
+        def __init__(self, spec, projector, progress=None, others=()):
             Camera_.opened += 1
             self.projector, self.camera_size = projector, CAM
 
@@ -788,7 +788,8 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     spec, proj = "live:camera=0,display=0", small_projector()
 
     def calibration(report, capture_dir):
-        return SimpleNamespace(report=report, capture_dir=str(capture_dir), rig=SimpleNamespace(projector=proj))
+        return SimpleNamespace(report=report, capture_dir=str(capture_dir),
+                               rig=SimpleNamespace(projector=proj, others=()))
 
     # From the capture set (a calibration made before calibrations recorded it) and from the calibration alone.
     for report, where in (({}, tmp_path / "set"), ({"camera_lens_removed": lens.to_dict()}, tmp_path / "moved")):

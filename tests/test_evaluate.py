@@ -212,7 +212,7 @@ def test_later_failure_keeps_finished_targets(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_: Flaky(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_, **__: Flaky(LabTruth.load(env.truth_path)))
     out = env.root / "eval_flaky"
     assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 2
     assert "camera is" in capsys.readouterr().err
@@ -243,7 +243,7 @@ def test_a_replayed_capture_gives_no_noise_ceiling(env, monkeypatch, capsys):
         def close(self):
             self.inner.close()
 
-    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_: Replay(LabTruth.load(env.truth_path)))
+    monkeypatch.setattr(stage_c, "open_device", lambda spec, *_, **__: Replay(LabTruth.load(env.truth_path)))
     out = env.root / "eval_replay"
     assert _evaluate(env, out, env.targets / "a.png") == 0
     doc = json.loads((out / "metrics.json").read_text())

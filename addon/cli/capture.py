@@ -43,7 +43,7 @@ def _configure_patterns(p: argparse.ArgumentParser) -> None:
 
 
 @command("patterns", "Export the numbered calibration pattern sequence for your own projection/capture tools "
-         "(several projectors: one sequence each, --projector-number K).", _configure_patterns)
+         "(one sequence per projector when there are several).", _configure_patterns)
 def patterns(args: argparse.Namespace) -> int:
     projector = projector_from_args(args)
     w, h = projector.intrinsics.size
