@@ -100,7 +100,7 @@ class Harness:
         self.cam = self.cal.rig.camera.intrinsics.size
 
     def fitted(self, path: Path) -> tuple[np.ndarray, Any]:
-        image, _ = projectors.read_target(self.stage, path)
+        image, _ = self.stage.load(path)
         area = self.stage.area_for(image)
         return self.stage.fitted(image, area), area
 

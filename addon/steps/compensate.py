@@ -82,10 +82,11 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     options.stage_c.check()
     cal = calibrate_step.read(options.calibration)
     ident = calibrate_step.identity(options.calibration)
-    if cal.projector_count > 1:  # several projectors: one joint solve, a frame per projector
-        projectors.compensate(options, cal, ident, KIND, say=say, cancel=cancel, device=device)
-        return read(options.out)
-    with StageC(cal, options.stage_c, device=device, progress=part(say, 0.0, 0.02)) as stage:
+    several = cal.projector_count > 1  # one joint solve on every projector, a frame per projector
+    opening = (projectors.JointStage if several else StageC)(cal, options.stage_c, device=device,
+                                                             progress=part(say, 0.0, 0.02))
+    one_target = projectors.one_target if several else _one_target
+    with opening as stage:
         # Read every target and choose its area first: a bad file or area fails before minutes of work.
         targets = [stage.load(p) for p in paths]
         # What each target held, so that evaluate can tell a different image under the same name.
@@ -94,6 +95,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
             stage.area_for(image)
         if stage.fix_range([image for image, _ in targets]) is not None:
             r = stage.range_map
+            assert r is not None
             say(f"range: targets mapped to {r.gain:.3f}·t + {r.offset:+.3f} ({r.rule})", 0.03)
         names = output_names(paths)
         folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
@@ -109,10 +111,10 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
             n = len(paths)
             for i, ((image, note), name, path, sha) in enumerate(zip(targets, names, paths, hashes)):
                 try:
-                    record = _one_target(stage, folder.tmp, image, note, name, path, i, n, say, cancel)
+                    record = one_target(stage, folder.tmp, image, note, name, path, i, n, say, cancel)
                 except (Cancelled, KeyboardInterrupt) as exc:
                     stopped = exc
-                    for file in layout.target_files(name).values():  # a target cut short leaves no file behind
+                    for file in stage.target_files(name):  # a target cut short leaves no file behind
                         (folder.tmp / file).unlink(missing_ok=True)
                     break
                 except ProCamError as exc:
@@ -128,12 +130,11 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                 records.append({"name": names[len(records)], "file": str(paths[len(records)].absolute()),
                                 "status": "cancelled", "error": "cancelled before it finished"})
             areas = [r["area"] for r in records if r.get("area")]
-            bias = stage.bias
             write_manifest(folder.tmp / KIND.manifest, {
                 "format": KIND.format, "version": KIND.version,
                 "calibration": ident["path"], "calibration_sha256": ident["sha256"], "capture_set": cal.capture_dir,
                 **stage.settings(),
-                "open_loop_bias": None if bias is None else {"kind": bias.kind, **bias.report},
+                "open_loop_bias": stage.bias_record(),
                 **stage.rig_record(),
                 "area": areas[0] if areas and all(a == areas[0] for a in areas) else None,
                 "complete": failure is None and stopped is None, "targets": records})

@@ -58,10 +58,9 @@ import numpy as np
 
 from ..capture.devices import Device, SomeProjectors
 from ..capture.format import CaptureSet
-from ..errors import Cancelled, CaptureError, ProCamError
+from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedProjectors, EffectAdapter, effects_wanted, projector_adapter
 from ..imageio import write_image
-from ..outputs import AtomicFolder, file_sha256, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
 from ..stages.bias import BiasModel
 from ..stages.calibrate import Calibration
@@ -76,7 +75,7 @@ from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
 from . import layout
 from . import transport as transport_step
-from .stage_c import StageCOptions, device_pipeline, stage_c_inputs
+from .stage_c import StageCOptions, device_pipeline
 
 
 def projector_files(name: str, count: int) -> dict[str, Any]:
@@ -372,16 +371,20 @@ class JointStage:
         return out
 
     def area_for(self, image: np.ndarray) -> DisplayArea:
-        """The user's area, the capture set's, else the largest of the target's aspect the projectors cover."""
+        """The user's area, the capture set's, else the largest of the target's aspect the projectors cover; an
+        area no projector lights is refused (:meth:`dark_in`), before any folder is made."""
         if self.user_area is not None:
-            return self.user_area
-        if self.captures is not None and self.captures.target_area is not None:
-            return choose_area(self.calibration, aspect=1.0, captures=self.captures)
-        aspect = image.shape[1] / image.shape[0]
-        key = f"{aspect:.4f}"
-        if key not in self.areas:
-            self.areas[key] = joint_area(self.views, aspect, captures=self.capture_views)
-        return self.areas[key]
+            area = self.user_area
+        elif self.captures is not None and self.captures.target_area is not None:
+            area = choose_area(self.calibration, aspect=1.0, captures=self.captures)
+        else:
+            aspect = image.shape[1] / image.shape[0]
+            key = f"{aspect:.4f}"
+            if key not in self.areas:
+                self.areas[key] = joint_area(self.views, aspect, captures=self.capture_views)
+            area = self.areas[key]
+        self.dark_in(area)
+        return area
 
     def lit_in(self, area: DisplayArea) -> list[int]:
         """How many camera pixels of ``area`` each projector lights (its footprint, :meth:`coverage`)."""
@@ -479,8 +482,21 @@ class JointStage:
                 "iterations": {"total": s.iterations_z + s.iterations_joint, "z": s.iterations_z,
                                "joint": s.iterations_joint},
                 "bounces": o.bounces, "spp": o.spp, "seed": o.seed, "area_given": list(o.area) if o.area else None,
-                "target_encoding": o.target_encoding, "blend": "derived",
+                "target_encoding": o.target_encoding, "blend": "derived", "projector_count": self.count,
                 "range": None if self.range_map is None else self.range_map.to_dict(), "effects": self.effects()}
+
+    def load(self, path: str | Path) -> tuple[np.ndarray, str]:
+        """A target image as stage C reads it (linear light; the note says how it was decoded)."""
+        return load_target(path, encoding=self.options.target_encoding)
+
+    def target_files(self, name: str) -> list[str]:
+        """Every file a target ``name`` writes (a target cut short leaves none)."""
+        files = projector_files(name, self.count)
+        return [files["simulated"], files["target"], *(v for e in files["projectors"] for v in e.values())]
+
+    def bias_record(self) -> list[dict[str, Any]] | None:
+        """Each projector's open-loop θ model as the manifest records it (None in the closed loop)."""
+        return None if self.biases is None else [{"kind": b.kind, **b.report} for b in self.biases]
 
     def effects(self) -> dict[str, Any] | None:
         """The diagnosed effect models used, per projector (None without --effects): the diagnosis folder, and for
@@ -560,95 +576,20 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
             "psnr_simulated_outside": res.report.get("psnr_outside_overlap")}
 
 
-def compensate_targets(stage: JointStage, tmp: Path, targets: list[tuple[np.ndarray, str]], names: list[str],
-                       paths: list[Path], hashes: list[str], say: Progress, cancel: Cancel | None
-                       ) -> tuple[list[dict[str, Any]], ProCamError | None, BaseException | None]:
-    """Every target into ``tmp``: the records, the failure that stopped the run and the cancel (finished kept)."""
-    records: list[dict[str, Any]] = []
-    n = len(paths)
-    for i, ((image, note), name, path, sha) in enumerate(zip(targets, names, paths, hashes)):
-        try:
-            check(cancel, "compensation was cancelled")
-            area = stage.area_for(image)
-            say(f"target {i + 1}/{n}: {name} on {stage.count} projectors ({area.width}×{area.height} at "
-                f"{area.x},{area.y})", 0.05 + 0.95 * i / n)
-            done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
-                                    progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
-                                                  f"target {i + 1}/{n} {name}: "))
-            for w in done.warnings:
-                say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / n)
-            record = write_target(stage, tmp, done, name)
-        except (Cancelled, KeyboardInterrupt) as exc:
-            files = projector_files(name, stage.count)
-            for f in [files["simulated"], files["target"], *(v for e in files["projectors"] for v in e.values())]:
-                (tmp / f).unlink(missing_ok=True)
-            return records, None, exc
-        except ProCamError as exc:
-            records.append({"name": name, "file": str(path.absolute()), "file_sha256": sha, "status": "failed",
-                            "error": str(exc)})
-            return records, exc, None
-        records.append({**record, "file": str(path.absolute()), "file_sha256": sha, "encoding": note})
-    return records, None, None
-
-
-def compensate(options: Any, calibration: Calibration, ident: dict[str, str], kind: Any, *, say: Progress,
-               cancel: Cancel | None, device: Device | None = None) -> None:
-    """``procam compensate`` of a calibration of several projectors (``options``: its CompensateOptions, ``kind``
-    its folder kind): every target solved on all projectors into one folder, atomically; the finished targets kept
-    on a failure or a cancel, as for one projector."""
-    paths = list(options.targets)
-    with JointStage(calibration, options.stage_c, device=device, progress=part(say, 0.0, 0.02)) as stage:
-        targets = [read_target(stage, p) for p in paths]
-        hashes = [file_sha256(p) for p in paths]
-        for image, _ in targets:
-            stage.dark_in(stage.area_for(image))  # an area no projector lights fails before any folder is made
-        if stage.fix_range([image for image, _ in targets]) is not None:
-            r = stage.range_map
-            assert r is not None
-            say(f"range: targets mapped to {r.gain:.3f}·t + {r.offset:+.3f} ({r.rule}), against what the "
-                f"{stage.count} projectors reach together", 0.03)
-        if stage.options.mode == "open-loop":
-            say("estimating θ of each projector from its validation captures (open loop)", 0.02)
-            stage.estimate_bias()
-        names = output_names(paths)
-        folder = AtomicFolder(options.out, force=options.force, what=kind.what, replaceable=kind.holds,
-                              inputs=(options.calibration, calibration.capture_dir, *paths,
-                                      *stage_c_inputs(options.stage_c)))
-        try:
-            records, failure, stopped = compensate_targets(stage, folder.tmp, targets, names, paths, hashes, say,
-                                                           cancel)
-            finished = sum(r["status"] == "done" for r in records)
-            if stopped is not None and not finished:
-                raise stopped
-            if stopped is not None:
-                records.append({"name": names[len(records)], "file": str(paths[len(records)].absolute()),
-                                "status": "cancelled", "error": "cancelled before it finished"})
-            areas = [r["area"] for r in records if r.get("area")]
-            write_manifest(folder.tmp / kind.manifest, {
-                "format": kind.format, "version": kind.version,
-                "calibration": ident["path"], "calibration_sha256": ident["sha256"],
-                "capture_set": calibration.capture_dir, "projector_count": stage.count, **stage.settings(),
-                "open_loop_bias": None if stage.biases is None else [
-                    {"kind": b.kind, **b.report} for b in stage.biases],
-                **stage.rig_record(),
-                "area": areas[0] if areas and all(a == areas[0] for a in areas) else None,
-                "complete": failure is None and stopped is None, "targets": records})
-        except BaseException:
-            folder.abort()
-            raise
-        folder.commit()
-    if stopped is not None:
-        raise Cancelled(f"compensation was cancelled after {finished} of {len(paths)} target(s); the finished ones "
-                        f"are kept in {options.out} (marked incomplete): run the same command with --force to "
-                        "redo it whole", kept=True)
-    say("done", 1.0)
-    if failure is not None:
-        raise failure
-
-
-def read_target(stage: JointStage, path: Path) -> tuple[np.ndarray, str]:
-    """A target image as stage C reads it (linear light; the note says how it was decoded)."""
-    return load_target(path, encoding=stage.options.target_encoding)
+def one_target(stage: "JointStage", tmp: Path, image: np.ndarray, note: str, name: str, path: Path, i: int, n: int,
+               say: Progress, cancel: Cancel | None) -> dict[str, Any]:
+    """Compensate one target on every projector and write its files into ``tmp``; returns its record (the
+    compensate step's loop, ``steps/compensate.py``, runs it for several projectors)."""
+    check(cancel, "compensation was cancelled")
+    area = stage.area_for(image)
+    say(f"target {i + 1}/{n}: {name} on {stage.count} projectors ({area.width}×{area.height} at "
+        f"{area.x},{area.y})", 0.05 + 0.95 * i / n)
+    done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
+                            progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
+                                          f"target {i + 1}/{n} {name}: "))
+    for w in done.warnings:
+        say(f"warning: {w}", 0.05 + 0.95 * (i + 1) / n)
+    return {**write_target(stage, tmp, done, name), "file": str(path.absolute()), "encoding": note}
 
 
 # -- evaluation -------------------------------------------------------------------------------------------------

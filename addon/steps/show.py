@@ -94,7 +94,7 @@ from ..video import VideoReader, frame_count, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
-from .projectors import JointStage, read_target
+from .projectors import JointStage
 from .show_work import FrameJob, FrameOutcome, compute_frame, compute_joint_frame, source_record
 from .stage_c import StageC, StageCOptions
 from .summary import Summary, cached, fmt
@@ -603,7 +603,7 @@ def _load(stage: StageC | JointStage, frame: SourceFrame, readers: dict[Path, Vi
           ) -> tuple[np.ndarray, str]:
     """A target as stage C reads it: an image file, or a frame of a video (readers kept open by path)."""
     if frame.index is None:
-        return read_target(stage, frame.path) if isinstance(stage, JointStage) else stage.load(frame.path)
+        return stage.load(frame.path)
     reader = readers.get(frame.path) or readers.setdefault(frame.path, VideoReader(frame.path))
     return load_video_frame(reader, frame.index, encoding=stage.options.target_encoding)
 

@@ -38,6 +38,7 @@ from ..stages.range import RangeError, RangeMap, fit_range, parse_range
 from ..stages.transport import TransportMemoryError, check_memory
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
+from . import layout
 from . import transport as transport_step
 
 DEVICE_KINDS = ("lab", "folder", "live")
@@ -407,6 +408,15 @@ class StageC:
         if self.adapter is not None:
             x = np.clip(self.adapter.emitted(x, blur=not self.adapter.defocus_in_solver), 0.0, 1.0)
         return self.compensator.warp_m(x)
+
+    @staticmethod
+    def target_files(name: str) -> list[str]:
+        """Every file ``procam compensate`` writes for a target ``name`` (a target cut short leaves none)."""
+        return list(layout.target_files(name).values())
+
+    def bias_record(self) -> dict[str, Any] | None:
+        """The open-loop θ model as the manifest records it (None in the closed loop)."""
+        return None if self.bias is None else {"kind": self.bias.kind, **self.bias.report}
 
     def settings(self) -> dict[str, Any]:
         """What decides the pixels of every target: the manifest's record of how stage C ran."""
