@@ -24,6 +24,7 @@ from procam.addon.imageio import write_image
 from procam.addon.outputs import (AtomicFolder, OutputError, check_file_replaceable, check_replaceable,
                                   folder_in_place, hidden_sibling, stale_siblings)
 from procam.addon.steps import layout
+from procam.addon.steps.stage_c import StageC
 
 from .test_capture import write_small_set
 
@@ -382,6 +383,11 @@ class _Stage:
 
     def rig_record(self):
         return {}
+
+    def bias_record(self):
+        return None
+
+    target_files = staticmethod(StageC.target_files)
 
 
 @pytest.mark.parametrize("interrupt", [Cancelled, KeyboardInterrupt])
