@@ -221,9 +221,7 @@ class CompensationInputs:
                                 f"calibration comes from {mine}; evaluate with the calibration the inputs were "
                                 "made with")
         cam = list(calibration.rig.camera.intrinsics.size)
-        proj = calibration.rig.projector
-        want = {"camera_size": cam, "frame_size": list(proj.intrinsics.size),
-                "input_size": list(proj.input_size), "input_offset": list(proj.input_offset)}
+        want = {"camera_size": cam, **layout.projector_record(calibration.rig.projector)}
         have = {"camera_size": doc.get("camera_size"), **(doc.get("projector") or {})}
         for key, value in want.items():
             if have.get(key) is None:
@@ -241,8 +239,7 @@ class CompensationInputs:
 
     def check_projectors(self, calibration: Any) -> None:
         """Refuse inputs made for another number of projectors, or another size of any of them."""
-        want = [{"frame_size": list(p.intrinsics.size), "input_size": list(p.input_size),
-                 "input_offset": list(p.input_offset)} for p in calibration.rig.projectors]
+        want = [layout.projector_record(p) for p in calibration.rig.projectors]
         have = self.doc.get("projectors")
         have = have if isinstance(have, list) else [self.doc.get("projector")]
         if len(have) != len(want):

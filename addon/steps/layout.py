@@ -107,6 +107,13 @@ EVALUATION_FILES = {"image": "{name}_comparison.png", "capture": "{name}_capture
 DIAGNOSIS_SUMMARY = "summary.md"
 
 
+def projector_record(projector: Any) -> dict[str, list[int]]:
+    """What a compensation or show records of a projector its inputs are for, and evaluation checks: its native
+    frame size, and the size and offset of its input inside that frame."""
+    return {"frame_size": list(projector.intrinsics.size), "input_size": list(projector.input_size),
+            "input_offset": list(projector.input_offset)}
+
+
 def frame_name(number: int, digits: int = 4) -> str:
     """The file of projector frame ``number`` (``frame_0001.png``): zero-padded as media servers expect."""
     return f"{FRAME_PREFIX}{number:0{digits}d}.png"

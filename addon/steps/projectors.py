@@ -510,8 +510,7 @@ class JointStage:
 
     def rig_record(self) -> dict[str, Any]:
         """The rig the inputs are for: every projector's frame, input size and offset, and the camera's size."""
-        projectors = [{"frame_size": list(p.intrinsics.size), "input_size": list(p.input_size),
-                       "input_offset": list(p.input_offset)} for p in self.calibration.rig.projectors]
+        projectors = [layout.projector_record(p) for p in self.calibration.rig.projectors]
         return {"projector": projectors[0], "projectors": projectors,
                 "camera_size": list(self.calibration.rig.camera.intrinsics.size)}
 

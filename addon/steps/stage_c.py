@@ -435,9 +435,7 @@ class StageC:
 
     def rig_record(self) -> dict[str, Any]:
         """The rig the inputs are for, which evaluation checks before projecting them."""
-        proj = self.calibration.rig.projector
-        return {"projector": {"frame_size": list(proj.intrinsics.size), "input_size": list(proj.input_size),
-                              "input_offset": list(proj.input_offset)},
+        return {"projector": layout.projector_record(self.calibration.rig.projector),
                 "camera_size": list(self.calibration.rig.camera.intrinsics.size)}
 
     def close(self) -> None:
