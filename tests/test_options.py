@@ -175,7 +175,7 @@ FLAGS = {
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width --projectors",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
                 "--projector-height --projector-number --projector-width --seed --shift-x --shift-y --throw-ratio",
-    "precompute": "--bounces --force --seed",
+    "precompute": "--bounces --force --live --seed",
     "show": "--area --bounces --capture-every --chunk --cluster --cold-start --connect-timeout --device --diagnosis "
             "--effects --fail-fast --force --iterations --lr --no-bias --out --range --schedule --seed --spp "
             "--target-encoding --threads --workers",

@@ -29,4 +29,7 @@ def precompute(args: argparse.Namespace) -> int:
               f"every {one['spacing']}th texel), {one['entries_per_pixel']} entries a pixel, indirect "
               f"{one['indirect_blocks'][0]}×{one['indirect_blocks'][1]} blocks; {one['megabytes']} MB, "
               f"{one['seconds']} s")
+        inv = one.get("inverse")
+        if inv:
+            print(f"approximate inverse{whose}: {inv['stencil']} stencil, {inv['megabytes']} MB, {inv['seconds']} s")
     return 0

@@ -89,6 +89,12 @@ def transport_files(k: int = 0) -> tuple[str, str]:
     return f"transport_p{k + 1}.npz", f"transport_p{k + 1}.json"
 
 
+def inverse_files(k: int = 0) -> tuple[str, str]:
+    """The approximate inverse of projector ``k``'s operator (stages/realtime.py) and its record, beside the
+    operator: ``inverse.npz`` and ``inverse.json`` for the first, ``inverse_p2.npz`` … for the others."""
+    return tuple(name.replace("transport", "inverse", 1) for name in transport_files(k))  # type: ignore[return-value]
+
+
 SCENE_BLEND = "scene.blend"
 
 #: compensation, per target NAME.

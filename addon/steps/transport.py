@@ -29,7 +29,8 @@ from ..safepaths import inside
 from ..stages.calibrate import Calibration
 from ..stages.transport import TransportError, TransportOperator
 from . import calibrate as calibrate_step
-from .layout import transport_files
+from .inverse import load_inverse, store_inverse
+from .layout import inverse_files, transport_files
 
 #: the operator's files of one projector (of the first of several), as scripts read them
 OPERATOR_FILE, REPORT_FILE = transport_files(0)
@@ -43,6 +44,8 @@ class PrecomputeOptions:
     # declared here, not taken from StageCOptions: stage C imports this module
     bounces: int = option(1, min=0, help="indirect bounces, as compensate will use")
     seed: int = option(0, min=0, help="seed, as compensate will use")
+    live: bool = option(False, label="Live", help="also store each operator's approximate inverse, which "
+                        "procam live-show solves with (inverse.npz beside transport.npz)")
     force: bool = False
 
 
@@ -60,15 +63,34 @@ def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Ca
     for k in range(count):
         view = cal.for_projector(k)
         name = f"projector {k + 1}: " if count > 1 else ""
-        if not options.force and load(view, bounces=options.bounces, seed=options.seed) is not None:
-            docs.append(json.loads((folder / transport_files(k)[1]).read_text()))
+        op = None if options.force else load(view, bounces=options.bounces, seed=options.seed)
+        if op is not None:
+            doc = json.loads((folder / transport_files(k)[1]).read_text())
             say(f"{name}the transport operator of this calibration is already there (--force renders it again)",
                 (k + 1) / count)
-            continue
-        docs.append(calibrate_step.store_transport(folder, view, bounces=options.bounces, seed=options.seed,
-                                                   progress=part(say, k / count, (k + 1) / count, name),
-                                                   cancel=cancel))
+        else:
+            doc = calibrate_step.store_transport(folder, view, bounces=options.bounces, seed=options.seed,
+                                                 progress=part(say, k / count, (k + 1) / count, name),
+                                                 cancel=cancel)
+        if options.live:
+            doc = {**doc, "inverse": _live_inverse(folder, view, op, options, part(say, k / count, (k + 1) / count,
+                                                                                    name))}
+        docs.append(doc)
     return docs[0] if count == 1 else {"projectors": docs}
+
+
+def _live_inverse(folder: Path, view: Calibration, op: TransportOperator | None, options: PrecomputeOptions,
+                  say: Progress) -> dict[str, Any]:
+    """The approximate inverse of one projector's operator (``op``, read again when it was just rendered), kept
+    when the stored one belongs to it, else built and stored."""
+    op = op or load(view, bounces=options.bounces, seed=options.seed)
+    if op is None:
+        raise CalibrationError("the transport operator just stored cannot be read back; run procam precompute "
+                               "--force")
+    if not options.force and load_inverse(view, op, bounces=options.bounces, seed=options.seed) is not None:
+        say("the approximate inverse of this calibration is already there (--force builds it again)", 1.0)
+        return json.loads((folder / inverse_files(view.projector_index)[1]).read_text())
+    return store_inverse(folder, view, op, bounces=options.bounces, seed=options.seed, progress=say)
 
 
 def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOperator | None:

@@ -1,0 +1,373 @@
+"""Stage C in real time: a precomputed approximate inverse of the light-transport operator, and a few solver steps.
+
+A live source gives a new target every 33 ms; the ``transport`` schedule's
+forty SIRT steps take a second. What makes real time reachable is that the
+direct part ``D`` of ``T`` (stages/transport.py) is sparse and almost local:
+a camera pixel sees the few texels under its footprint. Its minimum-norm
+right inverse ``Dᵀ (D Dᵀ)⁻¹`` is then almost local too, because ``G = D Dᵀ``
+couples a pixel with the pixels within a few of its own. The *approximate
+inverse* keeps that locality: ``A = C⁻¹ Dᵀ M`` with ``M`` a 3 × 3 stencil per
+camera pixel and channel, the sparse approximate inverse of ``G`` on that
+pattern (SPAI: column ``j`` of ``M`` minimises ``‖G mⱼ − eⱼ‖²``, a 9-unknown
+least-squares problem per pixel, with a small ridge). Applying ``A`` is one
+9-tap gather and one back-projection through ``D``, both Dr.Jit gathers: the
+cost of one half of a SIRT step.
+
+Why this rather than a truncated ``(D Dᵀ)⁻¹`` on a wider pattern or a
+learned filter: the 3 × 3 SPAI is exact where ``G`` is diagonal (one pixel
+per texel run) and sharpens where neighbouring footprints overlap, which is
+the blur a projector-camera pair adds; a wider pattern costs 2.8× the gather
+for less than the refinement steps recover anyway (``scripts/bench_live_show.py``).
+
+Per frame (:class:`RealtimeView`): the target and θ in camera space become
+the light wanted from the projector, ``(y_t + θ) / g`` minus the indirect
+light of the previous frame's answer (interreflection is smooth and changes
+slowly, so the last frame's is a good estimate); ``A`` maps it to the input;
+the box ``[0, 1]`` clips it; then ``refine_steps`` SIRT steps on ``T`` (with
+its indirect part) warm-started from there, as stage C's ``transport``
+schedule takes them. Consecutive video frames are close, so the steps of
+successive frames add up where the picture holds still.
+
+The inverse is stored beside the operator (``inverse.npz``, ``inverse.json``
+with the calibration's hashes, ``steps/realtime.py``) and refused for another
+calibration, like the operator.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import ProCamError
+from ..progress import Progress, quiet
+from .transport import BlurredRows, TransportOperator, TransportRows
+from .warp_model import bilinear_taps, pixel_centres
+
+FORMAT, VERSION = "procam-inverse", 1
+#: stencil radius of M (1: 3 × 3 pixels) and the farthest pixel offset of G kept (pixels sharing a texel)
+STENCIL, COUPLING = 1, 4
+#: ridge of the local least squares, relative to each system's mean diagonal
+RIDGE = 1e-3
+
+
+class InverseError(ProCamError):
+    """The approximate inverse cannot be built, read or used with this calibration."""
+
+
+def building_bytes(camera_size: tuple[int, int]) -> int:
+    """The most memory building the inverse takes: the bands of ``G`` and ``G²`` for one channel at a time."""
+    cw, ch = camera_size
+    g_bands = (2 * COUPLING + 1) ** 2
+    g2_bands = (4 * STENCIL + 1) ** 2
+    return int(cw * ch * 8 * (g_bands + g2_bands + 4 * (2 * STENCIL + 1) ** 4))
+
+
+@dataclass
+class ApproximateInverse:
+    """``M`` of ``A = C⁻¹ Dᵀ M`` (module doc) for one operator: per camera pixel and channel, the weights of its
+    3 × 3 neighbours' wanted light (``weight[p, a, c]``: neighbour ``p − offset[a]``)."""
+
+    camera_size: tuple[int, int]
+    input_size: tuple[int, int]
+    weight: np.ndarray  # (P, 9, 3) float32
+    report: dict[str, Any] = field(default_factory=dict)
+
+    @staticmethod
+    def offsets() -> np.ndarray:
+        """(9, 2) the stencil's (dy, dx), row-major."""
+        r = np.arange(-STENCIL, STENCIL + 1)
+        dy, dx = np.meshgrid(r, r, indexing="ij")
+        return np.stack([dy.ravel(), dx.ravel()], axis=1)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {"weight": self.weight, "camera_size": np.asarray(self.camera_size),
+                "input_size": np.asarray(self.input_size)}
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.weight.nbytes)
+
+    @staticmethod
+    def from_arrays(data: Any, report: dict[str, Any] | None = None) -> "ApproximateInverse":
+        try:
+            inv = ApproximateInverse(tuple(int(v) for v in data["camera_size"]),
+                                     tuple(int(v) for v in data["input_size"]),
+                                     np.asarray(data["weight"], np.float32), dict(report or {}))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise InverseError(f"the stored approximate inverse is incomplete ({exc}); run procam precompute "
+                               "--live again") from None
+        cw, ch = inv.camera_size
+        if inv.weight.shape != (cw * ch, (2 * STENCIL + 1) ** 2, 3):
+            raise InverseError("the stored approximate inverse has the wrong shape; run procam precompute --live "
+                               "--force")
+        return inv
+
+    def fits(self, op: TransportOperator) -> bool:
+        return tuple(self.camera_size) == tuple(op.camera_size) and tuple(self.input_size) == tuple(op.input_size)
+
+
+def _shift(image: np.ndarray, dy: int, dx: int) -> np.ndarray:
+    """``out[y, x] = image[y + dy, x + dx]`` (zero beyond the edges) for an (H, W, …) array."""
+    out = np.zeros_like(image)
+    h, w = image.shape[:2]
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    out[yd, xd] = image[ys, xs]
+    return out
+
+
+def _coupling_bands(op: TransportOperator, channel: int) -> np.ndarray:
+    """``G = D Dᵀ`` of one channel as bands: ``(band, H, W)`` with ``G(p, p + o)`` for the offsets ``o`` within
+    :data:`COUPLING` (row-major over dy, dx). Pairs of pixels farther apart that share a texel are dropped (their
+    light is counted in neither)."""
+    cw, ch = op.camera_size
+    p_all = cw * ch
+    k = op.index.shape[1]
+    w = op.weight[:, :, channel].ravel()
+    live = np.flatnonzero(w > 0)
+    pixel = (live // k).astype(np.int64)
+    texel = op.index.ravel()[live].astype(np.int64)
+    order = np.argsort(texel, kind="stable")
+    pixel, texel, w = pixel[order], texel[order], w[live][order]
+    starts = np.flatnonzero(np.r_[True, texel[1:] != texel[:-1]])
+    counts = np.diff(np.r_[starts, len(texel)])
+    slot = np.arange(len(texel)) - np.repeat(starts, counts)
+    n, kc = len(starts), int(counts.max(initial=1))
+    pad_p = np.full((n, kc), -1, np.int64)
+    pad_w = np.zeros((n, kc), np.float64)
+    group = np.repeat(np.arange(n), counts)
+    pad_p[group, slot] = pixel
+    pad_w[group, slot] = w
+    # G = D C⁻¹ Dᵀ, C the texels' total light: the solution of least C-norm spreads a flat target flat.
+    inv_c = 1.0 / np.add.reduceat(w.astype(np.float64), starts)
+    side = 2 * COUPLING + 1
+    keys, values = [], []
+    for a in range(kc):
+        pa, wa = pad_p[:, a], pad_w[:, a]
+        for b in range(kc):
+            pb, wb = pad_p[:, b], pad_w[:, b]
+            ok = (pa >= 0) & (pb >= 0)
+            ya, xa = np.divmod(pa[ok], cw)
+            yb, xb = np.divmod(pb[ok], cw)
+            dy, dx = yb - ya, xb - xa
+            near = (np.abs(dy) <= COUPLING) & (np.abs(dx) <= COUPLING)
+            keys.append(((dy[near] + COUPLING) * side + dx[near] + COUPLING) * p_all + pa[ok][near])
+            values.append((wa[ok] * wb[ok] * inv_c[ok])[near])
+    bands = np.bincount(np.concatenate(keys), np.concatenate(values), minlength=side * side * p_all)
+    return bands.reshape(side * side, ch, cw)
+
+
+class _Bands:
+    """``G(p, p + (dy, dx))`` as an image for any offset (zero beyond :data:`COUPLING`)."""
+
+    def __init__(self, bands: np.ndarray) -> None:
+        self.bands = bands
+        self.zero = np.zeros(bands.shape[1:])
+
+    def __call__(self, dy: int, dx: int) -> np.ndarray:
+        if abs(dy) > COUPLING or abs(dx) > COUPLING:
+            return self.zero
+        return self.bands[(dy + COUPLING) * (2 * COUPLING + 1) + dx + COUPLING]
+
+
+def build_inverse(op: TransportOperator, progress: Progress | None = None) -> ApproximateInverse:
+    """``M`` for the operator's direct part (module doc), channel by channel."""
+    say = progress or quiet
+    t0 = time.perf_counter()
+    cw, ch = op.camera_size
+    g2_side = 4 * STENCIL + 1
+    offs = ApproximateInverse.offsets()
+    n_st = len(offs)
+    weight = np.zeros((ch * cw, n_st, 3), np.float32)
+    conditioned = []
+    for c in range(3):
+        say(f"approximate inverse: channel {c + 1}/3", c / 3)
+        g = _coupling_bands(op, c)
+        g_at = _Bands(g)
+        # G²(p, p + o) = Σ_o1 G(p, p + o1) G(p + o1, p + o) for |o| ≤ 2·STENCIL.
+        g2 = np.zeros((g2_side, g2_side, ch, cw))
+        r2 = 2 * STENCIL
+        for oy in range(-r2, r2 + 1):
+            for ox in range(-r2, r2 + 1):
+                acc = np.zeros((ch, cw))
+                for ay in range(-COUPLING, COUPLING + 1):
+                    for ax in range(-COUPLING, COUPLING + 1):
+                        by, bx = oy - ay, ox - ax
+                        if abs(by) > COUPLING or abs(bx) > COUPLING:
+                            continue
+                        acc += g_at(ay, ax) * _shift(g_at(by, bx), ay, ax)
+                g2[oy + r2, ox + r2] = acc
+        # Column j of M over N_j = j + offs: (G²[N_j, N_j] + ridge) m = G[N_j, j].
+        h = np.zeros((ch, cw, n_st, n_st))
+        rhs = np.zeros((ch, cw, n_st))
+        for i, (ay, ax) in enumerate(offs):
+            rhs[..., i] = _shift(g_at(-ay, -ax), ay, ax)  # G(j + a, j)
+            for k2, (by, bx) in enumerate(offs):
+                h[..., i, k2] = _shift(g2[by - ay + r2, bx - ax + r2], ay, ax)  # G²(j + a, j + b)
+        diag = np.einsum("...ii->...i", h)
+        scale = np.maximum(diag.mean(axis=-1), 1e-12)
+        h += (RIDGE * scale)[..., None, None] * np.eye(n_st)
+        m = np.linalg.solve(h, rhs[..., None])[..., 0]  # (ch, cw, 9): column j's values at j + a
+        lit = g_at(0, 0) > 0
+        m[~lit] = 0.0
+        conditioned.append(float(np.mean(lit)))
+        # Stored per receiving pixel p: weight[p, a] = m_{p − a}[a].
+        for i, (ay, ax) in enumerate(offs):
+            weight[:, i, c] = _shift(m[..., i], -ay, -ax).ravel()
+    inv = ApproximateInverse((cw, ch), tuple(op.input_size), weight)
+    inv.report = {"format": FORMAT, "version": VERSION, "stencil": f"{2 * STENCIL + 1}x{2 * STENCIL + 1}",
+                  "coupling_radius": COUPLING, "ridge": RIDGE, "pixels_lit": round(float(np.mean(conditioned)), 4),
+                  "seconds": round(time.perf_counter() - t0, 2), "megabytes": round(inv.nbytes / 2 ** 20, 1)}
+    say("approximate inverse ready", 1.0)
+    return inv
+
+
+class RealtimeView:
+    """The real-time solve (module doc) on one display area of one projector's operator view ``view`` (``T`` or
+    ``T B`` on the area's rows), for the inverse ``inverse`` and the open loop's per-pixel ``gain`` on the rows
+    (None: 1). :meth:`solve` takes the light wanted on the rows and returns the compact input."""
+
+    def __init__(self, view: TransportRows | BlurredRows, inverse: ApproximateInverse,
+                 gain: np.ndarray | None = None) -> None:
+        self.view = view
+        inner = view.view if isinstance(view, BlurredRows) else view
+        if not inverse.fits(inner.op):
+            raise InverseError("the approximate inverse is for another camera or input size than this "
+                               "calibration's operator: run procam precompute --live --force")
+        self.inner = inner
+        dr, mi_float = inner._dr, inner._float
+        self._dr, self._float = dr, mi_float
+        rows = inner.rows
+        cw, ch = inner.op.camera_size
+        y, x = np.divmod(rows, cw)
+        offs = ApproximateInverse.offsets()
+        src = np.zeros((len(rows), len(offs)), np.int64)
+        w = np.zeros((len(rows), len(offs), 3), np.float32)
+        for a, (dy, dx) in enumerate(offs):
+            yy, xx = y - dy, x - dx
+            ok = (yy >= 0) & (yy < ch) & (xx >= 0) & (xx < cw)
+            src[:, a] = np.where(ok, yy * cw + xx, 0)
+            w[:, a] = np.where(ok[:, None], inverse.weight[rows, a], 0.0)
+        self._taps = len(offs)
+        # Taps on pixels outside the rows read nothing (a masked gather): the light wanted there is none.
+        where = np.full(cw * ch, -1, np.int64)
+        where[rows] = np.arange(len(rows))
+        src_row = where[src]
+        w[src_row < 0] = 0.0
+        src = np.maximum(src_row, 0)
+        self._st_live = inner._bool(np.repeat((src_row >= 0)[:, None, :], 3, axis=1).ravel())
+        # C⁻¹ of A = C⁻¹ Dᵀ M: each active texel's total direct light over the whole camera.
+        op = inner.op
+        live = op.weight.reshape(-1, 3)
+        sums = np.stack([np.bincount(op.index.ravel(), live[:, c], minlength=op.input_size[0] * op.input_size[1])
+                         for c in range(3)], axis=1)[inner.texels]
+        self._inv_c = mi_float((1.0 / np.maximum(sums, 1e-12)).astype(np.float32).ravel())
+        # (row, channel, tap): each row's value is a block of consecutive products, as the operator's gathers.
+        self._st_src = inner._uint((src[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
+        self._st_w = mi_float(np.ascontiguousarray(np.transpose(w, (0, 2, 1))).ravel())
+        n_rows = len(rows)
+        self.gain = np.ones((n_rows, 3), np.float32) if gain is None else np.asarray(gain, np.float32)
+        self.row_sums = np.maximum(self.gain * view.row_ones, 1e-3)
+        self.col_sums = np.maximum(view.adjoint_compact(self.gain), 1e-3)
+        self._prev: np.ndarray | None = None
+        self.losses: list[float] = []
+
+    def _inverse(self, light: np.ndarray) -> np.ndarray:
+        """``A`` applied to the direct light wanted on the rows: (A, 3) values of the inner view's active
+        texels (unclipped)."""
+        dr = self._dr
+        values = self._float(np.ascontiguousarray(light, dtype=np.float32).ravel())
+        u = dr.block_sum(dr.gather(self._float, values, self._st_src, self._st_live) * self._st_w, self._taps)
+        dr.eval(u)
+        inner = self.inner
+        z = dr.block_sum(dr.gather(self._float, u, inner._col_src) * inner._col_w, inner._kc) * self._inv_c
+        return np.asarray(z).reshape(-1, 3)
+
+    def start(self, wanted: np.ndarray) -> np.ndarray:
+        """The one-pass answer for the light ``wanted`` on the rows (``(y_t + θ) / g``): the previous frame's
+        indirect light taken off, ``A`` applied, the box clipped. Compact in :attr:`view`'s texels."""
+        inner, view = self.inner, self.view
+        direct = wanted
+        if self._prev is not None:
+            prev = self._prev
+            if isinstance(view, BlurredRows):
+                blurred = view.blur(prev)
+                direct = wanted - inner.indirect_compact(inner.compact(blurred), inner.fixed_sums(blurred))
+            else:
+                direct = wanted - inner.indirect_compact(prev)
+        active = np.clip(self._inverse(direct), 0.0, 1.0)
+        if isinstance(view, BlurredRows):
+            iw, ih = inner.op.input_size
+            return view.compact(inner.expand(active, np.zeros((ih, iw, 3), np.float32)))
+        return active
+
+    def solve(self, target: np.ndarray, theta: np.ndarray | None = None, steps: int = 2) -> np.ndarray:
+        """The compact input for the rows' ``target`` (and θ: the camera sees ``g·T z − θ``): :meth:`start`,
+        then ``steps`` SIRT steps on ``T`` with Nesterov momentum, as stage C's ``transport`` schedule."""
+        want = target if theta is None else target + theta
+        zc = self.start(want / np.maximum(self.gain, 1e-3))
+        view, gain = self.view, self.gain
+        prev, yk = zc, zc
+        for k in range(steps):
+            f = view.apply_compact(yk)
+            resid = want - gain * f
+            z_new = np.clip(yk + view.adjoint_compact(gain * resid / self.row_sums) / self.col_sums, 0.0, 1.0)
+            yk = z_new + (k / (k + 3.0)) * (z_new - prev)
+            prev = z_new
+        self._prev = prev
+        return prev
+
+    def predicted(self, zc: np.ndarray, theta: np.ndarray | None = None) -> np.ndarray:
+        """(R, 3) what the operator says the camera sees of the compact ``zc``: ``clip(g·T z − θ)``."""
+        f = self.gain * self.view.apply_compact(zc)
+        return np.clip(f if theta is None else f - theta, 0.0, 1.0)
+
+
+class FrameGather:
+    """The projector's native frame straight from a compact input ``zc`` of ``view``: the stage-B warp's bilinear
+    taps (``x = W(z)``), the texels outside ``view.texels`` (black), the frame's placement and the box clip as one
+    Dr.Jit gather, instead of expanding, warping and placing in numpy (11 ms of a 36 ms frame at 800×600)."""
+
+    def __init__(self, view: TransportRows | BlurredRows, projector: Any, warp: Any = None) -> None:
+        inner = view.view if isinstance(view, BlurredRows) else view
+        self._dr, self._float = inner._dr, inner._float
+        iw, ih = projector.input_size
+        fw, fh = projector.intrinsics.size
+        x0, y0 = projector.input_offset
+        n = iw * ih
+        if warp is None:
+            index, weight = np.arange(n)[None, :], np.ones((1, n), np.float32)
+        else:
+            d = warp.displacement("w", (iw, ih)).reshape(-1, 2)
+            c = pixel_centres((iw, ih)).reshape(-1, 2)
+            index, weight = bilinear_taps((iw, ih), c[:, 0] + d[:, 0], c[:, 1] + d[:, 1])
+            index, weight = index.reshape(len(index), -1), weight.reshape(len(weight), -1)
+        where = np.full(n, -1, np.int64)
+        where[np.asarray(view.texels, np.int64)] = np.arange(len(view.texels))
+        pos = where[index]  # (taps, n): compact position of each tap's texel, −1 for a dark texel
+        fy, fx = np.mgrid[0:fh, 0:fw]
+        r, c = fy - y0, fx - x0
+        inside = ((r >= 0) & (r < ih) & (c >= 0) & (c < iw)).ravel()
+        t = np.where(inside, r.ravel() * iw + c.ravel(), 0)
+        tap_pos = pos[:, t].T  # (frame pixels, taps)
+        live = (tap_pos >= 0) & inside[:, None] & (weight[:, t].T > 0)
+        self._k = tap_pos.shape[1]
+        self._shape = (fh, fw, 3)
+        self._src = inner._uint((np.maximum(tap_pos, 0)[:, None, :] * 3 + np.arange(3)[None, :, None])
+                                .ravel().astype(np.uint32))
+        self._live = inner._bool(np.repeat(live[:, None, :], 3, axis=1).ravel())
+        self._w = self._float(np.repeat(np.where(live, weight[:, t].T, 0.0).astype(np.float32)[:, None, :], 3,
+                                        axis=1).ravel())
+
+    def __call__(self, zc: np.ndarray) -> np.ndarray:
+        dr = self._dr
+        values = self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel())
+        out = dr.clip(dr.block_sum(dr.gather(self._float, values, self._src, self._live) * self._w, self._k),
+                      0.0, 1.0)
+        return np.asarray(out).reshape(self._shape)
+
+
+__all__ = ["ApproximateInverse", "FrameGather", "InverseError", "RealtimeView", "build_inverse", "building_bytes"]

@@ -1,0 +1,132 @@
+"""Real-time stage C: the approximate inverse, its storage beside the operator, and the solver a live show runs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from procam.addon.capture.targets import natural_target
+from procam.addon.cli.app import main
+from procam.addon.stages.metrics import area_psnr
+from procam.addon.stages.realtime import FrameGather, InverseError
+from procam.addon.stages.warp_model import Warp
+from procam.addon.steps import calibrate as calibrate_step
+from procam.addon.steps import inverse as inverse_step
+from procam.addon.steps.realtime import RealtimeSolver
+from procam.addon.steps.stage_c import StageC, StageCOptions
+
+SMALL = dict(scale=0.25, samples=8)
+
+
+@pytest.fixture(scope="module")
+def calibration(lab_calibration, tmp_path_factory):
+    """A small lab calibration (camera 160×120) of its own, with its operator and inverse stored."""
+    cal_dir, _, _ = lab_calibration("curve", "", **SMALL)
+    folder = tmp_path_factory.mktemp("realtime") / "cal"
+    shutil.copytree(cal_dir, folder)
+    assert main(["precompute", str(folder), "--live"]) == 0
+    return folder
+
+
+def _operator_psnr(solver: RealtimeSolver, frame, target) -> float:
+    """What the operator says the camera sees of a real-time answer, against the placed target."""
+    rv = solver._view(frame.area)
+    key = (frame.area.x, frame.area.y, frame.area.width, frame.area.height)
+    seen = rv.predicted(frame.inputs[0], solver._theta[key])
+    cw, ch = solver.camera_size
+    image = np.zeros((ch * cw, 3), np.float32)
+    image[rv.view.rows] = seen
+    return area_psnr(image.reshape(ch, cw, 3), target, frame.area)
+
+
+def test_precompute_live_stores_the_inverse_of_this_calibration_only(calibration, tmp_path):
+    doc = json.loads((calibration / "inverse.json").read_text())
+    assert doc["stencil"] == "3x3" and doc["calibration_sha256"] and doc["bounces"] == 1
+    cal = calibrate_step.read(calibration)
+    stage = StageC(cal, StageCOptions())
+    op = stage.compensator.transport
+    assert inverse_step.load_inverse(cal, op, bounces=1, seed=0) is not None
+    assert inverse_step.load_inverse(cal, op, bounces=1, seed=3) is None  # another seed: another operator
+    # Another calibration's inverse (a copied folder whose calibration changed) is not this one's.
+    other = tmp_path / "other"
+    shutil.copytree(calibration, other)
+    manifest = other / "calibration.json"
+    manifest.write_text(manifest.read_text().replace('"version"', '"note": "moved", "version"', 1))
+    assert inverse_step.load_inverse(calibrate_step.read(other), op, bounces=1, seed=0) is None
+    # A damaged file is said, with the command that makes it again.
+    (other / "inverse.npz").write_bytes(b"not an npz")
+    (other / "inverse.json").write_text(json.dumps({**doc, **inverse_step._record(other, cal, 1, 0)}))
+    with pytest.raises(InverseError, match="precompute .* --live --force"):
+        inverse_step.load_inverse(calibrate_step.read(other), op, bounces=1, seed=0)
+
+
+def test_realtime_solve_is_within_half_a_db_of_the_full_transport_solve(calibration):
+    cal = calibrate_step.read(calibration)
+    with StageC(cal, StageCOptions()) as stage:
+        said: list[str] = []
+        solver = RealtimeSolver.for_stage(stage, progress=lambda msg, frac: said.append(msg))
+        assert not any("building it now" in m for m in said)  # the stored inverse was read
+        image = natural_target("city", (160, 120))
+        full = stage.compensate(image, name="city", what="t", verify=False)
+        out = solver.solve(image)
+        proj = cal.rig.projector
+        assert len(out.frames) == 1 and out.frames[0].shape == (proj.intrinsics.height, proj.intrinsics.width, 3)
+        assert 0.0 <= out.frames[0].min() and out.frames[0].max() <= 1.0 and out.solve_ms > 0
+        ours, theirs = _operator_psnr(solver, out, full.result.target), full.result.report["psnr_operator"]
+        assert ours > theirs - 0.5, (ours, theirs)
+        # The inverse alone is a fair start, and the refinement step is what closes the gap.
+        alone = RealtimeSolver(stage, solver.inverses, refine_steps=0)
+        first = _operator_psnr(alone, alone.solve(image), full.result.target)
+        assert theirs - 6.0 < first < ours
+
+
+def test_frame_gather_is_the_warp_and_placement_of_the_input(calibration):
+    cal = calibrate_step.read(calibration)
+    stage = StageC(cal, StageCOptions())
+    comp = stage.compensator
+    area = stage.area_for(np.zeros((120, 160, 3), np.float32))
+    view = comp.transport_view(area)
+    proj = cal.rig.projector
+    identity = Warp.identity(proj.input_size)
+    rng = np.random.default_rng(1)
+    warp = replace(identity, w_shifts=rng.normal(0, 0.8, identity.w_shifts.shape))
+    zc = rng.random((len(view.texels), 3)).astype(np.float32)
+    z = view.expand(zc, np.zeros((proj.input_size[1], proj.input_size[0], 3), np.float32))
+    for w in (None, warp):
+        expected = proj.frame_from_input(np.clip(z if w is None else w.apply_w(z), 0.0, 1.0))
+        assert np.abs(FrameGather(view, proj, w)(zc) - expected).max() < 1e-5
+
+
+def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibration):
+    cal = calibrate_step.read(calibration)
+    stage = StageC(cal, StageCOptions())
+    solver = RealtimeSolver.for_stage(stage)
+    out = solver.solve(natural_target("forest", (160, 120)))
+    key = (out.area.x, out.area.y, out.area.width, out.area.height)
+    rv = solver._view(out.area)
+    before = solver._theta[key].copy()
+    predicted = rv.gain * rv.view.apply_compact(out.inputs[0])
+    cw, ch = solver.camera_size
+    capture = np.zeros((ch * cw, 3), np.float32)
+    capture[rv.view.rows] = np.clip(predicted - 0.1, 0.0, 1.0)  # the camera sees 0.1 less than the model says
+    solver.follow(capture.reshape(ch, cw, 3), out)
+    moved = solver._theta[key] - before
+    lit = predicted.min(axis=1) > 0.2
+    assert np.allclose(moved[lit], 0.1 * (0.1 - before[lit]), atol=1e-4)  # 2α(residual − θ), α = 0.05
+    with pytest.raises(InverseError, match="must be 160×120"):
+        solver.follow(np.zeros((10, 10, 3), np.float32), out)
+
+
+def test_an_inverse_too_large_for_memory_says_how_much_it_needs(calibration, monkeypatch, tmp_path):
+    folder = tmp_path / "cal"
+    shutil.copytree(calibration, folder, ignore=shutil.ignore_patterns("inverse.*"))
+    monkeypatch.setattr(inverse_step, "free_bytes", lambda: 2 ** 20)
+    stage = StageC(calibrate_step.read(folder), StageCOptions())
+    with pytest.raises(InverseError, match=r"needs about .* GiB and 0\.0 GiB are free"):
+        RealtimeSolver.for_stage(stage)
+    assert main(["precompute", str(folder), "--live"]) == 2
+    assert not (folder / "inverse.npz").exists()
