@@ -89,7 +89,7 @@ def test_frame_gather_is_the_warp_and_placement_of_the_input(calibration):
     stage = StageC(cal, StageCOptions())
     comp = stage.compensator
     area = stage.area_for(np.zeros((120, 160, 3), np.float32))
-    view = comp.transport_view(area)
+    view = comp.transport.rows(np.flatnonzero(area.mask(comp.camera_size).ravel()))
     proj = cal.rig.projector
     identity = Warp.identity(proj.input_size)
     rng = np.random.default_rng(1)
@@ -109,7 +109,7 @@ def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibratio
     key = (out.area.x, out.area.y, out.area.width, out.area.height)
     rv = solver._view(out.area)
     before = solver._theta[key].copy()
-    predicted = rv.gain * rv.view.apply_compact(out.inputs[0])
+    predicted = rv.light(out.inputs[0])
     cw, ch = solver.camera_size
     capture = np.zeros((ch * cw, 3), np.float32)
     capture[rv.view.rows] = np.clip(predicted - 0.1, 0.0, 1.0)  # the camera sees 0.1 less than the model says

@@ -226,103 +226,142 @@ def build_inverse(op: TransportOperator, progress: Progress | None = None) -> Ap
 
 
 class RealtimeView:
-    """The real-time solve (module doc) on one display area of one projector's operator view ``view`` (``T`` or
-    ``T B`` on the area's rows), for the inverse ``inverse`` and the open loop's per-pixel ``gain`` on the rows
-    (None: 1). :meth:`solve` takes the light wanted on the rows and returns the compact input."""
+    """The real-time solve (module doc) on one display area of one projector's operator ``view`` (``T`` on the
+    area's rows), for the inverse ``inverse`` and the open loop's per-pixel ``gain`` on the rows (None: 1).
 
-    def __init__(self, view: TransportRows | BlurredRows, inverse: ApproximateInverse,
-                 gain: np.ndarray | None = None) -> None:
-        self.view = view
-        inner = view.view if isinstance(view, BlurredRows) else view
-        if not inverse.fits(inner.op):
+    Every array of a frame stays a Dr.Jit array from the target's upload to the native frame's download, so
+    the solve is a handful of fused kernels on whichever backend the calibration's variant runs (LLVM on the
+    CPU's cores, CUDA on a GPU), with no numpy pass over a row or texel in between. The interreflected light is
+    computed once a frame, from the previous frame's answer, and held through the refinement step: it is
+    smooth, changes slowly, and is the costliest part of ``T`` (a product with every block's response)."""
+
+    def __init__(self, view: TransportRows, inverse: ApproximateInverse, gain: np.ndarray | None = None) -> None:
+        if isinstance(view, BlurredRows):
+            raise InverseError("the real-time solve does not hold a projector lens's blur (T B): solve on T")
+        if not inverse.fits(view.op):
             raise InverseError("the approximate inverse is for another camera or input size than this "
                                "calibration's operator: run procam precompute --live --force")
-        self.inner = inner
-        dr, mi_float = inner._dr, inner._float
-        self._dr, self._float = dr, mi_float
-        rows = inner.rows
-        cw, ch = inner.op.camera_size
+        self.view = view
+        dr, fl = view._dr, view._float
+        self._dr, self._float = dr, fl
+        rows = view.rows
+        n_rows = len(rows)
+        cw, ch = view.op.camera_size
         y, x = np.divmod(rows, cw)
         offs = ApproximateInverse.offsets()
-        src = np.zeros((len(rows), len(offs)), np.int64)
-        w = np.zeros((len(rows), len(offs), 3), np.float32)
+        # M's stencil as a gather over the rows: taps on pixels outside them read nothing (no light wanted).
+        where = np.full(cw * ch, -1, np.int64)
+        where[rows] = np.arange(n_rows)
+        src = np.zeros((n_rows, len(offs)), np.int64)
+        w = np.zeros((n_rows, len(offs), 3), np.float32)
         for a, (dy, dx) in enumerate(offs):
             yy, xx = y - dy, x - dx
             ok = (yy >= 0) & (yy < ch) & (xx >= 0) & (xx < cw)
-            src[:, a] = np.where(ok, yy * cw + xx, 0)
-            w[:, a] = np.where(ok[:, None], inverse.weight[rows, a], 0.0)
+            src[:, a] = np.where(ok, where[np.where(ok, yy * cw + xx, 0)], -1)
+            w[:, a] = np.where((src[:, a] >= 0)[:, None], inverse.weight[rows, a], 0.0)
         self._taps = len(offs)
-        # Taps on pixels outside the rows read nothing (a masked gather): the light wanted there is none.
-        where = np.full(cw * ch, -1, np.int64)
-        where[rows] = np.arange(len(rows))
-        src_row = where[src]
-        w[src_row < 0] = 0.0
-        src = np.maximum(src_row, 0)
-        self._st_live = inner._bool(np.repeat((src_row >= 0)[:, None, :], 3, axis=1).ravel())
+        self._st_src, self._st_live = self._index(src)
+        self._st_w = fl(np.ascontiguousarray(np.transpose(w, (0, 2, 1))).ravel())
         # C⁻¹ of A = C⁻¹ Dᵀ M: each active texel's total direct light over the whole camera.
-        op = inner.op
-        live = op.weight.reshape(-1, 3)
-        sums = np.stack([np.bincount(op.index.ravel(), live[:, c], minlength=op.input_size[0] * op.input_size[1])
-                         for c in range(3)], axis=1)[inner.texels]
-        self._inv_c = mi_float((1.0 / np.maximum(sums, 1e-12)).astype(np.float32).ravel())
-        # (row, channel, tap): each row's value is a block of consecutive products, as the operator's gathers.
-        self._st_src = inner._uint((src[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
-        self._st_w = mi_float(np.ascontiguousarray(np.transpose(w, (0, 2, 1))).ravel())
-        n_rows = len(rows)
-        self.gain = np.ones((n_rows, 3), np.float32) if gain is None else np.asarray(gain, np.float32)
-        self.row_sums = np.maximum(self.gain * view.row_ones, 1e-3)
-        self.col_sums = np.maximum(view.adjoint_compact(self.gain), 1e-3)
-        self._prev: np.ndarray | None = None
-        self.losses: list[float] = []
+        op = view.op
+        flat_w = op.weight.reshape(-1, 3)
+        sums = np.stack([np.bincount(op.index.ravel(), flat_w[:, c], minlength=op.input_size[0] * op.input_size[1])
+                         for c in range(3)], axis=1)[view.texels]
+        self._inv_c = fl((1.0 / np.maximum(sums, 1e-12)).astype(np.float32).ravel())
+        self._indirect_parts()
+        gain_np = np.ones((n_rows, 3), np.float32) if gain is None else np.asarray(gain, np.float32)
+        self.gain = fl(gain_np.ravel())
+        self._gain_np = gain_np
+        self.row_sums = dr.maximum(self.gain * fl(np.ascontiguousarray(view.row_ones, np.float32).ravel()), 1e-3)
+        col = self._adjoint_direct(self.gain)
+        self.col_sums = dr.maximum(col, 1e-3)
+        self._prev = dr.zeros(fl, len(view.texels) * 3)
+        self._ind = dr.zeros(fl, n_rows * 3)
+        dr.eval(self.row_sums, self.col_sums, self._prev, self._ind)
 
-    def _inverse(self, light: np.ndarray) -> np.ndarray:
-        """``A`` applied to the direct light wanted on the rows: (A, 3) values of the inner view's active
-        texels (unclipped)."""
-        dr = self._dr
-        values = self._float(np.ascontiguousarray(light, dtype=np.float32).ravel())
-        u = dr.block_sum(dr.gather(self._float, values, self._st_src, self._st_live) * self._st_w, self._taps)
+    def _index(self, src: np.ndarray) -> tuple[Any, Any]:
+        """(rows, taps) sources (−1: none) as Dr.Jit indices laid out (row, channel, tap), and which are live."""
+        spread = np.maximum(src, 0)[:, None, :] * 3 + np.arange(3)[None, :, None]
+        live = np.repeat((src >= 0)[:, None, :], 3, axis=1)
+        return self.view._uint(spread.ravel().astype(np.uint32)), self.view._bool(live.ravel())
+
+    def _indirect_parts(self) -> None:
+        """The operator's indirect part as gathers over the compact input: block sums over each block's run of
+        active texels (the inactive ones are dark in a live show), the product with every block's low-resolution
+        response, and the existing upsampling to the rows."""
+        view = self.view
+        self._nb = view._nb
+        if not self._nb:
+            return
+        runs, starts, counts = view._runs, view._run_starts, view._run_counts
+        longest = int(counts.max(initial=1))
+        src = np.full((self._nb, longest), -1, np.int64)
+        j = np.arange(longest)
+        src[runs] = np.where(j[None, :] < counts[:, None], starts[:, None] + j[None, :], -1)
+        self._blk_len = longest
+        self._blk_src, self._blk_live = self._index(src)
+        self._blk_size = self._float(np.repeat(view._block_sizes, 3).astype(np.float32))
+        responses = view._responses  # (channel, used low pixel, block)
+        used, nb = responses.shape[1], responses.shape[2]
+        # low[u, c] = Σ_b R[c, u, b] · mean[b, c], laid out (u, c, b)
+        self._resp = self._float(np.ascontiguousarray(responses.transpose(1, 0, 2)).ravel())
+        b = np.arange(nb)
+        self._resp_src = view._uint(np.broadcast_to(b[None, None, :] * 3 + np.arange(3)[None, :, None],
+                                                    (used, 3, nb)).ravel().astype(np.uint32))
+
+    def _direct(self, zc: Any) -> Any:
+        """``D z`` on the rows (flat, rows × 3) for a compact Dr.Jit ``zc``."""
+        v, dr = self.view, self._dr
+        return dr.block_sum(dr.gather(self._float, zc, v._src) * v._w, v._k)
+
+    def _adjoint_direct(self, r: Any) -> Any:
+        """``Dᵀ r`` on the active texels (flat, texels × 3) for a Dr.Jit ``r`` on the rows."""
+        v, dr = self.view, self._dr
+        return dr.block_sum(dr.gather(self._float, r, v._col_src) * v._col_w, v._kc)
+
+    def _indirect(self, zc: Any) -> Any:
+        """The interreflected light on the rows of a compact Dr.Jit ``zc`` (zero without an indirect part)."""
+        dr, fl, v = self._dr, self._float, self.view
+        if not self._nb:
+            return dr.zeros(fl, len(v.rows) * 3)
+        sums = dr.block_sum(dr.gather(fl, zc, self._blk_src, self._blk_live), self._blk_len)
+        means = sums / self._blk_size
+        dr.eval(means)
+        low = dr.block_sum(dr.gather(fl, means, self._resp_src) * self._resp, self._nb)
+        dr.eval(low)
+        return dr.block_sum(dr.gather(fl, low, v._low_src) * v._low_w, 4)
+
+    def solve(self, target: np.ndarray, theta: np.ndarray | None = None, steps: int = 1) -> Any:
+        """The compact input (a Dr.Jit array, texels × 3 flat) for the rows' ``target`` and θ (the camera sees
+        ``g·T z − θ``): the previous frame's interreflection taken off the light wanted, ``A`` applied and the
+        box clipped, then ``steps`` SIRT steps with that interreflection held."""
+        dr, fl = self._dr, self._float
+        want = fl(np.ascontiguousarray(target if theta is None else target + theta, np.float32).ravel())
+        ind = self._indirect(self._prev)
+        direct = want / dr.maximum(self.gain, 1e-3) - ind
+        u = dr.block_sum(dr.gather(fl, direct, self._st_src, self._st_live) * self._st_w, self._taps)
         dr.eval(u)
-        inner = self.inner
-        z = dr.block_sum(dr.gather(self._float, u, inner._col_src) * inner._col_w, inner._kc) * self._inv_c
-        return np.asarray(z).reshape(-1, 3)
+        zc = dr.clip(self._adjoint_direct(u) * self._inv_c, 0.0, 1.0)
+        dr.eval(zc)
+        for _ in range(steps):
+            resid = want - self.gain * (self._direct(zc) + ind)
+            dr.eval(resid)
+            zc = dr.clip(zc + self._adjoint_direct(self.gain * resid / self.row_sums) / self.col_sums, 0.0, 1.0)
+            dr.eval(zc)
+        self._prev = zc
+        return zc
 
-    def start(self, wanted: np.ndarray) -> np.ndarray:
-        """The one-pass answer for the light ``wanted`` on the rows (``(y_t + θ) / g``): the previous frame's
-        indirect light taken off, ``A`` applied, the box clipped. Compact in :attr:`view`'s texels."""
-        inner, view = self.inner, self.view
-        direct = wanted
-        if self._prev is not None:
-            prev = self._prev
-            if isinstance(view, BlurredRows):
-                blurred = view.blur(prev)
-                direct = wanted - inner.indirect_compact(inner.compact(blurred), inner.fixed_sums(blurred))
-            else:
-                direct = wanted - inner.indirect_compact(prev)
-        active = np.clip(self._inverse(direct), 0.0, 1.0)
-        if isinstance(view, BlurredRows):
-            iw, ih = inner.op.input_size
-            return view.compact(inner.expand(active, np.zeros((ih, iw, 3), np.float32)))
-        return active
+    def compact(self, zc: Any) -> np.ndarray:
+        """A compact Dr.Jit input as numpy (texels, 3)."""
+        return np.asarray(zc).reshape(-1, 3)
 
-    def solve(self, target: np.ndarray, theta: np.ndarray | None = None, steps: int = 2) -> np.ndarray:
-        """The compact input for the rows' ``target`` (and θ: the camera sees ``g·T z − θ``): :meth:`start`,
-        then ``steps`` SIRT steps on ``T`` with Nesterov momentum, as stage C's ``transport`` schedule."""
-        want = target if theta is None else target + theta
-        zc = self.start(want / np.maximum(self.gain, 1e-3))
-        view, gain = self.view, self.gain
-        prev, yk = zc, zc
-        for k in range(steps):
-            f = view.apply_compact(yk)
-            resid = want - gain * f
-            z_new = np.clip(yk + view.adjoint_compact(gain * resid / self.row_sums) / self.col_sums, 0.0, 1.0)
-            yk = z_new + (k / (k + 3.0)) * (z_new - prev)
-            prev = z_new
-        self._prev = prev
-        return prev
+    def light(self, zc: Any) -> np.ndarray:
+        """(R, 3) ``g·T z`` of the compact ``zc`` by the full operator (unclipped)."""
+        return self._gain_np * self.view.apply_compact(self.compact(zc))
 
-    def predicted(self, zc: np.ndarray, theta: np.ndarray | None = None) -> np.ndarray:
-        """(R, 3) what the operator says the camera sees of the compact ``zc``: ``clip(g·T z − θ)``."""
-        f = self.gain * self.view.apply_compact(zc)
+    def predicted(self, zc: Any, theta: np.ndarray | None = None) -> np.ndarray:
+        """(R, 3) what the full operator says the camera sees of the compact ``zc``: ``clip(g·T z − θ)``."""
+        f = self.light(zc)
         return np.clip(f if theta is None else f - theta, 0.0, 1.0)
 
 
@@ -362,9 +401,10 @@ class FrameGather:
         self._w = self._float(np.repeat(np.where(live, weight[:, t].T, 0.0).astype(np.float32)[:, None, :], 3,
                                         axis=1).ravel())
 
-    def __call__(self, zc: np.ndarray) -> np.ndarray:
+    def __call__(self, zc: Any) -> np.ndarray:
+        """The native frame (H×W×3 in [0, 1]) of a compact input (a Dr.Jit array or numpy (texels, 3))."""
         dr = self._dr
-        values = self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel())
+        values = zc if isinstance(zc, self._float) else self._float(np.ascontiguousarray(zc, np.float32).ravel())
         out = dr.clip(dr.block_sum(dr.gather(self._float, values, self._src, self._live) * self._w, self._k),
                       0.0, 1.0)
         return np.asarray(out).reshape(self._shape)

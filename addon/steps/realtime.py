@@ -53,8 +53,8 @@ class RealtimeFrame:
     solve_ms: float
     steps: int
     area: DisplayArea
-    #: the compact inputs solved, per projector, for :meth:`RealtimeSolver.follow` (what the camera should see)
-    inputs: list[np.ndarray] = field(default_factory=list, repr=False)
+    #: the compact inputs solved (Dr.Jit arrays), per projector, for :meth:`RealtimeSolver.follow`
+    inputs: list[Any] = field(default_factory=list, repr=False)
 
 
 class RealtimeSolver:
@@ -91,6 +91,9 @@ class RealtimeSolver:
             say("no stored approximate inverse for this calibration: building it now (procam precompute --live "
                 "stores it once)", 0.0)
             inv = build_inverse(op, say)
+        if comp.input_blur:
+            say(f"warning: the real-time solve does not hold the projector lens's blur (σ {comp.input_blur:.2f} "
+                "texels, --effects defocus); it holds the other effects", 0.0)
         if stage.bias is None:
             stage.estimate_bias()
         return cls(stage, [inv], refine_steps=refine_steps, progress=say)
@@ -104,8 +107,8 @@ class RealtimeSolver:
         if key not in self._views:
             stage = self.stage
             comp, bias = stage.compensator, stage.bias
-            view = comp.transport_view(area)
-            rows = view.rows
+            rows = np.flatnonzero(area.mask(comp.camera_size).ravel())  # the area's pixels, row by row
+            view = comp.transport.rows(rows, comp.model.variant)
             gain = None if bias is None or bias.gain is None else bias.gain.reshape(-1, 3)[rows]
             self._views[key] = RealtimeView(view, self.inverses[0], gain)
             self._frames[key] = FrameGather(view, comp.rig.projector, comp.warp) if stage.adapter is None else None
@@ -113,9 +116,10 @@ class RealtimeSolver:
                 bias.theta.reshape(-1, 3)[rows].astype(np.float32)
         return self._views[key]
 
-    def _placed(self, image: np.ndarray, area: DisplayArea) -> np.ndarray:
-        """The picture as stage C places it: fitted to the area (aspect said once), mapped by ``--range``,
-        through the effect models' camera side."""
+    def _fitted(self, image: np.ndarray, area: DisplayArea) -> np.ndarray:
+        """The picture as stage C takes a target, on the area's pixels row by row (rows × 3): fitted to the area
+        (a size or aspect other than the area's said once), mapped by ``--range``, through the effect models'
+        camera side."""
         stage = self.stage
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
@@ -127,8 +131,8 @@ class RealtimeSolver:
         if stage.range_map is not None:
             fitted = stage.range_map.apply(fitted)
         if stage.adapter is not None:
-            fitted = stage.adapter.model_target(fitted, area)
-        return area.place(fit_target(fitted, area), stage.compensator.camera_size)
+            fitted = fit_target(stage.adapter.model_target(fitted, area), area)
+        return fitted.reshape(-1, 3)
 
     def solve(self, image: np.ndarray) -> RealtimeFrame:
         """Every projector's native frame for a source frame ``image`` (H×W×3 linear, any size)."""
@@ -138,13 +142,12 @@ class RealtimeSolver:
         area = stage.area_for(image)
         rv = self._view(area)
         key = (area.x, area.y, area.width, area.height)
-        placed = self._placed(image, area).reshape(-1, 3)[rv.view.rows]
-        zc = rv.solve(placed, self._theta[key], self.refine_steps)
+        zc = rv.solve(self._fitted(image, area), self._theta[key], self.refine_steps)
         gather = self._frames[key]
         if gather is not None:
             frame = gather(zc)
         else:  # the effect models' projector side works on the input image
-            x = comp.warp_w(rv.view.expand(zc, np.zeros((comp.ih, comp.iw, 3), np.float32)))
+            x = comp.warp_w(rv.view.expand(rv.compact(zc), np.zeros((comp.ih, comp.iw, 3), np.float32)))
             frame = np.clip(stage.adapter.frame_to_send(x), 0.0, 1.0).astype(np.float32)
         out = RealtimeFrame([frame], (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, [zc])
         self.last = out
@@ -164,7 +167,7 @@ class RealtimeSolver:
         if y.shape[:2] != (ch, cw):
             raise InverseError(f"a camera image for the live show's closed loop must be {cw}×{ch}, got "
                                f"{y.shape[1]}×{y.shape[0]}")
-        f = rv.gain * rv.view.apply_compact(shown.inputs[0])
+        f = rv.light(shown.inputs[0])
         residual = np.clip(f - y.reshape(-1, 3)[rv.view.rows], f - 1.0, f)
         theta = self._theta[key]
         self._theta[key] = theta + 2.0 * FOLLOW_RATE * (residual - theta)
