@@ -16,6 +16,7 @@ from procam.addon.stages.realtime import FrameGather, InverseError
 from procam.addon.stages.warp_model import Warp
 from procam.addon.steps import calibrate as calibrate_step
 from procam.addon.steps import inverse as inverse_step
+from procam.addon.steps.projectors import JointStage
 from procam.addon.steps.realtime import RealtimeSolver
 from procam.addon.steps.stage_c import StageC, StageCOptions
 
@@ -33,13 +34,13 @@ def calibration(lab_calibration, tmp_path_factory):
 
 
 def _operator_psnr(solver: RealtimeSolver, frame, target) -> float:
-    """What the operator says the camera sees of a real-time answer, against the placed target."""
-    rv = solver._view(frame.area)
-    key = (frame.area.x, frame.area.y, frame.area.width, frame.area.height)
-    seen = rv.predicted(frame.inputs[0], solver._theta[key])
+    """What the operators say the camera sees of a real-time answer (every projector, less θ), against the placed
+    target."""
+    rows = solver._plan(frame.area).views[0].view.rows
+    seen = np.clip(solver.predicted(frame) - solver.theta(frame.area), 0.0, 1.0)
     cw, ch = solver.camera_size
     image = np.zeros((ch * cw, 3), np.float32)
-    image[rv.view.rows] = seen
+    image[rows] = seen
     return area_psnr(image.reshape(ch, cw, 3), target, frame.area)
 
 
@@ -106,15 +107,14 @@ def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibratio
     stage = StageC(cal, StageCOptions())
     solver = RealtimeSolver.for_stage(stage)
     out = solver.solve(natural_target("forest", (160, 120)))
-    key = (out.area.x, out.area.y, out.area.width, out.area.height)
-    rv = solver._view(out.area)
-    before = solver._theta[key].copy()
-    predicted = rv.light(out.inputs[0])
+    plan = solver._plan(out.area)
+    before = solver.theta(out.area).copy()
+    predicted = solver.predicted(out)
     cw, ch = solver.camera_size
     capture = np.zeros((ch * cw, 3), np.float32)
-    capture[rv.view.rows] = np.clip(predicted - 0.1, 0.0, 1.0)  # the camera sees 0.1 less than the model says
+    capture[plan.views[0].view.rows] = np.clip(predicted - 0.1, 0.0, 1.0)  # the camera sees 0.1 less than the model
     solver.follow(capture.reshape(ch, cw, 3), out)
-    moved = solver._theta[key] - before
+    moved = solver.theta(out.area) - before
     lit = predicted.min(axis=1) > 0.2
     assert np.allclose(moved[lit], 0.1 * (0.1 - before[lit]), atol=1e-4)  # 2α(residual − θ), α = 0.05
     with pytest.raises(InverseError, match="must be 160×120"):
@@ -130,3 +130,25 @@ def test_an_inverse_too_large_for_memory_says_how_much_it_needs(calibration, mon
         RealtimeSolver.for_stage(stage)
     assert main(["precompute", str(folder), "--live"]) == 2
     assert not (folder / "inverse.npz").exists()
+
+
+def test_several_projectors_each_solve_their_share_of_the_blend(two_projector_lab):
+    cal_dir = two_projector_lab / "cal"
+    assert main(["precompute", str(cal_dir), "--live"]) == 0
+    assert (cal_dir / "inverse.npz").is_file() and (cal_dir / "inverse_p2.npz").is_file()
+    cal = calibrate_step.read(cal_dir)
+    with JointStage(cal, StageCOptions()) as stage:
+        solver = RealtimeSolver.for_stage(stage)
+        image = natural_target("city", (128, 96))
+        full = stage.compensate(image, name="city", what="t")
+        out = solver.solve(image)
+        assert len(out.frames) == 2
+        for frame, proj in zip(out.frames, cal.rig.projectors):
+            assert frame.shape == (proj.intrinsics.height, proj.intrinsics.width, 3) and frame.max() > 0.05
+        plan = solver._plan(out.area)
+        assert plan.keep == [0, 1]
+        shares = np.concatenate(plan.shares, axis=1)
+        assert np.allclose(shares.sum(axis=1), 1.0) and (shares.min(axis=0) < 0.05).all()  # each fades out
+        ours = _operator_psnr(solver, out, full.result.target)
+        theirs = full.result.report["psnr_simulated"]
+        assert ours > theirs - 1.0, (ours, theirs)

@@ -57,19 +57,46 @@ class RealtimeFrame:
     inputs: list[Any] = field(default_factory=list, repr=False)
 
 
-class RealtimeSolver:
-    """Real-time stage C on an open stage (module doc). Build with :meth:`for_stage`."""
+@dataclass
+class _Plan:
+    """What one display area needs: per projector lit in it, its real-time view, frame gather (None: through the
+    effect models) and share of the light (rows × 1; None with one projector), and θ on the rows."""
 
-    def __init__(self, stage: StageC | JointStage, inverses: list[ApproximateInverse], *,
+    keep: list[int]
+    views: list[RealtimeView]
+    gathers: list[FrameGather | None]
+    shares: list[np.ndarray | None]
+    theta: np.ndarray
+
+
+class RealtimeSolver:
+    """Real-time stage C on an open stage (module doc). Build with :meth:`for_stage`.
+
+    Several projectors (a :class:`~.projectors.JointStage`): each projector lit in the display area solves its
+    share ``β_k`` of the light wanted, the derived blend the joint solve's prior steers towards (its share falls
+    smoothly to its footprint's edge), with its own inverse and refinement step; θ is the rig's (the sum of
+    the projectors' open-loop θ with the shared black counted once) and follows the camera as with one. Why
+    not the joint solve's coupled step: one coupled step costs every projector's adjoint for each projector's
+    update, twice a frame's budget, where the blend alone left the overlaps within a few tenths of a dB of
+    the joint solve's on the lab (scripts/bench_live_show.py)."""
+
+    def __init__(self, stage: StageC | JointStage, inverses: list[ApproximateInverse | None], *,
                  refine_steps: int = REFINE_STEPS, progress: Progress | None = None) -> None:
         self.stage, self.inverses, self.refine_steps = stage, inverses, int(refine_steps)
         self.say = progress or quiet
-        self._views: dict[tuple[int, int, int, int], Any] = {}
-        self._frames: dict[tuple[int, int, int, int], FrameGather | None] = {}
-        #: what the camera sees beyond the model, per area (rows × 3): θ, moved by :meth:`follow`
-        self._theta: dict[tuple[int, int, int, int], np.ndarray] = {}
+        self._plans: dict[tuple[int, int, int, int], _Plan] = {}
         self.said: list[str] = []
         self.last: RealtimeFrame | None = None
+
+    @staticmethod
+    def _compensators(stage: StageC | JointStage) -> list[Any]:
+        return list(stage.compensators) if isinstance(stage, JointStage) else [stage.compensator]
+
+    @staticmethod
+    def _adapters(stage: StageC | JointStage) -> list[Any]:
+        if isinstance(stage, JointStage):
+            return list(stage.adapters) if stage.adapters is not None else [None] * stage.count
+        return [stage.adapter]
 
     @classmethod
     def for_stage(cls, stage: StageC | JointStage, *, refine_steps: int = REFINE_STEPS,
@@ -77,49 +104,75 @@ class RealtimeSolver:
         """The solver for ``stage`` (open loop, ``transport`` operators loaded): every projector's stored inverse,
         or one built now (saying so; ``procam precompute --live`` stores it)."""
         say = progress or quiet
-        if isinstance(stage, JointStage):
-            raise InverseError("a live show of several projectors is not implemented yet: show one projector's "
-                               "calibration")
-        comp = stage.compensator
-        view = stage.calibration
+        comps, adapters = cls._compensators(stage), cls._adapters(stage)
         opts = stage.options
-        op = comp.transport
-        # With effect models the operator is the moved scene's (rendered by the stage), not the stored one's.
-        inv = None if stage.adapter is not None else load_inverse(view, op, bounces=opts.bounces, seed=opts.seed)
-        if inv is None:
-            check_memory(op.camera_size)
-            say("no stored approximate inverse for this calibration: building it now (procam precompute --live "
-                "stores it once)", 0.0)
-            inv = build_inverse(op, say)
-        if comp.input_blur:
-            say(f"warning: the real-time solve does not hold the projector lens's blur (σ {comp.input_blur:.2f} "
-                "texels, --effects defocus); it holds the other effects", 0.0)
-        if stage.bias is None:
+        inverses: list[ApproximateInverse | None] = []
+        for k, (comp, adapter) in enumerate(zip(comps, adapters)):
+            whose = f"projector {k + 1}: " if len(comps) > 1 else ""
+            op = comp.transport
+            # With effect models the operator may be the moved scene's (rendered by the stage), not the stored one.
+            inv = None if adapter is not None else load_inverse(comp.calibration, op, bounces=opts.bounces,
+                                                                seed=opts.seed)
+            if inv is None:
+                check_memory(op.camera_size)
+                say(f"{whose}no stored approximate inverse for this calibration: building it now (procam "
+                    "precompute --live stores it once)", 0.0)
+                inv = build_inverse(op, say)
+            inverses.append(inv)
+            if comp.input_blur:
+                say(f"warning: {whose}the real-time solve does not hold the projector lens's blur (σ "
+                    f"{comp.input_blur:.2f} texels, --effects defocus); it holds the other effects", 0.0)
+        if isinstance(stage, JointStage):
+            if stage.biases is None:
+                stage.estimate_bias()
+        elif stage.bias is None:
             stage.estimate_bias()
-        return cls(stage, [inv], refine_steps=refine_steps, progress=say)
+        return cls(stage, inverses, refine_steps=refine_steps, progress=say)
 
     @property
     def camera_size(self) -> tuple[int, int]:
-        return tuple(self.stage.compensator.camera_size)  # type: ignore[return-value]
+        return tuple(self._compensators(self.stage)[0].camera_size)  # type: ignore[return-value]
 
-    def _view(self, area: DisplayArea) -> RealtimeView:
+    def _plan(self, area: DisplayArea) -> _Plan:
         key = (area.x, area.y, area.width, area.height)
-        if key not in self._views:
-            stage = self.stage
-            comp, bias = stage.compensator, stage.bias
-            rows = np.flatnonzero(area.mask(comp.camera_size).ravel())  # the area's pixels, row by row
+        if key in self._plans:
+            return self._plans[key]
+        stage = self.stage
+        comps, adapters = self._compensators(stage), self._adapters(stage)
+        rows = np.flatnonzero(area.mask(comps[0].camera_size).ravel())  # the area's pixels, row by row
+        if isinstance(stage, JointStage):
+            dark, keep, joint, _, biases = stage._solver(area)
+            gains, theta = joint._open_loop(biases, stage.black)
+            shares = joint.shares().reshape(len(keep), -1)[:, rows]
+            total = shares.sum(axis=0)
+            # every lit pixel of the area is some projector's: where the footprints' edges leave none a share,
+            # the projectors that reach it split it evenly
+            shares = np.where(total > 0, shares / np.maximum(total, 1e-12), 1.0 / len(keep))
+            share_rows: list[np.ndarray | None] = [s[:, None].astype(np.float32) for s in shares]
+            for k in dark:
+                self.say(f"warning: projector {k + 1} lights nothing inside the display area: its frame is black",
+                         0.0)
+        else:
+            keep, bias = [0], stage.bias
+            gains = [None if bias is None or bias.gain is None else bias.gain]
+            theta = np.zeros((*comps[0].camera_size[::-1], 3), np.float32) if bias is None else bias.theta
+            share_rows = [None]
+        views, gathers = [], []
+        for k, gain in zip(keep, gains):
+            comp = comps[k]
             view = comp.transport.rows(rows, comp.model.variant)
-            gain = None if bias is None or bias.gain is None else bias.gain.reshape(-1, 3)[rows]
-            self._views[key] = RealtimeView(view, self.inverses[0], gain)
-            self._frames[key] = FrameGather(view, comp.rig.projector, comp.warp) if stage.adapter is None else None
-            self._theta[key] = np.zeros((len(rows), 3), np.float32) if bias is None else \
-                bias.theta.reshape(-1, 3)[rows].astype(np.float32)
-        return self._views[key]
+            inverse = self.inverses[k]
+            assert inverse is not None
+            views.append(RealtimeView(view, inverse, None if gain is None else gain.reshape(-1, 3)[rows]))
+            gathers.append(FrameGather(view, comp.rig.projector, comp.warp) if adapters[k] is None else None)
+        plan = self._plans[key] = _Plan(keep, views, gathers, share_rows,
+                                        np.asarray(theta, np.float32).reshape(-1, 3)[rows].copy())
+        return plan
 
     def _fitted(self, image: np.ndarray, area: DisplayArea) -> np.ndarray:
         """The picture as stage C takes a target, on the area's pixels row by row (rows × 3): fitted to the area
         (a size or aspect other than the area's said once), mapped by ``--range``, through the effect models'
-        camera side."""
+        camera side (one projector's)."""
         stage = self.stage
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
@@ -130,7 +183,7 @@ class RealtimeSolver:
                 self.say(f"warning: {w.message}", 0.0)
         if stage.range_map is not None:
             fitted = stage.range_map.apply(fitted)
-        if stage.adapter is not None:
+        if isinstance(stage, StageC) and stage.adapter is not None:
             fitted = fit_target(stage.adapter.model_target(fitted, area), area)
         return fitted.reshape(-1, 3)
 
@@ -138,39 +191,49 @@ class RealtimeSolver:
         """Every projector's native frame for a source frame ``image`` (H×W×3 linear, any size)."""
         t0 = time.perf_counter()
         stage = self.stage
-        comp = stage.compensator
+        comps, adapters = self._compensators(stage), self._adapters(stage)
         area = stage.area_for(image)
-        rv = self._view(area)
-        key = (area.x, area.y, area.width, area.height)
-        zc = rv.solve(self._fitted(image, area), self._theta[key], self.refine_steps)
-        gather = self._frames[key]
-        if gather is not None:
-            frame = gather(zc)
-        else:  # the effect models' projector side works on the input image
-            x = comp.warp_w(rv.view.expand(rv.compact(zc), np.zeros((comp.ih, comp.iw, 3), np.float32)))
-            frame = np.clip(stage.adapter.frame_to_send(x), 0.0, 1.0).astype(np.float32)
-        out = RealtimeFrame([frame], (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, [zc])
+        plan = self._plan(area)
+        want = self._fitted(image, area) + plan.theta
+        frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 3), np.float32) for comp in comps]
+        inputs = []
+        for k, rv, gather, share in zip(plan.keep, plan.views, plan.gathers, plan.shares):
+            zc = rv.solve(want if share is None else share * want, None, self.refine_steps)
+            inputs.append(zc)
+            if gather is not None:
+                frames[k] = gather(zc)
+            else:  # the effect models' projector side works on the input image
+                comp = comps[k]
+                x = comp.warp_w(rv.view.expand(rv.compact(zc), np.zeros((comp.ih, comp.iw, 3), np.float32)))
+                frames[k] = np.clip(adapters[k].frame_to_send(x), 0.0, 1.0).astype(np.float32)
+        out = RealtimeFrame(frames, (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, inputs)
         self.last = out
         return out
 
+    def predicted(self, shown: RealtimeFrame) -> np.ndarray:
+        """(rows × 3) the light the model says the camera gets from ``shown``'s frames, before θ."""
+        plan = self._plan(shown.area)
+        return sum((rv.light(zc) for rv, zc in zip(plan.views, shown.inputs)), np.zeros_like(plan.theta))
+
+    def theta(self, area: DisplayArea) -> np.ndarray:
+        """(rows × 3) θ of ``area`` now."""
+        return self._plan(area).theta
+
     def follow(self, capture: np.ndarray, shown: RealtimeFrame | None = None) -> None:
         """Move θ a step (:data:`FOLLOW_RATE`) towards the residual of ``capture`` (camera size, linear), a camera
-        image of ``shown`` (default: the last solve's frames) on the projector."""
+        image of ``shown`` (default: the last solve's frames) on the projectors."""
         shown = shown or self.last
         if shown is None:
             return
-        area = shown.area
-        key = (area.x, area.y, area.width, area.height)
-        rv = self._view(area)
         y = np.asarray(capture, np.float32)
         cw, ch = self.camera_size
         if y.shape[:2] != (ch, cw):
             raise InverseError(f"a camera image for the live show's closed loop must be {cw}×{ch}, got "
                                f"{y.shape[1]}×{y.shape[0]}")
-        f = rv.light(shown.inputs[0])
-        residual = np.clip(f - y.reshape(-1, 3)[rv.view.rows], f - 1.0, f)
-        theta = self._theta[key]
-        self._theta[key] = theta + 2.0 * FOLLOW_RATE * (residual - theta)
+        plan = self._plan(shown.area)
+        f = self.predicted(shown)
+        residual = np.clip(f - y.reshape(-1, 3)[plan.views[0].view.rows], f - 1.0, f)
+        plan.theta += 2.0 * FOLLOW_RATE * (residual - plan.theta)
 
 
 __all__ = ["FOLLOW_RATE", "InverseError", "REFINE_STEPS", "RealtimeFrame", "RealtimeSolver"]
