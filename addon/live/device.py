@@ -152,7 +152,8 @@ class LiveSpec:
             if twice:
                 raise LiveError(f"live device: {what} {', '.join(twice)} is named twice in {text!r}; give each "
                                 f"projector its own {what}")
-        return LiveSpec(parse_source(values["camera"]) if "camera" in values else None, display, position, average, noise, encoding, latency, size,
+        camera = parse_source(values["camera"]) if "camera" in values else None
+        return LiveSpec(camera, display, position, average, noise, encoding, latency, size,
                         displays if len(displays) > 1 else (),
                         tuple((int(x), int(y)) for x, y in positions) if len(positions) > 1 else ())
 
