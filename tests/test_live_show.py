@@ -7,6 +7,7 @@ solver's methods, whose speed the test sets."""
 from __future__ import annotations
 
 import http.server
+import shutil
 import threading
 import time
 
@@ -44,8 +45,9 @@ class StandIn:
         self.solved += 1
         return type("Out", (), {"frames": [frame], "solve_ms": (time.perf_counter() - t) * 1000})()
 
-    def follow(self, capture):
+    def follow(self, capture, shown=None):
         assert capture.shape == (self.camera_size[1], self.camera_size[0], 3) and capture.dtype == np.float32
+        assert shown is not None and shown.frames[0].shape[:2] == self.size[::-1]
         self.followed.append(capture)
 
 
@@ -61,6 +63,15 @@ def stand_in(delay: float = 0.0, made: list | None = None):
 @pytest.fixture(scope="module")
 def cal(lab_calibration):
     folder, _, _ = lab_calibration(scale=0.1, samples=4)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def stored(cal, tmp_path_factory):
+    """The calibration of its own with its operator and approximate inverse stored (procam precompute --live)."""
+    folder = tmp_path_factory.mktemp("live-show") / "cal"
+    shutil.copytree(cal, folder)
+    assert main(["precompute", str(folder), "--live"]) == 0
     return folder
 
 
@@ -287,3 +298,34 @@ def test_a_camera_that_goes_away_leaves_the_show_open_loop(xvfb, cal, tmp_path):
     assert any(m.startswith("the camera was lost") and m.endswith("the show goes on open loop")
                for m in report.said), report.said
     assert report.stopped == "the video ended" and report.shown > 150  # it went on to the end
+
+
+def test_the_real_time_solver_shows_a_clip_end_to_end(xvfb, stored, tmp_path, capsys):
+    """The real solver: every frame compensated and flipped, the marker frames seen on the screen after their
+    flips, the latency measured; then the command prints its report and exits 0."""
+    size = _size(stored)
+    markers = (15, 45)
+    clip = write_marker_clip(tmp_path / "m.avi", (96, 72), 60, fps=30.0, markers=markers)
+    with ScreenWatch((*ORIGIN, *size), seen=40.0, dark=20.0) as watch:
+        report = run_live_show(LiveShowOptions(stored, str(clip), DEVICE, hold=0.2))
+    assert report.stopped == "the video ended" and report.frames_in == 60
+    assert report.shown >= 50 and report.shown + report.dropped == 60, report.lines()
+    by_number = {f.number: f for f in report.frames}
+    assert all(n + 1 in by_number for n in markers), report.lines()
+    flips = [by_number[n + 1].flipped for n in markers]
+    assert len(watch.onsets) == len(markers), (watch.onsets, flips)
+    for onset, flip in zip(watch.onsets, flips):
+        assert flip - 0.002 <= onset <= flip + 0.1, (onset, flip)
+    seen = marker_latencies([by_number[n + 1].arrived for n in markers], watch.onsets)
+    figures = latency_figures(report)
+    solve_median, _ = report.solve_ms
+    with capsys.disabled():
+        print(f"real solver under Xvfb: solve {solve_median:.1f} ms median; latency source → flip "
+              f"{figures.median_ms:.1f} ms median, {figures.p95_ms:.1f} ms p95; source → screen (markers) "
+              f"{', '.join(f'{v * 1000:.0f}' for v in seen)} ms; {figures.dropped} dropped of {figures.frames_in}")
+    assert figures.median_ms < 200 and len(seen) == len(markers)
+    capsys.readouterr()
+    assert main(["live-show", str(stored), "--source", str(clip), "--device", DEVICE, "--hold", "0",
+                 "--duration", "1"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("live show: ") and "frames shown of" in out and "stopped: after 1 s (--duration)" in out

@@ -47,16 +47,17 @@ def write_marker_clip(path: Path, size: tuple[int, int], frames: int, *, fps: fl
 
 
 class ScreenWatch:
-    """Grabs a screen area in a thread and stamps each time it turns bright (``time.perf_counter``). A context
-    manager."""
+    """Grabs a screen area in a thread and stamps each time its mean 8-bit level rises above ``seen`` after being
+    below ``dark`` (``time.perf_counter``). A context manager."""
 
-    def __init__(self, region: tuple[int, int, int, int]) -> None:
+    def __init__(self, region: tuple[int, int, int, int], *, seen: float = SEEN_LEVEL,
+                 dark: float = DARK_LEVEL) -> None:
         try:
             import mss  # a dev requirement, as the loopback camera's
         except ImportError:
             raise LiveError("the screen watch needs the mss package (pip install mss)") from None
         self._mss = mss
-        self.region = region
+        self.region, self.seen, self.dark = region, seen, dark
         self.onsets: list[float] = []
         self.grabs = 0
         self._stop = threading.Event()
@@ -72,10 +73,10 @@ class ScreenWatch:
                 level = float(np.asarray(screen.grab(area))[..., :3].mean())
                 stamp = time.perf_counter()
                 self.grabs += 1
-                if not bright and level > SEEN_LEVEL:
+                if not bright and level > self.seen:
                     bright = True
                     self.onsets.append(stamp)
-                elif bright and level < DARK_LEVEL:
+                elif bright and level < self.dark:
                     bright = False
                 time.sleep(0.001)
 

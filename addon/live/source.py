@@ -190,7 +190,7 @@ class FrameSource:
                 continue
             try:
                 ok, img = cap.read()
-            except Exception as exc:  # OpenCV raises cv2.error on some broken streams
+            except self._cv2.error as exc:  # on some broken streams
                 ok, img = False, None
                 self.failure = f"{type(exc).__name__}: {exc}"
             if not ok or img is None:

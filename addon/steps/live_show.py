@@ -14,11 +14,10 @@ Open or closed loop: without a camera in the device (``live:display=1``) the
 show runs open loop (θ from the calibration's validation captures, as
 ``procam show``). With one (``live:camera=0,display=1``) the live device opens
 as ``procam capture`` opens it (latency measured with a white flash), and every
-:data:`FOLLOW_EVERY` seconds the newest camera frame that shows a compensated
-frame is given to :meth:`RealtimeSolver.follow`, which moves θ a small step
-towards it (slow, so no flicker). The camera frame shows the frame flipped one
-latency earlier, not the last solve; consecutive frames of a video are close
-and the step is small, so the difference averages out. A camera that stops
+:data:`FOLLOW_EVERY` seconds the newest camera frame is given to
+:meth:`RealtimeSolver.follow` with the solve it shows (the one on screen a
+measured latency before it arrived), which moves θ a small step towards it
+(θ settles over seconds, so it does not flicker). A camera that stops
 delivering leaves the show open loop, said once.
 
 Bad input: a source that cannot be opened is refused before any window opens.
@@ -40,6 +39,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,10 +57,12 @@ from ..progress import Cancel, Progress, never, part, quiet
 from ..video import VideoReader
 from . import calibrate as calibrate_step
 from .projectors import JointStage
+from .realtime import REFINE_STEPS, RealtimeSolver
 from .stage_c import StageC, StageCOptions, camera_lens_of
 
-#: Seconds between two status lines, and between two camera frames given to the solver's θ (closed loop).
-STATUS_EVERY, FOLLOW_EVERY = 1.0, 0.5
+#: Seconds between two status lines, and between two camera frames given to the solver's θ (closed loop: at 10 a
+#: second and the solver's step, θ covers 95 % of a change in about 3 s).
+STATUS_EVERY, FOLLOW_EVERY = 1.0, 0.1
 #: A source without a new frame for this long is said to stall (the hold starts from its last frame anyway).
 STALL_S = 0.5
 #: A camera without a new frame for this long is lost (the show goes on open loop).
@@ -101,8 +103,9 @@ class LiveShowOptions:
     area: tuple[int, int, int, int] | None = same_option(StageCOptions, "area")
     target_encoding: str = same_option(StageCOptions, "target_encoding",
                                        help="auto: 8-bit frames are sRGB and are linearised, 16-bit are linear")
-    refine_steps: int = option(2, min=0, max=50, metavar="N",
-                               help="refinement steps per frame after the approximate inverse (default 2)")
+    refine_steps: int = option(REFINE_STEPS, min=0, max=50, metavar="N",
+                               help=f"refinement steps per frame after the approximate inverse (default "
+                                    f"{REFINE_STEPS}: within 0.1 dB of the transport schedule's in the lab)")
     hold: float = option(2.0, min=0.0, max=3600.0, metavar="SECONDS",
                          help="a source that stalls or ends: hold its last frame this long, then black (default 2)")
     duration: float | None = option(None, check=_seconds, metavar="SECONDS",
@@ -238,19 +241,17 @@ class Solved(Protocol):
 class Solver(Protocol):
     """What the loop asks of the real-time solver (:class:`.realtime.RealtimeSolver`)."""
 
-    camera_size: tuple[int, int]
+    @property
+    def camera_size(self) -> tuple[int, int]: ...
 
-    def solve(self, image: np.ndarray) -> Solved: ...
+    def solve(self, image: np.ndarray) -> Any: ...
 
-    def follow(self, capture: np.ndarray) -> None: ...
+    def follow(self, capture: np.ndarray, shown: Any = None) -> None: ...
 
 
 def open_solver(stage: StageC | JointStage, refine_steps: int, say: Progress) -> Solver:
     """The calibration's real-time solver for ``stage`` (its stored approximate inverse, or built in memory)."""
-    from .realtime import RealtimeSolver
-
-    solver: Solver = RealtimeSolver.for_stage(stage, refine_steps=refine_steps, progress=say)
-    return solver
+    return RealtimeSolver.for_stage(stage, refine_steps=refine_steps, progress=say)
 
 
 # -- the run ------------------------------------------------------------------------------------------------------
@@ -273,14 +274,21 @@ def run_live_show(options: LiveShowOptions, progress: Progress | None = None, ca
     sc.check()
     say(f"opening the source {options.source}", 0.0)
     source = FrameSource(options.source, encoding=options.target_encoding)  # refused before any window opens
+    said: list[str] = []
+
+    def noted(message: str, fraction: float) -> None:  # the solver's warnings (a frame's aspect) in the report
+        if message.startswith("warning:") and message not in said:
+            said.append(message)
+        say(message, fraction)
+
     try:
         stage: StageC | JointStage = (JointStage(cal, sc, progress=part(say, 0.0, 0.0)) if count > 1 else
                                       StageC(cal, sc, progress=part(say, 0.0, 0.0)))
         with stage:
             if options.range == "auto":
                 _fix_range(stage, source, say)
-            solver = solver_for(stage, options.refine_steps, say)
-            return _show(options, spec, cal, stage, solver, source, say, cancel or never, on_status)
+            solver = solver_for(stage, options.refine_steps, noted)
+            return _show(options, spec, cal, stage, solver, source, say, cancel or never, on_status, said)
     finally:
         source.close()
 
@@ -339,8 +347,8 @@ def _open_windows(spec: LiveSpec, cal: Any, say: Progress) -> list[ProjectorWind
 
 
 def _show(options: LiveShowOptions, spec: LiveSpec, cal: Any, stage: StageC | JointStage, solver: Solver,
-          source: FrameSource, say: Progress, cancel: Cancel, on_status: Callable[[LiveStatus], None] | None
-          ) -> LiveShowReport:
+          source: FrameSource, say: Progress, cancel: Cancel, on_status: Callable[[LiveStatus], None] | None,
+          said: list[str]) -> LiveShowReport:
     """The windows (and camera) opened, the loop run, the windows closed whatever happens."""
     device: LiveDevice | None = None
     windows: list[ProjectorWindow] = []
@@ -357,7 +365,7 @@ def _show(options: LiveShowOptions, spec: LiveSpec, cal: Any, stage: StageC | Jo
         else:
             windows = _open_windows(spec, cal, say)
         loop = _Loop(options, spec, stage, solver, source, windows, device, say, on_status,
-                     lens=camera_lens_of(cal) if device is not None else None)
+                     lens=camera_lens_of(cal) if device is not None else None, said=said)
         return loop.run(cancel)
     finally:
         if device is not None:
@@ -372,13 +380,15 @@ class _Loop:
 
     def __init__(self, options: LiveShowOptions, spec: LiveSpec, stage: StageC | JointStage, solver: Solver,
                  source: FrameSource, windows: list[ProjectorWindow], device: LiveDevice | None, say: Progress,
-                 on_status: Callable[[LiveStatus], None] | None, *, lens: Any) -> None:
+                 on_status: Callable[[LiveStatus], None] | None, *, lens: Any, said: list[str]) -> None:
         self.options, self.spec, self.solver, self.source = options, spec, solver, source
         self.windows, self.device, self.say, self.on_status = windows, device, say, on_status
         self.lens = lens
         self.adapter = stage.adapter if isinstance(stage, StageC) else None
-        self.report = LiveShowReport(closed_loop=device is not None)
-        self._said: set[str] = set()
+        self.report = LiveShowReport(closed_loop=device is not None, said=said)
+        self._said: set[str] = set(said)
+        #: (flip time, solve) of the last seconds: which solve a camera frame shows
+        self.flips: deque[tuple[float, Any]] = deque(maxlen=256)
         self.black = [np.zeros((w.size[1], w.size[0], 3), np.float32) for w in windows]
 
     def tell(self, message: str, fraction: float = 0.0) -> None:
@@ -421,6 +431,7 @@ class _Loop:
                         self.tell(f"{what}: holding its last frame for {o.hold:g} s, then black")
                     if stalled and not black and idle >= o.hold:
                         self._flip(self.black)
+                        self.flips.append((time.perf_counter(), None))  # black: no solve to follow
                         black = True
                         self.tell("the video ended: black after the hold" if source.ended else
                                   f"the source stalled for {o.hold:g} s: black until it resumes")
@@ -445,6 +456,7 @@ class _Loop:
                         self.tell(f"warning: {w.message}")
                     flipped = self._flip(out.frames)
                     first_flip = first_flip or flipped
+                    self.flips.append((flipped, out))
                     report.frames.append(ShownFrame(frame.number, frame.arrived, flipped, float(out.solve_ms)))
                     last_arrival = frame.arrived
                     now = time.perf_counter()
@@ -470,14 +482,19 @@ class _Loop:
         self.say(f"live show stopped: {report.stopped}", 1.0)
         return report
 
+    def _shown_at(self, moment: float) -> Any:
+        """The solve on screen at ``moment`` (None: none yet, or black)."""
+        before = [out for t, out in self.flips if t <= moment]
+        return before[-1] if before else None
+
     def _follow(self, first_flip: float, camera_seen: float, now: float) -> float:
-        """Give the solver's θ the newest camera frame that shows a compensated frame; a camera that stopped
-        delivering is closed and the show goes on open loop. Returns when the camera last delivered."""
+        """Give the solver's θ the newest camera frame that shows one solve alone, with that solve; a camera that
+        stopped delivering is closed and the show goes on open loop. Returns when the camera last delivered."""
         device = self.device
         assert device is not None and device.camera is not None
-        settled = first_flip + device.latency_s + device.camera.frame_period()
+        wait = device.latency_s + device.camera.frame_period()  # a frame arriving this long after a flip shows it
         try:
-            got = device.camera.stamped_after(max(settled, camera_seen))
+            got = device.camera.stamped_after(max(first_flip + wait, camera_seen))
         except LiveError as exc:
             got, lost = [], str(exc)
         else:
@@ -487,12 +504,15 @@ class _Loop:
             device.camera.close()
             device.camera = None
             return camera_seen
-        if not got:
-            return camera_seen
-        stamp, image = got[-1]
-        self.solver.follow(_camera_image(self.spec, image, self.lens, self.adapter))
-        self.report.follows += 1
-        return stamp
+        for stamp, image in reversed(got):
+            # The camera sees the screen one latency late: the frame shows the solve on screen then (with a video
+            # the next one may mix in over one camera frame; consecutive frames are close and θ's step small).
+            shown = self._shown_at(stamp - device.latency_s)
+            if shown is not None:
+                self.solver.follow(_camera_image(self.spec, image, self.lens, self.adapter), shown)
+                self.report.follows += 1
+                break
+        return got[-1][0] if got else camera_seen
 
 
 __all__ = ["LatencyFigures", "LiveShowOptions", "LiveShowReport", "LiveStatus", "ShownFrame", "clip_latency",
