@@ -32,6 +32,7 @@ class StandIn:
     """The real-time solver's methods: the frame resized to the projector's native frame, after ``delay`` s."""
 
     def __init__(self, stage, delay: float = 0.0) -> None:
+        self.stage = stage
         proj = stage.calibration.rig.projector
         self.size = tuple(proj.intrinsics.size)
         self.camera_size = tuple(stage.calibration.rig.camera.intrinsics.size)
@@ -107,7 +108,8 @@ class MjpegServer:
                             time.sleep(0.01)
                             continue
                         level = 40 + 8 * (owner.sent % 20)
-                        ok, jpeg = cv2.imencode(".jpg", np.full((size[1], size[0], 3), level, np.uint8))
+                        w, h = owner.size
+                        ok, jpeg = cv2.imencode(".jpg", np.full((h, w, 3), level, np.uint8))
                         self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
                                          % len(jpeg) + jpeg.tobytes() + b"\r\n")
                         self.wfile.flush()
@@ -222,7 +224,11 @@ def test_a_clip_is_shown_frame_by_frame_and_a_marker_measures_the_latency(xvfb, 
 def test_a_solver_slower_than_the_source_drops_frames_and_never_queues(xvfb, cal, tmp_path):
     clip = write_marker_clip(tmp_path / "d.avi", (64, 48), 60, fps=30.0)
     made: list = []
-    report = run_live_show(LiveShowOptions(cal, str(clip), DEVICE, hold=0.0), solver_for=stand_in(0.1, made))
+    said: list = []
+    report = run_live_show(LiveShowOptions(cal, str(clip), DEVICE, hold=0.0, range="auto"),
+                           lambda m, f: said.append(m), solver_for=stand_in(0.1, made))
+    assert "range: fitting one gain and offset to 30 frames of the source" in said  # every 2nd of 60, as show
+    assert made[0].stage.range_map is not None
     # 2 s of video at 30 fps, a solve of 0.1 s: about 20 shown, the rest dropped
     assert report.frames_in == 60 and 14 <= report.shown <= 22 and report.dropped == 60 - report.shown
     lat_median, lat_p95 = report.latency_ms
@@ -259,6 +265,24 @@ def test_a_stream_that_stalls_is_held_then_black_and_resumes(xvfb, cal):
     assert report.shown > 60  # it went on after the stall
     assert any(level == 0.0 for _, level in grabs), grabs  # black during the stall
     assert grabs[-1][1] > 10  # and a picture again after it
+
+
+def test_a_frame_of_another_size_is_said_once(xvfb, cal, tmp_path, monkeypatch):
+    from procam.addon.live import source as source_module
+
+    clip = write_marker_clip(tmp_path / "s.avi", (64, 48), 60, fps=30.0, dark=90)
+    convert, count = source_module.linear_frame, []
+
+    def narrower_after_20(img, encoding):  # a camera backend that changes its frame size mid-stream
+        count.append(1)
+        out = convert(img, encoding)
+        return out[:, :40] if len(count) > 20 else out
+
+    monkeypatch.setattr(source_module, "linear_frame", narrower_after_20)
+    report = run_live_show(LiveShowOptions(cal, str(clip), DEVICE, hold=0.0), solver_for=stand_in())
+    said = [m for m in report.said if "scaled into the display area" in m]
+    assert said == ["the source's frames are now 40×48 (they were 64×48): scaled into the display area"]
+    assert report.shown >= 55
 
 
 def test_esc_stops_the_show_and_the_window_closes(xvfb, cal, tmp_path):
@@ -324,6 +348,10 @@ def test_the_real_time_solver_shows_a_clip_end_to_end(xvfb, stored, tmp_path, ca
               f"{figures.median_ms:.1f} ms median, {figures.p95_ms:.1f} ms p95; source → screen (markers) "
               f"{', '.join(f'{v * 1000:.0f}' for v in seen)} ms; {figures.dropped} dropped of {figures.frames_in}")
     assert figures.median_ms < 200 and len(seen) == len(markers)
+    # A picture of another aspect than the display area given: stretched into it, said once.
+    wide = run_live_show(LiveShowOptions(stored, str(clip), DEVICE, hold=0.0, duration=1.0, area=(8, 8, 48, 24)))
+    said = [m for m in wide.said if "stretched to the display area" in m]
+    assert len(said) == 1 and said[0].startswith("warning: the live source's frame (96×72"), wide.said
     capsys.readouterr()
     assert main(["live-show", str(stored), "--source", str(clip), "--device", DEVICE, "--hold", "0",
                  "--duration", "1"]) == 0

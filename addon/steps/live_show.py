@@ -50,7 +50,7 @@ import numpy as np
 from ..capture.format import srgb_to_linear
 from ..errors import Cancelled, LiveError, ProCamError
 from ..live.device import LiveDevice, LiveSpec, check_displays
-from ..live.source import FrameSource
+from ..live.source import FrameSource, linear_frame
 from ..live.window import ProjectorWindow, WindowClosed
 from ..options import option, same_option, validate
 from ..progress import Cancel, Progress, never, part, quiet
@@ -306,8 +306,7 @@ def _fix_range(stage: StageC | JointStage, source: FrameSource, say: Progress) -
                     rgb = reader.read(i)
                 except ProCamError:
                     break  # the container's count was an estimate
-                images.append(srgb_to_linear(rgb.astype(np.float32) / 255.0)
-                              if source.encoding != "linear" else rgb.astype(np.float32) / 255.0)
+                images.append(linear_frame(np.ascontiguousarray(rgb[..., ::-1]), source.encoding))  # RGB → BGR
     else:
         end, last = time.perf_counter() + 1.0, 0
         while time.perf_counter() < end and len(images) < RANGE_SAMPLE:
