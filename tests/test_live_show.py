@@ -352,6 +352,13 @@ def test_the_real_time_solver_shows_a_clip_end_to_end(xvfb, stored, tmp_path, ca
     wide = run_live_show(LiveShowOptions(stored, str(clip), DEVICE, hold=0.0, duration=1.0, area=(8, 8, 48, 24)))
     said = [m for m in wide.said if "stretched to the display area" in m]
     assert len(said) == 1 and said[0].startswith("warning: the live source's frame (96×72"), wide.said
+    # Closed loop: θ follows a loopback camera filming the window, each camera frame with the solve it shows.
+    from procam.addon.steps import calibrate
+    cam_size = tuple(calibrate.read(stored).rig.camera.intrinsics.size)
+    with LoopbackCamera(LoopbackRig((*ORIGIN, *size), cam_size)) as camera:
+        closed = run_live_show(LiveShowOptions(stored, str(clip), f"{DEVICE},camera={camera.url},encoding=linear",
+                                               hold=0.0))
+    assert closed.closed_loop and closed.follows >= 10 and closed.stopped == "the video ended", closed.lines()
     capsys.readouterr()
     assert main(["live-show", str(stored), "--source", str(clip), "--device", DEVICE, "--hold", "0",
                  "--duration", "1"]) == 0
