@@ -89,6 +89,7 @@ def _options_classes():
     from procam.addon.steps.evaluate import EvaluateOptions
     from procam.addon.steps.export import ExportFramesOptions
     from procam.addon.steps.live import LiveCaptureOptions, LiveCheckOptions, LiveRigSheet
+    from procam.addon.steps.live_show import LiveShowOptions
     from procam.addon.steps.rig import RigOptions
     from procam.addon.steps.show import ShowOptions
     from procam.addon.steps.transport import PrecomputeOptions
@@ -103,7 +104,7 @@ def _options_classes():
             (PatternsOptions, [capture, live]), (ProjectorSheet, [capture, live]), (PhotoSettings, [capture, live]),
             (DepthSensorSize, [capture, live]), (CameraSize, [capture]), (ImportOptions, [capture]),
             (UndistortOptions, [capture]), (LiveCaptureOptions, [live]), (LiveCheckOptions, [live]),
-            (LiveRigSheet, [live]), (RigOptions, [cli / "rig.py"])]
+            (LiveRigSheet, [live]), (LiveShowOptions, [live]), (RigOptions, [cli / "rig.py"])]
 
 
 #: the sidebar's and the dialogs' tables of names and properties
@@ -111,7 +112,7 @@ SIDEBAR_TABLES = ("panels/properties.py", "panels/board.py", "operators/messages
                   "operators/capture_io.py", "operators/live.py", "operators/calibrate_rig.py")
 
 
-@pytest.mark.parametrize("index", range(21))
+@pytest.mark.parametrize("index", range(22))
 def test_no_declared_option_is_declared_a_second_time(index):
     """A declared option's flag is added to no parser by hand, its scene property made by no hand, and its name in
     messages written in no table: the declaration on the Options class is the only one. (``--diagnosis`` is named
@@ -172,6 +173,8 @@ FLAGS = {
     "lab": "--camera-fov-error --effects --force --full-binary --layout --no-graycode --nominal-error --out "
            "--overlap --projector-effects --projector-shift --projectors --samples --scale --seed --supersample "
            "--surface --truth",
+    "live-show": "--area --device --diagnosis --duration --effects --hold --range --refine-steps --source "
+                 "--target-encoding",
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width --projectors",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
                 "--projector-height --projector-number --projector-width --seed --shift-x --shift-y --throw-ratio",
@@ -213,6 +216,9 @@ def test_each_command_keeps_its_flags(command):
     ["import-captures", "s", "p", "--out", "o", "--depth-native-width", "0"],
     ["capture", "--device", "camera:0", "--projector-width", "8", "--projector-height", "6", "--out", "o"],
     ["live-check", "--projector-width", "-1"],
+    ["live-show", "c", "--source", "0", "--device", "live:display=1", "--hold", "-1"],
+    ["live-show", "c", "--source", "0", "--device", "live:display=1", "--duration", "0"],
+    ["live-show", "c", "--source", "0", "--device", "live:bogus"],
     ["calibrate-rig", "s", "--board", "9x7", "--projector", "8x6", "--out", "r.json", "--window", "3"],
     ["calibrate-rig", "s", "--board", "9x7", "--projector", "8x6", "--out", "r.json", "--square", "nan"],
 ])

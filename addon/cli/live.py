@@ -5,7 +5,9 @@ lists its options). ``live-check`` opens it, measures latency, noise and
 whether exposure is locked, and says what it found; ``capture`` shows and
 captures the whole calibration sequence and writes a capture set, resuming an
 interrupted session; ``--projectors N`` with one display each (``display=1+2``)
-captures every projector's sequence, the others black, into one capture set.
+captures every projector's sequence, the others black, into one capture set. ``live-show`` compensates a video
+file, camera or stream frame by frame as it arrives and shows it in the projector window(s)
+(``addon/steps/live_show.py``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from ..live.window import list_displays
 from ..options import add_arguments, declared, from_arguments
 from ..steps.capture import PatternsOptions, PhotoSettings
 from ..steps.live import LiveCaptureOptions, LiveCheckOptions, LiveRigSheet, run_live_capture
+from ..steps.live_show import LiveShowOptions, run_live_show
 from .app import command
 from .capture import add_camera_options, add_projector_options, depth_native_size, projector_from_args
 from .terminal import run_step
@@ -69,4 +72,32 @@ def capture(args: argparse.Namespace) -> int:
     w, h = cs.camera.intrinsics.size
     many = f" of {len(cs.projectors)} projectors" if cs.others else ""
     print(f"wrote capture set {cs.path}: {len(cs)} images{many}, camera {w}×{h}")
+    return 0
+
+
+SHOW_EPILOG = """\
+The status line, every second: frames in (from the source), shown (compensated and flipped), dropped (arrived
+while the solver was busy with an earlier one: the show never queues), the solve's milliseconds and the latency
+from a frame's arrival to its flip (medians over the last second), and the loop's frames per second.
+
+A source that stalls or ends shows its last frame for --hold seconds, then black; a video file that ended then
+stops the show (exit 0); a stream that resumes goes on. Esc in the projector window stops the show (exit 0).
+
+exit codes: 0 the show ran and stopped (the file ended, --duration, Esc), 2 a problem you can fix (a source or
+window that cannot be opened; the message says what to do), 130 cancelled (Ctrl-C), 1 internal error."""
+
+
+def _configure_show(p: argparse.ArgumentParser) -> None:
+    p.add_argument("calibration", type=Path, help="calibration folder (from procam calibrate)")
+    add_arguments(p, LiveShowOptions)
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = SHOW_EPILOG
+
+
+@command("live-show", "Compensate a video file, camera or stream frame by frame and show it live in the projector "
+                      "window(s).", _configure_show)
+def live_show(args: argparse.Namespace) -> int:
+    options = from_arguments(LiveShowOptions, args, calibration=args.calibration)
+    report = run_step("live-show", run_live_show, options)
+    print("\n".join(report.lines()))
     return 0

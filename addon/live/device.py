@@ -65,7 +65,8 @@ SEEN_STEP = 0.02
 class LiveSpec:
     """What ``live:…`` asks for."""
 
-    camera: int | str
+    #: None only where the command runs without a camera (``procam live-show``, open loop)
+    camera: int | str | None
     display: int | None = None
     position: tuple[int, int] | None = None
     average: int | None = None
@@ -92,9 +93,10 @@ class LiveSpec:
         return [(self.display, self.position)]
 
     @staticmethod
-    def parse(text: str) -> "LiveSpec":
+    def parse(text: str, *, camera_required: bool = True) -> "LiveSpec":
         """``camera=SOURCE,display=N|position=X:Y[,average=N|noise=σ][,encoding=…][,latency=…][,size=WxH]``;
-        several projectors: ``display=N+N…`` or ``position=X:Y+X:Y…``."""
+        several projectors: ``display=N+N…`` or ``position=X:Y+X:Y…``. ``camera_required=False``: a spec without
+        a camera is taken (``procam live-show``'s open loop)."""
         body = text[5:] if text.startswith("live:") else text
         known = ("camera", "display", "position", "average", "noise", "encoding", "latency", "size")
         values: dict[str, str] = {}
@@ -111,8 +113,9 @@ class LiveSpec:
             else:
                 raise LiveError(f"live device: expected key=value, got {token!r} in {text!r}; the form is "
                                 "live:camera=SOURCE,display=N (see `procam live-check --help`)")
-        if "camera" not in values:
-            raise LiveError(f"live device: say which camera, e.g. live:camera=0,display=1 (got {text!r})")
+        if "camera" not in values and camera_required:
+            raise LiveError(f"live device: say which camera, e.g. live:camera=0,display=1 (got {text!r}); only "
+                            "`procam live-show` runs without one (open loop)")
         try:
             displays = tuple(int(v) for v in values["display"].split("+")) if "display" in values else ()
             display = displays[0] if displays else None
@@ -149,7 +152,8 @@ class LiveSpec:
             if twice:
                 raise LiveError(f"live device: {what} {', '.join(twice)} is named twice in {text!r}; give each "
                                 f"projector its own {what}")
-        return LiveSpec(parse_source(values["camera"]), display, position, average, noise, encoding, latency, size,
+        camera = parse_source(values["camera"]) if "camera" in values else None
+        return LiveSpec(camera, display, position, average, noise, encoding, latency, size,
                         displays if len(displays) > 1 else (),
                         tuple((int(x), int(y)) for x, y in positions) if len(positions) > 1 else ())
 
@@ -216,6 +220,8 @@ class LiveDevice(Device):
         say = progress or quiet
         self.spec = spec if isinstance(spec, LiveSpec) else LiveSpec.parse(spec)
         check_displays(self.spec, 1 + len(others))
+        if self.spec.camera is None:
+            raise LiveError("the live device needs a camera: live:camera=SOURCE,display=N")
         self.projector = projector
         self.others = tuple(others)
         self.windows: list[ProjectorWindow] = []

@@ -43,6 +43,10 @@ from ..errors import LiveError
 _CENTRED_ON_DISPLAY = 0x2FFF0000
 
 
+class WindowClosed(LiveError):
+    """The projector window was closed by its user (Esc, or the window manager's close)."""
+
+
 def _pygame() -> Any:
     os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
     try:
@@ -116,8 +120,13 @@ class ProjectorWindow:
         pygame = self._pg
         for event in pygame.event.get():
             if event.type == pygame.QUIT or (event.type == pygame.KEYDOWN and event.key == pygame.K_ESCAPE):
-                raise LiveError("the projector window was closed (Esc): the live session stops here; run the "
+                raise WindowClosed("the projector window was closed (Esc): the live session stops here; run the "
                                 "same command again to resume where it stopped")
+
+    def poll(self) -> None:
+        """Handle the window's events between flips (a loop that shows nothing new for a while): Esc or a close
+        raises :class:`WindowClosed`."""
+        self._pump()
 
     def put(self, frame: np.ndarray) -> None:
         """Draw ``frame`` (H×W×3 floats in [0, 1], the native size) into the window's buffer without showing it
@@ -155,4 +164,4 @@ class ProjectorWindow:
             self._pg.event.pump()
 
 
-__all__ = ["ProjectorWindow", "list_displays"]
+__all__ = ["ProjectorWindow", "WindowClosed", "list_displays"]
