@@ -76,7 +76,7 @@ def test_realtime_solve_is_within_half_a_db_of_the_full_transport_solve(calibrat
         out = solver.solve(image)
         proj = cal.rig.projector
         assert len(out.frames) == 1 and out.frames[0].shape == (proj.intrinsics.height, proj.intrinsics.width, 3)
-        assert 0.0 <= out.frames[0].min() and out.frames[0].max() <= 1.0 and out.solve_ms > 0
+        assert out.frames[0].dtype == np.uint8 and out.frames[0].max() > 10 and out.solve_ms > 0
         ours, theirs = _operator_psnr(solver, out, full.result.target), full.result.report["psnr_operator"]
         assert ours > theirs - 0.5, (ours, theirs)
         # The inverse alone is a fair start, and the refinement step is what closes the gap.
@@ -99,7 +99,9 @@ def test_frame_gather_is_the_warp_and_placement_of_the_input(calibration):
     z = view.expand(zc, np.zeros((proj.input_size[1], proj.input_size[0], 3), np.float32))
     for w in (None, warp):
         expected = proj.frame_from_input(np.clip(z if w is None else w.apply_w(z), 0.0, 1.0))
-        assert np.abs(FrameGather(view, proj, w)(zc) - expected).max() < 1e-5
+        gather = FrameGather(view, proj, w)
+        assert np.abs(gather(zc) - expected).max() < 1e-5
+        assert np.abs(gather.levels(zc).astype(np.float32) - np.rint(expected * 255)).max() <= 1
 
 
 def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibration):
@@ -144,7 +146,7 @@ def test_several_projectors_each_solve_their_share_of_the_blend(two_projector_la
         out = solver.solve(image)
         assert len(out.frames) == 2
         for frame, proj in zip(out.frames, cal.rig.projectors):
-            assert frame.shape == (proj.intrinsics.height, proj.intrinsics.width, 3) and frame.max() > 0.05
+            assert frame.shape == (proj.intrinsics.height, proj.intrinsics.width, 3) and frame.max() > 12
         plan = solver._plan(out.area)
         assert plan.keep == [0, 1]
         shares = np.concatenate(plan.shares, axis=1)

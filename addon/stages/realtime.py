@@ -372,7 +372,7 @@ class FrameGather:
 
     def __init__(self, view: TransportRows | BlurredRows, projector: Any, warp: Any = None) -> None:
         inner = view.view if isinstance(view, BlurredRows) else view
-        self._dr, self._float = inner._dr, inner._float
+        self._dr, self._float, self._uint = inner._dr, inner._float, inner._uint
         iw, ih = projector.input_size
         fw, fh = projector.intrinsics.size
         x0, y0 = projector.input_offset
@@ -403,11 +403,19 @@ class FrameGather:
 
     def __call__(self, zc: Any) -> np.ndarray:
         """The native frame (H×W×3 in [0, 1]) of a compact input (a Dr.Jit array or numpy (texels, 3))."""
+        return np.asarray(self._values(zc)).reshape(self._shape)
+
+    def levels(self, zc: Any) -> np.ndarray:
+        """The native frame as the 8-bit levels a projector window shows (H×W×3 uint8, no transfer curve),
+        rounded on the Dr.Jit side: converting 800×600 floats in numpy costs 4 ms of a frame's 33."""
+        out = self._uint(self._dr.round(self._values(zc) * 255.0))
+        return np.asarray(out).astype(np.uint8).reshape(self._shape)
+
+    def _values(self, zc: Any) -> Any:
         dr = self._dr
         values = zc if isinstance(zc, self._float) else self._float(np.ascontiguousarray(zc, np.float32).ravel())
-        out = dr.clip(dr.block_sum(dr.gather(self._float, values, self._src, self._live) * self._w, self._k),
-                      0.0, 1.0)
-        return np.asarray(out).reshape(self._shape)
+        return dr.clip(dr.block_sum(dr.gather(self._float, values, self._src, self._live) * self._w, self._k),
+                       0.0, 1.0)
 
 
 __all__ = ["ApproximateInverse", "FrameGather", "InverseError", "RealtimeView", "build_inverse", "building_bytes"]

@@ -49,7 +49,8 @@ REFINE_STEPS = 1
 class RealtimeFrame:
     """One solved source frame: every projector's native frame, and what it cost."""
 
-    frames: list[np.ndarray]  # H×W×3 float32 in [0, 1], one per projector
+    #: one per projector: its native frame as the 8-bit levels its window shows (H×W×3 uint8, no transfer curve)
+    frames: list[np.ndarray]
     solve_ms: float
     steps: int
     area: DisplayArea
@@ -195,17 +196,17 @@ class RealtimeSolver:
         area = stage.area_for(image)
         plan = self._plan(area)
         want = self._fitted(image, area) + plan.theta
-        frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 3), np.float32) for comp in comps]
+        frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 3), np.uint8) for comp in comps]
         inputs = []
         for k, rv, gather, share in zip(plan.keep, plan.views, plan.gathers, plan.shares):
             zc = rv.solve(want if share is None else share * want, None, self.refine_steps)
             inputs.append(zc)
             if gather is not None:
-                frames[k] = gather(zc)
+                frames[k] = gather.levels(zc)
             else:  # the effect models' projector side works on the input image
                 comp = comps[k]
                 x = comp.warp_w(rv.view.expand(rv.compact(zc), np.zeros((comp.ih, comp.iw, 3), np.float32)))
-                frames[k] = np.clip(adapters[k].frame_to_send(x), 0.0, 1.0).astype(np.float32)
+                frames[k] = np.rint(np.clip(adapters[k].frame_to_send(x), 0.0, 1.0) * 255.0).astype(np.uint8)
         out = RealtimeFrame(frames, (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, inputs)
         self.last = out
         return out
