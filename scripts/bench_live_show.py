@@ -1,36 +1,44 @@
 #!/usr/bin/env python3
 """Live shows in real time: how fast the real-time solve is, how close it comes to the full solve, and the loop.
 
-Usage: ``.venv/bin/python scripts/bench_live_show.py [--parts speed,quality,loop] [--sizes 800x600,1920x1080]
-[--variant llvm_ad_rgb|cuda_ad_rgb] [--scale 0.5] [--frames 24] [--seconds 60] [--work DIR]``
+Usage: ``.venv/bin/python scripts/bench_live_show.py [--parts quality,loop,speed] [--sizes 800x600,1920x1080]
+[--variant llvm_ad_rgb|cuda_ad_rgb] [--scale 1] [--frames 12] [--seconds 20] [--work DIR]``
 
-With no argument it is the quick run (under five minutes on 2 cores):
+With no argument it is the quick run (about five minutes on 2 cores): the lab
+at the demo's resolution (camera 640×480, projector 800×600), its quality and
+a 20 s loop; ``--seconds 60`` gives the 60 s clip's figures.
 
-* **speed** — for each projector size, the demo rig at that size (camera at
-  0.8 × its width and height, as the demo's 640×480 for 800×600; the demo's
-  lens, pose and input share of the frame) on the built-in curved surface:
-  renders the transport operator and builds the approximate inverse (seconds),
-  then times the real-time solve of a panning picture frame by frame (the
-  inverse, one SIRT step, the native frame): frames per second of the solve
-  alone. ``--variant cuda_ad_rgb`` runs it on a GPU.
-* **quality** — the lab at ``--scale`` (``realistic`` effects), calibrated,
-  ``--frames`` frames of a panning clip compensated in real time and by the
-  ``transport`` schedule (40 steps a frame, warm-started), every answer
-  captured through the lab: captured PSNR of both, and flicker (the mean
-  absolute change between consecutive captured frames inside the area, against
-  the targets' own).
-* **loop** — ``procam live-show`` on a projector window under Xvfb with the
-  loopback camera, a video file as the source: frames per second of the whole
-  loop, source → flip latency (median and 95th percentile), dropped frames
-  over ``--seconds``.
+* **quality** — the lab at ``--scale`` (``realistic`` effects on the curve),
+  calibrated, its inverse stored (``procam precompute --live``); ``--frames``
+  frames of a panning clip compensated in real time and by the ``transport``
+  schedule (40 steps a frame, warm-started from the previous frame as
+  ``procam show`` does), every answer captured through the lab: captured PSNR
+  inside the display area of both, and flicker (the mean absolute change
+  between consecutive captured frames inside the area) against the targets'
+  own; the real-time solve's milliseconds.
+* **loop** — ``procam live-show`` of that calibration on a projector window
+  under Xvfb (open loop), a ``--seconds`` MJPEG clip of the panning picture
+  at 30 fps as the source: frames per second of the whole loop, source → flip
+  latency (median and 95th percentile), frames dropped.
+* **speed** — for each projector size in ``--sizes``, the demo rig at that
+  size (camera at 0.8 × its width and height, as the demo's 640×480 for
+  800×600; the demo's lens, pose and input share of the frame) on the built-in
+  curved surface: renders the transport operator and builds the approximate
+  inverse (seconds), then times the real-time solve of a panning picture frame
+  by frame: frames per second of the solve alone. ``--variant cuda_ad_rgb``
+  runs it on a GPU (needs Mitsuba only: no lab, no Blender).
 
-Ends with the line ``800x600: N fps solve, M fps loop`` to compare runs.
+Ends with the line ``800x600: N fps solve, M fps loop`` (the quality part's real-time solves and the loop,
+at ``--scale 1``; the speed part's 800x600 row when the lab parts are not run) to compare runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
+import subprocess
 import tempfile
 import time
 from dataclasses import replace
@@ -41,13 +49,19 @@ import cv2
 import numpy as np
 
 from procam.addon.capture.targets import natural_target
+from procam.addon.cli.app import main as procam
 from procam.addon.errors import ImageError
 from procam.addon.stages.calibrate import Calibration
+from procam.addon.stages.metrics import psnr
 from procam.addon.stages.display_area import DisplayArea, fit_target, largest_rectangle
 from procam.addon.stages.realtime import FrameGather, RealtimeView, build_inverse
 from procam.addon.stages.transport import build_transport
 from procam.addon.rig.demo import PROJECTOR_SHIFT_Y, PROJECTOR_THROW, demo_rig
 from procam.addon.rig.model import Camera, Rig, intrinsics_from_fov, projector_intrinsics_from_throw
+from procam.addon.steps import calibrate as calibrate_step
+from procam.addon.steps.live_show import clip_latency
+from procam.addon.steps.realtime import RealtimeSolver
+from procam.addon.steps.stage_c import StageC, StageCOptions, device_pipeline
 from procam.addon.surface.shapes import builtin_surface
 
 
@@ -114,14 +128,132 @@ def speed(size: tuple[int, int], variant: str | None, frames: int) -> dict[str, 
             "fps_solve": round(1000 / float(np.median(ms)), 1)}
 
 
+def step(args: list[str], done: Path) -> None:
+    """``procam ARGS`` unless ``done`` exists (``--work`` reuses what an earlier run made)."""
+    if done.exists():
+        return
+    if procam([str(a) for a in args]) != 0:
+        raise SystemExit(f"procam {args[0]} failed")
+
+
+def lab_calibration(work: Path, scale: float) -> tuple[Path, Path]:
+    """The lab's capture set at ``scale`` (realistic effects, the curve), calibrated, with its inverse stored."""
+    lab, cal, truth = work / "lab", work / "cal", work / "lab.truth.json"
+    step(["lab", "--out", lab, "--surface", "curve", "--effects", "realistic", "--scale", scale, "--samples", "8",
+          "--truth", truth], lab)
+    step(["calibrate", lab, "--out", cal], cal / "calibration.json")
+    step(["precompute", cal, "--live"], cal / "inverse.npz")
+    return cal, truth
+
+
+def quality(cal_dir: Path, truth: Path, frames: int) -> dict[str, Any]:
+    """Real time against the ``transport`` schedule on a panning clip, captured through the lab (module doc)."""
+    cal = calibrate_step.read(cal_dir)
+    device = device_pipeline(f"lab:{truth}", cal)
+    assert device is not None
+    cw, ch = cal.rig.camera.intrinsics.size
+    picture = picture_of(round(1.25 * cw), round(1.25 * ch))
+    ours: list[float] = []
+    noise = float("nan")
+    theirs: list[float] = []
+    solve_ms: list[float] = []
+    caps: dict[str, list[np.ndarray]] = {"realtime": [], "transport": [], "target": []}
+    try:
+        with StageC(cal, StageCOptions()) as stage:
+            solver = RealtimeSolver.for_stage(stage)
+            start = None
+            for i in range(frames):
+                image = panning(picture, i)
+                fast = solver.solve(image)
+                solve_ms.append(fast.solve_ms)
+                full = stage.compensate(image, name=f"frame {i}", what="frame", start=start, verify=False)
+                start = stage.start_from_frame(full.frame)
+                area = full.area
+                target = full.fitted
+                for name, frame in (("realtime", fast.frames[0].astype(np.float32) / 255.0),
+                                    ("transport", full.frame)):
+                    cap = area.crop(device.project(frame))
+                    caps[name].append(cap)
+                    (ours if name == "realtime" else theirs).append(psnr(np.clip(cap, 0, 1), target))
+                caps["target"].append(target)
+                if i == frames - 1:  # the camera's own change: the last frame captured once more
+                    again = area.crop(device.project(fast.frames[0].astype(np.float32) / 255.0))
+                    noise = float(np.mean(np.abs(again - caps["realtime"][-1])))
+                print(f"  frame {i}: realtime {ours[-1]:.2f} dB ({fast.solve_ms:.1f} ms), transport {theirs[-1]:.2f} "
+                      f"dB", flush=True)
+    finally:
+        device.close()
+
+    def flicker(seq: list[np.ndarray]) -> float:
+        return float(np.mean([np.mean(np.abs(b - a)) for a, b in zip(seq, seq[1:])]))
+
+    ms = np.asarray(solve_ms[2:] or solve_ms)  # the first frames build the area's views and compile the kernels
+    return {"camera": f"{cw}x{ch}", "projector": "x".join(map(str, cal.rig.projector.intrinsics.size)),
+            "frames": frames, "psnr_realtime": round(float(np.mean(ours)), 2),
+            "psnr_transport": round(float(np.mean(theirs)), 2),
+            "flicker_realtime": round(flicker(caps["realtime"]), 4),
+            "flicker_transport": round(flicker(caps["transport"]), 4),
+            "flicker_targets": round(flicker(caps["target"]), 4), "flicker_noise_floor": round(noise, 4),
+            "solve_ms_median": round(float(np.median(ms)), 1), "solve_ms_p95": round(float(np.percentile(ms, 95)), 1),
+            "fps_solve": round(1000.0 / float(np.median(ms)), 1)}
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, 1)
+
+
+def write_clip(path: Path, size: tuple[int, int], seconds: float, fps: float = 30.0) -> Path:
+    """A ``seconds`` MJPEG clip of the panning picture (8-bit sRGB, as a video file is)."""
+    picture = picture_of(*size)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, size)
+    try:
+        for i in range(round(seconds * fps)):
+            srgb = np.where(picture <= 0.0031308, 12.92 * picture, 1.055 * np.power(picture, 1 / 2.4) - 0.055)
+            writer.write(cv2.cvtColor(np.clip(np.rint(panning(srgb, i) * 255), 0, 255).astype(np.uint8),
+                                      cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    return path
+
+
+def loop(cal_dir: Path, work: Path, seconds: float) -> dict[str, Any]:
+    """``procam live-show`` of ``cal_dir`` under Xvfb, a ``seconds`` clip as the source (module doc)."""
+    if shutil.which("Xvfb") is None:
+        raise SystemExit("the loop part needs Xvfb (Debian: apt-get install xvfb)")
+    cal = calibrate_step.read(cal_dir)
+    fw, fh = cal.rig.projector.intrinsics.size
+    cw, ch = cal.rig.camera.intrinsics.size
+    clip = write_clip(work / f"clip-{round(seconds)}s.avi", (cw, ch), seconds)
+    n = next(i for i in range(90, 200) if not Path(f"/tmp/.X11-unix/X{i}").exists())
+    server = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", f"{fw + 40}x{fh + 40}x24", "-nolisten", "tcp"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 10
+        while not Path(f"/tmp/.X11-unix/X{n}").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        os.environ.update(DISPLAY=f":{n}", SDL_VIDEODRIVER="x11")
+        figures, report = clip_latency(cal_dir, clip, "live:position=0:0")
+    finally:
+        import pygame  # here: the speed part runs where only Mitsuba is installed (a GPU machine)
+
+        pygame.quit()  # SDL lets go of the display before it goes away
+        server.terminate()
+        server.wait()
+    sm, sp = report.solve_ms
+    return {"projector": f"{fw}x{fh}", "seconds": seconds, "frames_in": figures.frames_in,
+            "shown": figures.shown, "dropped": figures.dropped, "fps_loop": round(figures.fps, 1),
+            "latency_ms_median": _round(figures.median_ms), "latency_ms_p95": _round(figures.p95_ms),
+            "solve_ms_median": _round(sm)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--parts", default="speed,quality,loop")
+    ap.add_argument("--parts", default="quality,loop")
     ap.add_argument("--sizes", default="800x600")
     ap.add_argument("--variant", default=None, help="Mitsuba variant of the speed part (default: the CPU's)")
-    ap.add_argument("--scale", type=float, default=0.5, help="lab resolution of the quality part")
-    ap.add_argument("--frames", type=int, default=24)
-    ap.add_argument("--seconds", type=float, default=60.0, help="clip length of the loop part")
+    ap.add_argument("--scale", type=float, default=1.0, help="lab resolution of the quality and loop parts")
+    ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--seconds", type=float, default=20.0, help="clip length of the loop part")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None, help="write every figure here too")
     args = ap.parse_args()
@@ -130,6 +262,25 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     figures: dict[str, Any] = {}
     fps_solve = fps_loop = None
+    if parts & {"quality", "loop"}:
+        cal_dir, truth = lab_calibration(work, args.scale)
+    if "quality" in parts:
+        row = figures["quality"] = quality(cal_dir, truth, args.frames)
+        print(f"quality {row['projector']} (camera {row['camera']}), {row['frames']} frames of a pan, captured in the "
+              f"lab: real time {row['psnr_realtime']} dB, transport schedule {row['psnr_transport']} dB; flicker "
+              f"{row['flicker_realtime']} (transport {row['flicker_transport']}, targets {row['flicker_targets']}, the "
+              f"camera's noise alone {row['flicker_noise_floor']}); "
+              f"solve {row['solve_ms_median']} ms median, {row['solve_ms_p95']} ms p95", flush=True)
+        if row["projector"] == "800x600":
+            fps_solve = row["fps_solve"]
+    if "loop" in parts:
+        row = figures["loop"] = loop(cal_dir, work, args.seconds)
+        print(f"loop {row['projector']} under Xvfb, {row['seconds']:.0f} s clip at 30 fps: {row['fps_loop']} fps, "
+              f"{row['shown']} shown of {row['frames_in']}, {row['dropped']} dropped; latency source → flip "
+              f"{row['latency_ms_median']} ms median, {row['latency_ms_p95']} ms p95; solve {row['solve_ms_median']} "
+              "ms median", flush=True)
+        if row["projector"] == "800x600":
+            fps_loop = row["fps_loop"]
     if "speed" in parts:
         figures["speed"] = []
         for text in args.sizes.split(","):
@@ -140,7 +291,7 @@ def main() -> None:
                   f"operator {row['operator_s']} s / {row['operator_mb']} MB, inverse {row['inverse_s']} s / "
                   f"{row['inverse_mb']} MB; solve {row['solve_ms_median']} ms median, {row['solve_ms_p95']} ms p95 "
                   f"= {row['fps_solve']} fps", flush=True)
-            if row["projector"] == "800x600":
+            if row["projector"] == "800x600" and fps_solve is None:
                 fps_solve = row["fps_solve"]
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1) + "\n")
