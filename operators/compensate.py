@@ -44,15 +44,19 @@ def scene_device(scene: bpy.types.Scene) -> str | None:
     return scene.procam_device or None
 
 
+def effects_diagnosis(scene: bpy.types.Scene) -> Path | None:
+    """The diagnosis folder the Compensate panel's Effect Models read (None: no effects chosen)."""
+    effects = scene.procam_effects.strip() or "none"
+    if effects.lower() == "none":
+        return None
+    return paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder (for the effect models)")
+
+
 def stage_c_options(scene: bpy.types.Scene) -> StageCOptions:
     """The scene's Compensate settings as the step's options (what ``procam compensate`` takes as flags)."""
     closed = scene.procam_compensation_mode in ("CLOSED", "LIVE")
-    effects = scene.procam_effects.strip() or "none"
-    diagnosis = None
-    if effects.lower() != "none":
-        diagnosis = paths.resolve(scene.procam_diagnosis_dir, "diagnosis folder (for the effect models)")
     return from_values(StageCOptions, lambda prop: getattr(scene, prop), device=scene_device(scene) if closed else None,
-                       diagnosis=diagnosis)
+                       diagnosis=effects_diagnosis(scene))
 
 
 def scene_targets(scene: bpy.types.Scene) -> tuple:

@@ -37,19 +37,22 @@ WINDOW_NEEDS_MAIN_THREAD = sys.platform == "darwin"
 PREVIEW_IMAGE = "ProCam Camera Preview"
 
 
+def window_placement(scene: bpy.types.Scene) -> str:
+    """The Live panel's projector window as the device string says it: ``display=N`` or ``position=X:Y``."""
+    if scene.procam_live_placement == "DISPLAY":
+        return f"display={scene.procam_live_display}"
+    x, y = scene.procam_live_position
+    return f"position={x}:{y}"
+
+
 def live_device(scene: bpy.types.Scene) -> str:
     """The scene's Live settings as the ``live:…`` device string (checked: a clear LiveError when it is wrong)."""
     camera = scene.procam_live_camera.strip()
     if not camera:
         raise LiveError("no live camera: type its index (0), device path (/dev/video2) or URL in the Live panel")
-    parts = [f"camera={camera}"]
-    if scene.procam_live_placement == "DISPLAY":
-        parts.append(f"display={scene.procam_live_display}")
-    else:
-        x, y = scene.procam_live_position
-        parts.append(f"position={x}:{y}")
-    parts += [f"average={scene.procam_live_average}", f"encoding={scene.procam_live_encoding}",
-              "latency=auto" if scene.procam_live_latency_auto else f"latency={scene.procam_live_latency:.4g}"]
+    parts = [f"camera={camera}", window_placement(scene), f"average={scene.procam_live_average}",
+             f"encoding={scene.procam_live_encoding}",
+             "latency=auto" if scene.procam_live_latency_auto else f"latency={scene.procam_live_latency:.4g}"]
     spec = "live:" + ",".join(parts)
     LiveSpec.parse(spec)  # a camera that is no index, path or URL fails here, with the parser's message
     return spec

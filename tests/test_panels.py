@@ -300,6 +300,37 @@ def test_live_panel_draws_placement_check_report_and_session(registered, tmp_pat
     assert "procam_device" not in props(compensate) and "Live panel" in texts(compensate)
 
 
+def test_live_panel_shows_the_live_shows_frame_rate_while_it_runs_and_its_report_after(registered):
+    """Running: the last second's figures and Stop Live Show in place of Start; after: the report's lines."""
+    from procam.addon.steps.live_show import LiveShowReport, LiveStatus, ShownFrame
+    from procam.operators.live_show import SHOW_STATUS
+
+    def operators(calls):
+        return [c[1]["operator"] for c in calls if c[0] == "operator"]
+
+    calls = draw_all(bpy.context)["PROCAM_PT_live"]
+    assert "procam.live_show_start" in operators(calls) and "procam_live_source" in [
+        c[1]["property"] for c in calls if c[0] == "prop"]
+    report = LiveShowReport(frames_in=4, dropped=1, seconds=0.2, stopped="the video ended",
+                            frames=[ShownFrame(n, 0.04 * n, 0.04 * n + 0.012, 8.0) for n in (1, 2, 4)])
+    gate = threading.Event()
+    job = jobs.BOARD.add("live_show", jobs.Job("live show", lambda *, progress, cancel: gate.wait(5) and report))
+    job.start()
+    try:
+        SHOW_STATUS.update(LiveStatus(3.0, 90, 85, 5, 9.6, 14.2, 29.7))
+        calls = draw_all(bpy.context)["PROCAM_PT_live"]
+        text = texts(calls)
+        assert "29.7 fps: shown 85, dropped 5" in text and "latency 14 ms, solve 10 ms" in text
+        assert "procam.live_show_stop" in operators(calls) and "procam.live_show_start" not in operators(calls)
+    finally:
+        gate.set()
+        job.wait(5)
+    calls = draw_all(bpy.context)["PROCAM_PT_live"]
+    text = texts(calls)
+    assert "Live show: 3 frames shown of 4 in, 1" in text and "16.7 fps (open loop)" in text  # wrapped lines
+    assert "stopped: the video ended" in text and "procam.live_show_start" in operators(calls)
+
+
 def test_step_messages_name_the_sidebar_fields_not_the_command_options():
     """The steps' messages are the command's ("rerun with --force"); the sidebar reports them by its fields, and
     every field a message may name is one the sidebar has."""

@@ -26,7 +26,8 @@ then black, and said; a file that ended then stops the run (its report says
 so); a stream that comes back resumes. A frame of another size than the
 source's first is fitted into the display area like any target, said once.
 Esc in a window stops the show (the report says so); a cancel raises
-:class:`Cancelled`; the windows always close.
+:class:`Cancelled` (:class:`LiveShowCancelled`, with the report so far, once
+the loop runs: Blender's Stop Live Show reports it); the windows always close.
 
 A status line every :data:`STATUS_EVERY` second goes to ``progress`` and
 ``on_status``: frames in, shown, dropped, the solve's milliseconds and the
@@ -90,7 +91,7 @@ class LiveShowOptions:
 
     calibration: Path
     source: str = option(
-        required=True, metavar="SOURCE",
+        required=True, metavar="SOURCE", label="Source", prop="procam_live_source", subtype="FILE_PATH",
         help="a video file (played at its own frame rate), a camera index (0) or device path (/dev/video0), or a "
              "network stream URL (rtsp://…, http://…/stream.mjpg)")
     device: str = option(required=True, check=_device, help=DEVICE_HELP)
@@ -103,12 +104,15 @@ class LiveShowOptions:
     area: tuple[int, int, int, int] | None = same_option(StageCOptions, "area")
     target_encoding: str = same_option(StageCOptions, "target_encoding",
                                        help="auto: 8-bit frames are sRGB and are linearised, 16-bit are linear")
-    refine_steps: int = option(REFINE_STEPS, min=0, max=50, metavar="N",
+    refine_steps: int = option(REFINE_STEPS, min=0, max=50, metavar="N", label="Refine Steps",
+                               prop="procam_live_refine_steps",
                                help=f"refinement steps per frame after the approximate inverse (default "
                                     f"{REFINE_STEPS}: within 0.1 dB of the transport schedule's in the lab)")
-    hold: float = option(2.0, min=0.0, max=3600.0, metavar="SECONDS",
+    hold: float = option(2.0, min=0.0, max=3600.0, metavar="SECONDS", label="Hold", prop="procam_live_hold",
                          help="a source that stalls or ends: hold its last frame this long, then black (default 2)")
-    duration: float | None = option(None, check=_seconds, metavar="SECONDS",
+    # The sidebar's 0 stands for no limit (its blank); the command line refuses 0 (_seconds).
+    duration: float | None = option(None, check=_seconds, metavar="SECONDS", label="Duration",
+                                    prop="procam_live_duration", blank=0.0, min=0.0,
                                     help="stop after this many seconds (default: until the source ends, Esc in the "
                                          "window or Ctrl-C)")
 
@@ -203,6 +207,14 @@ class LiveShowReport:
                 f"solve {fmt(sm)} ms median, {fmt(sp)} ms p95; latency source → flip {fmt(lm)} ms median, "
                 f"{fmt(lp)} ms p95",
                 f"stopped: {self.stopped}"]
+
+
+class LiveShowCancelled(Cancelled):
+    """A live show cancelled while its loop ran: the report of what it showed until then."""
+
+    def __init__(self, message: str, report: LiveShowReport) -> None:
+        super().__init__(message)
+        self.report = report
 
 
 @dataclass(frozen=True)
@@ -475,6 +487,8 @@ class _Loop:
                         self.on_status(status)
         except WindowClosed:
             report.stopped = "Esc in the projector window"
+        except Cancelled as exc:  # the report so far goes with it (completed by the finally below)
+            raise LiveShowCancelled(str(exc), report) from exc
         finally:
             report.seconds = time.perf_counter() - t0
             report.frames_in, report.dropped = source.frames_in, source.dropped
@@ -514,5 +528,5 @@ class _Loop:
         return got[-1][0] if got else camera_seen
 
 
-__all__ = ["LatencyFigures", "LiveShowOptions", "LiveShowReport", "LiveStatus", "ShownFrame", "clip_latency",
-           "latency_figures", "run_live_show"]
+__all__ = ["LatencyFigures", "LiveShowCancelled", "LiveShowOptions", "LiveShowReport", "LiveStatus", "ShownFrame",
+           "clip_latency", "latency_figures", "run_live_show"]
