@@ -170,14 +170,14 @@ def quality(cal_dir: Path, truth: Path, frames: int) -> dict[str, Any]:
                 start = stage.start_from_frame(full.frame)
                 area = full.area
                 target = full.fitted
-                for name, frame in (("realtime", fast.frames[0].astype(np.float32) / 255.0),
+                for name, frame in (("realtime", fast.frames[0][..., :3].astype(np.float32) / 255.0),
                                     ("transport", full.frame)):
                     cap = area.crop(device.project(frame))
                     caps[name].append(cap)
                     (ours if name == "realtime" else theirs).append(psnr(np.clip(cap, 0, 1), target))
                 caps["target"].append(target)
                 if i == frames - 1:  # the camera's own change: the last frame captured once more
-                    again = area.crop(device.project(fast.frames[0].astype(np.float32) / 255.0))
+                    again = area.crop(device.project(fast.frames[0][..., :3].astype(np.float32) / 255.0))
                     noise = float(np.mean(np.abs(again - caps["realtime"][-1])))
                 print(f"  frame {i}: realtime {ours[-1]:.2f} dB ({fast.solve_ms:.1f} ms), transport {theirs[-1]:.2f} "
                       f"dB", flush=True)

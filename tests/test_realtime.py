@@ -75,8 +75,8 @@ def test_realtime_solve_is_within_half_a_db_of_the_full_transport_solve(calibrat
         full = stage.compensate(image, name="city", what="t", verify=False)
         out = solver.solve(image)
         proj = cal.rig.projector
-        assert len(out.frames) == 1 and out.frames[0].shape == (proj.intrinsics.height, proj.intrinsics.width, 3)
-        assert out.frames[0].dtype == np.uint8 and out.frames[0].max() > 10 and out.solve_ms > 0
+        assert len(out.frames) == 1 and out.frames[0].shape == (proj.intrinsics.height, proj.intrinsics.width, 4)
+        assert out.frames[0].dtype == np.uint8 and out.frames[0][..., :3].max() > 10 and out.solve_ms > 0
         ours, theirs = _operator_psnr(solver, out, full.result.target), full.result.report["psnr_operator"]
         assert ours > theirs - 0.5, (ours, theirs)
         # The inverse alone is a fair start, and the refinement step is what closes the gap.
@@ -101,7 +101,9 @@ def test_frame_gather_is_the_warp_and_placement_of_the_input(calibration):
         expected = proj.frame_from_input(np.clip(z if w is None else w.apply_w(z), 0.0, 1.0))
         gather = FrameGather(view, proj, w)
         assert np.abs(gather(zc) - expected).max() < 1e-5
-        assert np.abs(gather.levels(zc).astype(np.float32) - np.rint(expected * 255)).max() <= 1
+        levels = gather.levels(zc)
+        assert np.abs(levels[..., :3].astype(np.float32) - np.rint(expected * 255)).max() <= 1
+        assert (levels[..., 3] == 255).all()
 
 
 def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibration):
@@ -146,7 +148,7 @@ def test_several_projectors_each_solve_their_share_of_the_blend(two_projector_la
         out = solver.solve(image)
         assert len(out.frames) == 2
         for frame, proj in zip(out.frames, cal.rig.projectors):
-            assert frame.shape == (proj.intrinsics.height, proj.intrinsics.width, 3) and frame.max() > 12
+            assert frame.shape == (proj.intrinsics.height, proj.intrinsics.width, 4) and frame[..., :3].max() > 12
         plan = solver._plan(out.area)
         assert plan.keep == [0, 1]
         shares = np.concatenate(plan.shares, axis=1)

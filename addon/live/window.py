@@ -129,16 +129,17 @@ class ProjectorWindow:
         self._pump()
 
     def put(self, frame: np.ndarray) -> None:
-        """Draw ``frame`` (H×W×3 floats in [0, 1], or 8-bit levels, the native size) into the window's buffer
-        without showing it yet: several windows are drawn first and flipped one right after the other
+        """Draw ``frame`` (H×W×3 floats in [0, 1], or 8-bit levels RGB or RGBX, the native size) into the window's
+        buffer without showing it yet: several windows are drawn first and flipped one right after the other
         (``device.py``). Values become 8-bit levels with no transfer curve."""
         f = np.asarray(frame)
         w, h = self.size
         if f.shape[:2] != (h, w):
             raise LiveError(f"a projector frame must be {w}×{h}, got {f.shape[1]}×{f.shape[0]}")
-        if f.dtype == np.uint8 and f.ndim == 3 and f.shape[2] == 3:
-            # Levels row by row, as SDL stores an RGB surface: blitted from the array's memory, no transpose.
-            self._surface.blit(self._pg.image.frombuffer(np.ascontiguousarray(f), self.size, "RGB"), (0, 0))
+        if f.dtype == np.uint8 and f.ndim == 3 and f.shape[2] in (3, 4):
+            # Levels row by row, as SDL stores an RGB(X) surface: blitted from the array's memory, no transpose.
+            layout = "RGB" if f.shape[2] == 3 else "RGBX"
+            self._surface.blit(self._pg.image.frombuffer(np.ascontiguousarray(f), self.size, layout), (0, 0))
             return
         levels = np.clip(np.rint(f * 255.0), 0, 255).astype(np.uint8)
         if levels.ndim == 2:

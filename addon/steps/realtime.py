@@ -49,7 +49,8 @@ REFINE_STEPS = 1
 class RealtimeFrame:
     """One solved source frame: every projector's native frame, and what it cost."""
 
-    #: one per projector: its native frame as the 8-bit levels its window shows (H×W×3 uint8, no transfer curve)
+    #: one per projector: its native frame as the 8-bit levels its window shows, RGBX (H×W×4 uint8, the fourth
+    #: byte unused: the layout SDL blits from; no transfer curve)
     frames: list[np.ndarray]
     solve_ms: float
     steps: int
@@ -196,7 +197,7 @@ class RealtimeSolver:
         area = stage.area_for(image)
         plan = self._plan(area)
         want = self._fitted(image, area) + plan.theta
-        frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 3), np.uint8) for comp in comps]
+        frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 4), np.uint8) for comp in comps]
         inputs = []
         for k, rv, gather, share in zip(plan.keep, plan.views, plan.gathers, plan.shares):
             zc = rv.solve(want if share is None else share * want, None, self.refine_steps)
@@ -206,7 +207,8 @@ class RealtimeSolver:
             else:  # the effect models' projector side works on the input image
                 comp = comps[k]
                 x = comp.warp_w(rv.view.expand(rv.compact(zc), np.zeros((comp.ih, comp.iw, 3), np.float32)))
-                frames[k] = np.rint(np.clip(adapters[k].frame_to_send(x), 0.0, 1.0) * 255.0).astype(np.uint8)
+                levels = np.rint(np.clip(adapters[k].frame_to_send(x), 0.0, 1.0) * 255.0).astype(np.uint8)
+                frames[k][..., :3] = levels
         out = RealtimeFrame(frames, (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, inputs)
         self.last = out
         return out
