@@ -362,3 +362,91 @@ def test_the_real_time_solver_shows_a_clip_end_to_end(xvfb, stored, tmp_path, ca
                  "--duration", "1"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("live show: ") and "frames shown of" in out and "stopped: after 1 s (--duration)" in out
+
+
+# -- several projectors -------------------------------------------------------------------------------------------
+
+TWO_AT = (ORIGIN, (300, 30))
+TWO = "live:position=" + "+".join(f"{x}:{y}" for x, y in TWO_AT)
+
+
+@pytest.fixture(scope="module")
+def two_stored(two_projector_lab):
+    """The two-projector calibration (projectors 160×120 side by side, 20 % overlap) with both inverses stored."""
+    folder = two_projector_lab / "cal"
+    assert main(["precompute", str(folder), "--live"]) == 0
+    return folder
+
+
+def _gradient_clip(path, size=(96, 72), frames=60, fps=30.0):
+    """A clip dark on the left and bright on the right, so that each projector's share is a picture of its own."""
+    w, h = size
+    ramp = np.linspace(30, 230, w).astype(np.uint8)
+    frame = np.repeat(np.repeat(ramp[None, :, None], h, axis=0), 3, axis=2)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
+    for _ in range(frames):
+        writer.write(frame)
+    writer.release()
+    return path
+
+
+def _recording(made: list):
+    def make(stage, refine_steps, say):
+        solver = live_show.open_solver(stage, refine_steps, say)
+        made.append(solver)
+        return solver
+    return make
+
+
+def test_a_rig_of_two_projectors_shows_each_ones_frame_in_its_own_window(xvfb, two_stored, tmp_path, capsys,
+                                                                          monkeypatch):
+    """The real solver on a two-projector calibration: two windows at their positions, each showing the frame the
+    solver returned for its projector (different pictures, neither black); the command exits 0 with its report;
+    a device of one window is refused before any window opens; a projector dark in the display area shows black."""
+    from procam.addon.steps import calibrate
+
+    sizes = [tuple(p.intrinsics.size) for p in calibrate.read(two_stored).rig.projectors]
+    regions = [(*at, *size) for at, size in zip(TWO_AT, sizes)]
+    clip = _gradient_clip(tmp_path / "g.avi")
+    made: list = []
+    seen: list = []
+
+    def grab(status):  # on the loop's thread, after its last flip: the windows show the solver's last frames
+        seen.append(([_grab(r) for r in regions], [f.copy() for f in made[0].last.frames]))
+
+    report = run_live_show(LiveShowOptions(two_stored, str(clip), TWO, hold=0.0), on_status=grab,
+                           solver_for=_recording(made))
+    assert report.stopped == "the video ended" and report.frames_in == 60
+    assert report.shown >= 30 and report.shown + report.dropped == 60, report.lines()
+    assert seen, report.lines()
+    screens, frames = seen[-1]
+    for screen, frame in zip(screens, frames):
+        assert screen.shape == frame.shape and frame.mean() > 10
+        assert abs(float(screen.mean()) - float(frame.mean())) < 1.0, (screen.mean(), frame.mean())
+        assert np.abs(screen.astype(np.int16) - frame).mean() < 1.0
+    assert np.abs(frames[0].astype(np.int16) - frames[1]).mean() > 10  # each projector its own picture
+    with capsys.disabled():
+        print(f"two projectors under Xvfb: {report.shown} of {report.frames_in} shown, solve "
+              f"{report.solve_ms[0]:.1f} ms median, latency {report.latency_ms[0]:.1f} ms median; windows' mean "
+              f"levels {', '.join(f'{s.mean():.1f}' for s in screens)} (solver "
+              f"{', '.join(f'{f.mean():.1f}' for f in frames)})")
+    # The command: its report, exit 0.
+    capsys.readouterr()
+    assert main(["live-show", str(two_stored), "--source", str(clip), "--device", TWO, "--hold", "0",
+                 "--duration", "1"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("live show: ") and "frames shown of" in out and "stopped: after 1 s (--duration)" in out
+    # One window for two projectors: refused before any window opens.
+    opened: list = []
+    with monkeypatch.context() as m:
+        m.setattr(live_show, "ProjectorWindow", lambda *a, **k: opened.append(a))
+        assert main(["live-show", str(two_stored), "--source", str(clip), "--device", DEVICE]) == 2
+    assert "this rig has 2 projectors but the live device names 1 display(s)" in capsys.readouterr().err
+    assert opened == []
+    # A display area only projector 1 reaches (camera columns 20–50): projector 2's window stays black.
+    dark: list = []
+    report = run_live_show(LiveShowOptions(two_stored, str(clip), TWO, hold=0.0, duration=1.0, area=(20, 30, 30, 30)),
+                           on_status=lambda s: dark.append([_grab(r) for r in regions]))
+    assert "warning: projector 2 lights nothing inside the display area: its frame is black" in report.said
+    assert report.shown >= 10 and dark, report.lines()
+    assert dark[-1][0].mean() > 10 and dark[-1][1].max() == 0
