@@ -38,11 +38,24 @@ PREVIEW_IMAGE = "ProCam Camera Preview"
 
 
 def window_placement(scene: bpy.types.Scene) -> str:
-    """The Live panel's projector window as the device string says it: ``display=N`` or ``position=X:Y``."""
+    """The Live panel's projector window(s) as the device string says them: ``display=N`` or ``position=X:Y``; a
+    rig of several projectors one each, in rig order, joined by ``+`` (``display=1+2``, ``position=X:Y+X:Y``)."""
     if scene.procam_live_placement == "DISPLAY":
-        return f"display={scene.procam_live_display}"
-    x, y = scene.procam_live_position
-    return f"position={x}:{y}"
+        key, field, form = "display", "Display", "a display index (1), or one per projector joined by + (1+2)"
+        typed = scene.procam_live_display
+    else:
+        key, field, form = "position", "Position", "X:Y in desktop pixels (40:30), or one per projector joined by " \
+                                                   "+ (40:30+300:30)"
+        typed = scene.procam_live_position
+    value = "".join(typed.split())  # spaces typed around + or : are no part of the value
+    # numbers, + and : alone: a comma would slip another key (a camera) into the device string
+    if not value or value.strip("0123456789+:-"):
+        raise LiveError(f"the Live panel's {field} must be {form}, got {typed!r}")
+    try:
+        LiveSpec.parse(f"{key}={value}", camera_required=False)
+    except LiveError as exc:
+        raise LiveError(f"the Live panel's {field} must be {form}, got {typed!r} ({exc})") from None
+    return f"{key}={value}"
 
 
 def live_device(scene: bpy.types.Scene) -> str:

@@ -5,7 +5,7 @@ camera preview, the calibration set captured live, where Compensate's Live mode 
 from pathlib import Path
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, IntVectorProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from ..addon import jobs
 from ..addon.options import prop_name, sidebar_fields
@@ -48,12 +48,14 @@ def scene_properties() -> dict[str, object]:
             description="The camera: an index (0, 1 …), a device path (/dev/video2) or a URL "
                         "(http://…/video.mjpg from a network camera or a phone, rtsp://…)"),
         "procam_live_placement": EnumProperty(name="Window", items=PLACEMENT_ITEMS, default="DISPLAY"),
-        "procam_live_display": IntProperty(
-            name="Display", default=1, min=0, soft_max=8,
-            description="Index of the projector's display (Check Live Rig lists them; 0 is usually the main one)"),
-        "procam_live_position": IntVectorProperty(
-            name="Position", size=2, default=(0, 0), subtype="XYZ",
-            description="Top-left corner of the projector window in desktop pixels"),
+        "procam_live_display": StringProperty(
+            name="Display", default="1",
+            description="Index of the projector's display (Check Live Rig lists them; 0 is usually the main one); "
+                        "a rig of several projectors: one per projector in rig order, joined by + (1+2)"),
+        "procam_live_position": StringProperty(
+            name="Position", default="0:0",
+            description="Top-left corner X:Y of the projector window in desktop pixels; a rig of several "
+                        "projectors: one per projector in rig order, joined by + (40:30+300:30)"),
         "procam_live_average": IntProperty(
             name="Frames Averaged", default=1, min=1, max=64,
             description="Camera frames averaged per capture: more lowers the camera's noise, each costs one frame"),

@@ -25,7 +25,7 @@ DEAD_URL = "http://127.0.0.1:9/stream.mjpg"
 def _live_scene(scene, url: str) -> None:
     scene.procam_live_camera = url
     scene.procam_live_placement = "POSITION"
-    scene.procam_live_position = ORIGIN
+    scene.procam_live_position = f"{ORIGIN[0]}:{ORIGIN[1]}"
     scene.procam_live_encoding = "linear"  # the loopback camera streams linear values
 
 
@@ -35,7 +35,7 @@ def test_live_device_string(registered):
     scene = bpy.context.scene
     assert live_device(scene) == "live:camera=0,display=1,average=1,encoding=srgb,latency=auto"
     scene.procam_live_camera = " http://10.0.0.5:8080/video?a=1,b=2 "
-    scene.procam_live_placement, scene.procam_live_position = "POSITION", (1920, -40)
+    scene.procam_live_placement, scene.procam_live_position = "POSITION", "1920:-40"
     scene.procam_live_average, scene.procam_live_encoding = 8, "linear"
     scene.procam_live_latency_auto, scene.procam_live_latency = False, 0.125
     text = live_device(scene)
@@ -52,6 +52,27 @@ def test_live_device_string(registered):
     assert not bpy.ops.procam.live_preview.poll() and not bpy.ops.procam.live_check.poll()
 
 
+def test_the_window_fields_take_one_placement_per_projector(registered):
+    """Display and Position take one window per projector of the rig, joined by + as in the device string; a value
+    that is not one is refused saying the form, and no other key slips into the device string."""
+    from procam.operators.live import live_device, window_placement
+
+    scene = bpy.context.scene
+    scene.procam_live_display = "1 + 2"
+    assert window_placement(scene) == "display=1+2"
+    assert LiveSpec.parse(live_device(scene)).displays == (1, 2)
+    scene.procam_live_placement, scene.procam_live_position = "POSITION", "40:30+300:-30"
+    assert window_placement(scene) == "position=40:30+300:-30"
+    for bad in ("", "40", "40:30+40:30", "1,camera=3", "40:30+x:1"):
+        scene.procam_live_position = bad
+        with pytest.raises(LiveError, match=r"Live panel's Position must be X:Y in desktop pixels \(40:30\), or one "
+                                            r"per projector joined by \+"):
+            window_placement(scene)
+    scene.procam_live_placement, scene.procam_live_display = "DISPLAY", "1+two"
+    with pytest.raises(LiveError, match="Live panel's Display must be a display index"):
+        window_placement(scene)
+
+
 def test_compensate_live_mode_passes_the_live_string(registered, tmp_path):
     from procam.operators.compensate import PROCAM_OT_compensate, PROCAM_OT_evaluate, stage_c_options
 
@@ -62,7 +83,7 @@ def test_compensate_live_mode_passes_the_live_string(registered, tmp_path):
     scene.procam_calibration_dir = str(tmp_path)
     scene.procam_target_folder = str(tmp_path)
     assert "Live panel" in PROCAM_OT_compensate.why_not(scene)
-    scene.procam_live_camera, scene.procam_live_display = "2", 1
+    scene.procam_live_camera, scene.procam_live_display = "2", "1"
     scene.procam_compensation_dir = str(tmp_path / "comp")
     assert PROCAM_OT_compensate.why_not(scene) is None
     options = stage_c_options(scene)

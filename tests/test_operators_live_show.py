@@ -48,7 +48,7 @@ def _scene(calibration, source):
     scene.procam_calibration_dir = str(calibration)
     scene.procam_live_source = str(source)
     scene.procam_live_placement = "POSITION"
-    scene.procam_live_position = ORIGIN
+    scene.procam_live_position = f"{ORIGIN[0]}:{ORIGIN[1]}"
     scene.procam_live_hold = 0.0
     return scene
 
@@ -164,3 +164,36 @@ def test_stop_or_esc_ends_the_show_with_its_report_and_the_window_closes(registe
     time.sleep(0.1)
     assert _grab(_window(stored)).max() == 0  # the window closed
     assert not bpy.ops.procam.live_show_stop.poll()
+
+
+def test_start_shows_a_rig_of_two_projectors_in_two_windows(registered, xvfb, two_projector_lab, tmp_path,
+                                                             monkeypatch):
+    """Start Live Show on a two-projector calibration: the Position field's two windows become the device string,
+    and each window shows its projector's frame; the field's one window for two projectors is refused, saying how
+    to give two."""
+    from procam.addon.steps import calibrate
+    from procam.operators.live_show import show_device
+
+    cal = two_projector_lab / "cal"
+    assert main(["precompute", str(cal), "--live"]) == 0
+    at = (ORIGIN, (300, 30))
+    regions = [(*xy, *p.intrinsics.size) for xy, p in zip(at, calibrate.read(cal).rig.projectors)]
+    scene = _scene(cal, write_marker_clip(tmp_path / "c.avi", (96, 72), 45, fps=30.0, dark=120))
+    with pytest.raises(RuntimeError, match="this rig has 2 projectors but the live device names 1 display"):
+        bpy.ops.procam.live_show_start()
+    scene.procam_live_position = "40:30 + 300:30"
+    assert show_device(scene) == "live:position=40:30+300:30"
+    seen, real = [], jobs.Job.progress
+
+    def progress(self, message, fraction):  # each status line: what the two windows show then
+        if message.startswith("in "):
+            seen.append([_grab(r) for r in regions])
+        return real(self, message, fraction)
+
+    monkeypatch.setattr(jobs.Job, "progress", progress)
+    assert bpy.ops.procam.live_show_start() == {"FINISHED"}
+    report = jobs.BOARD.get("live_show").result
+    assert report.stopped == "the video ended" and report.shown > 20 and report.frames_in == 45, report.lines()
+    assert seen, report.lines()
+    first, second = seen[-1]
+    assert first.mean() > 5 and second.mean() > 5 and np.abs(first.astype(np.int16) - second).mean() > 1
