@@ -412,7 +412,7 @@ def test_a_rig_of_two_projectors_shows_each_ones_frame_in_its_own_window(xvfb, t
     seen: list = []
 
     def grab(status):  # on the loop's thread, after its last flip: the windows show the solver's last frames
-        seen.append(([_grab(r) for r in regions], [f.copy() for f in made[0].last.frames]))
+        seen.append(([_grab(r) for r in regions], [f[..., :3].copy() for f in made[0].last.frames]))  # RGB(X)
 
     report = run_live_show(LiveShowOptions(two_stored, str(clip), TWO, hold=0.0), on_status=grab,
                            solver_for=_recording(made))
