@@ -20,13 +20,11 @@ from procam.addon.steps.projectors import JointStage
 from procam.addon.steps.realtime import RealtimeSolver
 from procam.addon.steps.stage_c import StageC, StageCOptions
 
-SMALL = dict(scale=0.25, samples=8)
-
-
 @pytest.fixture(scope="module")
 def calibration(lab_calibration, tmp_path_factory):
-    """A small lab calibration (camera 160×120) of its own, with its operator and inverse stored."""
-    cal_dir, _, _ = lab_calibration("curve", "", **SMALL)
+    """The suite's small lab calibration (the vedge, camera 192×144), copied, with its operator and inverse
+    stored."""
+    cal_dir, _, _ = lab_calibration()
     folder = tmp_path_factory.mktemp("realtime") / "cal"
     shutil.copytree(cal_dir, folder)
     assert main(["precompute", str(folder), "--live"]) == 0
@@ -71,7 +69,7 @@ def test_realtime_solve_is_within_half_a_db_of_the_full_transport_solve(calibrat
         said: list[str] = []
         solver = RealtimeSolver.for_stage(stage, progress=lambda msg, frac: said.append(msg))
         assert not any("building it now" in m for m in said)  # the stored inverse was read
-        image = natural_target("city", (160, 120))
+        image = natural_target("city", (192, 144))
         full = stage.compensate(image, name="city", what="t", verify=False)
         out = solver.solve(image)
         proj = cal.rig.projector
@@ -89,7 +87,7 @@ def test_frame_gather_is_the_warp_and_placement_of_the_input(calibration):
     cal = calibrate_step.read(calibration)
     stage = StageC(cal, StageCOptions())
     comp = stage.compensator
-    area = stage.area_for(np.zeros((120, 160, 3), np.float32))
+    area = stage.area_for(np.zeros((144, 192, 3), np.float32))
     view = comp.transport.rows(np.flatnonzero(area.mask(comp.camera_size).ravel()))
     proj = cal.rig.projector
     identity = Warp.identity(proj.input_size)
@@ -110,7 +108,7 @@ def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibratio
     cal = calibrate_step.read(calibration)
     stage = StageC(cal, StageCOptions())
     solver = RealtimeSolver.for_stage(stage)
-    out = solver.solve(natural_target("forest", (160, 120)))
+    out = solver.solve(natural_target("forest", (192, 144)))
     plan = solver._plan(out.area)
     before = solver.theta(out.area).copy()
     predicted = solver.predicted(out)
@@ -121,7 +119,7 @@ def test_follow_moves_theta_a_small_step_towards_the_cameras_residual(calibratio
     moved = solver.theta(out.area) - before
     lit = predicted.min(axis=1) > 0.2
     assert np.allclose(moved[lit], 0.1 * (0.1 - before[lit]), atol=1e-4)  # 2α(residual − θ), α = 0.05
-    with pytest.raises(InverseError, match="must be 160×120"):
+    with pytest.raises(InverseError, match="must be 192×144"):
         solver.follow(np.zeros((10, 10, 3), np.float32), out)
 
 
