@@ -19,7 +19,8 @@ a 20 s loop; ``--seconds 60`` gives the 60 s clip's figures.
 * **loop** — ``procam live-show`` of that calibration on a projector window
   under Xvfb (open loop), a ``--seconds`` MJPEG clip of the panning picture
   at 30 fps as the source: frames per second of the whole loop, source → flip
-  latency (median and 95th percentile), frames dropped.
+  latency (median and 95th percentile), frames dropped. ``--fps 60`` plays a
+  clip faster than the loop, to measure the loop's own ceiling.
 * **speed** — for each projector size in ``--sizes``, the demo rig at that
   size (camera at 0.8 × its width and height, as the demo's 640×480 for
   800×600; the demo's lens, pose and input share of the frame) on the built-in
@@ -216,14 +217,14 @@ def write_clip(path: Path, size: tuple[int, int], seconds: float, fps: float = 3
     return path
 
 
-def loop(cal_dir: Path, work: Path, seconds: float) -> dict[str, Any]:
+def loop(cal_dir: Path, work: Path, seconds: float, fps: float = 30.0) -> dict[str, Any]:
     """``procam live-show`` of ``cal_dir`` under Xvfb, a ``seconds`` clip as the source (module doc)."""
     if shutil.which("Xvfb") is None:
         raise SystemExit("the loop part needs Xvfb (Debian: apt-get install xvfb)")
     cal = calibrate_step.read(cal_dir)
     fw, fh = cal.rig.projector.intrinsics.size
     cw, ch = cal.rig.camera.intrinsics.size
-    clip = write_clip(work / f"clip-{round(seconds)}s.avi", (cw, ch), seconds)
+    clip = write_clip(work / f"clip-{round(seconds)}s-{round(fps)}fps.avi", (cw, ch), seconds, fps)
     n = next(i for i in range(90, 200) if not Path(f"/tmp/.X11-unix/X{i}").exists())
     server = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", f"{fw + 40}x{fh + 40}x24", "-nolisten", "tcp"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -240,7 +241,7 @@ def loop(cal_dir: Path, work: Path, seconds: float) -> dict[str, Any]:
         server.terminate()
         server.wait()
     sm, sp = report.solve_ms
-    return {"projector": f"{fw}x{fh}", "seconds": seconds, "frames_in": figures.frames_in,
+    return {"projector": f"{fw}x{fh}", "seconds": seconds, "clip_fps": fps, "frames_in": figures.frames_in,
             "shown": figures.shown, "dropped": figures.dropped, "fps_loop": round(figures.fps, 1),
             "latency_ms_median": _round(figures.median_ms), "latency_ms_p95": _round(figures.p95_ms),
             "solve_ms_median": _round(sm)}
@@ -254,6 +255,7 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="lab resolution of the quality and loop parts")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--seconds", type=float, default=20.0, help="clip length of the loop part")
+    ap.add_argument("--fps", type=float, default=30.0, help="the clip's frame rate (above 30: the loop's own ceiling)")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None, help="write every figure here too")
     args = ap.parse_args()
@@ -274,8 +276,9 @@ def main() -> None:
         if row["projector"] == "800x600":
             fps_solve = row["fps_solve"]
     if "loop" in parts:
-        row = figures["loop"] = loop(cal_dir, work, args.seconds)
-        print(f"loop {row['projector']} under Xvfb, {row['seconds']:.0f} s clip at 30 fps: {row['fps_loop']} fps, "
+        row = figures["loop"] = loop(cal_dir, work, args.seconds, args.fps)
+        print(f"loop {row['projector']} under Xvfb, {row['seconds']:.0f} s clip at {row['clip_fps']:.0f} fps: "
+              f"{row['fps_loop']} fps, "
               f"{row['shown']} shown of {row['frames_in']}, {row['dropped']} dropped; latency source → flip "
               f"{row['latency_ms_median']} ms median, {row['latency_ms_p95']} ms p95; solve {row['solve_ms_median']} "
               "ms median", flush=True)
