@@ -81,8 +81,17 @@ def parse_source(text: str) -> tuple[str, int | str]:
 
 def linear_frame(img: np.ndarray, encoding: str = "auto") -> np.ndarray:
     """An OpenCV frame (BGR or grey, 8- or 16-bit) as linear RGB float32 H×W×3 in [0, 1]."""
+    import cv2  # not at the top: Blender registers the extension without loading OpenCV
+
     if img.ndim == 2:
         img = img[..., None]
+    if img.dtype == np.uint8 and img.shape[2] in (3, 4):
+        # OpenCV's own channel swap and table lookup: 7 ms for a 1280×960 frame where NumPy's indexing of the
+        # reversed channels took 34 (the source's thread runs it on every frame the source delivers).
+        rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGB)
+        if encoding == "linear":
+            return rgb.astype(np.float32) * np.float32(1.0 / 255.0)
+        return cv2.LUT(rgb, _SRGB_LUT.reshape(1, 256))
     rgb = img[..., 2::-1] if img.shape[2] >= 3 else np.repeat(img[..., :1], 3, axis=2)
     if rgb.dtype == np.uint8:
         if encoding == "linear":
