@@ -24,7 +24,7 @@ from __future__ import annotations
 import stat
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,13 +47,24 @@ class SourceError(LiveError):
     """A live show's source that cannot be opened or read."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class Frame:
-    """One frame of the source: its number (1, 2, … in arrival order), when it arrived, the linear image."""
+    """One frame of the source: its number (1, 2, … in arrival order), when it arrived, and its image as OpenCV
+    decoded it, linearised the first time :attr:`image` is asked for: the frames a show drops (a source faster
+    than the solve) are never converted, which kept a core's fifth busy at 1280×960 and 30 fps."""
 
     number: int
     arrived: float
-    image: np.ndarray
+    raw: np.ndarray
+    encoding: str = "auto"
+    _image: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def image(self) -> np.ndarray:
+        """Linear RGB float32 H×W×3 in [0, 1]."""
+        if self._image is None:
+            self._image = linear_frame(self.raw, self.encoding)
+        return self._image
 
 
 def parse_source(text: str) -> tuple[str, int | str]:
@@ -148,7 +159,7 @@ class FrameSource:
             if waiting:
                 assert self._newest is not None
                 # it arrives for the show now: its latency counts from here, not from the source's opening
-                self._newest = Frame(self._newest.number, time.perf_counter(), self._newest.image)
+                self._newest = replace(self._newest, arrived=time.perf_counter())
             self.frames_in, self.dropped = int(waiting), 0
         self._go.set()
 
@@ -179,7 +190,7 @@ class FrameSource:
             self.frames_in += 1
             if self._newest is not None and self._newest.number > self._taken:
                 self.dropped += 1  # overwritten before the show took it
-            self._newest = Frame(self._count, time.perf_counter(), image)
+            self._newest = Frame(self._count, time.perf_counter(), image, self.encoding)
             self._cond.notify_all()
 
     def _read(self) -> None:
@@ -217,7 +228,7 @@ class FrameSource:
                     time.sleep(0.01)
                 continue
             failures = 0
-            image = linear_frame(img, self.encoding)
+            image = img  # linearised when the show takes it (Frame.image)
             if period:  # a file plays at its own rate: each frame arrives when it is due
                 if not self._count:
                     self._publish(image)  # the first frame at once, checked when the source opens
