@@ -154,6 +154,9 @@ def test_sources_are_parsed_and_converted(tmp_path):
     grey = np.array([[[0, 128, 255]]], np.uint8)  # BGR
     np.testing.assert_allclose(linear_frame(grey)[0, 0], [1.0, 0.2158605, 0.0], atol=1e-5)
     np.testing.assert_allclose(linear_frame(grey, "linear")[0, 0], [1.0, 128 / 255, 0.0], atol=1e-6)
+    bgra = np.array([[[0, 128, 255, 7]]], np.uint8)  # a camera backend's four channels: alpha dropped
+    np.testing.assert_allclose(linear_frame(bgra)[0, 0], [1.0, 0.2158605, 0.0], atol=1e-5)
+    np.testing.assert_allclose(linear_frame(np.array([[128]], np.uint8))[0, 0], [0.2158605] * 3, atol=1e-5)
 
 
 def test_a_file_plays_at_its_own_rate_and_only_the_newest_frame_is_kept(tmp_path):
