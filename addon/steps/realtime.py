@@ -40,8 +40,8 @@ from .stage_c import StageC
 
 #: θ's step towards each camera image's residual (module doc)
 FOLLOW_RATE = 0.05
-#: SIRT steps after the one-pass inverse: one recovers what the inverse leaves to within 0.1 dB of the full
-#: ``transport`` solve on the lab's targets (scripts/bench_live_show.py)
+#: SIRT steps after the one-pass inverse: one brings it within 0.15 dB of the full ``transport`` solve on the
+#: operator and 0.25 dB captured, on the lab's targets (scripts/bench_live_show.py)
 REFINE_STEPS = 1
 
 
