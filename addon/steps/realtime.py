@@ -5,17 +5,17 @@
 projectors), so a live show places, maps (``--range``) and adapts
 (``--effects``) each picture exactly as a show does, and solves it with
 ``stages/realtime.py``: the approximate inverse in one pass, then
-``refine_steps`` SIRT steps warm-started from the previous frame. A source
+``refine_steps`` SIRT steps from there, the interreflection taken from the previous frame's answer. A source
 frame becomes every projector's native frame in one call (:meth:`RealtimeSolver.solve`).
 
 θ: the open loop's model (from the calibration's validation captures) at the
 start; :meth:`RealtimeSolver.follow` moves it towards the residual of a camera
-image of frames that were shown, a step of :data:`FOLLOW_RATE` at a time (θ
-then reaches 95 % of a change after about 30 captures, a second at 30 captures
-a second: slow enough that it does not chase the picture's own motion, which
-would flicker).
+image of frames that were shown, ``2·FOLLOW_RATE`` of the way at a time (θ
+then reaches 95 % of a change after about 30 camera frames, 3 s at the live
+show's 10 a second: slow enough that it does not chase the picture's own
+motion, which would flicker).
 
-The inverse is stored beside the operator (``layout.inverse_files(k)``:
+The inverse is stored beside the operator (``steps/inverse.py``, ``layout.inverse_files(k)``:
 ``inverse.npz`` and ``inverse.json`` with the calibration's hashes, bounces
 and seed), by ``procam precompute --live``; a live show reads it when it
 belongs to the calibration and otherwise builds it in memory (saying so),
