@@ -19,6 +19,8 @@ Effect Models and Display Area the Compensate panel's.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import bpy
 
 from ..addon import jobs
@@ -36,12 +38,12 @@ from .live import WINDOW_NEEDS_MAIN_THREAD, live_device, window_placement
 STOPPED_IN_BLENDER = "Stop Live Show (or Esc) in Blender"
 
 
+@dataclass
 class ShowStatus:
     """The running live show's newest status: written by the show's thread once a second, read by the panel (one
     attribute set and read whole: no lock needed)."""
 
-    def __init__(self) -> None:
-        self.latest: LiveStatus | None = None
+    latest: LiveStatus | None = None
 
     def update(self, status: LiveStatus) -> None:
         self.latest = status

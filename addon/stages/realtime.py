@@ -376,9 +376,8 @@ class FrameGather:
     the frame pixels some lit texel reaches are gathered (half of an 800×600 frame on the lab's curve); the rest
     stay black."""
 
-    def __init__(self, view: TransportRows | BlurredRows, projector: Any, warp: Any = None) -> None:
-        inner = view.view if isinstance(view, BlurredRows) else view
-        self._dr, self._float, self._uint = inner._dr, inner._float, inner._uint
+    def __init__(self, view: TransportRows, projector: Any, warp: Any = None) -> None:
+        self._dr, self._float, self._uint = view._dr, view._float, view._uint
         iw, ih = projector.input_size
         fw, fh = projector.intrinsics.size
         x0, y0 = projector.input_offset
@@ -402,8 +401,8 @@ class FrameGather:
         self._k = tap_pos.shape[1]
         self._size = (fw, fh)
         src = np.maximum(tap_pos, 0)
-        self._src = [inner._uint((src * 3 + c).ravel().astype(np.uint32)) for c in range(3)]
-        self._live = inner._bool(tap_live.ravel())
+        self._src = [view._uint((src * 3 + c).ravel().astype(np.uint32)) for c in range(3)]
+        self._live = view._bool(tap_live.ravel())
         self._w = self._float(np.where(tap_live, weight[:, lit].T, 0.0).astype(np.float32).ravel())
 
     def _channels(self, zc: Any) -> list[Any]:

@@ -355,24 +355,13 @@ class TransportRows:
         flat = self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel())
         out = dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)
         if self._nb:
-            out = out + self._indirect(zc, fixed)
+            sums = self._active_sums(zc) if fixed is None else self._active_sums(zc) + fixed
+            means = (sums / self._block_sizes[:, None]).astype(np.float32)
+            # einsum, not matmul: BLAS threads would spin against Dr.Jit's on the same cores (10× slower here).
+            low = np.einsum("cub,bc->uc", self._responses, means)
+            out = out + dr.block_sum(dr.gather(self._float, self._float(np.ascontiguousarray(low).ravel()),
+                                               self._low_src) * self._low_w, 4)
         return np.asarray(out).reshape(-1, 3)
-
-    def _indirect(self, zc: np.ndarray, fixed: np.ndarray | None) -> Any:
-        """The indirect part of :meth:`apply_compact` as a Dr.Jit array (rows × 3, flat)."""
-        dr = self._dr
-        sums = self._active_sums(zc) if fixed is None else self._active_sums(zc) + fixed
-        means = (sums / self._block_sizes[:, None]).astype(np.float32)
-        # einsum, not matmul: BLAS threads would spin against Dr.Jit's on the same cores (10× slower here).
-        low = np.einsum("cub,bc->uc", self._responses, means)
-        return dr.block_sum(dr.gather(self._float, self._float(np.ascontiguousarray(low).ravel()),
-                                      self._low_src) * self._low_w, 4)
-
-    def indirect_compact(self, zc: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
-        """(R, 3) the interreflected light alone of :meth:`apply_compact` (zero without an indirect part)."""
-        if not self._nb:
-            return np.zeros((len(self.rows), 3), np.float32)
-        return np.asarray(self._indirect(zc, fixed)).reshape(-1, 3)
 
     def _adjoint_parts(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """``Tᵀ r`` in two parts: (A, 3) direct light on the active texels, and (blocks, 3) what each texel of a
