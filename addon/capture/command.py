@@ -11,7 +11,8 @@ Two devices use it:
 The command line is split like a shell would split it (``shlex``) and run without a shell: each placeholder is
 replaced inside its argument, so a path never goes through a shell's parsing. ``{out}`` is a new path in a private
 temporary folder for every shot (never a file that existed before the command ran: a photograph read is one this run
-of the command wrote), ``{n}`` the shot's number from 0. A photograph is read as ``procam import-captures`` reads
+of the command wrote; ``suffix=png`` and so on for another file type than ``.jpg``), ``{n}`` the shot's number
+from 0. A photograph is read as ``procam import-captures`` reads
 one (:func:`.photos.load_capture`: complete-file check, EXIF orientation; ``encoding=auto`` takes 8-bit files as
 sRGB and linearises them, 16-bit and float as linear). RAW files are not read: set the camera to JPEG (or convert,
 e.g. ``dcraw -T -4`` gives a linear 16-bit TIFF).
@@ -51,6 +52,17 @@ STDERR_TAIL = 600
 EXPOSURE_TAGS = {0x829A: "exposure time", 0x829D: "aperture", 0x8827: "ISO", 0x9204: "exposure bias",
                  0xA402: "exposure mode", 0xA403: "white balance mode"}
 ENCODINGS = ("auto", "srgb", "linear")
+#: What ``{out}`` may end with (``suffix=``): the photograph's file type, for tools that choose it by the name.
+SUFFIXES = ("jpg", "jpeg", "png", "tif", "tiff", "exr")
+
+
+def check_suffix(suffix: str, what: str, error: type[CaptureError] = CaptureError) -> str:
+    """``suffix`` (without its dot, lower case) if ``{out}`` may end with it."""
+    s = suffix.lower().lstrip(".")
+    if s not in SUFFIXES:
+        raise error(f"{what}: suffix must be one of {', '.join(SUFFIXES)} (the photograph's file type), got "
+                    f"{suffix!r}")
+    return s
 
 
 def split_spec(text: str, prefix: str, known: Sequence[str], form: str, *,
@@ -161,10 +173,11 @@ class PhotoCommand:
     private folder), ``{n}`` (the shot's number) and the ones it is given. Close it to remove the folder."""
 
     def __init__(self, argv: Sequence[str], *, timeout: float = DEFAULT_TIMEOUT, encoding: str = "auto",
-                 what: str = "the shooting command") -> None:
+                 suffix: str = "jpg", what: str = "the shooting command") -> None:
         if encoding not in ENCODINGS:
             raise CaptureError(f"{what}: encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
         self.argv, self.timeout, self.encoding, self.what = tuple(argv), float(timeout), encoding, what
+        self.suffix = "." + check_suffix(suffix, what)
         self.folder = Path(tempfile.mkdtemp(prefix="procam-shots-"))
         self.shots = 0
         self.first_exif: dict[str, float] | None = None
@@ -175,13 +188,13 @@ class PhotoCommand:
         """A path in the private folder (for files the device hands to the command)."""
         return self.folder / name
 
-    def take(self, substitutions: Mapping[str, str] | None = None, suffix: str = ".jpg") -> np.ndarray:
+    def take(self, substitutions: Mapping[str, str] | None = None) -> np.ndarray:
         """Run the command once and return its photograph (float32 H×W×3, linear)."""
         from .photos import load_capture  # photos imports this module's neighbours; read as an import would
 
         n = self.shots
         self.shots += 1
-        out = self.folder / f"shot-{n:05d}{suffix}"
+        out = self.folder / f"shot-{n:05d}{self.suffix}"
         for stale in self.folder.glob(f"shot-{n:05d}*"):
             stale.unlink()
         subs = {"{out}": str(out), "{n}": str(n), **(substitutions or {})}
@@ -255,7 +268,7 @@ def _tail(stderr: bytes | str | None) -> str:
 class ShotReport:
     """What a device of photographs measured when it opened (:func:`check_shots`)."""
 
-    latency_s: float
+    latency_s: float | None  # None: the command shows the frame itself
     seconds_per_shot: float
     contrast: float
     noise: float
@@ -264,8 +277,9 @@ class ShotReport:
     colour_drift: float
 
     def lines(self) -> list[str]:
-        return [f"display settle {self.latency_s * 1000:.0f} ms before each shot; {self.seconds_per_shot:.2f} s "
-                f"a photograph; {self.average} photograph(s) averaged per capture",
+        settle = "" if self.latency_s is None else f"display settle {self.latency_s * 1000:.0f} ms before each shot; "
+        return [f"{settle}{self.seconds_per_shot:.2f} s a photograph; {self.average} photograph(s) averaged per "
+                "capture",
                 f"white − black {self.contrast:.3f}; noise {self.noise:.4f} per photograph; white drift between two "
                 f"photographs: exposure {self.exposure_drift * 100:.1f} %, colour {self.colour_drift * 100:.1f} %"]
 
@@ -314,18 +328,20 @@ def check_shots(capture: Callable[[float], np.ndarray], *, check_exposure: bool,
 
 @dataclass(frozen=True)
 class CommandSpec:
-    """What ``command:run='…'[,timeout=SECONDS][,encoding=auto|srgb|linear][,average=N]`` asks for."""
+    """What ``command:run='…'[,timeout=SECONDS][,encoding=auto|srgb|linear][,suffix=jpg|png|…][,average=N]`` asks
+    for."""
 
     argv: tuple[str, ...]
     timeout: float = DEFAULT_TIMEOUT
     encoding: str = "auto"
     average: int = 1
+    suffix: str = "jpg"
 
     FORM = "command:run='TOOL … {frame} … {out}' (the frame ProCam writes, the photograph the tool writes)"
 
     @staticmethod
     def parse(text: str) -> "CommandSpec":
-        values = split_spec(text, "command:", ("run", "timeout", "encoding", "average"), CommandSpec.FORM)
+        values = split_spec(text, "command:", ("run", "timeout", "encoding", "average", "suffix"), CommandSpec.FORM)
         if "run" not in values:
             raise CaptureError(f"command device: say which command shows and photographs a frame, {CommandSpec.FORM}"
                                f"; got {text!r}")
@@ -345,7 +361,8 @@ class CommandSpec:
         encoding = values.get("encoding", "auto")
         if encoding not in ENCODINGS:
             raise CaptureError(f"command device: encoding must be auto, srgb or linear, got {encoding!r}")
-        return CommandSpec(argv, timeout, encoding, average)
+        suffix = check_suffix(values.get("suffix", "jpg"), "command device")
+        return CommandSpec(argv, timeout, encoding, average, suffix)
 
     def check_projectors(self, count: int) -> None:
         """Refuse, before anything runs, a command that does not name one frame file per projector."""
@@ -378,12 +395,12 @@ class CommandDevice(Device):
         self.spec.check_projectors(len(self.projectors))
         self.camera_size: tuple[int, int] | None = None
         self._command = PhotoCommand(self.spec.argv, timeout=self.spec.timeout, encoding=self.spec.encoding,
-                                     what="the command device's command")
+                                     suffix=self.spec.suffix, what="the command device's command")
         try:
             white, contrast, noise, *drift = check_shots(lambda v: self._capture(self._flat(v)),
                                                          check_exposure=check_exposure, adapt_s=ADAPT_S, say=say)
             seconds = float(np.median(self._command.seconds)) if self._command.seconds else 0.0
-            self.report = ShotReport(0.0, seconds, contrast, noise, self.spec.average, *drift)
+            self.report = ShotReport(None, seconds, contrast, noise, self.spec.average, *drift)
         except BaseException:
             self.close()
             raise

@@ -9,8 +9,8 @@
 * ``latency=auto|SECONDS``: measured at start by default;
 * ``size=WxH``: ask the camera for a resolution;
 * ``shoot='COMMAND … {out} …'`` instead of ``camera=``: a command takes each photograph (a stills camera over
-  gphoto2, a phone app's tool; ``live/shoot.py``), with ``timeout=SECONDS`` (default 60) and ``encoding=auto`` (8-bit
-  files sRGB, 16-bit and float linear, as import reads photographs).
+  gphoto2, a phone app's tool; ``live/shoot.py``), with ``timeout=SECONDS`` (default 60), ``encoding=auto`` (8-bit
+  files sRGB, 16-bit and float linear, as import reads photographs) and ``suffix=jpg`` (what ``{out}`` ends with).
 
 Several projectors: ``display=1+2`` names one display per projector, in rig order (or ``position=X:Y+X:Y``, one
 desktop position per projector). Each projector gets its own borderless window of its native size, all open at
@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..capture.command import DEFAULT_TIMEOUT, parse_command, split_spec
+from ..capture.command import DEFAULT_TIMEOUT, check_suffix, parse_command, split_spec
 from ..capture.devices import Device
 from ..capture.exposure import COLOUR_TOLERANCE, GAIN_TOLERANCE
 from ..capture.format import srgb_to_linear
@@ -86,6 +86,8 @@ class LiveSpec:
     shoot: tuple[str, ...] = ()
     #: seconds the shooting command may take
     timeout: float = DEFAULT_TIMEOUT
+    #: the file type of the shooting command's photograph (what ``{out}`` ends with)
+    suffix: str = "jpg"
 
     @property
     def windows(self) -> int:
@@ -106,7 +108,7 @@ class LiveSpec:
         several projectors: ``display=N+N…`` or ``position=X:Y+X:Y…``. ``camera_required=False``: a spec without
         a camera is taken (``procam live-show``'s open loop)."""
         known = ("camera", "display", "position", "average", "noise", "encoding", "latency", "size", "shoot",
-                 "timeout")
+                 "timeout", "suffix")
         values = split_spec(text, "live:", known, "live:camera=SOURCE,display=N (see `procam live-check --help`)",
                             error=LiveError)
         shoot = parse_command(values["shoot"], "live device: shoot", ("{out}",), error=LiveError) \
@@ -119,8 +121,11 @@ class LiveSpec:
                              ("size", "the camera's own settings decide a photograph's size")):
                 if key in values:
                     raise LiveError(f"live device: {key}= is for a streaming camera, not a shooting command; {why}")
-        elif "timeout" in values:
-            raise LiveError("live device: timeout= is the shooting command's (shoot='…'); a streaming camera has none")
+        else:
+            for key in ("timeout", "suffix"):
+                if key in values:
+                    raise LiveError(f"live device: {key}= is the shooting command's (shoot='…'); a streaming camera "
+                                    "has none")
         camera_required = camera_required and not shoot
         if "camera" not in values and camera_required:
             raise LiveError(f"live device: say which camera, e.g. live:camera=0,display=1 (got {text!r}); only "
@@ -172,7 +177,7 @@ class LiveSpec:
         return LiveSpec(camera, display, position, average, noise, encoding, latency, size,
                         displays if len(displays) > 1 else (),
                         tuple((int(x), int(y)) for x, y in positions) if len(positions) > 1 else (),
-                        shoot, timeout)
+                        shoot, timeout, check_suffix(values.get("suffix", "jpg"), "live device", LiveError))
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,8 @@ class ShootDevice(Device):
         self.camera_size: tuple[int, int] | None = None
         self.windows: list[ProjectorWindow] = []
         self._command: PhotoCommand | None = PhotoCommand(self.spec.shoot, timeout=self.spec.timeout,
-                                                          encoding=self.spec.encoding, what="the shooting command")
+                                                          encoding=self.spec.encoding, suffix=self.spec.suffix,
+                                                          what="the shooting command")
         try:
             self.windows = open_windows(self.spec, self.projectors, say)
             white, contrast, noise, *drift = check_shots(lambda v: self._capture(self._flat(v)),
