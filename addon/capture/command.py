@@ -367,9 +367,9 @@ class CommandSpec:
     def check_projectors(self, count: int) -> None:
         """Refuse, before anything runs, a command that does not name one frame file per projector."""
         names = {f"{{frame{k + 1}}}" for k in range(count)}
-        given = {m for a in self.argv for m in _frame_names(a)}
+        given = {"{frame1}" if m == "{frame}" else m for a in self.argv for m in _frame_names(a)}
         if count == 1:
-            if not given & {"{frame}", "{frame1}"}:
+            if "{frame1}" not in given:
                 raise CaptureError("command device: the command must name {frame}")
             return
         missing = sorted(names - given)
