@@ -176,7 +176,11 @@ def test_closed_loop_through_the_command_device_matches_the_lab_device(lab_calib
     from procam.addon.capture.targets import natural_target
     from procam.addon.imageio import write_image
 
-    cal, _, truth = lab_calibration("vedge", scale=0.2, samples=4)
+    import shutil
+
+    shared, _, truth = lab_calibration("vedge", scale=0.2, samples=4)
+    cal = shutil.copytree(shared, tmp_path / "cal")  # its transport operator, once for both loops
+    assert main(["precompute", str(cal)]) == 0
     target = str(write_image(tmp_path / "city.png", natural_target("city", (120, 90))))
     shoot = shlex.join([sys.executable, "-m", "procam.addon.lab.shoot", "--truth", str(truth), "--frame", "{frame}",
                         "--out", "{out}", "--shot", "{n}"])
