@@ -158,18 +158,21 @@ def _tiff_orientation(tiff: bytes) -> int:
     return 1
 
 
-def exif_orientation(path: str | Path) -> int:
-    """The EXIF orientation of a JPEG (1–8, 1 = stored upright; 1 too for other files and JPEGs without EXIF)."""
+def exif_block(path: str | Path) -> bytes | None:
+    """The EXIF block (a TIFF structure) of a JPEG, or a TIFF file's own header and first IFDs; None for others."""
     path = Path(path)
-    if path.suffix.lower() not in (".jpg", ".jpeg"):
-        return 1
+    suffix = path.suffix.lower()
+    if suffix not in (".jpg", ".jpeg", ".tif", ".tiff"):
+        return None
     try:
         with open(path, "rb") as fh:
             head = fh.read(1 << 17)  # EXIF (APP1) sits at the start and is at most 64 KiB
     except OSError:
-        return 1
+        return None
+    if suffix in (".tif", ".tiff"):
+        return head if head[:2] in (b"II", b"MM") else None
     if head[:2] != b"\xff\xd8":
-        return 1
+        return None
     at = 2
     while at + 4 <= len(head) and head[at] == 0xFF:
         marker = head[at + 1]
@@ -178,9 +181,18 @@ def exif_orientation(path: str | Path) -> int:
         (length,) = struct.unpack(">H", head[at + 2:at + 4])
         data = head[at + 4:at + 2 + length]
         if marker == 0xE1 and data[:6] == b"Exif\x00\x00":
-            return _tiff_orientation(data[6:])
+            return data[6:]
         at += 2 + length
-    return 1
+    return None
+
+
+def exif_orientation(path: str | Path) -> int:
+    """The EXIF orientation of a JPEG (1–8, 1 = stored upright; 1 too for other files and JPEGs without EXIF)."""
+    if Path(path).suffix.lower() not in (".jpg", ".jpeg"):
+        return 1
+    tiff = exif_block(path)
+    return 1 if tiff is None else _tiff_orientation(tiff)
+
 
 
 def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:

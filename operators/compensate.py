@@ -92,7 +92,7 @@ class _DeviceJob(JobOperator):
         return WINDOW_NEEDS_MAIN_THREAD and context.scene.procam_compensation_mode == "LIVE"
 
     def open_device(self, spec: str | None, relay: "jobs.MainThreadRelay | None"):
-        if not spec or device_kind(spec) == "live":
+        if not spec or device_kind(spec) in ("live", "command"):
             return None
         self._device = device = open_device(spec)
         return jobs.RelayedDevice(device, relay) if relay is not None else device

@@ -219,6 +219,11 @@ def test_each_command_keeps_its_flags(command):
     ["live-show", "c", "--source", "0", "--device", "live:display=1", "--hold", "-1"],
     ["live-show", "c", "--source", "0", "--device", "live:display=1", "--duration", "0"],
     ["live-show", "c", "--source", "0", "--device", "live:bogus"],
+    ["live-show", "c", "--source", "0", "--device", "live:display=1,shoot='gphoto2 --filename {out}'"],
+    ["compensate", "c", "t", "--out", "o", "--device", "command:run='tool {frame}'"],
+    ["evaluate", "c", "--inputs", "i", "--targets", "t", "--out", "o", "--device", "live:display=1,shoot='x'"],
+    ["capture", "--device", "live:display=1,shoot='x {out}',size=8x6", "--projector-width", "8",
+     "--projector-height", "6", "--out", "o"],
     ["calibrate-rig", "s", "--board", "9x7", "--projector", "8x6", "--out", "r.json", "--window", "3"],
     ["calibrate-rig", "s", "--board", "9x7", "--projector", "8x6", "--out", "r.json", "--square", "nan"],
 ])

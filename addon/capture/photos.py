@@ -138,7 +138,9 @@ def list_captures(captures_dir: str | Path, frame_files: list[str] | None = None
     return [by_number[n] for n in sorted(by_number)]
 
 
-def _load_capture(path: Path, encoding: str) -> tuple[np.ndarray, str]:
+def load_capture(path: Path, encoding: str) -> tuple[np.ndarray, str]:
+    """One photograph as import reads it (linear float32; complete-file check, EXIF orientation), and how it was
+    encoded: ``encoding`` auto takes 8-bit files as sRGB, 16-bit and float ones as linear."""
     check_complete(path)
     bits = stored_bit_depth(path)
     try:
@@ -310,7 +312,7 @@ def _photographs(seq: SequenceInfo, captures_dir: str | Path, encoding: str
         raise CaptureError(f"the sequence has {len(seq.frames)} frames but {captures_dir} holds {len(files)} "
                            f"captures ({files[0].name} … {files[-1].name}); one capture per frame is needed")
     orientation = check_orientations(files)
-    first, first_enc = _load_capture(files[0], encoding)
+    first, first_enc = load_capture(files[0], encoding)
     return files, orientation, first, first_enc
 
 
@@ -328,7 +330,7 @@ def _add_photographs(writer: CaptureSetWriter, seq: SequenceInfo, files: list[Pa
         say(f"importing {path.name}", i / len(files))
         if projector_index and frame["kind"] in SHARED_KINDS:
             continue
-        img, enc = first if i == 0 else _load_capture(path, encoding)
+        img, enc = first if i == 0 else load_capture(path, encoding)
         if (img.shape[1], img.shape[0]) != camera.intrinsics.size:
             raise CaptureError(_size_message(path, img, camera))
         if undistort is not None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..live.device import LiveDevice
+from ..live.shoot import open_camera_device
 from ..live.window import list_displays
 from ..options import add_arguments, declared, from_arguments
 from ..steps.capture import PatternsOptions, PhotoSettings
@@ -39,7 +39,7 @@ def live_check(args: argparse.Namespace) -> int:
         return 0
     projector = options.projector()
     others = from_arguments(LiveRigSheet, args).others(projector)
-    device = run_step("live-check", lambda o, progress=None, cancel=None: LiveDevice(
+    device = run_step("live-check", lambda o, progress=None, cancel=None: open_camera_device(
         o, projector, others=others, progress=progress, check_exposure=options.check_exposure), options.device)
     try:
         print("\n".join(device.report.lines()))

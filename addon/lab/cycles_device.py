@@ -75,11 +75,12 @@ class LabDevice(Device):
     re-opened device with the same seed repeats the same captures for the same
     frames. ``samples`` (default: the truth's) is the Cycles samples per pixel
     and may be changed between shots. Close the device (or use it as a context
-    manager) to remove its scratch scene.
+    manager) to remove its scratch scene. ``first_shot``: the number of its first shot (a device opened for one
+    shot of a longer series draws that shot's randomness).
     """
 
     def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None,
-                 supersample: int = 1) -> None:
+                 supersample: int = 1, first_shot: int = 0) -> None:
         self.truth = truth
         self.projector = truth.rig.projector
         self._projectors = truth.rig.projectors
@@ -89,7 +90,7 @@ class LabDevice(Device):
         self.samples = _whole(truth.samples if samples is None else samples, "Cycles samples", 1)
         self.seed = _whole(truth.seed if seed is None else seed, "the seed", 0)
         self._settings = render_settings(truth.effects, self.camera.intrinsics)
-        self._shots = 0
+        self._shots = _whole(first_shot, "the first shot's number", 0)  # a device per shot (lab/shoot.py) numbers on
         # Lens distortion resamples the image, so render a margin around it (same focal length).
         render_k = camera_render_intrinsics(truth.effects, self.camera.intrinsics)
         # Supersampling renders finer pixels for the lens to resample (apply_camera's doc).

@@ -7,7 +7,10 @@
 * ``encoding=srgb|linear``: how the camera encodes 8-bit frames (webcams and
   network cameras: sRGB);
 * ``latency=auto|SECONDS``: measured at start by default;
-* ``size=WxH``: ask the camera for a resolution.
+* ``size=WxH``: ask the camera for a resolution;
+* ``shoot='COMMAND … {out} …'`` instead of ``camera=``: a command takes each photograph (a stills camera over
+  gphoto2, a phone app's tool; ``live/shoot.py``), with ``timeout=SECONDS`` (default 60), ``encoding=auto`` (8-bit
+  files sRGB, 16-bit and float linear, as import reads photographs) and ``suffix=jpg`` (what ``{out}`` ends with).
 
 Several projectors: ``display=1+2`` names one display per projector, in rig order (or ``position=X:Y+X:Y``, one
 desktop position per projector). Each projector gets its own borderless window of its native size, all open at
@@ -42,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..capture.command import DEFAULT_TIMEOUT, check_suffix, parse_command, split_spec
 from ..capture.devices import Device
 from ..capture.exposure import COLOUR_TOLERANCE, GAIN_TOLERANCE
 from ..capture.format import srgb_to_linear
@@ -78,6 +82,12 @@ class LiveSpec:
     displays: tuple[int, ...] = ()
     #: every position of ``position=X:Y+X:Y`` (one per projector, in rig order); () when one position or a display
     positions: tuple[tuple[int, int], ...] = ()
+    #: ``shoot='…'``: the command that takes a photograph, split into arguments (``live/shoot.py``); () with a camera
+    shoot: tuple[str, ...] = ()
+    #: seconds the shooting command may take
+    timeout: float = DEFAULT_TIMEOUT
+    #: the file type of the shooting command's photograph (what ``{out}`` ends with)
+    suffix: str = "jpg"
 
     @property
     def windows(self) -> int:
@@ -97,22 +107,26 @@ class LiveSpec:
         """``camera=SOURCE,display=N|position=X:Y[,average=N|noise=σ][,encoding=…][,latency=…][,size=WxH]``;
         several projectors: ``display=N+N…`` or ``position=X:Y+X:Y…``. ``camera_required=False``: a spec without
         a camera is taken (``procam live-show``'s open loop)."""
-        body = text[5:] if text.startswith("live:") else text
-        known = ("camera", "display", "position", "average", "noise", "encoding", "latency", "size")
-        values: dict[str, str] = {}
-        last = None
-        for token in body.split(","):
-            key, eq, value = token.partition("=")
-            if eq and key.strip() in known:
-                last = key.strip()
-                if last in values:
-                    raise LiveError(f"live device: {last} is given twice in {text!r}")
-                values[last] = value.strip()
-            elif last is not None:  # a comma inside the previous value (URLs may hold one)
-                values[last] += "," + token
-            else:
-                raise LiveError(f"live device: expected key=value, got {token!r} in {text!r}; the form is "
-                                "live:camera=SOURCE,display=N (see `procam live-check --help`)")
+        known = ("camera", "display", "position", "average", "noise", "encoding", "latency", "size", "shoot",
+                 "timeout", "suffix")
+        values = split_spec(text, "live:", known, "live:camera=SOURCE,display=N (see `procam live-check --help`)",
+                            error=LiveError)
+        shoot = parse_command(values["shoot"], "live device: shoot", ("{out}",), error=LiveError) \
+            if "shoot" in values else ()
+        if shoot and "camera" in values:
+            raise LiveError("live device: give a streaming camera (camera=SOURCE) or a shooting command "
+                            "(shoot='…{out}…'), not both")
+        if shoot:
+            for key, why in (("noise", "give average=N photographs instead"),
+                             ("size", "the camera's own settings decide a photograph's size")):
+                if key in values:
+                    raise LiveError(f"live device: {key}= is for a streaming camera, not a shooting command; {why}")
+        else:
+            for key in ("timeout", "suffix"):
+                if key in values:
+                    raise LiveError(f"live device: {key}= is the shooting command's (shoot='…'); a streaming camera "
+                                    "has none")
+        camera_required = camera_required and not shoot
         if "camera" not in values and camera_required:
             raise LiveError(f"live device: say which camera, e.g. live:camera=0,display=1 (got {text!r}); only "
                             "`procam live-show` runs without one (open loop)")
@@ -140,9 +154,16 @@ class LiveSpec:
             raise LiveError(f"live device: noise must be a positive level (linear units), got {noise}")
         if latency is not None and not 0 <= latency < 10:
             raise LiveError(f"live device: latency must be 0 … 10 s or auto, got {latency}")
-        encoding = values.get("encoding", "srgb")
-        if encoding not in ("srgb", "linear"):
-            raise LiveError(f"live device: encoding must be srgb or linear, got {encoding!r}")
+        encoding = values.get("encoding", "auto" if shoot else "srgb")
+        if encoding not in (("auto", "srgb", "linear") if shoot else ("srgb", "linear")):
+            raise LiveError(f"live device: encoding must be {'auto, ' if shoot else ''}srgb or linear, got "
+                            f"{encoding!r}")
+        try:
+            timeout = float(values.get("timeout", DEFAULT_TIMEOUT))
+        except ValueError as exc:
+            raise LiveError(f"live device: a value in {text!r} is not a number ({exc})") from None
+        if not 0 < timeout <= 3600:
+            raise LiveError(f"live device: timeout must be 0 … 3600 s, got {timeout:g}")
         if displays and positions:
             raise LiveError("live device: give displays (display=1+2) or desktop positions (position=X:Y+X:Y), "
                             "not both")
@@ -155,7 +176,8 @@ class LiveSpec:
         camera = parse_source(values["camera"]) if "camera" in values else None
         return LiveSpec(camera, display, position, average, noise, encoding, latency, size,
                         displays if len(displays) > 1 else (),
-                        tuple((int(x), int(y)) for x, y in positions) if len(positions) > 1 else ())
+                        tuple((int(x), int(y)) for x, y in positions) if len(positions) > 1 else (),
+                        shoot, timeout, check_suffix(values.get("suffix", "jpg"), "live device", LiveError))
 
 
 @dataclass(frozen=True)
@@ -204,6 +226,22 @@ def check_displays(spec: LiveSpec, projectors: int) -> None:
                         "projector")
 
 
+def open_windows(spec: LiveSpec, projectors: Sequence[Projector], say: Progress) -> list[ProjectorWindow]:
+    """One projector window per projector, placed as ``spec`` says (all closed again if one cannot open)."""
+    windows: list[ProjectorWindow] = []
+    many = len(projectors) > 1
+    try:
+        for k, (proj, (display, position)) in enumerate(zip(projectors, spec.placements())):
+            say(f"opening projector {k + 1}'s window" if many else "opening the projector window", 0.0)
+            windows.append(ProjectorWindow(proj.intrinsics.size, display=display, position=position,
+                                           title=f"ProCam projector {k + 1}" if many else "ProCam projector"))
+    except BaseException:
+        for window in windows:
+            window.close()
+        raise
+    return windows
+
+
 def _black(projector: Projector) -> np.ndarray:
     w, h = projector.intrinsics.size
     return np.zeros((h, w, 3), dtype=np.float32)
@@ -227,11 +265,7 @@ class LiveDevice(Device):
         self.windows: list[ProjectorWindow] = []
         self.camera: CameraClient | None = None
         try:
-            many = len(self.projectors) > 1
-            for k, (proj, (display, position)) in enumerate(zip(self.projectors, self.spec.placements())):
-                say(f"opening projector {k + 1}'s window" if many else "opening the projector window", 0.0)
-                self.windows.append(ProjectorWindow(proj.intrinsics.size, display=display, position=position,
-                                                    title=f"ProCam projector {k + 1}" if many else "ProCam projector"))
+            self.windows = open_windows(self.spec, self.projectors, say)
             say("opening the camera", 0.1)
             self.camera = CameraClient(self.spec.camera, size=self.spec.size)
             locked = self.camera.lock()
@@ -376,4 +410,4 @@ class LiveDevice(Device):
             window.close()
 
 
-__all__ = ["LiveDevice", "LiveReport", "LiveSpec", "check_displays"]
+__all__ = ["LiveDevice", "LiveReport", "LiveSpec", "check_displays", "open_windows"]

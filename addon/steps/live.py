@@ -42,7 +42,7 @@ from ..capture.format import CaptureSet, is_capture_set
 from ..errors import Cancelled, CaptureError, LiveError
 from ..imageio import read_image, write_atomic_bytes, write_image
 from ..lab.layouts import MAX_PROJECTORS
-from ..live.device import LiveDevice, LiveSpec, check_displays
+from ..live.shoot import check_camera_device, open_camera_device, parse_camera_device
 from ..options import option, same_option, validate
 from ..outputs import check_replaceable
 from ..progress import Cancel, Progress, never, part, quiet
@@ -57,14 +57,18 @@ DEVICE_HELP = ("live:camera=SOURCE,display=N — SOURCE a camera index, a device
                "rtsp://…); display=N covers display N (at the projector's native size), position=X:Y puts the "
                "window at desktop coordinates instead; several projectors: one display each, display=1+2 (or "
                "position=X:Y+X:Y); options: average=N or noise=σ (frames per capture), encoding=srgb|linear, "
-               "latency=auto|SECONDS, size=WxH")
+               "latency=auto|SECONDS, size=WxH. A stills camera: shoot='COMMAND … {out} …' instead of camera= "
+               "(e.g. shoot='gphoto2 --capture-image-and-download --filename {out}'; the command runs latency "
+               "seconds after the frame shows, default 0.25; timeout=SECONDS, encoding=auto|srgb|linear). Other "
+               "software that shows and photographs: command:run='TOOL … {frame} … {out}' ({frame}: the 16-bit PNG "
+               "to show; several projectors {frame1} … {frameN})")
 
 
 @dataclass(frozen=True)
 class LiveCaptureOptions(PhotoSettings):
     """What ``procam capture`` asks for: the live device, the pattern sequence, and how to import it."""
 
-    device: str = option(required=True, check=LiveSpec.parse, help=DEVICE_HELP)
+    device: str = option(required=True, check=parse_camera_device, help=DEVICE_HELP)
     projector: Projector
     out: Path
     # the pattern sequence's options, declared by the patterns step
@@ -206,7 +210,7 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     say, stop = progress or quiet, cancel or never
     validate(options, CaptureError)  # a bad device string fails before anything is written
     count = len(options.projectors)
-    check_displays(LiveSpec.parse(options.device), count)  # so does a window per projector that is not there
+    check_camera_device(options.device, count)  # so does a window (or frame file) per projector that is not there
     if count > 1 and options.rig is not None:
         raise CaptureError(f"a rig calibration (--rig) calibrates one projector; this rig has {count}: capture "
                            "without it and calibrate the capture set")
@@ -223,9 +227,9 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
                if not _photo(session, i, k).is_file()]
     try:
         if missing:
-            with LiveDevice(options.device, options.projector, others=options.others,
-                            progress=part(say, 0.0, 0.1, "live device: "),
-                            check_exposure=options.check_exposure) as device:
+            with open_camera_device(options.device, options.projector, others=options.others,
+                                    progress=part(say, 0.0, 0.1, "live device: "),
+                                    check_exposure=options.check_exposure) as device:
                 doc["opened"].append({"device": options.device, **device.report.to_dict()})
                 _write_session(session, doc)
                 shown: list[Device] = [device] if count == 1 else [OneProjector(device, k) for k in range(count)]

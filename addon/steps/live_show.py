@@ -77,7 +77,9 @@ DEVICE_HELP = ("live:display=N[,camera=SOURCE] — the projector window(s) as pr
 
 
 def _device(text: str) -> None:
-    LiveSpec.parse(text, camera_required=False)
+    if LiveSpec.parse(text, camera_required=False).shoot:
+        raise LiveError("live-show follows a streaming camera (camera=SOURCE) or runs open loop without one; a "
+                        "shooting command (shoot=) takes seconds a photograph, too slow for a show")
 
 
 def _seconds(value: float | None) -> None:

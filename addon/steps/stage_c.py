@@ -25,7 +25,7 @@ from ..capture.photos import removed_lens
 from ..errors import CaptureError, ProCamError
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.truth import LabTruth
-from ..live.device import LiveDevice, LiveSpec
+from ..live.shoot import open_camera_device, parse_camera_device
 from ..options import Choice, option, validate
 from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Projector
@@ -41,7 +41,7 @@ from . import diagnose as diagnose_step
 from . import layout
 from . import transport as transport_step
 
-DEVICE_KINDS = ("lab", "folder", "live")
+DEVICE_KINDS = ("lab", "folder", "live", "command")
 
 
 def _schedule_counts(name: str) -> str:
@@ -99,8 +99,10 @@ class StageCOptions:
                                  "nor validation")
     device: str | None = option(
         None, check=lambda spec: device_kind(spec), label="Device", blank="",
-        help="closed loop through lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR or "
-             "live:camera=SOURCE,display=N; without a device θ is estimated from the validation captures (open "
+        help="closed loop through lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR, "
+             "live:camera=SOURCE,display=N (a streaming camera), live:display=N,shoot='COMMAND … {out}' (the "
+             "window shown, a command takes the photograph) or command:run='COMMAND … {frame} … {out}' (a command "
+             "shows and photographs each frame); without a device θ is estimated from the validation captures (open "
              "loop)")
     effects: str = option(
         "none", label="Effect Models", blank="",
@@ -142,7 +144,7 @@ class StageCOptions:
         if not self.device or not self.use_bias:
             return None
         kind, _, where = self.device.partition(":")
-        return self.device if kind == "live" else f"{kind}:{Path(where).absolute()}"
+        return self.device if kind in ("live", "command") else f"{kind}:{Path(where).absolute()}"
 
 
 def effect_adapter(options: StageCOptions, calibration: Calibration) -> EffectAdapter | None:
@@ -157,9 +159,12 @@ def device_kind(spec: str) -> str:
     kind, _, where = spec.partition(":")
     if not where or kind not in DEVICE_KINDS:
         raise CaptureError(f"the device must be lab:TRUTH_FILE (virtual lab), folder:CAPTURE_DIR (replayed "
-                           f"captures) or live:camera=SOURCE,display=N (a real projector and camera), got {spec!r}")
-    if kind == "live":
-        LiveSpec.parse(spec)
+                           f"captures), live:camera=SOURCE,display=N (a real projector and camera), "
+                           f"live:display=N,shoot='COMMAND … {{out}}' (a command takes each photograph) or "
+                           f"command:run='COMMAND … {{frame}} … {{out}}' (a command shows and photographs), got "
+                           f"{spec!r}")
+    if kind in ("live", "command"):
+        parse_camera_device(spec)
     return kind
 
 
@@ -192,16 +197,17 @@ def camera_lens_of(calibration: Calibration) -> RigLens | None:
 def open_device(spec: str | None, projector: Projector | None = None,
                 progress: Progress | None = None, *, others: Sequence[Projector] = ()) -> Device | None:
     """A capture device as it is, from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed
-    captures) or ``live:…`` (the projector window and camera; ``projector`` gives the window its size, ``others``
-    the windows of projectors 2…N of a rig of several, one display each). Stage C and
+    captures), ``live:…`` (the projector window and a camera or a shooting command; ``projector`` gives the window its
+    size, ``others`` the windows of projectors 2…N of a rig of several, one display each) or ``command:…`` (a
+    command shows and photographs). Stage C and
     evaluation project through :func:`device_pipeline`, which opens it and puts the calibration's lens after it."""
     if not spec:
         return None
     kind, where = device_kind(spec), spec.partition(":")[2]
-    if kind == "live":
+    if kind in ("live", "command"):
         if projector is None:
-            raise CaptureError("a live device needs the calibrated projector to size its window")
-        return LiveDevice(spec, projector, others=others, progress=progress)
+            raise CaptureError(f"a {kind} device needs the calibrated projector to size its frames")
+        return open_camera_device(spec, projector, others=others, progress=progress)
     if kind == "folder":
         return FolderDevice(Path(where))
     from ..lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
