@@ -65,7 +65,7 @@ share of the targets' white (1 for ``none``, g + o for a uniform map).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dc_field
 from typing import Any
 
 import cv2
@@ -101,9 +101,15 @@ class GainField:
     camera_size: tuple[int, int]
     per_degree: float
     degrees_per_pixel: float
+    _image: list[np.ndarray] = dc_field(default_factory=list, repr=False)  # the image, made once (real-time frames)
 
     def image(self) -> np.ndarray:
         """The gain at every camera pixel (h×w, float32)."""
+        if not self._image:
+            self._image.append(self._make_image())
+        return self._image[0]
+
+    def _make_image(self) -> np.ndarray:
         rows, cols = self.cells.shape
         log = cv2.resize(np.log(self.cells).astype(np.float32), (cols * self.cell, rows * self.cell),
                          interpolation=cv2.INTER_LINEAR)
@@ -164,6 +170,19 @@ class RangeMap:
         """The mean mapped white (gain + offset) over a display area as a share of the targets' white."""
         return float(np.mean(self.gain_on(area))) + float(self.offset)
 
+    def describe(self) -> str:
+        """One line for a person: the map, its rule and the brightness it keeps."""
+        if self.field is None:
+            text = f"{self.gain:.3f}·t {self.offset:+.3f}"
+            kept = self.gain + self.offset
+        else:
+            cells = self.field.cells
+            text = (f"g(p)·t {self.offset:+.3f} with g from {cells.min():.3f} to {cells.max():.3f} over the camera "
+                    f"image (mean {self.gain:.3f} in the display areas)")
+            kept = self.brightness if self.brightness is not None else self.gain + self.offset
+        clipped = "" if self.clipped_share is None else f", {100 * self.clipped_share:.2f} % of the values clipped"
+        return f"{text} ({self.rule}); brightness kept {100 * kept:.0f} % of the targets' white{clipped}"
+
     def to_dict(self) -> dict[str, Any]:
         brightness = self.brightness if self.brightness is not None else (
             None if self.field is not None else self.gain + self.offset)
@@ -188,6 +207,16 @@ class RangeMap:
             raise RangeError(f"the range map {d!r} recorded with these results is not one ProCam writes ({exc}); "
                              "compensate again") from None
         return RangeMap(gain, offset, str(d.get("rule", "given")), d.get("clipped_share"), field, brightness)
+
+
+def range_line(record: Any) -> list[str]:
+    """The range map a compensation or show recorded, in a line (none without one; older records keep their
+    gain and offset only)."""
+    try:
+        r = RangeMap.from_dict(record) if isinstance(record, dict) else None
+    except ProCamError as exc:
+        return [f"range: {exc}"]
+    return [] if r is None else [f"range: targets mapped to {r.describe()}"]
 
 
 def parse_range(text: str) -> str | RangeMap:
@@ -341,6 +370,16 @@ def fit_bright(targets: list[np.ndarray], blacks: list[np.ndarray], whites: list
                     "clipped per cell", clipped / values, field, min(float(gains.mean()) + offset, 1.0))
 
 
+def fit_rule(rule: str, targets: list[np.ndarray], blacks: list[np.ndarray], whites: list[np.ndarray],
+             areas: list[Any], camera: Any) -> RangeMap:
+    """The show's map by a fitted rule (``auto`` or ``bright:PCT`` as :func:`parse_range` gives it); ``camera``:
+    the camera's intrinsics (its size and focal length give the degrees of ``bright``)."""
+    if rule == "auto":
+        return fit_range(targets, blacks, whites)
+    return fit_bright(targets, blacks, whites, areas, (int(camera.width), int(camera.height)),
+                      math.degrees(1.0 / float(camera.fx)), per_degree=bright_per_degree(rule))
+
+
 def _psnr_of(mse: float) -> float:
     return CEILING_CAP if mse <= 10 ** (-CEILING_CAP / 10) else 10.0 * math.log10(1.0 / mse)
 
@@ -397,5 +436,5 @@ def ceiling_gap_at_limit(target: np.ndarray, capture: np.ndarray, black: np.ndar
 
 
 __all__ = ["BRIGHT_PER_DEGREE", "CLIP_SHARE", "INPUT_FULL", "INPUT_ZERO", "GainField", "RangeError", "RangeMap",
-           "bright_per_degree", "capture_noise_mse", "ceiling_gap_at_limit", "fit_bright", "fit_range",
-           "noise_ceiling", "parse_range", "range_ceiling"]
+           "bright_per_degree", "capture_noise_mse", "ceiling_gap_at_limit", "fit_bright", "fit_range", "fit_rule",
+           "noise_ceiling", "parse_range", "range_ceiling", "range_line"]
