@@ -287,7 +287,7 @@ def test_range_auto_on_bright_content(env, capsys):
 
     bright = write_image(env.root / "bright.png", (0.35 + 0.65 * smooth_random((160, 120), 7, 20.0)).astype(np.float32))
     rows = {}
-    for rng in ("none", "auto"):
+    for rng in ("none", "auto", "bright"):
         comp, out = env.root / f"comp-{rng}", env.root / f"eval-{rng}"
         assert main(["compensate", str(env.cal_dir), str(bright), "--out", str(comp), "--iterations", "4",
                      "--spp", "1", "--no-bias", "--range", rng]) == 0
@@ -311,7 +311,19 @@ def test_range_auto_on_bright_content(env, capsys):
     assert "noise_ceiling" not in plain
     # Far outside the range, most of what separates the capture from the ceiling is where the input is at full.
     assert plain["ceiling_gap_at_limit"] > 0.5
-    assert "range ceiling" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "range ceiling" in out
+    # Relative to the mapped white (the capture read back through the map, against the target as given) the maps
+    # compare: without one it is the plain PSNR; auto's plain PSNR holds what dimming alone gains, this one does not.
+    assert plain["psnr_relative"] == pytest.approx(plain["psnr"], abs=1e-3) and plain["brightness_kept"] == 1.0
+    assert row["psnr_relative"] < row["psnr"] - 1  # gain ≈ 0.6: errors read back 1/gain larger
+    assert row["brightness_kept"] == pytest.approx(fitted["gain"] + fitted["offset"], abs=1e-3)
+    # bright: a gain field under 1, recorded with the brightness it keeps, printed by compensate and evaluate
+    field_map, recorded, lit = rows["bright"]
+    assert field_map == recorded and field_map["rule"].startswith("bright") and field_map["field"]["per_degree"] == 0.05
+    assert lit["brightness_kept"] == pytest.approx(field_map["brightness_kept"], abs=0.01)
+    assert fitted["gain"] + fitted["offset"] <= lit["brightness_kept"] + 1e-3 and lit["psnr_relative"] > 0
+    assert "brightness kept" in out and "relative to the mapped white" in out
     assert main(["compensate", str(env.cal_dir), str(bright), "--out", str(env.root / "x"), "--range", "2"]) == 2
 
 

@@ -79,6 +79,10 @@ def test_withheld_response_is_found_and_outputs_written(response_case, tmp_path)
         assert set(e) >= {"name", "params", "heldout_rmse_before", "heldout_rmse_after", "confidence"}
     for r in saved["regions"]:
         assert set(r) >= {"bbox", "share", "description"}
+    # the shares are of the error split by cause, which gap.json records with what they mean
+    assert sum(r["share"] for r in saved["regions"]) <= 1.0 + 1e-3
+    assert sum(saved["error_split"].values()) == pytest.approx(1.0, abs=1e-3) and "response" in saved["error_split"]
+    assert "add up to at most 100 %" in (out / "summary.md").read_text()
     for name in ("residual_signed.png", "residual_abs.png", "residual_after_abs.png", "regions.png", "summary.md"):
         assert (out / name).is_file(), name
     assert "response" in (out / "summary.md").read_text()
@@ -769,3 +773,27 @@ def test_a_selection_stopped_at_its_limit_says_what_would_come_next(lab_calibrat
     assert sorted(two["modelled"]) == sorted(both) and not any("its limit" in w for w in two["warnings"])
     with pytest.raises(ProCamError, match="--max-effects must be a whole number"):
         diagnose(cal_dir, tmp_path / "none", candidates=both, max_effects=0)
+
+
+def test_region_shares_add_up_when_two_effects_explain_the_same_error(clean_case):
+    """Two local effects that each alone remove the same spot both account for it: counted against the residual,
+    the spot held 200 % of the error. The shares are of the error as split by cause, so no region holds more than
+    all of it, the regions' shares add up to at most 100 %, and the split (with the pattern edges' part) to 100 %."""
+    from procam.addon.gap.regions import EDGES, error_split, find_regions
+
+    data, patch, _ = _central_patch(clean_case[0])
+    held = data.held_index
+    base = np.zeros((len(held),) + data.mask.shape + (3,), np.float32)
+    base[:, patch] = -0.2
+    after = np.zeros_like(base)
+    light = np.where(patch, 0.5, 0.0).astype(np.float32)
+    kwargs = dict(causes={"glossy": after, "interreflection": after},
+                  lights={"glossy": light, "interreflection": light}, remainder=np.zeros_like(base))
+    regions = find_regions(data, base, data.size, held, **kwargs)
+    assert regions and max(r.share for r in regions) <= 1.0 + 1e-9
+    assert sum(r.share for r in regions) <= 1.0 + 1e-9
+    top = regions[0]
+    assert (top.mask & patch).sum() > 0.5 * patch.sum() and top.share > 0.5  # counted once per effect: 121 %
+    split = error_split(data, base, held, **kwargs)
+    assert split["glossy"] == pytest.approx(0.5, abs=0.01) and split["interreflection"] == pytest.approx(0.5, abs=0.01)
+    assert sum(split.values()) == pytest.approx(1.0) and EDGES in split

@@ -26,7 +26,8 @@ from .fit import (MAX_EFFECTS, MIN_SHARE, SMOOTH_SIGMA, Selection, compensation_
                   residual_stack, select_effects, structured)
 from .models import (MODELS, NAMES, Composite, glossy_at, inverse_camera_curve, local_light,
                      signature_mask)
-from .regions import LEFT_OVER, UNEXPLAINED, WHOLE, find_regions, label_image, residual_maps
+from .regions import EDGES, LEFT_OVER, SHARE_MEANS, UNEXPLAINED, WHOLE, error_split, find_regions, label_image, \
+    residual_maps
 from .remainder import Remainder, remainder
 from .session import SessionCheck, check_session
 
@@ -286,7 +287,10 @@ def _summary(doc: dict[str, Any]) -> str:
               "Each region belongs to one cause: the part of the error a modelled effect removes there, or what "
               "the selected effects leave (unexplained when above the captures' noise). `regions_label.png` holds "
               "their pixels (region numbers when read as 8 bits).", "",
-              "| region | cause | bbox (x, y, w, h) | share of squared error | description |", "|---|---|---|---|---|"]
+              f"Shares: {SHARE_MEANS}. The error splits by cause as "
+              + ", ".join(f"{k} {v:.0%}" for k, v in doc["error_split"].items())
+              + f"; the {EDGES}' part (sub-pixel misregistration) lies in no region.", "",
+              "| region | cause | bbox (x, y, w, h) | share of the error | description |", "|---|---|---|---|---|"]
     for k, r in enumerate(doc["regions"]):
         lines.append(f"| {k + 1} | {r.get('cause', '')} | {tuple(r['bbox'])} | {r['share']:.0%} | "
                      f"{r['description']} |")
@@ -401,9 +405,11 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
     # still holds there (its clipped core, a lobe the albedo holds only in part) is counted in that place.
     lobe = evidence["glossy"].params if "glossy" in found else None
     absorbed = {"glossy": local_light("glossy", np.array([lobe["weight"], lobe["roughness"]]), data)} if lobe else {}
+    smooth_final, rest = smooth(res_final), UNEXPLAINED if rem.detected else LEFT_OVER
     regions = find_regions(data, smooth_base, cam_full, data.held_index, causes=causes, lights=lights,
-                           remainder=smooth(res_final), remainder_cause=UNEXPLAINED if rem.detected else LEFT_OVER,
-                           absorbed=absorbed)
+                           remainder=smooth_final, remainder_cause=rest, absorbed=absorbed)
+    split = error_split(data, smooth_base, data.held_index, causes=causes, lights=lights, remainder=smooth_final,
+                        remainder_cause=rest)
     left = next((r for r in regions if r.cause == UNEXPLAINED and WHOLE not in r.tags), None)
     unexplained = {**rem.to_dict(), "where": left.description if left else "",
                    "where_bbox": list(left.bbox) if left else None}
@@ -425,6 +431,8 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
            "smooth_sigma_px": SMOOTH_SIGMA,
            "mse_classes": ["smooth parts (smoothed residual)", "pattern edges"],
            "regions": [r.to_dict() for r in regions],
+           # what the regions' shares are of: each cause's part of the error and the pattern edges' (sum 1)
+           "error_split": {k: round(v, 4) for k, v in split.items()}, "share_means": SHARE_MEANS,
            "effects": effects,
            # whether the rig stayed the same during the session, and what the selected effects leave unexplained
            "session": session.to_dict(),

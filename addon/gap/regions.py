@@ -30,7 +30,13 @@ least :data:`SAME_FINDING` of its largest's) are one region, "in N places": one
 effect's light can fall in parts (the bounce light in the curve's two folds,
 a highlight on both planes of the hedge), which are one thing to act on.
 
-Regions are ranked by their share of the total squared error, and described
+A share is of the error as split by cause: the sum of what each effect explains, what they leave on the
+smooth parts and what they leave at pattern edges (:func:`error_split`). Two effects that explain the same
+error both count it there, so it is not a share of the residual (against which a region had held 133 %);
+the regions partition the split by cause and place, so their shares add up to at most 100 %, the rest being
+the pattern edges' part and what scattered outside every place. With orthogonal causes the split is the residual.
+
+Regions are ranked by that share, and described
 against what the calibration alone knows: surface creases, the unlit side of a
 concave edge, where the projector's mirror reflection falls (the calibrated
 geometry's glossy lobe), a texture edge in the albedo, a depth step, the
@@ -69,12 +75,18 @@ TEXTURE_EDGE = 0.15
 #: relative depth change between neighbouring pixels that makes a depth step (an occlusion boundary, not a slope).
 DEPTH_STEP = 0.05
 UNEXPLAINED, LEFT_OVER, WHOLE = "unexplained", "left over", "whole lit area"
+#: The remainder's part at pattern edges (sub-pixel misregistration): in the split of the error, in no region.
+EDGES = "pattern edges"
+#: What a region's share means, said in gap.json and the summaries.
+SHARE_MEANS = ("a region's share is of the held-out squared error inside the lit area as split by cause (what each "
+               "selected effect removes alone, what they leave on the smooth parts and at pattern edges), counted "
+               "once per cause and place: the regions' shares add up to at most 100 %")
 
 
 @dataclass
 class Region:
     bbox: tuple[int, int, int, int]  # x, y, width, height in pixels of the full camera image
-    share: float  # of the total squared residual
+    share: float  # of the error as split by cause (error_split): the regions' add up to at most 1
     pixels: int
     description: str
     tags: list[str]
@@ -128,23 +140,14 @@ def energy_of(residuals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask, (residuals.astype(np.float64) ** 2).mean(axis=(0, 3)), 0.0)
 
 
-def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int], pattern_index: list[int], *,
-                 causes: dict[str, np.ndarray] | None = None, lights: dict[str, np.ndarray] | None = None,
-                 remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER,
-                 absorbed: dict[str, np.ndarray] | None = None) -> list[Region]:
-    """Compact regions of the error by cause, largest share first (see the module docstring).
-
-    ``residuals`` is the structured held-out residual of the calibrated model (patterns ``pattern_index``);
-    ``causes`` maps each modelled effect to the residual left after it alone, ``remainder`` is the residual
-    after all of them (default: ``residuals``, nothing modelled), named ``remainder_cause``. ``lights`` maps a
-    local effect among them to its fitted model's own light under white (h×w): where it is placed. ``absorbed``
-    maps a local effect calibration absorbed (found from its inputs, not modelled) to its light likewise: it
-    explains nothing, but its light is a place, and what the residual holds there is counted in it.
-    """
+def _error_maps(data: GapData, residuals: np.ndarray, pattern_index: list[int], *,
+                causes: dict[str, np.ndarray] | None = None, lights: dict[str, np.ndarray] | None = None,
+                remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER
+                ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The error split by cause (see the module docstring): per-pixel squared error of each modelled effect (what
+    it explains), of the remainder on the smooth parts (under ``remainder_cause``), and of the remainder on the
+    pattern edges (placed nowhere), with the remainder itself with its edges zeroed."""
     mask = data.mask
-    total = float(smoothed(energy_of(residuals, mask), mask).sum())
-    if total <= 0:
-        return []
     # What an effect explains is the change its model makes, (after − before)²: the captures' noise cancels
     # in that difference, where it would not in before² − after².
     maps = {name: energy_of(after - residuals, mask) for name, after in (causes or {}).items()}
@@ -157,10 +160,61 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
             maps[name] = own * (float(maps[name].sum()) / float(own.sum()))
     # The remainder on the smooth parts only, as remainder.py judges it: pattern edges also hold sub-pixel
     # misregistration, which on a clean rig outweighs every effect and lies wherever the patterns have edges.
-    left = residuals if remainder is None else remainder
+    whole = residuals if remainder is None else remainder
     edges = [data.observations[i].edges for i in pattern_index]
-    left = np.stack([np.where(e[..., None], 0.0, r) if e is not None else r for r, e in zip(left, edges)])
+    left = np.stack([np.where(e[..., None], 0.0, r) if e is not None else r for r, e in zip(whole, edges)])
     maps[remainder_cause] = energy_of(left, mask)
+    return maps, energy_of(whole - left, mask), left
+
+
+def _shares_of(maps: dict[str, np.ndarray], edge_energy: np.ndarray, mask: np.ndarray
+               ) -> tuple[dict[str, np.ndarray], float, float]:
+    """Each cause's smoothed map, the error they split (the sum of all parts with the pattern edges'), and the
+    edges' part of it."""
+    smooth = {c: smoothed(m, mask) for c, m in maps.items()}
+    edge = float(smoothed(edge_energy, mask).sum())
+    return smooth, sum(float(e.sum()) for e in smooth.values()) + edge, edge
+
+
+def error_split(data: GapData, residuals: np.ndarray, pattern_index: list[int], *,
+                causes: dict[str, np.ndarray] | None = None, lights: dict[str, np.ndarray] | None = None,
+                remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER) -> dict[str, float]:
+    """Each cause's share of the error as :func:`find_regions` splits it (same arguments), and the share of the
+    remainder at pattern edges (:data:`EDGES`, placed in no region): the shares add up to 1, or are empty when
+    there is no error."""
+    maps, edge_energy, _ = _error_maps(data, residuals, pattern_index, causes=causes, lights=lights,
+                                       remainder=remainder, remainder_cause=remainder_cause)
+    smooth, total, edge = _shares_of(maps, edge_energy, data.mask)
+    if total <= 0:
+        return {}
+    return {**{c: float(e.sum()) / total for c, e in smooth.items()}, EDGES: edge / total}
+
+
+def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int], pattern_index: list[int], *,
+                 causes: dict[str, np.ndarray] | None = None, lights: dict[str, np.ndarray] | None = None,
+                 remainder: np.ndarray | None = None, remainder_cause: str = LEFT_OVER,
+                 absorbed: dict[str, np.ndarray] | None = None) -> list[Region]:
+    """Compact regions of the error by cause, largest share first (see the module docstring).
+
+    ``residuals`` is the structured held-out residual of the calibrated model (patterns ``pattern_index``);
+    ``causes`` maps each modelled effect to the residual left after it alone, ``remainder`` is the residual
+    after all of them (default: ``residuals``, nothing modelled), named ``remainder_cause``. ``lights`` maps a
+    local effect among them to its fitted model's own light under white (h×w): where it is placed. ``absorbed``
+    maps a local effect calibration absorbed (found from its inputs, not modelled) to its light likewise: it
+    explains nothing, but its light is a place, and what the residual holds there is counted in it.
+
+    A region's share is of the error as split by cause (:func:`error_split`), never of the residual alone: two
+    effects that each explain the same error both count it, and against the residual a place they share had held
+    133 % of it. The regions partition that split by cause and place (a whole-area region holds its cause's part
+    everywhere, a place the local causes' parts there, and places are disjoint), so their shares add up to at
+    most 1; what is left is the pattern edges' part and what scattered outside every place.
+    """
+    mask = data.mask
+    maps, edge_energy, left = _error_maps(data, residuals, pattern_index, causes=causes, lights=lights,
+                                          remainder=remainder, remainder_cause=remainder_cause)
+    smooth, total, _ = _shares_of(maps, edge_energy, mask)
+    if total <= 0:
+        return []
     h, w = mask.shape
     sx, sy = full_size[0] / w, full_size[1] / h
     min_px = max(4, int(MIN_REGION_PIXELS * mask.sum()))
@@ -189,7 +243,7 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
 
     regions, local = [], {}
     for cause, energy in maps.items():
-        e = smoothed(energy, mask)
+        e = smooth[cause]
         own = float(e.sum())
         if own <= 0:
             continue
@@ -209,7 +263,7 @@ def find_regions(data: GapData, residuals: np.ndarray, full_size: tuple[int, int
     places = [q * (rest_total / float(q.sum())) for q in places if float(q.sum()) > 0 and rest_total > 0]
     spread_rest = bool(places) and remainder_cause not in local
     if spread_rest:  # counted in the places below, and over the whole lit area for what lies outside them
-        local[remainder_cause] = (maps[remainder_cause], smoothed(maps[remainder_cause], mask))
+        local[remainder_cause] = (maps[remainder_cause], smooth[remainder_cause])
         regions = [r for r in regions if not (r.cause == remainder_cause and WHOLE in r.tags)]
     # Places are drawn where the modelled local effects act, and what they leave is counted there too: a
     # highlight the glossy model fits, with a clipped core it leaves to the remainder, is one place with two

@@ -31,6 +31,7 @@ from ..imageio import READ_IMAGE_SUFFIXES, write_image
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
+from ..stages.range import range_line
 from . import calibrate as calibrate_step
 from . import layout, projectors
 from .stage_c import StageC, StageCOptions, stage_c_inputs
@@ -96,7 +97,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         if stage.fix_range([image for image, _ in targets]) is not None:
             r = stage.range_map
             assert r is not None
-            say(f"range: targets mapped to {r.gain:.3f}·t + {r.offset:+.3f} ({r.rule})", 0.03)
+            say(f"range: targets mapped to {r.describe()}", 0.03)
         names = output_names(paths)
         folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                               inputs=(options.calibration, cal.capture_dir, *paths,
@@ -279,6 +280,7 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
             lines.append(f"{t.get('name', '?')}: {t.get('status', '?')} — {t.get('error', '')}")
         if count > 1:  # what several projectors warn of (one that lights nothing in the area) is said here
             lines += [f"{t.get('name', '?')}: warning: {w}" for w in (t.get("warnings") or [])]
+    lines += range_line(doc.get("range"))
     mode = doc.get("mode")
     head = f"{len(done)}/{len(targets)} targets compensated ({mode if isinstance(mode, str) else 'mixed modes'})"
     if count > 1:

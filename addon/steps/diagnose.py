@@ -290,6 +290,8 @@ def _lines(root: Path, doc: dict[str, Any], notes: list[str], brief: list[int]) 
     for k, r in enumerate(view.regions[:3]):
         lines.append(f"region {k + 1} ({r.get('cause', '?')}): {fmt(r.get('share'), '.0%')} "
                      f"of the error, {r.get('description', '')}")
+    if view.regions[:3] and doc.get("share_means"):
+        lines.append(f"({doc['share_means']})")
     if (root / layout.DIAGNOSIS_SUMMARY).is_file():
         lines.append(f"summary: {root / layout.DIAGNOSIS_SUMMARY}")
     return tuple(lines)

@@ -56,7 +56,7 @@ from ..stages.calibrate import Calibration
 from ..stages.classical import fit_classical
 from ..stages.compensate import Compensator
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
-from ..stages.metrics import check_capture, mean_scores, measure, side_by_side, uncompensated_input
+from ..stages.metrics import check_capture, mean_scores, measure, psnr, side_by_side, uncompensated_input
 from ..stages.range import RangeMap, capture_noise_mse, ceiling_gap_at_limit, noise_ceiling, range_ceiling
 from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
@@ -426,8 +426,9 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", TargetAspectWarning)
                 fitted = fit_target(image, area, what=f"target {name!r}")
+            given = fitted
             if range_map is not None:  # the compensation aimed at the mapped target: measure against that
-                fitted = range_map.apply(fitted)
+                fitted = range_map.apply(fitted, area)
             placed = area.place(fitted, cam_size)
             frame = inputs.frame(name, proj)
             got = measure(device, frame, fitted, area, cam_size)
@@ -436,6 +437,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
             at_limit = ceiling_gap_at_limit(fitted, captured, seen_black, seen_white,
                                             area.crop(input_seen(frame, proj, looks_at)))
             row: dict[str, Any] = {"name": name, **got.scores(), "uncompensated": plain.scores(),
+                                   **relative_scores(range_map, area, captured, area.crop(plain.capture), given),
                                    "range_ceiling": round(range_ceiling(fitted, seen_black, seen_white), 2),
                                    "ceiling_gap_at_limit": None if at_limit is None else round(at_limit, 3)}
             replayed = False
@@ -489,11 +491,12 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                       "clipped target's, the share where the input the pixel sees is already at full (capture too "
                       "dark) or at zero (too bright), which no solver can push further; capture_noise_rmse: the "
                       "camera's noise, from a second capture of the compensated input; noise_ceiling: the range "
-                      "ceiling as a capture scores it, through that noise",
+                      "ceiling as a capture scores it, through that noise; " + RELATIVE_MEASURE,
            "range": None if range_map is None else range_map.to_dict(),
            "classical": None if model is None else model.report,
            "targets": rows, "mean": mean_scores(done),
            "mean_uncompensated": mean_scores(done, "uncompensated"),
+           **mean_relative(done),
            "mean_range_ceiling": round(float(np.mean([r["range_ceiling"] for r in done])), 2) if done else None,
            "mean_noise_ceiling": (round(float(np.mean([r["noise_ceiling"] for r in done])), 2)
                                   if done and all("noise_ceiling" in r for r in done) else None),
@@ -631,6 +634,35 @@ def read(folder: str | Path) -> EvaluationView:
     return EvaluationView(Path(folder), KIND.read(folder, EvaluationError))
 
 
+#: What ``psnr_relative`` and ``brightness_kept`` are, said in metrics.json.
+RELATIVE_MEASURE = ("psnr_relative: PSNR of the capture read back through the range map ((capture − offset) / gain "
+                    "at each pixel, clipped to [0, 1]) against the target as given, so that maps compare: a target "
+                    "dimmed to a fifth gains about 13 dB in plain PSNR from the dimming alone, none in this one, "
+                    "and what the map clips counts; equal to psnr without a map; brightness_kept: the mean mapped "
+                    "white (gain + offset) over the display area as a share of the target's white, 1 without a map")
+
+
+def relative_scores(range_map: RangeMap | None, area: Any, captured: np.ndarray, uncompensated: np.ndarray,
+                    target: np.ndarray) -> dict[str, Any]:
+    """``psnr_relative`` of a compensated and an uncompensated capture (area crops) against the target as given
+    (fitted to the area, not mapped), and the brightness the map keeps there (:data:`RELATIVE_MEASURE`)."""
+    def back(capture: np.ndarray) -> np.ndarray:
+        return capture if range_map is None else range_map.unmap(capture, area)
+    return {"psnr_relative": round(psnr(back(captured), target), 4),
+            "uncompensated_psnr_relative": round(psnr(back(uncompensated), target), 4),
+            "brightness_kept": 1.0 if range_map is None else round(range_map.brightness_kept(area), 4)}
+
+
+def mean_relative(rows: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The mean ``psnr_relative`` (compensated and uncompensated) and ``brightness_kept`` of done rows."""
+    def mean(key: str) -> float | None:
+        vals = [float(r[key]) for r in rows if r.get(key) is not None]
+        return round(float(np.mean(vals)), 4) if vals else None
+    return {"mean_psnr_relative": mean("psnr_relative"),
+            "mean_uncompensated_psnr_relative": mean("uncompensated_psnr_relative"),
+            "brightness_kept": mean("brightness_kept")}
+
+
 def _target_line(t: dict[str, Any]) -> str:
     if t.get("status") != "done":
         return f"{t.get('name')}: failed — {t.get('error', '')}"
@@ -638,8 +670,11 @@ def _target_line(t: dict[str, Any]) -> str:
     classical = (f", classical {fmt(t['classical'].get('psnr'), '.2f')} dB"
                  if isinstance(t.get("classical"), dict) else "")
     return (f"{t['name']}: PSNR {fmt(u.get('psnr'), '.2f')} → {fmt(t.get('psnr'), '.2f')} dB, SSIM "
-            f"{fmt(u.get('ssim'), '.3f')} → {fmt(t.get('ssim'), '.3f')} (uncompensated → compensated{classical}); "
-            f"range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"
+            f"{fmt(u.get('ssim'), '.3f')} → {fmt(t.get('ssim'), '.3f')} (uncompensated → compensated{classical})"
+            + (f"; relative to the mapped white {fmt(t.get('uncompensated_psnr_relative'), '.2f')} → "
+               f"{fmt(t['psnr_relative'], '.2f')} dB, brightness kept {fmt(t.get('brightness_kept'), '.0%')}; "
+               if t.get("psnr_relative") is not None and t.get("brightness_kept") != 1.0 else "; ")
+            + f"range ceiling {fmt(t.get('range_ceiling'), '.2f')} dB"
             + (f" ({fmt(t['noise_ceiling'], '.2f')} dB through the camera's noise, RMS "
                f"{fmt(t.get('capture_noise_rmse'), '.4f')})" if "noise_ceiling" in t else "")
             + (f", {fmt(t['ceiling_gap_at_limit'], '.0%')} of the gap to it where the input is already at its limit"
@@ -667,7 +702,11 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     mapped = doc.get("range")
     if isinstance(mapped, dict):
         lines.append(f"targets mapped by the compensation's range: {fmt(mapped.get('gain'), '.3f')}·t "
-                     f"{fmt(mapped.get('offset'), '+.3f')}")
+                     f"{fmt(mapped.get('offset'), '+.3f')}" + (" (mean of a gain field)" if mapped.get("field") else "")
+                     + (f"; brightness kept {fmt(doc['brightness_kept'], '.0%')}, PSNR relative to the mapped white "
+                        f"{fmt(doc.get('mean_uncompensated_psnr_relative'), '.2f')} → "
+                        f"{fmt(doc.get('mean_psnr_relative'), '.2f')} dB (uncompensated → compensated; comparable "
+                        "across maps)" if doc.get("brightness_kept") is not None else ""))
     f = doc.get("flicker")
     if isinstance(f, dict):
         lines.append(f"flicker over {f.get('pairs')} consecutive pair(s): captured {fmt(f.get('captured'), '.4f')}, "

@@ -98,9 +98,10 @@ class LiveShowOptions:
              "network stream URL (rtsp://…, http://…/stream.mjpg)")
     device: str = option(required=True, check=_device, help=DEVICE_HELP)
     range: str = same_option(StageCOptions, "range",
-                             help="what the frames become before compensation: 'auto' fits one gain and offset "
-                                  "(to an even sample of a file's frames, or a camera's or stream's frames of the "
-                                  "first second), 'GAIN,OFFSET' gives them, 'none' (default) keeps them")
+                             help="what the frames become before compensation: 'auto' fits one gain and offset, "
+                                  "'bright' (or bright:PCT) an offset and a smooth gain field (to an even sample of "
+                                  "a file's frames, or a camera's or stream's frames of the first second), "
+                                  "'GAIN,OFFSET' gives them, 'none' (default) keeps them")
     effects: str = same_option(StageCOptions, "effects")
     diagnosis: Path | None = same_option(StageCOptions, "diagnosis")
     area: tuple[int, int, int, int] | None = same_option(StageCOptions, "area")
@@ -299,7 +300,7 @@ def run_live_show(options: LiveShowOptions, progress: Progress | None = None, ca
         stage: StageC | JointStage = (JointStage(cal, sc, progress=part(say, 0.0, 0.0)) if count > 1 else
                                       StageC(cal, sc, progress=part(say, 0.0, 0.0)))
         with stage:
-            if options.range == "auto":
+            if options.range == "auto" or str(options.range).strip().lower().startswith("bright"):
                 _fix_range(stage, source, say)
             solver = solver_for(stage, options.refine_steps, noted)
             return _show(options, spec, cal, stage, solver, source, say, cancel or never, on_status, said)
@@ -328,8 +329,9 @@ def _fix_range(stage: StageC | JointStage, source: FrameSource, say: Progress) -
             if f is not None:
                 images.append(f.image)
                 last = f.number
-    say(f"range: fitting one gain and offset to {len(images)} frames of the source", 0.0)
-    stage.fix_range(images)
+    say(f"range: fitting the show's map to {len(images)} frames of the source", 0.0)
+    if stage.fix_range(images) is not None and stage.range_map is not None:
+        say(f"range: frames mapped to {stage.range_map.describe()}", 0.0)
 
 
 def _camera_image(spec: LiveSpec, image: np.ndarray, lens: Any, adapter: Any) -> np.ndarray:

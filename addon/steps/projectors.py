@@ -69,7 +69,7 @@ from ..stages.display_area import (DisplayArea, TargetAspectWarning, area_inside
                                    fit_target, load_target, model_coverage)
 from ..stages.joint import JointCompensator, JointResult
 from ..stages.metrics import check_capture, psnr, side_by_side, ssim
-from ..stages.range import (RangeError, RangeMap, capture_noise_mse, fit_range, noise_ceiling, parse_range,
+from ..stages.range import (RangeError, RangeMap, capture_noise_mse, fit_rule, noise_ceiling, parse_range,
                             range_ceiling)
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
@@ -404,27 +404,29 @@ class JointStage:
 
     def fix_range(self, images: list[np.ndarray]) -> RangeMap | None:
         """``--range auto`` fitted against what the projectors reach together (:func:`combined_black_white`)."""
-        if parse_range(self.options.range) != "auto":
+        rule = parse_range(self.options.range)
+        if not isinstance(rule, str) or rule == "none":
             return self.range_map
         if self.captures is None:
-            raise RangeError("--range auto needs the white and black captures of the calibration's capture set, "
+            raise RangeError(f"--range {rule} needs the white and black captures of the calibration's capture set, "
                              f"which cannot be read at {self.calibration.capture_dir!r}: put it back, or give "
                              "--range GAIN,OFFSET")
         black, white = combined_black_white(self.captures)
-        fitted, blacks, whites = [], [], []
+        fitted, blacks, whites, areas = [], [], [], []
         for image in images:
             area = self.area_for(image)
+            areas.append(area)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", TargetAspectWarning)
                 fitted.append(fit_target(image, area))
             blacks.append(area.crop(black))
             whites.append(area.crop(white))
-        self.range_map = fit_range(fitted, blacks, whites)
+        self.range_map = fit_rule(rule, fitted, blacks, whites, areas, self.calibration.rig.camera.intrinsics)
         return self.range_map
 
     def fitted(self, image: np.ndarray, area: DisplayArea, what: str = "the target") -> np.ndarray:
         out = fit_target(image, area, what=what)
-        return out if self.range_map is None else self.range_map.apply(out)
+        return out if self.range_map is None else self.range_map.apply(out, area)
 
     def _solver(self, area: DisplayArea) -> tuple[list[int], list[int], JointCompensator, Any,
                                                   list[BiasModel] | None]:
@@ -656,7 +658,7 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
                 warnings.simplefilter("always", TargetAspectWarning)
                 fitted = fit_target(image, area, what=f"target {name!r}")
             if range_map is not None:
-                fitted = range_map.apply(fitted)
+                fitted = range_map.apply(fitted, area)
             masks = overlap_masks(cover, area)
             frames = inputs.frames(name, projectors)
             got = project_all(device, frames, cam)

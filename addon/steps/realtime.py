@@ -184,7 +184,7 @@ class RealtimeSolver:
                 self.said.append(str(w.message))
                 self.say(f"warning: {w.message}", 0.0)
         if stage.range_map is not None:
-            fitted = stage.range_map.apply(fitted)
+            fitted = stage.range_map.apply(fitted, area)
         if isinstance(stage, StageC) and stage.adapter is not None:
             fitted = fit_target(stage.adapter.model_target(fitted, area), area)
         return fitted.reshape(-1, 3)

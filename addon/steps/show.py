@@ -89,7 +89,7 @@ from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
 from ..stages.compensate import BiasModel, Compensator
 from ..stages.display_area import DisplayArea
-from ..stages.range import RangeMap
+from ..stages.range import RangeMap, parse_range, range_line
 from ..video import VideoReader, frame_count, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout
@@ -585,18 +585,21 @@ def _prepare(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions,
 
 
 def _fix_range(stage: StageC | JointStage, frames: list[SourceFrame], say: Progress) -> None:
-    """``--range auto``: one map for the whole show, from an even sample of its frames (a per-frame fit would
-    flicker)."""
-    if stage.options.range != "auto":
+    """``--range auto`` or ``bright``: one map for the whole show, from an even sample of its frames (a per-frame
+    fit would flicker)."""
+    rule = parse_range(stage.options.range)
+    if not isinstance(rule, str) or rule == "none":
         return
     sample = frames[::max(1, -(-len(frames) // RANGE_SAMPLE))]
-    say(f"range: fitting one gain and offset to {len(sample)} of the {len(frames)} frames", 0.0)
+    say(f"range: fitting the show's map to {len(sample)} of the {len(frames)} frames", 0.0)
     readers: dict[Path, VideoReader] = {}
     try:
         stage.fix_range([_load(stage, f, readers)[0] for f in sample])
     finally:
         for r in readers.values():
             r.close()
+    if stage.range_map is not None:
+        say(f"range: frames mapped to {stage.range_map.describe()}", 0.0)
 
 
 def _load(stage: StageC | JointStage, frame: SourceFrame, readers: dict[Path, VideoReader]
@@ -1045,7 +1048,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     ran = ([f"run {last.get('run')}: {last.get('done', 0)} frame(s) compensated, {last.get('skipped', 0)} already "
             f"finished, {last.get('failed', 0)} failed, {fmt(last.get('seconds'), '.1f', ' s')} "
             f"({last.get('where', 'this process')})"] if last else [])
-    lines = (*ran, *(f"frame {e.get('number')}: failed — {e.get('error', '')}" for e in failed))
+    lines = (*ran, *(f"frame {e.get('number')}: failed — {e.get('error', '')}" for e in failed),
+             *range_line((doc.get("settings") or {}).get("range")))
     return Summary(True, head, lines, {"done": len(done), "failed": len(failed), "complete": doc.get("complete"),
                                        "status": last.get("status"), "run": last})
 

@@ -34,7 +34,7 @@ from ..stages.compensate import (DEFAULT_SCHEDULE, ITERATIONS_JOINT, ITERATIONS_
                                  CompensationResult, Compensator, Schedule, get_schedule, split_iterations)
 from ..stages.display_area import (TARGET_ENCODINGS, DisplayArea, TargetAspectWarning, choose_area, fit_target,
                                    load_target, parse_area)
-from ..stages.range import RangeError, RangeMap, fit_range, parse_range
+from ..stages.range import RangeError, RangeMap, fit_rule, parse_range
 from ..stages.transport import TransportMemoryError, check_memory
 from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
@@ -113,8 +113,10 @@ class StageCOptions:
         "none", label="Range", check=parse_range, blank="",
         help="what the targets become before compensation: 'auto' fits one gain and offset to all the targets so "
              "that at most 1 % of their values lie outside what the projector shows on this surface (its white and "
-             "black captures), never dimming targets that fit; 'GAIN,OFFSET' gives them; 'none' (default) keeps the "
-             "targets as they are")
+             "black captures), never dimming targets that fit; 'bright' fits one offset and a gain that varies "
+             "over the surface, dimmer only where the paint or the distance demands it and changing by at most 5 % "
+             "per degree of the camera's view ('bright:PCT' sets that limit), and prints the brightness it keeps; "
+             "'GAIN,OFFSET' gives them; 'none' (default) keeps the targets as they are")
 
     def run_arguments(self) -> dict[str, Any]:
         """The schedule keywords of :meth:`Compensator.run`: the schedule's name and only the values given."""
@@ -338,24 +340,26 @@ class StageC:
         return self.areas[key]
 
     def fix_range(self, images: list[np.ndarray]) -> RangeMap | None:
-        """With ``--range auto``, fit the show's one gain and offset to ``images`` (all its targets, or an even
+        """With ``--range auto`` or ``bright``, fit the show's map to ``images`` (all its targets, or an even
         sample of a long show's frames) against the calibration's white and black captures; else the given map."""
-        if parse_range(self.options.range) != "auto":
+        rule = parse_range(self.options.range)
+        if not isinstance(rule, str) or rule == "none":
             return self.range_map
         if self.captures is None:
-            raise RangeError("--range auto needs the white and black captures of the calibration's capture set, "
+            raise RangeError(f"--range {rule} needs the white and black captures of the calibration's capture set, "
                              f"which cannot be read at {self.calibration.capture_dir!r}: put it back, or give "
                              "--range GAIN,OFFSET")
         white, black = self.captures.image("white"), self.captures.image("black")
-        fitted, blacks, whites = [], [], []
+        fitted, blacks, whites, areas = [], [], [], []
         for image in images:
             area = self.area_for(image)
+            areas.append(area)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", TargetAspectWarning)  # said again when the target is compensated
                 fitted.append(fit_target(image, area))
             blacks.append(area.crop(black))
             whites.append(area.crop(white))
-        self.range_map = fit_range(fitted, blacks, whites)
+        self.range_map = fit_rule(rule, fitted, blacks, whites, areas, self.calibration.rig.camera.intrinsics)
         return self.range_map
 
     def load(self, path: str | Path) -> tuple[np.ndarray, str]:
@@ -375,7 +379,7 @@ class StageC:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = fit_target(image, area, what=what)
             if self.range_map is not None:
-                fitted = self.range_map.apply(fitted)
+                fitted = self.range_map.apply(fitted, area)
             model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
             res = self.compensator.run(model_target, area, device=self.device, **self.options.run_arguments(),
                                        progress=progress, cancel=cancel, open_loop_theta=self.bias,
@@ -396,7 +400,7 @@ class StageC:
             warnings.simplefilter("ignore", TargetAspectWarning)  # said when the target is compensated
             fitted = fit_target(image, area)
             if self.range_map is not None:
-                fitted = self.range_map.apply(fitted)
+                fitted = self.range_map.apply(fitted, area)
             model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
             placed = area.place(fit_target(model_target, area), self.compensator.camera_size)
         bias = self.bias if self.options.mode == "open-loop" else None
