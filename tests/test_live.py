@@ -16,7 +16,7 @@ from procam.addon.cli.app import main
 from procam.addon.errors import Cancelled, CaptureError, LiveError
 from procam.addon.imageio import write_image
 from procam.addon.live.camera import CameraClient, parse_source
-from procam.addon.live.device import LiveDevice, LiveSpec
+from procam.addon.live.device import LiveDevice, LiveSpec, open_windows
 from procam.addon.live.loopback import LoopbackCamera, LoopbackRig, painted_wall
 from procam.addon.live.window import ProjectorWindow, list_displays
 from procam.addon.rig.model import Projector, projector_intrinsics_from_throw
@@ -136,6 +136,10 @@ def test_window_shows_frames_pixel_for_pixel(xvfb):
         assert window.position == (0, 0)
     finally:
         window.close()
+    # With several projectors the message names the one whose display does not fit, and no window stays open.
+    fits, small = (SimpleNamespace(intrinsics=SimpleNamespace(size=size)) for size in (SCREEN, (64, 48)))
+    with pytest.raises(LiveError, match=r"display 0 is \d+×\d+ but projector 2's native frame is 64×48"):
+        open_windows(LiveSpec(camera=None, display=0, displays=(0, 0)), [fits, small], lambda *a: None)
 
 
 def _projector(size=SIZE) -> Projector:

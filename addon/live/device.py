@@ -226,7 +226,8 @@ def check_displays(spec: LiveSpec, projectors: int) -> None:
                         "projector")
 
 
-def open_windows(spec: LiveSpec, projectors: Sequence[Projector], say: Progress) -> list[ProjectorWindow]:
+def open_windows(spec: LiveSpec, projectors: Sequence[Projector], say: Progress,
+                 title: str = "ProCam projector") -> list[ProjectorWindow]:
     """One projector window per projector, placed as ``spec`` says (all closed again if one cannot open)."""
     windows: list[ProjectorWindow] = []
     many = len(projectors) > 1
@@ -234,7 +235,8 @@ def open_windows(spec: LiveSpec, projectors: Sequence[Projector], say: Progress)
         for k, (proj, (display, position)) in enumerate(zip(projectors, spec.placements())):
             say(f"opening projector {k + 1}'s window" if many else "opening the projector window", 0.0)
             windows.append(ProjectorWindow(proj.intrinsics.size, display=display, position=position,
-                                           title=f"ProCam projector {k + 1}" if many else "ProCam projector"))
+                                           title=f"{title} {k + 1}" if many else title,
+                                           who=f"projector {k + 1}" if many else "the projector"))
     except BaseException:
         for window in windows:
             window.close()

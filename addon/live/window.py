@@ -80,7 +80,8 @@ class ProjectorWindow:
     """A borderless window of the projector's native size on its display; frames are float H×W×3 in [0, 1]."""
 
     def __init__(self, size: tuple[int, int], *, display: int | None = None,
-                 position: tuple[int, int] | None = None, title: str = "ProCam projector") -> None:
+                 position: tuple[int, int] | None = None, title: str = "ProCam projector",
+                 who: str = "the projector") -> None:
         if (display is None) == (position is None):
             raise LiveError("place the projector window either on a display (display=N) or at a desktop "
                             "position (position=X:Y), not both or neither")
@@ -95,7 +96,7 @@ class ProjectorWindow:
                                 f"({', '.join(f'{i}: {w}×{h}' for i, w, h, _ in displays)})")
             _, w, h, hz = displays[display]
             if (w, h) != self.size:
-                raise LiveError(f"display {display} is {w}×{h} but the projector's native frame is "
+                raise LiveError(f"display {display} is {w}×{h} but {who}'s native frame is "
                                 f"{self.size[0]}×{self.size[1]}: set that display to the projector's native "
                                 "resolution (the OS would otherwise scale every pattern), or choose another display")
             where = (_CENTRED_ON_DISPLAY | display, _CENTRED_ON_DISPLAY | display)

@@ -50,7 +50,7 @@ import numpy as np
 
 from ..capture.format import srgb_to_linear
 from ..errors import Cancelled, LiveError, ProCamError
-from ..live.device import LiveDevice, LiveSpec, check_displays
+from ..live.device import LiveDevice, LiveSpec, check_displays, open_windows
 from ..live.source import FrameSource, linear_frame
 from ..live.window import ProjectorWindow, WindowClosed
 from ..options import option, same_option, validate
@@ -345,22 +345,6 @@ def _camera_image(spec: LiveSpec, image: np.ndarray, lens: Any, adapter: Any) ->
     return np.asarray(img, np.float32)
 
 
-def _open_windows(spec: LiveSpec, cal: Any, say: Progress) -> list[ProjectorWindow]:
-    projectors = (cal.rig.projector, *cal.rig.others)
-    many = len(projectors) > 1
-    windows: list[ProjectorWindow] = []
-    try:
-        for k, (proj, (display, position)) in enumerate(zip(projectors, spec.placements())):
-            say(f"opening projector {k + 1}'s window" if many else "opening the projector window", 0.0)
-            windows.append(ProjectorWindow(proj.intrinsics.size, display=display, position=position,
-                                           title=f"ProCam live show {k + 1}" if many else "ProCam live show"))
-    except BaseException:
-        for w in windows:
-            w.close()
-        raise
-    return windows
-
-
 def _show(options: LiveShowOptions, spec: LiveSpec, cal: Any, stage: StageC | JointStage, solver: Solver,
           source: FrameSource, say: Progress, cancel: Cancel, on_status: Callable[[LiveStatus], None] | None,
           said: list[str]) -> LiveShowReport:
@@ -378,7 +362,7 @@ def _show(options: LiveShowOptions, spec: LiveSpec, cal: Any, stage: StageC | Jo
                                 f"the calibration's camera is {want[0]}×{want[1]}: set the camera to that size "
                                 f"(size={want[0]}x{want[1]} in the device) or drop camera= for the open loop")
         else:
-            windows = _open_windows(spec, cal, say)
+            windows = open_windows(spec, (cal.rig.projector, *cal.rig.others), say, title="ProCam live show")
         loop = _Loop(options, spec, stage, solver, source, windows, device, say, on_status,
                      lens=camera_lens_of(cal) if device is not None else None, said=said)
         return loop.run(cancel)
