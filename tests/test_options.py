@@ -35,7 +35,7 @@ def test_the_command_line_is_derived_from_the_declaration():
 
 @pytest.mark.parametrize("argv", [["--lr", "nan"], ["--lr", "inf"], ["--spp", "2.5"], ["--spp", "0"],
                                   ["--iterations", "-1"], ["--schedule", "slow"], ["--area", "1,2,3"],
-                                  ["--range", "bright"], ["--device", "camera:0"], ["--capture-every", "0"]])
+                                  ["--range", "dim"], ["--device", "camera:0"], ["--capture-every", "0"]])
 def test_a_bad_value_is_refused_where_it_is_parsed(argv):
     with pytest.raises((argparse.ArgumentError, SystemExit)):
         _parser().parse_args(argv)
