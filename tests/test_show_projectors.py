@@ -204,14 +204,35 @@ def test_a_one_projector_show_resumed_with_two_is_refused_naming_the_added_proje
     assert sorted(_frames(out)) == ["projector_1/frame_0001.png", "projector_2/frame_0001.png"]
 
 
-def test_export_frames_of_two_projectors_is_refused_naming_their_frames(rig, tmp_path, capsys):
+def test_export_frames_of_two_projectors_is_one_sequence_per_projector(rig, tmp_path, capsys):
+    """Every projector's frames copied bit for bit into its own numbered sequence, recorded per projector; a
+    compensation whose record lacks a projector's frame is refused and nothing is written."""
     cal, seq = rig / "cal", rig / "frames"
     comp = tmp_path / "comp"
-    assert main(["compensate", str(cal), str(seq / "shot_0001.png"), *FAST, "--out", str(comp)]) == EXIT_OK
+    targets = [str(seq / f"shot_000{n}.png") for n in (1, 2)]
+    assert main(["compensate", str(cal), *targets, *FAST, "--out", str(comp)]) == EXIT_OK
+    out = tmp_path / "frames"
+    assert main(["export-frames", str(comp), "--out", str(out), "--first", "9"]) == EXIT_OK
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == [
+        "frames.json", "projector_1/frame_0009.png", "projector_1/frame_0010.png", "projector_2/frame_0009.png",
+        "projector_2/frame_0010.png"]
+    doc = json.loads((out / "frames.json").read_text())
+    assert doc["projector_count"] == 2 and doc["frame_pattern"] == "projector_K/frame_####.png"
+    assert [p["frame_size"] for p in doc["projectors"]] == [[160, 120], [160, 120]]
+    for frame, name in zip(doc["frames"], ("shot_0001", "shot_0002")):
+        assert frame["target"] == name and frame["file"] == frame["projectors"][0]["file"]
+        for k, p in enumerate(frame["projectors"]):
+            data = (out / p["file"]).read_bytes()
+            assert data == (comp / f"{name}_frame_p{k + 1}.png").read_bytes()
+            assert (p["projector"], p["bytes"], p["sha256"]) == (k + 1, len(data), hashlib.sha256(data).hexdigest())
+    # A record naming projector 1's frame alone: refused, nothing written.
+    manifest = json.loads((comp / "compensation.json").read_text())
+    manifest["targets"][1]["projectors"] = manifest["targets"][1]["projectors"][:1]
+    (comp / "compensation.json").write_text(json.dumps(manifest))
     capsys.readouterr()
-    assert main(["export-frames", str(comp), "--out", str(tmp_path / "frames")]) == EXIT_USER
-    assert "holds the frames of 2 projectors" in capsys.readouterr().err
-    assert not (tmp_path / "frames").exists()
+    assert main(["export-frames", str(comp), "--out", str(tmp_path / "bad")]) == EXIT_USER
+    assert "names the frames of 1 projector(s), but the compensation is for 2" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
 
 
 def test_a_video_show_of_two_projectors_is_evaluated_against_the_video(rig, tmp_path):
