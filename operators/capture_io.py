@@ -4,6 +4,12 @@ Export writes the numbered pattern frames of the scene's projector (show them
 full screen, photograph each); Import turns those photographs into a capture set
 and makes it the scene's. Both only write new folders; the scene changes only in
 its capture-set path.
+
+Several projectors, one at a time, as ``procam patterns --projector-number K``
+and ``procam import-captures … --add-to SET`` do: Export Patterns writes
+projector K's sequence (its own size and lens; K defaults to the active
+projector), and Import Captures with "Add to Capture Set" makes a new set of
+that set's projectors and this one, leaving that set as it was.
 """
 
 # No `from __future__ import annotations`: Blender reads the property annotations as objects at registration.
@@ -38,6 +44,15 @@ def _sensor_label(side: str) -> str:
 #: the import's options as its dialog names them in messages
 _IMPORT_NAMES = (REPLACE_BOX | {"--out": "‘New Capture Set’ folder"}
                  | sidebar_names([ImportOptions, DepthSensorSize]))
+#: the export's options as its dialog names them in messages
+_EXPORT_NAMES = (REPLACE_BOX | {"--out": "‘Folder’"}
+                 | sidebar_names([PatternsOptions], only=("projector_number", "layout")))
+
+
+def _number(name: str) -> dict[str, object]:
+    """An integer option's label and limits, as PatternsOptions declares them, for a dialog's own field of it."""
+    spec = spec_of(PatternsOptions, name)
+    return {"name": spec.label, "min": int(spec.min or 0), "max": int(spec.max or 2 ** 31 - 1)}
 
 
 def _rig_missing(context: bpy.types.Context) -> str:
@@ -57,6 +72,10 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
     directory: StringProperty(name="Folder", subtype="DIR_PATH",
                               description="New folder for the numbered frames and sequence.json")
     force: BoolProperty(name="Replace", default=False, description="Replace an existing exported sequence there")
+    projector_number: IntProperty(default=1, **_number("projector_number"),
+                                  description="Several projectors: the sequence of projector K (its own size and "
+                                              "lens; default the active projector); 2 and above leave out the "
+                                              "surface photo, taken once with projector 1's")
     order: EnumProperty(name=spec_of(PatternsOptions, "layout").label, default="procam", items=[
         ("procam", "ProCam", "Surface photo, black, white, checkerboards, Gray code, validation patterns"),
         ("opencv", "OpenCV Structured Light", "Gray code (each bit then its inverse, x then y), white, black, then "
@@ -71,6 +90,11 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
         return not why
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        if not self.properties.is_property_set("projector_number"):
+            # the projector the panels work on: the active one of several
+            objs = blender_rig.find_rig_objects(context.scene)
+            if objs.projector in objs.projectors:
+                self.projector_number = objs.projectors.index(objs.projector) + 1
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
 
@@ -78,16 +102,30 @@ class PROCAM_OT_export_patterns(bpy.types.Operator):
         if not self.directory:
             self.report({"ERROR"}, "Choose a folder for the pattern frames")
             return {"CANCELLED"}
+        k = int(self.projector_number)
+        count = len(blender_rig.find_rig_objects(context.scene).projectors)
+        if k > count:
+            label = spec_of(PatternsOptions, "projector_number").label
+            self.report({"ERROR"}, f"the scene has {count} ProCam projector(s): choose a ‘{label}’ from 1 to "
+                                   f"{count}, or add projector {k} first (Add Projector)")
+            return {"CANCELLED"}
         try:
             rig = blender_rig.read_rig(context.scene)
-            out = run_patterns(PatternsOptions(rig.projector, paths.resolve(self.directory, "pattern folder"),
-                                               camera=rig.camera, layout=self.order, force=self.force))
+            out = run_patterns(PatternsOptions(rig.projectors[k - 1], paths.resolve(self.directory, "pattern folder"),
+                                               camera=rig.camera, layout=self.order, projector_number=k,
+                                               force=self.force))
         except ProCamError as exc:
-            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘Folder’"}))
+            self.report({"ERROR"}, sidebar_text(str(exc), _EXPORT_NAMES))
             return {"CANCELLED"}
         frames = len(list(out.glob("[0-9]*.png")))
-        self.report({"INFO"}, f"{frames} pattern frames in {out}: show each full screen on the projector, "
-                              "photograph it, then Import Captures")
+        if count == 1:
+            self.report({"INFO"}, f"{frames} pattern frames in {out}: show each full screen on the projector, "
+                                  "photograph it, then Import Captures")
+        else:
+            then = (f"Import Captures with ‘{_label('add_to')}’ set to the capture set of projectors 1–{k - 1}"
+                    if k > 1 else "Import Captures")
+            self.report({"INFO"}, f"{frames} pattern frames of projector {k} in {out}: show each full screen on "
+                                  f"projector {k} while the others show black, photograph it, then {then}")
         return {"FINISHED"}
 
 
@@ -103,6 +141,11 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
     photos_dir: StringProperty(name="Photographs", subtype="DIR_PATH",
                                description="One photograph per frame, numbered in the same order")
     out_dir: StringProperty(name="New Capture Set", subtype="DIR_PATH", description="Folder to create")
+    add_to_dir: StringProperty(name=_label("add_to"), subtype="DIR_PATH",
+                               description="Several projectors: the capture set of the projectors photographed "
+                                           "so far; the new set holds its captures and this projector's (the next "
+                                           "one). That set is read, never changed; the depth and surface photo are "
+                                           "its own")
     rig_file: StringProperty(name=_label("rig"), subtype="FILE_PATH",
                              description="Optional rig.json from procam calibrate-rig: calibrated camera and projector "
                                          "lenses (the camera's distortion is removed from the photographs) and, "
@@ -139,9 +182,10 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         layout.use_property_split = True
-        for name in ("sequence_dir", "photos_dir", "out_dir", "rig_file"):
+        for name in ("sequence_dir", "photos_dir", "out_dir", "add_to_dir", "rig_file"):
             layout.prop(self, name)
         col = layout.column(align=True)
+        col.enabled = not self.add_to_dir  # the depth is taken once, with the first projector's photographs
         col.prop(self, "depth_file")
         sub = col.column(align=True)
         sub.enabled = bool(self.depth_file)
@@ -176,12 +220,13 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
             camera = blender_rig.read_camera(context.scene) if objs.camera is not None and rig is None else None
             out = paths.resolve(self.out_dir, "new capture set")
             depth = paths.resolve(self.depth_file, "depth file") if self.depth_file else None
+            add_to = paths.resolve(self.add_to_dir, "capture set to add to") if self.add_to_dir else None
             native = DepthSensorSize(self.depth_native_width or None, self.depth_native_height or None).size()
             captures = run_import(ImportOptions(paths.resolve(self.sequence_dir, "pattern sequence"),
                                                 paths.resolve(self.photos_dir, "photographs"), out, camera=camera,
                                                 camera_fov=self.camera_fov, encoding=self.encoding,
                                                 depth_path=depth, depth_units=self.depth_units,
-                                                depth_native_size=native, rig=rig,
+                                                depth_native_size=native, rig=rig, add_to=add_to,
                                                 check_exposure=self.check_exposure, force=self.force),
                                   progress)
         except ProCamError as exc:
@@ -194,5 +239,8 @@ class PROCAM_OT_import_captures(bpy.types.Operator):
             extra += ", exposure not checked"
         for warning in warnings:
             self.report({"WARNING"}, warning)
+        if add_to is not None:
+            extra += (f", {len(captures.projectors)} projectors: {add_to.name}'s and projector "
+                      f"{len(captures.projectors)}'s ({add_to.name} left as it was)")
         self.report({"INFO"}, f"capture set {out}: {len(captures)} images{lens}{extra}")
         return {"FINISHED"}

@@ -50,7 +50,7 @@ class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
 
 
 class PROCAM_OT_export_frames(bpy.types.Operator):
-    """Write the compensated projector frames as a numbered 16-bit PNG sequence (frame_0001.png …) for a media server"""
+    """Write the compensated projector frames as a numbered 16-bit PNG sequence (one per projector) for media servers"""
 
     bl_idname = "procam.export_frames"
     bl_label = "Export Projector Frames"

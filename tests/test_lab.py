@@ -561,6 +561,23 @@ def test_cli_two_projectors_side_by_side_overlap_by_the_fraction_asked(tmp_path,
     assert ratios[0] > 0.4 and ratios[1] < 0.3, ratios
 
 
+def test_the_other_projectors_black_level_is_in_every_projectors_captures(tmp_path):
+    """With a projector black level, each projector's sequence is taken with the others showing black, their
+    panels' leak included: every projector's black capture is the same scene (all black), so none is darker than
+    another inside that other's footprint (without the leak it would be by b/(1−b) = 25 % of its white there)."""
+    truth = make_truth("plane", effects="black_level.projector=0.2", samples=4, camera_size=(64, 48),
+                       projector_size=(80, 60), projectors=2, overlap=0.2)
+    run_lab(truth, tmp_path / "set", truth_path=tmp_path / "truth.json", graycode=False, validation=False,
+            depth_wall=False)
+    cs = CaptureSet.load(tmp_path / "set")
+    excess = check_others_black(cs)
+    assert len(excess) == 2 and all(abs(v) < 0.03 for v in excess.values()), excess
+    first, second = footprints(cs)
+    black_2 = cs.for_projector(1).image("black").mean(axis=2)
+    assert black_2[first & ~second].mean() > 0.5 * cs.for_projector(0).image("black").mean(axis=2)[
+        first & ~second].mean() > 0  # projector 1's leak where projector 2 does not reach
+
+
 def test_stacked_projectors_light_nearly_the_same_area(tmp_path):
     truth = make_truth("plane", samples=2, scale=0.2, projectors=2, layout="stacked")
     run_lab(truth, tmp_path / "set", truth_path=tmp_path / "truth.json", graycode=False, validation=False,

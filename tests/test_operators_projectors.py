@@ -81,9 +81,10 @@ def test_each_projector_is_placed_and_shows_its_own_compensated_frame(registered
     assert cal_text.index("Projector 2:") < cal_text.index("p2_warp_grid")
     assert "2 of 2" in joined(drawn["PROCAM_PT_rig"]) or "1 of 2" in joined(drawn["PROCAM_PT_rig"])
 
-    with pytest.raises(RuntimeError, match="holds the frames of 2 projectors"):
-        bpy.ops.procam.export_frames(directory=str(tmp_path / "frames"))
-    assert not (tmp_path / "frames").exists()
+    # Export Projector Frames: one sequence per projector
+    assert bpy.ops.procam.export_frames(directory=str(tmp_path / "frames")) == {"FINISHED"}
+    assert sorted(str(p.relative_to(tmp_path / "frames")) for p in (tmp_path / "frames").rglob("*.png")) == [
+        f"projector_{k}/frame_000{n}.png" for k in (1, 2) for n in (1, 2)]
 
     # a scene of another number of projectors is refused, and no projector changes
     bpy.ops.procam.create_rig(camera_width=128, camera_height=96, projector_width=160, projector_height=120)

@@ -515,7 +515,7 @@ def test_show_cluster_that_never_answers_is_refused_in_time(lab_calibration, tmp
                      "--connect-timeout", "1"]) == EXIT_USER
         err = capsys.readouterr().err
         assert address in err and "--connect-timeout" in err and "Traceback" not in err
-        assert not list(out.glob("frame_*.png")) and _manifest(out)["runs"][-1]["status"].startswith("stopped")
+        assert not out.exists()  # a cluster that cannot be reached leaves no show folder behind
         assert main(["show", str(cal_dir), str(seq), "--out", str(out), "--cluster", address,
                      "--connect-timeout", "0"]) == EXIT_USER
         assert "--connect-timeout must be" in capsys.readouterr().err

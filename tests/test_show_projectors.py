@@ -1,5 +1,6 @@
 """``procam show`` of a calibration of two projectors: one sequence per projector, resumable, refused when the rig
-changed; evaluate reads it (images or a video); export-frames refuses a compensation of several.
+changed, in this process or on a local Dask cluster; evaluate reads it (images or a video); export-frames writes
+one sequence per projector.
 
 A small two-projector lab (camera 128×96, open loop, a few iterations): these tests check the bookkeeping and
 the warm start, not compensation quality.
@@ -50,6 +51,21 @@ def _projector_1_alone(cal: Path, dest: Path) -> Path:
     doc = json.loads((dest / "calibration.json").read_text())
     del doc["projectors"], doc["rig"]["projectors"]
     (dest / "calibration.json").write_text(json.dumps(doc))
+    return dest
+
+
+def _projector_2_moved(cal: Path, dest: Path) -> Path:
+    """The same calibration folder with projector 2's pose moved 2 mm (as a new calibration of it would), its
+    stored light-transport operators re-stamped to it so that loading it renders nothing."""
+    from procam.addon.steps.calibrate import identity
+
+    shutil.copytree(cal, dest)
+    doc = json.loads((dest / "calibration.json").read_text())
+    doc["rig"]["projectors"][1]["camera_from_projector"][0][3] += 0.002
+    (dest / "calibration.json").write_text(json.dumps(doc))
+    sha = identity(dest)["sha256"]
+    for report in dest.glob("transport*.json"):
+        (report).write_text(json.dumps({**json.loads(report.read_text()), "calibration_sha256": sha}))
     return dest
 
 
@@ -113,10 +129,12 @@ def test_a_show_of_two_projectors_is_one_sequence_per_projector_and_resumes_exac
     err = capsys.readouterr().err
     assert "projector 2 removed: the show was made for 2 projectors, the calibration has 1" in err
     assert "--force" in err and _frames(out) == files
-    # A cluster is refused for several projectors before anything is written.
-    assert main(["show", str(cal), str(seq), "--out", str(tmp_path / "cluster"), "--workers", "2"]) == EXIT_USER
-    assert "not implemented yet for several projectors" in capsys.readouterr().err
-    assert not (tmp_path / "cluster").exists()
+    # Projector 2 calibrated again (its pose moved 2 mm): refused, naming it; nothing changed.
+    again = _projector_2_moved(cal, tmp_path / "cal2")
+    assert main(["show", str(again), str(seq), "--out", str(out), *FAST]) == EXIT_USER
+    err = capsys.readouterr().err
+    assert "projector 2 calibrated again" in err and "projector 1 calibrated" not in err
+    assert "--force" in err and _frames(out) == files
 
     # evaluate measures the show's frames of both projectors at once.
     device = f"lab:{rig / 'lab.truth.json'}"
@@ -129,6 +147,43 @@ def test_a_show_of_two_projectors_is_one_sequence_per_projector_and_resumes_exac
     assert main(["evaluate", str(one), "--inputs", str(out), "--targets", str(seq / "shot_0001.png"),
                  "--device", device, "--out", str(tmp_path / "eval1")]) == EXIT_USER
     assert "for 2 projector(s), but the calibration has 1" in capsys.readouterr().err
+
+
+def test_a_show_of_two_projectors_on_a_local_cluster_is_one_process_s_and_resumes(rig, tmp_path, capsys):
+    """Frames of two projectors as tasks on a local two-worker Dask cluster: the same bytes as one process (both
+    with one Dr.Jit thread), each projector warm-started from its own frame; a run cancelled once a frame is
+    finished keeps it whole and a rerun does only the rest."""
+    from procam.addon.errors import Cancelled
+    from procam.addon.steps import show as show_step
+    from procam.addon.steps.stage_c import StageCOptions
+
+    cal, seq = rig / "cal", rig / "frames"
+    base = ["show", str(cal), str(seq), *FAST, "--chunk", "2", "--threads", "1"]
+    single = tmp_path / "single"
+    assert main([*base, "--out", str(single)]) == EXIT_OK
+    out = tmp_path / "cluster"
+    written: list[str] = []
+    options = show_step.ShowOptions(cal, (seq,), out, StageCOptions(iterations=6), chunk=2, workers=2, threads=1)
+    with pytest.raises(Cancelled):
+        show_step.run(options, progress=lambda msg, frac: written.append(msg) if "dB (model)" in msg else None,
+                      cancel=lambda: bool(written))
+    doc = _manifest(out)
+    kept = {n for n, e in doc["frames"].items() if e["status"] == "done"}
+    assert doc["runs"][-1]["status"] == "cancelled" and 1 <= len(kept) < 3
+    assert not [p.name for p in out.rglob(".*")]  # no temporary file left behind
+    for n in kept:  # a kept frame is whole: every projector's file, as recorded
+        assert all(hashlib.sha256((out / p["file"]).read_bytes()).hexdigest() == p["sha256"]
+                   for p in doc["frames"][n]["projectors"])
+    before = {p: (out / p).stat().st_mtime_ns for p in _frames(out) if p.startswith("projector_")}
+    capsys.readouterr()
+    assert main([*base, "--out", str(out), "--workers", "2"]) == EXIT_OK
+    doc = _manifest(out)
+    assert (doc["runs"][-1]["skipped"], doc["runs"][-1]["done"]) == (len(kept), 3 - len(kept))
+    assert doc["runs"][-1]["where"] == "local cluster, 2 worker(s)" and doc["complete"]
+    assert all((out / p).stat().st_mtime_ns == t for p, t in before.items())
+    assert _frames(out) == _frames(single)
+    assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, None]
+    assert [len(doc["frames"][n]["projectors"]) for n in ("1", "2", "3")] == [2, 2, 2]
 
 
 def test_a_one_projector_show_resumed_with_two_is_refused_naming_the_added_projector(rig, tmp_path, capsys):
@@ -149,14 +204,35 @@ def test_a_one_projector_show_resumed_with_two_is_refused_naming_the_added_proje
     assert sorted(_frames(out)) == ["projector_1/frame_0001.png", "projector_2/frame_0001.png"]
 
 
-def test_export_frames_of_two_projectors_is_refused_naming_their_frames(rig, tmp_path, capsys):
+def test_export_frames_of_two_projectors_is_one_sequence_per_projector(rig, tmp_path, capsys):
+    """Every projector's frames copied bit for bit into its own numbered sequence, recorded per projector; a
+    compensation whose record lacks a projector's frame is refused and nothing is written."""
     cal, seq = rig / "cal", rig / "frames"
     comp = tmp_path / "comp"
-    assert main(["compensate", str(cal), str(seq / "shot_0001.png"), *FAST, "--out", str(comp)]) == EXIT_OK
+    targets = [str(seq / f"shot_000{n}.png") for n in (1, 2)]
+    assert main(["compensate", str(cal), *targets, *FAST, "--out", str(comp)]) == EXIT_OK
+    out = tmp_path / "frames"
+    assert main(["export-frames", str(comp), "--out", str(out), "--first", "9"]) == EXIT_OK
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == [
+        "frames.json", "projector_1/frame_0009.png", "projector_1/frame_0010.png", "projector_2/frame_0009.png",
+        "projector_2/frame_0010.png"]
+    doc = json.loads((out / "frames.json").read_text())
+    assert doc["projector_count"] == 2 and doc["frame_pattern"] == "projector_K/frame_####.png"
+    assert [p["frame_size"] for p in doc["projectors"]] == [[160, 120], [160, 120]]
+    for frame, name in zip(doc["frames"], ("shot_0001", "shot_0002")):
+        assert frame["target"] == name and frame["file"] == frame["projectors"][0]["file"]
+        for k, p in enumerate(frame["projectors"]):
+            data = (out / p["file"]).read_bytes()
+            assert data == (comp / f"{name}_frame_p{k + 1}.png").read_bytes()
+            assert (p["projector"], p["bytes"], p["sha256"]) == (k + 1, len(data), hashlib.sha256(data).hexdigest())
+    # A record naming projector 1's frame alone: refused, nothing written.
+    manifest = json.loads((comp / "compensation.json").read_text())
+    manifest["targets"][1]["projectors"] = manifest["targets"][1]["projectors"][:1]
+    (comp / "compensation.json").write_text(json.dumps(manifest))
     capsys.readouterr()
-    assert main(["export-frames", str(comp), "--out", str(tmp_path / "frames")]) == EXIT_USER
-    assert "holds the frames of 2 projectors" in capsys.readouterr().err
-    assert not (tmp_path / "frames").exists()
+    assert main(["export-frames", str(comp), "--out", str(tmp_path / "bad")]) == EXIT_USER
+    assert "names the frames of 1 projector(s), but the compensation is for 2" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
 
 
 def test_a_video_show_of_two_projectors_is_evaluated_against_the_video(rig, tmp_path):

@@ -13,12 +13,14 @@ from .terminal import run_step
 
 def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("compensation", type=Path, help="compensation folder (from procam compensate)")
-    p.add_argument("--out", type=Path, required=True, help="folder to create for frame_0001.png … and frames.json")
+    p.add_argument("--out", type=Path, required=True, help="folder to create for frame_0001.png … and frames.json "
+                   "(several projectors: projector_K/frame_0001.png …, one sequence per projector)")
     add_arguments(p, ExportFramesOptions)
     p.add_argument("--force", action="store_true", help="replace an existing frame sequence at --out")
 
 
-@command("export-frames", "Write the compensated projector frames as a numbered 16-bit PNG sequence.", _configure)
+@command("export-frames",
+         "Write the compensated projector frames as a numbered 16-bit PNG sequence (one per projector).", _configure)
 def run(args: argparse.Namespace) -> int:
     out = run_step("export-frames", run_frames, from_arguments(
         ExportFramesOptions, args, compensation=args.compensation, out=args.out, force=args.force))

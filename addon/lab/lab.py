@@ -12,10 +12,15 @@ be re-opened from it to capture more images later. Taking the depth image
 Several projectors: each projector's sequence is captured while the others
 show black, so each is rendered by a device of its own (the truth's
 :meth:`~.truth.LabTruth.for_projector`, its own random streams) on the shared
-surface and camera; the surface photo and the depth are taken once. The
-others' black is rendered as no light at all, which is exact without a
-projector black level among the effects (a black level of the others would add
-their dim glow to every capture; not simulated yet).
+surface and camera; the surface photo and the depth are taken once. With a
+projector black level among the effects (``black_level.projector`` > 0) the
+others' black is light too — the leak of their black panels reaches every
+capture of the session, as in a real room — so each projector's sequence is
+rendered with every projector in the scene, the others showing black
+(:class:`_AmongOthersBlack`, one render per shot, the projector's own random
+streams). Without a black level the others' black is no light at all, and
+each projector is rendered alone: the same captures, and Cycles' samples spent
+on the one light that shines.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -114,6 +120,21 @@ class _NominalDevice(Device):
         return self.device.capture_off()
 
 
+class _AmongOthersBlack(Device):
+    """Projector ``index`` of a device of the whole rig, the other projectors showing black in every shot."""
+
+    def __init__(self, device: Device, index: int, projectors: Sequence[Any]) -> None:
+        self.device, self.index = device, index
+        self.projector = projectors[index]
+        self._blacks = [np.zeros((p.intrinsics.height, p.intrinsics.width, 3), np.float32) for p in projectors]
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        return self.device.project_all([frame if k == self.index else black for k, black in enumerate(self._blacks)])
+
+    def capture_off(self) -> np.ndarray:
+        return self.device.capture_off()
+
+
 def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, force: bool = False,
             inputs: Iterable[str | Path | None] = (),
             graycode: bool = True, validation: bool = True, fast_binary: bool = True, depth_wall: bool = True,
@@ -162,9 +183,12 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
         from .cycles_device import LabDevice  # bpy: the lab's renders
 
         done = 2
+        # The others' black panels leak light (module doc): then every projector's shots see all of them.
+        glow = len(views) > 1 and truth.effects["black_level"]["projector"] > 0
         for k, (view, seq) in enumerate(zip(views, seqs)):
-            with LabDevice(view, supersample=supersample) as device:
-                shown = _NominalDevice(device, nominal[k])
+            with LabDevice(replace(truth, seed=view.seed) if glow else view, supersample=supersample) as device:
+                shown = _NominalDevice(_AmongOthersBlack(device, k, truth.rig.projectors) if glow else device,
+                                       nominal[k])
                 device.phase, device.session_shots = "calibration", len(seq)
                 for spec in seq:
                     check(cancel, "the lab run was cancelled; nothing was written")

@@ -216,7 +216,7 @@ class PatternsOptions:
              "surface photo or checkerboard), as procam calibrate-rig's board sessions use: import such photographs "
              "with it")
     projector_number: int = option(
-        1, min=1, max=MAX_PROJECTORS, metavar="K",
+        1, min=1, max=MAX_PROJECTORS, metavar="K", label="Projector Number", own_field=True,
         help="several projectors: the sequence of projector K (default 1), for its own size and lens; 2 and above "
              "leave out the surface photo (taken once, with projector 1's) and are recorded, so that import-captures "
              "--add-to tells the projectors' sequences apart")
@@ -344,7 +344,7 @@ class ImportOptions(PhotoSettings):
     #: a depth map already in memory (metres, aligned with the camera up to a few pixels)
     depth: np.ndarray | None = None
     add_to: Path | None = option(
-        None, metavar="SET",
+        None, metavar="SET", label="Add to Capture Set", own_field=True,
         help="several projectors: a NEW capture set at --out holding SET's captures and this projector's (the "
              "next one, numbered after SET's), photographed by SET's camera while every other projector showed "
              "black; SET is read, never changed (--out must be another folder). The depth and the surface photo "

@@ -4,6 +4,16 @@
 come from, the mode, and each frame's target and simulated PSNR. The frames
 are the native projector resolution, in the compensation's target order,
 copied bit for bit (a media server plays them as they are).
+
+A compensation of several projectors gives one sequence per projector in one
+folder, each what a media server plays on that projector's output, laid out as
+a show of several projectors is::
+
+    projector_1/frame_0001.png …   projector 1's frames (K counted from 1)
+    projector_2/frame_0001.png …
+    frames.json                    projector_count, each projector's frame size and input area (``projectors``),
+                                   and per frame every projector's file, size and SHA-256 under ``projectors``
+                                   (projector 1's file also under ``file``)
 """
 
 from __future__ import annotations
@@ -13,10 +23,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..errors import ImageError
 from ..options import option, validate
-from ..outputs import check_replaceable, fresh_output_folder, write_manifest
+from ..outputs import check_replaceable, file_sha256, fresh_output_folder, write_manifest
 from ..progress import Cancel, Progress, check, quiet
 from . import calibrate as calibrate_step
 from . import compensate as compensate_step
@@ -36,7 +47,8 @@ class ExportFramesOptions:
 
 
 def run_frames(options: ExportFramesOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> Path:
-    """Copy the compensated frames into a new numbered sequence with ``frames.json``; returns the folder."""
+    """Copy the compensated frames into a new numbered sequence with ``frames.json``; returns the folder. A
+    compensation of several projectors gives one sequence per projector (module doc)."""
     say = progress or quiet
     validate(options, ImageError)
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
@@ -44,28 +56,48 @@ def run_frames(options: ExportFramesOptions, progress: Progress | None = None, c
     view = compensate_step.read(options.compensation)
     if not view.targets:
         raise ImageError(f"{options.compensation} holds no finished targets to export; run Compensate first")
-    if view.projector_count > 1:  # one sequence of projector 1's frames would pass for the whole show
-        raise ImageError(f"{options.compensation} holds the frames of {view.projector_count} projectors; exporting "
-                         "them as numbered sequences is not implemented yet for several projectors: each "
-                         "projector's frame of target NAME is NAME_frame_pK.png in that folder (K from 1)")
+    count = view.projector_count
     for t in view.targets:
-        if not t.frame_path.is_file():
-            raise ImageError(f"compensated frame {t.frame_path} is missing; run Compensate again")
+        if len(t.frame_paths) != count:  # a record that does not name every projector's frame
+            raise ImageError(f"target {t.name!r} of {options.compensation} names the frames of {len(t.frame_paths)} "
+                             f"projector(s), but the compensation is for {count}; run Compensate again")
+        for k, path in enumerate(t.frame_paths):
+            if not path.is_file():
+                which = f" (projector {k + 1})" if count > 1 else ""
+                raise ImageError(f"compensated frame {path}{which} is missing; run Compensate again")
+    digits = max(4, len(str(options.first + len(view.targets) - 1)))
+    sources = [p for t in view.targets for p in t.frame_paths]
     with fresh_output_folder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                             inputs=(options.compensation, *(t.frame_path for t in view.targets))) as tmp:
+                             inputs=(options.compensation, *sources)) as tmp:
         frames = []
         for i, t in enumerate(view.targets):
             check(cancel, "the export was cancelled; nothing was written")
             say(f"frame {i + 1}/{len(view.targets)}: {t.name}", i / len(view.targets))
-            file = layout.frame_name(options.first + i)
-            shutil.copyfile(t.frame_path, tmp / file)
-            frames.append({"index": options.first + i, "file": file, "target": t.name, "mode": t.mode,
-                           "psnr_simulated": t.psnr_simulated})
+            number = options.first + i
+            if count == 1:
+                file = layout.frame_name(number)
+                shutil.copyfile(t.frame_path, tmp / file)
+                frames.append({"index": number, "file": file, "target": t.name, "mode": t.mode,
+                               "psnr_simulated": t.psnr_simulated})
+                continue
+            files = [layout.projector_frame_name(number, digits, k) for k in range(count)]
+            for k, (source, file) in enumerate(zip(t.frame_paths, files)):
+                (tmp / layout.PROJECTOR_FOLDER.format(k=k + 1)).mkdir(exist_ok=True)
+                shutil.copyfile(source, tmp / file)
+            frames.append({"index": number, "file": files[0], "target": t.name, "mode": t.mode,
+                           "psnr_simulated": t.psnr_simulated,
+                           "projectors": [{"projector": k + 1, "file": f, "bytes": (tmp / f).stat().st_size,
+                                           "sha256": file_sha256(tmp / f)} for k, f in enumerate(files)]})
+        several: dict[str, Any] = {}
+        if count > 1:
+            several = {"projector_count": count, "projectors": view.doc.get("projectors"),
+                       "frame_pattern": f"{layout.PROJECTOR_FOLDER.format(k='K')}/{layout.FRAME_PREFIX}"
+                                        f"{'#' * digits}.png"}
         write_manifest(tmp / KIND.manifest, {
             "format": KIND.format, "version": KIND.version, "compensation": str(Path(options.compensation).absolute()),
             "calibration": view.doc.get("calibration"), "mode": view.mode,
             "encoding": "raw projector input levels, 16-bit PNG, native projector resolution, no sRGB transfer",
-            "written": time.strftime("%Y-%m-%dT%H:%M:%S"), "frames": frames})
+            **several, "written": time.strftime("%Y-%m-%dT%H:%M:%S"), "frames": frames})
     say("done", 1.0)
     return Path(options.out)
 

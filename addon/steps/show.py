@@ -57,10 +57,12 @@ and the entry only after the last, so a crash in between redoes the frame.
 Each projector's warm start reads back its own previous 16-bit frame and
 undoes its own warp. A show folder resumed with a calibration of another
 number of projectors, other projector sizes or other contents is refused,
-naming what changed (``--force`` redoes it). Not yet for several projectors:
-``--workers``/``--cluster`` (refused before anything is written), and what
-``JointStage`` refuses (render schedules; of the diagnosed effect models, the
-camera's and the surface's). Each projector's effect models are in the settings.
+naming what changed (``--force`` redoes it). On a cluster
+(``--workers``/``--cluster``) each task solves one frame of every projector
+and returns every projector's PNG bytes, written here as above. Not yet for
+several projectors: what ``JointStage`` refuses (render schedules; of the
+diagnosed effect models, the camera's and the surface's). Each projector's
+effect models are in the settings.
 """
 
 from __future__ import annotations
@@ -545,10 +547,6 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     mode = sc.mode
     options.check(mode)
     cal = calibrate_step.read(options.calibration)  # says how to make one when the folder is not a calibration
-    if cal.projector_count > 1 and (options.workers is not None or options.cluster):
-        raise SequenceError(f"--workers/--cluster is not implemented yet for several projectors (the calibration "
-                            f"{options.calibration} has {cal.projector_count}): drop it to compute the frames in "
-                            "this process")
     ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
     say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
@@ -611,9 +609,19 @@ def _load(stage: StageC | JointStage, frame: SourceFrame, readers: dict[Path, Vi
     return load_video_frame(reader, frame.index, encoding=stage.options.target_encoding)
 
 
+def projector_fingerprints(cal: Any) -> list[str]:
+    """Each projector's calibration in short (SHA-256 of its calibrated description and warp): a show of several
+    projectors records them (``projectors_calibrated``), so a resume after one was calibrated again names it."""
+    out = []
+    for projector, warp in zip(cal.rig.projectors, cal.warps):
+        doc = {"projector": projector.to_dict(), "warp": warp.to_dict() if warp is not None else None}
+        out.append(hashlib.sha256(json.dumps(jsonable(doc), sort_keys=True).encode()).hexdigest()[:16])
+    return out
+
+
 def _rig_changes(old: dict[str, Any], rig: dict[str, Any]) -> list[str]:
     """What differs between the projectors a show's manifest was made for and ``rig`` (a stage's rig record):
-    projectors added or removed, a projector's frame or input size or offset."""
+    projectors added or removed, a projector's frame or input size or offset, or its calibration."""
     def listed(doc: dict[str, Any]) -> list[Any]:
         return list(doc["projectors"]) if isinstance(doc.get("projectors"), list) else [doc.get("projector")]
 
@@ -630,6 +638,10 @@ def _rig_changes(old: dict[str, Any], rig: dict[str, Any]) -> list[str]:
         for key in ("frame_size", "input_size", "input_offset"):
             if a.get(key) is not None and list(a[key]) != list(b[key]):
                 out.append(f"projector {k + 1}'s {key.replace('_', ' ')} {a[key]} → {b[key]}")
+    then, now = old.get("projectors_calibrated"), rig.get("projectors_calibrated")
+    if isinstance(then, list) and isinstance(now, list):
+        out += [f"projector {k + 1} calibrated again (its pose, lens, response or warp changed)"
+                for k, (a, b) in enumerate(zip(then, now)) if a != b]
     return out
 
 
@@ -650,11 +662,33 @@ def _remove_frames(folder: Path, entries: Sequence[dict[str, Any]]) -> None:
 def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointStage, cal: Any,
          ident: dict[str, str], settings: dict[str, Any], digits: int, say: Progress,
          cancel: Cancel | None) -> ShowResult:
-    """:func:`run` once the frames, the settings and stage C are ready: the folder's bookkeeping."""
+    """:func:`run` once the frames, the settings and stage C are ready. With ``workers``/``cluster`` the cluster is
+    started or reached first: one that cannot be leaves the show folder as it was (none is created)."""
+    if options.workers is None and not options.cluster:
+        return _run_folder(options, frames, stage, cal, ident, settings, digits, say, cancel, None)
+    where = (f"the cluster at {options.cluster}" if options.cluster
+             else f"a local cluster of {options.workers} worker(s)")
+    say(f"starting {where}", 0.0)
+    cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads,
+                      connect_timeout=options.connect_timeout,
+                      poll=lambda: check(cancel, f"show cancelled while reaching {where}"))
+    try:
+        say(f"{where}: {cluster.describe}", 0.0)
+        return _run_folder(options, frames, stage, cal, ident, settings, digits, say, cancel, cluster)
+    finally:
+        cluster.close()
+
+
+def _run_folder(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointStage, cal: Any,
+                ident: dict[str, str], settings: dict[str, Any], digits: int, say: Progress,
+                cancel: Cancel | None, cluster: Cluster | None) -> ShowResult:
+    """:func:`run` once the frames, the settings, stage C (and the cluster) are ready: the folder's bookkeeping."""
     force, mode = options.force, stage.options.mode
     effects = stage.adapter if isinstance(stage, StageC) else None
     count = stage.count if isinstance(stage, JointStage) else 1
     rig = stage.rig_record()
+    if isinstance(stage, JointStage):
+        rig = {**rig, "projectors_calibrated": projector_fingerprints(cal)}
     schedule = stage.schedule
     log = lambda msg: say(msg, 0.0)  # noqa: E731 — a message between frames, before the frame progress
     folder = ShowFolder(options.out)
@@ -776,7 +810,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointS
         try:
             if todo:
                 _run_frames(todo, frames, folder, result, run, stage, digits, options=options, ident=ident,
-                            say=say, cancel=cancel, count=count)
+                            say=say, cancel=cancel, count=count, cluster=cluster)
             run["status"] = "complete" if not result.failed else "incomplete"
         except Cancelled as exc:
             run["status"] = "cancelled"
@@ -841,7 +875,8 @@ def _open_loop_bias(stage: StageC | JointStage, folder: ShowFolder, say: Progres
 
 def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: ShowFolder, result: ShowResult,
                 run: dict[str, Any], stage: StageC | JointStage, digits: int, *, options: ShowOptions,
-                ident: dict[str, str], say: Progress, cancel: Cancel | None, count: int = 1) -> None:
+                ident: dict[str, str], say: Progress, cancel: Cancel | None, count: int = 1,
+                cluster: Cluster | None = None) -> None:
     """The frame loop of :func:`run` (split out to keep the bookkeeping above readable): in this process, or as
     tasks on a cluster; either way this process alone writes the frames and the manifest, as they finish."""
     doc = folder.doc
@@ -915,10 +950,8 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
         say(f"frame {number}: {out.entry['psnr_model']:.2f} dB (model), {out.entry['seconds']:.1f} s{warm}",
             finished / n)
 
-    if options.workers is not None or options.cluster:
-        assert isinstance(stage, StageC)  # several projectors are refused with a cluster before anything is done
-        _run_on_cluster(jobs, {n: b[0] for n, b in starts.items()}, stage, options, ident, areas, record, say,
-                        cancel)
+    if cluster is not None:
+        _run_on_cluster(cluster, jobs, starts, stage, digits, ident, areas, record, cancel)
         return
     readers: dict[Path, VideoReader] = {}
     last: FrameOutcome | None = None
@@ -945,30 +978,21 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
             r.close()
 
 
-def _run_on_cluster(jobs: list[FrameJob], starts: dict[int, bytes | None], stage: StageC, options: ShowOptions,
-                    ident: dict[str, str], areas: dict[str, Any], record: Any, say: Progress,
-                    cancel: Cancel | None) -> None:
+def _run_on_cluster(cluster: Cluster, jobs: list[FrameJob], starts: dict[int, list[bytes]],
+                    stage: StageC | JointStage, digits: int, ident: dict[str, str], areas: dict[str, Any],
+                    record: Any, cancel: Cancel | None) -> None:
     """The frames as tasks on a Dask cluster (:mod:`.show_cluster`); ``record`` writes each as it comes back."""
-    where = (f"the cluster at {options.cluster}" if options.cluster
-             else f"a local cluster of {options.workers} worker(s)")
-    say(f"starting {where}", 0.0)
-    cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads,
-                      connect_timeout=options.connect_timeout,
-                      poll=lambda: check(cancel, f"show cancelled while reaching {where}"))
+    key = hashlib.sha256(json.dumps([ident["sha256"], ident["surface_sha256"], repr(stage.options)])
+                         .encode()).hexdigest()
+    bias, biases = (None, stage.biases) if isinstance(stage, JointStage) else (stage.bias, None)
+    ctx = WorkerContext(key, Path(ident["path"]), stage.options, bias, stage.range_map, dict(areas), cluster.threads,
+                        biases=biases, digits=digits)
+    outcomes = cluster.run(ctx, jobs, starts, poll=lambda: check(cancel, "show cancelled"))
     try:
-        say(f"{where}: {cluster.describe}", 0.0)
-        key = hashlib.sha256(json.dumps([ident["sha256"], ident["surface_sha256"], repr(stage.options)])
-                             .encode()).hexdigest()
-        ctx = WorkerContext(key, Path(ident["path"]), stage.options, stage.bias, stage.range_map, dict(areas),
-                            cluster.threads)
-        outcomes = cluster.run(ctx, jobs, starts, poll=lambda: check(cancel, "show cancelled"))
-        try:
-            for out in outcomes:
-                record(out)
-        finally:
-            outcomes.close()  # cancels what is still queued
+        for out in outcomes:
+            record(out)
     finally:
-        cluster.close()
+        outcomes.close()  # cancels what is still queued
 
 
 # -- reading ---------------------------------------------------------------------------------------

@@ -26,6 +26,11 @@ one before it.
   both run the same number of threads (``procam show --threads``).
 * Workers read the calibration and the targets by the paths the show names:
   on a real cluster they must see the same paths (a shared disk).
+* A calibration of several projectors runs :class:`.projectors.JointStage` on
+  the workers: a task returns every projector's PNG bytes at once (one frame is
+  one joint solve, so it is not split across workers), warm-started from every
+  projector's previous frame; the open-loop θ models the driver estimated (or
+  read back from the show folder) travel with the context.
 """
 
 from __future__ import annotations
@@ -47,7 +52,8 @@ from ..stages.display_area import DisplayArea
 from ..stages.range import RangeMap
 from ..video import VideoReader
 from . import calibrate as calibrate_step
-from .show_work import FrameJob, FrameOutcome, compute_frame
+from .projectors import JointStage
+from .show_work import FrameJob, FrameOutcome, compute_frame, compute_joint_frame
 from .stage_c import StageC, StageCOptions
 
 
@@ -67,14 +73,19 @@ class WorkerContext:
     areas: dict[str, Any] = field(default_factory=dict)
     #: Dr.Jit threads per worker (None: the worker's cores over its task slots)
     threads: int | None = None
+    #: with several projectors: each projector's open-loop θ model (None: the closed loop or --no-bias)
+    biases: list[BiasModel] | None = None
+    #: zero padding of the frame numbers (several projectors: the entries name each projector's file)
+    digits: int = 4
 
 
-_STAGES: dict[str, StageC] = {}
+_STAGES: dict[str, StageC | JointStage] = {}
 _READERS: dict[Path, VideoReader] = {}
 
 
-def _stage(ctx: WorkerContext) -> StageC:
-    """This worker's stage C for ``ctx`` (built once per worker process and show settings)."""
+def _stage(ctx: WorkerContext) -> StageC | JointStage:
+    """This worker's stage C for ``ctx`` (built once per worker process and show settings): a
+    :class:`.projectors.JointStage` for a calibration of several projectors."""
     if ctx.key not in _STAGES:
         import cv2
         import drjit as dr
@@ -93,19 +104,34 @@ def _stage(ctx: WorkerContext) -> StageC:
         for old in _STAGES.values():  # one show at a time per worker: free the last one's scene
             old.close()
         _STAGES.clear()
-        stage = StageC(calibrate_step.read(ctx.calibration), ctx.options)
-        stage.bias, stage.range_map = ctx.bias, ctx.range_map
+        cal = calibrate_step.read(ctx.calibration)
+        stage: StageC | JointStage
+        if cal.projector_count > 1:
+            stage = JointStage(cal, ctx.options)
+            if ctx.biases is not None:
+                stage.use_biases(ctx.biases)
+        else:
+            stage = StageC(cal, ctx.options)
+            stage.bias = ctx.bias
+        stage.range_map = ctx.range_map
         _STAGES[ctx.key] = stage
     stage = _STAGES[ctx.key]
     stage.areas.update({k: DisplayArea.from_dict(v) for k, v in ctx.areas.items() if k not in stage.areas})
     return stage
 
 
-def remote_frame(ctx: WorkerContext, job: FrameJob, prev: FrameOutcome | bytes | None) -> FrameOutcome:
+def remote_frame(ctx: WorkerContext, job: FrameJob, prev: FrameOutcome | list[bytes] | None) -> FrameOutcome:
     """A frame task: ``prev`` is the outcome of the frame it warm-starts from, that frame's PNG bytes read from
-    the show folder, or None (a cold start)."""
-    start = prev.png if isinstance(prev, FrameOutcome) else prev
-    return compute_frame(_stage(ctx), job, start, readers=_READERS)
+    the show folder (one per projector, in projector order), or None (a cold start)."""
+    stage = _stage(ctx)
+    starts: list[bytes] | None
+    if isinstance(prev, FrameOutcome):
+        starts = (prev.pngs or [prev.png]) if prev.png is not None else None  # a failed predecessor: no answer
+    else:
+        starts = prev
+    if isinstance(stage, JointStage):
+        return compute_joint_frame(stage, job, ctx.digits, starts, readers=_READERS)
+    return compute_frame(stage, job, starts[0] if starts else None, readers=_READERS)
 
 
 #: A worker preload (the text of a script, run in each worker process as it starts): its own process group.
@@ -213,10 +239,11 @@ class Cluster:
         slots = sum(int(w.get("nthreads", 1)) for w in workers.values())
         return f"{len(workers)} worker(s), {slots} task slot(s)" + ("" if self.local else f" at {info.get('address')}")
 
-    def run(self, ctx: WorkerContext, jobs: list[FrameJob], starts: dict[int, bytes | None],
+    def run(self, ctx: WorkerContext, jobs: list[FrameJob], starts: dict[int, list[bytes]],
             poll: Callable[[], None]) -> Iterator[FrameOutcome]:
         """Submit every job (each after the job it warm-starts from, when that one is in ``jobs``) and yield the
-        outcomes as they finish. ``starts``: PNG bytes for jobs whose ``prev`` is not in ``jobs``. ``poll`` is
+        outcomes as they finish. ``starts``: each projector's PNG bytes for jobs whose ``prev`` is not in
+        ``jobs``. ``poll`` is
         called while waiting (it raises to cancel); on any error the remaining tasks are cancelled."""
         from distributed import wait
 
