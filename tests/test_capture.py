@@ -784,7 +784,7 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
         def project(self, frame):
             return raw
 
-    monkeypatch.setattr(stage_c, "LiveDevice", Camera_)
+    monkeypatch.setattr(stage_c, "open_camera_device", lambda spec, projector, **_: Camera_(spec, projector))
     spec, proj = "live:camera=0,display=0", small_projector()
 
     def calibration(report, capture_dir):

@@ -229,7 +229,7 @@ def test_a_solver_slower_than_the_source_drops_frames_and_never_queues(xvfb, cal
     said: list = []
     report = run_live_show(LiveShowOptions(cal, str(clip), DEVICE, hold=0.0, range="auto"),
                            lambda m, f: said.append(m), solver_for=stand_in(0.1, made))
-    assert "range: fitting one gain and offset to 30 frames of the source" in said  # every 2nd of 60, as show
+    assert "range: fitting the show's map to 30 frames of the source" in said  # every 2nd of 60, as show
     assert made[0].stage.range_map is not None
     # 2 s of video at 30 fps, a solve of 0.1 s: about 20 shown, the rest dropped
     assert report.frames_in == 60 and 10 <= report.shown <= 22 and report.dropped == 60 - report.shown

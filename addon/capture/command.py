@@ -43,6 +43,8 @@ from ..imageio import exif_block, write_image
 from ..progress import Progress, quiet
 from ..rig.model import Projector
 from .devices import Device
+from .exposure import ADAPT_S, COLOUR_TOLERANCE, GAIN_TOLERANCE, SEEN_STEP
+from .photos import load_capture
 
 #: Seconds a shot may take when the spec gives no ``timeout=`` (a DSLR over USB takes 1–3 s; autofocus more).
 DEFAULT_TIMEOUT = 60.0
@@ -190,8 +192,6 @@ class PhotoCommand:
 
     def take(self, substitutions: Mapping[str, str] | None = None) -> np.ndarray:
         """Run the command once and return its photograph (float32 H×W×3, linear)."""
-        from .photos import load_capture  # photos imports this module's neighbours; read as an import would
-
         n = self.shots
         self.shots += 1
         out = self.folder / f"shot-{n:05d}{self.suffix}"
@@ -294,9 +294,6 @@ def check_shots(capture: Callable[[float], np.ndarray], *, check_exposure: bool,
     """Black, white, and white again ``adapt_s`` later through ``capture(level)``; refuse a camera that does not see
     the projector or whose exposure moved. Returns the first white, white − black, the per-photograph noise and the
     exposure and colour drifts."""
-    from ..live.device import SEEN_STEP  # the live device's threshold: the same test
-    from .exposure import COLOUR_TOLERANCE, GAIN_TOLERANCE
-
     say("photographing black and white: does the camera see the projector?", 0.2)
     black = capture(0.0)
     white = capture(1.0)
@@ -387,8 +384,6 @@ class CommandDevice(Device):
 
     def __init__(self, spec: CommandSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
                  progress: Progress | None = None, check_exposure: bool = True) -> None:
-        from ..live.device import ADAPT_S
-
         say = progress or quiet
         self.spec = spec if isinstance(spec, CommandSpec) else CommandSpec.parse(spec)
         self.projector, self.others = projector, tuple(others)

@@ -44,6 +44,11 @@ from ..errors import CaptureError, ImageError
 from ..imageio import read_image
 from .format import CaptureSet
 
+#: Seconds between the two white captures of the exposure-lock check (auto exposure settles in about one second).
+ADAPT_S = 1.0
+#: The camera "sees" the white frame once its picture's mean rises this much above black's (linear units).
+SEEN_STEP = 0.02
+
 #: Captures are checked at most this many pixels a side (area averaging keeps sums exact and lowers noise).
 CHECK_SIZE = 320
 #: A pair whose gain (A + B)/(W + K) moves further than this from 1 (either way, as a log ratio, ≈ ±10 %) is

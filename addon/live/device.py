@@ -47,7 +47,7 @@ import numpy as np
 
 from ..capture.command import DEFAULT_TIMEOUT, check_suffix, parse_command, split_spec
 from ..capture.devices import Device
-from ..capture.exposure import COLOUR_TOLERANCE, GAIN_TOLERANCE
+from ..capture.exposure import ADAPT_S, COLOUR_TOLERANCE, GAIN_TOLERANCE, SEEN_STEP
 from ..capture.format import srgb_to_linear
 from ..errors import LiveError
 from ..progress import Progress, quiet
@@ -57,12 +57,8 @@ from .window import ProjectorWindow
 
 #: The most frames one capture averages.
 MAX_AVERAGE = 64
-#: Seconds between the two white captures of the exposure-lock check (auto exposure settles in about one second).
-ADAPT_S = 1.0
 #: A latency measurement gives up after this many seconds without seeing the white frame.
 LATENCY_TIMEOUT = 5.0
-#: The camera "sees" the white frame once its picture's mean rises this much above black's (linear units).
-SEEN_STEP = 0.02
 
 
 @dataclass(frozen=True)
