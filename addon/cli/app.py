@@ -84,7 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      description="ProCam: projector compensation by differentiable rendering.",
                                      epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, help_text, configure, run in _COMMANDS:
+    # In COMMAND_MODULES' order whichever module was imported first (a test may import one before this runs).
+    order = {f"{__package__}.{m}": i for i, m in enumerate(COMMAND_MODULES)}
+    for name, help_text, configure, run in sorted(_COMMANDS, key=lambda c: order.get(c[3].__module__, len(order))):
         p = sub.add_parser(name, help=help_text, description=help_text)
         configure(p)
         _fill_missing_help(p)
