@@ -1,7 +1,7 @@
 """The sRGB transfer function (IEC 61966-2-1), written once for every module that decodes or encodes it.
 
-Callers say where sRGB applies (DESIGN.md: no transfer touches data
-silently): photographs and video frames stored sRGB-encoded, 8-bit images a
+Callers say where sRGB applies (no transfer touches data silently: docs/developer.md,
+"Facts about the dependencies"): photographs and video frames stored sRGB-encoded, 8-bit images a
 .blend holds, and the blend of linear and sRGB that the lab's camera response
 injects and the diagnosis's camera-curve model fits. Both functions compute in
 the input's float type; callers cast.

@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = "blender_manifest.toml"
 #: Runtime dependencies shipped as wheels (bpy is Blender itself; Blender ships numpy).
 WHEEL_PACKAGES = ("drjit", "mitsuba", "opencv-contrib-python-headless", "pymeshlab", "pygame-ce")
-#: Optional LLVM for Dr.Jit's CPU backend on machines without an LLVM >= 16 (DESIGN.md §4).
+#: Optional LLVM for Dr.Jit's CPU backend on machines without an LLVM >= 16 (docs/developer.md, dependency facts).
 #: PyPI has it for Linux x86-64 only, so it goes into the linux-x64 zip only.
 LLVM_PACKAGE = ("karellen-llvm-core", "23.1.4.post8")
 LLVM_PLATFORM = "linux-x64"

@@ -9,8 +9,8 @@ stored values while the Blender settings still reproduce them, and derives new
 values from Blender when the user has moved or edited an object.
 
 The projector is a spot light whose Cycles node tree maps the emission
-direction through K to an image (DESIGN.md §4): Texture Coordinate ▸ Normal
-is the direction in the light's frame (−Z forward, +Y up), the image is
+direction through K to an image (docs/developer.md, "Facts about the dependencies"):
+Texture Coordinate ▸ Normal is the direction in the light's frame (−Z forward, +Y up), the image is
 sampled with CLIP extension so nothing leaves the frame, and the strength is
 ``(−n_z)^−3`` so every pixel delivers the same power, as a pinhole projector.
 Energy ``4π² · intensity`` matches Mitsuba's ``projector`` with ``scale = 1``.
@@ -45,7 +45,8 @@ FRUSTUM_NAME = "ProCam Projector Frustum"
 SURFACE_NAME = "ProCam Surface"
 PROJECTOR_IMAGE_NAME = "ProCam Projector Frame"
 
-#: Light energy (W) per unit projector intensity: matches Mitsuba's ``projector`` with ``scale = 1`` (DESIGN.md §4).
+#: Light energy (W) per unit projector intensity: matches Mitsuba's ``projector`` with ``scale = 1``
+#: (docs/developer.md, "Facts about the dependencies").
 ENERGY_PER_INTENSITY = 4.0 * math.pi ** 2
 #: Depth (m) of the viewport pyramid that shows the projector frustum.
 FRUSTUM_DEPTH = 0.5

@@ -22,7 +22,7 @@ around it rather than inside, each where it acts:
   the one in [0, 1] whose blur comes closest to ``g⁻¹(x*)`` (pre-sharpening by
   projected gradient, :func:`presharpen`): that matches every texel, detail no
   camera pixel resolves included, and buys a fifth to two thirds of what the solve
-  does (README, "Defocus").
+  does (docs/results.md, "Defocus inverted inside the solve").
 
 * ``glossy``: the albedo was read from the white capture, which holds the lobe
   under white; for direct light the lobe sends each camera pixel the same

@@ -34,7 +34,7 @@ absorbed:
 Fits use half of the pixels (alternate square blocks) and are scored on the
 other half, as effect models are scored on held-out patterns. The thresholds
 below were checked on the diagnosis benchmark's sets without the effect (see
-the README's diagnosis section).
+docs/results.md, "Diagnosis").
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ def _world(room_light: float = 0.0) -> bpy.types.World:
         world.use_nodes = True
     for node in world.node_tree.nodes:
         if node.type == "BACKGROUND":
-            # A new world lights the scene grey until its strength is set (DESIGN.md §4).
+            # A new world lights the scene grey until its strength is set (docs/developer.md, dependency facts).
             lit = room_light > 0
             node.inputs["Strength"].default_value = float(room_light) if lit else 0.0
             node.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0) if lit else (0.0, 0.0, 0.0, 1.0)

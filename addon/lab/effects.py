@@ -1,7 +1,7 @@
 """Real-world effects the virtual lab injects into its Cycles renders (pure numpy/OpenCV).
 
 The lab renders the rig with Cycles; this module turns those clean renders into
-what a real projector and camera would give (DESIGN.md §6). Every effect has a
+what a real projector and camera would give (docs/developer.md, "Facts about the dependencies"). Every effect has a
 name (shared with the diagnosis in ``addon/gap/``), one *strength* in [0, 1]
 (0 = off = identity, 1 = strong but still met in real rooms) that maps to a few
 physical parameters, and those parameters can be overridden one by one as

@@ -1,6 +1,6 @@
 """Pinhole models of the camera and the projector, and the rig that holds both.
 
-Conventions (see DESIGN.md §3):
+Conventions (see docs/developer.md, "Conventions"):
 
 * The rig frame is the camera's OpenCV frame: x right, y down, z forward,
   metres, camera at the origin.

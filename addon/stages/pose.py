@@ -39,7 +39,7 @@ Border smoothing Γ and its bias
     The frame's edge is a one-texel bilinear ramp; a pose error of a few pixels
     puts it where the mask error is flat, and the gradient no longer says how
     far to go. Γ (Eq. 11–12) widens the ramp to ε·W texels, which is what gives
-    the search a basin (DESIGN.md §4). But Γ ramps *inside* the frame, so the
+    the search a basin (docs/developer.md, "Facts about the dependencies"). But Γ ramps *inside* the frame, so the
     squared loss against a binary mask is minimal with the ramp's midpoint on
     the mask edge — the rendered footprint ends up ε·W/2 texels too large on
     every side (≈ 1 cm at 2 m). We therefore apply Γ to the white *area*

@@ -42,7 +42,7 @@ scenes the operator does not hold):
 Tried and not kept (``scripts/bench_stage_c.py``, row ``coarse``): a coarse
 z phase at half the camera resolution, 1 spp in the z phases, a plateau stop
 and a cosine learning-rate decay — cheaper, but 0.5 dB below the paper.
-Figures: README ("Stage C speed").
+Figures: docs/results.md ("Stage C speed").
 """
 
 from __future__ import annotations

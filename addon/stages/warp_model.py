@@ -16,7 +16,7 @@ Warp model
     is black where ``φ_M(p)`` leaves the image — the projector shows nothing
     outside its input. ``W`` is the same kind of spline with its own shifts.
     ``d`` is *linear* in the shifts, ``d(p) = B(p) · s``, with ``B`` (pixels ×
-    n²) fixed by the lattice (DESIGN.md §4): we build ``B`` once. In the
+    n²) fixed by the lattice (docs/developer.md, "Facts about the dependencies"): we build ``B`` once. In the
     optimisation ``d = B·s`` enters Dr.Jit as a leaf, a bilinear
     ``dr.gather`` of the pattern with differentiable weights builds the
     projector frame, and the render's adjoint arrives at ``d``; the linear
