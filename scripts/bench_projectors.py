@@ -2,7 +2,7 @@
 """Several projectors on the lab: joint compensation against the edge-blend ramps users know, the overlap, the pose.
 
 Usage: ``.venv/bin/python scripts/bench_projectors.py [--surfaces curve,vedge] [--scale 0.5] [--samples 16]
-[--iterations N] [--targets 6] [--parts side,stacked,shift,timing] [--work DIR]``
+[--iterations N] [--targets 6] [--parts side,stacked,shift,timing,diagnosis,camera] [--work DIR]``
 
 ``side``: two projectors side by side, 20 % overlap, ``realistic`` lab effects, projector 2 with a tone curve of
 its own (``--projector-effects 1:…,response=0.9``, its other projector effects realistic's), on each surface:
@@ -18,6 +18,9 @@ again): how much the overlap loses, with the blend prior and without, in the ope
 ``timing``: seconds per target of the joint solve against one projector's, on the same calibration.
 ``diagnosis``: an effect injected into projector 2 only (five, at strength 0.6, on each surface, the camera's effects
 shared): ``procam diagnose`` must name it first and attribute it to projector 2.
+``camera``: a tone curve injected on the camera (:data:`CAMERA_CASES`, one case with a tone curve of projector 2's own
+beside it): ``procam diagnose`` must name it the camera's (fitted once on both projectors' patterns) and blame no
+projector for it, and compensation with ``--effects auto`` against none (open loop, evaluated through the lab).
 ``--work DIR`` keeps and reuses every folder.
 """
 
@@ -310,7 +313,60 @@ def diagnosis(work: Path, surface: str, args: argparse.Namespace) -> None:
     print(f"{surface}: {sum(hits)} of {len(hits)} named first and on projector 2", flush=True)
 
 
-PARTS = {"side": side, "stacked": stacked, "shift": shift, "timing": timing, "diagnosis": diagnosis}
+#: the camera part's cases: what the lab injects on the camera (shared by both projectors) and on projector 2 alone
+CAMERA_CASES = (("camera_response=0.6", ""), ("camera_response=1.0", ""),
+                ("camera_response=0.6", "1:response=0.6"))
+
+
+def camera(work: Path, surface: str, args: argparse.Namespace) -> None:
+    """A tone curve injected on the camera of two projectors side by side: is it named the camera's (fitted once
+    on both projectors' patterns, no projector blamed), and what does modelling it buy (open loop, through the lab)?"""
+    rows = []
+    for k, (cam, own) in enumerate(CAMERA_CASES):
+        case = work / f"camera-{k}"
+        caps, truth, cal, diag = case / "lab", case / "lab.truth.json", case / "cal", case / "diag"
+        case.mkdir(parents=True, exist_ok=True)
+        step(["lab", "--surface", surface, "--projectors", "2", "--overlap", "0.2", "--effects", cam,
+              *(["--projector-effects", own] if own else []), "--scale", str(args.scale), "--samples",
+              str(args.samples), "--out", str(caps), "--truth", str(truth)], caps)
+        step(["calibrate", str(caps), "--out", str(cal)], cal)
+        step(["diagnose", str(cal), "--out", str(diag)], diag)
+        doc = json.loads((diag / "gap.json").read_text())
+        area = projectors.JointStage(calibrate_step.read(cal), StageCOptions()).area_for(
+            np.zeros((300, 400, 3), np.float32))
+        paths = targets_for(case, area, args.targets)
+        iters = [] if args.iterations is None else ["--iterations", str(args.iterations)]
+        psnrs = {}
+        for effects in ("none", "auto"):
+            comp, ev = case / f"comp-{effects}", case / f"eval-{effects}"
+            step(["compensate", str(cal), *map(str, paths), *iters, "--effects", effects, "--diagnosis", str(diag),
+                  "--out", str(comp)], comp)
+            step(["evaluate", str(cal), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
+                  f"lab:{truth}", "--out", str(ev)], ev)
+            psnrs[effects] = json.loads((ev / "metrics.json").read_text())["mean"]["psnr"]
+        joint = doc.get("joint") or {}
+        named = "camera_response" in (joint.get("shared") or [])
+        top = doc.get("differs") or {}
+        blamed = f"projector {top['projector']}'s {top['effect']}" if top else "none"
+        want = "projector 2's response" if own else "none"
+        rows.append((cam, own or "–", named, (joint.get("params") or {}).get("camera_response", {}).get("curve"),
+                     blamed, blamed == want, psnrs["none"], psnrs["auto"]))
+        print(f"{surface}, camera {cam}, projector 2 {own or 'as projector 1'}: {doc['headline']}", flush=True)
+    print(f"\n{surface}, two projectors side by side, 20 % overlap, scale {args.scale}, open loop, {args.targets} "
+          "natural targets, evaluated through the lab")
+    print("| camera | projector 2 | named the camera's | curve fitted | projector blamed | right | PSNR without "
+          "| PSNR with the camera modelled |")
+    print("|---|---|---|---|---|---|---|---|")
+    for cam, own, named, curve, blamed, right, without, with_ in rows:
+        print(f"| {cam} | {own} | {'yes' if named else 'NO'} | {'–' if curve is None else f'{curve:.2f}'} | "
+              f"{blamed} | {'yes' if right else 'NO'} | {without:.2f} | {with_:.2f} |")
+    print(f"{surface}: named the camera's in {sum(r[2] for r in rows)} of {len(rows)}, attribution right in "
+          f"{sum(r[5] for r in rows)} of {len(rows)}; modelling the camera "
+          f"{np.mean([r[7] - r[6] for r in rows]):+.2f} dB on average", flush=True)
+
+
+PARTS = {"side": side, "stacked": stacked, "shift": shift, "timing": timing, "diagnosis": diagnosis,
+         "camera": camera}
 
 
 def main() -> None:

@@ -136,6 +136,10 @@ def test_a_diagnosis_of_another_rig_or_a_shared_effect_named_is_refused(rig, tmp
     assert procam(base + ["--effects", "auto", "--diagnosis", str(other)]) == 2
     assert "made on another calibration" in capsys.readouterr().err
     both = diagnosis_of_two(tmp_path / "both", root / "cal", [{"camera_response": {"curve": 0.3}}] * 2)
+    # the camera's curve named needs its fit on every projector's patterns, which this (older) diagnosis lacks
     assert procam(base + ["--effects", "camera_response", "--diagnosis", str(both)]) == 2
-    assert "only each projector's own effects" in capsys.readouterr().err
+    assert "no fit of the camera's effects on every projector's patterns" in capsys.readouterr().err
+    # a surface effect is not inverted for several projectors
+    assert procam(base + ["--effects", "glossy", "--diagnosis", str(both)]) == 2
+    assert "the surface's effects and the camera's lens are not" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()

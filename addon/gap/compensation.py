@@ -371,17 +371,18 @@ def send_through(adapter: EffectAdapter, frame: np.ndarray) -> np.ndarray:
 
 class AdaptedProjectors:
     """A device of several projectors seen through each projector's own effect models (closed loop of a joint
-    solve): projector k's frame sent as g_k⁻¹ of it (``adapters[k]``; None: as it is); the capture as the camera
-    gives it, the camera's effects being left to θ for several projectors (:func:`projector_adapter`)."""
+    solve): projector k's frame sent as g_k⁻¹ of it (``adapters[k]``; None: as it is); the capture through the
+    camera's tone curve fitted once for the rig (``camera``, :class:`SharedCamera`), else as the camera gives it."""
 
-    def __init__(self, device: Any, adapters: Sequence[EffectAdapter | None]) -> None:
+    def __init__(self, device: Any, adapters: Sequence[EffectAdapter | None],
+                 camera: SharedCamera | None = None) -> None:
         if len(adapters) != len(device.projectors):
             raise CaptureError(f"{len(adapters)} projectors' effect models for a device of "
                                f"{len(device.projectors)} projector(s)")
-        self._d, self._adapters = device, list(adapters)
+        self._d, self._adapters, self._camera = device, list(adapters), camera
 
     def __getattr__(self, name: str) -> Any:  # the device's camera_size, close, …
-        if name in ("_d", "_adapters"):  # not set yet: no recursion through the lookup below
+        if name in ("_d", "_adapters", "_camera"):  # not set yet: no recursion through the lookup below
             raise AttributeError(name)
         return getattr(self._d, name)
 
@@ -392,7 +393,8 @@ class AdaptedProjectors:
     def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
         if len(frames) != len(self._adapters):
             raise CaptureError(f"{len(frames)} frames for a device of {len(self._adapters)} projectors")
-        return self._d.project_all([f if a is None else send_through(a, f) for a, f in zip(self._adapters, frames)])
+        capture = self._d.project_all([f if a is None else send_through(a, f) for a, f in zip(self._adapters, frames)])
+        return capture if self._camera is None else self._camera.to_model(capture)
 
 
 def _checked_params(params: Any, where: str) -> dict[str, dict[str, float]]:
@@ -463,12 +465,47 @@ def adapter_from_options(effects: str | None, diagnosis: dict[str, Any] | None, 
     return adapter
 
 
+class SharedCamera:
+    """The camera's tone curve of a rig of several projectors, fitted once on every projector's patterns
+    (``gap.json``'s ``joint``, :mod:`.shared`): taken out of the target and of every capture the joint solve
+    compares with its model (h⁻¹).
+
+    Each projector's model is in the units of its own white capture (its albedo holds the curve at its white), so
+    its light is ``h⁻¹(W_k) / W_k`` times its model (``W_k`` = f̂_k of a white input). The joint solve sums the
+    projectors' models; one scale per pixel takes the sum to light, exact where every projector shows white and
+    wherever one projector lights alone: ``Σ_k h⁻¹(W_k) / Σ_k W_k``.
+    """
+
+    def __init__(self, params: dict[str, dict[str, float]], whites: Sequence[np.ndarray]) -> None:
+        self.params = {n: dict(v) for n, v in params.items()}
+        self.curve = float(self.params["camera_response"]["curve"])
+        self.whites = [np.asarray(w, np.float32) for w in whites]
+        light = np.sum([inverse_camera_curve(w, self.curve) for w in self.whites], axis=0)
+        model = np.sum(self.whites, axis=0)
+        self.scale = np.where(model > 1e-3, light / np.maximum(model, 1e-3), 1.0).astype(np.float32)
+
+    def to_model(self, image: np.ndarray, area: Any = None) -> np.ndarray:
+        """A capture (camera size), or a target fitted to ``area``, in the units the joint solve's model has."""
+        scale = self.scale if area is None else area.crop(self.scale)
+        return (inverse_camera_curve(np.asarray(image, np.float32), self.curve) / scale).astype(np.float32)
+
+    def for_projector(self, k: int, adapter: "EffectAdapter | None", projector: Any) -> "EffectAdapter":
+        """Projector ``k``'s own effects (``adapter``) with the camera's curve in its own units (its white alone):
+        what its captures, taken with the others black, are read through for its open-loop θ."""
+        own = {} if adapter is None else adapter.params
+        out = EffectAdapter({**own, **self.params}, projector, white=self.whites[k])
+        out.defocus_in_solver = adapter is not None and adapter.defocus_in_solver
+        return out
+
+
 #: What one projector of several inverts from its own diagnosis: the effects of its lamp, lens and electronics
 #: (``steps/diagnose.py`` PROJECTOR_EFFECTS), each on its own frame; its blur held in the joint solve.
 PROJECTOR_SIDE = ("response", "crosstalk", "black_level", "vignetting", "defocus")
-#: Why the other effects are not inverted for one projector of several.
-SHARED_EFFECT = ("the camera's and the surface's effects are every projector's, but each projector's diagnosis "
-                 "fits its own parameters for them; not inverted for several projectors (θ holds what they leave)")
+#: Why the camera's and the surface's effects are not inverted from one projector's diagnosis of several.
+SHARED_EFFECT = ("the camera's and the surface's effects are every projector's: fitted once on every projector's "
+                 "patterns (the diagnosis's joint fit), not from one projector's")
+#: The shared effects compensation of several projectors inverts, from the diagnosis's joint fit (SharedCamera).
+SHARED_INVERTIBLE = ("camera_response",)
 
 
 def projector_adapter(effects: str | None, diagnosis: dict[str, Any] | None, projector: Any,
@@ -479,11 +516,16 @@ def projector_adapter(effects: str | None, diagnosis: dict[str, Any] | None, pro
     ``auto`` the others the diagnosis would invert are reported as not used; named, they are refused."""
     if effects_wanted(effects) and (effects or "").strip().lower() != "auto":
         shared = [n.strip() for n in (effects or "").split(",")
-                  if n.strip() in MODELS and n.strip() not in PROJECTOR_SIDE]
+                  if n.strip() in MODELS and n.strip() not in PROJECTOR_SIDE + SHARED_INVERTIBLE]
         if shared:
-            raise ProCamError(f"--effects {', '.join(shared)}: with several projectors only each projector's own "
-                              f"effects are inverted ({', '.join(PROJECTOR_SIDE)}); {SHARED_EFFECT}. Name those, or "
-                              "use --effects auto")
+            raise ProCamError(f"--effects {', '.join(shared)}: with several projectors each projector's own effects "
+                              f"({', '.join(PROJECTOR_SIDE)}) and the camera's tone curve ("
+                              f"{', '.join(SHARED_INVERTIBLE)}) are inverted; the surface's effects and the camera's "
+                              "lens are not. Name those, or use --effects auto")
+        own = ",".join(n.strip() for n in (effects or "").split(",") if n.strip() not in SHARED_INVERTIBLE)
+        if not own:
+            return None  # the camera's curve alone: the rig's (:class:`SharedCamera`), no projector effect
+        effects = own
     adapter = adapter_from_options(effects, diagnosis, projector, where)
     if adapter is None:
         return None

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -307,6 +307,9 @@ class Diagnosis:
     doc: dict[str, Any]
     images: dict[str, np.ndarray]
     summary: str
+    #: the model's renders and the captures it was diagnosed on (a rig of several projectors fits the camera's
+    #: effects once on every projector's, :mod:`.shared`)
+    data: GapData | None = field(default=None, repr=False)
 
 
 def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, format: tuple[str, int],
@@ -469,7 +472,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
               # 8-bit readers get the region numbers (1 = the first region, 0 = none)
               "regions_label.png": label_image(regions, data.mask.shape, cam_full).astype(np.float32) / 255.0}
     say("done", 1.0)
-    return Diagnosis(doc, images, _summary(doc))
+    return Diagnosis(doc, images, _summary(doc), data)
 
 
 def _clipped_white_gain(data: GapData, sel: Selection, camera_size: tuple[int, int]) -> dict[str, Any] | None:

@@ -17,10 +17,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import ProCamError
+from ..gap.compensation import HELD_BY_STAGE_C
 from ..gap.data import DiagnosisError
 from ..gap.diagnose import diagnose
 from ..gap.fit import MAX_EFFECTS, MIN_SHARE
-from ..gap.models import MODELS, NAMES
+from ..gap.models import MODELS, NAMES, describe_params
+from ..gap import shared
 from ..gap.overlap import overlap_falloffs
 from ..imageio import write_atomic_bytes, write_image
 from ..options import option, validate
@@ -127,7 +129,7 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
     """Each projector diagnosed on its own patterns (its calibration view and its captures) into
     ``projector_K/``, and ``gap.json`` saying which projector differs and by which effect."""
     count = cal.projector_count
-    docs = []
+    docs, datas = [], []
     for k in range(count):
         sub = tmp / projector_folder(k)
         sub.mkdir()
@@ -136,27 +138,92 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
                          source=str(Path(options.calibration).absolute()), format=(KIND.format, KIND.version),
                          scale=options.scale, spp=options.spp, candidates=options.candidates(),
                          min_share=options.min_share, max_effects=options.max_effects,
-                         progress=part(say, k / count, (k + 0.98) / count, f"projector {k + 1}: "), cancel=cancel)
+                         progress=part(say, 0.98 * k / count, 0.98 * (k + 0.5) / count, f"projector {k + 1}: "),
+                         cancel=cancel)
         write_manifest(sub / KIND.manifest, found.doc)
         for name, image in found.images.items():
             write_image(sub / name, image)
         write_atomic_bytes(sub / layout.DIAGNOSIS_SUMMARY, found.summary.encode())
         docs.append(found.doc)
+        datas.append(found.data)
     say("the overlaps: each projector's vignetting, which calibration took into the albedo", 0.99)
     falloffs = overlap_falloffs(cal, captures)
+    joint = joint_effects([d for d in datas if d is not None], docs, options.candidates(),
+                          min_share=options.min_share, max_effects=options.max_effects, cancel=cancel,
+                          progress=part(say, 0.98 * (count - 0.5) / count, 0.99, "the camera: ")) \
+        if all(d is not None for d in datas) else None
+    verdict = attribute(docs, falloffs)
+    if joint is not None and joint["shared"]:
+        # the camera's (or surface's) part taken out, each projector's own effects are compared as the joint fit
+        # measured them: a camera curve one projector's diagnosis took for its tone curve is no difference
+        verdict = attribute(joint["attribution_docs"], falloffs)
+        verdict["headline"] = shared_sentence(joint, count) + " " + verdict["headline"]
     doc = {"format": KIND.format, "version": KIND.version, "source": str(Path(options.calibration).absolute()),
            # which calibration the effects were fitted on: compensation with them refuses another
            "calibration_sha256": calibrate_step.identity(options.calibration)["sha256"],
-           "projector_count": count, **attribute(docs, falloffs), "overlap_vignetting": falloffs,
+           "projector_count": count, **verdict, "overlap_vignetting": falloffs,
+           "joint": None if joint is None else {k: v for k, v in joint.items() if k != "attribution_docs"},
            "projectors": [{"folder": projector_folder(k), "headline": d.get("headline"),
                            "selected": d.get("selected") or [], "residual": d.get("residual"),
                            "residual_after": d.get("residual_after")} for k, d in enumerate(docs)]}
     write_manifest(tmp / KIND.manifest, doc)
     lines = [f"# ProCam sim-to-real diagnosis of {count} projectors", "", f"**{doc['headline']}**", ""]
+    if joint is not None:
+        lines += [f"Fitted once on every projector's patterns: {', '.join(joint['shared']) or 'no shared effect'}; "
+                  f"held-out RMSE of all projectors {joint['residual']:.4f} → {joint['residual_after']:.4f}.", ""]
     lines += [f"- projector {k + 1}: {d.get('headline')} ([details]({projector_folder(k)}/{layout.DIAGNOSIS_SUMMARY}))"
               for k, d in enumerate(docs)]
     write_atomic_bytes(tmp / layout.DIAGNOSIS_SUMMARY, ("\n".join(lines) + "\n").encode())
     return doc
+
+
+#: The shared effects ``--effects auto`` inverts for several projectors: the camera's tone curve, taken out of the
+#: target and of every capture (``gap/compensation.py`` SharedCamera). The others are reported, not inverted.
+SHARED_INVERTED = ("camera_response",)
+SHARED_LEFT_OUT = {
+    "distortion": "the display area is not remapped; θ absorbs the shift",
+    "interreflection": "stage C already simulates the first bounce",
+    "glossy": "the highlight's clipped white is one projector's view; not inverted for several projectors",
+    "depth_noise": "the surface is not moved for several projectors; θ holds what it leaves"}
+
+
+def joint_effects(datas: list[Any], docs: list[dict[str, Any]], candidates: tuple[str, ...], *, min_share: float,
+                  max_effects: int, progress: Progress, cancel: Cancel | None) -> dict[str, Any]:
+    """The camera's and the surface's effects fitted once on every projector's patterns, each projector's own
+    beside them (:mod:`..gap.shared`): what was selected, the parameters, what ``--effects auto`` inverts, and
+    each projector's own effects as a diagnosis document (for :func:`attribute`)."""
+    pool = shared.pool_of(docs, candidates, min_share)
+    sel = shared.select_joint(datas, pool, min_share=min_share, max_effects=max_effects, progress=progress,
+                              cancel=cancel)
+    fit = shared.attribution_fit(datas, sel) if sel.shared else sel.final
+    final = sel.final
+    params = {n: describe_params(n, v) for n, v in final.shared.items()}
+    own = [{n: describe_params(n, v) for n, v in final.own[k].items()} for k in range(len(datas))]
+    attribution_docs = [{"modelled": sel.own(k), "selected": sel.own(k),
+                         "effects": [{"name": n, "params": describe_params(n, v)} for n, v in fit.own[k].items()]}
+                        for k in range(len(datas))]
+    return {"pool": [i.label() for i in sel.pool], "shared": sel.shared,
+            "shared_says": {n: shared.WHOSE[n] for n in sel.shared},
+            "params": params, "projectors": [{"selected": sel.own(k), "params": own[k]} for k in range(len(datas))],
+            "steps": sel.steps, "residual": round(sel.base.held_rmse, 6), "residual_after": round(final.held_rmse, 6),
+            "fitted_alone": {i.name: describe_params(i.name, f.shared[i.name]) for i, f in sel.alone.items()
+                             if i.projector is None and f.error is None},
+            "compensation": {"shared": {n: v for n, v in params.items() if n in SHARED_INVERTED},
+                             "projectors": [{n: v for n, v in own[k].items() if n not in HELD_BY_STAGE_C}
+                                            for k in range(len(datas))],
+                             "left_out": {n: SHARED_LEFT_OUT[n] for n in sel.shared if n in SHARED_LEFT_OUT}},
+            "attribution_docs": attribution_docs}
+
+
+def shared_sentence(joint: dict[str, Any], count: int) -> str:
+    """What the rig's projectors share, said once: "The camera's tone curve (curve 0.31) is every projector's …"."""
+    parts = []
+    for n in joint["shared"]:
+        values = ", ".join(f"{k} {v:.2f}" for k, v in (joint["params"].get(n) or {}).items())
+        parts.append(f"{shared.WHOSE[n]} ({values})")
+    said = ", ".join(parts)
+    return (f"{said[0].upper() + said[1:]} {'is' if len(parts) == 1 else 'are'} every projector's, not one "
+            f"projector's: fitted once on the {count} projectors' patterns together.")
 
 
 def _fitted(doc: dict[str, Any]) -> dict[str, np.ndarray]:

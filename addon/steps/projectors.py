@@ -59,7 +59,8 @@ import numpy as np
 from ..capture.devices import Device, SomeProjectors
 from ..capture.format import CaptureSet
 from ..errors import CaptureError, ProCamError
-from ..gap.compensation import AdaptedCaptures, AdaptedProjectors, EffectAdapter, effects_wanted, projector_adapter
+from ..gap.compensation import (SHARED_INVERTIBLE, AdaptedCaptures, AdaptedProjectors, EffectAdapter, SharedCamera,
+                                effects_wanted, projector_adapter)
 from ..imageio import write_image
 from ..progress import Cancel, Progress, check, part, quiet
 from ..stages.bias import BiasModel
@@ -227,13 +228,60 @@ def effect_adapters(options: StageCOptions, calibration: Calibration) -> list[Ef
         if sha is None and source and Path(str(source)).resolve() != Path(calibration.folder).resolve():
             raise ProCamError(f"the diagnosis in {folder} was made on another calibration ({source}, not "
                               f"{calibration.folder}): {again}")
+    joint = top.get("joint") if isinstance(top.get("joint"), dict) else None
     adapters = []
     for k in range(count):
         sub = folder / diagnose_step.projector_folder(k)
         doc = diagnose_step.read(sub).doc
+        if joint is not None:  # each projector's own effects as fitted beside the camera's, not its diagnosis alone
+            try:
+                mine = dict(joint["projectors"][k]["params"])
+                auto = dict(joint["compensation"]["projectors"][k])
+            except (KeyError, IndexError, TypeError, ValueError):
+                raise ProCamError(f"the diagnosis in {folder} is malformed (joint); run procam diagnose again") \
+                    from None
+            doc = {**doc, "selected_params": {**(doc.get("selected_params") or {}), **mine},
+                   "compensation": {**(doc.get("compensation") or {}), "params": auto}}
         adapters.append(projector_adapter(options.effects, doc, calibration.for_projector(k).rig.projector,
                                           where=f"projector {k + 1}'s diagnosis in {sub}"))
     return adapters
+
+
+def shared_effects(options: StageCOptions) -> dict[str, dict[str, float]] | None:
+    """The camera's effects ``--effects`` asks of a diagnosis of several projectors, fitted once on every
+    projector's patterns (``gap.json``'s ``joint``): ``auto`` what the diagnosis selected and compensation inverts,
+    a name its parameters (selected, else fitted alone); None when none. A diagnosis without a joint fit (made
+    before it) has none for ``auto`` and is refused for a name."""
+    if not effects_wanted(options.effects) or options.diagnosis is None:
+        return None
+    spec = (options.effects or "").strip().lower()
+    named = [n.strip() for n in spec.split(",") if n.strip() in SHARED_INVERTIBLE]
+    if spec != "auto" and not named:
+        return None
+    folder = Path(options.diagnosis)
+    joint = diagnose_step.read(folder).doc.get("joint")
+    if not isinstance(joint, dict):
+        if named:
+            raise ProCamError(f"--effects {', '.join(named)}: the diagnosis in {folder} has no fit of the camera's "
+                              "effects on every projector's patterns (made by an older ProCam): run procam diagnose "
+                              "again")
+        return None
+    try:
+        if spec == "auto":
+            params = dict((joint.get("compensation") or {}).get("shared") or {})
+        else:
+            fitted = {**(joint.get("fitted_alone") or {}), **(joint.get("params") or {})}
+            missing = [n for n in named if n not in fitted]
+            if missing:
+                raise ProCamError(f"the diagnosis in {folder} has no fitted parameters for {', '.join(missing)} on "
+                                  "every projector's patterns (no projector's residual showed it); rerun procam "
+                                  "diagnose with it")
+            params = {n: dict(fitted[n]) for n in named}
+    except (AttributeError, TypeError, ValueError):
+        raise ProCamError(f"the diagnosis in {folder} is malformed (joint); run procam diagnose again") from None
+    if "camera_response" in params and "curve" not in params["camera_response"]:
+        raise ProCamError(f"the diagnosis in {folder} is malformed (camera_response); run procam diagnose again")
+    return params or None
 
 
 class JointStage:
@@ -283,8 +331,13 @@ class JointStage:
                 if adapter is not None:
                     adapter.blur_in_solve(comp)  # its lens's blur held in the joint solve: T_k B_k
                 self.compensators.append(comp)
+            camera = shared_effects(options)
+            #: the camera's tone curve fitted once on every projector's patterns (None: not modelled)
+            self.camera = None if camera is None else SharedCamera(camera, [c.white() for c in self.compensators])
+            if self.camera is not None and self.adapters is None:
+                self.adapters = [None] * count
             if self.device is not None and self.adapters is not None:
-                self.device = AdaptedProjectors(self.device, self.adapters)
+                self.device = AdaptedProjectors(self.device, self.adapters, self.camera)
             self.joint = JointCompensator(self.compensators)
             self._subsets: dict[tuple[int, ...], JointCompensator] = {}
             self.biases: list[BiasModel] | None = None
@@ -309,7 +362,11 @@ class JointStage:
             raise CompensationError(f"open-loop compensation needs the calibration's capture set to estimate θ, "
                                     f"but it cannot be read at {self.calibration.capture_dir!r}: put it back")
         views: list[Any] = list(self.capture_views)
-        if self.adapters is not None:  # each projector's captures paired with the light it emitted
+        if self.camera is not None:  # each projector's captures seen through the camera's curve in its own units
+            views = [AdaptedCaptures(v, self.camera.for_projector(k, a, comp.rig.projector))
+                     for k, (v, a, comp) in enumerate(zip(views, self.adapters or [None] * self.count,
+                                                          self.compensators))]
+        elif self.adapters is not None:  # each projector's captures paired with the light it emitted
             views = [v if a is None else AdaptedCaptures(v, a) for v, a in zip(views, self.adapters)]
         self.use_biases([comp.estimate_bias(view) for comp, view in zip(self.compensators, views)])
         assert self.biases is not None
@@ -326,6 +383,8 @@ class JointStage:
         # What every θ_k holds once and their sum K times: the darkest black capture (the room's light, with the
         # other projectors' black levels where they showed black while it was taken).
         self.black = np.min([v.image("black") for v in self.capture_views], axis=0)
+        if self.camera is not None:
+            self.black = self.camera.to_model(self.black)
 
     def initial_inputs(self, image: np.ndarray) -> list[np.ndarray]:
         """Each projector's z that :meth:`compensate` starts a target from on its own (its share of target + θ
@@ -459,12 +518,15 @@ class JointStage:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = self.fitted(image, area, what)
-            res = joint.run(fitted, area, device=device, biases=biases if o.mode == "open-loop" else None,
+            # the joint solve compares its model with light: the target taken through the camera's curve too
+            model_target = fitted if self.camera is None else self.camera.to_model(fitted, area)
+            res = joint.run(model_target, area, device=device, biases=biases if o.mode == "open-loop" else None,
                             black=self.black if o.mode == "open-loop" else None, use_bias=o.use_bias, blend=blend,
                             progress=progress, cancel=cancel, name=name,
                             start=None if start is None else [start[k] for k in keep], **args)
         notes = [str(w.message) for w in caught]
-        if self.adapters is not None:  # the inputs the solve answered are light: each projector sends g_k⁻¹ of it
+        if self.adapters is not None and any(a is not None for a in self.adapters):
+            # the inputs the solve answered are light: each projector sends g_k⁻¹ of it
             inputs, frames = list(res.x_inputs), list(res.x_frames)
             for i, k in enumerate(keep):
                 if (adapter := self.adapters[k]) is not None:
@@ -505,7 +567,8 @@ class JointStage:
         projector K the effects used, those not inverted and why, their parameters and the blur held in the solve."""
         if self.adapters is None:
             return None
-        return {"diagnosis": str(Path(self.options.diagnosis or "").absolute()), "projectors": [
+        camera = None if self.camera is None else {"used": list(self.camera.params), "params": self.camera.params}
+        return {"diagnosis": str(Path(self.options.diagnosis or "").absolute()), "camera": camera, "projectors": [
             {"used": [], "not_inverted": {}, "params": {}, "input_blur": None} if a is None else
             {"used": a.used, "not_inverted": a.not_used, "params": a.params,
              "input_blur": comp.input_blur} for a, comp in zip(self.adapters, self.compensators)]}

@@ -1,0 +1,279 @@
+"""The camera's and the surface's effects of a rig of several projectors, fitted once across every projector's patterns.
+
+One camera photographs every projector's patterns, on one surface: its tone curve
+or lens, the surface's gloss or bounce light are the same in every projector's
+captures. Each projector's own diagnosis (``diagnose`` on its patterns) can only
+fit them separately, and may explain the camera's curve by a tone curve of its
+projector instead. Here one parameter vector holds the shared effects
+(:data:`SHARED_EFFECTS`, fitted once) and each projector its own
+(:data:`PROJECTOR_EFFECTS`), and the residual is every projector's fit pixels
+together (bounded Levenberg–Marquardt under Huber's loss, as :mod:`.fit`).
+
+Selection is greedy on the held-out patterns of all projectors (the MSE of each
+pixel class averaged over the projectors): a shared effect explains every
+projector's residual at once, so it wins against a tone curve fitted on one
+projector alone when the camera is the cause, and a projector's own effect is
+added only where the shared ones leave it something to remove. The pool is
+what the projectors' own diagnoses found: the shared effects whose model alone
+removed at least the selection's share on some projector, and per projector the
+projector effects its diagnosis selected.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import Cancelled
+from ..progress import Cancel, Progress
+from .data import GapData
+from .fit import MIN_SHARE, FIT_PIXELS, huber_rms, huber_root_weights, _huber_scale, scores
+from .models import MODELS, NAMES, Composite, describe_params
+
+#: The camera's effects (its processing and its lens) and the surface's (its gloss, bounce light and shape): every
+#: projector's at once.
+CAMERA_EFFECTS = ("camera_response", "distortion")
+SURFACE_EFFECTS = ("interreflection", "glossy", "depth_noise")
+SHARED_EFFECTS = CAMERA_EFFECTS + SURFACE_EFFECTS
+#: The effects of one projector's lamp, lens and electronics: each projector's own.
+PROJECTOR_EFFECTS = ("response", "crosstalk", "black_level", "vignetting", "defocus")
+#: How a shared effect is said to a crew, by whose it is.
+WHOSE = {"camera_response": "the camera's tone curve", "distortion": "the camera's lens distortion",
+         "interreflection": "the surface's bounce light", "glossy": "the surface's gloss",
+         "depth_noise": "the surface's depth error"}
+
+
+@dataclass(frozen=True)
+class Item:
+    """One candidate of the joint selection: a shared effect (``projector`` None) or one projector's own."""
+
+    name: str
+    projector: int | None = None
+
+    def label(self) -> str:
+        return WHOSE.get(self.name, self.name) if self.projector is None else \
+            f"projector {self.projector + 1}'s {self.name.replace('_', ' ')}"
+
+
+@dataclass
+class JointFit:
+    """Shared and per-projector effects fitted together; held-out scores of every projector."""
+
+    items: tuple[Item, ...]
+    shared: dict[str, np.ndarray]
+    own: list[dict[str, np.ndarray]]
+    held_mse_classes: tuple[float, float]
+    held_rmse: float
+    fit_rmse: float
+    seconds: float
+    error: str | None = None
+
+    def share_of(self, before: "JointFit") -> float:
+        if self.error is not None:
+            return float("-inf")
+        shares = [(b - a) / b for b, a in zip(before.held_mse_classes, self.held_mse_classes) if b > 0]
+        return float(max(shares)) if shares else 0.0
+
+    def params_of(self, k: int) -> dict[str, dict[str, float]]:
+        """Projector ``k``'s effects, shared ones included, as a diagnosis writes them."""
+        both = {**self.shared, **self.own[k]}
+        return {n: describe_params(n, v) for n, v in both.items()}
+
+
+def _layout(items: tuple[Item, ...], count: int) -> tuple[list[tuple[str, ...]], dict[Item, slice], int]:
+    names = [tuple(n for n in NAMES if any(i.name == n and i.projector in (None, k) for i in items))
+             for k in range(count)]
+    slices, at = {}, 0
+    for item in items:
+        size = len(MODELS[item.name].params)
+        slices[item] = slice(at, at + size)
+        at += size
+    return names, slices, at
+
+
+def fit_joint(datas: list[GapData], items: tuple[Item, ...], *, start: dict[Item, np.ndarray] | None = None,
+              iterations: int = 15, pixels: int = FIT_PIXELS // 2) -> JointFit:
+    """Fit ``items`` on every projector's fit patterns at once (``pixels`` random lit pixels a pattern of each)."""
+    t0 = time.perf_counter()
+    count = len(datas)
+    names, slices, size = _layout(items, count)
+    comps = [Composite(d, n) for d, n in zip(datas, names)]
+    theta = np.concatenate([MODELS[i.name].initial() for i in items]) if items else np.zeros(0)
+    lo = np.concatenate([MODELS[i.name].lower for i in items]).astype(float) if items else np.zeros(0)
+    hi = np.concatenate([MODELS[i.name].upper for i in items]).astype(float) if items else np.zeros(0)
+    for item, v in (start or {}).items():
+        if item in slices:
+            theta[slices[item]] = v
+    theta = np.clip(theta, lo, hi)
+
+    def per_projector(t: np.ndarray, k: int) -> np.ndarray:
+        comp = comps[k]
+        out = comp.initial()
+        for item in items:
+            if item.projector in (None, k):
+                out[comp.slices[item.name]] = t[slices[item]]
+        return out
+
+    rng = np.random.default_rng(0)
+    subs, picks, caps = [], [], []
+    for d, comp in zip(datas, comps):
+        flat = np.flatnonzero(d.mask.ravel())
+        if len(flat) > pixels:
+            flat = np.sort(rng.choice(flat, pixels, replace=False))
+        picks.append(flat)
+        subs.append(comp.on_pixels(flat) if "distortion" not in comp.names else None)
+        caps.append(np.concatenate([d.observations[i].capture.reshape(-1, 3)[flat].ravel() for i in d.fit_index]))
+    cap = np.concatenate(caps)
+
+    def plain(t: np.ndarray) -> np.ndarray:
+        preds = []
+        for k, (d, comp, sub, flat) in enumerate(zip(datas, comps, subs, picks)):
+            tk = per_projector(t, k)
+            if sub is not None:
+                preds += [sub.predict(tk, sub.data.observations[i]).ravel() for i in d.fit_index]
+            else:
+                preds += [comp.predict(tk, d.observations[i]).reshape(-1, 3)[flat].ravel() for i in d.fit_index]
+        return (np.concatenate(preds) - cap).astype(np.float64)
+
+    error = None
+    at_theta = plain(theta)
+    try:
+        step = 1e-3 * (hi - lo)
+        lam = 1e-3
+        for _ in range(iterations if size else 0):
+            root_w = huber_root_weights(at_theta)
+            r = at_theta * root_w
+            cost = float(r @ r)
+            jac = np.zeros((r.size, size))
+            for j in range(size):
+                t = theta.copy()
+                h = step[j] if theta[j] + step[j] <= hi[j] else -step[j]
+                t[j] += h
+                jac[:, j] = (plain(t) * root_w - r) / h
+            jtj, jtr = jac.T @ jac, jac.T @ r
+            improved, shrink = False, 0.0
+            for _ in range(6):
+                a = jtj + lam * np.diag(np.maximum(np.diag(jtj), 1e-12))
+                try:
+                    delta = -np.linalg.solve(a, jtr)
+                except np.linalg.LinAlgError:
+                    delta = -np.linalg.lstsq(a, jtr, rcond=None)[0]
+                cand = np.clip(theta + delta, lo, hi)
+                at_cand = plain(cand)
+                rc = at_cand * root_w
+                c = float(rc @ rc)
+                if np.isfinite(c) and c < cost:
+                    shrink = (cost - c) / max(cost, 1e-30)
+                    theta, at_theta, lam = cand, at_cand, max(lam / 3, 1e-7)
+                    improved = True
+                    break
+                lam *= 4
+            if not improved or shrink < 1e-5:
+                break
+        if not np.all(np.isfinite(theta)):
+            raise FloatingPointError("parameters became NaN")
+    except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
+        error = f"{type(exc).__name__}: {exc}"
+    # held-out: each pixel class's structured MSE averaged over the projectors, so each projector counts alike
+    classes = [scores(comp, per_projector(theta, k), d.held_index) for k, (d, comp) in enumerate(zip(datas, comps))]
+    flat_mse = float(np.mean([c["classes"][0] for c in classes]))
+    edge_mse = float(np.mean([c["classes"][1] for c in classes]))
+    held = float(np.sqrt(np.mean([c["structured"] ** 2 for c in classes])))
+    shared = {i.name: np.asarray(theta[slices[i]], float) for i in items if i.projector is None}
+    own: list[dict[str, np.ndarray]] = [{} for _ in range(count)]
+    for i in items:
+        if i.projector is not None:
+            own[i.projector][i.name] = np.asarray(theta[slices[i]], float)
+    return JointFit(items, shared, own, (flat_mse, edge_mse), held, huber_rms(at_theta, _huber_scale(at_theta)),
+                    time.perf_counter() - t0, error)
+
+
+@dataclass
+class JointSelection:
+    """The greedy joint selection: its start (nothing), each round's ranking, and the last fit."""
+
+    base: JointFit
+    final: JointFit
+    selected: list[Item] = field(default_factory=list)
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    pool: list[Item] = field(default_factory=list)
+    #: each candidate fitted alone on every projector's patterns (the first round)
+    alone: dict[Item, JointFit] = field(default_factory=dict)
+
+    @property
+    def shared(self) -> list[str]:
+        return [i.name for i in self.selected if i.projector is None]
+
+    def own(self, k: int) -> list[str]:
+        return [i.name for i in self.selected if i.projector == k]
+
+
+def pool_of(docs: list[dict[str, Any]], candidates: tuple[str, ...], min_share: float = MIN_SHARE) -> list[Item]:
+    """The joint selection's candidates from each projector's own diagnosis (module doc)."""
+    shared: list[str] = []
+    for d in docs:
+        for e in d.get("effects") or []:
+            if isinstance(e, dict) and e.get("name") in SHARED_EFFECTS and e.get("name") in candidates and \
+                    not e.get("error") and float(e.get("reduction") or 0.0) >= min_share:
+                shared.append(str(e["name"]))
+        shared += [str(n) for n in d.get("modelled") or [] if n in SHARED_EFFECTS and n in candidates]
+    items = [Item(n) for n in NAMES if n in shared]
+    for k, d in enumerate(docs):
+        items += [Item(n, k) for n in NAMES if n in (d.get("modelled") or []) and n in PROJECTOR_EFFECTS]
+    return items
+
+
+def select_joint(datas: list[GapData], pool: list[Item], *, min_share: float = MIN_SHARE, max_effects: int = 6,
+                 progress: Progress | None = None, cancel: Cancel | None = None) -> JointSelection:
+    """Greedy forward selection of ``pool`` on every projector's held-out patterns (module doc)."""
+    say = progress or (lambda msg, frac: None)
+    base = fit_joint(datas, ())
+    sel = JointSelection(base, base, pool=list(pool))
+    current, remaining = base, list(pool)
+    for step in range(max_effects):
+        fits: dict[Item, JointFit] = {}
+        for j, item in enumerate(remaining):
+            if cancel is not None and cancel():
+                raise Cancelled("diagnosis cancelled")
+            say(f"every projector's patterns, round {step + 1}: {item.label()}",
+                (step + j / max(len(remaining), 1)) / max_effects)
+            start = {i: v for i in sel.selected
+                     for v in [current.shared.get(i.name) if i.projector is None else
+                               current.own[i.projector].get(i.name)] if v is not None}
+            fits[item] = fit_joint(datas, tuple(sel.selected) + (item,), start=start)
+            if step == 0:
+                sel.alone[item] = fits[item]
+        ranking = sorted((i for i in fits if fits[i].error is None), key=lambda i: -fits[i].share_of(current))
+        if not ranking:
+            break
+        best = fits[ranking[0]]
+        share = best.share_of(current)
+        sel.steps.append({"candidate": ranking[0].label(), "added": ranking[0].label() if share >= min_share else None,
+                          "share": round(share, 4), "before": current.held_rmse, "after": best.held_rmse,
+                          "ranking": [[i.label(), round(fits[i].share_of(current), 4)] for i in ranking]})
+        if share < min_share:
+            break
+        sel.selected.append(ranking[0])
+        current = best
+        remaining.remove(ranking[0])
+        if not remaining:
+            break
+    sel.final = current
+    return sel
+
+
+def attribution_fit(datas: list[GapData], sel: JointSelection) -> JointFit:
+    """The shared effects selected with every projector effect any projector selected, free on every projector:
+    what each projector's parameters are compared on (its own effects measured with the camera's taken out)."""
+    own = sorted({i.name for i in sel.selected if i.projector is not None}, key=NAMES.index)
+    items = tuple(Item(n) for n in sel.shared) + tuple(Item(n, k) for k in range(len(datas)) for n in own)
+    start = {i: v for i in items for v in [sel.final.shared.get(i.name) if i.projector is None
+                                           else sel.final.own[i.projector].get(i.name)] if v is not None}
+    return fit_joint(datas, items, start=start) if own else sel.final
+
+
+__all__ = ["CAMERA_EFFECTS", "Item", "JointFit", "JointSelection", "PROJECTOR_EFFECTS", "SHARED_EFFECTS",
+           "SURFACE_EFFECTS", "WHOSE", "attribution_fit", "fit_joint", "pool_of", "select_joint"]
