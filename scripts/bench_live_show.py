@@ -2,7 +2,8 @@
 """Live shows in real time: how fast the real-time solve is, how close it comes to the full solve, and the loop.
 
 Usage: ``.venv/bin/python scripts/bench_live_show.py [--parts quality,loop,speed] [--sizes 800x600,1920x1080]
-[--variant llvm_ad_rgb|cuda_ad_rgb] [--scale 1] [--frames 12] [--seconds 20] [--work DIR]``
+[--variant llvm_ad_rgb|cuda_ad_rgb] [--scale 1] [--projector-size 1920x1080 --camera-size 1536x864] [--frames 12]
+[--seconds 20] [--work DIR]``
 
 With no argument it is the quick run (about five minutes on 2 cores): the lab
 at the demo's resolution (camera 640×480, projector 800×600), its quality and
@@ -137,11 +138,15 @@ def step(args: list[str], done: Path) -> None:
         raise SystemExit(f"procam {args[0]} failed")
 
 
-def lab_calibration(work: Path, scale: float) -> tuple[Path, Path]:
-    """The lab's capture set at ``scale`` (realistic effects, the curve), calibrated, with its inverse stored."""
+def lab_calibration(work: Path, scale: float, projector_size: str | None = None, camera_size: str | None = None,
+                    samples: int = 8) -> tuple[Path, Path]:
+    """The lab's capture set at ``scale`` (realistic effects, the curve; the demo rig, or its projector and camera
+    at the sizes given), calibrated, with its inverse stored."""
     lab, cal, truth = work / "lab", work / "cal", work / "lab.truth.json"
-    step(["lab", "--out", lab, "--surface", "curve", "--effects", "realistic", "--scale", scale, "--samples", "8",
-          "--truth", truth], lab)
+    sizes = [*(["--projector-size", projector_size] if projector_size else []),
+             *(["--camera-size", camera_size] if camera_size else [])]
+    step(["lab", "--out", lab, "--surface", "curve", "--effects", "realistic", "--scale", scale, "--samples", samples,
+          *sizes, "--truth", truth], lab)
     step(["calibrate", lab, "--out", cal], cal / "calibration.json")
     step(["precompute", cal, "--live"], cal / "inverse.npz")
     return cal, truth
@@ -253,6 +258,10 @@ def main() -> None:
     ap.add_argument("--sizes", default="800x600")
     ap.add_argument("--variant", default=None, help="Mitsuba variant of the speed part (default: the CPU's)")
     ap.add_argument("--scale", type=float, default=1.0, help="lab resolution of the quality and loop parts")
+    ap.add_argument("--projector-size", default=None, metavar="WxH",
+                    help="the lab's projector (quality and loop parts; e.g. 1920x1080, with --camera-size 1536x864)")
+    ap.add_argument("--camera-size", default=None, metavar="WxH", help="the lab's camera (quality and loop parts)")
+    ap.add_argument("--samples", type=int, default=8, help="the lab's Cycles samples (quality and loop parts)")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--seconds", type=float, default=20.0, help="clip length of the loop part")
     ap.add_argument("--fps", type=float, default=30.0, help="the clip's frame rate (above 30: the loop's own ceiling)")
@@ -265,7 +274,7 @@ def main() -> None:
     figures: dict[str, Any] = {}
     fps_solve = fps_loop = None
     if parts & {"quality", "loop"}:
-        cal_dir, truth = lab_calibration(work, args.scale)
+        cal_dir, truth = lab_calibration(work, args.scale, args.projector_size, args.camera_size, args.samples)
     if "quality" in parts:
         row = figures["quality"] = quality(cal_dir, truth, args.frames)
         print(f"quality {row['projector']} (camera {row['camera']}), {row['frames']} frames of a pan, captured in the "

@@ -18,7 +18,14 @@ PROJECTOR_SHIFT_Y = 0.15
 SURFACE_CENTRE = (0.0, 0.0, 1.7)
 
 
+def _same_aspect(size: tuple[int, int], base: tuple[int, int]) -> bool:
+    return abs(size[0] * base[1] - size[1] * base[0]) <= max(base)  # within a pixel's rounding of the base's
+
+
 def demo_camera(width: int = CAMERA_SIZE[0], height: int = CAMERA_SIZE[1]) -> Camera:
+    """The demo camera (58° across); at another aspect than 4:3 its pixels stay square (the same width's field)."""
+    if not _same_aspect((width, height), CAMERA_SIZE):
+        return Camera(intrinsics_from_fov(width, height, 58.0))
     return Camera(intrinsics_from_fov(CAMERA_SIZE[0], CAMERA_SIZE[1], 58.0).scaled(width, height))
 
 
@@ -29,8 +36,11 @@ def _centre_ray(intr: Intrinsics) -> np.ndarray:
 def demo_projector(width: int = PROJECTOR_SIZE[0], height: int = PROJECTOR_SIZE[1], intensity: float = 2.5,
                    shift: tuple[float, float] = (0.0, PROJECTOR_SHIFT_Y)) -> Projector:
     """The demo projector; ``shift`` (right, up, fractions of the image) changes its lens shift, and it is aimed so
-    that the image still lands on the surface."""
-    intr: Intrinsics = projector_intrinsics_from_throw(PROJECTOR_SIZE[0], PROJECTOR_SIZE[1], PROJECTOR_THROW, *shift)
+    that the image still lands on the surface. At another aspect than 4:3 (1920×1080) its pixels stay square: the
+    same throw and shift at that resolution, the input the same share of the frame (¾ of its width, its height)."""
+    other = not _same_aspect((width, height), PROJECTOR_SIZE)
+    intr: Intrinsics = projector_intrinsics_from_throw(*((width, height) if other else PROJECTOR_SIZE),
+                                                       PROJECTOR_THROW, *shift)
     # Aim so that the *shifted* image centre, not the lens axis, lands on the surface centre: move the look-at target
     # against the centre ray's offset from the axis (its x, y at z = 1).
     pos = np.asarray(PROJECTOR_POSITION)
@@ -43,6 +53,9 @@ def demo_projector(width: int = PROJECTOR_SIZE[0], height: int = PROJECTOR_SIZE[
     default = projector_intrinsics_from_throw(PROJECTOR_SIZE[0], PROJECTOR_SIZE[1], PROJECTOR_THROW, 0.0,
                                               PROJECTOR_SHIFT_Y)
     intensity *= (np.linalg.norm(_centre_ray(intr)) / np.linalg.norm(_centre_ray(default))) ** -3
+    if other:
+        return Projector(intr, pose, intensity=intensity,
+                         input_size=(round(width * PROJECTOR_INPUT[0] / PROJECTOR_SIZE[0]), height))
     proj = Projector(intr, pose, intensity=intensity, input_size=PROJECTOR_INPUT)
     if (width, height) != PROJECTOR_SIZE:
         proj = proj.scaled(width, height)

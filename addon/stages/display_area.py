@@ -308,7 +308,8 @@ def fit_target(target: np.ndarray, area: DisplayArea, *, what: str = "the target
                       f"({area.width}×{area.height}, aspect {area.aspect:.3f})", TargetAspectWarning, stacklevel=2)
     # INTER_AREA averages when shrinking (no aliasing); it falls back to bilinear when enlarging.
     out = cv2.resize(img, area.size, interpolation=cv2.INTER_AREA)
-    return np.clip(out, 0.0, 1.0).astype(np.float32)
+    # In place: the resized image is this function's own (a copy and a cast cost 10 ms of a live 1080p frame).
+    return np.clip(out, 0.0, 1.0, out=out)
 
 
 __all__ = ["DisplayArea", "DisplayAreaError", "TargetAspectWarning", "auto_area", "capture_coverage",

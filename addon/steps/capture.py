@@ -63,6 +63,17 @@ def board_size(text: str) -> tuple[int, int]:
     return cols, rows
 
 
+def pixel_size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` in whole pixels."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"expected WIDTHxHEIGHT in pixels, e.g. 1920x1080; got {text!r}") from None
+    if w < 8 or h < 6 or w > 8192 or h > 8192:
+        raise ValueError(f"expected a size from 8x6 to 8192x8192 pixels, got {text!r}")
+    return w, h
+
+
 @dataclass(frozen=True)
 class LabOptions:
     """What ``procam lab`` and Run Virtual Lab ask for."""
@@ -90,8 +101,14 @@ class LabOptions:
     #: the rig to use instead of the demo rig (Blender's scene rig)
     rig: Rig | None = None
     surface_source: str | None = None
-    camera_size: tuple[int, int] = (640, 480)
-    projector_size: tuple[int, int] = (800, 600)
+    camera_size: tuple[int, int] = option(
+        (640, 480), parse=pixel_size, metavar="WxH",
+        help="the demo camera's resolution before --scale (default 640x480; at another aspect than 4:3 its pixels "
+             "stay square, 58° across)")
+    projector_size: tuple[int, int] = option(
+        (800, 600), parse=pixel_size, metavar="WxH",
+        help="the demo projector's native resolution before --scale (default 800x600; e.g. 1920x1080: at another "
+             "aspect than 4:3 its pixels stay square, same throw and lens shift, input ¾ of its width)")
     #: (right, up; fractions of the image)
     projector_shift: tuple[float, float] | None = option(
         None, parse=percent_pair, metavar="RIGHT,UP",
