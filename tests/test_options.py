@@ -170,9 +170,9 @@ FLAGS = {
     "import-captures": "--add-to --camera-fov --camera-height --camera-width --depth --depth-native-height "
                        "--depth-native-width --depth-units --encoding --force --no-exposure-check --out --rig",
     "lab-board": "--board --effects --force --out --poses --samples --scale --seed --square --supersample --truth",
-    "lab": "--camera-fov-error --effects --force --full-binary --layout --no-graycode --nominal-error --out "
-           "--overlap --projector-effects --projector-shift --projectors --samples --scale --seed --supersample "
-           "--surface --truth",
+    "lab": "--camera-fov-error --camera-size --effects --force --full-binary --layout --no-graycode --nominal-error "
+           "--out --overlap --projector-effects --projector-shift --projector-size --projectors --samples --scale "
+           "--seed --supersample --surface --truth",
     "live-show": "--area --device --diagnosis --duration --effects --hold --range --refine-steps --source "
                  "--target-encoding",
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width --projectors",
