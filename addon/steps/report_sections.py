@@ -1,0 +1,449 @@
+"""One section of the report per step folder: what each step wrote, read back and turned into blocks of the page.
+
+A section is a dict the page template draws: a title, the folder, and blocks
+(a headline, facts, a table, a figure with its caption, a thumbnail strip, a
+note). Each reader takes what the folder holds and leaves out, with a note and
+an entry under *Skipped*, what is missing: a missing image never stops the
+report. A manifest that lacks a key this version records raises (KeyError …),
+and the report step skips the whole folder, saying it is from an older version.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..capture.format import CaptureSet
+from ..capture.patterns import decode_gray_code_set
+from ..errors import ProCamError
+from ..imageio import read_arrays, read_image
+from ..report import figures
+from ..safepaths import inside
+from ..steps.summary import fmt
+from . import layout
+
+Block = dict[str, Any]
+
+
+def _figure(uri: str, caption: str, alt: str) -> Block:
+    return {"type": "figure", "uri": uri, "caption": caption, "alt": alt}
+
+
+def _db(value: Any) -> str:
+    return fmt(value, ".2f", " dB")
+
+
+class Reader:
+    """Reads the step folders the walk found into sections; ``skip(path, reason)`` records what it leaves out."""
+
+    def __init__(self, found: list[Any], skip: Callable[[str | Path, str], None], *, thumbnails: int = 24) -> None:
+        self.found = found
+        self.skip = skip
+        self.thumbnails = thumbnails
+
+    # -- helpers -------------------------------------------------------------------------------------------------
+
+    def image(self, folder: Path, name: Any, what: str, blocks: list[Block]) -> np.ndarray | None:
+        """The image ``name`` (a name a manifest gave, or one the step always writes) inside ``folder``; None, a
+        note and a skipped entry when it is missing or cannot be read."""
+        try:
+            path = inside(folder, name, what=what)
+            return read_image(path)
+        except ProCamError as exc:
+            self.skip(folder / str(name), f"{what} not shown: {exc}")
+            blocks.append({"type": "note", "text": f"{what} is not shown: {exc}"})
+            return None
+
+    def _kind_at(self, path: Any, kind: layout.FolderKind) -> Path | None:
+        """The folder of ``kind`` at ``path`` (as a manifest recorded it), else one of that kind the walk found
+        beside the folders read (a tree moved since it was made)."""
+        if isinstance(path, str) and path and kind.holds(path):
+            return Path(path)
+        named = Path(path).name if isinstance(path, str) and path else ""
+        for f in self.found:
+            if f.kind is kind and (not named or f.path.name == named):
+                return f.path
+        return None
+
+    def captures(self, path: Any) -> CaptureSet | None:
+        folder = self._kind_at(path, layout.CAPTURES)
+        if folder is None:
+            return None
+        try:
+            return CaptureSet.load(folder, verify_images=False)
+        except ProCamError:
+            return None
+
+    # -- sections ------------------------------------------------------------------------------------------------
+
+    def section(self, f: Any) -> dict[str, Any]:
+        readers = {layout.DEMO.format: self.demo, layout.CALIBRATION.format: self.calibration,
+                   layout.COMPENSATION.format: self.compensation, layout.EVALUATION.format: self.evaluation,
+                   layout.DIAGNOSIS.format: self.diagnosis, layout.SHOW.format: self.show}
+        title, blocks = readers[f.kind.format](f.path, f.doc)
+        return {"title": title, "folder": str(f.path), "blocks": blocks,
+                "facts": blocks[0]["items"] if f.kind is layout.DEMO else []}
+
+    def demo(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
+        cam, proj = doc["resolution"]["camera"], doc["resolution"]["projector"]
+        items = [("demo", f"camera {cam[0]}×{cam[1]}, projector {proj[0]}×{proj[1]}, surface {doc['surface']}, "
+                          f"lab effects {doc['effects']}")]
+        cal = doc.get("calibration") or {}
+        if "position_error_cm" in cal:
+            items.append(("projector pose error", f"{fmt(cal['position_error_cm'], '.2f', ' cm')}, "
+                                                  f"{fmt(cal['direction_error_deg'], '.3f', '°')} (against the lab's "
+                                                  "sealed truth)"))
+        m = (doc.get("compensation") or {}).get("mean")
+        if m:
+            items.append(("mean PSNR", f"{_db(m['uncompensated_psnr'])} uncompensated → {_db(m['psnr'])} compensated"))
+        fx = doc.get("with_effects")
+        if fx:
+            items.append((f"with {', '.join(fx['effects'])} inverted", f"{_db(fx['mean']['psnr'])}"))
+        if doc.get("seconds_total") is not None:
+            items.append(("demo's running time", fmt(doc["seconds_total"], ".0f", " s")))
+        return "Demo", [{"type": "facts", "items": items}]
+
+    def calibration(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
+        blocks: list[Block] = []
+        rig = doc["rig"]
+        cam, pro = rig["camera"]["intrinsics"], rig["projector"]["intrinsics"]
+        pose = np.asarray(doc["camera_from_projector"], np.float64)
+        position, direction = pose[:3, 3], pose[:3, 2]
+        others = rig.get("others") or []
+        items = [("camera", f"{cam['width']}×{cam['height']} px, fx {cam['fx']:.1f}"),
+                 ("projector", f"{pro['width']}×{pro['height']} px, fx {pro['fx']:.1f}, principal point "
+                               f"({pro['cx']:.1f}, {pro['cy']:.1f})"),
+                 ("projector position", "x {:.3f}, y {:.3f}, z {:.3f} m from the camera".format(*position)),
+                 ("projector looks along", "({:.3f}, {:.3f}, {:.3f}) (camera frame: x right, y down, z forward)"
+                  .format(*direction))]
+        if others:
+            items.append(("projectors", f"{1 + len(others)} (projector 1 shown below)"))
+        wr = doc.get("warp_report") or {}
+        if wr.get("corners_before_px") and wr.get("corners_after_px"):
+            items.append(("warp (stage B)", f"checkerboard corners median {fmt(wr['corners_before_px']['median'], '.2f')}"
+                                            f" px before → {fmt(wr['corners_after_px']['median'], '.2f')} px after"))
+        seconds = doc.get("seconds") or {}
+        if seconds:
+            items.append(("seconds", ", ".join(f"{k} {fmt(v, '.1f')}" for k, v in seconds.items())))
+        blocks.append({"type": "facts", "items": items})
+
+        blocks.append({"type": "heading", "text": "Pose (stage A)"})
+        points = None
+        surface = doc.get("surface") or {}
+        if surface.get("mesh"):
+            try:
+                mesh = inside(folder, surface["mesh"], what="the surface mesh")
+                points = read_arrays(mesh, ("vertices",), error=ProCamError, remedy="calibrate again")["vertices"]
+            except ProCamError as exc:
+                blocks.append({"type": "note", "text": f"the surface is not shown: {exc}"})
+                self.skip(folder / str(surface["mesh"]), f"surface mesh not shown: {exc}")
+        blocks.append(_figure(figures.pose_views(position, direction, points),
+                              "Where calibration put the projector relative to the camera, with the surface's "
+                              "vertices (grey). Arrows: each one's optical axis.", "rig seen from above and the side"))
+        diag = folder / layout.DIAGNOSTICS_DIR
+        if diag.is_dir():
+            seen, drawn = (self.image(diag, n, f"stage A's {w}", blocks)
+                           for n, w in (("pose_mask.png", "captured lit area"),
+                                        ("pose_rendered_mask.png", "rendered lit area")))
+            if seen is not None and drawn is not None and seen.shape == drawn.shape:
+                a, b = seen.mean(axis=2) > 0.5, drawn.mean(axis=2) > 0.5
+                agree = np.zeros(a.shape + (3,), np.float32)
+                agree[a & b] = 0.85
+                agree[a & ~b] = (0.9, 0.62, 0.0)
+                agree[~a & b] = (0.34, 0.71, 0.91)
+                share = float((a ^ b).sum()) / max(float((a | b).sum()), 1.0)
+                blocks.append(_figure(figures.pictures([agree], ["lit area: captured vs rendered"], light=False,
+                                                       across=4.0),
+                                      f"Grey: lit in the capture and in the simulation at the calibrated pose; "
+                                      f"orange: lit only in the capture; blue: only in the simulation. They disagree "
+                                      f"on {share:.1%} of the lit pixels.", "pose agreement map"))
+
+        warp = doc.get("warp") or {}
+        if warp.get("m_shifts") is not None:
+            blocks.append({"type": "heading", "text": "Warp (stage B)"})
+            size = tuple(int(v) for v in warp.get("size") or rig["projector"]["input_size"])
+            blocks.append(_figure(figures.warp_field(np.asarray(warp["m_shifts"], np.float64), size),
+                                  "The warp's correction over the projector input: how far (colour) and which way "
+                                  "(arrows) each control point of the thin-plate spline moves the image, in input "
+                                  "pixels. A smooth field of under a pixel or two is usual; a large or jagged one "
+                                  "points at a pose or a surface that is off.", "warp shift field"))
+            if diag.is_dir():
+                pair = [self.image(diag, n, w, blocks) for n, w in
+                        (("warp_compare_before.png", "the checkerboard before the warp"),
+                         ("warp_compare_after.png", "the checkerboard after the warp"))]
+                if all(p is not None for p in pair):
+                    blocks.append(_figure(figures.pictures(pair, ["before the warp", "after the warp"], light=False),
+                                          "Captured checkerboard against the simulated one, before and after the "
+                                          "warp (the closer the two overlays, the better).", "warp comparison"))
+
+        blocks.append({"type": "heading", "text": "Gray-code coverage"})
+        captures = self.captures(doc.get("capture_set"))
+        if captures is None:
+            blocks.append({"type": "note", "text": "the capture set is not beside the calibration any more, so its "
+                                                   "Gray-code coverage is not shown"})
+            self.skip(folder, f"Gray-code coverage not shown: the capture set {doc.get('capture_set')} is not there")
+        elif not captures.entries_of("graycode"):
+            blocks.append({"type": "text", "text": "The capture set holds no Gray code."})
+        else:
+            try:
+                dec = decode_gray_code_set(captures)
+                white = captures.image("white")
+            except ProCamError as exc:
+                blocks.append({"type": "note", "text": f"the Gray code cannot be decoded: {exc}"})
+                self.skip(captures.path, f"Gray-code coverage not shown: {exc}")
+            else:
+                valid = np.asarray(dec.valid, bool)
+                size = captures.projector.intrinsics.size
+                blocks.append(_figure(figures.coverage(white, valid, np.asarray(dec.coords), tuple(size)),
+                                      f"Where the camera decoded which projector pixel from the Gray code: "
+                                      f"{valid.mean():.0%} of the camera image decoded. Smooth colour ramps mean a "
+                                      f"clean decoding; speckle or holes inside the lit area mean noise, shadow or "
+                                      f"too little contrast there.", "Gray-code coverage"))
+
+        blocks.append({"type": "heading", "text": "Surface"})
+        if surface.get("albedo"):
+            albedo = self.image(folder, surface["albedo"], "the surface's albedo", blocks)
+            if albedo is not None:
+                blocks.append(_figure(figures.pictures([albedo], ["surface albedo (camera view)"], across=4.0),
+                                      f"The surface's reflectance as calibration estimated it, seen from the camera "
+                                      f"({surface.get('vertices', '?')} vertices, {surface.get('faces', '?')} "
+                                      f"faces).", "surface albedo"))
+        return "Calibration", blocks
+
+    def compensation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
+        blocks: list[Block] = [{"type": "facts", "items": [
+            ("mode", str(doc.get("mode"))), ("device", str(doc.get("device") or "none (open loop)")),
+            ("effects inverted", ", ".join((doc.get("effects") or {}).get("used") or []) or "none")]}]
+        rows = []
+        for t in doc["targets"]:
+            rows.append([t["name"], t.get("status", "?"), t.get("mode", ""), fmt(t.get("seconds"), ".1f", " s"),
+                         f"{_db(t.get('psnr_simulated_start'))} → {_db(t.get('psnr_simulated'))}"])
+        blocks.append({"type": "table", "head": ["target", "status", "mode", "time", "simulated PSNR start → end"],
+                       "rows": rows})
+        for t in doc["targets"]:
+            if t.get("status") != "done":
+                continue
+            pics = [(self.image(folder, t[k], f"{k} of {t['name']!r}", blocks), cap) for k, cap in
+                    (("target", "target (display area)"), ("simulated", "simulated camera view"),
+                     ("input", "projector input"))]
+            shown = [(p, c) for p, c in pics if p is not None]
+            if shown:
+                blocks.append(_figure(figures.pictures([p for p, _ in shown], [c for _, c in shown], across=2.6),
+                                      f"{t['name']}: what was asked, what the simulation expects the camera to see, "
+                                      "and the image the projector is given.", f"compensation of {t['name']}"))
+        return "Compensation", blocks
+
+    def evaluation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
+        blocks: list[Block] = []
+        m, u = doc.get("mean") or {}, doc.get("mean_uncompensated") or {}
+        items = [("device", str(doc.get("device") or "?")),
+                 ("mean PSNR", f"{_db(u.get('psnr'))} uncompensated → {_db(m.get('psnr'))} compensated"),
+                 ("mean SSIM", f"{fmt(u.get('ssim'), '.3f')} → {fmt(m.get('ssim'), '.3f')}"),
+                 ("ceilings (mean)", f"range {_db(doc.get('mean_range_ceiling'))} (the best any input could do with "
+                                     f"this projector's black and white), noise {_db(doc.get('mean_noise_ceiling'))} "
+                                     f"(that, as a capture with the camera's noise scores it)")]
+        blocks.append({"type": "facts", "items": items})
+        done = [t for t in doc["targets"] if t.get("status") == "done"]
+        for t in doc["targets"]:
+            if t.get("status") != "done":
+                blocks.append({"type": "note", "text": f"target {t.get('name')!r} {t.get('status')}: "
+                                                       f"{t.get('error', '')}"})
+        rows = [[t["name"], _db(t["uncompensated"]["psnr"]), _db(t["psnr"]), fmt(t["uncompensated"]["ssim"], ".3f"),
+                 fmt(t["ssim"], ".3f"), _db(t.get("range_ceiling")), _db(t.get("noise_ceiling")),
+                 fmt(t.get("ceiling_gap_at_limit"), ".0%")] for t in done]
+        blocks.append({"type": "table", "head": ["target", "PSNR uncomp.", "PSNR comp.", "SSIM uncomp.", "SSIM comp.",
+                                                 "range ceiling", "noise ceiling", "gap at input limit"],
+                       "rows": rows})
+        if done:
+            blocks.append(_figure(figures.grouped_bars(
+                [t["name"] for t in done],
+                {"uncompensated": [t["uncompensated"]["psnr"] for t in done],
+                 "compensated": [t["psnr"] for t in done],
+                 "noise ceiling": [t.get("noise_ceiling") for t in done],
+                 "range ceiling": [t.get("range_ceiling") for t in done]},
+                ylabel="PSNR (dB)", title="each target against its ceilings"),
+                "PSNR of the capture against the target. Range ceiling: the target clipped to what this projector "
+                "can show at each pixel (between its black and its white), the best any input could do; noise "
+                "ceiling: that as the camera's noise lets a capture score it. Gap at input limit: of what separates "
+                "the compensated capture from the range ceiling, the share where the input is already at full or at "
+                "zero, which no solver can push further.", "PSNR per target with its ceilings"))
+
+        crops: list[tuple[np.ndarray, np.ndarray] | None] = []
+        panels = []
+        for t in done:
+            area = t["area"]
+            x, y, w, h = int(area["x"]), int(area["y"]), int(area["width"]), int(area["height"])
+            files = {k: v.format(name=t["name"]) for k, v in layout.EVALUATION_FILES.items()}
+            strip = self.image(folder, t["image"], f"the comparison of {t['name']!r}", blocks)
+            got = self.image(folder, files["capture"], f"the compensated capture of {t['name']!r}", blocks)
+            plain = self.image(folder, files["uncompensated"], f"the uncompensated capture of {t['name']!r}", blocks)
+            if strip is None or got is None or plain is None:
+                crops.append(None)
+                continue
+            target, got, plain = strip[:, :w], got[y:y + h, x:x + w], plain[y:y + h, x:x + w]
+            crops.append((got, plain))
+            panels.append((t, target, plain, got))
+        if panels:
+            err = [np.abs(g - tg).mean(axis=2) for _, tg, _, g in panels]
+            scale = max(0.05, float(np.ceil(max(float(np.percentile(e, 99)) for e in err) * 20) / 20))
+            blocks.append({"type": "heading", "text": "Each target"})
+            for t, target, plain, got in panels:
+                caps = ["target", f"uncompensated\nPSNR {t['uncompensated']['psnr']:.2f} dB, "
+                                  f"SSIM {t['uncompensated']['ssim']:.3f}",
+                        f"compensated\nPSNR {t['psnr']:.2f} dB, SSIM {t['ssim']:.3f}", "error of the compensated"]
+                warn = " ".join(t.get("warnings") or [])
+                blocks.append(_figure(figures.comparison(target, plain, got, caps, scale),
+                                      f"{t['name']} ({t.get('mode', '')}): the target fitted to the display area, "
+                                      f"the camera's capture of the uncompensated and of the compensated projection, "
+                                      f"and where the compensated one still differs (0 … {scale:g} of full white, "
+                                      f"linear; the same scale for every target). {warn}",
+                                      f"target, uncompensated, compensated and error of {t['name']}"))
+        flicker = doc.get("flicker")
+        pairs = [(a, b) for a, b in zip(crops, crops[1:]) if a is not None and b is not None
+                 and a[0].shape == b[0].shape]
+        if flicker and pairs:
+            show = self._kind_at(doc.get("inputs"), layout.SHOW) is not None
+            x = list(range(2, len(pairs) + 2))
+            blocks.append({"type": "heading", "text": "Flicker"})
+            blocks.append(_figure(figures.series(
+                x, {"compensated": [float(np.abs(b[0] - a[0]).mean()) for a, b in pairs],
+                    "uncompensated": [float(np.abs(b[1] - a[1]).mean()) for a, b in pairs]},
+                xlabel="frame" if show else "target (in the order given)",
+                ylabel="mean |change| (linear)", title="change from the previous " + ("frame" if show else "target"),
+                levels={"the targets' own change (mean)": float(flicker["targets"])}),
+                f"How much the capture changes from one {'frame' if show else 'target'} to the next inside the display "
+                f"area. Compensation should not change more than the targets themselves do (dashed): excess "
+                f"{fmt(flicker.get('excess'), '+.4f')} on average over {flicker.get('pairs')} pair(s).",
+                "flicker over frames"))
+        return "Evaluation", blocks
+
+    def diagnosis(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
+        blocks: list[Block] = [{"type": "headline", "text": doc["headline"]}]
+        if "steps" not in doc and doc.get("projectors"):  # several projectors: one diagnosis per projector inside
+            rows = [[f"projector {k + 1}", ", ".join(p.get("selected") or []) or "none"]
+                    for k, p in enumerate(doc["projectors"])]
+            blocks.append({"type": "table", "head": ["projector", "effects selected"], "rows": rows})
+            return "Diagnosis", blocks
+        res, after = doc["residual"], doc["residual_after"]
+        noise = (doc.get("unexplained") or {}).get("noise_rmse")
+        items = [("held-out residual", f"RMSE {fmt(res['rmse'], '.4f')} ({_db(res['psnr'])}) with the calibrated "
+                                       f"simulation → {fmt(after['rmse'], '.4f')} ({_db(after['psnr'])}) with the "
+                                       "selected effects"),
+                 ("selected effects", ", ".join(doc["modelled"]) or "none"),
+                 ("absorbed by calibration", ", ".join(doc.get("absorbed") or []) or "none"),
+                 ("--effects auto inverts", ", ".join((doc.get("compensation") or {}).get("effects") or []) or "none")]
+        if noise is not None:
+            items.append(("the captures' noise", f"RMSE {fmt(noise, '.4f')}"))
+        blocks.append({"type": "facts", "items": items})
+        for w in doc.get("warnings") or []:
+            blocks.append({"type": "note", "text": w})
+
+        blocks.append({"type": "heading", "text": "Where the simulation differs"})
+        scale = float(doc.get("map_scale") or 0.1)
+        before = self.image(folder, "residual_abs.png", "the residual map", blocks)
+        after_map = self.image(folder, "residual_after_abs.png", "the residual map with the effects", blocks)
+        maps = [m for m in (before, after_map) if m is not None]
+        if maps:
+            titles = [t for t, m in zip(("calibrated simulation", "with the selected effects"), (before, after_map))
+                      if m is not None]
+            blocks.append(_figure(figures.heat_maps(maps, titles, scale, "|capture − simulation| (linear)"),
+                                  "Mean absolute difference between the held-out captures and the simulation at "
+                                  "each camera pixel, before and after modelling the selected effects (same scale).",
+                                  "residual maps"))
+        regions = doc.get("regions") or []
+        if regions:
+            labels = self.image(folder, "regions_label.png", "the regions' label image", blocks)
+            captures = self.captures(doc.get("capture_set"))
+            back = None
+            if captures is not None:
+                try:
+                    back = captures.image("white")
+                except ProCamError:
+                    back = None
+            if back is None:
+                back = before if before is not None else np.zeros((*labels.shape[:2], 3), np.float32) \
+                    if labels is not None else None
+            if back is not None:
+                ids = np.rint(labels[..., 0] * 255).astype(int) if labels is not None else None
+                lit = ids > 0 if ids is not None else None
+                outlines, names = [], []
+                for k, r in enumerate(regions):
+                    whole = "whole lit area" in (r.get("tags") or [])
+                    mask = lit if whole else (ids == k + 1 if ids is not None else None)
+                    if mask is not None and mask.shape != back.shape[:2]:
+                        mask = None
+                    outlines.append(mask)
+                    names.append(figures.wrap(f"{k + 1}. {r.get('cause', '?')}: {r['share']:.0%} of the error — "
+                                              f"{r['description']}", 52))
+                blocks.append(_figure(figures.regions(back, outlines, [r["bbox"] for r in regions], names),
+                                      "The places that hold most of the remaining error, each with the effect that "
+                                      "explains it and its share of the held-out error. Regions over the whole lit "
+                                      "area share its outline.", "regions of the remaining error"))
+
+        steps = doc.get("steps") or []
+        if steps and steps[0].get("ranking"):
+            ranking = steps[0]["ranking"]
+            blocks.append({"type": "heading", "text": "Which effects explain it"})
+            blocks.append(_figure(figures.ranked_bars([n for n, _ in ranking], [float(v) for _, v in ranking],
+                                                      xlabel="share of the held-out error removed",
+                                                      title="each effect alone, fitted to the calibration's captures",
+                                                      highlight=doc["modelled"]),
+                                  "How much of the held-out error each candidate effect removes when it is modelled "
+                                  "alone (orange: selected). A negative share makes the simulation worse.",
+                                  "effects ranked"))
+            added = [s for s in steps if s.get("added")]
+            if added:
+                labels_ = ["calibrated"] + [f"+ {s['added']}" for s in added]
+                values = [float(added[0]["before"])] + [float(s["after"]) for s in added]
+                blocks.append(_figure(figures.curve(labels_, values, ylabel="held-out RMSE (linear)",
+                                                    title="the gap as effects are added",
+                                                    reference=(float(noise), "the captures' noise")
+                                                    if noise is not None else None),
+                                      "The held-out error of the simulation as the greedy selection adds each effect "
+                                      "in turn (structured part, pattern edges excluded); it cannot go much below "
+                                      "the captures' own noise.", "gap curve"))
+        return "Diagnosis", blocks
+
+    def show(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
+        frames = sorted((e for e in (doc["frames"] or {}).values() if isinstance(e, dict)),
+                        key=lambda e: int(e["number"]))
+        done = [e for e in frames if e.get("status") == "done"]
+        psnr = [float(e["psnr_model"]) for e in done if e.get("psnr_model") is not None]
+        items = [("frames", f"{len(done)} of {len(frames)} finished" + ("" if doc.get("complete") else
+                                                                        " (the show is not complete)")),
+                 ("mode", str(doc.get("mode"))), ("projectors", str(doc.get("projector_count", 1))),
+                 ("model PSNR", f"{fmt(np.mean(psnr) if psnr else None, '.2f', ' dB')} mean, "
+                                f"{fmt(min(psnr) if psnr else None, '.2f', ' dB')} worst")]
+        blocks: list[Block] = [{"type": "facts", "items": items}]
+        for fail in doc.get("failures") or []:
+            blocks.append({"type": "note", "text": f"frame {fail.get('number', '?')}: {fail.get('error', fail)}"})
+        if not done:
+            return "Show", blocks
+        pick = sorted({round(i) for i in np.linspace(0, len(done) - 1, min(self.thumbnails, len(done)))})
+        thumbs = []
+        for i in pick:
+            e = done[i]
+            img = self.image(folder, e["file"], f"frame {e['number']}", blocks)
+            if img is not None:
+                thumbs.append({"uri": figures.image_uri(img, width=160),
+                               "caption": f"frame {e['number']} · {fmt(e.get('psnr_model'), '.1f', ' dB')}"})
+        if thumbs:
+            blocks.append({"type": "strip", "thumbs": thumbs,
+                           "caption": f"{len(thumbs)} of {len(done)} finished frames (projector 1's input, "
+                                      "evenly spaced), with the model's PSNR of each"})
+        numbers = [int(e["number"]) for e in done]
+        blocks.append(_figure(figures.series(
+            numbers, {"solved": [float(e.get("psnr_model") or np.nan) for e in done],
+                      "start of the solve": [float(e.get("psnr_model_start") or np.nan) for e in done]},
+            xlabel="frame", ylabel="PSNR (dB)", title="model PSNR of each frame"),
+            "How close the simulated projection of each frame comes to its target (PSNR, simulation; the "
+            "evaluation measures the real one), at the start of its solve (warm or cold) and at its end.",
+            "per-frame PSNR"))
+        blocks.append(_figure(figures.series(numbers, {"solve": [float(e.get("seconds") or np.nan) for e in done]},
+                                             xlabel="frame", ylabel="seconds", title="solve time of each frame"),
+                              "Seconds stage C took for each frame (reading and writing excluded).",
+                              "per-frame solve time"))
+        return "Show", blocks
