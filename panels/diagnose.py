@@ -33,6 +33,8 @@ class PROCAM_PT_diagnose(bpy.types.Panel):
         row.prop(scene, "procam_diagnosis_scale")
         row.prop(scene, "procam_max_effects")
         layout.operator("procam.diagnose", icon="VIEWZOOM")
+        # every step's folder on one page, in the web browser (after the last step of the workflow)
+        layout.operator("procam.open_report", icon="URL")
         if not done:
             return
         if summary.data.get("projector_count", 1) > 1:

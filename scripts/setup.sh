@@ -36,6 +36,13 @@ if ! command -v Xvfb >/dev/null && [ "$(id -u)" = 0 ] && command -v apt-get >/de
     || echo "setup: could not install xvfb; the live-loop tests will be skipped" >&2
 fi
 
+# The report's test opens it in a real headless browser (Debian's chromium).
+if ! command -v chromium >/dev/null && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  echo "setup: installing Debian's chromium for the report's browser test" >&2
+  apt-get install -y -q chromium >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; } \
+    || echo "setup: could not install chromium; the report's browser test will be skipped" >&2
+fi
+
 [ -x .venv/bin/python ] || "$py" -m venv .venv
 stamp=.venv/.procam-setup
 want="$(cat requirements.txt requirements-dev.txt pyproject.toml | sha256sum) $need_karellen"

@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
                   f"(see {args.out}/diagnosis/projector_{k + 1}/summary.md)")
         print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())
               + f", total {summary['seconds_total']}")
+        _print_report(args.out, summary)
         return 0
     print(f"  diagnosis: held-out residual RMSE {g['residual']['rmse']:.4f} → {g['residual_after']['rmse']:.4f} "
           f"({g['residual']['psnr']:.1f} → {g['residual_after']['psnr']:.1f} dB) with the selected effects: "
@@ -85,4 +86,14 @@ def run(args: argparse.Namespace) -> int:
               f"({args.out}/evaluation-effects/)")
     print("  seconds: " + ", ".join(f"{k} {v}" for k, v in summary["seconds"].items())
           + f", total {summary['seconds_total']}")
+    _print_report(args.out, summary)
     return 0
+
+
+def _print_report(out: Path, summary: dict) -> None:
+    made = summary.get("report") or {}
+    if made.get("skipped"):
+        print(f"  report: not built ({made['skipped']})")
+    elif made:
+        print(f"  report: {out / made['file']} ({made['bytes'] / 1e6:.2f} MB, {made['seconds']} s) — open it in a "
+              "browser")

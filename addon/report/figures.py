@@ -3,7 +3,9 @@
 Everything here takes plain arrays and numbers — no step folder is read here
 (the report step, ``steps/report.py``, reads them) — and returns a data URI
 that an ``<img>`` shows without any file beside the page. matplotlib draws on
-its Agg canvas (no display, no window), one figure at a time, closed at once.
+its Agg canvas (no display, no window), one figure at a time, closed at once;
+it is imported on first use, so the engine (and Blender, which lacks it)
+imports this module without it.
 
 Images in the folders are linear light (DESIGN.md §3); a picture of light a
 person looks at (a capture, a target, a projector frame) is sRGB-encoded here
@@ -14,25 +16,40 @@ residual) are drawn with a colour scale beside them instead.
 from __future__ import annotations
 
 import base64
+import importlib.util
 import io
 import textwrap
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
-import matplotlib
-import matplotlib.cm
-import matplotlib.colors
-import matplotlib.ticker
+import numpy as np
 
-matplotlib.use("Agg")  # no display: the report is built headless, in a terminal or a Blender job
+from ..colour import srgb_encode
 
-import matplotlib.pyplot as plt  # noqa: E402 — after the backend is chosen
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.lines import Line2D  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
+#: what drawing the plots needs beyond the engine's own dependencies (not bundled into the Blender extension)
+LIBRARIES = ("matplotlib",)
 
-from ..colour import srgb_encode  # noqa: E402
+
+def missing_libraries() -> list[str]:
+    """The libraries of :data:`LIBRARIES` that this Python cannot import (a Blender without them)."""
+    return [name for name in LIBRARIES if importlib.util.find_spec(name) is None]
+
+
+def _mpl() -> Any:
+    """matplotlib on its Agg canvas (no display: the report is built headless, in a terminal or a Blender job),
+    imported on first use so that the engine imports without it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.cm
+    import matplotlib.colors
+    import matplotlib.lines
+    import matplotlib.patches
+    import matplotlib.pyplot
+    import matplotlib.ticker
+    return matplotlib
+
 
 #: pixels per inch of every plot: sharp on a laptop screen without making the page heavy
 DPI = 110
@@ -62,21 +79,21 @@ def image_uri(image: np.ndarray, *, light: bool = True, width: int | None = None
     return _uri(buf.tobytes())
 
 
-def _figure_uri(fig: Figure) -> str:
+def _figure_uri(fig: Any) -> str:
     buf = io.BytesIO()
     try:
         fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
     finally:
-        plt.close(fig)
+        _mpl().pyplot.close(fig)
     return _uri(buf.getvalue())
 
 
-def _figure(width: float, height: float, ncols: int = 1, **kw: object) -> tuple[Figure, np.ndarray]:
-    fig, axes = plt.subplots(1, ncols, figsize=(width, height), squeeze=False, **kw)
+def _figure(width: float, height: float, ncols: int = 1, **kw: Any) -> tuple[Any, np.ndarray]:
+    fig, axes = _mpl().pyplot.subplots(1, ncols, figsize=(width, height), squeeze=False, **kw)
     return fig, axes[0]
 
 
-def _show(ax: plt.Axes, image: np.ndarray, title: str, *, light: bool = True) -> None:
+def _show(ax: Any, image: np.ndarray, title: str, *, light: bool = True) -> None:
     img = np.nan_to_num(np.asarray(image, np.float32))
     ax.imshow(srgb_encode(img) if light else np.clip(img, 0, 1), interpolation="nearest")
     ax.set_title(title, fontsize=9)
@@ -122,7 +139,8 @@ def heat_maps(maps: Sequence[np.ndarray], titles: Sequence[str], scale: float, l
         ax.set_title(title, fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
-    mappable = matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0.0, scale), HEAT)
+    mpl = _mpl()
+    mappable = mpl.cm.ScalarMappable(mpl.colors.Normalize(0.0, scale), HEAT)
     bar = fig.colorbar(mappable, ax=list(axes), fraction=0.046 / len(maps) ** 0.5, pad=0.02)
     bar.set_label(label, fontsize=8)
     bar.ax.tick_params(labelsize=7)
@@ -218,18 +236,27 @@ def regions(background: np.ndarray, outlines: Sequence[np.ndarray | None], boxes
     ax = axes[0]
     ax.imshow(img * 0.8, interpolation="nearest")
     handles = []
+    drawn: list[np.ndarray] = []
+    step = max(1, round(max(img.shape[:2]) / 120))  # pixels between nested outlines: visible at any size
     for k, (mask, box, name) in enumerate(zip(outlines, boxes, names)):
         colour = REGION_COLOURS[k % len(REGION_COLOURS)]
-        # a region over the same place as an earlier one is drawn a little inside it, so both stay visible
         if mask is not None and mask.any():
-            ax.contour(mask.astype(np.float32), levels=[0.5], colors=[colour], linewidths=2.0)
-            handles.append(Line2D([], [], color=colour, lw=2.5, label=name))
+            # a region over the same place as an earlier one is drawn a little inside it, so both stay visible
+            same = sum(1 for d in drawn if d.shape == mask.shape and np.array_equal(d, mask))
+            drawn.append(mask)
+            shape = mask.astype(np.uint8)
+            if same:
+                shape = cv2.erode(shape, np.ones((3, 3), np.uint8), iterations=2 * step * same)
+            if not shape.any():
+                shape = mask.astype(np.uint8)
+            ax.contour(shape.astype(np.float32), levels=[0.5], colors=[colour], linewidths=2.0)
+            handles.append(_mpl().lines.Line2D([], [], color=colour, lw=2.5, label=name))
         else:
             x, y, bw, bh = (float(v) for v in box)
             inset = 1.5 * k
-            ax.add_patch(plt.Rectangle((x - 0.5 + inset, y - 0.5 + inset), bw - 2 * inset, bh - 2 * inset,
+            ax.add_patch(_mpl().patches.Rectangle((x - 0.5 + inset, y - 0.5 + inset), bw - 2 * inset, bh - 2 * inset,
                                        fill=False, ec=colour, lw=2.0, ls="--"))
-            handles.append(Patch(fill=False, ec=colour, lw=2.0, ls="--", label=name))
+            handles.append(_mpl().patches.Patch(fill=False, ec=colour, lw=2.0, ls="--", label=name))
     ax.set_xticks([])
     ax.set_yticks([])
     ax.set_title("regions of the remaining error (white capture behind)", fontsize=9)
@@ -252,12 +279,13 @@ def ranked_bars(names: Sequence[str], values: Sequence[float], *, xlabel: str, t
     colours = ["#D55E00" if names[i] in highlight else "#999999" for i in order]
     ax.barh([names[i] for i in order], [values[i] for i in order], color=colours)
     for y, i in enumerate(order):
-        ax.text(values[i], y, f" {values[i]:.0%}", va="center", fontsize=7)
+        ax.text(values[i], y, f" {values[i]:.0%} " if values[i] >= 0 else f"{values[i]:.0%} ", va="center",
+                ha="left" if values[i] >= 0 else "right", fontsize=7)
     ax.axvline(0, color="black", lw=0.6)
     ax.set_xlabel(xlabel, fontsize=8)
     ax.set_title(title, fontsize=9)
     ax.tick_params(labelsize=8)
-    ax.xaxis.set_major_formatter(matplotlib.ticker.PercentFormatter(1.0))
+    ax.xaxis.set_major_formatter(_mpl().ticker.PercentFormatter(1.0))
     ax.margins(x=0.15)
     return _figure_uri(fig)
 
@@ -296,6 +324,7 @@ def series(x: Sequence[float], lines: dict[str, Sequence[float]], *, xlabel: str
     ax.set_ylabel(ylabel, fontsize=8)
     ax.set_title(title, fontsize=9)
     ax.tick_params(labelsize=7)
+    ax.xaxis.set_major_locator(_mpl().ticker.MaxNLocator(integer=True))  # frames are whole numbers
     ax.grid(alpha=0.3)
     if len(lines) + len(levels or {}) > 1:
         ax.legend(fontsize=7, frameon=False, loc="center left", bbox_to_anchor=(1.02, 0.5))

@@ -11,8 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import jinja2
-
 TEMPLATES = Path(__file__).parent / "templates"
 TEMPLATE = "report.html.j2"
 #: the page's generator tag: a file holding it was written by ``procam report`` and may be replaced with --force
@@ -22,6 +20,8 @@ GENERATOR = "procam report 1"
 def render(context: dict[str, Any]) -> str:
     """The report's HTML for ``context`` (the keys the template reads: title, generator, facts, sections,
     skipped)."""
+    import jinja2  # on first use: Blender lacks it, and imports the engine without building a report
+
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(TEMPLATES)),
                              autoescape=jinja2.select_autoescape(("html", "j2")), undefined=jinja2.StrictUndefined,
                              trim_blocks=True, lstrip_blocks=True)

@@ -18,6 +18,7 @@ any other:
 ``evaluation-effects/``             says compensation can invert (``--effects auto``), and evaluated (when it
                                     names any)
 ``summary.json``                    the figures the demo prints
+``report.html``                     all of the above on one page (``procam report``), pictures embedded
 
 Default: half resolution (camera 320×240, projector 400×300) so it runs in minutes on 2 cores; ``full`` uses
 the paper's 640×480 / 800×600.
@@ -42,14 +43,14 @@ from ..options import option, same_option
 from ..outputs import folder_in_place, write_manifest
 from ..progress import Cancel, Progress, part, quiet
 from ..stages.display_area import choose_area
-from . import calibrate, capture, compensate, diagnose, evaluate, layout, projectors
+from . import calibrate, capture, compensate, diagnose, evaluate, layout, projectors, report
 from .capture import LabOptions
 from .stage_c import StageCOptions
 
 KIND = layout.DEMO
 #: The demo's stages and their share of its running time, for progress.
 PLAN = (("lab", 0.13), ("calibrate", 0.05), ("cross-check", 0.02), ("compensate", 0.2), ("evaluate", 0.05),
-        ("diagnose", 0.4), ("with effects", 0.15))
+        ("diagnose", 0.38), ("with effects", 0.15), ("report", 0.02))
 
 
 #: the strength of the tone curve of the demo's second projector (the lab's ``response``; ``realistic`` has 0.4)
@@ -217,6 +218,18 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
             seconds["with_effects"] = time.perf_counter() - t0
         summary["seconds"] = {k: round(v, 1) for k, v in seconds.items()}
         summary["seconds_total"] = round(time.perf_counter() - t_start, 1)
+        write_manifest(out / KIND.manifest, summary)
+        # the page a person opens first: every folder above, pictures and plots in one file
+        missing = report.missing_libraries()
+        if missing:  # a Python without the plotting libraries (Blender's): the folders are the results
+            summary["report"] = {"skipped": f"building it needs {' and '.join(missing)}"}
+        else:
+            t0 = time.perf_counter()
+            made = report.run(report.ReportOptions((out,), out / report.REPORT_HTML, title="ProCam demo"),
+                              spans["report"], cancel)
+            summary["report"] = {"file": report.REPORT_HTML, "bytes": made.bytes, "seconds": round(made.seconds, 1)}
+            seconds["report"] = time.perf_counter() - t0
+            summary["seconds"]["report"] = round(seconds["report"], 1)
         write_manifest(out / KIND.manifest, summary)
     say("done", 1.0)
     return summary

@@ -31,7 +31,7 @@ from ..imageio import write_atomic_bytes
 from ..options import option, validate
 from ..outputs import check_file_replaceable
 from ..progress import Cancel, Progress, check, quiet
-from ..report import page
+from ..report import figures, page
 from . import layout, report_sections
 
 #: the report's file name where a step writes one beside its folders (the demo's)
@@ -197,6 +197,10 @@ def build(options: ReportOptions, progress: Progress | None = None, cancel: Canc
             continue
         section["id"] = f"s{len(sections) + 1}"
         sections.append(section)
+    titles = [s["title"] for s in sections]
+    for s in sections:  # two folders of one kind (a compensation with effects beside one without): name them
+        if titles.count(s["title"]) > 1:
+            s["title"] = f"{s['title']} — {Path(s['folder']).name}"
     names = ", ".join(Path(p).name or str(p) for p in options.folders)
     context = {"title": options.title or f"ProCam report — {names}",
                "subtitle": f"{len(sections)} section(s) from {', '.join(str(p) for p in options.folders)}; "
@@ -209,9 +213,34 @@ def build(options: ReportOptions, progress: Progress | None = None, cancel: Canc
     return page.render(context), walk
 
 
+def place_for(folders: list[Path] | tuple[Path, ...]) -> Path:
+    """Where the sidebar's report of ``folders`` goes: ``report.html`` in the folder that holds them all (their
+    common parent; a demo's own report when they are a demo's folders)."""
+    if not folders:
+        raise ReportError("no step folder to report on: run a step, or choose its folder in the ProCam panel")
+    parents = [os.path.abspath(Path(f).parent) for f in folders]
+    try:
+        common = Path(os.path.commonpath(parents))
+    except ValueError:  # folders on different drives: beside the first
+        common = Path(parents[0])
+    return common / REPORT_HTML
+
+
+def missing_libraries() -> list[str]:
+    """What building a report needs that this Python lacks (Blender has neither matplotlib nor Jinja2)."""
+    import importlib.util
+
+    return figures.missing_libraries() + (["Jinja2"] if importlib.util.find_spec("jinja2") is None else [])
+
+
 def run(options: ReportOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> ReportResult:
     """Write the report of ``options.folders`` to ``options.out`` (module doc)."""
     validate(options, ReportError)
+    missing = missing_libraries()
+    if missing:
+        raise ReportError(f"building a report needs {' and '.join(missing)}, which this Python lacks (Blender does "
+                          "not ship them): run `procam report FOLDER --out report.html` from ProCam's environment "
+                          "(scripts/setup.sh installs them)")
     t0 = time.perf_counter()
     say = progress or quiet
     out = Path(options.out)

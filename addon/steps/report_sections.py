@@ -123,8 +123,9 @@ class Reader:
             items.append(("projectors", f"{1 + len(others)} (projector 1 shown below)"))
         wr = doc.get("warp_report") or {}
         if wr.get("corners_before_px") and wr.get("corners_after_px"):
-            items.append(("warp (stage B)", f"checkerboard corners median {fmt(wr['corners_before_px']['median'], '.2f')}"
-                                            f" px before → {fmt(wr['corners_after_px']['median'], '.2f')} px after"))
+            before, after = wr["corners_before_px"]["median"], wr["corners_after_px"]["median"]
+            items.append(("warp (stage B)", f"checkerboard corners median {fmt(before, '.2f')} px before → "
+                                            f"{fmt(after, '.2f')} px after"))
         seconds = doc.get("seconds") or {}
         if seconds:
             items.append(("seconds", ", ".join(f"{k} {fmt(v, '.1f')}" for k, v in seconds.items())))
@@ -190,18 +191,21 @@ class Reader:
         else:
             try:
                 dec = decode_gray_code_set(captures)
-                white = captures.image("white")
+                white, black = captures.image("white"), captures.image("black")
             except ProCamError as exc:
                 blocks.append({"type": "note", "text": f"the Gray code cannot be decoded: {exc}"})
                 self.skip(captures.path, f"Gray-code coverage not shown: {exc}")
             else:
                 valid = np.asarray(dec.valid, bool)
                 size = captures.projector.intrinsics.size
+                # lit as stage A sees it (DESIGN.md: |white − black| > 0.1)
+                lit = np.abs(white - black).max(axis=2) > 0.1
+                share = float((valid & lit).sum()) / max(float(lit.sum()), 1.0)
                 blocks.append(_figure(figures.coverage(white, valid, np.asarray(dec.coords), tuple(size)),
                                       f"Where the camera decoded which projector pixel from the Gray code: "
-                                      f"{valid.mean():.0%} of the camera image decoded. Smooth colour ramps mean a "
-                                      f"clean decoding; speckle or holes inside the lit area mean noise, shadow or "
-                                      f"too little contrast there.", "Gray-code coverage"))
+                                      f"{share:.0%} of the pixels the projector lights decoded. Smooth colour "
+                                      "ramps mean a clean decoding; speckle or holes inside the lit area mean "
+                                      "noise, shadow or too little contrast there.", "Gray-code coverage"))
 
         blocks.append({"type": "heading", "text": "Surface"})
         if surface.get("albedo"):
