@@ -179,6 +179,7 @@ FLAGS = {
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
                 "--projector-height --projector-number --projector-width --seed --shift-x --shift-y --throw-ratio",
     "precompute": "--bounces --force --live --seed",
+    "report": "--force --out --thumbnails --title",
     "show": "--area --bounces --capture-every --chunk --cluster --cold-start --connect-timeout --device --diagnosis "
             "--effects --fail-fast --force --iterations --lr --no-bias --out --range --schedule --seed --spp "
             "--target-encoding --threads --workers",
