@@ -90,6 +90,7 @@ def _options_classes():
     from procam.addon.steps.export import ExportFramesOptions
     from procam.addon.steps.live import LiveCaptureOptions, LiveCheckOptions, LiveRigSheet
     from procam.addon.steps.live_show import LiveShowOptions
+    from procam.addon.steps.report import ReportOptions
     from procam.addon.steps.rig import RigOptions
     from procam.addon.steps.show import ShowOptions
     from procam.addon.steps.transport import PrecomputeOptions
@@ -104,7 +105,8 @@ def _options_classes():
             (PatternsOptions, [capture, live]), (ProjectorSheet, [capture, live]), (PhotoSettings, [capture, live]),
             (DepthSensorSize, [capture, live]), (CameraSize, [capture]), (ImportOptions, [capture]),
             (UndistortOptions, [capture]), (LiveCaptureOptions, [live]), (LiveCheckOptions, [live]),
-            (LiveRigSheet, [live]), (LiveShowOptions, [live]), (RigOptions, [cli / "rig.py"])]
+            (LiveRigSheet, [live]), (LiveShowOptions, [live]), (RigOptions, [cli / "rig.py"]),
+            (ReportOptions, [cli / "report.py"])]
 
 
 #: the sidebar's and the dialogs' tables of names and properties

@@ -130,7 +130,7 @@ def test_bad_input_is_listed_and_the_page_still_written(tree, tmp_path, capsys):
     printed = capsys.readouterr().out
     html = out.read_text(encoding="utf-8")
     reasons = {"notes": "not a ProCam step folder", "old-evaluation": "format version 0",
-               "thin-diagnosis": "written by an older version", "city_capture.png": "the compensated capture",
+               "thin-diagnosis": "written by an older version", "evaluation-with-holes": "city_capture.png",
                "nowhere": "does not exist"}
     for where, why in reasons.items():
         assert re.search(rf"skipped \S*{where}\S*: [^\n]*{why}", printed), (where, printed)

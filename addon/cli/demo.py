@@ -95,5 +95,5 @@ def _print_report(out: Path, summary: dict) -> None:
     if made.get("skipped"):
         print(f"  report: not built ({made['skipped']})")
     elif made:
-        print(f"  report: {out / made['file']} ({made['bytes'] / 1e6:.2f} MB, {made['seconds']} s) — open it in a "
+        print(f"  report: {out / made['html']} ({made['bytes'] / 1e6:.2f} MB, {made['seconds']} s) — open it in a "
               "browser")

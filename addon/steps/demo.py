@@ -227,7 +227,7 @@ def run(options: DemoOptions, progress: Progress | None = None, cancel: Cancel |
             t0 = time.perf_counter()
             made = report.run(report.ReportOptions((out,), out / report.REPORT_HTML, title="ProCam demo"),
                               spans["report"], cancel)
-            summary["report"] = {"file": report.REPORT_HTML, "bytes": made.bytes, "seconds": round(made.seconds, 1)}
+            summary["report"] = {"html": report.REPORT_HTML, "bytes": made.bytes, "seconds": round(made.seconds, 1)}
             seconds["report"] = time.perf_counter() - t0
             summary["seconds"]["report"] = round(seconds["report"], 1)
         write_manifest(out / KIND.manifest, summary)

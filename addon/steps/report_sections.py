@@ -53,7 +53,7 @@ class Reader:
             path = inside(folder, name, what=what)
             return read_image(path)
         except ProCamError as exc:
-            self.skip(folder / str(name), f"{what} not shown: {exc}")
+            self.skip(folder, f"{what} is not shown: {exc}")
             blocks.append({"type": "note", "text": f"{what} is not shown: {exc}"})
             return None
 
@@ -140,7 +140,7 @@ class Reader:
                 points = read_arrays(mesh, ("vertices",), error=ProCamError, remedy="calibrate again")["vertices"]
             except ProCamError as exc:
                 blocks.append({"type": "note", "text": f"the surface is not shown: {exc}"})
-                self.skip(folder / str(surface["mesh"]), f"surface mesh not shown: {exc}")
+                self.skip(folder, f"the surface mesh is not shown: {exc}")
         blocks.append(_figure(figures.pose_views(position, direction, points),
                               "Where calibration put the projector relative to the camera, with the surface's "
                               "vertices (grey). Arrows: each one's optical axis.", "rig seen from above and the side"))
