@@ -25,6 +25,8 @@ def test_demo_writes_every_folder_and_compensation_helps(demo, capsys):
     for folder in ("captures", "calibration", "compensation", "evaluation", "diagnosis", "cross-check", "targets"):
         assert (demo / folder).is_dir(), folder
     assert not list(demo.parent.glob(".*tmp*")), "no temporary folder left beside the demo"
+    # the page a person opens first, its path printed
+    assert (demo / "report.html").is_file() and "<h2>Diagnosis</h2>" in (demo / "report.html").read_text()
     summary = json.loads((demo / "summary.json").read_text())
     row, = summary["compensation"]["targets"]
     assert row["psnr"] > row["uncompensated_psnr"] + 3.0

@@ -155,3 +155,22 @@ def test_the_output_file_is_guarded(tree, tmp_path, capsys):
     assert main(["report", str(tree), "--out", str(tree / "calibration" / "report.html")]) == EXIT_USER
     assert not (tree / "calibration" / "report.html").exists()
     assert main(["report", str(tree / "show"), "--out", str(tmp_path / "r.txt")]) == EXIT_USER
+
+
+@pytest.mark.blender
+def test_open_report_builds_the_scenes_report_and_opens_it(tree, registered, monkeypatch):
+    import bpy
+
+    opened = []
+    monkeypatch.setattr("webbrowser.open", lambda uri: opened.append(uri) or True)
+    scene = bpy.context.scene
+    assert not bpy.ops.procam.open_report.poll()  # no step folder yet
+    scene.procam_calibration_dir = str(tree / "calibration")
+    scene.procam_diagnosis_dir = str(tree / "diagnosis")
+    assert bpy.ops.procam.open_report() == {"FINISHED"}
+    page = tree / "report.html"  # in the folder that holds the scene's step folders
+    assert opened == [page.as_uri()]
+    html = page.read_text(encoding="utf-8")
+    assert "<h2>Calibration</h2>" in html and "<h2>Diagnosis</h2>" in html and "<h2>Show</h2>" not in html
+    assert bpy.ops.procam.open_report() == {"FINISHED"}  # built again over its own report
+    page.unlink()

@@ -312,8 +312,9 @@ def curve(labels: Sequence[str], values: Sequence[float], *, ylabel: str, title:
 
 
 def series(x: Sequence[float], lines: dict[str, Sequence[float]], *, xlabel: str, ylabel: str, title: str,
-           levels: dict[str, float] | None = None) -> str:
-    """Lines over frames (per-frame PSNR, solve time, flicker); ``levels``: dashed horizontal lines by label."""
+           levels: dict[str, float] | None = None, from_zero: bool = False) -> str:
+    """Lines over frames (per-frame PSNR, solve time, flicker); ``levels``: dashed horizontal lines by label;
+    ``from_zero``: the axis starts at 0 (a time, a change)."""
     fig, axes = _figure(6.4, 2.8)
     ax = axes[0]
     for k, (label, ys) in enumerate(lines.items()):
@@ -325,6 +326,8 @@ def series(x: Sequence[float], lines: dict[str, Sequence[float]], *, xlabel: str
     ax.set_title(title, fontsize=9)
     ax.tick_params(labelsize=7)
     ax.xaxis.set_major_locator(_mpl().ticker.MaxNLocator(integer=True))  # frames are whole numbers
+    if from_zero:
+        ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     if len(lines) + len(levels or {}) > 1:
         ax.legend(fontsize=7, frameon=False, loc="center left", bbox_to_anchor=(1.02, 0.5))

@@ -317,7 +317,7 @@ class Reader:
                     "uncompensated": [float(np.abs(b[1] - a[1]).mean()) for a, b in pairs]},
                 xlabel="frame" if show else "target (in the order given)",
                 ylabel="mean |change| (linear)", title="change from the previous " + ("frame" if show else "target"),
-                levels={"the targets' own change (mean)": float(flicker["targets"])}),
+                levels={"the targets' own change (mean)": float(flicker["targets"])}, from_zero=True),
                 f"How much the capture changes from one {'frame' if show else 'target'} to the next inside the display "
                 f"area. Compensation should not change more than the targets themselves do (dashed): excess "
                 f"{fmt(flicker.get('excess'), '+.4f')} on average over {flicker.get('pairs')} pair(s).",
@@ -447,7 +447,8 @@ class Reader:
             "evaluation measures the real one), at the start of its solve (warm or cold) and at its end.",
             "per-frame PSNR"))
         blocks.append(_figure(figures.series(numbers, {"solve": [float(e.get("seconds") or np.nan) for e in done]},
-                                             xlabel="frame", ylabel="seconds", title="solve time of each frame"),
+                                             xlabel="frame", ylabel="seconds", title="solve time of each frame",
+                                             from_zero=True),
                               "Seconds stage C took for each frame (reading and writing excluded).",
                               "per-frame solve time"))
         return "Show", blocks
