@@ -40,6 +40,7 @@ one.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -164,6 +165,52 @@ def huber_root_weights(r: np.ndarray) -> np.ndarray:
     return np.sqrt(np.where(a <= k, 1.0, k / np.maximum(a, 1e-300)))
 
 
+def huber_levenberg_marquardt(plain: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, lo: np.ndarray,
+                              hi: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounded Levenberg–Marquardt under Huber's loss from ``theta``: ``plain(t)`` is the unweighted residual,
+    parameters with ``lo == hi`` stay put. Returns the parameters and the residual there; raises
+    FloatingPointError when the parameters become NaN."""
+    step = 1e-3 * (hi - lo)
+    free = [k for k in range(theta.size) if hi[k] > lo[k]]
+    lam = 1e-3
+    at_theta = plain(theta)  # the unweighted residual at the current parameters
+    for _ in range(iterations):
+        # Reweighted at the current parameters; the step below is accepted on the cost under these weights.
+        root_w = huber_root_weights(at_theta)
+        r = at_theta * root_w
+        cost = float(r @ r)
+        jac = np.zeros((r.size, theta.size))
+        for k in free:
+            t = theta.copy()
+            # Step inwards at an upper bound so the difference stays inside the box.
+            h = step[k] if theta[k] + step[k] <= hi[k] else -step[k]
+            t[k] += h
+            jac[:, k] = (plain(t) * root_w - r) / h
+        jtj, jtr = jac.T @ jac, jac.T @ r
+        improved, shrink = False, 0.0
+        for _ in range(6):
+            a = jtj + lam * np.diag(np.maximum(np.diag(jtj), 1e-12))
+            try:
+                delta = -np.linalg.solve(a, jtr)
+            except np.linalg.LinAlgError:
+                delta = -np.linalg.lstsq(a, jtr, rcond=None)[0]
+            cand = np.clip(theta + delta, lo, hi)
+            at_cand = plain(cand)
+            rc = at_cand * root_w
+            c = float(rc @ rc)
+            if np.isfinite(c) and c < cost:
+                shrink = (cost - c) / max(cost, 1e-30)
+                theta, at_theta, lam = cand, at_cand, max(lam / 3, 1e-7)
+                improved = True
+                break
+            lam *= 4
+        if not improved or shrink < 1e-5:
+            break
+    if not np.all(np.isfinite(theta)):
+        raise FloatingPointError("parameters became NaN")
+    return theta, at_theta
+
+
 def huber_rms(r: np.ndarray, k: float) -> float:
     """√ of the mean of twice Huber's loss at scale ``k`` (``r²`` within it, ``2k|r| − k²`` beyond): the robust
     fit's RMSE, comparable between two fits of the same pixels at the same ``k`` (IRLS's weighted squares are not:
@@ -242,45 +289,8 @@ def _fit_box(data: GapData, comp: Composite, start: dict[str, np.ndarray] | None
                                    for i in data.fit_index])
         return (pred - caps).astype(np.float64)
 
-    step = 1e-3 * (hi - lo)
-    free = [k for k in range(comp.size) if hi[k] > lo[k]]
     try:
-        lam = 1e-3
-        at_theta = plain(theta)  # the unweighted residual at the current parameters
-        for _ in range(iterations):
-            # Reweighted at the current parameters; the step below is accepted on the cost under these weights.
-            root_w = huber_root_weights(at_theta)
-            r = at_theta * root_w
-            cost = float(r @ r)
-            jac = np.zeros((r.size, comp.size))
-            for k in free:
-                t = theta.copy()
-                # Step inwards at an upper bound so the difference stays inside the box.
-                h = step[k] if theta[k] + step[k] <= hi[k] else -step[k]
-                t[k] += h
-                jac[:, k] = (plain(t) * root_w - r) / h
-            jtj, jtr = jac.T @ jac, jac.T @ r
-            improved = False
-            for _ in range(6):
-                a = jtj + lam * np.diag(np.maximum(np.diag(jtj), 1e-12))
-                try:
-                    delta = -np.linalg.solve(a, jtr)
-                except np.linalg.LinAlgError:
-                    delta = -np.linalg.lstsq(a, jtr, rcond=None)[0]
-                cand = np.clip(theta + delta, lo, hi)
-                at_cand = plain(cand)
-                rc = at_cand * root_w
-                c = float(rc @ rc)
-                if np.isfinite(c) and c < cost:
-                    shrink = (cost - c) / max(cost, 1e-30)
-                    theta, at_theta, lam = cand, at_cand, max(lam / 3, 1e-7)
-                    improved = True
-                    break
-                lam *= 4
-            if not improved or shrink < 1e-5:
-                break
-        if not np.all(np.isfinite(theta)):
-            raise FloatingPointError("parameters became NaN")
+        theta, at_theta = huber_levenberg_marquardt(plain, theta, lo, hi, iterations)
     except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
         return Fit(comp.names, comp.initial(), float("nan"), float("nan"), time.perf_counter() - t0,
                    error=f"{type(exc).__name__}: {exc}")

@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .data import GapData
-from .fit import MIN_SHARE, FIT_PIXELS, huber_rms, huber_root_weights, _huber_scale, scores
+from .fit import MIN_SHARE, FIT_PIXELS, huber_levenberg_marquardt, huber_rms, _huber_scale, scores
 from .models import MODELS, NAMES, Composite, describe_params
 
 #: The camera's effects (its processing and its lens) and the surface's (its gloss, bounce light and shape): every
@@ -141,40 +141,7 @@ def fit_joint(datas: list[GapData], items: tuple[Item, ...], *, start: dict[Item
     error = None
     at_theta = plain(theta)
     try:
-        step = 1e-3 * (hi - lo)
-        lam = 1e-3
-        for _ in range(iterations if size else 0):
-            root_w = huber_root_weights(at_theta)
-            r = at_theta * root_w
-            cost = float(r @ r)
-            jac = np.zeros((r.size, size))
-            for j in range(size):
-                t = theta.copy()
-                h = step[j] if theta[j] + step[j] <= hi[j] else -step[j]
-                t[j] += h
-                jac[:, j] = (plain(t) * root_w - r) / h
-            jtj, jtr = jac.T @ jac, jac.T @ r
-            improved, shrink = False, 0.0
-            for _ in range(6):
-                a = jtj + lam * np.diag(np.maximum(np.diag(jtj), 1e-12))
-                try:
-                    delta = -np.linalg.solve(a, jtr)
-                except np.linalg.LinAlgError:
-                    delta = -np.linalg.lstsq(a, jtr, rcond=None)[0]
-                cand = np.clip(theta + delta, lo, hi)
-                at_cand = plain(cand)
-                rc = at_cand * root_w
-                c = float(rc @ rc)
-                if np.isfinite(c) and c < cost:
-                    shrink = (cost - c) / max(cost, 1e-30)
-                    theta, at_theta, lam = cand, at_cand, max(lam / 3, 1e-7)
-                    improved = True
-                    break
-                lam *= 4
-            if not improved or shrink < 1e-5:
-                break
-        if not np.all(np.isfinite(theta)):
-            raise FloatingPointError("parameters became NaN")
+        theta, at_theta = huber_levenberg_marquardt(plain, theta, lo, hi, iterations if size else 0)
     except (FloatingPointError, ValueError, np.linalg.LinAlgError) as exc:
         error = f"{type(exc).__name__}: {exc}"
     # held-out: each pixel class's structured MSE averaged over the projectors, so each projector counts alike
