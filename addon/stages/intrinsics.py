@@ -72,6 +72,10 @@ BLOCKS = 4
 #: A reported ± is one standard deviation; it "covers" a true error no larger than this many of it (≈ 95 %).
 COVER_SIGMAS = 2.0
 
+#: The judged rule (:func:`judge_fit`); off, every value the covariance calls determined is fitted, as before it
+#: (its uncertainties are still recorded): what scripts/bench_calibration_uncertainty.py compares against.
+JUDGE = True
+
 #: Parameter order of the fit: projector f, cx, cy (OpenCV), pose (rvec, tvec), camera k1, k2, camera focal factor.
 _NO_LENS = np.arange(9)
 _LENS = np.arange(11)
@@ -128,9 +132,9 @@ class IntrinsicsFit:
         held = u.get("held_out") or {}
         check = ""
         if held.get("rms_fitted_px") is not None:
+            worse = f" (not better by {COVER_SIGMAS:g} standard errors over the blocks: the spec is kept)"
             check = (f"; held-out reprojection {held['rms_nominal_px']:.3f} px with the spec, "
-                     f"{held['rms_fitted_px']:.3f} px with the fit" + ("" if held["improves"] else
-                                                                        f" (not better by {COVER_SIGMAS:g} standard errors over the blocks: the spec is kept)"))
+                     f"{held['rms_fitted_px']:.3f} px with the fit" + ("" if held["improves"] else worse))
         return ("; ".join(parts) + f"; projector position ±{100 * pose['position_std_m']:.2f} cm, axis "
                 f"±{pose['axis_std_deg']:.2f}° (one σ, the depth sensor's own errors included)" + check)
 
@@ -441,9 +445,10 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
               "misregistration down": view.perturbed(shift=(0.0, shift_std_px))}
     judged = [name for name, i in _INDEX.items() if i in free]
     record: dict[str, dict[str, Any]] = {}
-    first = _spread(view, x_fit, steps, free, blocks, errors, {})
+    first = _spread(view, x_fit, steps, free, blocks, errors, {})  # the covariance's σ as the fit had it
     cov_first = dict(zip(free.tolist(), first.covariance_std))
-    x, held = x_fit.copy(), {}
+    # Every judged value not free is held at its spec, which is wrong by up to its prior σ: that moves the rest.
+    x, held = x_fit.copy(), {n: priors[n] for n, i in _INDEX.items() if i not in free}
     while True:
         spread = _spread(view, x, steps, free, blocks, errors, {n: priors[n] for n in held})
         sd = dict(zip(free.tolist(), spread.std()))
@@ -451,7 +456,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
         for n in ratios:
             record[n] = {"data_std": sd[_INDEX[n]]}
         worst = max(ratios, key=lambda n: ratios[n]) if ratios else None
-        if worst is None or ratios[worst] < 1.0:
+        if worst is None or ratios[worst] < 1.0 or not JUDGE:
             break
         held[worst] = priors[worst]
         x = x.copy()
@@ -461,7 +466,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
     fitted = [n for n in judged if n not in held]
     fitted_before = list(fitted)
     held_out: dict[str, Any] = {"rms_nominal_px": None, "rms_fitted_px": None, "improves": None}
-    if fitted:
+    if fitted and JUDGE:
         # Held-out reprojection: a checkerboard of blocks, each half fitted and the other measured, the fit kept
         # against the spec (same pose parameters, the judged values at the spec).
         n = BLOCKS
@@ -602,8 +607,9 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
                   "principal_point": max(std_d["cx"], std_d["cy"]) < CENTRE_STD_MAX_PX}
     pose: np.ndarray | None = _camera_from_projector(x[3:6], x[6:9])
     bias_std, shift_std = depth_errors(captures, bias_known=depth_bias_known)
-    priors = {"projector_focal": PROJECTOR_FOCAL_PRIOR * km[0, 0], "projector_cx": PRINCIPAL_POINT_PRIOR *
-              nominal.height, "projector_cy": PRINCIPAL_POINT_PRIOR * nominal.height, "camera_focal": CAMERA_FOCAL_PRIOR}
+    centre_prior = PRINCIPAL_POINT_PRIOR * nominal.height
+    priors = {"projector_focal": PROJECTOR_FOCAL_PRIOR * km[0, 0], "projector_cx": centre_prior,
+              "projector_cy": centre_prior, "camera_focal": CAMERA_FOCAL_PRIOR}
     x_nom = x0.copy()
     x_nom[3:9] = x[3:9]
     if not all(determined.values()):
@@ -636,6 +642,10 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
             focal.update(factor=float(x[11]), fitted_fx=camera.fx * float(x[11]))
         else:
             focal.update(factor=1.0, determined=False, fitted_fx=camera.fx)
+    if "camera_focal" not in judged["values"]:  # held as given from the start: the covariance alone refused it
+        judged["values"]["camera_focal"] = {"kept": "spec", "reason": "surface", "prior_std": CAMERA_FOCAL_PRIOR,
+                                            "data_std": focal["std"], "covariance_std": focal["std"],
+                                            "std": CAMERA_FOCAL_PRIOR}
     # Values in the units a user reads: the projector's K as stored, the camera's focal length in pixels.
     for name, v in judged["values"].items():
         if name == "camera_focal":
