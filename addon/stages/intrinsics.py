@@ -27,6 +27,14 @@ made with it, and a wrong one scales them across the view, which only a
 projector whose axis converges with the camera's can see (see the fit's
 comment). Its principal point stays as given. A printed board
 (``procam calibrate-rig``) is the way to calibrate the camera fully.
+
+The covariance only measures the noise of a model taken as right: on phone
+depth with a bias and a misregistration the fit trades the focal lengths
+against the depth while claiming sub-pixel σ. :func:`judge_fit` therefore
+reports, for each value and the pose, an uncertainty that adds a jackknife over
+blocks of the surface and the depth sensor's own errors, keeps a value at the
+spec where the data do not pin it better than the spec's prior, and keeps the
+fit only where held-out blocks reproject better than with the spec.
 """
 
 from __future__ import annotations
@@ -116,7 +124,8 @@ class IntrinsicsFit:
             what, unit = _WORDS[name]
             scale = 100.0 if unit == "%" else 1.0
             pin = v.get("data_std")
-            pinned = "not at all" if pin is None or not np.isfinite(pin) else f"±{scale * pin:.2f}{unit}"
+            pinned = ("not at all" if pin is None or not np.isfinite(pin) or pin > 100 * v["prior_std"] else
+                      f"±{scale * pin:.2f}{unit}")
             if v["kept"] == "spec":
                 why = {"held-out": f"the data pin it to {pinned}, but the fit does not reproject held-out parts of "
                                    "the surface better",
@@ -175,7 +184,7 @@ class IntrinsicsFit:
         text = self.summary_of_uncertainty()
         if not all(self.determined.values()):
             unknown = [name.replace("_", " ") for name, ok in self.determined.items() if not ok]
-            return (f"{text}; the spec is kept whole: this surface does not determine the {' and '.join(unknown)} "
+            return (f"{text}; kept at the spec whole: this surface does not determine the {' and '.join(unknown)} "
                     "(a flat surface never does: use a curved or edged one, or procam calibrate-rig)")
         lens = self.camera_distortion
         camera = (f"; camera lens distortion fitted with them: {lens['edge_displacement_px']:+.2f} px at "
@@ -436,9 +445,11 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
     blocks of the surface, with, added, how far the fit moves when the depth is wrong by the sensor's σ (bias,
     misregistration across and down) and when each value held at its spec is wrong by its prior σ. A value whose
     uncertainty is not below its prior (``priors``, in the fit's units) goes back to the spec, the worst first,
-    and the rest are fitted again. Then the fit is kept only when it reprojects the blocks it was not fitted to
-    better than the spec does (each half of a checkerboard of blocks fitted, the other measured); else the spec
-    stays whole. Returns the x and free set kept and the record."""
+    and the rest are fitted again, unless the data contradict the spec (the fit farther from it than
+    :data:`COVER_SIGMAS` of both σ together). Then the fit is kept only when it reprojects the blocks it was not
+    fitted to better than the spec does, by :data:`COVER_SIGMAS` standard errors over the blocks (each half of a
+    checkerboard of blocks fitted, the other measured); else the spec stays whole.
+    Returns the x and free set kept and the record."""
     blocks = _blocks(camera_px)
     errors = {"depth bias": view.perturbed(bias=depth_bias_std),
               "misregistration across": view.perturbed(shift=(shift_std_px, 0.0)),
@@ -453,8 +464,14 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
         spread = _spread(view, x, steps, free, blocks, errors, {n: priors[n] for n in held})
         sd = dict(zip(free.tolist(), spread.std()))
         ratios = {n: sd[_INDEX[n]] / priors[n] for n in judged if n not in held}
-        for n in ratios:
-            record[n] = {"data_std": sd[_INDEX[n]]}
+        for n in list(ratios):
+            i = _INDEX[n]
+            record[n] = {"data_std": sd[i]}
+            # A spec the data contradict (χ²: the fit farther from it than COVER_SIGMAS of the two σ together) is
+            # not a prior to fall back to, however loosely the data pin the value: the fit stays.
+            if abs(x[i] - x_nominal[i]) > COVER_SIGMAS * np.hypot(sd[i], priors[n]):
+                ratios.pop(n)
+                record[n]["spec_contradicted"] = True
         worst = max(ratios, key=lambda n: ratios[n]) if ratios else None
         if worst is None or ratios[worst] < 1.0 or not JUDGE:
             break
