@@ -271,7 +271,7 @@ def test_a_wrong_camera_field_of_view_is_fitted_with_the_projector(wrong_spec, t
     fit = run_calibration(CalibrateOptions(captures, tmp_path / "fit", with_blend=False, projector_intrinsics="fit",
                                            stages="surface,pose"))
     report = fit.report["projector_intrinsics"]
-    assert report["camera_focal"]["determined"] and "camera focal length fitted" in report["summary"]
+    assert report["camera_focal"]["determined"] and "camera focal length: fitted" in report["summary"]
     assert fit.rig.camera.intrinsics.fx == pytest.approx(truth.rig.camera.intrinsics.fx, rel=0.01)
     assert fit.rig.projector.intrinsics.fx == pytest.approx(truth.rig.projector.intrinsics.fx, rel=0.02)
     p, t = fit.rig.projector, truth.rig.projector

@@ -6,7 +6,8 @@ renderer's exact depth: area-average down to the sensor's native resolution
 (depth edges become mixed "flying" pixels, as on the real sensor), add the
 ``depth_noise`` effect (noise growing with depth, a bias, lost returns at
 grazing angles and at random, nothing beyond the range limit), then upsample
-bilinearly back to the camera's resolution.
+bilinearly back to the camera's resolution, shifted against the colour image
+when the effect's ``shift_x``/``shift_y`` (a misregistration) are set.
 
 At strength 0 the result is still the low-resolution, re-upsampled depth — that
 is the sensor, not an effect — but no noise, bias or holes are added; the real
@@ -101,7 +102,31 @@ def depth_capture(true_depth: np.ndarray, camera_intrinsics: Intrinsics, effects
     ok = np.isfinite(low) & (low > 0)
     # OpenCV's bilinear resize, as the paper upsamples; invalid neighbours are left out of the blend
     up, _ = _resize_valid(low, ok, (intr.width, intr.height), cv2.INTER_LINEAR)
+    if e["shift_x"] or e["shift_y"]:
+        up = misregister(up, e["shift_x"] * intr.width / 640, e["shift_y"] * intr.width / 640)
     return up.astype(np.float32)
+
+
+def misregister(depth: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """The depth map shifted by (dx, dy) camera pixels against the colour image (a phone's depth and colour
+    cameras registered a little wrong): pixel (u, v) reads the depth of (u − dx, v − dy); NaN where that leaves
+    the map or meets no return."""
+    h, w = depth.shape
+    ok = np.isfinite(depth)
+    m = np.float32([[1.0, 0.0, dx], [0.0, 1.0, dy]])
+    moved, _ = _warp_valid(np.where(ok, depth, 0.0), ok, m, (w, h))
+    return moved
+
+
+def _warp_valid(values: np.ndarray, valid: np.ndarray, m: np.ndarray, size: tuple[int, int]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_resize_valid` for an affine warp: invalid pixels are left out of the bilinear blend."""
+    num = cv2.warpAffine(values.astype(np.float32), m, size, flags=cv2.INTER_LINEAR, borderValue=0.0)
+    den = cv2.warpAffine(valid.astype(np.float32), m, size, flags=cv2.INTER_LINEAR, borderValue=0.0)
+    out = np.full(den.shape, np.nan, dtype=np.float32)
+    good = den >= MIN_COVERAGE
+    out[good] = num[good] / den[good]
+    return out, den
 
 
 def sensor_resolution(effects: EffectSet, camera_intrinsics: Intrinsics) -> tuple[int, int]:

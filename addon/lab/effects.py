@@ -180,7 +180,12 @@ _KINDS: tuple[EffectKind, ...] = (
                 Param("dropout", "", 0.0, 0.5, lambda s: 0.02 * s, "probability of a random missing return"),
                 Param("width", "px", 8.0, 4096.0, lambda s: 256.0, "native depth width", integer=True),
                 Param("height", "px", 6.0, 4096.0, lambda s: 192.0, "native depth height", integer=True),
-                Param("max_range", "m", 0.5, 50.0, lambda s: 5.0, "no return beyond this depth"))),
+                Param("max_range", "m", 0.5, 50.0, lambda s: 5.0, "no return beyond this depth"),
+                Param("shift_x", "px", -20.0, 20.0, lambda s: 0.0,
+                      "misregistration: the depth map shifted right against the colour camera, in pixels of a "
+                      "640-wide camera (scaled with the camera's width)"),
+                Param("shift_y", "px", -20.0, 20.0, lambda s: 0.0,
+                      "misregistration: the depth map shifted down against the colour camera (as shift_x)"))),
     # ---- other functional forms of modelled causes
     EffectKind("response_scurve", "projector",
                "projector tone curve with a toe and a shoulder (a logistic S-curve mixed into the identity): "

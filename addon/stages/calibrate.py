@@ -460,7 +460,8 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
         t0 = time.perf_counter()
         say("projector intrinsics: fitting focal length and principal point to the Gray code", 0.1)
         fit = estimate_projector_intrinsics(captures, surface_view(mesh, captures.camera.intrinsics),
-                                            target_mask(captures)[0], seed=seed)
+                                            target_mask(captures)[0], seed=seed,
+                                            depth_bias_known=depth_offset is not None)
         say(f"projector intrinsics: {fit.summary()}", 0.1)
         own["projector_intrinsics"] = fit.to_dict()
         # From here on the capture set's projector is the fitted one: stage A, the albedo and stage B all use it.

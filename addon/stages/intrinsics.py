@@ -27,6 +27,14 @@ made with it, and a wrong one scales them across the view, which only a
 projector whose axis converges with the camera's can see (see the fit's
 comment). Its principal point stays as given. A printed board
 (``procam calibrate-rig``) is the way to calibrate the camera fully.
+
+The covariance only measures the noise of a model taken as right: on phone
+depth with a bias and a misregistration the fit trades the focal lengths
+against the depth while claiming sub-pixel σ. :func:`judge_fit` therefore
+reports, for each value and the pose, an uncertainty that adds a jackknife over
+blocks of the surface and the depth sensor's own errors, keeps a value at the
+spec where the data do not pin it better than the spec's prior, and keeps the
+fit only where held-out blocks reproject better than with the spec.
 """
 
 from __future__ import annotations
@@ -54,6 +62,28 @@ FIT_POINTS = 20000
 #: Largest standard deviation of the camera's focal-length factor for it to count as determined.
 CAMERA_FOCAL_STD_MAX = 0.005
 
+#: The spec sheet's standard deviations, the prior each fitted value must beat to replace the spec: a projector's
+#: throw ratio is printed to two digits and its lenses vary by a few per cent (3 % of the focal length); its lens
+#: shift is set by hand against a printed range (3 % of the image height, both axes); a camera's focal length as
+#: a phone or an EXIF header reports it is good to 1–2 % (2 %).
+PROJECTOR_FOCAL_PRIOR = 0.03
+PRINCIPAL_POINT_PRIOR = 0.03
+CAMERA_FOCAL_PRIOR = 0.02
+#: The depth sensor's systematic errors the fit cannot see and is tried against: a phone's time-of-flight depth is
+#: good to about 1 cm absolute (2 mm once a wall depth image or a given offset has taken its constant bias out),
+#: and its registration to the colour camera to about one of its native pixels.
+DEPTH_BIAS_STD_M = 0.01
+DEPTH_BIAS_STD_MEASURED_M = 0.002
+#: The surface is cut into this many blocks across and down (camera image) for the jackknife and the held-out check:
+#: depth and decoding errors are correlated over many pixels, so blocks, not pixels, are the independent samples.
+BLOCKS = 4
+#: A reported ± is one standard deviation; it "covers" a true error no larger than this many of it (≈ 95 %).
+COVER_SIGMAS = 2.0
+
+#: The judged rule (:func:`judge_fit`); off, every value the covariance calls determined is fitted, as before it
+#: (its uncertainties are still recorded): what scripts/bench_calibration_uncertainty.py compares against.
+JUDGE = True
+
 #: Parameter order of the fit: projector f, cx, cy (OpenCV), pose (rvec, tvec), camera k1, k2, camera focal factor.
 _NO_LENS = np.arange(9)
 _LENS = np.arange(11)
@@ -79,6 +109,43 @@ class IntrinsicsFit:
     camera_from_projector: np.ndarray | None = None
     #: the camera's focal length fitted with them: factor on the given one, its std, whether determined
     camera_focal: dict[str, Any] = field(default_factory=dict)
+    #: per value (projector_focal, projector_cx, projector_cy, camera_focal): kept from the fit or the spec, the
+    #: uncertainty reported, what the data alone pin it to, the covariance's σ; the pose's; the held-out check
+    #: (:func:`judge_fit`); empty from folders written before it
+    uncertainty: dict[str, Any] = field(default_factory=dict)
+
+    def summary_of_uncertainty(self) -> str:
+        """Plain words on each value: fitted or kept at the spec, and how well the data pin it; the pose's ±."""
+        u = self.uncertainty
+        if not u:
+            return ""
+        parts = []
+        for name, v in u["values"].items():
+            what, unit = _WORDS[name]
+            scale = 100.0 if unit == "%" else 1.0
+            pin = v.get("data_std")
+            pinned = ("not at all" if pin is None or not np.isfinite(pin) or pin > 100 * v["prior_std"] else
+                      f"±{scale * pin:.2f}{unit}")
+            if v["kept"] == "spec":
+                why = {"held-out": f"the data pin it to {pinned}, but the fit does not reproject held-out parts of "
+                                   "the surface better",
+                       "surface": f"this surface does not determine it (at least {pinned})"}.get(
+                    v.get("reason") or "", f"the data pin it only to {pinned}")
+                parts.append(f"{what}: kept the {'given' if unit == '%' else 'spec'}'s {v['spec']:.1f} px "
+                             f"(±{scale * v['prior_std']:.2f}{unit}); {why}")
+            else:
+                parts.append(f"{what}: fitted {v['spec']:.1f} → {v['value']:.1f} px "
+                             f"±{scale * v['std']:.2f}{unit} (the spec's ±{scale * v['prior_std']:.2f}{unit}; the "
+                             f"fit's own covariance said ±{scale * v['covariance_std']:.2f}{unit})")
+        pose = u["pose"]
+        held = u.get("held_out") or {}
+        check = ""
+        if held.get("rms_fitted_px") is not None:
+            worse = f" (not better by {COVER_SIGMAS:g} standard errors over the blocks: the spec is kept)"
+            check = (f"; held-out reprojection {held['rms_nominal_px']:.3f} px with the spec, "
+                     f"{held['rms_fitted_px']:.3f} px with the fit" + ("" if held["improves"] else worse))
+        return ("; ".join(parts) + f"; projector position ±{100 * pose['position_std_m']:.2f} cm, axis "
+                f"±{pose['axis_std_deg']:.2f}° (one σ, the depth sensor's own errors included)" + check)
 
     def camera(self, given: Intrinsics) -> Intrinsics | None:
         """The camera's intrinsics with the fitted focal length, or None when the data do not determine it."""
@@ -88,6 +155,8 @@ class IntrinsicsFit:
         return Intrinsics(given.width, given.height, given.fx * g, given.fy * g, given.cx, given.cy)
 
     def summary(self) -> str:
+        if self.uncertainty:
+            return self._judged_summary()
         n, f = self.nominal, self.fitted
         spread = (f"focal ±{self.std['fx']:.1f} px, principal point ±{self.std['cx']:.1f}, ±{self.std['cy']:.1f} px")
         if not all(self.determined.values()):
@@ -111,6 +180,18 @@ class IntrinsicsFit:
                 f"({n.cx:.1f}, {n.cy:.1f}) → ({f.cx:.1f}, {f.cy:.1f}) px ({spread}){camera}; reprojection RMS "
                 f"{self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px{focal}")
 
+    def _judged_summary(self) -> str:
+        text = self.summary_of_uncertainty()
+        if not all(self.determined.values()):
+            unknown = [name.replace("_", " ") for name, ok in self.determined.items() if not ok]
+            return (f"{text}; kept at the spec whole: this surface does not determine the {' and '.join(unknown)} "
+                    "(a flat surface never does: use a curved or edged one, or procam calibrate-rig)")
+        lens = self.camera_distortion
+        camera = (f"; camera lens distortion fitted with them: {lens['edge_displacement_px']:+.2f} px at "
+                  f"{lens['edge_radius_px']:.0f} px from the centre (k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f})"
+                  if lens.get("determined") else "")
+        return f"{text}{camera}; reprojection RMS {self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px"
+
     def to_dict(self) -> dict[str, Any]:
         return {"nominal": self.nominal.to_dict(), "fitted": self.fitted.to_dict(),
                 "std_px": {k: float(v) for k, v in self.std.items()}, "determined": dict(self.determined),
@@ -118,7 +199,12 @@ class IntrinsicsFit:
                 "points": self.points, "inliers": self.inliers, "camera_distortion": dict(self.camera_distortion),
                 "camera_from_projector": None if self.camera_from_projector is None
                 else np.asarray(self.camera_from_projector).tolist(), "camera_focal": dict(self.camera_focal),
-                "summary": self.summary()}
+                "uncertainty": self.uncertainty, "summary": self.summary()}
+
+
+#: How the summary names each judged value, and its unit ("%" for a factor's share, else pixels).
+_WORDS = {"projector_focal": ("projector focal length", " px"), "projector_cx": ("projector principal point x", " px"),
+          "projector_cy": ("projector principal point y", " px"), "camera_focal": ("camera focal length", "%")}
 
 
 def _projector_matrix(x: np.ndarray, aspect: float) -> np.ndarray:
@@ -143,6 +229,22 @@ class _GrayCodeView:
         self.kc = camera.opencv_matrix()
         self.aspect = aspect
 
+    #: a systematic depth error to try (metres added; the depth map read that many camera pixels right, down)
+    bias: float = 0.0
+    shift: tuple[float, float] = (0.0, 0.0)
+
+    def perturbed(self, bias: float = 0.0, shift: tuple[float, float] = (0.0, 0.0)) -> "_GrayCodeView":
+        """The same view with a depth sensor wrong by ``bias`` metres and misregistered by ``shift`` pixels."""
+        out = object.__new__(_GrayCodeView)
+        out.__dict__.update(self.__dict__, bias=float(bias), shift=(float(shift[0]), float(shift[1])))
+        return out
+
+    def subset(self, rows: np.ndarray) -> "_GrayCodeView":
+        """The view of the correspondences ``rows`` only."""
+        out = self.perturbed(self.bias, self.shift)
+        out.centres, out.target = self.centres[rows], self.target[rows]
+        return out
+
     def points(self, k1: float, k2: float, focal: float = 1.0) -> np.ndarray:
         """N×3 surface points (rig frame) the decoded pixels see through a lens with k1, k2 and the camera's focal
         length ``focal`` times the given one; NaN where none.
@@ -158,8 +260,10 @@ class _GrayCodeView:
                                      crit).reshape(-1, 2)
         u = xn[:, 0] * kc[0, 0] + kc[0, 2]
         v = xn[:, 1] * kc[1, 1] + kc[1, 2]
-        z = cv2.remap(self.depth, u.astype(np.float32)[None, :], v.astype(np.float32)[None, :], cv2.INTER_LINEAR,
+        z = cv2.remap(self.depth, (u + self.shift[0]).astype(np.float32)[None, :],
+                      (v + self.shift[1]).astype(np.float32)[None, :], cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan")).ravel().astype(np.float64)
+        z = z + self.bias
         return np.column_stack([xn * z[:, None], z])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
@@ -238,14 +342,223 @@ def _camera_from_projector(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return pose
 
 
+def _jacobian(fun, x: np.ndarray, r: np.ndarray, steps: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    return np.column_stack([(fun(x + np.eye(len(x))[i] * steps[i]) - r) / steps[i] for i in cols])
+
+
+def _blocks(camera_px: np.ndarray, n: int = BLOCKS) -> list[np.ndarray]:
+    """The correspondences cut into an n×n grid over the decoded part of the camera image (non-empty cells)."""
+    lo, hi = camera_px.min(axis=0), camera_px.max(axis=0) + 1e-9
+    cell = np.minimum(((camera_px - lo) / (hi - lo) * n).astype(int), n - 1)
+    key = cell[:, 1] * n + cell[:, 0]
+    return [np.flatnonzero(key == k) for k in range(n * n) if np.any(key == k)]
+
+
+def _pose_of(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pose = _camera_from_projector(x[3:6], x[6:9])
+    return pose[:3, 3], pose[:3, 2]
+
+
+@dataclass
+class _Spread:
+    """What the data say of a fit's free values: the covariance's σ, the jackknife over blocks, and how far the
+    depth sensor's errors and the values held at their spec move them; each as deviations of the whole x."""
+
+    free: np.ndarray
+    covariance_std: np.ndarray
+    jackknife: np.ndarray  # K × len(x): leaving block k out moves x by this
+    systematic: dict[str, np.ndarray]  # name → how far x moves under that error at one σ
+
+    def std(self) -> np.ndarray:
+        """Per free value: the larger of the covariance's and the jackknife's σ, with every systematic part."""
+        k = len(self.jackknife)
+        jack = np.sqrt((k - 1) / k * np.sum((self.jackknife - self.jackknife.mean(axis=0)) ** 2, axis=0))[self.free]
+        sys2 = np.sum([d[self.free] ** 2 for d in self.systematic.values()], axis=0) if self.systematic else 0.0
+        return np.sqrt(np.maximum(self.covariance_std, jack) ** 2 + sys2)
+
+    def pose_std(self, x: np.ndarray) -> tuple[float, float]:
+        """The projector's position (metres, root of the expected squared error) and axis (degrees) σ."""
+        pos0, axis0 = _pose_of(x)
+
+        def moved(d: np.ndarray) -> tuple[float, float]:
+            pos, axis = _pose_of(x + d)
+            return float(np.linalg.norm(pos - pos0)), float(np.arccos(np.clip(axis @ axis0, -1.0, 1.0)))
+
+        k = len(self.jackknife)
+        mean = self.jackknife.mean(axis=0)
+        jack = np.array([moved(d - mean) for d in self.jackknife])
+        jack2 = (k - 1) / k * np.sum(jack ** 2, axis=0)
+        cov = np.zeros(len(x))
+        cov[self.free] = self.covariance_std
+        cov2 = np.sum([np.square(moved(np.eye(len(x))[i] * cov[i])) for i in self.free], axis=0)
+        sys2 = np.sum([np.square(moved(d)) for d in self.systematic.values()], axis=0) if self.systematic else 0.0
+        total = np.sqrt(np.maximum(jack2, cov2) + sys2)
+        return float(total[0]), float(np.degrees(total[1]))
+
+
+def _spread(view: _GrayCodeView, x: np.ndarray, steps: np.ndarray, free: np.ndarray, blocks: list[np.ndarray],
+            errors: dict[str, _GrayCodeView], held: dict[str, float]) -> _Spread:
+    """The :class:`_Spread` of the fit at ``x`` over ``free``: ``errors`` are the views with the depth sensor
+    wrong by one σ, ``held`` the values fixed at their spec (index name → prior σ, see :data:`_INDEX`)."""
+    r = view.residuals(x)
+    j = _jacobian(view.residuals, x, r, steps, free)
+    normal = j.T @ j
+    n = len(x)
+
+    def moves(dr: np.ndarray) -> np.ndarray:
+        d = np.zeros(n)
+        d[free] = -np.linalg.lstsq(normal, j.T @ dr, rcond=None)[0]
+        return d
+
+    def change(r1: np.ndarray) -> np.ndarray:
+        dr = r1 - r
+        dr[(r1 == 0.0) | (r == 0.0)] = 0.0  # a point off the surface in either adds nothing
+        return dr
+
+    jack = []
+    for rows in blocks:
+        idx = np.r_[2 * rows, 2 * rows + 1]
+        jk = j[idx]
+        d = np.zeros(n)
+        # Leaving block k out: a Gauss-Newton step of the rest from x, whose gradient there is −J_kᵀ r_k.
+        d[free] = np.linalg.lstsq(normal - jk.T @ jk, jk.T @ r[idx], rcond=None)[0]
+        jack.append(d)
+    systematic = {name: moves(change(v.residuals(x))) for name, v in errors.items()}
+    for name, sigma in held.items():
+        i = _INDEX[name]
+        systematic[f"{name} at its spec"] = moves(change(view.residuals(x + np.eye(n)[i] * sigma)))
+    return _Spread(free, _covariance_std(j, r), np.array(jack), systematic)
+
+
+#: The judged values' places in the fit's parameters.
+_INDEX = {"projector_focal": 0, "projector_cx": 1, "projector_cy": 2, "camera_focal": 11}
+
+
+def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_nominal: np.ndarray,
+              steps: np.ndarray, free: np.ndarray, priors: dict[str, float], depth_bias_std: float,
+              shift_std_px: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Which fitted values to keep, and the uncertainty of each and of the pose, honestly.
+
+    The covariance of a least-squares fit measures only the noise of a model taken as right; a depth sensor's
+    bias or misregistration is not noise and moves the values far beyond it (measured: 7 σ on the lab's curve).
+    So a value's uncertainty here is the larger of the covariance's σ and a jackknife's over :data:`BLOCKS`²
+    blocks of the surface, with, added, how far the fit moves when the depth is wrong by the sensor's σ (bias,
+    misregistration across and down) and when each value held at its spec is wrong by its prior σ. A value whose
+    uncertainty is not below its prior (``priors``, in the fit's units) goes back to the spec, the worst first,
+    and the rest are fitted again, unless the data contradict the spec (the fit farther from it than
+    :data:`COVER_SIGMAS` of both σ together). Then the fit is kept only when it reprojects the blocks it was not
+    fitted to better than the spec does, by :data:`COVER_SIGMAS` standard errors over the blocks (each half of a
+    checkerboard of blocks fitted, the other measured); else the spec stays whole.
+    Returns the x and free set kept and the record."""
+    blocks = _blocks(camera_px)
+    errors = {"depth bias": view.perturbed(bias=depth_bias_std),
+              "misregistration across": view.perturbed(shift=(shift_std_px, 0.0)),
+              "misregistration down": view.perturbed(shift=(0.0, shift_std_px))}
+    judged = [name for name, i in _INDEX.items() if i in free]
+    record: dict[str, dict[str, Any]] = {}
+    first = _spread(view, x_fit, steps, free, blocks, errors, {})  # the covariance's σ as the fit had it
+    cov_first = dict(zip(free.tolist(), first.covariance_std))
+    # Every judged value not free is held at its spec, which is wrong by up to its prior σ: that moves the rest.
+    x, held = x_fit.copy(), {n: priors[n] for n, i in _INDEX.items() if i not in free}
+    while True:
+        spread = _spread(view, x, steps, free, blocks, errors, {n: priors[n] for n in held})
+        sd = dict(zip(free.tolist(), spread.std()))
+        ratios = {n: sd[_INDEX[n]] / priors[n] for n in judged if n not in held}
+        for n in list(ratios):
+            i = _INDEX[n]
+            record[n] = {"data_std": sd[i]}
+            # A spec the data contradict (χ²: the fit farther from it than COVER_SIGMAS of the two σ together) is
+            # not a prior to fall back to, however loosely the data pin the value: the fit stays.
+            if abs(x[i] - x_nominal[i]) > COVER_SIGMAS * np.hypot(sd[i], priors[n]):
+                ratios.pop(n)
+                record[n]["spec_contradicted"] = True
+        worst = max(ratios, key=lambda n: ratios[n]) if ratios else None
+        if worst is None or ratios[worst] < 1.0 or not JUDGE:
+            break
+        held[worst] = priors[worst]
+        x = x.copy()
+        x[_INDEX[worst]] = x_nominal[_INDEX[worst]]
+        free = free[free != _INDEX[worst]]
+        x, _, _ = _levenberg_marquardt(view.residuals, x, steps, free)
+    fitted = [n for n in judged if n not in held]
+    fitted_before = list(fitted)
+    held_out: dict[str, Any] = {"rms_nominal_px": None, "rms_fitted_px": None, "improves": None}
+    if fitted and JUDGE:
+        # Held-out reprojection: a checkerboard of blocks, each half fitted and the other measured, the fit kept
+        # against the spec (same pose parameters, the judged values at the spec).
+        n = BLOCKS
+        lo, hi = camera_px.min(axis=0), camera_px.max(axis=0) + 1e-9
+        cell = np.minimum(((camera_px - lo) / (hi - lo) * n).astype(int), n - 1)
+        half = (cell[:, 0] + cell[:, 1]) % 2 == 0
+        spec_free = free[~np.isin(free, [_INDEX[m] for m in fitted])]
+        x_spec = x.copy()
+        for m in fitted:
+            x_spec[_INDEX[m]] = x_nominal[_INDEX[m]]
+        sums = {"fit": 0.0, "spec": 0.0}
+        gains = []  # per held-out block: its mean squared residual with the spec minus with the fit
+        key = cell[:, 1] * n + cell[:, 0]
+        for part in (half, ~half):
+            train = view.subset(np.flatnonzero(part))
+            per_block: dict[str, list[float]] = {"fit": [], "spec": []}
+            for name, start, cols in (("fit", x, free), ("spec", x_spec, spec_free)):
+                xt, _, _ = _levenberg_marquardt(train.residuals, start, steps, cols)
+                for b in np.unique(key[~part]):
+                    rt = view.subset(np.flatnonzero(key == b)).residuals(xt)
+                    sums[name] += float(rt @ rt)
+                    per_block[name].append(float(rt @ rt) / max(1, len(rt) // 2))
+            gains += list(np.subtract(per_block["spec"], per_block["fit"]))
+        count = len(camera_px)
+        # Blocks are the independent samples: the fit counts as better only when its mean gain over the held-out
+        # blocks stands COVER_SIGMAS standard errors above nothing (a one-sided t-test over the blocks).
+        g = np.asarray(gains)
+        t = float(g.mean() / max(g.std(ddof=1) / np.sqrt(len(g)), 1e-30)) if len(g) > 1 else 0.0
+        held_out = {"rms_nominal_px": float(np.sqrt(sums["spec"] / max(count, 1))),
+                    "rms_fitted_px": float(np.sqrt(sums["fit"] / max(count, 1))),
+                    "t": t, "blocks": len(g), "improves": bool(t >= COVER_SIGMAS)}
+        if not held_out["improves"]:
+            for m in fitted:
+                held[m] = priors[m]
+            x, free, fitted = x_spec, spec_free, []
+            x, _, _ = _levenberg_marquardt(view.residuals, x, steps, free)
+            spread = _spread(view, x, steps, free, blocks, errors, held)
+            sd = dict(zip(free.tolist(), spread.std()))
+    pos_std, axis_std = spread.pose_std(x)
+    values = {}
+    for name in judged:
+        i = _INDEX[name]
+        values[name] = {"kept": "spec" if name in held else "fit", "prior_std": priors[name],
+                        "reason": None if name not in held else "held-out" if name in fitted_before else "prior",
+                        "data_std": record.get(name, {}).get("data_std"), "covariance_std": float(cov_first[i]),
+                        "std": priors[name] if name in held else float(sd[i]),
+                        "value": float(x_nominal[i] if name in held else x[i]), "spec": float(x_nominal[i])}
+    doc = {"values": values, "pose": {"position_std_m": pos_std, "axis_std_deg": axis_std},
+           "held_out": held_out, "blocks": len(blocks),
+           "depth_errors_tried": {"bias_m": depth_bias_std, "misregistration_px": shift_std_px},
+           "parts_std": {name: {m: float(d[_INDEX[m]]) for m in fitted} for name, d in spread.systematic.items()},
+           "cover_sigmas": COVER_SIGMAS}
+    return x, free, doc
+
+
 def _point_rms(r: np.ndarray) -> float:
     return float(np.sqrt(2.0 * np.mean(r ** 2)))
 
 
+def depth_errors(captures: CaptureSet, *, bias_known: bool = False) -> tuple[float, float]:
+    """The depth sensor's systematic errors the fit is tried against (:data:`DEPTH_BIAS_STD_M`): bias σ in metres
+    (smaller when a wall depth image or a given offset took the constant bias out) and misregistration σ in camera
+    pixels (one native depth pixel)."""
+    known = bias_known or bool(captures.depth_walls())
+    bias = DEPTH_BIAS_STD_MEASURED_M if known else DEPTH_BIAS_STD_M
+    info = captures.depth_info
+    shift = 1.0 if info is None else max(1.0, captures.camera.intrinsics.width / max(1, info.native_size[0]))
+    return bias, float(shift)
+
+
 def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *,
-                                  seed: int = 0) -> IntrinsicsFit:
+                                  seed: int = 0, depth_bias_known: bool = False) -> IntrinsicsFit:
     """Fit the projector's focal length and principal point, and the camera's radial distortion, to the capture
-    set's Gray code (module doc)."""
+    set's Gray code (module doc), and judge what the data pin down (:func:`judge_fit`): ``depth_bias_known`` when
+    the depth's constant bias was given (a wall depth image in the set counts too)."""
     nominal = captures.projector.intrinsics
     obj, img, cam_px, _ = graycode_correspondences(captures, view, mask, max_points=FIT_POINTS, seed=seed)
     depth, camera, aspect = view.points[..., 2], captures.camera.intrinsics, nominal.fy / nominal.fx
@@ -277,11 +590,12 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     # Then the camera's radial distortion with them: the photographs' lens bends the decoded pixels' rays, and a
     # projector fitted without it takes the bend into its focal length (measured: -2.6 % on the lab's curve with
     # its realistic k1 = -0.036).
+    used = _NO_LENS
     x_lens, r_lens, j_lens = _levenberg_marquardt(gv.residuals, x, steps, _LENS)
     sd_lens = _covariance_std(j_lens, r_lens)
     lens.update(std_k1=float(sd_lens[9]), std_k2=float(sd_lens[10]))
     if sd_lens[9] < DISTORTION_STD_MAX and np.isfinite(x_lens).all():
-        x, r, sd = x_lens, r_lens, sd_lens
+        x, r, sd, used = x_lens, r_lens, sd_lens, _LENS
         # k1 and k2 trade against each other over the lit part of the image; the displacement they give at its
         # edge is what the data pin down, so that is what the report leads with.
         xn = (cam_px[keep] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
@@ -299,7 +613,7 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     focal: dict[str, Any] = {"factor": 1.0, "std": float(sd_cam[-1]), "determined": False,
                              "given_fx": camera.fx}
     if sd_cam[-1] < CAMERA_FOCAL_STD_MAX and np.isfinite(x_cam).all():
-        x, r, sd = x_cam, r_cam, sd_cam
+        x, r, sd, used = x_cam, r_cam, sd_cam, free
         focal.update(factor=float(x[11]), determined=True)
         if lens["determined"]:
             lens.update(k1=float(x[9]), k2=float(x[10]))
@@ -309,6 +623,12 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     determined = {"focal": std_d["fx"] < FOCAL_STD_MAX * k.fx,
                   "principal_point": max(std_d["cx"], std_d["cy"]) < CENTRE_STD_MAX_PX}
     pose: np.ndarray | None = _camera_from_projector(x[3:6], x[6:9])
+    bias_std, shift_std = depth_errors(captures, bias_known=depth_bias_known)
+    centre_prior = PRINCIPAL_POINT_PRIOR * nominal.height
+    priors = {"projector_focal": PROJECTOR_FOCAL_PRIOR * km[0, 0], "projector_cx": centre_prior,
+              "projector_cy": centre_prior, "camera_focal": CAMERA_FOCAL_PRIOR}
+    x_nom = x0.copy()
+    x_nom[3:9] = x[3:9]
     if not all(determined.values()):
         # Measured on the lab's plane: its principal point looks determined alone, but only given the focal
         # length; fitted with a wrong spec's focal length it moves to compensate it and the pose gets worse than
@@ -316,5 +636,39 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
         k, pose, r = nominal, None, r_nominal
         lens["determined"] = False
         focal.update(factor=1.0, determined=False, fitted_fx=camera.fx)
+        x_pose, _, _ = _levenberg_marquardt(gv.residuals, x_nom, steps, _POSE)
+        _, _, judged = judge_fit(gv, cam_px[keep], x_pose, x_nom, steps, _POSE, priors, bias_std, shift_std)
+        for name, i in list(_INDEX.items())[:3]:
+            judged["values"][name] = {"kept": "spec", "reason": "surface", "prior_std": priors[name],
+                                      "data_std": float(sd[i]),
+                                      "covariance_std": float(sd[i]), "std": priors[name]}
+        free_kept: list[str] = []
+    else:
+        x, free, judged = judge_fit(gv, cam_px[keep], x, x_nom, steps, used, priors, bias_std, shift_std)
+        free_kept = [n for n, v in judged["values"].items() if v["kept"] == "fit"]
+        r = gv.residuals(x)
+        k = Intrinsics.from_opencv_matrix(nominal.width, nominal.height, _projector_matrix(x, aspect))
+        if not free_kept:
+            k, pose, r = nominal, None, r_nominal
+            lens["determined"] = False
+        else:
+            pose = _camera_from_projector(x[3:6], x[6:9])
+            if lens["determined"]:
+                lens.update(k1=float(x[9]), k2=float(x[10]))
+        if "camera_focal" in free_kept:
+            focal.update(factor=float(x[11]), fitted_fx=camera.fx * float(x[11]))
+        else:
+            focal.update(factor=1.0, determined=False, fitted_fx=camera.fx)
+    if "camera_focal" not in judged["values"]:  # held as given from the start: the covariance alone refused it
+        judged["values"]["camera_focal"] = {"kept": "spec", "reason": "surface", "prior_std": CAMERA_FOCAL_PRIOR,
+                                            "data_std": focal["std"], "covariance_std": focal["std"],
+                                            "std": CAMERA_FOCAL_PRIOR}
+    # Values in the units a user reads: the projector's K as stored, the camera's focal length in pixels.
+    for name, v in judged["values"].items():
+        if name == "camera_focal":
+            v.update(spec=camera.fx, value=camera.fx * focal["factor"])
+        else:
+            attr = {"projector_focal": "fx", "projector_cx": "cx", "projector_cy": "cy"}[name]
+            v.update(spec=float(getattr(nominal, attr)), value=float(getattr(k, attr)))
     return IntrinsicsFit(nominal, k, std_d, determined, _point_rms(r_nominal), _point_rms(r), int(len(obj)),
-                         int(keep.sum()), lens, pose, focal)
+                         int(keep.sum()), lens, pose, focal, judged)

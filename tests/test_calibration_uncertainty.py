@@ -1,0 +1,106 @@
+"""The intrinsics fit judged against the spec on phone depth with a bias and a misregistration (lab)."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from procam.addon.lab.depth import depth_capture
+from procam.addon.lab.effects import parse_effects
+from procam.addon.lab.lab import run_lab
+from procam.addon.lab.truth import LabTruth, make_truth
+from procam.addon.rig.model import intrinsics_from_fov
+from procam.addon.stages import intrinsics
+from procam.addon.steps import calibrate
+
+
+def test_the_lab_depth_can_be_misregistered_against_the_colour_camera():
+    """shift_x/shift_y move the depth map: a pixel reads the depth its neighbour (in 640-wide pixels) would."""
+    cam = intrinsics_from_fov(160, 120, 60.0)
+    depth = np.tile(np.linspace(1.0, 2.0, 160, dtype=np.float32), (120, 1))
+    plain = depth_capture(depth, cam, parse_effects("depth_noise.width=160,depth_noise.height=120"), None)
+    moved = depth_capture(depth, cam, parse_effects("depth_noise.width=160,depth_noise.height=120,"
+                                                    "depth_noise.shift_x=8"), None)  # 2 px at 160 wide
+    assert np.allclose(moved[:, 10:150], plain[:, 8:148], atol=1e-5)
+    assert np.isnan(moved[:, :2]).all()
+    old = parse_effects("realistic").to_dict()
+    del old["effects"]["depth_noise"]["params"]["shift_x"], old["effects"]["depth_noise"]["params"]["shift_y"]
+    assert parse_effects("realistic") == type(parse_effects("realistic")).from_dict(old)  # old truth files read
+
+
+@pytest.fixture(scope="module")
+def biased(tmp_path_factory):
+    """The lab's curve seen by phone depth 8 mm too far and misregistered by 2 px, a spec 1.2 % off, no wall
+    depth image: calibrated with the spec, the fit as it was, and the judged fit."""
+    root = tmp_path_factory.mktemp("biased")
+    lab = make_truth("curve", effects="realistic,depth_noise.bias=0.008,depth_noise.shift_x=2", samples=4,
+                     scale=0.25, nominal_error=(-0.012, 0.02), camera_fov_error=0.75)
+    run_lab(lab, root / "captures", truth_path=root / "truth.json", depth_wall=False, validation=False)
+    cals = {}
+    for mode, judge in (("spec", True), ("old", False), ("fit", True)):
+        options = calibrate.CalibrateOptions(root / "captures", root / mode, with_blend=False, precompute=False,
+                                             stages="surface,pose",
+                                             projector_intrinsics="spec" if mode == "spec" else "fit")
+        intrinsics.JUDGE = judge
+        try:
+            cals[mode] = calibrate.run(options)
+        finally:
+            intrinsics.JUDGE = True
+    return root, LabTruth.load(root / "truth.json"), cals
+
+
+def _position_error(cal, truth) -> float:
+    return float(np.linalg.norm(cal.rig.projector.position - truth.rig.projector.position))
+
+
+def test_a_biased_misregistered_depth_no_longer_makes_the_pose_worse(biased):
+    _, truth, cals = biased
+    errors = {m: _position_error(c, truth) for m, c in cals.items()}
+    assert errors["old"] > errors["spec"] + 0.003  # the failure: the fit trades focal length against the depth
+    assert errors["fit"] <= errors["spec"] + 0.001
+
+
+def test_the_reported_uncertainty_exceeds_the_covariance_and_covers_the_error(biased):
+    _, truth, cals = biased
+    values = cals["fit"].report["projector_intrinsics"]["uncertainty"]["values"]
+    focal = values["projector_focal"]
+    assert focal["data_std"] > 3 * focal["covariance_std"]
+    old = cals["old"].report["projector_intrinsics"]["uncertainty"]["values"]["projector_focal"]
+    true_f = truth.rig.projector.intrinsics.fx
+    assert abs(old["value"] - true_f) > 3 * old["covariance_std"]  # the covariance claimed far too little
+    assert abs(old["value"] - true_f) <= intrinsics.COVER_SIGMAS * focal["data_std"]
+    pose = cals["fit"].report["projector_intrinsics"]["uncertainty"]["pose"]
+    assert _position_error(cals["fit"], truth) <= intrinsics.COVER_SIGMAS * pose["position_std_m"]
+
+
+def test_the_spec_is_kept_where_the_data_do_not_pin_a_value(biased):
+    root, _, cals = biased
+    cal = cals["fit"]
+    report = cal.report["projector_intrinsics"]
+    focal = report["uncertainty"]["values"]["projector_focal"]
+    assert focal["kept"] == "spec" and cal.rig.projector.intrinsics.fx == focal["spec"]
+    assert "projector focal length: kept the spec's" in report["summary"]
+    doc = json.loads((root / "fit" / "calibration.json").read_text())
+    assert doc["projector_intrinsics"]["uncertainty"]["values"]["projector_focal"]["kept"] == "spec"
+    assert any("kept the spec's" in line for line in calibrate.summary(root / "fit").lines)
+
+
+def test_a_calibration_folder_from_before_the_judged_fit_still_reads(biased, tmp_path):
+    root, _, cals = biased
+    import shutil
+    old = tmp_path / "old"
+    shutil.copytree(root / "old", old)
+    path = old / "calibration.json"
+    doc = json.loads(path.read_text())
+    del doc["projector_intrinsics"]["uncertainty"]
+    doc["projector_intrinsics"]["summary"] = "focal 247.0 → 243.1 px (-1.59 %)"
+    path.write_text(json.dumps(doc))
+    cal = calibrate.read(old, complete=False)
+    assert np.allclose(cal.rig.projector.camera_from_projector, cals["old"].rig.projector.camera_from_projector)
+    assert any("focal 247.0 → 243.1 px" in line for line in calibrate.summary(old).lines)
+    fit = intrinsics.IntrinsicsFit(cal.rig.projector.intrinsics, cal.rig.projector.intrinsics,
+                                   {"fx": 1.0, "cx": 0.1, "cy": 0.1}, {"focal": True, "principal_point": True},
+                                   0.5, 0.4, 100, 90)
+    assert fit.summary().startswith("focal ") and "uncertainty" in fit.to_dict() and not fit.to_dict()["uncertainty"]
+    assert replace(fit, uncertainty={}).summary() == fit.summary()
