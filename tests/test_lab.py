@@ -520,8 +520,37 @@ def test_truth_of_two_projectors_round_trips_and_one_projector_truth_is_unchange
     assert back.for_projector(1).projector_effects == {}
 
 
+def test_a_projector_black_level_of_its_own_is_its_panel_leak_the_room_stays_shared():
+    two = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2,
+                     effects="black_level.projector=0.006,black_level.ambient=0.02,response=0.5",
+                     projector_effects="1:black_level.projector=0.03,crosstalk=0.3")
+    first, second = two.effects_of(0)["black_level"], two.effects_of(1)["black_level"]
+    assert first["projector"] == pytest.approx(0.006) and second["projector"] == pytest.approx(0.03)
+    assert first["ambient"] == second["ambient"] == pytest.approx(0.02)  # one room
+    assert two.effects_of(1)["response"].strength == 0 and two.effects_of(1)["crosstalk"].active
+    # naming another effect leaves the panel's leak as the shared effects give it
+    other = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2,
+                       effects="black_level.projector=0.006", projector_effects="1:response=0.8")
+    assert other.effects_of(1)["black_level"]["projector"] == pytest.approx(0.006)
+
+
+def test_one_projector_leaking_black_is_in_every_projector_s_captures(tmp_path):
+    out = tmp_path / "set"
+    assert main(["lab", "--surface", "plane", "--out", str(out), *SMALL, "--projectors", "2",
+                 "--projector-effects", "1:black_level.projector=0.08"]) == 0
+    cs = CaptureSet.load(out)
+    first, second = footprints(cs)
+    alone = second & ~first
+    # projector 0's black capture: projector 1, showing black beside it, leaks 8 % of its white
+    black0 = cs.for_projector(0).image("black").mean(axis=2)
+    white1 = cs.for_projector(1).image("white").mean(axis=2)
+    assert black0[alone].mean() > 0.04 * white1[alone].mean()
+    assert max(check_others_black(cs).values()) < BLACK_TOLERANCE  # the same dark scene in both sequences
+
+
 @pytest.mark.parametrize("spec, message", [
     ("1:noise=0.3", "noise act.* shared by every projector"),
+    ("1:black_level.ambient=0.1", "black_level.ambient is the room's light"),
     ("2:response=0.5", "projector 2, but the lab has 2 projector"),
     ("response=0.5", "K:EFFECTS items"),
     ("1:response=0.5;1:crosstalk=0.2", "projector 1 twice"),

@@ -13,7 +13,7 @@ Several projectors: each projector's sequence is captured while the others
 show black, so each is rendered by a device of its own (the truth's
 :meth:`~.truth.LabTruth.for_projector`, its own random streams) on the shared
 surface and camera; the surface photo and the depth are taken once. With a
-projector black level among the effects (``black_level.projector`` > 0) the
+projector black level (``black_level.projector`` > 0, any projector's) the
 others' black is light too — the leak of their black panels reaches every
 capture of the session, as in a real room — so each projector's sequence is
 rendered with every projector in the scene, the others showing black
@@ -184,7 +184,7 @@ def run_lab(truth: LabTruth, out_dir: str | Path, *, truth_path: str | Path, for
 
         done = 2
         # The others' black panels leak light (module doc): then every projector's shots see all of them.
-        glow = len(views) > 1 and truth.effects["black_level"]["projector"] > 0
+        glow = len(views) > 1 and any(truth.effects_of(k)["black_level"]["projector"] > 0 for k in range(len(views)))
         for k, (view, seq) in enumerate(zip(views, seqs)):
             with LabDevice(replace(truth, seed=view.seed) if glow else view, supersample=supersample) as device:
                 shown = _NominalDevice(_AmongOthersBlack(device, k, truth.rig.projectors) if glow else device,

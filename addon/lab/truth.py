@@ -219,8 +219,15 @@ def projector_seed(seed: int, index: int) -> int:
 
 
 def with_projector_effects(shared: EffectSet, own: EffectSet) -> EffectSet:
-    """``shared`` with its projector effects (stage ``projector``) replaced by those of ``own``."""
-    return EffectSet(tuple(own[e.name] if e.kind.stage == "projector" else e for e in shared.effects))
+    """``shared`` with its projector effects (stage ``projector``) replaced by those of ``own``.
+
+    ``black_level`` is half the projector's (its black panel's leak) and half the room's (the ambient light the
+    camera sees, the same in every capture): ``own`` sets the leak when it names a black level, and otherwise the
+    projector keeps the shared one, so naming a projector's response does not turn its panel's leak off.
+    """
+    out = EffectSet(tuple(own[e.name] if e.kind.stage == "projector" else e for e in shared.effects))
+    room, leak = shared["black_level"], own["black_level"]["projector"]
+    return out.with_effect("black_level", room.strength, **{**room.params, "projector": leak}) if leak > 0 else out
 
 
 def parse_projector_effects(spec: str | Mapping[int, Any] | None, count: int | None = None) -> dict[int, EffectSet]:
@@ -255,11 +262,16 @@ def parse_projector_effects(spec: str | Mapping[int, Any] | None, count: int | N
         if k in out:
             raise LabError(f"projector effects name projector {k} twice; give all its effects in one item")
         effects = parse_effects(text)
-        shared = [n for n in effects.active if effects[n].kind.stage != "projector"]
+        shared = [n for n in effects.active if effects[n].kind.stage != "projector" and n != "black_level"]
         if shared:
             raise LabError(f"projector {k}'s own effects may only act in the projector; {', '.join(shared)} "
                            "act(s) in the scene, the camera or the depth sensor, shared by every projector: give "
                            "them in the effects")
+        room = sorted(set(effects["black_level"].overrides) - {"projector"})
+        if room:
+            raise LabError(f"projector {k}'s own black level is its panel's leak only (black_level.projector); "
+                           f"black_level.{', black_level.'.join(room)} is the room's light, shared by every "
+                           "projector: give it in the effects")
         out[k] = effects
     return out
 
