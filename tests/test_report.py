@@ -11,9 +11,13 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from procam.addon.cli.app import EXIT_OK, EXIT_USER, main
+from procam.addon.imageio import write_image
+from procam.addon.report import figures
+from procam.addon.steps.report_sections import Reader
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine (scripts/setup.sh installs "
@@ -174,3 +178,29 @@ def test_open_report_builds_the_scenes_report_and_opens_it(tree, registered, mon
     assert "<h2>Calibration</h2>" in html and "<h2>Diagnosis</h2>" in html and "<h2>Show</h2>" not in html
     assert bpy.ops.procam.open_report() == {"FINISHED"}  # built again over its own report
     page.unlink()
+
+
+def test_several_projectors_each_projector_s_images_are_shown(tmp_path, monkeypatch):
+    drawn: list[list[str]] = []
+    pictures = figures.pictures
+    monkeypatch.setattr(figures, "pictures", lambda imgs, caps, **kw: drawn.append(caps) or pictures(imgs, caps, **kw))
+    rng = np.random.default_rng(0)
+    for name in ("t_target.png", "t_simulated.png", "t_input_p1.png", "t_input_p2.png",
+                 "0001_p1.png", "0001_p2.png", "0002_p1.png", "0002_p2.png"):
+        write_image(tmp_path / name, rng.random((12, 16, 3)).astype(np.float32))
+    skipped: list[str] = []
+    reader = Reader([], lambda folder, why: skipped.append(why))
+    doc = {"mode": "open", "targets": [{
+        "name": "t", "status": "done", "target": "t_target.png", "simulated": "t_simulated.png",
+        "input": "t_input_p1.png", "projectors": [{"input": "t_input_p1.png", "share": 0.6},
+                                                  {"input": "t_input_p2.png", "share": 0.4}]}]}
+    _, blocks = reader.compensation(tmp_path, doc)
+    assert drawn[-1][2:] == ["projector 1 input (share 60%)", "projector 2 input (share 40%)"]
+    assert "images the projectors are given" in " ".join(str(b) for b in blocks)
+    frames = {str(n): {"number": n, "status": "done", "file": f"000{n}_p1.png", "psnr_model": 40.0,
+                       "projectors": [{"file": f"000{n}_p1.png"}, {"file": f"000{n}_p2.png"}]} for n in (1, 2)}
+    _, blocks = reader.show(tmp_path, {"frames": frames, "complete": True, "projector_count": 2})
+    strips = [b for b in blocks if b["type"] == "strip"]
+    assert len(strips) == 2 and "projector 2's input" in strips[1]["caption"]
+    assert [len(s["thumbs"]) for s in strips] == [2, 2] and strips[0]["thumbs"][0] != strips[1]["thumbs"][0]
+    assert skipped == []

@@ -230,14 +230,23 @@ class Reader:
         for t in doc["targets"]:
             if t.get("status") != "done":
                 continue
-            pics = [(self.image(folder, t[k], f"{k} of {t['name']!r}", blocks), cap) for k, cap in
-                    (("target", "target (display area)"), ("simulated", "simulated camera view"),
-                     ("input", "projector input"))]
+            wanted = [(t[k], k, cap) for k, cap in (("target", "target (display area)"),
+                                                     ("simulated", "simulated camera view"))]
+            several = [p for p in t.get("projectors") or [] if isinstance(p, dict) and p.get("input")]
+            if len(several) > 1:  # every projector's input, with its share of the light where recorded
+                wanted += [(p["input"], f"projector {k + 1}'s input",
+                            f"projector {k + 1} input" + (f" (share {p['share']:.0%})"
+                                                          if isinstance(p.get("share"), (int, float)) else ""))
+                           for k, p in enumerate(several)]
+            else:
+                wanted.append((t["input"], "input", "projector input"))
+            pics = [(self.image(folder, file, f"{what} of {t['name']!r}", blocks), cap) for file, what, cap in wanted]
             shown = [(p, c) for p, c in pics if p is not None]
             if shown:
+                given = "the images the projectors are" if len(several) > 1 else "the image the projector is"
                 blocks.append(_figure(figures.pictures([p for p, _ in shown], [c for _, c in shown], across=2.6),
                                       f"{t['name']}: what was asked, what the simulation expects the camera to see, "
-                                      "and the image the projector is given.", f"compensation of {t['name']}"))
+                                      f"and {given} given.", f"compensation of {t['name']}"))
         return "Compensation", blocks
 
     def evaluation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
@@ -426,18 +435,24 @@ class Reader:
             blocks.append({"type": "note", "text": f"frame {fail.get('number', '?')}: {fail.get('error', fail)}"})
         if not done:
             return "Show", blocks
+        count = int(doc.get("projector_count") or 1)
         pick = sorted({round(i) for i in np.linspace(0, len(done) - 1, min(self.thumbnails, len(done)))})
-        thumbs = []
-        for i in pick:
-            e = done[i]
-            img = self.image(folder, e["file"], f"frame {e['number']}", blocks)
-            if img is not None:
-                thumbs.append({"uri": figures.image_uri(img, width=160),
-                               "caption": f"frame {e['number']} · {fmt(e.get('psnr_model'), '.1f', ' dB')}"})
-        if thumbs:
-            blocks.append({"type": "strip", "thumbs": thumbs,
-                           "caption": f"{len(thumbs)} of {len(done)} finished frames (projector 1's input, "
-                                      "evenly spaced), with the model's PSNR of each"})
+        for k in range(count):  # one strip per projector, the same frames
+            thumbs = []
+            for i in pick:
+                e = done[i]
+                own = e.get("projectors") or []
+                file = own[k].get("file") if count > 1 and k < len(own) and isinstance(own[k], dict) else e["file"]
+                img = self.image(folder, file, f"frame {e['number']}" + (f" of projector {k + 1}" if count > 1
+                                                                        else ""), blocks) if file else None
+                if img is not None:
+                    thumbs.append({"uri": figures.image_uri(img, width=160),
+                                   "caption": f"frame {e['number']} · {fmt(e.get('psnr_model'), '.1f', ' dB')}"})
+            if thumbs:
+                whose = f"projector {k + 1}'s input" if count > 1 else "the projector's input"
+                blocks.append({"type": "strip", "thumbs": thumbs,
+                               "caption": f"{len(thumbs)} of {len(done)} finished frames ({whose}, evenly spaced), "
+                                          "with the model's PSNR of each"})
         numbers = [int(e["number"]) for e in done]
         blocks.append(_figure(figures.series(
             numbers, {"solved": [float(e.get("psnr_model") or np.nan) for e in done],
