@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from procam.addon.capture.command import CommandDevice, CommandSpec, PhotoCommand, exif_exposure
+from procam.addon.capture.devices import ShownTogether
 from procam.addon.cli.app import main
 from procam.addon.errors import CaptureError, LiveError
 from procam.addon.live.device import LiveSpec
@@ -244,3 +245,29 @@ def test_a_live_capture_session_with_a_shooting_command_resumes(xvfb, tmp_path):
     assert any("6 of" in m and "already captured" in m for m in said)
     assert captures.camera.intrinsics.size == size and "exposure" in captures.notes
     np.testing.assert_allclose(captures.image("white").mean(), 0.8 + 800 / 65535, atol=2e-3)
+
+
+def test_a_device_photographing_projectors_together_keeps_its_size_and_wants_every_frame():
+    class Rig(ShownTogether):
+        error, what = LiveError, "this rig"
+
+        def __init__(self, sizes: list[tuple[int, int]]) -> None:
+            proj = Projector(projector_intrinsics_from_throw(16, 12, 1.5), np.eye(4))
+            self.projector, self.others, self.sizes, self.shown = proj, (proj,), sizes, []
+
+        def _capture(self, frames):
+            self.shown.append([float(f.mean()) for f in frames])
+            w, h = self.sizes.pop(0)
+            return self._same_size(np.zeros((h, w, 3), np.float32), len(self.shown))
+
+    rig = Rig([(8, 6), (8, 6), (9, 6)])
+    assert rig.camera_size is None
+    rig.capture_off()
+    assert rig.camera_size == (8, 6) and rig.shown == [[0.0, 0.0]]
+    with pytest.raises(LiveError, match="this rig shows 2 projectors: give each its frame with project_all"):
+        rig.project(np.zeros((12, 16, 3), np.float32))
+    rig.project_all([np.ones((12, 16, 3), np.float32), np.zeros((12, 16, 3), np.float32)])
+    assert rig.shown[-1] == [1.0, 0.0]
+    with pytest.raises(LiveError, match="photograph 3 is 9×6, the first was 8×6: keep the camera's image size"):
+        rig._capture(rig._flat(0.5, lit=1))
+    assert rig.shown[-1] == [0.0, 0.5]

@@ -42,7 +42,7 @@ from ..errors import CaptureError, ImageError
 from ..imageio import exif_block, write_image
 from ..progress import Progress, quiet
 from ..rig.model import Projector
-from .devices import Device
+from .devices import ShownTogether
 from .exposure import ADAPT_S, COLOUR_TOLERANCE, GAIN_TOLERANCE, SEEN_STEP
 from .photos import load_capture
 
@@ -379,8 +379,10 @@ def _frame_names(arg: str) -> list[str]:
     return re.findall(r"\{frame\d*\}", arg)
 
 
-class CommandDevice(Device):
+class CommandDevice(ShownTogether):
     """``command:run=…``: a command shows each frame (a 16-bit PNG ProCam writes) and photographs it."""
+
+    what = "this command device"
 
     def __init__(self, spec: CommandSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
                  progress: Progress | None = None, check_exposure: bool = True) -> None:
@@ -388,7 +390,6 @@ class CommandDevice(Device):
         self.spec = spec if isinstance(spec, CommandSpec) else CommandSpec.parse(spec)
         self.projector, self.others = projector, tuple(others)
         self.spec.check_projectors(len(self.projectors))
-        self.camera_size: tuple[int, int] | None = None
         self._command = PhotoCommand(self.spec.argv, timeout=self.spec.timeout, encoding=self.spec.encoding,
                                      suffix=self.spec.suffix, what="the command device's command")
         try:
@@ -399,13 +400,6 @@ class CommandDevice(Device):
         except BaseException:
             self.close()
             raise
-
-    @property
-    def projectors(self) -> tuple[Projector, ...]:
-        return (self.projector, *self.others)
-
-    def _flat(self, value: float) -> list[np.ndarray]:
-        return [np.full((p.intrinsics.height, p.intrinsics.width, 3), value, np.float32) for p in self.projectors]
 
     def _capture(self, frames: Sequence[np.ndarray]) -> np.ndarray:
         if self._command is None:
@@ -422,26 +416,7 @@ class CommandDevice(Device):
         for path in set(subs.values()):
             Path(path).unlink(missing_ok=True)
         image = np.mean(shots, axis=0).astype(np.float32) if len(shots) > 1 else shots[0]
-        size = (image.shape[1], image.shape[0])
-        if self.camera_size is None:
-            self.camera_size = size
-        elif size != self.camera_size:
-            raise CaptureError(f"the command's photograph {self._command.shots - 1} is {size[0]}×{size[1]}, the "
-                               f"first was {self.camera_size[0]}×{self.camera_size[1]}: keep the camera's image size "
-                               "fixed")
-        return image
-
-    def project(self, frame: np.ndarray) -> np.ndarray:
-        if self.others:
-            raise CaptureError(f"this command device shows {len(self.projectors)} projectors: give each its frame "
-                               "with project_all")
-        return self._capture([self.check_frame(frame)])
-
-    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
-        return self._capture(self.check_frames(frames))
-
-    def capture_off(self) -> np.ndarray:
-        return self._capture(self._flat(0.0))
+        return self._same_size(image, self._command.shots - 1)
 
     def close(self) -> None:
         command, self._command = getattr(self, "_command", None), None

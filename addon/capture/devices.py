@@ -97,6 +97,62 @@ class Device(ABC):
         self.close()
 
 
+class ShownTogether(Device):
+    """A device that shows every projector's frame at once and takes one photograph of them together (windows and
+    a camera, windows and a shooting command, or a command that does both): a subclass takes that photograph in
+    :meth:`_capture`, one frame per projector, and raises :attr:`error` for what goes wrong."""
+
+    others: tuple[Projector, ...] = ()
+    #: the subclass's error type (the user fixes a live rig otherwise than a command)
+    error: type[CaptureError] = CaptureError
+    #: how messages name the device ("this live device")
+    what = "this device"
+    _photo_size: tuple[int, int] | None = None
+
+    @property
+    def projectors(self) -> tuple[Projector, ...]:
+        return (self.projector, *self.others)
+
+    @property
+    def camera_size(self) -> tuple[int, int] | None:
+        """The photographs' size (width, height), known from the first one; checked against a calibration."""
+        return self._photo_size
+
+    @abstractmethod
+    def _capture(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        """Show ``frames`` (one per projector, checked) together and photograph them."""
+
+    def _flat(self, value: float, lit: int | None = None) -> list[np.ndarray]:
+        """A flat frame of ``value`` on every projector, or only on projector ``lit`` (the others black)."""
+        return [np.full((p.intrinsics.height, p.intrinsics.width, 3), value if lit is None or k == lit else 0.0,
+                        np.float32) for k, p in enumerate(self.projectors)]
+
+    def _same_size(self, image: np.ndarray, number: int) -> np.ndarray:
+        """``image`` (photograph ``number``), refused when its size is not the first photograph's."""
+        size, first = (image.shape[1], image.shape[0]), self._photo_size
+        if first is None:
+            self._photo_size = size
+        elif size != first:
+            raise self.error(f"photograph {number} is {size[0]}×{size[1]}, the first was {first[0]}×{first[1]}: "
+                             "keep the camera's image size fixed")
+        return image
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        if self.others:
+            raise self.error(f"{self.what} shows {len(self.projectors)} projectors: give each its frame with "
+                             "project_all (black for those that are off), or show one projector with the others "
+                             "black through capture.devices.OneProjector")
+        return self._capture([self.check_frame(frame)])
+
+    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
+        """Every projector's frame at once (each checked at its projector's size), photographed together."""
+        return self._capture(self.check_frames(frames))
+
+    def capture_off(self) -> np.ndarray:
+        """Every projector black (a window or a command cannot switch its projector off)."""
+        return self._capture(self._flat(0.0))
+
+
 class SomeProjectors(Device):
     """Projectors ``keep`` (numbered from 0, in that order) of a device of several, the others showing black: how one
     projector of a rig is captured on its own (its sequence, its own closed loop), or a solve that leaves out a

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..capture.command import DEFAULT_TIMEOUT, check_suffix, parse_command, split_spec
-from ..capture.devices import Device
+from ..capture.devices import ShownTogether
 from ..capture.exposure import ADAPT_S, COLOUR_TOLERANCE, GAIN_TOLERANCE, SEEN_STEP
 from ..capture.format import srgb_to_linear
 from ..errors import LiveError
@@ -240,16 +240,14 @@ def open_windows(spec: LiveSpec, projectors: Sequence[Projector], say: Progress,
     return windows
 
 
-def _black(projector: Projector) -> np.ndarray:
-    w, h = projector.intrinsics.size
-    return np.zeros((h, w, 3), dtype=np.float32)
-
-
-class LiveDevice(Device):
+class LiveDevice(ShownTogether):
     """Real projectors (one :class:`ProjectorWindow` each) and a real camera (a :class:`CameraClient`).
 
     ``others``: projectors 2…N of a rig of several, each shown in the window of its own display (``spec``'s
-    ``display=1+2``); :meth:`project_all` shows them all at once and captures once."""
+    ``display=1+2``); :meth:`project_all` shows them all at once and captures once, when all of them have been
+    shown for the measured latency."""
+
+    error, what = LiveError, "this live device"
 
     def __init__(self, spec: LiveSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
                  progress: Progress | None = None, check_exposure: bool = True) -> None:
@@ -283,10 +281,6 @@ class LiveDevice(Device):
             raise
 
     @property
-    def projectors(self) -> tuple[Projector, ...]:
-        return (self.projector, *self.others)
-
-    @property
     def camera_size(self) -> tuple[int, int] | None:
         """The camera's frame size (width, height), checked against a calibration before stage C starts."""
         return self.camera.size if self.camera is not None else None
@@ -317,28 +311,7 @@ class LiveDevice(Device):
         return self._linear(self.camera.frames_after(self._settled_after(shown), self.average,
                                                      timeout=self.latency_s + 5.0))
 
-    def project(self, frame: np.ndarray) -> np.ndarray:
-        if self.others:
-            raise LiveError(f"this live device shows {len(self.projectors)} projectors: give each its frame with "
-                            "project_all (black for those that are off), or show one projector with the others "
-                            "black through capture.devices.OneProjector")
-        return self._capture([self.check_frame(frame)])
-
-    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
-        """Every projector's frame in its own window at once (each checked at its projector's size), and one
-        capture taken once all of them have been shown for the measured latency."""
-        return self._capture(self.check_frames(frames))
-
-    def capture_off(self) -> np.ndarray:
-        """Every projector black (a window cannot switch its projector off)."""
-        return self._capture([_black(p) for p in self.projectors])
-
     # -- measurements at start -----------------------------------------------------------------------------------
-
-    def _flat(self, value: float, lit: int | None = None) -> list[np.ndarray]:
-        """A flat frame of ``value`` on every projector, or only on projector ``lit`` (the others black)."""
-        return [_black(p) + np.float32(value if lit is None or k == lit else 0.0)
-                for k, p in enumerate(self.projectors)]
 
     def _latency(self, say: Progress) -> tuple[float, tuple[float, ...]]:
         assert self.camera is not None

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..capture.command import CommandDevice, CommandSpec, PhotoCommand, ShotReport, check_shots
-from ..capture.devices import Device
+from ..capture.devices import ShownTogether
 from ..errors import CaptureError, LiveError
 from ..progress import Progress, quiet
 from ..rig.model import Projector
@@ -39,8 +39,10 @@ from .window import ProjectorWindow
 SETTLE_S = 0.25
 
 
-class ShootDevice(Device):
+class ShootDevice(ShownTogether):
     """Projector windows (one per projector) and a command that takes each photograph."""
+
+    error, what = LiveError, "this live device"
 
     def __init__(self, spec: LiveSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
                  progress: Progress | None = None, check_exposure: bool = True) -> None:
@@ -52,7 +54,6 @@ class ShootDevice(Device):
         self.projector, self.others = projector, tuple(others)
         self.latency_s = SETTLE_S if self.spec.latency is None else float(self.spec.latency)
         self.average = self.spec.average or 1
-        self.camera_size: tuple[int, int] | None = None
         self.windows: list[ProjectorWindow] = []
         self._command: PhotoCommand | None = PhotoCommand(self.spec.shoot, timeout=self.spec.timeout,
                                                           encoding=self.spec.encoding, suffix=self.spec.suffix,
@@ -66,13 +67,6 @@ class ShootDevice(Device):
         except BaseException:
             self.close()
             raise
-
-    @property
-    def projectors(self) -> tuple[Projector, ...]:
-        return (self.projector, *self.others)
-
-    def _flat(self, value: float) -> list[np.ndarray]:
-        return [np.full((p.intrinsics.height, p.intrinsics.width, 3), value, np.float32) for p in self.projectors]
 
     def _settle(self, shown: float) -> None:
         """Wait until ``latency_s`` after the flip at ``shown``, handling the windows' events meanwhile."""
@@ -95,26 +89,7 @@ class ShootDevice(Device):
             self._settle(shown)
             shots.append(self._command.take())
         image = np.mean(shots, axis=0).astype(np.float32) if len(shots) > 1 else shots[0]
-        size = (image.shape[1], image.shape[0])
-        if self.camera_size is None:
-            self.camera_size = size
-        elif size != self.camera_size:
-            raise LiveError(f"photograph {self._command.shots - 1} is {size[0]}×{size[1]}, the first was "
-                            f"{self.camera_size[0]}×{self.camera_size[1]}: keep the camera's image size fixed")
-        return image
-
-    def project(self, frame: np.ndarray) -> np.ndarray:
-        if self.others:
-            raise LiveError(f"this live device shows {len(self.projectors)} projectors: give each its frame with "
-                            "project_all (black for those that are off)")
-        return self._capture([self.check_frame(frame)])
-
-    def project_all(self, frames: Sequence[np.ndarray]) -> np.ndarray:
-        return self._capture(self.check_frames(frames))
-
-    def capture_off(self) -> np.ndarray:
-        """Every projector black (a window cannot switch its projector off)."""
-        return self._capture(self._flat(0.0))
+        return self._same_size(image, self._command.shots - 1)
 
     def close(self) -> None:
         command, self._command = getattr(self, "_command", None), None
