@@ -40,9 +40,9 @@ one.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import cv2
 import numpy as np
@@ -310,46 +310,80 @@ class Selection:
     min_share: float = MIN_SHARE
 
 
-def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_share: float = MIN_SHARE,
-                   max_effects: int = MAX_EFFECTS, progress: Progress | None = None,
-                   cancel: Cancel | None = None) -> Selection:
-    """Greedy forward selection on held-out RMSE (see the module docstring)."""
-    say = progress or (lambda msg, frac: None)
-    base = fit_composite(data, ())
-    sel = Selection(base, {}, min_share=min_share)
-    current = base
-    remaining = [c for c in candidates if c in MODELS]
+class _Scored(Protocol):
+    error: str | None
+
+    def share_of(self, before: Any) -> float: ...
+
+
+C = TypeVar("C", bound=Hashable)
+F = TypeVar("F", bound=_Scored)
+
+
+def greedy_rounds(base: F, candidates: list[C], fit: Callable[[list[C], C, F], F], *, max_effects: int,
+                  min_share: float, say: Callable[[float, C, list[C]], None], cancel: Cancel | None,
+                  record: Callable[[C, F, F, float, list[tuple[C, float]]], dict[str, Any]]
+                  ) -> tuple[list[C], F, dict[C, F], list[dict[str, Any]]]:
+    """Greedy forward selection: each round fits every remaining candidate beside those selected (``fit(selected,
+    candidate, current)``) and adds the one that removes most of the held-out error left, while it removes at least
+    ``min_share`` of it. Returns the selected, the last fit, each candidate fitted alone (the first round) and each
+    round's record (``record(best, best_fit, current, share, ranking)`` with "candidate", "added" set here);
+    ``say(fraction of max_effects rounds done, candidate, selected)``. One projector's selection and the joint one of
+    several (``gap/shared.py``) run this same loop."""
+    selected: list[C] = []
+    alone: dict[C, F] = {}
+    steps: list[dict[str, Any]] = []
+    current, remaining = base, list(candidates)
     for step in range(max_effects):
-        fits: dict[str, Fit] = {}
-        for j, name in enumerate(remaining):
+        fits: dict[C, F] = {}
+        for j, cand in enumerate(remaining):
             if cancel is not None and cancel():
                 raise Cancelled("diagnosis cancelled")
-            say(f"round {step + 1}: fitting {'+'.join([*sel.selected, name])}",
-                (step + j / max(len(remaining), 1)) / max_effects)
-            start = current.params() if sel.selected else {}
-            f = fit_composite(data, tuple(sel.selected) + (name,),
-                              start={n: np.array(list(v.values())) for n, v in start.items()})
-            fits[name] = f
+            say((step + j / len(remaining)) / max_effects, cand, selected)
+            fits[cand] = fit(selected, cand, current)
             if step == 0:
-                sel.alone[name] = f
-        ranking = sorted((n for n in fits if fits[n].error is None), key=lambda n: -fits[n].share_of(current))
+                alone[cand] = fits[cand]
+        ranking = sorted((c for c in fits if fits[c].error is None), key=lambda c: -fits[c].share_of(current))
         if not ranking:
             break
         best = fits[ranking[0]]
         share = best.share_of(current)
-        sel.steps.append({"added": ranking[0] if share >= min_share else None, "candidate": ranking[0],
-                          "before": current.held_rmse, "after": best.held_rmse, "share": share,
-                          "before_raw": current.held_rmse_raw, "after_raw": best.held_rmse_raw,
-                          "ranking": [(n, fits[n].share_of(current)) for n in ranking]})
+        rec = record(ranking[0], best, current, share, [(c, fits[c].share_of(current)) for c in ranking])
+        steps.append({"added": rec["candidate"] if share >= min_share else None, **rec})
         if share < min_share:
             break
-        sel.selected.append(ranking[0])
+        selected.append(ranking[0])
         current = best
         remaining.remove(ranking[0])
         if not remaining:
             break
-    sel.final = current
-    return sel
+    return selected, current, alone, steps
+
+
+def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_share: float = MIN_SHARE,
+                   max_effects: int = MAX_EFFECTS, progress: Progress | None = None,
+                   cancel: Cancel | None = None) -> Selection:
+    """Greedy forward selection on held-out RMSE (see the module docstring)."""
+    report = progress or (lambda msg, frac: None)
+    base = fit_composite(data, ())
+    todo = [c for c in candidates if c in MODELS]
+
+    def fit(selected: list[str], name: str, current: Fit) -> Fit:
+        start = current.params() if selected else {}
+        return fit_composite(data, tuple(selected) + (name,),
+                             start={n: np.array(list(v.values())) for n, v in start.items()})
+
+    def say(fraction: float, name: str, selected: list[str]) -> None:
+        report(f"round {len(selected) + 1}: fitting {'+'.join([*selected, name])}", fraction)
+
+    def record(name: str, best: Fit, current: Fit, share: float, ranking: list[tuple[str, float]]
+               ) -> dict[str, Any]:
+        return {"candidate": name, "before": current.held_rmse, "after": best.held_rmse, "share": share,
+                "before_raw": current.held_rmse_raw, "after_raw": best.held_rmse_raw, "ranking": ranking}
+
+    selected, final, alone, steps = greedy_rounds(base, todo, fit, max_effects=max_effects, min_share=min_share,
+                                                  say=say, cancel=cancel, record=record)
+    return Selection(base, alone, steps, selected, final, min_share)
 
 
 def compensation_subset(data: GapData, sel: Selection, usable: tuple[str, ...], *, min_share: float = MIN_SHARE,

@@ -27,10 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .data import GapData
-from .fit import MIN_SHARE, FIT_PIXELS, huber_levenberg_marquardt, huber_rms, _huber_scale, scores
+from .fit import MIN_SHARE, FIT_PIXELS, greedy_rounds, huber_levenberg_marquardt, huber_rms, _huber_scale, scores
 from .models import MODELS, NAMES, Composite, describe_params
 
 #: The camera's effects (its processing and its lens) and the surface's (its gloss, bounce light and shape): every
@@ -196,40 +195,26 @@ def pool_of(docs: list[dict[str, Any]], candidates: tuple[str, ...], min_share: 
 def select_joint(datas: list[GapData], pool: list[Item], *, min_share: float = MIN_SHARE, max_effects: int = 6,
                  progress: Progress | None = None, cancel: Cancel | None = None) -> JointSelection:
     """Greedy forward selection of ``pool`` on every projector's held-out patterns (module doc)."""
-    say = progress or (lambda msg, frac: None)
+    report = progress or (lambda msg, frac: None)
     base = fit_joint(datas, ())
-    sel = JointSelection(base, base, pool=list(pool))
-    current, remaining = base, list(pool)
-    for step in range(max_effects):
-        fits: dict[Item, JointFit] = {}
-        for j, item in enumerate(remaining):
-            if cancel is not None and cancel():
-                raise Cancelled("diagnosis cancelled")
-            say(f"every projector's patterns, round {step + 1}: {item.label()}",
-                (step + j / max(len(remaining), 1)) / max_effects)
-            start = {i: v for i in sel.selected
-                     for v in [current.shared.get(i.name) if i.projector is None else
-                               current.own[i.projector].get(i.name)] if v is not None}
-            fits[item] = fit_joint(datas, tuple(sel.selected) + (item,), start=start)
-            if step == 0:
-                sel.alone[item] = fits[item]
-        ranking = sorted((i for i in fits if fits[i].error is None), key=lambda i: -fits[i].share_of(current))
-        if not ranking:
-            break
-        best = fits[ranking[0]]
-        share = best.share_of(current)
-        sel.steps.append({"candidate": ranking[0].label(), "added": ranking[0].label() if share >= min_share else None,
-                          "share": round(share, 4), "before": current.held_rmse, "after": best.held_rmse,
-                          "ranking": [[i.label(), round(fits[i].share_of(current), 4)] for i in ranking]})
-        if share < min_share:
-            break
-        sel.selected.append(ranking[0])
-        current = best
-        remaining.remove(ranking[0])
-        if not remaining:
-            break
-    sel.final = current
-    return sel
+
+    def fit(selected: list[Item], item: Item, current: JointFit) -> JointFit:
+        start = {i: v for i in selected
+                 for v in [current.shared.get(i.name) if i.projector is None else
+                           current.own[i.projector].get(i.name)] if v is not None}
+        return fit_joint(datas, tuple(selected) + (item,), start=start)
+
+    def say(fraction: float, item: Item, selected: list[Item]) -> None:
+        report(f"every projector's patterns, round {len(selected) + 1}: {item.label()}", fraction)
+
+    def record(item: Item, best: JointFit, current: JointFit, share: float, ranking: list[tuple[Item, float]]
+               ) -> dict[str, Any]:
+        return {"candidate": item.label(), "share": round(share, 4), "before": current.held_rmse,
+                "after": best.held_rmse, "ranking": [[i.label(), round(s, 4)] for i, s in ranking]}
+
+    selected, final, alone, steps = greedy_rounds(base, list(pool), fit, max_effects=max_effects,
+                                                  min_share=min_share, say=say, cancel=cancel, record=record)
+    return JointSelection(base, final, selected, steps, list(pool), alone)
 
 
 def attribution_fit(datas: list[GapData], sel: JointSelection) -> JointFit:
