@@ -197,6 +197,19 @@ def test_several_projectors_each_projector_s_images_are_shown(tmp_path, monkeypa
     _, blocks = reader.compensation(tmp_path, doc)
     assert drawn[-1][2:] == ["projector 1 input (share 60%)", "projector 2 input (share 40%)"]
     assert "images the projectors are given" in " ".join(str(b) for b in blocks)
+    intr = {"width": 16, "height": 12, "fx": 20.0, "cx": 8.0, "cy": 6.0}
+    poses = [np.eye(4), np.eye(4)]
+    poses[1][0, 3] = 0.4
+    posed: list[int] = []
+    monkeypatch.setattr(figures, "pose_views", lambda where, axes, points: posed.append(len(where)) or "")
+    rig = {"camera": {"intrinsics": intr}, "projector": {"intrinsics": intr, "input_size": [16, 12]},
+           "projectors": [{"intrinsics": intr, "input_size": [16, 12]}] * 2}
+    _, blocks = reader.calibration(tmp_path, {"rig": rig, "camera_from_projector": poses[0].tolist(),
+                                              "projectors": [{"camera_from_projector": p.tolist()} for p in poses]})
+    facts = dict(blocks[0]["items"])
+    assert facts["projector 2 position"].startswith("x 0.400") and posed == [2]
+    assert skipped == ["Gray-code coverage not shown: the capture set None is not there"]
+    skipped.clear()
     frames = {str(n): {"number": n, "status": "done", "file": f"000{n}_p1.png", "psnr_model": 40.0,
                        "projectors": [{"file": f"000{n}_p1.png"}, {"file": f"000{n}_p2.png"}]} for n in (1, 2)}
     _, blocks = reader.show(tmp_path, {"frames": frames, "complete": True, "projector_count": 2})

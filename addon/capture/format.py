@@ -462,9 +462,8 @@ class CaptureSet:
             raise CaptureError(f"capture set {self.path} has no {what} image")
         if len(found) > 1 and len({e.projector for e in found}) > 1:
             raise CaptureError(f"capture set {self.path} holds the captures of {len(self.projectors)} projectors "
-                               f"({len(found)} {what} images); this step reads one projector's captures at a time, "
-                               "and compensating several projectors together is not implemented "
-                               "yet: give a capture set of one projector")
+                               f"({len(found)} {what} images); this step reads one projector's captures at a time: "
+                               "give it a capture set of one projector")
         if len(found) > 1:
             raise CaptureError(f"capture set {self.path} has {len(found)} {what} images "
                                f"({', '.join(e.name for e in found)}); say which one, e.g. name=…")

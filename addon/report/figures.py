@@ -199,11 +199,12 @@ def warp_field(shifts: np.ndarray, size: tuple[int, int]) -> str:
     return _figure_uri(fig)
 
 
-def pose_views(projector: np.ndarray, direction: np.ndarray, points: np.ndarray | None) -> str:
-    """The rig from above (x–z) and from the side (z–y): the camera at the origin looking along +z, the projector
-    and its optical axis, the surface's vertices."""
+def pose_views(projectors: Sequence[np.ndarray], directions: Sequence[np.ndarray], points: np.ndarray | None) -> str:
+    """The rig from above (x–z) and from the side (z–y): the camera at the origin looking along +z, each projector
+    and its optical axis (numbered when there are several), the surface's vertices."""
     fig, axes = _figure(7.0, 3.2, 2)
-    reach = float(np.linalg.norm(projector)) * 0.6 + 0.3
+    reach = max(float(np.linalg.norm(p)) for p in projectors) * 0.6 + 0.3
+    colours = ("#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442", "#000000", "#999933")
     for ax, (i, j), names in ((axes[0], (0, 2), ("x (m, right)", "z (m, forward)")),
                               (axes[1], (2, 1), ("z (m, forward)", "y (m, down)"))):
         if points is not None and len(points):
@@ -211,9 +212,12 @@ def pose_views(projector: np.ndarray, direction: np.ndarray, points: np.ndarray 
         ax.plot([0], [0], "s", color="#0072B2", label="camera")
         ax.annotate("", xy=(reach * (i == 2), reach * (j == 2)), xytext=(0, 0),
                     arrowprops={"arrowstyle": "->", "color": "#0072B2"})
-        ax.plot([projector[i]], [projector[j]], "o", color="#D55E00", label="projector")
-        ax.annotate("", xy=(projector[i] + reach * direction[i], projector[j] + reach * direction[j]),
-                    xytext=(projector[i], projector[j]), arrowprops={"arrowstyle": "->", "color": "#D55E00"})
+        for k, (projector, direction) in enumerate(zip(projectors, directions)):
+            colour = colours[k % len(colours)]
+            ax.plot([projector[i]], [projector[j]], "o", color=colour,
+                    label=f"projector {k + 1}" if len(projectors) > 1 else "projector")
+            ax.annotate("", xy=(projector[i] + reach * direction[i], projector[j] + reach * direction[j]),
+                        xytext=(projector[i], projector[j]), arrowprops={"arrowstyle": "->", "color": colour})
         ax.set_xlabel(names[0], fontsize=8)
         ax.set_ylabel(names[1], fontsize=8)
         ax.tick_params(labelsize=7)

@@ -109,23 +109,31 @@ class Reader:
     def calibration(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
         blocks: list[Block] = []
         rig = doc["rig"]
-        cam, pro = rig["camera"]["intrinsics"], rig["projector"]["intrinsics"]
-        pose = np.asarray(doc["camera_from_projector"], np.float64)
-        position, direction = pose[:3, 3], pose[:3, 2]
-        others = rig.get("others") or []
-        items = [("camera", f"{cam['width']}×{cam['height']} px, fx {cam['fx']:.1f}"),
-                 ("projector", f"{pro['width']}×{pro['height']} px, fx {pro['fx']:.1f}, principal point "
-                               f"({pro['cx']:.1f}, {pro['cy']:.1f})"),
-                 ("projector position", "x {:.3f}, y {:.3f}, z {:.3f} m from the camera".format(*position)),
-                 ("projector looks along", "({:.3f}, {:.3f}, {:.3f}) (camera frame: x right, y down, z forward)"
-                  .format(*direction))]
-        if others:
-            items.append(("projectors", f"{1 + len(others)} (projector 1 shown below)"))
-        wr = doc.get("warp_report") or {}
-        if wr.get("corners_before_px") and wr.get("corners_after_px"):
-            before, after = wr["corners_before_px"]["median"], wr["corners_after_px"]["median"]
-            items.append(("warp (stage B)", f"checkerboard corners median {fmt(before, '.2f')} px before → "
-                                            f"{fmt(after, '.2f')} px after"))
+        cam = rig["camera"]["intrinsics"]
+        # several projectors: the rig lists each projector, the document each one's calibration (the first's also
+        # at the top, as one projector's folder has it)
+        rigs = [p for p in rig.get("projectors") or [] if isinstance(p, dict)] or [rig["projector"]]
+        steps = [p for p in doc.get("projectors") or [] if isinstance(p, dict)] or [doc]
+        if len(steps) != len(rigs):
+            steps = [doc]
+            rigs = rigs[:1]
+        many = len(rigs) > 1
+        poses = [np.asarray(st["camera_from_projector"], np.float64) for st in steps]
+        items = [("camera", f"{cam['width']}×{cam['height']} px, fx {cam['fx']:.1f}")]
+        for k, (pr, pose) in enumerate(zip(rigs, poses)):
+            name = f"projector {k + 1}" if many else "projector"
+            pro = pr["intrinsics"]
+            items += [(name, f"{pro['width']}×{pro['height']} px, fx {pro['fx']:.1f}, principal point "
+                             f"({pro['cx']:.1f}, {pro['cy']:.1f})"),
+                      (f"{name} position", "x {:.3f}, y {:.3f}, z {:.3f} m from the camera".format(*pose[:3, 3])),
+                      (f"{name} looks along", "({:.3f}, {:.3f}, {:.3f}) (camera frame: x right, y down, z forward)"
+                       .format(*pose[:3, 2]))]
+            wr = steps[k].get("warp_report") or {}
+            if wr.get("corners_before_px") and wr.get("corners_after_px"):
+                before, after = wr["corners_before_px"]["median"], wr["corners_after_px"]["median"]
+                items.append((f"warp (stage B){f', projector {k + 1}' if many else ''}",
+                              f"checkerboard corners median {fmt(before, '.2f')} px before → {fmt(after, '.2f')} "
+                              "px after"))
         seconds = doc.get("seconds") or {}
         if seconds:
             items.append(("seconds", ", ".join(f"{k} {fmt(v, '.1f')}" for k, v in seconds.items())))
@@ -141,44 +149,52 @@ class Reader:
             except ProCamError as exc:
                 blocks.append({"type": "note", "text": f"the surface is not shown: {exc}"})
                 self.skip(folder, f"the surface mesh is not shown: {exc}")
-        blocks.append(_figure(figures.pose_views(position, direction, points),
-                              "Where calibration put the projector relative to the camera, with the surface's "
-                              "vertices (grey). Arrows: each one's optical axis.", "rig seen from above and the side"))
+        blocks.append(_figure(figures.pose_views([p[:3, 3] for p in poses], [p[:3, 2] for p in poses], points),
+                              f"Where calibration put the projector{'s' if many else ''} relative to the camera, "
+                              "with the surface's vertices (grey). Arrows: each one's optical axis.",
+                              "rig seen from above and the side"))
         diag = folder / layout.DIAGNOSTICS_DIR
-        if diag.is_dir():
-            seen, drawn = (self.image(diag, n, f"stage A's {w}", blocks)
-                           for n, w in (("pose_mask.png", "captured lit area"),
-                                        ("pose_rendered_mask.png", "rendered lit area")))
-            if seen is not None and drawn is not None and seen.shape == drawn.shape:
-                a, b = seen.mean(axis=2) > 0.5, drawn.mean(axis=2) > 0.5
-                agree = np.zeros(a.shape + (3,), np.float32)
-                agree[a & b] = 0.85
-                agree[a & ~b] = (0.9, 0.62, 0.0)
-                agree[~a & b] = (0.34, 0.71, 0.91)
-                share = float((a ^ b).sum()) / max(float((a | b).sum()), 1.0)
-                blocks.append(_figure(figures.pictures([agree], ["lit area: captured vs rendered"], light=False,
-                                                       across=4.0),
-                                      f"Grey: lit in the capture and in the simulation at the calibrated pose; "
-                                      f"orange: lit only in the capture; blue: only in the simulation. They disagree "
-                                      f"on {share:.1%} of the lit pixels.", "pose agreement map"))
-
-        warp = doc.get("warp") or {}
-        if warp.get("m_shifts") is not None:
-            blocks.append({"type": "heading", "text": "Warp (stage B)"})
-            size = tuple(int(v) for v in warp.get("size") or rig["projector"]["input_size"])
-            blocks.append(_figure(figures.warp_field(np.asarray(warp["m_shifts"], np.float64), size),
-                                  "The warp's correction over the projector input: how far (colour) and which way "
-                                  "(arrows) each control point of the thin-plate spline moves the image, in input "
-                                  "pixels. A smooth field of under a pixel or two is usual; a large or jagged one "
-                                  "points at a pose or a surface that is off.", "warp shift field"))
+        for k in range(len(steps)):
+            prefix, whose = (f"p{k + 1}_" if k else "", f"projector {k + 1}: " if many else "")
             if diag.is_dir():
-                pair = [self.image(diag, n, w, blocks) for n, w in
+                seen, drawn = (self.image(diag, f"{prefix}{n}", f"{whose}stage A's {w}", blocks)
+                               for n, w in (("pose_mask.png", "captured lit area"),
+                                            ("pose_rendered_mask.png", "rendered lit area")))
+                if seen is not None and drawn is not None and seen.shape == drawn.shape:
+                    a, b = seen.mean(axis=2) > 0.5, drawn.mean(axis=2) > 0.5
+                    agree = np.zeros(a.shape + (3,), np.float32)
+                    agree[a & b] = 0.85
+                    agree[a & ~b] = (0.9, 0.62, 0.0)
+                    agree[~a & b] = (0.34, 0.71, 0.91)
+                    share = float((a ^ b).sum()) / max(float((a | b).sum()), 1.0)
+                    blocks.append(_figure(figures.pictures([agree], [f"{whose}lit area: captured vs rendered"],
+                                                           light=False, across=4.0),
+                                          f"Grey: lit in the capture and in the simulation at the calibrated pose; "
+                                          f"orange: lit only in the capture; blue: only in the simulation. They "
+                                          f"disagree on {share:.1%} of the lit pixels.", f"{whose}pose agreement map"))
+        for k, (pr, st) in enumerate(zip(rigs, steps)):
+            prefix, whose = (f"p{k + 1}_" if k else "", f"projector {k + 1}: " if many else "")
+            warp = st.get("warp") or {}
+            if warp.get("m_shifts") is None:
+                continue
+            if k == 0 or not many:
+                blocks.append({"type": "heading", "text": "Warp (stage B)"})
+            size = tuple(int(v) for v in warp.get("size") or pr["input_size"])
+            caption = (f"{whose}the warp's correction over the projector input: how far (colour) and which way "
+                       "(arrows) each control point of the thin-plate spline moves the image, in input pixels. A "
+                       "smooth field of under a pixel or two is usual; a large or jagged one points at a pose or a "
+                       "surface that is off.")
+            blocks.append(_figure(figures.warp_field(np.asarray(warp["m_shifts"], np.float64), size),
+                                  caption[0].upper() + caption[1:], f"{whose}warp shift field"))
+            if diag.is_dir():
+                pair = [self.image(diag, f"{prefix}{n}", f"{whose}{w}", blocks) for n, w in
                         (("warp_compare_before.png", "the checkerboard before the warp"),
                          ("warp_compare_after.png", "the checkerboard after the warp"))]
                 if all(p is not None for p in pair):
+                    caption = (f"{whose}captured checkerboard against the simulated one, before and after the warp "
+                               "(the closer the two overlays, the better).")
                     blocks.append(_figure(figures.pictures(pair, ["before the warp", "after the warp"], light=False),
-                                          "Captured checkerboard against the simulated one, before and after the "
-                                          "warp (the closer the two overlays, the better).", "warp comparison"))
+                                          caption[0].upper() + caption[1:], f"{whose}warp comparison"))
 
         blocks.append({"type": "heading", "text": "Gray-code coverage"})
         captures = self.captures(doc.get("capture_set"))
@@ -189,23 +205,10 @@ class Reader:
         elif not captures.entries_of("graycode"):
             blocks.append({"type": "text", "text": "The capture set holds no Gray code."})
         else:
-            try:
-                dec = decode_gray_code_set(captures)
-                white, black = captures.image("white"), captures.image("black")
-            except ProCamError as exc:
-                blocks.append({"type": "note", "text": f"the Gray code cannot be decoded: {exc}"})
-                self.skip(captures.path, f"Gray-code coverage not shown: {exc}")
-            else:
-                valid = np.asarray(dec.valid, bool)
-                size = captures.projector.intrinsics.size
-                # lit as stage A sees it (DESIGN.md: |white − black| > 0.1)
-                lit = np.abs(white - black).max(axis=2) > 0.1
-                share = float((valid & lit).sum()) / max(float(lit.sum()), 1.0)
-                blocks.append(_figure(figures.coverage(white, valid, np.asarray(dec.coords), tuple(size)),
-                                      f"Where the camera decoded which projector pixel from the Gray code: "
-                                      f"{share:.0%} of the pixels the projector lights decoded. Smooth colour "
-                                      "ramps mean a clean decoding; speckle or holes inside the lit area mean "
-                                      "noise, shadow or too little contrast there.", "Gray-code coverage"))
+            views = [captures] if len(captures.projectors) == 1 else \
+                [captures.for_projector(k) for k in range(len(captures.projectors))]
+            for k, view in enumerate(views):
+                self._coverage(view, blocks, "" if len(views) == 1 else f"projector {k + 1}: ")
 
         blocks.append({"type": "heading", "text": "Surface"})
         if surface.get("albedo"):
@@ -216,6 +219,26 @@ class Reader:
                                       f"({surface.get('vertices', '?')} vertices, {surface.get('faces', '?')} "
                                       f"faces).", "surface albedo"))
         return "Calibration", blocks
+
+    def _coverage(self, captures: CaptureSet, blocks: list[Block], whose: str) -> None:
+        """The Gray-code coverage of one projector's captures (``whose`` names it when there are several)."""
+        try:
+            dec = decode_gray_code_set(captures)
+            white, black = captures.image("white"), captures.image("black")
+        except ProCamError as exc:
+            blocks.append({"type": "note", "text": f"{whose}the Gray code cannot be decoded: {exc}"})
+            self.skip(captures.path, f"{whose}Gray-code coverage not shown: {exc}")
+            return
+        valid = np.asarray(dec.valid, bool)
+        size = captures.projector.intrinsics.size
+        # lit as stage A sees it (DESIGN.md: |white − black| > 0.1)
+        lit = np.abs(white - black).max(axis=2) > 0.1
+        share = float((valid & lit).sum()) / max(float(lit.sum()), 1.0)
+        caption = (f"{whose}where the camera decoded which projector pixel from the Gray code: {share:.0%} of the "
+                   "pixels the projector lights decoded. Smooth colour ramps mean a clean decoding; speckle or holes "
+                   "inside the lit area mean noise, shadow or too little contrast there.")
+        blocks.append(_figure(figures.coverage(white, valid, np.asarray(dec.coords), tuple(size)),
+                              caption[0].upper() + caption[1:], f"{whose}Gray-code coverage"))
 
     def compensation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
         blocks: list[Block] = [{"type": "facts", "items": [
