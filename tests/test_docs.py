@@ -224,6 +224,13 @@ def test_the_operations_reference_is_what_the_parser_gives(parser):
         "docs/operations.md is stale: run `python scripts/gen_ops_reference.py`"
 
 
+def test_a_help_of_several_lines_is_listed_below_its_table_not_in_one_cell(parser):
+    lab = render(parser).split("## procam lab")[1].split("\n## ")[0]
+    row = next(line for line in lab.splitlines() if line.startswith("| `--effects"))
+    assert row.endswith("below the table |") and len(row) < 300
+    assert "```text\nresponse [projector]: projector response curve" in lab
+
+
 def test_every_command_has_a_section_in_the_reference(parser):
     names = _subcommands(parser)
     assert {f"procam-{n}" for n in names} <= anchors(ROOT / "docs" / "operations.md")

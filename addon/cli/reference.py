@@ -60,10 +60,18 @@ def _command(name: str, parser: argparse.ArgumentParser) -> list[str]:
     rows = [a for a in parser._actions if not isinstance(a, argparse._HelpAction) and a.help != argparse.SUPPRESS]
     if rows:
         out += ["| argument | what it does |", "|---|---|"]
+        listed: list[tuple[str, str]] = []  # help of several lines (a table of its own): its first line in the cell
         for action in rows:
             help_text = formatter._expand_help(action) if action.help else ""
-            out.append(f"| `{_cell(_argument(formatter, action))}` | {_cell(help_text)} |")
+            argument = _argument(formatter, action)
+            first, newline, rest = help_text.partition("\n")
+            if newline:
+                listed.append((argument, rest))
+                help_text = f"{first.rstrip(':')} below the table"
+            out.append(f"| `{_cell(argument)}` | {_cell(help_text)} |")
         out.append("")
+        for argument, help_text in listed:
+            out += [f"`{argument}`:", "", "```text", help_text.strip(), "```", ""]
     if parser.epilog and not parser.epilog.startswith("exit codes:"):  # a command's own notes; the codes are above
         out += ["```text", parser.epilog.strip(), "```", ""]
     return out

@@ -85,7 +85,8 @@ class LabOptions:
         "curve", label="Surface", own_field=True,
         help="plane, curve, vedge, hedge, or an .obj/.ply file (rig frame, metres)")
     effects: str = option("", label="Effects", own_field=True, check=parse_effects,
-                          help="NAME=STRENGTH[,NAME.PARAM=VALUE…] or 'realistic'. " + effect_help())
+                          help="NAME=STRENGTH[,NAME.PARAM=VALUE…], or a preset ('realistic'); the effects, their "
+                               "parameters and the presets:\n" + effect_help())
     seed: int = option(0, min=0, label="Seed", own_field=True,
                        help="seed of every random stream; the same seed repeats the result")
     samples: int = option(16, min=1, label="Samples", own_field=True,
