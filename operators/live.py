@@ -19,12 +19,13 @@ from bpy.props import BoolProperty
 from ..addon import jobs
 from ..addon.blender import rig as blender_rig
 from ..addon.capture.format import srgb_to_linear
-from ..addon.errors import LiveError, ProCamError
+from ..addon.errors import ProCamError
 from ..addon.live.camera import CameraClient, parse_source
-from ..addon.live.device import LiveDevice, LiveReport, LiveSpec
+from ..addon.live.device import LiveDevice, LiveReport
+from ..addon.live.rig_options import LiveRigOptions
 from ..addon.live.window import list_displays
 from ..addon.progress import Cancel, Progress
-from ..addon.options import sidebar_names, spec_of
+from ..addon.options import from_values, sidebar_names, spec_of
 from ..addon.rig.model import Projector
 from ..addon.steps.live import LiveCaptureOptions, run_live_capture
 from . import paths
@@ -37,38 +38,19 @@ WINDOW_NEEDS_MAIN_THREAD = sys.platform == "darwin"
 PREVIEW_IMAGE = "ProCam Camera Preview"
 
 
+def rig_options(scene: bpy.types.Scene) -> LiveRigOptions:
+    """The Live panel's rig: its fields as :class:`LiveRigOptions` declares them."""
+    return from_values(LiveRigOptions, lambda prop: getattr(scene, prop))
+
+
 def window_placement(scene: bpy.types.Scene) -> str:
-    """The Live panel's projector window(s) as the device string says them: ``display=N`` or ``position=X:Y``; a
-    rig of several projectors one each, in rig order, joined by ``+`` (``display=1+2``, ``position=X:Y+X:Y``)."""
-    if scene.procam_live_placement == "DISPLAY":
-        key, field, form = "display", "Display", "a display index (1), or one per projector joined by + (1+2)"
-        typed = scene.procam_live_display
-    else:
-        key, field, form = "position", "Position", "X:Y in desktop pixels (40:30), or one per projector joined by " \
-                                                   "+ (40:30+300:30)"
-        typed = scene.procam_live_position
-    value = "".join(typed.split())  # spaces typed around + or : are no part of the value
-    # numbers, + and : alone: a comma would slip another key (a camera) into the device string
-    if not value or value.strip("0123456789+:-"):
-        raise LiveError(f"the Live panel's {field} must be {form}, got {typed!r}")
-    try:
-        LiveSpec.parse(f"{key}={value}", camera_required=False)
-    except LiveError as exc:
-        raise LiveError(f"the Live panel's {field} must be {form}, got {typed!r} ({exc})") from None
-    return f"{key}={value}"
+    """The Live panel's projector window(s) as the device string says them (:meth:`LiveRigOptions.window`)."""
+    return rig_options(scene).window()
 
 
 def live_device(scene: bpy.types.Scene) -> str:
     """The scene's Live settings as the ``live:…`` device string (checked: a clear LiveError when it is wrong)."""
-    camera = scene.procam_live_camera.strip()
-    if not camera:
-        raise LiveError("no live camera: type its index (0), device path (/dev/video2) or URL in the Live panel")
-    parts = [f"camera={camera}", window_placement(scene), f"average={scene.procam_live_average}",
-             f"encoding={scene.procam_live_encoding}",
-             "latency=auto" if scene.procam_live_latency_auto else f"latency={scene.procam_live_latency:.4g}"]
-    spec = "live:" + ",".join(parts)
-    LiveSpec.parse(spec)  # a camera that is no index, path or URL fails here, with the parser's message
-    return spec
+    return rig_options(scene).device()
 
 
 def _live_why_not(scene: bpy.types.Scene) -> str | None:

@@ -5,27 +5,19 @@ camera preview, the calibration set captured live, where Compensate's Live mode 
 from pathlib import Path
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, StringProperty
 
 from ..addon import jobs
 from ..addon.options import prop_name, sidebar_fields
+from ..addon.live.rig_options import LiveRigOptions
 from ..addon.steps.live import SESSION_MANIFEST
 from ..addon.steps.live_show import LiveShowOptions
 from ..addon.steps.stage_c import StageCOptions
 from ..addon.steps.summary import Summary
 from ..operators.live_show import SHOW_STATUS, show_running
 from .captures import capture_set_status
-from .properties import declared_property
+from .properties import declared_properties, declared_property
 from .step_state import draw_state, wrapped
-
-PLACEMENT_ITEMS = [("DISPLAY", "Display", "Cover one display exactly (its size must be the projector's native "
-                                          "size): the projector as its own screen"),
-                   ("POSITION", "Position", "A projector-sized window at desktop coordinates: the projector as part "
-                                            "of a larger desktop")]
-LIVE_ENCODING_ITEMS = [("srgb", "sRGB", "The camera delivers sRGB-encoded 8-bit frames (webcams, network cameras, "
-                                        "phones)"),
-                       ("linear", "Linear", "The camera delivers linear values")]
-
 
 def _show_properties() -> dict[str, object]:
     """The live show's own fields as ``LiveShowOptions`` declares them; Range, Effect Models and Display Area are
@@ -43,34 +35,7 @@ def scene_properties() -> dict[str, object]:
             name="Follow Camera", default=False,
             description="Closed loop: the camera above (with its averaging, encoding and latency) films the show "
                         "and the compensation follows it slowly; off: open loop, the window alone"),
-        "procam_live_camera": StringProperty(
-            name="Camera", default="0",
-            description="The camera: an index (0, 1 …), a device path (/dev/video2) or a URL "
-                        "(http://…/video.mjpg from a network camera or a phone, rtsp://…)"),
-        "procam_live_placement": EnumProperty(name="Window", items=PLACEMENT_ITEMS, default="DISPLAY"),
-        "procam_live_display": StringProperty(
-            name="Display", default="1",
-            description="Index of the projector's display (Check Live Rig lists them; 0 is usually the main one); "
-                        "a rig of several projectors: one per projector in rig order, joined by + (1+2)"),
-        "procam_live_position": StringProperty(
-            name="Position", default="0:0",
-            description="Top-left corner X:Y of the projector window in desktop pixels; a rig of several "
-                        "projectors: one per projector in rig order, joined by + (40:30+300:30)"),
-        "procam_live_average": IntProperty(
-            name="Frames Averaged", default=1, min=1, max=64,
-            description="Camera frames averaged per capture: more lowers the camera's noise, each costs one frame"),
-        "procam_live_encoding": EnumProperty(name="Camera Encoding", items=LIVE_ENCODING_ITEMS, default="srgb"),
-        "procam_live_latency_auto": BoolProperty(
-            name="Measure Latency", default=True,
-            description="Measure the time from showing a frame to the camera seeing it when the rig opens (off: "
-                        "use the latency given)"),
-        "procam_live_latency": FloatProperty(
-            name="Latency", default=0.2, min=0.0, max=9.99, step=1, precision=3, subtype="TIME_ABSOLUTE",
-            unit="TIME_ABSOLUTE", description="Seconds from showing a frame to the camera delivering it"),
-        "procam_live_check_exposure": BoolProperty(
-            name="Check Exposure Lock", default=True,
-            description="Refuse a camera whose exposure or white balance still adapts (and check the captured set "
-                        "the same way); off only for a camera known to be locked"),
+        **declared_properties(LiveRigOptions),
         "procam_live_depth_file": StringProperty(
             name="Depth", subtype="FILE_PATH",
             description="Optional depth of the scene seen from the camera (as Import Captures takes it), for "

@@ -14,6 +14,7 @@ from procam.addon.capture.format import CaptureSet
 from procam.addon.capture.targets import natural_target
 from procam.addon.cli.app import main
 from procam.addon.errors import Cancelled, CaptureError, LiveError
+from procam.addon.live.rig_options import LiveRigOptions
 from procam.addon.imageio import write_image
 from procam.addon.live.camera import CameraClient, parse_source
 from procam.addon.live.device import LiveDevice, LiveSpec, open_windows
@@ -279,3 +280,15 @@ def test_esc_in_the_projector_window_stops_and_the_window_is_given_back(xvfb):
     time.sleep(0.1)
     # The screen area is the X root's again (black), not the last white frame.
     assert _grab((100, 70, 64, 48)).max() == 0
+
+
+def test_the_live_panels_rig_is_one_device_string_checked_field_by_field():
+    rig = LiveRigOptions(camera=" http://10.0.0.5:8080/video ", placement="POSITION", position="1920:-40 + 0:0",
+                         average=8, encoding="linear", latency_auto=False, latency=0.125)
+    assert rig.device() == ("live:camera=http://10.0.0.5:8080/video,position=1920:-40+0:0,average=8,"
+                            "encoding=linear,latency=0.125")
+    assert LiveRigOptions().device() == "live:camera=0,display=1,average=1,encoding=srgb,latency=auto"
+    with pytest.raises(LiveError, match="Live panel's Display must be a display index"):
+        LiveRigOptions(display="1,camera=2").device()
+    with pytest.raises(LiveError, match="no live camera"):
+        LiveRigOptions(camera=" ").device()
