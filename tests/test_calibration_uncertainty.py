@@ -2,6 +2,7 @@
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -104,3 +105,12 @@ def test_a_calibration_folder_from_before_the_judged_fit_still_reads(biased, tmp
                                    0.5, 0.4, 100, 90)
     assert fit.summary().startswith("focal ") and "uncertainty" in fit.to_dict() and not fit.to_dict()["uncertainty"]
     assert replace(fit, uncertainty={}).summary() == fit.summary()
+
+
+def test_intrinsics_a_rig_calibration_gave_are_judged_against_its_own_tighter_priors():
+    nominal = SimpleNamespace(projector_status="nominal", camera_status="nominal")
+    spec = intrinsics.intrinsic_priors(nominal, 1000.0, 600)  # type: ignore[arg-type]
+    board = intrinsics.intrinsic_priors(SimpleNamespace(projector_status="calibrated", camera_status="calibrated"),
+                                        1000.0, 600)
+    assert spec == {"projector_focal": 30.0, "projector_cx": 18.0, "projector_cy": 18.0, "camera_focal": 0.02}
+    assert board == {"projector_focal": 5.0, "projector_cx": 9.0, "projector_cy": 9.0, "camera_focal": 0.005}

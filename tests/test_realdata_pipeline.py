@@ -79,3 +79,13 @@ def test_the_diagnosis_runs_on_the_gray_code_alone_and_finds_the_projectors_blac
     assert doc["selected"][0] == "black_level"
     assert doc["residual_after"]["rmse"] < 0.8 * doc["residual"]["rmse"]
     assert "no validation patterns" in (real_run / "gap" / "summary.md").read_text()
+
+
+@needs_real
+def test_intrinsics_are_not_fitted_against_a_surface_triangulated_with_them(real_run, capsys):
+    # the surface comes from this Gray code and the board's intrinsics: it cannot judge them (a fit against it
+    # moved the board's projector focal length by 6.5 %, reprojecting the same Gray code "better")
+    out = real_run / "cal-fit"
+    assert main(["calibrate", str(real_run / "captures"), "--out", str(out), "--init", "nominal",
+                 "--no-blend-output", "--no-precompute", "--projector-intrinsics", "fit"]) == 2
+    assert "triangulated from its own Gray code" in capsys.readouterr().err and not out.exists()

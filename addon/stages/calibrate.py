@@ -457,6 +457,14 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
     captures, previous, own, seconds = run.captures, run.previous, run.report, run.seconds
     pose_iterations, start_label = None, None  # stage A's default for its start
     if "pose" in plan and projector_intrinsics == "fit":
+        if (report.get("surface_report") or {}).get("source") == "graycode":
+            # Triangulated from this Gray code with the given intrinsics, the surface holds nothing those
+            # intrinsics did not put there; a fit against it only trades the focal length against the camera's
+            # lens (on the real board sessions it moved a board-calibrated focal length by 6.5 %).
+            raise CalibrationError("the projector's intrinsics cannot be fitted against a surface triangulated from "
+                                   "its own Gray code with those same intrinsics: give a depth image or a mesh of "
+                                   "the surface (--surface-from depth|mesh), or keep the given intrinsics "
+                                   "(--projector-intrinsics spec)")
         t0 = time.perf_counter()
         say("projector intrinsics: fitting focal length and principal point to the Gray code", 0.1)
         fit = estimate_projector_intrinsics(captures, surface_view(mesh, captures.camera.intrinsics),

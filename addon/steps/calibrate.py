@@ -74,7 +74,8 @@ class CalibrateOptions:
                                               "on a curved or edged surface before finding its pose (kept at the "
                                               "spec where the surface cannot tell, e.g. a flat wall)")),
         help="the projector's focal length and principal point (default spec); fit is refused for a capture set "
-             "of several projectors (not implemented yet)")
+             "of several projectors (not implemented yet) and against a surface triangulated from the Gray code "
+             "(it needs a depth image or a mesh)")
     stage_a: str = option(
         "ours", choices=("ours", "paper"),
         help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the paper's "
