@@ -109,7 +109,7 @@ def test_a_calibration_folder_from_before_the_judged_fit_still_reads(biased, tmp
 
 def test_intrinsics_a_rig_calibration_gave_are_judged_against_its_own_tighter_priors():
     nominal = SimpleNamespace(projector_status="nominal", camera_status="nominal")
-    spec = intrinsics.intrinsic_priors(nominal, 1000.0, 600)  # type: ignore[arg-type]
+    spec = intrinsics.intrinsic_priors(nominal, 1000.0, 600)
     board = intrinsics.intrinsic_priors(SimpleNamespace(projector_status="calibrated", camera_status="calibrated"),
                                         1000.0, 600)
     assert spec == {"projector_focal": 30.0, "projector_cx": 18.0, "projector_cy": 18.0, "camera_focal": 0.02}
