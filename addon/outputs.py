@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -289,15 +290,19 @@ def output_names(paths: "Iterable[str | Path]") -> list[str]:
 
 
 def jsonable(value: Any) -> Any:
-    """Plain JSON types (numpy scalars/arrays become numbers/lists) so manifests are portable."""
+    """Plain JSON types (numpy scalars/arrays become numbers/lists) so manifests are portable: a value that is not
+    a number (NaN, ±inf: a PSNR over no pixels) becomes null, which every JSON reader takes (Python's json writes
+    NaN, which JSON has not, and a browser's or jq's parser refuses the whole file)."""
     if isinstance(value, dict):
         return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return jsonable(value.tolist()) if value.dtype.kind == "f" else value.tolist()
     if isinstance(value, np.generic):
-        return value.item()
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     return value
 
 

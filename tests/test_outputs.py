@@ -22,7 +22,7 @@ from procam.addon.cli.app import main
 from procam.addon.errors import Cancelled, LabError
 from procam.addon.imageio import write_image
 from procam.addon.outputs import (AtomicFolder, OutputError, check_file_replaceable, check_replaceable,
-                                  folder_in_place, hidden_sibling, stale_siblings)
+                                  folder_in_place, hidden_sibling, stale_siblings, write_manifest)
 from procam.addon.steps import layout
 from procam.addon.steps.stage_c import StageC
 
@@ -438,3 +438,14 @@ def test_ctrl_c_during_the_precompute_keeps_the_calibration_without_its_operator
     assert not (out / layout.TRANSPORT_NPZ).exists() and not (out / layout.TRANSPORT_JSON).exists()
     assert transport_step.load(cal, bounces=1, seed=0) is None  # what compensation reads: none stored
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_a_manifest_holds_only_json_a_value_that_is_no_number_is_null(tmp_path):
+    def strict(text: str) -> object:
+        def refuse(name: str) -> object:
+            raise ValueError(f"{name} is not JSON")
+        return json.loads(text, parse_constant=refuse)
+
+    path = write_manifest(tmp_path / "m.json", {"psnr": float("nan"), "seam": np.float32(np.inf), "ok": 1.5,
+                                                 "rows": np.array([1.0, np.nan]), "n": np.int64(3)})
+    assert strict(path.read_text()) == {"psnr": None, "seam": None, "ok": 1.5, "rows": [1.0, None], "n": 3}

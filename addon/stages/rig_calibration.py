@@ -244,7 +244,7 @@ class RigCalibration:
 
         def std(block: dict[str, Any]) -> np.ndarray:
             s = block.get("std", {})
-            return np.array([float(s.get(k, np.nan)) for k in ("fx", "fy", "cx", "cy")])
+            return np.array([np.nan if s.get(k) is None else float(s[k]) for k in ("fx", "fy", "cx", "cy")])
 
         models = {v: k for k, v in DISTORTION_MODELS.items()}
         return RigCalibration(

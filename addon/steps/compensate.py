@@ -254,7 +254,8 @@ def read(folder: str | Path) -> CompensationView:
             frames, inputs = (tuple(inside(folder, p[key], what=f"the {key} image of projector {k + 1} of target "
                                                                  f"{name!r}") for k, p in enumerate(several))
                               for key in ("frame", "input"))
-            out.append(CompensatedTarget(name, image, frame, simulated, float(t.get("psnr_simulated", float("nan"))),
+            psnr = t.get("psnr_simulated")  # null where it was no number
+            out.append(CompensatedTarget(name, image, frame, simulated, float("nan") if psnr is None else float(psnr),
                                          float(t.get("seconds", 0.0)), str(t.get("mode", "")), frames, inputs))
         except (KeyError, TypeError, ValueError) as exc:
             raise ProCamError(f"{path}: a target record is malformed ({exc})") from None
