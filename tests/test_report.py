@@ -210,6 +210,17 @@ def test_several_projectors_each_projector_s_images_are_shown(tmp_path, monkeypa
     assert facts["projector 2 position"].startswith("x 0.400") and posed == [2]
     assert skipped == ["Gray-code coverage not shown: the capture set None is not there"]
     skipped.clear()
+    target = {"name": "t", "status": "done", "psnr": 25.0, "ssim": 0.9, "psnr_overlap": 28.8, "seam_step": 0.02,
+              "overlap_share": 0.2, "area": {"x": 0, "y": 0, "width": 16, "height": 12}, "image": "t_strip.png",
+              "uncompensated": {"psnr": 16.0, "ssim": 0.6, "psnr_overlap": 15.6, "seam_step": 0.015}}
+    _, blocks = reader.evaluation(tmp_path, {"projector_count": 2, "targets": [target],
+                                             "mean": {"psnr_overlap": 28.8, "seam_step": 0.0203},
+                                             "mean_uncompensated": {"psnr_overlap": 15.61, "seam_step": 0.0151}})
+    facts = dict(blocks[0]["items"])
+    assert facts["PSNR inside the overlap (mean)"] == "15.61 dB → 28.80 dB"
+    assert facts["seam step (mean)"].startswith("0.0151 → 0.0203")
+    assert ["t", "20%", "15.60 dB → 28.80 dB", "– → –", "– → –", "0.0150 → 0.0200"] in blocks[2]["rows"]
+    skipped.clear()  # the comparison strip is not in this folder
     frames = {str(n): {"number": n, "status": "done", "file": f"000{n}_p1.png", "psnr_model": 40.0,
                        "projectors": [{"file": f"000{n}_p1.png"}, {"file": f"000{n}_p2.png"}]} for n in (1, 2)}
     _, blocks = reader.show(tmp_path, {"frames": frames, "complete": True, "projector_count": 2})

@@ -275,12 +275,20 @@ class Reader:
     def evaluation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
         blocks: list[Block] = []
         m, u = doc.get("mean") or {}, doc.get("mean_uncompensated") or {}
+        many = int(doc.get("projector_count") or 1) > 1
+        whose = "the projectors' black and white together" if many else "this projector's black and white"
         items = [("device", str(doc.get("device") or "?")),
                  ("mean PSNR", f"{_db(u.get('psnr'))} uncompensated → {_db(m.get('psnr'))} compensated"),
                  ("mean SSIM", f"{fmt(u.get('ssim'), '.3f')} → {fmt(m.get('ssim'), '.3f')}"),
                  ("ceilings (mean)", f"range {_db(doc.get('mean_range_ceiling'))} (the best any input could do with "
-                                     f"this projector's black and white), noise {_db(doc.get('mean_noise_ceiling'))} "
+                                     f"{whose}), noise {_db(doc.get('mean_noise_ceiling'))} "
                                      f"(that, as a capture with the camera's noise scores it)")]
+        if many:  # where the projectors' footprints overlap, and the step across the overlap's border
+            items += [(f"PSNR {where} (mean)", f"{_db(u.get(key))} → {_db(m.get(key))}")
+                      for where, key in (("inside the overlap", "psnr_overlap"), ("outside it", "psnr_outside"),
+                                         ("along its edge", "psnr_border"))]
+            items.append(("seam step (mean)", f"{fmt(u.get('seam_step'), '.4f')} → {fmt(m.get('seam_step'), '.4f')} "
+                                              "(the jump across the overlap's border; lower is smoother)"))
         blocks.append({"type": "facts", "items": items})
         done = [t for t in doc["targets"] if t.get("status") == "done"]
         for t in doc["targets"]:
@@ -293,6 +301,14 @@ class Reader:
         blocks.append({"type": "table", "head": ["target", "PSNR uncomp.", "PSNR comp.", "SSIM uncomp.", "SSIM comp.",
                                                  "range ceiling", "noise ceiling", "gap at input limit"],
                        "rows": rows})
+        if many:
+            blocks.append({"type": "table", "head": ["target", "overlap share", "inside the overlap", "outside it",
+                                                     "along its edge", "seam step"],
+                           "rows": [[t["name"], fmt(t.get("overlap_share"), ".0%"),
+                                     *(f"{_db(t['uncompensated'].get(k))} → {_db(t.get(k))}"
+                                       for k in ("psnr_overlap", "psnr_outside", "psnr_border")),
+                                     f"{fmt(t['uncompensated'].get('seam_step'), '.4f')} → "
+                                     f"{fmt(t.get('seam_step'), '.4f')}"] for t in done]})
         if done:
             blocks.append(_figure(figures.grouped_bars(
                 [t["name"] for t in done],
@@ -301,11 +317,12 @@ class Reader:
                  "noise ceiling": [t.get("noise_ceiling") for t in done],
                  "range ceiling": [t.get("range_ceiling") for t in done]},
                 ylabel="PSNR (dB)", title="each target against its ceilings"),
-                "PSNR of the capture against the target. Range ceiling: the target clipped to what this projector "
-                "can show at each pixel (between its black and its white), the best any input could do; noise "
-                "ceiling: that as the camera's noise lets a capture score it. Gap at input limit: of what separates "
-                "the compensated capture from the range ceiling, the share where the input is already at full or at "
-                "zero, which no solver can push further.", "PSNR per target with its ceilings"))
+                "PSNR of the capture against the target. Range ceiling: the target clipped to what the "
+                f"projector{'s' if many else ''} can show at each pixel (between black and white), the best any "
+                "input could do; noise ceiling: that as the camera's noise lets a capture score it. Gap at input "
+                "limit: of what separates the compensated capture from the range ceiling, the share where the input "
+                "is already at full or at zero, which no solver can push further.", "PSNR per target with its "
+                "ceilings"))
 
         crops: list[tuple[np.ndarray, np.ndarray] | None] = []
         panels = []
