@@ -97,7 +97,7 @@ from . import calibrate as calibrate_step
 from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
 from .projectors import JointStage
-from .show_work import FrameJob, FrameOutcome, compute_frame, compute_joint_frame, source_record
+from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
 from .stage_c import StageC, StageCOptions
 from .summary import Summary, cached, fmt
 
@@ -967,11 +967,8 @@ def _run_frames(todo: list[SourceFrame], frames: list[SourceFrame], folder: Show
             else:
                 start = starts.pop(job.number, None)
             step = lambda msg, frac, i=i: say(msg, (i + min(max(frac, 0.0), 0.999)) / n)  # noqa: E731
-            if isinstance(stage, JointStage):
-                last = compute_joint_frame(stage, job, digits, start, readers=readers, cancel=cancel, progress=step)
-            else:
-                last = compute_frame(stage, job, start[0] if start else None, readers=readers, cancel=cancel,
-                                     progress=step)
+            last = compute_frame(stage, job, start or None, digits=digits, readers=readers, cancel=cancel,
+                                 progress=step)
             record(last)
     finally:
         for r in readers.values():

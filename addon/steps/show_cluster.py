@@ -53,7 +53,7 @@ from ..stages.range import RangeMap
 from ..video import VideoReader
 from . import calibrate as calibrate_step
 from .projectors import JointStage
-from .show_work import FrameJob, FrameOutcome, compute_frame, compute_joint_frame
+from .show_work import FrameJob, FrameOutcome, compute_frame
 from .stage_c import StageC, StageCOptions
 
 
@@ -129,9 +129,7 @@ def remote_frame(ctx: WorkerContext, job: FrameJob, prev: FrameOutcome | list[by
         starts = (prev.pngs or [prev.png]) if prev.png is not None else None  # a failed predecessor: no answer
     else:
         starts = prev
-    if isinstance(stage, JointStage):
-        return compute_joint_frame(stage, job, ctx.digits, starts, readers=_READERS)
-    return compute_frame(stage, job, starts[0] if starts else None, readers=_READERS)
+    return compute_frame(stage, job, starts or None, digits=ctx.digits, readers=_READERS)
 
 
 #: A worker preload (the text of a script, run in each worker process as it starts): its own process group.

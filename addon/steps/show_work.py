@@ -115,13 +115,20 @@ def _load(stage: StageC | JointStage, path: Path, index: int | None, readers: di
     return load_video_frame(reader, index, encoding=stage.options.target_encoding)
 
 
-def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers: dict[Path, VideoReader],
-                  progress: Progress | None = None, cancel: Cancel | None = None) -> FrameOutcome:
-    """Stage C for one frame (module doc). ``start``: the 16-bit PNG bytes of frame ``job.prev`` (None: cold).
-    ``readers``: open video readers to reuse, by path. A target that cannot be read or compensated comes back
-    as an outcome with its error; cancellation and bugs are raised."""
+def compute_frame(stage: StageC | JointStage, job: FrameJob, start: list[bytes] | None, *, digits: int = 4,
+                  readers: dict[Path, VideoReader], progress: Progress | None = None,
+                  cancel: Cancel | None = None) -> FrameOutcome:
+    """Stage C for one frame (module doc), of one projector (:class:`StageC`) or of every projector of a
+    calibration of several at once (:class:`JointStage`, the joint solve). ``start``: the 16-bit PNG bytes of
+    frame ``job.prev``, one per projector (None: cold); frame n starts, per projector, from its own usual start
+    plus frame n−1's answer minus frame n−1's usual start. ``readers``: open video readers to reuse, by path.
+    With several projectors the outcome's ``pngs`` hold each projector's frame (named with ``digits``) and its
+    entry lists them under ``projectors`` (projector 1's also under the one-projector keys, as the compensation
+    folder of several projectors does). A target that cannot be read or compensated comes back as an outcome
+    with its error; cancellation and bugs are raised."""
     say = progress or quiet
     t0 = time.perf_counter()
+    joint = isinstance(stage, JointStage)
     try:
         try:
             source = source_record(job.path)
@@ -130,14 +137,19 @@ def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers:
         img, note = _load(stage, job.path, job.index, readers)
         if job.index is not None:
             source["video_frame"] = job.index + 1
-        z0 = None
+        z0: Any = None
         if start is not None and job.prev_path is not None:
             before, _ = _load(stage, job.prev_path, job.prev_index, readers)
-            z0 = np.clip(stage.initial_input(img) + stage.start_from_frame(decode_png16(start))
-                         - stage.initial_input(before), 0.0, 1.0)
+            if isinstance(stage, JointStage):
+                answers = stage.start_from_frames([decode_png16(b) for b in start])
+                z0 = [np.clip(now + answer - then, 0.0, 1.0) for now, answer, then in
+                      zip(stage.initial_inputs(img), answers, stage.initial_inputs(before))]
+            else:
+                z0 = np.clip(stage.initial_input(img) + stage.start_from_frame(decode_png16(start[0]))
+                             - stage.initial_input(before), 0.0, 1.0)
         done = stage.compensate(img, name=f"frame {job.number}", what=f"target {job.path.name}", cancel=cancel,
                                 progress=say, start=z0)
-        png = encode_png16(done.frame)
+        pngs = [encode_png16(frame) for frame in (done.result.x_frames if joint else [done.frame])]
     except ProCamError as exc:
         return FrameOutcome(job.number, None, {"number": job.number, "source": str(job.path.absolute()),
                                                "status": "failed", "error": str(exc)}, str(exc))
@@ -148,70 +160,21 @@ def compute_frame(stage: StageC, job: FrameJob, start: bytes | None, *, readers:
         # redoes this frame from it too, and the folder ends up as a fresh run's.
         warnings.append(f"computed cold: frame {job.prev} has no answer to start from; it is redone when frame "
                         f"{job.prev} is")
-    entry = {"number": job.number, "file": job.name, **source, "status": "done",
-             "bytes": len(png), "sha256": hashlib.sha256(png).hexdigest(),
-             "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": warnings,
-             "warm_start": job.prev if z0 is not None else None,
-             "warm_start_missing": job.prev if job.prev is not None and z0 is None else None,
-             "psnr_model_start": round(res.report["psnr_simulated_start"], 3),
-             "psnr_model": round(res.report["psnr_simulated"], 3),
-             "loss_first": res.losses[0] if res.losses else None,
-             "loss_last": res.losses[-1] if res.losses else None, "captures": res.captures,
-             "seconds": round(res.seconds, 2), "seconds_total": round(time.perf_counter() - t0, 2)}
-    return FrameOutcome(job.number, png, entry, None, warnings,
-                        {k: a.to_dict() for k, a in stage.areas.items()})
-
-
-def compute_joint_frame(stage: JointStage, job: FrameJob, digits: int, start: list[bytes] | None, *,
-                        readers: dict[Path, VideoReader], progress: Progress | None = None,
-                        cancel: Cancel | None = None) -> FrameOutcome:
-    """:func:`compute_frame` on every projector of a calibration of several at once (the joint solve). ``start``:
-    each projector's 16-bit PNG bytes of frame ``job.prev``; frame n starts, per projector, from its own usual
-    start plus frame n−1's answer minus frame n−1's usual start, as one projector's frames do. The outcome's
-    ``pngs`` hold each projector's frame and its entry lists them under ``projectors`` (projector 1's also under
-    the one-projector keys, as the compensation folder of several projectors does)."""
-    say = progress or quiet
-    t0 = time.perf_counter()
-    try:
-        try:
-            source = source_record(job.path)
-        except OSError as exc:
-            raise ImageError(f"cannot read the target {job.path}: {exc.strerror or exc}") from None
-        img, note = _load(stage, job.path, job.index, readers)
-        if job.index is not None:
-            source["video_frame"] = job.index + 1
-        z0 = None
-        if start is not None and job.prev_path is not None:
-            before, _ = _load(stage, job.prev_path, job.prev_index, readers)
-            answers = stage.start_from_frames([decode_png16(b) for b in start])
-            z0 = [np.clip(now + answer - then, 0.0, 1.0) for now, answer, then in
-                  zip(stage.initial_inputs(img), answers, stage.initial_inputs(before))]
-        done = stage.compensate(img, name=f"frame {job.number}", what=f"target {job.path.name}", cancel=cancel,
-                                progress=say, start=z0)
-        pngs = [encode_png16(frame) for frame in done.result.x_frames]
-    except ProCamError as exc:
-        return FrameOutcome(job.number, None, {"number": job.number, "source": str(job.path.absolute()),
-                                               "status": "failed", "error": str(exc)}, str(exc))
-    res = done.result
-    warnings = list(done.warnings)
-    if job.prev is not None and z0 is None:
-        warnings.append(f"computed cold: frame {job.prev} has no answer to start from; it is redone when frame "
-                        f"{job.prev} is")
     shares = res.report.get("share_of_light") or [None] * len(pngs)
-    projectors = [{"projector": k + 1, "file": projector_frame_name(job.number, digits, k), "bytes": len(png),
-                   "sha256": hashlib.sha256(png).hexdigest(), "share": shares[k]} for k, png in enumerate(pngs)]
-    first = projectors[0]
-    entry = {"number": job.number, "file": first["file"], **source, "status": "done",
-             "bytes": first["bytes"], "sha256": first["sha256"], "projectors": projectors,
+    files = [{"projector": k + 1, "file": projector_frame_name(job.number, digits, k) if joint else job.name,
+              "bytes": len(png), "sha256": hashlib.sha256(png).hexdigest(), "share": shares[k]}
+             for k, png in enumerate(pngs)]
+    entry = {"number": job.number, "file": files[0]["file"], **source, "status": "done",
+             "bytes": files[0]["bytes"], "sha256": files[0]["sha256"], **({"projectors": files} if joint else {}),
              "mode": res.mode, "area": done.area.to_dict(), "encoding": note, "warnings": warnings,
              "warm_start": job.prev if z0 is not None else None,
              "warm_start_missing": job.prev if job.prev is not None and z0 is None else None,
              "psnr_model_start": round(res.report["psnr_simulated_start"], 3),
              "psnr_model": round(res.report["psnr_simulated"], 3),
-             "psnr_model_overlap": res.report.get("psnr_overlap"),
-             "psnr_model_outside": res.report.get("psnr_outside_overlap"),
+             **({"psnr_model_overlap": res.report.get("psnr_overlap"),
+                 "psnr_model_outside": res.report.get("psnr_outside_overlap")} if joint else {}),
              "loss_first": res.losses[0] if res.losses else None,
              "loss_last": res.losses[-1] if res.losses else None, "captures": res.captures,
              "seconds": round(res.seconds, 2), "seconds_total": round(time.perf_counter() - t0, 2)}
     return FrameOutcome(job.number, pngs[0], entry, None, warnings,
-                        {k: a.to_dict() for k, a in stage.areas.items()}, pngs)
+                        {k: a.to_dict() for k, a in stage.areas.items()}, pngs if joint else [])
