@@ -12,7 +12,7 @@ from procam.addon.cli.app import main
 from procam.addon.render.forward import ForwardModel
 from procam.addon.stages.metrics import psnr
 from procam.addon.stages.compensate import CompensationError
-from procam.addon.stages.transport import BlurredRows, build_transport, lens_blur
+from procam.addon.stages.transport import BlurredRows, TransportError, TransportOperator, build_transport, lens_blur
 from procam.addon.steps import calibrate as calibrate_step
 from procam.addon.steps import transport as transport_step
 
@@ -131,6 +131,22 @@ def test_precompute_is_stored_and_checked_against_its_calibration(lab_calibratio
     manifest = mine / "calibration.json"
     manifest.write_text(manifest.read_text().replace('"version"', '"version" ', 1))  # another calibration
     assert transport_step.load(calibrate_step.read(mine), bounces=1, seed=0) is None
+
+
+@pytest.mark.parametrize("damage, says", [
+    (lambda a: a["index"].__setitem__((0, 0), 10 ** 7), "an entry outside the"),
+    (lambda a: a["index"].__setitem__((0, 0), -1), "an entry outside the"),
+    (lambda a: a["weight"].__setitem__((1, 0, 0), np.nan), "no number"),
+    (lambda a: a.__setitem__("weight", a["weight"][:-1]), "entries of shape"),
+    (lambda a: a.__setitem__("indirect", a["indirect"][:1]), "indirect responses of shape"),
+])
+def test_a_damaged_operator_is_refused_before_any_gather_reads_outside_it(operator, damage, says):
+    _, op, _ = operator
+    arrays = {k: np.array(v) for k, v in op.arrays().items()}
+    assert TransportOperator.from_arrays(arrays).camera_size == op.camera_size  # as stored, it reads
+    damage(arrays)
+    with pytest.raises(TransportError, match=says):
+        TransportOperator.from_arrays(arrays)
 
 
 @pytest.mark.parametrize("device", [False, True])

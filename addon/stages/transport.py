@@ -188,14 +188,38 @@ class TransportOperator:
     @staticmethod
     def from_arrays(data: Any, report: dict[str, Any] | None = None) -> "TransportOperator":
         try:
-            return TransportOperator(tuple(int(v) for v in data["camera_size"]),
-                                     tuple(int(v) for v in data["input_size"]),
-                                     np.asarray(data["index"], np.int32), np.asarray(data["weight"], np.float32),
-                                     tuple(int(v) for v in data["blocks"]), np.asarray(data["indirect"], np.float32),
-                                     dict(report or {}))
+            op = TransportOperator(tuple(int(v) for v in data["camera_size"]),
+                                   tuple(int(v) for v in data["input_size"]),
+                                   np.asarray(data["index"], np.int32), np.asarray(data["weight"], np.float32),
+                                   tuple(int(v) for v in data["blocks"]), np.asarray(data["indirect"], np.float32),
+                                   dict(report or {}))
         except (KeyError, ValueError, TypeError) as exc:
             raise TransportError(f"the stored transport operator is incomplete ({exc}); run procam precompute "
                                  "again") from None
+        wrong = op._inconsistency()
+        if wrong:
+            raise TransportError(f"the stored transport operator is damaged ({wrong}); run procam precompute again "
+                                 "with --force")
+        return op
+
+    def _inconsistency(self) -> str:
+        """What in the arrays cannot be an operator ("" when nothing): the gathers index with them unchecked, so an
+        entry outside the input (a damaged or edited file) would read outside the array, and a weight that is no
+        number would spread NaN through every solve."""
+        (cw, ch), (iw, ih), (bx, by) = self.camera_size, self.input_size, self.blocks
+        if min(cw, ch, iw, ih, bx, by) < 1:
+            return "a size or block count below 1"
+        p = cw * ch
+        if self.index.ndim != 2 or self.index.shape[0] != p or self.weight.shape != (*self.index.shape, 3):
+            return f"entries of shape {self.index.shape} and {self.weight.shape} for {p} camera pixels"
+        if self.index.size and (int(self.index.min()) < 0 or int(self.index.max()) >= iw * ih):
+            return f"an entry outside the {iw}×{ih} input"
+        if self.indirect.ndim != 4 or self.indirect.shape[0] != bx * by or self.indirect.shape[3] != 3:
+            return f"indirect responses of shape {self.indirect.shape} for {bx}×{by} blocks"
+        if not (np.isfinite(self.weight).all() and np.isfinite(self.indirect).all()) or float(self.weight.min(
+                initial=0.0)) < 0:
+            return "a weight that is negative or no number"
+        return ""
 
 
 def _taps(n_out: int, n_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
