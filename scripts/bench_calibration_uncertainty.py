@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
           "values covered (judged) | pose covered (judged) | values covered (old σ) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     totals = {"values": [0, 0], "pose": [0, 0], "old": [0, 0]}
-    worst = [0.0, 0.0]
+    worst = [-np.inf, -np.inf]
     lands = []
     t0 = time.perf_counter()
     for surface in args.surfaces.split(","):

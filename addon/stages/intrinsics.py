@@ -498,9 +498,10 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
             # is wrong, and where it is not, fitting the value only imports the depth's systematic errors (which
             # σ bounds but does not remove). That matters most for the principal point: a shift of it and a turn
             # of the projector are nearly one and the same to the Gray code, so a principal point moved by the
-            # depth's errors turns the pose's axis with it (measured on the lab's hedge: a right spec cx moved
-            # 2.2 px, 0.9 σ, by phone depth, and the axis went from 0.25° to 0.32° off where the right spec cy,
-            # fitted alone, brings it to 0.03°). The same two-σ level as every other check here, not a new one.
+            # depth's errors turns the pose's axis with it (measured on the lab's hedge with phone depth 5 mm too
+            # far: the spec's cx was right, the fit moved it 2.2 px, 0.9 σ, and the axis went from 0.26° off with
+            # the spec to 0.32°; with the focal length and cx held, cy alone fitted, 0.02°). The same two-σ level
+            # as every other check here, not a new one.
             z = {n: record[n]["z"] for n in judged if n not in held}
             hold = min(z, key=lambda n: z[n]) if z else None
             if hold is None or z[hold] >= COVER_SIGMAS:
