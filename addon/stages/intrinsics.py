@@ -33,8 +33,9 @@ depth with a bias and a misregistration the fit trades the focal lengths
 against the depth while claiming sub-pixel σ. :func:`judge_fit` therefore
 reports, for each value and the pose, an uncertainty that adds a jackknife over
 blocks of the surface and the depth sensor's own errors, keeps a value at the
-spec where the data do not pin it better than the spec's prior, and keeps the
-fit only where held-out blocks reproject better than with the spec.
+spec where the data do not pin it better than the spec's prior or do not find
+the spec wrong (the fit within two of its σ of it), and keeps the fit only
+where held-out blocks reproject better than with the spec.
 """
 
 from __future__ import annotations
@@ -139,10 +140,12 @@ class IntrinsicsFit:
             if v["kept"] == "spec":
                 why = {"held-out": f"the data pin it to {pinned}, but the fit does not reproject held-out parts of "
                                    "the surface better",
-                       "surface": f"this surface does not determine it (at least {pinned})"}.get(
+                       "surface": f"this surface does not determine it (at least {pinned})",
+                       "agrees": f"the data pin it to {pinned} and put the fit {v.get('z') or 0.0:.1f} σ from it: "
+                                 "no sign it is wrong"}.get(
                     v.get("reason") or "", f"the data pin it only to {pinned}")
                 parts.append(f"{what}: kept the {given}'s {v['spec']:.1f} px "
-                             f"(±{scale * v['prior_std']:.2f}{unit}); {why}")
+                             f"(±{scale * v['std']:.2f}{unit}); {why}")
             else:
                 parts.append(f"{what}: fitted {v['spec']:.1f} → {v['value']:.1f} px "
                              f"±{scale * v['std']:.2f}{unit} (the {given}'s ±{scale * v['prior_std']:.2f}{unit}; "
@@ -456,7 +459,9 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
     misregistration across and down) and when each value held at its spec is wrong by its prior σ. A value whose
     uncertainty is not below its prior (``priors``, in the fit's units) goes back to the spec, the worst first,
     and the rest are fitted again, unless the data contradict the spec (the fit farther from it than
-    :data:`COVER_SIGMAS` of both σ together). Then the fit is kept only when it reprojects the blocks it was not
+    :data:`COVER_SIGMAS` of both σ together). Then a value whose fit lies within :data:`COVER_SIGMAS` of its own
+    σ of the spec goes back to it too, the least significant first: the data do not find that spec wrong.
+    Then the fit is kept only when it reprojects the blocks it was not
     fitted to better than the spec does, by :data:`COVER_SIGMAS` standard errors over the blocks (each half of a
     checkerboard of blocks fitted, the other measured); else the spec stays whole.
     Returns the x and free set kept and the record."""
@@ -470,25 +475,50 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
     cov_first = dict(zip(free.tolist(), first.covariance_std))
     # Every judged value not free is held at its spec, which is wrong by up to its prior σ: that moves the rest.
     x, held = x_fit.copy(), {n: priors[n] for n, i in _INDEX.items() if i not in free}
+    reasons: dict[str, str] = {}  # held value → why: "prior" or "agrees" (the held-out check adds its own below)
     while True:
-        spread = _spread(view, x, steps, free, blocks, errors, {n: priors[n] for n in held})
+        spread = _spread(view, x, steps, free, blocks, errors, held)
         sd = dict(zip(free.tolist(), spread.std()))
         ratios = {n: sd[_INDEX[n]] / priors[n] for n in judged if n not in held}
         for n in list(ratios):
             i = _INDEX[n]
-            record[n] = {"data_std": sd[i]}
+            record[n] = {"data_std": sd[i], "z": float(abs(x[i] - x_nominal[i]) / max(sd[i], 1e-300))}
             # A spec the data contradict (χ²: the fit farther from it than COVER_SIGMAS of the two σ together) is
             # not a prior to fall back to, however loosely the data pin the value: the fit stays.
             if abs(x[i] - x_nominal[i]) > COVER_SIGMAS * np.hypot(sd[i], priors[n]):
                 ratios.pop(n)
                 record[n]["spec_contradicted"] = True
         worst = max(ratios, key=lambda n: ratios[n]) if ratios else None
-        if worst is None or ratios[worst] < 1.0 or not JUDGE:
+        if worst is not None and ratios[worst] >= 1.0:
+            hold, why = worst, "prior"
+        else:
+            # Then the spec is moved only where the data reject it: a value whose fit lies within COVER_SIGMAS of
+            # its own σ of the spec is held there, the least significant first. σ below the prior says the fit
+            # would do better on average over specs as wrong as the prior allows; it is no sign that *this* spec
+            # is wrong, and where it is not, fitting the value only imports the depth's systematic errors (which
+            # σ bounds but does not remove). That matters most for the principal point: a shift of it and a turn
+            # of the projector are nearly one and the same to the Gray code, so a principal point moved by the
+            # depth's errors turns the pose's axis with it (measured on the lab's hedge with phone depth 5 mm too
+            # far: the spec's cx was right, the fit moved it 2.2 px, 0.9 σ, and the axis went from 0.26° off with
+            # the spec to 0.32°; with the focal length and cx held, cy alone fitted, 0.02°). The same two-σ level
+            # as every other check here, not a new one.
+            z = {n: record[n]["z"] for n in judged if n not in held}
+            hold = min(z, key=lambda n: z[n]) if z else None
+            if hold is None or z[hold] >= COVER_SIGMAS:
+                break
+            why = "agrees"
+        if not JUDGE:
             break
-        held[worst] = priors[worst]
+        i = _INDEX[hold]
+        # A spec held because the data agree with it is wrong by no more than the data allow: its error, the truth
+        # taken as the fit ± its σ, is √(Δ² + σ²), below the prior's. Counting the prior's σ instead would move
+        # the values still fitted by a spec error the data rule out, and make them look unpinned.
+        held[hold] = priors[hold] if why == "prior" else min(priors[hold], float(np.hypot(x[i] - x_nominal[i],
+                                                                                          sd[i])))
+        reasons[hold] = why
         x = x.copy()
-        x[_INDEX[worst]] = x_nominal[_INDEX[worst]]
-        free = free[free != _INDEX[worst]]
+        x[_INDEX[hold]] = x_nominal[_INDEX[hold]]
+        free = free[free != _INDEX[hold]]
         x, _, _ = _levenberg_marquardt(view.residuals, x, steps, free)
     fitted = [n for n in judged if n not in held]
     fitted_before = list(fitted)
@@ -537,9 +567,11 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
     for name in judged:
         i = _INDEX[name]
         values[name] = {"kept": "spec" if name in held else "fit", "prior_std": priors[name],
-                        "reason": None if name not in held else "held-out" if name in fitted_before else "prior",
-                        "data_std": record.get(name, {}).get("data_std"), "covariance_std": float(cov_first[i]),
-                        "std": priors[name] if name in held else float(sd[i]),
+                        "reason": None if name not in held else "held-out" if name in fitted_before
+                        else reasons.get(name, "prior"),
+                        "data_std": record.get(name, {}).get("data_std"), "z": record.get(name, {}).get("z"),
+                        "covariance_std": float(cov_first[i]),
+                        "std": held[name] if name in held else float(sd[i]),
                         "value": float(x_nominal[i] if name in held else x[i]), "spec": float(x_nominal[i])}
     doc = {"values": values, "pose": {"position_std_m": pos_std, "axis_std_deg": axis_std},
            "held_out": held_out, "blocks": len(blocks),
