@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -60,6 +61,9 @@ def noise_free_truth(truth: Path, folder: Path) -> Path:
     noise = doc["effects"]["effects"]["noise"]
     noise.update(active=False, strength=0.0, params={k: 0.0 for k in noise.get("params", {})})
     doc["effects"]["active"] = [a for a in doc["effects"]["active"] if a != "noise"]
+    for holder, key in ((doc["effects"], "spec"), (doc, "effects_spec")):
+        if isinstance(holder.get(key), str):  # the spec names the noise too: "…,noise=0.4,…"
+            holder[key] = re.sub(r"(?<![a-z_])noise=[0-9.]+", "noise=0", holder[key])
     mesh = truth.parent / doc["surface"]["mesh"]
     (folder / mesh.name).write_bytes(mesh.read_bytes())
     out = folder / truth.name
