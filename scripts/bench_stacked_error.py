@@ -1,0 +1,161 @@
+#!/usr/bin/env python3
+"""Where the stacked closed loop's error is: frequency band, noise or systematic, the solve or the rig, per projector.
+
+Usage: ``.venv/bin/python scripts/bench_stacked_error.py DIR [--targets forest,city] [--blur SIGMA]
+[--noise-free]``, DIR a folder of ``scripts/bench_projectors.py --parts stacked --work W`` (``W/curve-stacked``:
+``cal``, ``lab.truth.json``, ``targets``).
+
+For each target, the joint closed loop as ``procam compensate`` runs it (``--blur``: each projector's lens blur held
+in the solve, σ texels, as ``--effects defocus`` does), then:
+
+* the capture PSNR after each of the loop's captures;
+* the final frames captured three times: the error against the target split into a low band (Gaussian σ 1.5 camera
+  pixels) and the detail above it, into the camera's noise (the captures' spread) and what is left (systematic), and
+  into the high-gradient fifth of the target and the rest; the solve's own prediction against the target;
+* each projector alone (the other black) against its own operator's prediction: the sub-pixel shift between them
+  (phase correlation of the detail) and the camera-space Gaussian blur that best maps the prediction's detail onto
+  the capture's;
+* the sharpness ceiling: the best the operators show in the box with no θ and no noise, with a lens blur of σ texels
+  held in them (0 the calibrated operators), the most the closed loop could reach if the rig blurred that much.
+
+``--noise-free``: the lab's sensor noise switched off (a copy of the truth in a temporary folder).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_projectors as bench  # noqa: E402
+
+from procam.addon.stages import joint as joint_module  # noqa: E402
+
+BAND = 1.5  # camera pixels: the Gaussian that splits the low band from the detail
+BLURS = (0.0, 0.45, 0.9, 1.0, 1.3)
+
+
+def db(mse: Any) -> float:
+    return 10.0 * float(np.log10(1.0 / max(mse, 1e-12)))
+
+
+def low(x: np.ndarray, sigma: float = BAND) -> np.ndarray:
+    return cv2.GaussianBlur(np.asarray(x, np.float32), (0, 0), sigma)
+
+
+def detail(x: np.ndarray, sigma: float = BAND) -> np.ndarray:
+    g = np.asarray(x, np.float32).mean(axis=2)
+    return g - cv2.GaussianBlur(g, (0, 0), sigma)
+
+
+def noise_free_truth(truth: Path, folder: Path) -> Path:
+    doc = json.loads(truth.read_text())
+    noise = doc["effects"]["effects"]["noise"]
+    noise.update(active=False, strength=0.0, params={k: 0.0 for k in noise.get("params", {})})
+    doc["effects"]["active"] = [a for a in doc["effects"]["active"] if a != "noise"]
+    for holder, key in ((doc["effects"], "spec"), (doc, "effects_spec")):
+        if isinstance(holder.get(key), str):  # the spec names the noise too: "…,noise=0.4,…"
+            holder[key] = re.sub(r"(?<![a-z_])noise=[0-9.]+", "noise=0", holder[key])
+    mesh = truth.parent / doc["surface"]["mesh"]
+    (folder / mesh.name).write_bytes(mesh.read_bytes())
+    out = folder / truth.name
+    out.write_text(json.dumps(doc))
+    return out
+
+
+def shift_and_blur(capture: np.ndarray, prediction: np.ndarray) -> tuple[float, float, float, float]:
+    """(dx, dy) of the capture's detail against the prediction's, the camera-space σ and gain that fit it best."""
+    lit = (prediction.mean(axis=2) > 0.05).astype(np.uint8)
+    mask = cv2.erode(lit, np.ones((11, 11), np.uint8)).astype(bool)
+    a, b = detail(prediction) * mask, detail(capture) * mask
+    (dx, dy), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64))
+    best = (np.inf, 0.0, 0.0)
+    for s in np.arange(0.0, 2.01, 0.1):
+        p = detail(prediction if s == 0 else cv2.GaussianBlur(prediction, (0, 0), float(s)))[mask]
+        g = float(p @ b[mask] / max(float(p @ p), 1e-12))
+        r = float(np.mean((b[mask] - g * p) ** 2))
+        if r < best[0]:
+            best = (r, float(s), g)
+    return float(dx), float(dy), best[1], best[2]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folder", type=Path)
+    ap.add_argument("--targets", default="forest,city")
+    ap.add_argument("--blur", type=float, default=0.0)
+    ap.add_argument("--noise-free", action="store_true")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        truth = args.folder / "lab.truth.json"
+        if args.noise_free:
+            truth = noise_free_truth(truth, Path(tmp))
+        h = bench.Harness(args.folder / "cal", truth, None)
+        try:
+            run(h, args)
+        finally:
+            h.close()
+
+
+def run(h: Any, args: argparse.Namespace) -> None:
+    comps = h.stage.compensators
+    trace: list[float] = []
+    capture = joint_module.JointSolve.capture
+
+    def logged(self: Any, zc: np.ndarray) -> np.ndarray:
+        y = capture(self, zc)
+        trace.append(db(float(np.mean((y - self.target) ** 2))))
+        return y
+
+    joint_module.JointSolve.capture = logged  # type: ignore[method-assign]
+    for name in args.targets.split(","):
+        fitted, area = h.fitted(args.folder / "targets" / f"{name}.png")
+        for c in comps:
+            c.input_blur = args.blur or None
+        trace.clear()
+        res = h.stage.joint.run(fitted, area, device=h.device, **h.options.run_arguments())
+        ys = [area.crop(bench.projectors.project_all(h.device, res.x_frames, h.cam)) for _ in range(3)]
+        y, mean_y, pred = ys[0], np.mean(ys, axis=0), area.crop(res.simulated)
+        e = y - fitted
+        noise = float(np.mean([np.mean((c - mean_y) ** 2) for c in ys])) * 1.5
+        systematic = float(np.mean((mean_y - fitted) ** 2)) - noise / 3
+        sys_e = mean_y - fitted
+        lap = np.abs(cv2.Laplacian(fitted.mean(axis=2), cv2.CV_32F))
+        edges = lap > np.percentile(lap, 80)
+        print(f"\n{name}, blur held {args.blur} texels{', noise-free lab' if args.noise_free else ''}: capture "
+              f"PSNR per capture " + " ".join(f"{p:.2f}" for p in trace))
+        mse = {"all": np.mean(e ** 2), "low": np.mean(low(e) ** 2), "detail": np.mean(detail(e) ** 2),
+               "edges": np.mean(e[edges] ** 2), "rest": np.mean(e[~edges] ** 2)}
+        print(f"  final capture {db(mse['all']):.2f} dB: low band {db(mse['low']):.2f}, detail {db(mse['detail']):.2f}"
+              f"; high-gradient fifth {db(mse['edges']):.2f}, the rest {db(mse['rest']):.2f}")
+        print(f"  noise {db(noise):.2f} dB, systematic {db(systematic):.2f} dB (its low band "
+              f"{db(float(np.mean(low(sys_e) ** 2))):.2f}); the solve's prediction against the target "
+              f"{db(float(np.mean((pred - fitted) ** 2))):.2f}, the capture against the prediction "
+              f"{db(float(np.mean((y - pred) ** 2))):.2f}")
+        black = [np.zeros_like(f) for f in res.x_frames]
+        for k, comp in enumerate(comps):
+            frames = [f if i == k else b for i, (f, b) in enumerate(zip(res.x_frames, black))]
+            alone = np.mean([bench.projectors.project_all(h.device, frames, h.cam) for _ in range(2)], axis=0)
+            predicted = comp.transport.apply(comp.transport_view(area).blur(res.z[k]) if args.blur else res.z[k])
+            dx, dy, sigma, gain = shift_and_blur(alone, predicted)
+            print(f"  projector {k + 1} alone against its operator: shift ({dx:+.3f}, {dy:+.3f}) camera px, "
+                  f"its detail fits the prediction blurred by σ {sigma:.1f} camera px (gain {gain:.2f})")
+        ceiling = []
+        for s in BLURS:
+            for c in comps:
+                c.input_blur = s or None
+            r = h.stage.joint.run(fitted, area, use_bias=False, iterations_z=300, iterations_joint=0, blend="none")
+            ceiling.append(f"σ {s}: {r.report['psnr_simulated']:.2f}")
+        print("  sharpness ceiling (no θ, no noise, 300 iterations): " + ", ".join(ceiling) + " dB", flush=True)
+
+
+if __name__ == "__main__":
+    main()
