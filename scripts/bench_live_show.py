@@ -3,7 +3,7 @@
 
 Usage: ``.venv/bin/python scripts/bench_live_show.py [--parts quality,loop,speed] [--sizes 800x600,1920x1080]
 [--variant llvm_ad_rgb|cuda_ad_rgb] [--scale 1] [--projector-size 1920x1080 --camera-size 1536x864] [--frames 12]
-[--seconds 20] [--work DIR]``
+[--effects defocus --diagnosis DIR] [--seconds 20] [--work DIR]``
 
 With no argument it is the quick run (about five minutes on 2 cores): the lab
 at the demo's resolution (camera 640×480, projector 800×600), its quality and
@@ -16,7 +16,10 @@ a 20 s loop; ``--seconds 60`` gives the 60 s clip's figures.
   ``procam show`` does), every answer captured through the lab: captured PSNR
   inside the display area of both, and flicker (the mean absolute change
   between consecutive captured frames inside the area) against the targets'
-  own; the real-time solve's milliseconds.
+  own; the real-time solve's milliseconds. ``--effects`` (with the ``procam
+  diagnose`` folder of that calibration, ``--diagnosis``) runs both solves with
+  those effect models, as ``procam show --effects`` does; where they hold the
+  projector lens's blur, the real-time solve without it is captured too.
 * **loop** — ``procam live-show`` of that calibration on a projector window
   under Xvfb (open loop), a ``--seconds`` MJPEG clip of the panning picture
   at 30 fps as the source: frames per second of the whole loop, source → flip
@@ -152,8 +155,11 @@ def lab_calibration(work: Path, scale: float, projector_size: str | None = None,
     return cal, truth
 
 
-def quality(cal_dir: Path, truth: Path, frames: int) -> dict[str, Any]:
-    """Real time against the ``transport`` schedule on a panning clip, captured through the lab (module doc)."""
+def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
+            diagnosis: Path | None = None) -> dict[str, Any]:
+    """Real time against the ``transport`` schedule on a panning clip, captured through the lab (module doc); with
+    ``effects`` (``--effects`` of ``procam show``, fitted in ``diagnosis``) both hold them, and where they hold a
+    lens blur the real-time solve is captured once more without it (as before it was held)."""
     cal = calibrate_step.read(cal_dir)
     device = device_pipeline(f"lab:{truth}", cal)
     assert device is not None
@@ -163,15 +169,23 @@ def quality(cal_dir: Path, truth: Path, frames: int) -> dict[str, Any]:
     noise = float("nan")
     theirs: list[float] = []
     solve_ms: list[float] = []
+    unheld: list[float] = []
+    unheld_ms: list[float] = []
     caps: dict[str, list[np.ndarray]] = {"realtime": [], "transport": [], "target": []}
+    blur = None
     try:
-        with StageC(cal, StageCOptions()) as stage:
+        with StageC(cal, StageCOptions(effects=effects, diagnosis=diagnosis)) as stage:
             solver = RealtimeSolver.for_stage(stage)
+            blur = stage.compensator.input_blur
+            plain = RealtimeSolver(stage, solver.inverses, hold_blur=False) if blur else None
             start = None
             for i in range(frames):
                 image = panning(picture, i)
                 fast = solver.solve(image)
                 solve_ms.append(fast.solve_ms)
+                if plain is not None:
+                    other = plain.solve(image)
+                    unheld_ms.append(other.solve_ms)
                 full = stage.compensate(image, name=f"frame {i}", what="frame", start=start, verify=False)
                 start = stage.start_from_frame(full.frame)
                 area = full.area
@@ -182,11 +196,15 @@ def quality(cal_dir: Path, truth: Path, frames: int) -> dict[str, Any]:
                     caps[name].append(cap)
                     (ours if name == "realtime" else theirs).append(psnr(np.clip(cap, 0, 1), target))
                 caps["target"].append(target)
+                if plain is not None:
+                    cap = area.crop(device.project(other.frames[0][..., :3].astype(np.float32) / 255.0))
+                    unheld.append(psnr(np.clip(cap, 0, 1), target))
                 if i == frames - 1:  # the camera's own change: the last frame captured once more
                     again = area.crop(device.project(fast.frames[0][..., :3].astype(np.float32) / 255.0))
                     noise = float(np.mean(np.abs(again - caps["realtime"][-1])))
                 print(f"  frame {i}: realtime {ours[-1]:.2f} dB ({fast.solve_ms:.1f} ms), transport {theirs[-1]:.2f} "
-                      f"dB", flush=True)
+                      f"dB" + (f", realtime without the blur held {unheld[-1]:.2f} dB ({other.solve_ms:.1f} ms)"
+                               if plain is not None else ""), flush=True)
     finally:
         device.close()
 
@@ -194,7 +212,11 @@ def quality(cal_dir: Path, truth: Path, frames: int) -> dict[str, Any]:
         return float(np.mean([np.mean(np.abs(b - a)) for a, b in zip(seq, seq[1:])]))
 
     ms = np.asarray(solve_ms[2:] or solve_ms)  # the first frames build the area's views and compile the kernels
+    held = {} if not unheld else {
+        "psnr_realtime_blur_not_held": round(float(np.mean(unheld)), 2),
+        "solve_ms_median_blur_not_held": round(float(np.median(unheld_ms[2:] or unheld_ms)), 1)}
     return {"camera": f"{cw}x{ch}", "projector": "x".join(map(str, cal.rig.projector.intrinsics.size)),
+            "effects": effects, "input_blur": blur, **held,
             "frames": frames, "psnr_realtime": round(float(np.mean(ours)), 2),
             "psnr_transport": round(float(np.mean(theirs)), 2),
             "flicker_realtime": round(flicker(caps["realtime"]), 4),
@@ -263,6 +285,10 @@ def main() -> None:
     ap.add_argument("--camera-size", default=None, metavar="WxH", help="the lab's camera (quality and loop parts)")
     ap.add_argument("--samples", type=int, default=8, help="the lab's Cycles samples (quality and loop parts)")
     ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--effects", default="none",
+                    help="the quality part's --effects, as procam show takes it (e.g. defocus; needs --diagnosis)")
+    ap.add_argument("--diagnosis", type=Path, default=None,
+                    help="the procam diagnose folder of the lab's calibration, for --effects")
     ap.add_argument("--seconds", type=float, default=20.0, help="clip length of the loop part")
     ap.add_argument("--fps", type=float, default=30.0, help="the clip's frame rate (above 30: the loop's own ceiling)")
     ap.add_argument("--work", type=Path, default=None)
@@ -276,12 +302,15 @@ def main() -> None:
     if parts & {"quality", "loop"}:
         cal_dir, truth = lab_calibration(work, args.scale, args.projector_size, args.camera_size, args.samples)
     if "quality" in parts:
-        row = figures["quality"] = quality(cal_dir, truth, args.frames)
+        row = figures["quality"] = quality(cal_dir, truth, args.frames, args.effects, args.diagnosis)
         print(f"quality {row['projector']} (camera {row['camera']}), {row['frames']} frames of a pan, captured in the "
               f"lab: real time {row['psnr_realtime']} dB, transport schedule {row['psnr_transport']} dB; flicker "
               f"{row['flicker_realtime']} (transport {row['flicker_transport']}, targets {row['flicker_targets']}, the "
               f"camera's noise alone {row['flicker_noise_floor']}); "
-              f"solve {row['solve_ms_median']} ms median, {row['solve_ms_p95']} ms p95", flush=True)
+              f"solve {row['solve_ms_median']} ms median, {row['solve_ms_p95']} ms p95"
+              + (f"; effects {row['effects']} (lens blur σ {row['input_blur']:.2f} texels held; without it "
+                 f"{row['psnr_realtime_blur_not_held']} dB, {row['solve_ms_median_blur_not_held']} ms)"
+                 if "psnr_realtime_blur_not_held" in row else ""), flush=True)
         if row["projector"] == "800x600":
             fps_solve = row["fps_solve"]
     if "loop" in parts:

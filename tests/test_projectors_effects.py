@@ -98,6 +98,17 @@ def test_the_joint_solve_runs_on_the_blurred_operators(rig, tmp_path):
         first, second = (comp.transport_view(area) for comp in stage.compensators)
         assert isinstance(first, BlurredRows) and first.sigma == 0.7 and not isinstance(second, BlurredRows)
         assert stage.effects()["projectors"][1] == {"used": [], "not_inverted": {}, "params": {}, "input_blur": None}
+        # The real-time solve holds the same blur for projector 1 alone, and shows both projectors' frames.
+        from procam.addon.capture.targets import natural_target
+        from procam.addon.steps.realtime import RealtimeSolver
+
+        said: list[str] = []
+        solver = RealtimeSolver.for_stage(stage, progress=lambda msg, frac: said.append(msg))
+        out = solver.solve(natural_target("city", (120, 90)))
+        assert not any("blur" in m for m in said) and len(out.frames) == 2
+        views = solver._plan(out.area).views
+        assert views[0].blur is not None and views[0].blur.sigma == 0.7 and views[1].blur is None
+        assert len(views[0].texels) > len(views[0].view.texels) and all(f[..., :3].max() > 12 for f in out.frames)
 
 
 def test_each_projectors_frame_goes_through_its_own_tone_curve_inverse():

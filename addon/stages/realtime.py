@@ -37,6 +37,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..errors import ProCamError
@@ -49,6 +50,9 @@ FORMAT, VERSION = "procam-inverse", 1
 STENCIL, COUPLING = 1, 4
 #: ridge of the local least squares, relative to each system's mean diagonal
 RIDGE = 1e-3
+#: ridge of the lens blur's one-dimensional regularised inverse (:func:`deblur_taps`): 0.1–0.3 did best on the lab's
+#: curve at 800×600 (σ 0.74 texels, one refinement step; 0.02 and 1.0 were 0.04–0.18 dB lower on the operator)
+DEBLUR_RIDGE = 0.2
 
 
 class InverseError(ProCamError):
@@ -223,6 +227,79 @@ def build_inverse(op: TransportOperator, progress: Progress | None = None) -> Ap
     return inv
 
 
+def gaussian_taps(sigma: float) -> np.ndarray:
+    """The lens blur's one-dimensional Gaussian of ``sigma`` texels, the taps ``lens_blur`` (stage C's ``T B``)
+    blurs with: the blur is separable, ``B = B_y B_x``."""
+    return cv2.getGaussianKernel(int(round(8.0 * float(sigma) + 1.0)) | 1, float(sigma), cv2.CV_32F).ravel()
+
+
+def deblur_taps(sigma: float, ridge: float = DEBLUR_RIDGE) -> np.ndarray:
+    """A one-dimensional regularised inverse ``h`` of :func:`gaussian_taps` with as many taps: ``h`` minimises
+    ``‖g * h − δ‖² + ridge ‖h‖²``, scaled to sum to 1 so a flat input stays flat. ``h ⊗ h`` undoes ``B`` up to the
+    frequencies the ridge gives up (where the blur leaves less than about √ridge of the light), so one separable
+    pass stands for the deblur a solve through ``T B`` would find."""
+    g = gaussian_taps(sigma).astype(np.float64)
+    n = len(g)
+    conv = np.zeros((2 * n - 1, n))
+    for j in range(n):
+        conv[j:j + n, j] = g
+    e = np.zeros(2 * n - 1)
+    e[n - 1] = 1.0
+    h = np.linalg.solve(conv.T @ conv + ridge * np.eye(n), conv.T @ e)
+    return (h / h.sum()).astype(np.float32)
+
+
+class LensBlurBox:
+    """The projector lens's Gaussian blur ``B`` (``sigma`` texels) around the active texels of ``view``: the
+    unknowns of a solve through ``T B`` are the texels of the box that bounds the active ones grown by the blur's
+    reach (every texel whose light the blur carries onto an active one), as an image, row by row and three channels
+    a texel like the compact vector.
+
+    The blur itself is OpenCV's separable filter on that image (zero beyond it, as ``lens_blur``), between Dr.Jit
+    arrays: on the CPU's backend the image is read in place. Why not Dr.Jit gathers, as the operator's own: a
+    gather per tap cost 8–10 ms a pass at 800×600 (the box's 344 000 texels, 7 taps), the filter 2 ms with both
+    copies; the active texels go in and out of the box by one scatter or gather."""
+
+    def __init__(self, view: TransportRows, sigma: float) -> None:
+        self._dr, self._float, self._uint = view._dr, view._float, view._uint
+        self.sigma = float(sigma)
+        iw, ih = view.op.input_size
+        self._g = gaussian_taps(self.sigma)
+        self._h = deblur_taps(self.sigma)
+        r = len(self._g) // 2
+        ty, tx = np.divmod(np.asarray(view.texels, np.int64), iw)
+        x0, y0 = max(int(tx.min(initial=0)) - r, 0), max(int(ty.min(initial=0)) - r, 0)
+        x1, y1 = min(int(tx.max(initial=0)) + r + 1, iw), min(int(ty.max(initial=0)) + r + 1, ih)
+        self.size = (x1 - x0, y1 - y0)
+        bw, bh = self.size
+        by, bx = np.divmod(np.arange(bw * bh, dtype=np.int64), bw)
+        #: the unknowns: the box's texels (flat input indices), row by row
+        self.texels = (by + y0) * iw + bx + x0
+        at = (ty - y0) * bw + (tx - x0)  # each active texel's place in the box
+        self._at3 = self._uint((at[:, None] * 3 + np.arange(3)).ravel().astype(np.uint32))
+
+    def _filter(self, box: Any, taps: np.ndarray) -> Any:
+        bw, bh = self.size
+        image = np.asarray(box, np.float32).reshape(bh, bw, 3)
+        return self._float(cv2.sepFilter2D(image, -1, taps, taps, borderType=cv2.BORDER_CONSTANT).ravel())
+
+    def embed(self, active: Any) -> Any:
+        """The box image (flat) holding the active texels' values ``active`` (compact, flat), zero elsewhere."""
+        bw, bh = self.size
+        out = self._dr.zeros(self._float, bw * bh * 3)
+        self._dr.scatter(out, active, self._at3)
+        return out
+
+    def to_active(self, box: Any) -> Any:
+        """``B z`` on the active texels (compact, flat) of the box image ``z``: the light the lens lets fall there."""
+        return self._dr.gather(self._float, self._filter(box, self._g), self._at3)
+
+    def from_active(self, active: Any, deblur: bool = False) -> Any:
+        """The box image ``B a`` (``Bᵀ = B``: zero borders keep it symmetric) of values ``a`` on the active texels,
+        or with ``deblur`` its regularised inverse ``H a`` (:func:`deblur_taps`)."""
+        return self._filter(self.embed(active), self._h if deblur else self._g)
+
+
 class RealtimeView:
     """The real-time solve (module doc) on one display area of one projector's operator ``view`` (``T`` on the
     area's rows), for the inverse ``inverse`` and the open loop's per-pixel ``gain`` on the rows (None: 1).
@@ -231,11 +308,20 @@ class RealtimeView:
     the solve is a handful of fused kernels on whichever backend the calibration's variant runs (LLVM on the
     CPU's cores, CUDA on a GPU), with no numpy pass over a row or texel in between. The interreflected light is
     computed once a frame, from the previous frame's answer, and held through the refinement step: it is
-    smooth, changes slowly, and is the costliest part of ``T`` (a product with every block's response)."""
+    smooth, changes slowly, and is the costliest part of ``T`` (a product with every block's response).
 
-    def __init__(self, view: TransportRows, inverse: ApproximateInverse, gain: np.ndarray | None = None) -> None:
+    A :class:`~.transport.BlurredRows` view (``T B``, the projector lens's blur that ``--effects defocus`` holds
+    in stage C's solve) is solved through the blur: the one-pass inverse gives the light wanted on the active
+    texels, one separable pass of the blur's regularised inverse (:func:`deblur_taps`) turns it into the input to
+    send on the box around them (:class:`LensBlurBox`), and the refinement steps run on ``T B`` (forward and
+    adjoint through the blur, as stage C's). The interreflection is then taken from the light after the blur."""
+
+    def __init__(self, view: TransportRows | BlurredRows, inverse: ApproximateInverse,
+                 gain: np.ndarray | None = None) -> None:
+        self.blur: LensBlurBox | None = None
         if isinstance(view, BlurredRows):
-            raise InverseError("the real-time solve does not hold a projector lens's blur (T B): solve on T")
+            self.blur = LensBlurBox(view.view, view.sigma)
+            view = view.view
         if not inverse.fits(view.op):
             raise InverseError("the approximate inverse is for another camera or input size than this "
                                "calibration's operator: run procam precompute --live --force")
@@ -272,8 +358,12 @@ class RealtimeView:
         self._gain_np = gain_np
         self.row_sums = dr.maximum(self.gain * fl(np.ascontiguousarray(view.row_ones, np.float32).ravel()), 1e-3)
         col = self._adjoint_direct(self.gain)
+        if self.blur is not None:
+            col = self.blur.from_active(col)
         self.col_sums = dr.maximum(col, 1e-3)
-        self._prev = dr.zeros(fl, len(view.texels) * 3)
+        #: the texels of an answer (:meth:`solve`): the active ones, or with a lens blur the box around them
+        self.texels = view.texels if self.blur is None else self.blur.texels
+        self._prev = dr.zeros(fl, len(view.texels) * 3)  # the light on the active texels of the previous answer
         self._warm = False
         self._ind = dr.zeros(fl, n_rows * 3)
         dr.eval(self.row_sums, self.col_sums, self._prev, self._ind)
@@ -331,9 +421,10 @@ class RealtimeView:
         return dr.block_sum(dr.gather(fl, low, v._low_src) * v._low_w, 4)
 
     def solve(self, target: np.ndarray, theta: np.ndarray | None = None, steps: int = 1) -> Any:
-        """The compact input (a Dr.Jit array, texels × 3 flat) for the rows' ``target`` and θ (the camera sees
-        ``g·T z − θ``): the previous frame's interreflection taken off the light wanted, ``A`` applied and the
-        box clipped, then ``steps`` SIRT steps with that interreflection held."""
+        """The compact input (a Dr.Jit array, :attr:`texels` × 3 flat) for the rows' ``target`` and θ (the camera
+        sees ``g·T z − θ``, or ``g·T B z − θ`` through a lens blur): the previous frame's interreflection taken off
+        the light wanted, ``A`` applied and the box clipped (with a lens blur: its regularised inverse applied and
+        clipped again), then ``steps`` SIRT steps with that interreflection held."""
         dr, fl = self._dr, self._float
         want = fl(np.ascontiguousarray(target if theta is None else target + theta, np.float32).ravel())
         if not self._warm:
@@ -347,20 +438,41 @@ class RealtimeView:
         dr.eval(u)
         zc = dr.clip(self._adjoint_direct(u) * self._inv_c, 0.0, 1.0)
         dr.eval(zc)
-        for _ in range(steps):
-            resid = want - self.gain * (self._direct(zc) + ind)
-            dr.eval(resid)
-            zc = dr.clip(zc + self._adjoint_direct(self.gain * resid / self.row_sums) / self.col_sums, 0.0, 1.0)
+        blur = self.blur
+        light = zc  # the light on the active texels: the input itself without a lens blur
+        if blur is not None:
+            zc = dr.clip(blur.from_active(zc, deblur=True), 0.0, 1.0)
             dr.eval(zc)
-        self._prev = zc
+        for _ in range(steps):
+            light = zc if blur is None else blur.to_active(zc)
+            resid = want - self.gain * (self._direct(light) + ind)
+            dr.eval(resid)
+            step = self._adjoint_direct(self.gain * resid / self.row_sums)
+            if blur is not None:
+                step = blur.from_active(step)
+            zc = dr.clip(zc + step / self.col_sums, 0.0, 1.0)
+            dr.eval(zc)
+        # Through a lens blur the last step's light before its update stands for the answer's (interreflection is
+        # smooth and slow; blurring the answer once more would cost a third of a step).
+        self._prev = zc if blur is None else light
         return zc
 
     def compact(self, zc: Any) -> np.ndarray:
-        """A compact Dr.Jit input as numpy (texels, 3)."""
+        """A compact Dr.Jit input as numpy (:attr:`texels`, 3)."""
         return np.asarray(zc).reshape(-1, 3)
 
+    def expand(self, zc: Any) -> np.ndarray:
+        """The input image (input size, H×W×3) of a compact ``zc``: black beyond :attr:`texels`."""
+        iw, ih = self.view.op.input_size
+        out = np.zeros((ih * iw, 3), np.float32)
+        out[self.texels] = self.compact(zc)
+        return out.reshape(ih, iw, 3)
+
     def light(self, zc: Any) -> np.ndarray:
-        """(R, 3) ``g·T z`` of the compact ``zc`` by the full operator (unclipped)."""
+        """(R, 3) ``g·T z`` (``g·T B z`` through a lens blur) of the compact ``zc`` by the full operator
+        (unclipped)."""
+        if self.blur is not None:
+            return self._gain_np * BlurredRows(self.view, self.blur.sigma).apply_compact(self.expand(zc))
         return self._gain_np * self.view.apply_compact(self.compact(zc))
 
     def predicted(self, zc: Any, theta: np.ndarray | None = None) -> np.ndarray:
@@ -374,9 +486,10 @@ class FrameGather:
     taps (``x = W(z)``), the texels outside ``view.texels`` (black), the frame's placement and the box clip as one
     Dr.Jit gather, instead of expanding, warping and placing in numpy (11 ms of a 36 ms frame at 800×600). Only
     the frame pixels some lit texel reaches are gathered (half of an 800×600 frame on the lab's curve); the rest
-    stay black."""
+    stay black. ``texels``: the texels of the compact inputs (default: the view's active ones; a solve through a lens
+    blur answers on the box around them, :attr:`RealtimeView.texels`)."""
 
-    def __init__(self, view: TransportRows, projector: Any, warp: Any = None) -> None:
+    def __init__(self, view: TransportRows, projector: Any, warp: Any = None, texels: np.ndarray | None = None) -> None:
         self._dr, self._float, self._uint = view._dr, view._float, view._uint
         iw, ih = projector.input_size
         fw, fh = projector.intrinsics.size
@@ -390,7 +503,8 @@ class FrameGather:
             index, weight = bilinear_taps((iw, ih), c[:, 0] + d[:, 0], c[:, 1] + d[:, 1])
             index, weight = index.reshape(len(index), -1), weight.reshape(len(weight), -1)
         where = np.full(n, -1, np.int64)
-        where[np.asarray(view.texels, np.int64)] = np.arange(len(view.texels))
+        texels = np.asarray(view.texels if texels is None else texels, np.int64)
+        where[texels] = np.arange(len(texels))
         pos = where[index]  # (taps, n): compact position of each tap's texel, −1 for a dark texel
         live = (pos >= 0) & (weight > 0)
         lit = np.flatnonzero(live.any(axis=0))  # input texels some lit texel reaches through the warp
@@ -431,4 +545,5 @@ class FrameGather:
         return out.view(np.uint8).reshape(fh, fw, 4)
 
 
-__all__ = ["ApproximateInverse", "FrameGather", "InverseError", "RealtimeView", "build_inverse", "building_bytes"]
+__all__ = ["ApproximateInverse", "FrameGather", "InverseError", "LensBlurBox", "RealtimeView", "build_inverse",
+           "building_bytes", "deblur_taps", "gaussian_taps"]

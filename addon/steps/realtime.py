@@ -6,7 +6,9 @@ projectors), so a live show places, maps (``--range``) and adapts
 (``--effects``) each picture exactly as a show does, and solves it with
 ``stages/realtime.py``: the approximate inverse in one pass, then
 ``refine_steps`` SIRT steps from there, the interreflection taken from the previous frame's answer. A source
-frame becomes every projector's native frame in one call (:meth:`RealtimeSolver.solve`).
+frame becomes every projector's native frame in one call (:meth:`RealtimeSolver.solve`). With ``--effects
+defocus`` each projector's lens blur is held as stage C holds it (``T B``): the one-pass answer is deblurred by
+the blur's regularised inverse and the refinement steps run through the blur.
 
 θ: the open loop's model (from the calibration's validation captures) at the
 start; :meth:`RealtimeSolver.follow` moves it towards the residual of a camera
@@ -34,6 +36,7 @@ import numpy as np
 from ..progress import Progress, quiet
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target
 from ..stages.realtime import ApproximateInverse, FrameGather, InverseError, RealtimeView, build_inverse
+from ..stages.transport import BlurredRows
 from .inverse import check_memory, load_inverse
 from .projectors import JointStage
 from .stage_c import StageC
@@ -83,8 +86,11 @@ class RealtimeSolver:
     the joint solve's on the lab (scripts/bench_live_show.py)."""
 
     def __init__(self, stage: StageC | JointStage, inverses: list[ApproximateInverse | None], *,
-                 refine_steps: int = REFINE_STEPS, progress: Progress | None = None) -> None:
+                 refine_steps: int = REFINE_STEPS, hold_blur: bool = True, progress: Progress | None = None) -> None:
         self.stage, self.inverses, self.refine_steps = stage, inverses, int(refine_steps)
+        #: solve through each projector's lens blur where stage C holds one (``--effects defocus``); off, the blur is
+        #: left out of the solve, as before it was held (the benchmark's comparison)
+        self.hold_blur = bool(hold_blur)
         self.say = progress or quiet
         self._plans: dict[tuple[int, int, int, int], _Plan] = {}
         self.said: list[str] = []
@@ -121,9 +127,6 @@ class RealtimeSolver:
                     "precompute --live stores it once)", 0.0)
                 inv = build_inverse(op, say)
             inverses.append(inv)
-            if comp.input_blur:
-                say(f"warning: {whose}the real-time solve does not hold the projector lens's blur (σ "
-                    f"{comp.input_blur:.2f} texels, --effects defocus); it holds the other effects", 0.0)
         if isinstance(stage, JointStage):
             if stage.biases is None:
                 stage.estimate_bias()
@@ -165,8 +168,12 @@ class RealtimeSolver:
             view = comp.transport.rows(rows, comp.model.variant)
             inverse = self.inverses[k]
             assert inverse is not None
-            views.append(RealtimeView(view, inverse, None if gain is None else gain.reshape(-1, 3)[rows]))
-            gathers.append(FrameGather(view, comp.rig.projector, comp.warp) if adapters[k] is None else None)
+            # --effects defocus: the lens's blur held as stage C holds it (T B), through its own regularised inverse
+            held = BlurredRows(view, comp.input_blur) if comp.input_blur and self.hold_blur else view
+            rv = RealtimeView(held, inverse, None if gain is None else gain.reshape(-1, 3)[rows])
+            views.append(rv)
+            gathers.append(FrameGather(view, comp.rig.projector, comp.warp, rv.texels) if adapters[k] is None
+                           else None)
         plan = self._plans[key] = _Plan(keep, views, gathers, share_rows,
                                         np.asarray(theta, np.float32).reshape(-1, 3)[rows].copy())
         return plan
@@ -206,7 +213,7 @@ class RealtimeSolver:
                 frames[k] = gather.levels(zc)
             else:  # the effect models' projector side works on the input image
                 comp = comps[k]
-                x = comp.warp_w(rv.view.expand(rv.compact(zc), np.zeros((comp.ih, comp.iw, 3), np.float32)))
+                x = comp.warp_w(rv.expand(zc))
                 levels = np.rint(np.clip(adapters[k].frame_to_send(x), 0.0, 1.0) * 255.0).astype(np.uint8)
                 frames[k][..., :3] = levels
         out = RealtimeFrame(frames, (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, inputs)
