@@ -138,7 +138,7 @@ def test_the_projector_whose_tone_curve_alone_predicts_the_held_out_patterns_is_
     verdict = _whose((0.0, 0.6))
     assert (verdict["differs"]["projector"], verdict["differs"]["effect"]) == (2, "response")
     record = verdict["held_out"][0]
-    assert record["alone"][1] > 0.5 > record["alone"][0] and record["short"][1] < 0.06
+    assert record["alone"][1] > 0.5 > record["alone"][0] and record["short"][1] < 0.06 and record["differ"] > 0.06
     both = _whose((0.6, 0.6))
     assert both["differs"] is None and both["headline"] == "The projectors agree: each shows response alike."
 
@@ -147,8 +147,8 @@ def test_a_tone_curve_traded_against_the_cameras_curve_blames_no_other_projector
     """The vedge's figures (lab: camera curve 0.3 on both, S-curve 0.6 on projector 2): fitted beside the camera's
     curve (0.19) on both projectors, projector 1's tone curve was pushed 50 % of its range from none and projector
     2's 19 %, so the parameters blamed projector 1. Held out, projector 1's alone made things worse, projector 2's
-    alone removed 96 % of the error, every projector's 96 %: projector 2 is named, and the room's black level, which
-    every projector's removes clearly more of, on none."""
+    alone removed 96 % of the error, every projector's 96 % (fitted apart, far more than one curve for both): projector
+    2 is named; the black level, which fitted apart removes hardly more than alike, on none."""
     from procam.addon.steps import diagnose as diagnose_step
 
     def gap(gamma: float, contrast: float) -> dict:
@@ -157,15 +157,15 @@ def test_a_tone_curve_traded_against_the_cameras_curve_blames_no_other_projector
 
     by_parameters = diagnose_step.attribute([gap(0.3, 2.0), gap(0.56, 0.53)])
     assert by_parameters["differs"]["projector"] == 1  # what the parameters said
-    whose = [{"effect": "response", "alone": [-0.1884, 0.9565], "every": 0.9619, "short": [1.15, 0.0054]},
-             {"effect": "black_level", "alone": [0.1617, 0.2803], "every": 0.453, "short": [0.29, 0.17]}]
+    whose = [{"effect": "response", "alone": [-0.1884, 0.9565], "every": 0.9619, "differ": 0.9},
+             {"effect": "black_level", "alone": [0.1617, 0.2803], "every": 0.453, "differ": 0.02}]
     verdict = diagnose_step.attribute_held_out(whose, params=by_parameters)
     assert (verdict["differs"]["projector"], verdict["differs"]["effect"]) == (2, "response")
     assert verdict["headline"].startswith("Projector 2 differs from the others by its response")
     assert [j["one_projector"] for j in verdict["held_out"]] == [2, None]
     assert verdict["ranking"] == by_parameters["ranking"]  # the parameters' figures kept for the reader
     # no effect any projector alone explains: the overlaps' vignetting, measured there, is named
-    flat = [{"effect": "black_level", "alone": [0.16, 0.28], "every": 0.45, "short": [0.29, 0.17]}]
+    flat = [{"effect": "black_level", "alone": [0.16, 0.28], "every": 0.45, "differ": 0.02}]
     overlap = diagnose_step.attribute([{"selected": [], "effects": []}] * 2, [0.0, 0.15])
     assert diagnose_step.attribute_held_out(flat, params=overlap)["differs"]["effect"] == "vignetting"
     assert diagnose_step.attribute_held_out(flat)["differs"] is None

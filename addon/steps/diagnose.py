@@ -304,50 +304,52 @@ def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = 
 def attribute_held_out(whose: list[dict[str, Any]], *, min_share: float = MIN_SHARE,
                        params: dict[str, Any] | None = None) -> dict[str, Any]:
     """Which projector differs, and by which effect, from held-out errors (:class:`..gap.shared.WhoseEffect`
-    records: for each projector effect, the share of the held-out error without it that the effect on each
-    projector alone removes, ``alone``, and how far that falls short of the effect on every projector, ``short``).
+    records; every share is of the held-out error the fits leave without the effect).
 
-    An effect is one projector's when its fit on that projector alone removes most, at least ``min_share`` (the
-    selection's bar for adding an effect: it does clearly better than the effect on none), and falls short of
-    the effect on every projector by less than ``min_share`` of the same error (it explains the patterns nearly
-    as well as the effect on all). Of such effects the one that removes most is named. An effect every projector
-    needs (a room's ambient light) is named on none: the effect on all removes clearly more. This compares how
-    well each hypothesis predicts patterns no fit saw, so parameters pushed along a direction the patterns cannot
-    tell apart (a shared camera curve against one projector's tone curve) cannot decide it, as their distance from
-    the other projectors' did (:func:`attribute`). ``params``: :func:`attribute`'s verdict on the same fits, whose
-    ``ranking`` is kept for the reader and whose vignetting measured in the overlaps (judged there, not here)
-    is named when no effect is named here. Returns ``headline``, ``differs`` ({projector (1-based), effect,
-    removes, elsewhere, every} or :func:`attribute`'s), ``held_out`` (each effect's figures, ``one_projector``
-    its verdict), ``ranking`` and ``selected``."""
+    The projectors differ by an effect when fitting it apart on each projector removes at least ``min_share``
+    (the selection's bar for adding an effect) beyond one fit alike for all (``differ``): a room's ambient light
+    that every projector's black level takes up alike is no difference. The projector named is the one whose
+    effect alone removes most (``alone``): with the others at no effect, it is the hypothesis "only this
+    projector has it" that predicts the patterns no fit saw best; where every projector has the effect in some
+    measure (a camera curve no shared effect took, in each projector's tone curve), it is the one that departs
+    furthest from none, measured in error rather than parameters. Of the effects the projectors differ by, the
+    one whose difference removes most is named. This compares how well each hypothesis predicts, so parameters
+    pushed along a direction the patterns cannot tell apart (a shared camera curve against one projector's tone
+    curve) cannot decide it, as their distance from the other projectors' did (:func:`attribute`). ``params``:
+    :func:`attribute`'s verdict on the same fits, whose ``ranking`` is kept for the reader and whose vignetting
+    measured in the overlaps (judged there, not here) is named when no effect is named here. Returns
+    ``headline``, ``differs`` ({projector (1-based), effect, differ, alone, every} or :func:`attribute`'s),
+    ``held_out`` (each effect's figures, ``one_projector`` its verdict), ``ranking`` and ``selected``."""
     judged = []
     for w in whose:
         alone = [float(a) for a in w["alone"]]
         best = int(np.argmax(alone)) if alone else 0
-        one = bool(alone) and not w.get("errors") and alone[best] >= min_share and w["short"][best] < min_share
-        judged.append({**w, "one_projector": best + 1 if one else None})
-    named = sorted((j for j in judged if j["one_projector"] is not None),
-                   key=lambda j: -max(j["alone"]))
+        differ = float(w["differ"])
+        named = bool(alone) and not w.get("errors") and np.isfinite(differ) and differ >= min_share and \
+            alone[best] >= min_share
+        judged.append({**w, "one_projector": best + 1 if named else None})
+    differing = sorted((j for j in judged if j["one_projector"] is not None), key=lambda j: -float(j["differ"]))
     ranking = list((params or {}).get("ranking") or [])
     selected = list(dict.fromkeys([*(j["effect"] for j in judged), *(r["effect"] for r in ranking)]))
     base = {"held_out": judged, "ranking": ranking, "selected": selected}
-    if named:
-        top = named[0]
+    if differing:
+        top = differing[0]
         k = int(top["one_projector"])
         others = [a for i, a in enumerate(top["alone"]) if i != k - 1]
         effect = str(top["effect"]).replace("_", " ")
         elsewhere = (f"on projector {3 - k} alone {others[0]:.0%}" if len(others) == 1 else
                      f"on any other projector alone at most {max(others):.0%}")
-        head = (f"Projector {k} differs from the others by its {effect}: modelled on projector {k} alone it removes "
-                f"{top['alone'][k - 1]:.0%} of the held-out error the shared effects leave ({elsewhere}, on every "
-                f"projector {top['every']:.0%}); see projector_{k}/summary.md for what to do.")
-        differs = {"projector": k, "effect": top["effect"], "removes": top["alone"][k - 1],
-                   "elsewhere": round(max(others), 4) if others else 0.0, "every": top["every"]}
+        head = (f"Projector {k} differs from the others by its {effect}: fitted apart on each projector it removes "
+                f"{top['differ']:.0%} more of the held-out error than alike on all; on projector {k} alone "
+                f"{top['alone'][k - 1]:.0%} ({elsewhere}); see projector_{k}/summary.md for what to do.")
+        differs = {"projector": k, "effect": top["effect"], "differ": top["differ"], "alone": top["alone"][k - 1],
+                   "every": top["every"]}
         return {"headline": head, "differs": differs, **base}
     overlap = next((r for r in ranking if r["effect"] == "vignetting" and r["difference"] >= DIFFERS_BY
                     and all(j["effect"] != "vignetting" for j in judged)), None)
     if overlap is not None:
         return {"headline": _by_parameters(overlap), "differs": overlap, **base}
-    alike = [str(j["effect"]).replace("_", " ") for j in judged if max(j["alone"], default=0.0) >= min_share]
+    alike = [str(j["effect"]).replace("_", " ") for j in judged if float(j["every"]) >= min_share]
     head = ("The projectors agree: " + (f"each shows {', '.join(alike)} alike" if alike else
                                          "none shows an effect the others do not") + ".")
     return {"headline": head, "differs": None, **base}
@@ -443,8 +445,9 @@ def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
     for h in doc.get("held_out") or []:
         alone = ", ".join(f"projector {k + 1} alone {fmt(a, '.0%')}" for k, a in enumerate(h.get("alone") or []))
         whose = f"projector {h['one_projector']}'s" if h.get("one_projector") else "no one projector's"
-        lines.append(f"{h.get('effect')} held out: removes {alone}, every projector {fmt(h.get('every'), '.0%')} of "
-                     f"the error without it: {whose}")
+        lines.append(f"{h.get('effect')} held out: removes {alone}, every projector apart "
+                     f"{fmt(h.get('every'), '.0%')}, alike {fmt(h.get('tied'), '.0%')} of the error without it: "
+                     f"{whose}")
     for r in (doc.get("ranking") or [])[:4]:
         lines.append(f"{r.get('effect')} on projector {r.get('projector')}: fitted {fmt(r.get('difference'), '.0%')} "
                      f"of its range from the others', {fmt(r.get('from_none'), '.0%')} from none")
