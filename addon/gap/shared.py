@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .data import GapData
 from .fit import MIN_SHARE, FIT_PIXELS, greedy_rounds, huber_levenberg_marquardt, huber_rms, _huber_scale, scores
@@ -227,5 +228,97 @@ def attribution_fit(datas: list[GapData], sel: JointSelection) -> JointFit:
     return fit_joint(datas, items, start=start) if own else sel.final
 
 
+@dataclass
+class WhoseEffect:
+    """One projector effect fitted beside the shared effects (and every other projector effect selected, free on
+    every projector) four ways: on no projector (``none``), on projector k alone (``alone[k]``, each in turn), on
+    every projector apart (``every``) and alike on every projector, one parameter vector (``tied``). Which
+    projector's effect it is, is then a comparison of held-out errors, not of fitted parameters: where a shared
+    effect and one projector's trade along a direction the patterns cannot tell apart (a camera curve and a tone
+    curve), the parameters can lie anywhere along it, the error cannot move."""
+
+    name: str
+    none: JointFit
+    alone: list[JointFit]
+    every: JointFit
+    #: one parameter vector for every projector's effect: the effect alike on all
+    tied: JointFit
+
+    def differ(self) -> float:
+        """What the effect fitted apart on each projector removes beyond one fit for all (``tied``), as a share of
+        ``none``'s held-out error (the larger pixel class): whether the projectors differ by it at all."""
+        return self._beyond(self.tied, self.every)
+
+    def _beyond(self, fewer: JointFit, more: JointFit) -> float:
+        # on the scale of what each removes from ``none``, so a small error left after both does not make a small
+        # difference large (the larger of the two pixel classes, as JointFit.share_of)
+        if fewer.error is not None or more.error is not None:
+            return float("nan")
+        shares = [(a - e) / b for b, a, e in zip(self.none.held_mse_classes, fewer.held_mse_classes,
+                                                  more.held_mse_classes) if b > 0]
+        return float(max(shares)) if shares else 0.0
+
+    def short(self, k: int) -> float:
+        """What the effect on every projector removes beyond it on projector ``k`` alone, as a share of ``none``'s
+        held-out error."""
+        return self._beyond(self.alone[k], self.every)
+
+    def record(self) -> dict[str, Any]:
+        """The comparison as ``gap.json`` keeps it: the share of ``none``'s held-out error that the effect on each
+        projector alone removes (``alone``), on every projector (``every``), how far each projector alone falls
+        short of every projector (``short``, :meth:`short`), each fit's held-out RMSE and the fits' seconds."""
+        fits = (self.none, *self.alone, self.every, self.tied)
+        return {"effect": self.name,
+                "alone": [round(f.share_of(self.none), 4) for f in self.alone],
+                "every": round(self.every.share_of(self.none), 4),
+                "tied": round(self.tied.share_of(self.none), 4),
+                "differ": round(self.differ(), 4),
+                "short": [round(self.short(k), 4) for k in range(len(self.alone))],
+                "held_rmse": {"none": round(self.none.held_rmse, 6),
+                              "alone": [round(f.held_rmse, 6) for f in self.alone],
+                              "every": round(self.every.held_rmse, 6), "tied": round(self.tied.held_rmse, 6)},
+                # the held-out MSE of each pixel class (smooth parts, pattern edges): every share above comes from them
+                "mse_classes": {"none": [round(float(v), 8) for v in self.none.held_mse_classes],
+                                "alone": [[round(float(v), 8) for v in f.held_mse_classes] for f in self.alone],
+                                "every": [round(float(v), 8) for v in self.every.held_mse_classes],
+                                "tied": [round(float(v), 8) for v in self.tied.held_mse_classes]},
+                "seconds": round(sum(f.seconds for f in (self.none, *self.alone, self.tied)), 2),
+                "errors": [f.error for f in fits if f.error is not None]}
+
+
+def whose_effects(datas: list[GapData], sel: JointSelection, *, leave_out: tuple[str, ...] = (),
+                  progress: Progress | None = None, cancel: Cancel | None = None
+                  ) -> tuple[JointFit, list[WhoseEffect]]:
+    """:func:`attribution_fit` (every projector effect selected, free on every projector), and for each of those
+    effects but ``leave_out`` a :class:`WhoseEffect`: 1 + E·(N + 2) joint fits for E effects and N projectors.
+
+    Every fit starts where the joint selection ended (an effect it did not select on a projector from the model's
+    start), so no projector's fit starts from a point another fit pushed along a degenerate direction."""
+    report = progress or (lambda msg, frac: None)
+    count = len(datas)
+    every = attribution_fit(datas, sel)
+    own = [n for n in NAMES if any(i.name == n and i.projector is not None for i in sel.selected)]
+    todo = [n for n in own if n not in leave_out]
+    start = {**{Item(n): v for n, v in sel.final.shared.items()},
+             **{Item(n, k): v for k in range(count) for n, v in sel.final.own[k].items()}}
+    out = []
+    for j, name in enumerate(todo):
+        base = tuple(Item(n) for n in sel.shared) + tuple(Item(n, k) for k in range(count) for n in own
+                                                           if n != name)
+        fits = []
+        # on no projector, on each alone, and one vector for all (a projector effect as a shared item)
+        for k in [None, *range(count), -1]:
+            if cancel is not None and cancel():
+                raise Cancelled("diagnosis cancelled")
+            report(f"whose {name.replace('_', ' ')}: " + ("on no projector" if k is None else "alike on every one"
+                                                          if k < 0 else f"on projector {k + 1} alone"),
+                   (j + (0 if k is None else k + 1 if k >= 0 else count + 1) / (count + 2)) / len(todo))
+            items = base if k is None else base + (Item(name, k if k >= 0 else None),)
+            fits.append(fit_joint(datas, items, start={i: v for i, v in start.items() if i in items}))
+        out.append(WhoseEffect(name, fits[0], fits[1:-1], every, fits[-1]))
+    return every, out
+
+
 __all__ = ["CAMERA_EFFECTS", "Item", "JointFit", "JointSelection", "PROJECTOR_EFFECTS", "SHARED_EFFECTS",
-           "SURFACE_EFFECTS", "WHOSE", "attribution_fit", "fit_joint", "pool_of", "select_joint"]
+           "SURFACE_EFFECTS", "WHOSE", "WhoseEffect", "attribution_fit", "fit_joint", "pool_of", "select_joint",
+           "whose_effects"]

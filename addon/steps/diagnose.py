@@ -150,19 +150,24 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
     falloffs = overlap_falloffs(cal, captures)
     joint = joint_effects([d for d in datas if d is not None], docs, options.candidates(),
                           min_share=options.min_share, max_effects=options.max_effects, cancel=cancel,
-                          progress=part(say, 0.98 * (count - 0.5) / count, 0.99, "the camera: ")) \
+                          progress=part(say, 0.98 * (count - 0.5) / count, 0.99, "the camera: "),
+                          falloffs_measured=_measured(falloffs, count)) \
         if all(d is not None for d in datas) else None
     verdict = attribute(docs, falloffs)
-    if joint is not None and joint["shared"]:
-        # the camera's (or surface's) part taken out, each projector's own effects are compared as the joint fit
-        # measured them: a camera curve one projector's diagnosis took for its tone curve is no difference
-        verdict = attribute(joint["attribution_docs"], falloffs)
-        verdict["headline"] = shared_sentence(joint, count) + " " + verdict["headline"]
+    if joint is not None:
+        # the camera's (or surface's) part fitted once, each projector effect is judged by how well it predicts
+        # held-out patterns on one projector alone: a camera curve one projector's diagnosis took for its tone
+        # curve is no difference, nor is a tone curve traded against the camera's along a degenerate direction
+        verdict = attribute_held_out(joint["whose"], min_share=options.min_share,
+                                     params=attribute(joint["attribution_docs"], falloffs))
+        if joint["shared"]:
+            verdict["headline"] = shared_sentence(joint, count) + " " + verdict["headline"]
     doc = {"format": KIND.format, "version": KIND.version, "source": str(Path(options.calibration).absolute()),
            # which calibration the effects were fitted on: compensation with them refuses another
            "calibration_sha256": calibrate_step.identity(options.calibration)["sha256"],
            "projector_count": count, **verdict, "overlap_vignetting": falloffs,
-           "joint": None if joint is None else {k: v for k, v in joint.items() if k != "attribution_docs"},
+           "joint": None if joint is None else {k: v for k, v in joint.items()
+                                                if k not in ("attribution_docs", "whose")},
            "projectors": [{"folder": projector_folder(k), "headline": d.get("headline"),
                            "selected": d.get("selected") or [], "residual": d.get("residual"),
                            "residual_after": d.get("residual_after")} for k, d in enumerate(docs)]}
@@ -188,14 +193,17 @@ SHARED_LEFT_OUT = {
 
 
 def joint_effects(datas: list[Any], docs: list[dict[str, Any]], candidates: tuple[str, ...], *, min_share: float,
-                  max_effects: int, progress: Progress, cancel: Cancel | None) -> dict[str, Any]:
+                  max_effects: int, progress: Progress, cancel: Cancel | None,
+                  falloffs_measured: bool = False) -> dict[str, Any]:
     """The camera's and the surface's effects fitted once on every projector's patterns, each projector's own
     beside them (:mod:`..gap.shared`): what was selected, the parameters, what ``--effects auto`` inverts, and
     each projector's own effects as a diagnosis document (for :func:`attribute`)."""
     pool = shared.pool_of(docs, candidates, min_share)
     sel = shared.select_joint(datas, pool, min_share=min_share, max_effects=max_effects, progress=progress,
                               cancel=cancel)
-    fit = shared.attribution_fit(datas, sel) if sel.shared else sel.final
+    # the vignetting is judged in the overlaps where they measure it (calibration took it into the albedo)
+    fit, whose = shared.whose_effects(datas, sel, leave_out=("vignetting",) if falloffs_measured else (),
+                                      cancel=cancel)
     final = sel.final
     params = {n: describe_params(n, v) for n, v in final.shared.items()}
     own = [{n: describe_params(n, v) for n, v in final.own[k].items()} for k in range(len(datas))]
@@ -212,7 +220,7 @@ def joint_effects(datas: list[Any], docs: list[dict[str, Any]], candidates: tupl
                              "projectors": [{n: v for n, v in own[k].items() if n not in HELD_BY_STAGE_C}
                                             for k in range(len(datas))],
                              "left_out": {n: SHARED_LEFT_OUT[n] for n in sel.shared if n in SHARED_LEFT_OUT}},
-            "attribution_docs": attribution_docs}
+            "whose": [w.record() for w in whose], "attribution_docs": attribution_docs}
 
 
 def shared_sentence(joint: dict[str, Any], count: int) -> str:
@@ -238,6 +246,17 @@ def _fitted(doc: dict[str, Any]) -> dict[str, np.ndarray]:
     return out
 
 
+def _measured(falloffs: list[float | None] | None, count: int) -> bool:
+    """Whether the overlaps measured every projector's vignetting (:func:`..gap.overlap.overlap_falloffs`)."""
+    return falloffs is not None and len(falloffs) == count and all(f is not None for f in falloffs)
+
+
+def _by_parameters(top: dict[str, Any]) -> str:
+    return (f"Projector {top['projector']} differs from the others by its {top['effect'].replace('_', ' ')}: "
+            f"its fitted parameters lie {top['difference']:.0%} of their range from the others'; see "
+            f"projector_{top['projector']}/summary.md for what to do.")
+
+
 def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = None) -> dict[str, Any]:
     """Which projector differs, and by which effect, from each projector's own diagnosis.
 
@@ -254,7 +273,7 @@ def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = 
     calibration took the falloff into the albedo."""
     fitted = [_fitted(d) for d in docs]
     names = {str(n) for d in docs for n in d.get("selected") or [] if n in PROJECTOR_EFFECTS}
-    if falloffs is not None and len(falloffs) == len(docs) and all(f is not None for f in falloffs):
+    if falloffs is not None and _measured(falloffs, len(docs)):
         for f, fit in zip(falloffs, fitted):
             fit["vignetting"] = np.array([float(f), 2.0])
         names.add("vignetting")
@@ -273,15 +292,73 @@ def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = 
     ranking.sort(key=lambda r: (-r["difference"], -r["from_none"]))
     top = ranking[0] if ranking and ranking[0]["difference"] >= DIFFERS_BY else None
     if top is not None:
-        head = (f"Projector {top['projector']} differs from the others by its {top['effect'].replace('_', ' ')}: "
-                f"its fitted parameters lie {top['difference']:.0%} of their range from the others'; see "
-                f"projector_{top['projector']}/summary.md for what to do.")
+        head = _by_parameters(top)
     else:
         shared = sorted({str(r["effect"]) for r in ranking})
         head = ("The projectors agree: " + (f"each shows {', '.join(shared)} alike" if shared else
                                              "none shows an effect the others do not") + ".")
     return {"headline": head, "differs": top, "ranking": ranking,
             "selected": list(dict.fromkeys(r["effect"] for r in ranking))}
+
+
+def attribute_held_out(whose: list[dict[str, Any]], *, min_share: float = MIN_SHARE,
+                       params: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Which projector differs, and by which effect, from held-out errors (:class:`..gap.shared.WhoseEffect`
+    records; every share is of the held-out error the fits leave without the effect).
+
+    The projectors differ by an effect when fitting it apart on each projector removes at least ``min_share``
+    (the selection's bar for adding an effect) beyond one fit alike for all (``differ``): a room's ambient light
+    that every projector's black level takes up alike is no difference. The projector named is the one whose
+    effect alone removes most (``alone``): with the others at no effect, it is the hypothesis "only this
+    projector has it" that predicts the patterns no fit saw best; where every projector has the effect in some
+    measure (a camera curve no shared effect took, in each projector's tone curve), it is the one that departs
+    furthest from none, measured in error rather than parameters. A difference is named only when the fitted
+    parameters also lie at least :data:`DIFFERS_BY` of their range apart (``params``' ranking): the held-out
+    shares are of the error the last fits leave, where a negligible effect can pass the bar. Of the effects the
+    projectors differ by, the one whose difference removes most is named. Who differs is decided by how well
+    each hypothesis predicts, so parameters pushed along a direction the patterns cannot tell apart (a shared
+    camera curve against one projector's tone curve) cannot name the wrong projector, as their distance from the
+    other projectors' did (:func:`attribute`). ``params``:
+    :func:`attribute`'s verdict on the same fits, whose ``ranking`` is kept for the reader and whose vignetting
+    measured in the overlaps (judged there, not here) is named when no effect is named here. Returns
+    ``headline``, ``differs`` ({projector (1-based), effect, differ, alone, every} or :func:`attribute`'s),
+    ``held_out`` (each effect's figures, ``one_projector`` its verdict), ``ranking`` and ``selected``."""
+    ranking = list((params or {}).get("ranking") or [])
+    judged = []
+    for w in whose:
+        alone = [float(a) for a in w["alone"]]
+        best = int(np.argmax(alone)) if alone else 0
+        differ = float(w["differ"])
+        # how far apart the fitted parameters lie decides nothing here, but a difference must be that large to be
+        # named at all: a black level of −0.15 % on one projector removed 7 % of the last error left
+        apart = max((float(r["difference"]) for r in ranking if r["effect"] == w["effect"]), default=None)
+        named = bool(alone) and not w.get("errors") and np.isfinite(differ) and differ >= min_share and \
+            alone[best] >= min_share and (apart is None or apart >= DIFFERS_BY)
+        judged.append({**w, "one_projector": best + 1 if named else None, "parameters_apart": apart})
+    differing = sorted((j for j in judged if j["one_projector"] is not None), key=lambda j: -float(j["differ"]))
+    selected = list(dict.fromkeys([*(j["effect"] for j in judged), *(r["effect"] for r in ranking)]))
+    base = {"held_out": judged, "ranking": ranking, "selected": selected}
+    if differing:
+        top = differing[0]
+        k = int(top["one_projector"])
+        others = [a for i, a in enumerate(top["alone"]) if i != k - 1]
+        effect = str(top["effect"]).replace("_", " ")
+        elsewhere = (f"on projector {3 - k} alone {others[0]:.0%}" if len(others) == 1 else
+                     f"on any other projector alone at most {max(others):.0%}")
+        head = (f"Projector {k} differs from the others by its {effect}: fitted apart on each projector it removes "
+                f"{top['differ']:.0%} more of the held-out error than alike on all; on projector {k} alone "
+                f"{top['alone'][k - 1]:.0%} ({elsewhere}); see projector_{k}/summary.md for what to do.")
+        differs = {"projector": k, "effect": top["effect"], "differ": top["differ"], "alone": top["alone"][k - 1],
+                   "every": top["every"]}
+        return {"headline": head, "differs": differs, **base}
+    overlap = next((r for r in ranking if r["effect"] == "vignetting" and r["difference"] >= DIFFERS_BY
+                    and all(j["effect"] != "vignetting" for j in judged)), None)
+    if overlap is not None:
+        return {"headline": _by_parameters(overlap), "differs": overlap, **base}
+    alike = [str(j["effect"]).replace("_", " ") for j in judged if float(j["every"]) >= min_share]
+    head = ("The projectors agree: " + (f"each shows {', '.join(alike)} alike" if alike else
+                                         "none shows an effect the others do not") + ".")
+    return {"headline": head, "differs": None, **base}
 
 
 @dataclass
@@ -371,6 +448,12 @@ def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
         lines.append(f"projector {k + 1}: residual RMSE {fmt(res.get('rmse'), '.4f')} → "
                      f"{fmt(after.get('rmse'), '.4f')}, selected {', '.join(p.get('selected') or []) or 'none'}; "
                      f"{p.get('headline', '')}")
+    for h in doc.get("held_out") or []:
+        alone = ", ".join(f"projector {k + 1} alone {fmt(a, '.0%')}" for k, a in enumerate(h.get("alone") or []))
+        whose = f"projector {h['one_projector']}'s" if h.get("one_projector") else "no one projector's"
+        lines.append(f"{h.get('effect')} held out: removes {alone}, every projector apart "
+                     f"{fmt(h.get('every'), '.0%')}, alike {fmt(h.get('tied'), '.0%')} of the error without it: "
+                     f"{whose}")
     for r in (doc.get("ranking") or [])[:4]:
         lines.append(f"{r.get('effect')} on projector {r.get('projector')}: fitted {fmt(r.get('difference'), '.0%')} "
                      f"of its range from the others', {fmt(r.get('from_none'), '.0%')} from none")
