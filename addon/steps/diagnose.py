@@ -273,7 +273,7 @@ def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = 
     calibration took the falloff into the albedo."""
     fitted = [_fitted(d) for d in docs]
     names = {str(n) for d in docs for n in d.get("selected") or [] if n in PROJECTOR_EFFECTS}
-    if falloffs is not None and _measured(falloffs, len(docs)):
+    if _measured(falloffs, len(docs)):
         for f, fit in zip(falloffs, fitted):
             fit["vignetting"] = np.array([float(f), 2.0])
         names.add("vignetting")
