@@ -62,6 +62,15 @@ def test_precompute_live_stores_the_inverse_of_this_calibration_only(calibration
     (other / "inverse.json").write_text(json.dumps({**doc, **inverse_step._record(other, cal, 1, 0)}))
     with pytest.raises(InverseError, match="precompute .* --live --force"):
         inverse_step.load_inverse(calibrate_step.read(other), op, bounces=1, seed=0)
+    # So is one whose weights are no number: a NaN would spread into every live frame.
+    with np.load(calibration / "inverse.npz") as stored:
+        arrays = {k: stored[k] for k in stored.files}
+    arrays["weight"] = arrays["weight"].copy()
+    arrays["weight"].flat[7] = np.nan
+    np.savez(other / "inverse.npz", **arrays)
+    (other / "inverse.json").write_text(json.dumps({**doc, **inverse_step._record(other, cal, 1, 0)}))
+    with pytest.raises(InverseError, match="no number.*--live --force"):
+        inverse_step.load_inverse(calibrate_step.read(other), op, bounces=1, seed=0)
 
 
 def test_realtime_solve_is_within_half_a_db_of_the_full_transport_solve(calibration):

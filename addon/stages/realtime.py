@@ -105,6 +105,9 @@ class ApproximateInverse:
         if inv.weight.shape != (cw * ch, (2 * STENCIL + 1) ** 2, 3):
             raise InverseError("the stored approximate inverse has the wrong shape; run procam precompute --live "
                                "--force")
+        if not np.all(np.isfinite(inv.weight)):  # one NaN weight would spread into every live frame it touches
+            raise InverseError("the stored approximate inverse holds weights that are no number; run procam "
+                               "precompute --live --force")
         return inv
 
     def fits(self, op: TransportOperator) -> bool:
