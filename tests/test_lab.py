@@ -231,6 +231,18 @@ def test_same_seed_same_captures_other_seed_other_noise(base, frames):
     np.testing.assert_array_equal(lab_depth(truth)[0], lab_depth(truth)[0])
 
 
+def test_repeated_draws_capture_a_frame_shown_twice_alike(base, frames):
+    """``repeat_draws``: every shot draws the first one's samples and sensor noise, so the same frame gives the same
+    capture (the flicker benchmark's camera without noise of its own); a device without it draws afresh."""
+    truth = replace(base, effects=parse_effects("realistic"))
+    with LabDevice(truth, repeat_draws=True) as device:
+        first, again = device.project(frames["grey"]), device.project(frames["grey"])
+        assert device.shots == 2
+    np.testing.assert_array_equal(first, again)
+    with LabDevice(truth) as device:
+        assert not np.array_equal(device.project(frames["grey"]), device.project(frames["grey"]))
+
+
 def test_device_renders_in_its_own_scene_and_cleans_up(base, frames):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     user = bpy.context.scene

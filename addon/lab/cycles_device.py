@@ -76,11 +76,15 @@ class LabDevice(Device):
     frames. ``samples`` (default: the truth's) is the Cycles samples per pixel
     and may be changed between shots. Close the device (or use it as a context
     manager) to remove its scratch scene. ``first_shot``: the number of its first shot (a device opened for one
-    shot of a longer series draws that shot's randomness).
+    shot of a longer series draws that shot's randomness). ``repeat_draws``: every shot draws the first shot's
+    randomness (Cycles' sampling and the sensor's), so a frame shown twice is captured twice alike and two frames'
+    captures differ by what the frames change, not by fresh noise (common random numbers: the flicker of a clip
+    without the camera's own, scripts/bench_live_show.py; take ``noise`` out of the effects too, as Poisson draws
+    follow the signal).
     """
 
     def __init__(self, truth: LabTruth, *, samples: int | None = None, seed: int | None = None,
-                 supersample: int = 1, first_shot: int = 0) -> None:
+                 supersample: int = 1, first_shot: int = 0, repeat_draws: bool = False) -> None:
         self.truth = truth
         self.projector = truth.rig.projector
         self._projectors = truth.rig.projectors
@@ -91,6 +95,7 @@ class LabDevice(Device):
         self.seed = _whole(truth.seed if seed is None else seed, "the seed", 0)
         self._settings = render_settings(truth.effects, self.camera.intrinsics)
         self._shots = _whole(first_shot, "the first shot's number", 0)  # a device per shot (lab/shoot.py) numbers on
+        self._first_shot, self.repeat_draws = self._shots, bool(repeat_draws)
         # Lens distortion resamples the image, so render a margin around it (same focal length).
         render_k = camera_render_intrinsics(truth.effects, self.camera.intrinsics)
         # Supersampling renders finer pixels for the lens to resample (apply_camera's doc).
@@ -191,7 +196,7 @@ class LabDevice(Device):
     def _render(self, room_light: float = 0.0) -> np.ndarray:
         self._check_open()
         self._place_surface()
-        k = self._shots
+        k = self._first_shot if self.repeat_draws else self._shots
         self._shots += 1
         seed = int(np.random.SeedSequence([self.seed, k]).generate_state(1)[0]) % _SEED_RANGE
         bounces = self.bounces
