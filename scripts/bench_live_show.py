@@ -16,7 +16,14 @@ a 20 s loop; ``--seconds 60`` gives the 60 s clip's figures.
   ``procam show`` does), every answer captured through the lab: captured PSNR
   inside the display area of both, and flicker (the mean absolute change
   between consecutive captured frames inside the area) against the targets'
-  own; the real-time solve's milliseconds. ``--effects`` (with the ``procam
+  own; the real-time solve's milliseconds. The lab's camera adds fresh noise
+  to every capture (the same frame captured twice differs by about as much
+  as two frames of the pan), so every frame is captured a second time through
+  the same lab without the camera's noise (sensor noise off, every shot
+  drawing Cycles' first shot's samples: :class:`LabDevice`'s
+  ``repeat_draws``): flicker and PSNR of those noise-free captures, and the
+  flicker of the error (the mean absolute change of capture − target between
+  consecutive frames: what changes beyond the content's own motion). ``--effects`` (with the ``procam
   diagnose`` folder of that calibration, ``--diagnosis``) runs both solves with
   those effect models, as ``procam show --effects`` does; where they hold the
   projector lens's blur, the real-time solve without it is captured too.
@@ -133,6 +140,29 @@ def speed(size: tuple[int, int], variant: str | None, frames: int) -> dict[str, 
             "fps_solve": round(1000 / float(np.median(ms)), 1)}
 
 
+def flicker(seq: list[np.ndarray]) -> float:
+    """The mean absolute change between consecutive images of ``seq`` (all pixels and channels), averaged over the
+    pairs."""
+    return float(np.mean([np.mean(np.abs(b - a)) for a, b in zip(seq, seq[1:])]))
+
+
+def error_flicker(captures: list[np.ndarray], targets: list[np.ndarray]) -> float:
+    """:func:`flicker` of the errors ``capture − target``: the change between consecutive frames beyond the
+    targets' own (a capture that moves exactly as its target, offset or not, has none)."""
+    return flicker([c - t for c, t in zip(captures, targets)])
+
+
+def noise_free_device(truth: Path, cal: Calibration) -> Any:
+    """The lab of ``truth`` through ``cal``'s device pipeline without the camera's noise: sensor noise off and
+    every shot drawing the first shot's Cycles samples, so two captures differ only where their frames do."""
+    from procam.addon.lab.cycles_device import LabDevice  # bpy
+    from procam.addon.lab.truth import LabTruth
+
+    sealed = LabTruth.load(truth)
+    quiet = LabDevice(replace(sealed, effects=sealed.effects.with_effect("noise", 0.0)), repeat_draws=True)
+    return device_pipeline(f"lab:{truth}", cal, device=quiet)
+
+
 def step(args: list[str], done: Path) -> None:
     """``procam ARGS`` unless ``done`` exists (``--work`` reuses what an earlier run made)."""
     if done.exists():
@@ -163,6 +193,7 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
     cal = calibrate_step.read(cal_dir)
     device = device_pipeline(f"lab:{truth}", cal)
     assert device is not None
+    quiet = noise_free_device(truth, cal)
     cw, ch = cal.rig.camera.intrinsics.size
     picture = picture_of(round(1.25 * cw), round(1.25 * ch))
     ours: list[float] = []
@@ -171,7 +202,10 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
     solve_ms: list[float] = []
     unheld: list[float] = []
     unheld_ms: list[float] = []
-    caps: dict[str, list[np.ndarray]] = {"realtime": [], "transport": [], "target": []}
+    caps: dict[str, list[np.ndarray]] = {"realtime": [], "transport": [], "target": [],
+                                         "realtime_noise_free": [], "transport_noise_free": []}
+    clean: dict[str, list[float]] = {"realtime": [], "transport": []}
+    clean_noise = float("nan")
     blur = None
     try:
         with StageC(cal, StageCOptions(effects=effects, diagnosis=diagnosis)) as stage:
@@ -195,6 +229,9 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
                     cap = area.crop(device.project(frame))
                     caps[name].append(cap)
                     (ours if name == "realtime" else theirs).append(psnr(np.clip(cap, 0, 1), target))
+                    cap = area.crop(quiet.project(frame))
+                    caps[f"{name}_noise_free"].append(cap)
+                    clean[name].append(psnr(np.clip(cap, 0, 1), target))
                 caps["target"].append(target)
                 if plain is not None:
                     cap = area.crop(device.project(other.frames[0][..., :3].astype(np.float32) / 255.0))
@@ -202,14 +239,14 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
                 if i == frames - 1:  # the camera's own change: the last frame captured once more
                     again = area.crop(device.project(fast.frames[0][..., :3].astype(np.float32) / 255.0))
                     noise = float(np.mean(np.abs(again - caps["realtime"][-1])))
+                    again = area.crop(quiet.project(fast.frames[0][..., :3].astype(np.float32) / 255.0))
+                    clean_noise = float(np.mean(np.abs(again - caps["realtime_noise_free"][-1])))
                 print(f"  frame {i}: realtime {ours[-1]:.2f} dB ({fast.solve_ms:.1f} ms), transport {theirs[-1]:.2f} "
                       f"dB" + (f", realtime without the blur held {unheld[-1]:.2f} dB ({other.solve_ms:.1f} ms)"
                                if plain is not None else ""), flush=True)
     finally:
         device.close()
-
-    def flicker(seq: list[np.ndarray]) -> float:
-        return float(np.mean([np.mean(np.abs(b - a)) for a, b in zip(seq, seq[1:])]))
+        quiet.close()
 
     ms = np.asarray(solve_ms[2:] or solve_ms)  # the first frames build the area's views and compile the kernels
     held = {} if not unheld else {
@@ -222,6 +259,13 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
             "flicker_realtime": round(flicker(caps["realtime"]), 4),
             "flicker_transport": round(flicker(caps["transport"]), 4),
             "flicker_targets": round(flicker(caps["target"]), 4), "flicker_noise_floor": round(noise, 4),
+            "psnr_realtime_noise_free": round(float(np.mean(clean["realtime"])), 2),
+            "psnr_transport_noise_free": round(float(np.mean(clean["transport"])), 2),
+            "flicker_realtime_noise_free": round(flicker(caps["realtime_noise_free"]), 4),
+            "flicker_transport_noise_free": round(flicker(caps["transport_noise_free"]), 4),
+            "flicker_noise_floor_noise_free": round(clean_noise, 4),
+            "error_flicker_realtime": round(error_flicker(caps["realtime_noise_free"], caps["target"]), 4),
+            "error_flicker_transport": round(error_flicker(caps["transport_noise_free"], caps["target"]), 4),
             "solve_ms_median": round(float(np.median(ms)), 1), "solve_ms_p95": round(float(np.percentile(ms, 95)), 1),
             "fps_solve": round(1000.0 / float(np.median(ms)), 1)}
 
@@ -306,7 +350,11 @@ def main() -> None:
         print(f"quality {row['projector']} (camera {row['camera']}), {row['frames']} frames of a pan, captured in the "
               f"lab: real time {row['psnr_realtime']} dB, transport schedule {row['psnr_transport']} dB; flicker "
               f"{row['flicker_realtime']} (transport {row['flicker_transport']}, targets {row['flicker_targets']}, the "
-              f"camera's noise alone {row['flicker_noise_floor']}); "
+              f"camera's noise alone {row['flicker_noise_floor']}); without the camera's noise: "
+              f"{row['psnr_realtime_noise_free']} dB and {row['psnr_transport_noise_free']} dB, flicker "
+              f"{row['flicker_realtime_noise_free']} (transport {row['flicker_transport_noise_free']}, targets "
+              f"{row['flicker_targets']}, the same frame twice {row['flicker_noise_floor_noise_free']}), the error's "
+              f"flicker {row['error_flicker_realtime']} (transport {row['error_flicker_transport']}); "
               f"solve {row['solve_ms_median']} ms median, {row['solve_ms_p95']} ms p95"
               + (f"; effects {row['effects']} (lens blur σ {row['input_blur']:.2f} texels held; without it "
                  f"{row['psnr_realtime_blur_not_held']} dB, {row['solve_ms_median_blur_not_held']} ms)"

@@ -241,3 +241,34 @@ def test_a_defocused_projector_is_closer_to_the_target_in_real_time_with_its_blu
         device.close()
     # Measured: 26.17 dB held against 25.33 without.
     assert seen["held"] > seen["plain"] + 0.4, seen
+
+
+def _bench_live_show():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "procam_bench_live_show", Path(__file__).resolve().parents[1] / "scripts" / "bench_live_show.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    return bench
+
+
+def test_the_benchmarks_error_flicker_counts_change_beyond_the_targets_own():
+    """The live benchmark's flicker measures on a synthetic pan: a capture that moves with its target (a fixed
+    error on top) has no error flicker however much the content moves; fresh noise on every capture has
+    (E|n₁ − n₂| = 2σ/√π) even on a still target, whose own flicker is nil."""
+    bench = _bench_live_show()
+    rng = np.random.default_rng(1)
+    picture = rng.random((24, 32, 3)).astype(np.float32)
+    targets = [np.roll(picture, 3 * i, axis=1) for i in range(6)]
+    offset = 0.1 * rng.random(picture.shape).astype(np.float32)
+    moving = [t + offset for t in targets]
+    assert bench.flicker(targets) > 0.1
+    assert bench.flicker(moving) == pytest.approx(bench.flicker(targets), rel=1e-5)
+    assert bench.error_flicker(moving, targets) < 1e-7
+    sigma = 0.01
+    still = [picture] * 40
+    noisy = [picture + rng.normal(0.0, sigma, picture.shape).astype(np.float32) for _ in still]
+    assert bench.flicker(still) == 0.0
+    assert bench.error_flicker(noisy, still) == pytest.approx(2 * sigma / np.sqrt(np.pi), rel=0.05)
