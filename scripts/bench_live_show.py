@@ -3,7 +3,7 @@
 
 Usage: ``.venv/bin/python scripts/bench_live_show.py [--parts quality,loop,speed] [--sizes 800x600,1920x1080]
 [--variant llvm_ad_rgb|cuda_ad_rgb] [--scale 1] [--projector-size 1920x1080 --camera-size 1536x864] [--frames 12]
-[--effects defocus --diagnosis DIR] [--seconds 20] [--work DIR]``
+[--effects defocus --diagnosis DIR] [--follow] [--seconds 20] [--work DIR]``
 
 With no argument it is the quick run (about five minutes on 2 cores): the lab
 at the demo's resolution (camera 640×480, projector 800×600), its quality and
@@ -23,7 +23,10 @@ a 20 s loop; ``--seconds 60`` gives the 60 s clip's figures.
   drawing Cycles' first shot's samples: :class:`LabDevice`'s
   ``repeat_draws``): flicker and PSNR of those noise-free captures, and the
   flicker of the error (the mean absolute change of capture − target between
-  consecutive frames: what changes beyond the content's own motion). ``--effects`` (with the ``procam
+  consecutive frames: what changes beyond the content's own motion).
+  ``--follow``: the real-time solve runs closed loop, its θ following the
+  lab camera's (noisy) capture of every frame it showed (the live show
+  follows one camera frame in three at 30 fps: this is its worst case). ``--effects`` (with the ``procam
   diagnose`` folder of that calibration, ``--diagnosis``) runs both solves with
   those effect models, as ``procam show --effects`` does; where they hold the
   projector lens's blur, the real-time solve without it is captured too.
@@ -186,7 +189,7 @@ def lab_calibration(work: Path, scale: float, projector_size: str | None = None,
 
 
 def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
-            diagnosis: Path | None = None) -> dict[str, Any]:
+            diagnosis: Path | None = None, follow: bool = False) -> dict[str, Any]:
     """Real time against the ``transport`` schedule on a panning clip, captured through the lab (module doc); with
     ``effects`` (``--effects`` of ``procam show``, fitted in ``diagnosis``) both hold them, and where they hold a
     lens blur the real-time solve is captured once more without it (as before it was held)."""
@@ -226,7 +229,10 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
                 target = full.fitted
                 for name, frame in (("realtime", fast.frames[0][..., :3].astype(np.float32) / 255.0),
                                     ("transport", full.frame)):
-                    cap = area.crop(device.project(frame))
+                    seen = device.project(frame)
+                    if follow and name == "realtime":
+                        solver.follow(seen, fast)  # as the live show's closed loop gives θ a camera frame
+                    cap = area.crop(seen)
                     caps[name].append(cap)
                     (ours if name == "realtime" else theirs).append(psnr(np.clip(cap, 0, 1), target))
                     cap = area.crop(quiet.project(frame))
@@ -253,7 +259,7 @@ def quality(cal_dir: Path, truth: Path, frames: int, effects: str = "none",
         "psnr_realtime_blur_not_held": round(float(np.mean(unheld)), 2),
         "solve_ms_median_blur_not_held": round(float(np.median(unheld_ms[2:] or unheld_ms)), 1)}
     return {"camera": f"{cw}x{ch}", "projector": "x".join(map(str, cal.rig.projector.intrinsics.size)),
-            "effects": effects, "input_blur": blur, **held,
+            "effects": effects, "input_blur": blur, "follow": follow, **held,
             "frames": frames, "psnr_realtime": round(float(np.mean(ours)), 2),
             "psnr_transport": round(float(np.mean(theirs)), 2),
             "flicker_realtime": round(flicker(caps["realtime"]), 4),
@@ -333,6 +339,8 @@ def main() -> None:
                     help="the quality part's --effects, as procam show takes it (e.g. defocus; needs --diagnosis)")
     ap.add_argument("--diagnosis", type=Path, default=None,
                     help="the procam diagnose folder of the lab's calibration, for --effects")
+    ap.add_argument("--follow", action="store_true",
+                    help="the quality part's real-time solve closed loop: θ follows the lab camera's every capture")
     ap.add_argument("--seconds", type=float, default=20.0, help="clip length of the loop part")
     ap.add_argument("--fps", type=float, default=30.0, help="the clip's frame rate (above 30: the loop's own ceiling)")
     ap.add_argument("--work", type=Path, default=None)
@@ -346,9 +354,10 @@ def main() -> None:
     if parts & {"quality", "loop"}:
         cal_dir, truth = lab_calibration(work, args.scale, args.projector_size, args.camera_size, args.samples)
     if "quality" in parts:
-        row = figures["quality"] = quality(cal_dir, truth, args.frames, args.effects, args.diagnosis)
+        row = figures["quality"] = quality(cal_dir, truth, args.frames, args.effects, args.diagnosis, args.follow)
         print(f"quality {row['projector']} (camera {row['camera']}), {row['frames']} frames of a pan, captured in the "
-              f"lab: real time {row['psnr_realtime']} dB, transport schedule {row['psnr_transport']} dB; flicker "
+              f"lab: real time{' (θ following every capture)' if row['follow'] else ''} {row['psnr_realtime']} dB, "
+              f"transport schedule {row['psnr_transport']} dB; flicker "
               f"{row['flicker_realtime']} (transport {row['flicker_transport']}, targets {row['flicker_targets']}, the "
               f"camera's noise alone {row['flicker_noise_floor']}); without the camera's noise: "
               f"{row['psnr_realtime_noise_free']} dB and {row['psnr_transport_noise_free']} dB, flicker "
