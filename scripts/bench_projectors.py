@@ -53,6 +53,10 @@ from procam.addon.steps.stage_c import StageCOptions, device_pipeline
 SECOND = second_projector("realistic")
 
 
+#: Iterations of the open-loop solve that gives the reach ceiling (the bench prints how much the last half added).
+REACH_ITERATIONS = 1000
+
+
 def step(args: list[str], done: Path) -> None:
     if done.exists():
         return
@@ -184,38 +188,60 @@ def stacked(work: Path, surface: str, args: argparse.Namespace) -> None:
         one = captures.for_projector(0)
         b1, w1 = one.image("black"), one.image("white")
         iters = [] if args.iterations is None else ["--iterations", str(args.iterations)]
-        comp, ev = work / "comp", work / "eval"
-        step(["compensate", str(cal_dir), *map(str, paths), "--device", f"lab:{truth_path}", *iters, "--out",
-              str(comp)], comp)
-        step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), "--device",
-              f"lab:{truth_path}", "--out", str(ev)], ev)
-        rows = json.loads((ev / "metrics.json").read_text())["targets"]
+        device = ["--device", f"lab:{truth_path}"]
+        diag = work / "diag"
+        # what a user learns of the rig's lens blur: each projector's blur fitted by the diagnosis
+        step(["diagnose", str(cal_dir), "--out", str(diag)], diag)
+        blur = ["--effects", "defocus", "--diagnosis", str(diag)]
+        metrics = {}
+        for key, extra in (("plain", []), ("blur", blur)):
+            comp, ev = work / f"comp-{key}", work / f"eval-{key}"
+            step(["compensate", str(cal_dir), *map(str, paths), *device, *iters, *extra, "--out", str(comp)], comp)
+            step(["evaluate", str(cal_dir), "--inputs", str(comp), "--targets", *map(str, paths), *device,
+                  "--out", str(ev)], ev)
+            metrics[key] = json.loads((ev / "metrics.json").read_text())["targets"]
         alone = OneProjector(h.device, 0)
         first = h.stage.compensators[0]
         args_c = h.options.run_arguments()
-        ones, boths, noises, singles, ours = [], [], [], [], []
-        for path, row in zip(paths, rows):
+        reach_stage = projectors.JointStage(h.cal, StageCOptions(effects="defocus", diagnosis=diag))
+        sigmas = [c.input_blur for c in reach_stage.compensators]
+        table: dict[str, list[float]] = {k: [] for k in ("one", "both", "noise", "reach", "reach_noise", "single",
+                                                          "ours", "ours_blur")}
+        for path, row, row_blur in zip(paths, metrics["plain"], metrics["blur"]):
             fitted, area = h.fitted(path)
-            ones.append(range_ceiling(fitted, area.crop(b1), area.crop(w1)))
-            boths.append(range_ceiling(fitted, area.crop(black), area.crop(white)))
-            noises.append(row.get("noise_ceiling", float("nan")))
+            table["one"].append(range_ceiling(fitted, area.crop(b1), area.crop(w1)))
+            table["both"].append(range_ceiling(fitted, area.crop(black), area.crop(white)))
+            table["noise"].append(row.get("noise_ceiling", float("nan")))
+            # the reach ceiling: the best any inputs in [0, 1] show through the operators with the diagnosed blur
+            # held (open loop, no θ, no blend prior), then seen through the camera's noise
+            best = reach_stage.joint.run(fitted, area, use_bias=False, iterations_z=REACH_ITERATIONS,
+                                         iterations_joint=0, blend="none")
+            table["reach"].append(best.report["psnr_simulated"])
+            noise_mse = float(row.get("capture_noise_rmse", 0.0)) ** 2
+            table["reach_noise"].append(10 * np.log10(1 / (10 ** (-table["reach"][-1] / 10) + noise_mse)))
             # projector 1 alone, its own closed loop with projector 2 black: what stacking adds to
             res = first.run(fitted, area, device=alone, verify=False, **args_c)
-            singles.append(psnr(area.crop(alone.project(res.x_frame)), fitted))
-            ours.append(row["psnr"])
+            table["single"].append(psnr(area.crop(alone.project(res.x_frame)), fitted))
+            table["ours"].append(row["psnr"])
+            table["ours_blur"].append(row_blur["psnr"])
     finally:
         h.close()
     print(f"\n{surface}, two projectors stacked on one area, bright targets (99.5th percentile at 1), scale "
-          f"{args.scale}, closed loop")
-    print("| Target | range ceiling, projector 1 alone | both | both, through the camera's noise | projector 1 alone "
-          "| ours, both |")
-    print("|---|---|---|---|---|---|")
-    for path, *vals in zip(paths, ones, boths, noises, singles, ours):
+          f"{args.scale}, closed loop; the diagnosis's blur σ " + ", ".join(
+              "none" if s is None else f"{s:.2f}" for s in sigmas) + " texels")
+    print("| Target | range ceiling, projector 1 alone | both | both, through the camera's noise | reach ceiling "
+          "(blur held) | through the camera's noise | projector 1 alone | ours, both | ours, blur held |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    cols = [table[k] for k in ("one", "both", "noise", "reach", "reach_noise", "single", "ours", "ours_blur")]
+    for path, *vals in zip(paths, *cols):
         print(f"| {path.stem} | " + " | ".join(f"{v:.2f}" for v in vals) + " |")
-    print("| mean | " + " | ".join(f"{np.mean(v):.2f}" for v in (ones, boths, noises, singles, ours)) + " |")
-    print(f"both projectors' range ceiling {np.mean(boths) - np.mean(ones):+.2f} dB above one's; ours "
-          f"{np.mean(ours) - np.mean(singles):+.2f} dB above one projector compensated alone, "
-          f"{np.mean(noises) - np.mean(ours):.2f} dB below the noise ceiling")
+    print("| mean | " + " | ".join(f"{np.mean(v):.2f}" for v in cols) + " |")
+    m = {k: float(np.mean(v)) for k, v in table.items()}
+    print(f"both projectors' range ceiling {m['both'] - m['one']:+.2f} dB above one's; ours "
+          f"{m['ours'] - m['single']:+.2f} dB above one projector compensated alone, "
+          f"{m['noise'] - m['ours']:.2f} dB below the noise ceiling; with the blur held "
+          f"{m['reach_noise'] - m['ours_blur']:.2f} dB below the reach ceiling through the noise "
+          f"({m['noise'] - m['reach_noise']:.2f} dB of the noise ceiling no input reaches through the blur)")
 
 
 def shift(work: Path, surface: str, args: argparse.Namespace) -> None:

@@ -19,6 +19,11 @@ in the solve, σ texels, as ``--effects defocus`` does), then:
   held in them (0 the calibrated operators), the most the closed loop could reach if the rig blurred that much.
 
 ``--noise-free``: the lab's sensor noise switched off (a copy of the truth in a temporary folder).
+
+``--sources``: instead of the loop, where the rig's blur comes from. Each projector alone shows texel noise (0.5 ±
+0.2, every texel drawn apart: the finest detail there is) through the lab as it is, without its lens defocus, and
+with the camera rendered at 2 and 4 times its resolution (the lab's camera lens then resamples finer pixels; the
+same samples per camera pixel); each capture against the operator's prediction as above.
 """
 
 from __future__ import annotations
@@ -56,14 +61,25 @@ def detail(x: np.ndarray, sigma: float = BAND) -> np.ndarray:
     return g - cv2.GaussianBlur(g, (0, 0), sigma)
 
 
-def noise_free_truth(truth: Path, folder: Path) -> Path:
+def truth_without(truth: Path, folder: Path, effect: str = "noise") -> Path:
+    """A copy of the sealed truth in ``folder`` with ``effect`` switched off (the camera's, the scene's and every
+    projector's own)."""
     doc = json.loads(truth.read_text())
-    noise = doc["effects"]["effects"]["noise"]
-    noise.update(active=False, strength=0.0, params={k: 0.0 for k in noise.get("params", {})})
-    doc["effects"]["active"] = [a for a in doc["effects"]["active"] if a != "noise"]
-    for holder, key in ((doc["effects"], "spec"), (doc, "effects_spec")):
-        if isinstance(holder.get(key), str):  # the spec names the noise too: "…,noise=0.4,…"
-            holder[key] = re.sub(r"(?<![a-z_])noise=[0-9.]+", "noise=0", holder[key])
+
+    def off(effects: dict[str, Any]) -> None:
+        if effect not in effects.get("effects", {}):
+            return
+        e = effects["effects"][effect]
+        e.update(active=False, strength=0.0, params={k: 0.0 for k in e.get("params", {})})
+        effects["active"] = [a for a in effects["active"] if a != effect]
+        if isinstance(effects.get("spec"), str):  # the spec names it too: "…,noise=0.4,…"
+            effects["spec"] = re.sub(rf"(?<![a-z_]){effect}=[0-9.]+", f"{effect}=0", effects["spec"])
+
+    off(doc["effects"])
+    for own in (doc.get("projector_effects") or {}).values():
+        off(own)
+    if isinstance(doc.get("effects_spec"), str):
+        doc["effects_spec"] = re.sub(rf"(?<![a-z_]){effect}=[0-9.]+", f"{effect}=0", doc["effects_spec"])
     mesh = truth.parent / doc["surface"]["mesh"]
     (folder / mesh.name).write_bytes(mesh.read_bytes())
     out = folder / truth.name
@@ -78,7 +94,7 @@ def shift_and_blur(capture: np.ndarray, prediction: np.ndarray) -> tuple[float, 
     a, b = detail(prediction) * mask, detail(capture) * mask
     (dx, dy), _ = cv2.phaseCorrelate(a.astype(np.float64), b.astype(np.float64))
     best = (np.inf, 0.0, 0.0)
-    for s in np.arange(0.0, 2.01, 0.1):
+    for s in np.arange(0.0, 2.001, 0.05):
         p = detail(prediction if s == 0 else cv2.GaussianBlur(prediction, (0, 0), float(s)))[mask]
         g = float(p @ b[mask] / max(float(p @ p), 1e-12))
         r = float(np.mean((b[mask] - g * p) ** 2))
@@ -93,16 +109,48 @@ def main() -> None:
     ap.add_argument("--targets", default="forest,city")
     ap.add_argument("--blur", type=float, default=0.0)
     ap.add_argument("--noise-free", action="store_true")
+    ap.add_argument("--sources", action="store_true")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         truth = args.folder / "lab.truth.json"
+        if args.sources:
+            blur_sources(args.folder, Path(tmp))
+            return
         if args.noise_free:
-            truth = noise_free_truth(truth, Path(tmp))
+            truth = truth_without(truth, Path(tmp))
         h = bench.Harness(args.folder / "cal", truth, None)
         try:
             run(h, args)
         finally:
             h.close()
+
+
+def blur_sources(folder: Path, tmp: Path) -> None:
+    from procam.addon.lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
+
+    cal = bench.calibrate_step.read(folder / "cal")
+    comps = bench.projectors.JointStage(cal, bench.StageCOptions()).compensators
+    truth = folder / "lab.truth.json"
+    samples = bench.LabTruth.load(truth).samples
+    cam = cal.rig.camera.intrinsics.size
+    rng = np.random.default_rng(1)
+    print("each projector alone showing texel noise, its capture against its operator's prediction:")
+    for label, path, ss in (("the lab as it is", truth, 1), ("without its lens defocus", truth_without(truth, tmp,
+                            "defocus"), 1), ("camera rendered 2x", truth, 2), ("camera rendered 4x", truth, 4)):
+        lab = LabDevice(bench.LabTruth.load(path), supersample=ss, samples=max(1, samples // (ss * ss)))
+        device = bench.device_pipeline(f"lab:{path}", cal, device=lab)
+        try:
+            for k, comp in enumerate(comps):
+                iw, ih = comp.rig.projector.input_size
+                z = np.clip(0.5 + 0.2 * rng.standard_normal((ih, iw, 1)), 0, 1).repeat(3, axis=2).astype(np.float32)
+                frames = [c.rig.projector.frame_from_input(comp.warp_w(z) if i == k else np.zeros_like(z))
+                          for i, c in enumerate(comps)]
+                capture = np.mean([bench.projectors.project_all(device, frames, cam) for _ in range(2)], axis=0)
+                dx, dy, sigma, gain = shift_and_blur(capture, comp.transport.apply(z).reshape(capture.shape))
+                print(f"  {label}: projector {k + 1}: shift ({dx:+.3f}, {dy:+.3f}) camera px, blur σ {sigma:.2f} "
+                      f"camera px (gain {gain:.2f})", flush=True)
+        finally:
+            device.close()
 
 
 def run(h: Any, args: argparse.Namespace) -> None:
