@@ -294,9 +294,7 @@ def attribute(docs: list[dict[str, Any]], falloffs: list[float | None] | None = 
     if top is not None:
         head = _by_parameters(top)
     else:
-        shared = sorted({str(r["effect"]) for r in ranking})
-        head = ("The projectors agree: " + (f"each shows {', '.join(shared)} alike" if shared else
-                                             "none shows an effect the others do not") + ".")
+        head = _agree(sorted({str(r["effect"]) for r in ranking}))
     return {"headline": head, "differs": top, "ranking": ranking,
             "selected": list(dict.fromkeys(r["effect"] for r in ranking))}
 
@@ -356,9 +354,13 @@ def attribute_held_out(whose: list[dict[str, Any]], *, min_share: float = MIN_SH
     if overlap is not None:
         return {"headline": _by_parameters(overlap), "differs": overlap, **base}
     alike = [str(j["effect"]).replace("_", " ") for j in judged if float(j["every"]) >= min_share]
-    head = ("The projectors agree: " + (f"each shows {', '.join(alike)} alike" if alike else
+    return {"headline": _agree(alike), "differs": None, **base}
+
+
+def _agree(alike: list[str]) -> str:
+    """The headline when no projector differs: the effects every projector shows alike, if any."""
+    return ("The projectors agree: " + (f"each shows {', '.join(alike)} alike" if alike else
                                          "none shows an effect the others do not") + ".")
-    return {"headline": head, "differs": None, **base}
 
 
 @dataclass
