@@ -69,8 +69,7 @@ def truth_without(truth: Path, folder: Path, effect: str = "noise") -> Path:
     def off(effects: dict[str, Any]) -> None:
         if effect not in effects.get("effects", {}):
             return
-        e = effects["effects"][effect]
-        e.update(active=False, strength=0.0, params={k: 0.0 for k in e.get("params", {})})
+        del effects["effects"][effect]  # an effect the truth does not list is off
         effects["active"] = [a for a in effects["active"] if a != effect]
         if isinstance(effects.get("spec"), str):  # the spec names it too: "…,noise=0.4,…"
             effects["spec"] = re.sub(rf"(?<![a-z_]){effect}=[0-9.]+", f"{effect}=0", effects["spec"])
