@@ -43,6 +43,22 @@ def test_direct_part_is_the_render_at_its_seed_and_the_whole_is_close_to_mitsuba
     assert op.report["pixels_wider_than_spacing"] < 0.01 and op.report["light_dropped"] < 1e-3
 
 
+def test_the_default_samples_hold_the_finest_detail_closer_to_the_converged_render(operator):
+    """Each entry is the share of a pixel's samples in a texel's reach: at 16 samples a pixel texel noise comes out
+    of the operator coarse, and the default's more samples bring it nearer the render that has converged."""
+    cal, coarse, _ = operator
+    fine = build_transport(cal, bounces=0, seed=0)
+    assert fine.report["direct_spp"] > coarse.report["direct_spp"] == 16
+    rng = np.random.default_rng(2)
+    iw, ih = cal.rig.projector.input_size
+    z = np.clip(0.5 + 0.2 * rng.standard_normal((ih, iw, 1)), 0, 1).repeat(3, axis=2).astype(np.float32)
+    converged = ForwardModel(cal.rig, cal.surface, bounces=0, spp=1024, smoothing_eps=0.0, clamp=False, seed=9)
+    ref = converged.render_input(z, seed=9)
+    lit = ref.mean(axis=2) > 0.05
+    err = {k: float(np.sqrt(np.mean((op.direct(z) - ref)[lit] ** 2))) for k, op in (("16", coarse), ("default", fine))}
+    assert err["default"] < 0.7 * err["16"], err
+
+
 def test_adjoint(operator):
     cal, op, _ = operator
     rng = np.random.default_rng(0)
