@@ -23,13 +23,11 @@ from procam.addon.steps.realtime import RealtimeSolver
 from procam.addon.steps.stage_c import StageC, StageCOptions, device_pipeline
 
 @pytest.fixture(scope="module")
-def calibration(lab_calibration, tmp_path_factory):
+def calibration(live_calibration, tmp_path_factory):
     """The suite's small lab calibration (the vedge, camera 192×144), copied, with its operator and inverse
     stored."""
-    cal_dir, _, _ = lab_calibration()
     folder = tmp_path_factory.mktemp("realtime") / "cal"
-    shutil.copytree(cal_dir, folder)
-    assert main(["precompute", str(folder), "--live"]) == 0
+    shutil.copytree(live_calibration(), folder)
     return folder
 
 
