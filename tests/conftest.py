@@ -137,6 +137,30 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
     return make
 
 
+_LIVE_CALIBRATIONS: dict[str, Path] = {}
+
+
+@pytest.fixture(scope="session")
+def live_calibration(lab_calibration, tmp_path_factory) -> Callable[..., Path]:
+    """A ``lab_calibration`` folder with its transport operator and approximate inverse stored (``procam precompute
+    --live``), made once per session and set of arguments; the arguments are those of ``lab_set``. Shared by the
+    real-time and live-show modules: copy it before writing into it."""
+
+    def make(*args, **kwargs) -> Path:
+        cal_dir, _, _ = lab_calibration(*args, **kwargs)
+        key = str(cal_dir)
+        if key not in _LIVE_CALIBRATIONS:
+            from procam.addon.cli.app import main
+
+            folder = tmp_path_factory.mktemp("live-calibration") / "cal"
+            shutil.copytree(cal_dir, folder)
+            assert main(["precompute", str(folder), "--live"]) == 0
+            _LIVE_CALIBRATIONS[key] = folder
+        return _LIVE_CALIBRATIONS[key]
+
+    return make
+
+
 def _free_display() -> int:
     for n in range(90, 200):
         if not Path(f"/tmp/.X11-unix/X{n}").exists() and not Path(f"/tmp/.X{n}-lock").exists():

@@ -789,7 +789,8 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
 
     def calibration(report, capture_dir):
         return SimpleNamespace(report=report, capture_dir=str(capture_dir),
-                               rig=SimpleNamespace(projector=proj, others=()))
+                               rig=SimpleNamespace(projector=proj, others=(),
+                                                   camera=SimpleNamespace(intrinsics=proj.intrinsics)))
 
     # From the capture set (a calibration made before calibrations recorded it) and from the calibration alone.
     for report, where in (({}, tmp_path / "set"), ({"camera_lens_removed": lens.to_dict()}, tmp_path / "moved")):

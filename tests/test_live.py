@@ -73,7 +73,8 @@ def test_live_rig_of_several_projectors_is_refused_before_any_window_opens(monke
                  "--projector-height", "48", "--projectors", "2"]) == 2
     # Stage C and evaluation open a live device of every projector of the calibration's rig.
     monkeypatch.setattr(stage_c, "camera_lens_of", lambda calibration: None)
-    calibration = SimpleNamespace(rig=SimpleNamespace(projector=proj, others=(other,)))
+    calibration = SimpleNamespace(rig=SimpleNamespace(projector=proj, others=(other,),
+                                                   camera=SimpleNamespace(intrinsics=proj.intrinsics)))
     with pytest.raises(LiveError, match="rig has 2 projectors but the live device names 1 display"):
         stage_c.device_pipeline("live:camera=57,display=1", calibration)
     with pytest.raises(LiveError, match="display 1 is named twice"):
@@ -186,7 +187,7 @@ def test_camera_that_sees_nothing_is_refused(xvfb):
             LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
 
 
-def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, capsys):
+def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, capsys, monkeypatch):
     """A whole calibration set captured live (interrupted and resumed), calibrated, and compensated closed loop."""
     loop, depth, truth = painted_wall(SIZE, ORIGIN, delay_s=0.15)
     np.save(tmp_path / "depth.npy", depth)
@@ -226,8 +227,10 @@ def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, cap
                      "--out", str(tmp_path / "comp")]) == 0
         assert main(["evaluate", str(tmp_path / "cal"), "--inputs", str(tmp_path / "comp"), "--targets", str(target),
                      "--device", device, "--out", str(tmp_path / "eval")]) == 0
-        # A camera at another resolution than the calibration's is refused before any work.
+        # A camera at another resolution than the calibration's is refused before any work, as soon as it connects
+        # (before the seconds of measuring its latency).
         other = LoopbackRig((*ORIGIN, *SIZE), (SIZE[0] // 2, SIZE[1] // 2))
+        monkeypatch.setattr(LiveDevice, "_latency", lambda *a: pytest.fail("latency measured before the size check"))
         with LoopbackCamera(other) as small:
             assert main(["compensate", str(tmp_path / "cal"), str(target), "--device",
                          f"live:camera={small.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear",

@@ -68,11 +68,10 @@ def cal(lab_calibration):
 
 
 @pytest.fixture(scope="module")
-def stored(cal, tmp_path_factory):
+def stored(live_calibration, tmp_path_factory):
     """The calibration of its own with its operator and approximate inverse stored (procam precompute --live)."""
     folder = tmp_path_factory.mktemp("live-show") / "cal"
-    shutil.copytree(cal, folder)
-    assert main(["precompute", str(folder), "--live"]) == 0
+    shutil.copytree(live_calibration(scale=0.1, samples=4), folder)
     return folder
 
 

@@ -20,12 +20,10 @@ ORIGIN = (40, 30)  # the projector window on the virtual screen
 
 
 @pytest.fixture(scope="module")
-def stored(lab_calibration, tmp_path_factory):
+def stored(live_calibration, tmp_path_factory):
     """A small calibration (projector 80×60) of its own with its operator and approximate inverse stored."""
-    cal, _, _ = lab_calibration(scale=0.1, samples=4)
     folder = tmp_path_factory.mktemp("live-show-ops") / "cal"
-    shutil.copytree(cal, folder)
-    assert main(["precompute", str(folder), "--live"]) == 0
+    shutil.copytree(live_calibration(scale=0.1, samples=4), folder)
     return folder
 
 

@@ -250,7 +250,10 @@ class LiveDevice(ShownTogether):
     error, what = LiveError, "this live device"
 
     def __init__(self, spec: LiveSpec | str, projector: Projector, *, others: Sequence[Projector] = (),
-                 progress: Progress | None = None, check_exposure: bool = True) -> None:
+                 progress: Progress | None = None, check_exposure: bool = True,
+                 camera_size: tuple[int, int] | None = None) -> None:
+        """``camera_size``: the calibration's camera; a camera delivering frames of another size is refused as
+        soon as it connects, before the latency and exposure are measured (seconds)."""
         say = progress or quiet
         self.spec = spec if isinstance(spec, LiveSpec) else LiveSpec.parse(spec)
         check_displays(self.spec, 1 + len(others))
@@ -264,6 +267,11 @@ class LiveDevice(ShownTogether):
             self.windows = open_windows(self.spec, self.projectors, say)
             say("opening the camera", 0.1)
             self.camera = CameraClient(self.spec.camera, size=self.spec.size)
+            got = self.camera.size
+            if camera_size is not None and tuple(got) != tuple(camera_size):
+                raise LiveError(f"the device's camera delivers {got[0]}×{got[1]} frames but the calibration's camera "
+                                f"is {camera_size[0]}×{camera_size[1]}: set the camera to the resolution the capture "
+                                "set was taken at (live: size=WxH), or calibrate with captures from this camera")
             locked = self.camera.lock()
             self.latency_s, latencies = self._latency(say)
             self.average, noise = self._averaging()

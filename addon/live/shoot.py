@@ -124,16 +124,19 @@ def check_camera_device(text: str, projectors: int) -> None:
 
 
 def open_camera_device(text: str, projector: Projector, *, others: Sequence[Projector] = (),
-                       progress: Progress | None = None, check_exposure: bool = True
-                       ) -> LiveDevice | ShootDevice | CommandDevice:
+                       progress: Progress | None = None, check_exposure: bool = True,
+                       camera_size: tuple[int, int] | None = None) -> LiveDevice | ShootDevice | CommandDevice:
     """The device ``text`` names: :class:`LiveDevice` (``camera=``), :class:`ShootDevice` (``shoot=``) or
-    :class:`CommandDevice` (``command:``). Each has a ``report`` (``lines()``, ``to_dict()``) and ``camera_size``."""
+    :class:`CommandDevice` (``command:``). Each has a ``report`` (``lines()``, ``to_dict()``) and ``camera_size``.
+    ``camera_size``: the calibration's camera, which a live camera is checked against as soon as it connects (the
+    others deliver their first frame only when they capture)."""
     spec = parse_camera_device(text)
     if isinstance(spec, CommandSpec):
         return CommandDevice(spec, projector, others=others, progress=progress, check_exposure=check_exposure)
     if spec.shoot:
         return ShootDevice(spec, projector, others=others, progress=progress, check_exposure=check_exposure)
-    return LiveDevice(spec, projector, others=others, progress=progress, check_exposure=check_exposure)
+    return LiveDevice(spec, projector, others=others, progress=progress, check_exposure=check_exposure,
+                      camera_size=camera_size)
 
 
 __all__ = ["CAMERA_DEVICE_FORM", "SETTLE_S", "ShootDevice", "check_camera_device", "open_camera_device",

@@ -197,10 +197,12 @@ def camera_lens_of(calibration: Calibration) -> RigLens | None:
 
 
 def open_device(spec: str | None, projector: Projector | None = None,
-                progress: Progress | None = None, *, others: Sequence[Projector] = ()) -> Device | None:
+                progress: Progress | None = None, *, others: Sequence[Projector] = (),
+                camera_size: tuple[int, int] | None = None) -> Device | None:
     """A capture device as it is, from ``lab:TRUTH_FILE`` (the virtual lab), ``folder:CAPTURE_DIR`` (replayed
     captures), ``live:…`` (the projector window and a camera or a shooting command; ``projector`` gives the window its
-    size, ``others`` the windows of projectors 2…N of a rig of several, one display each) or ``command:…`` (a
+    size, ``others`` the windows of projectors 2…N of a rig of several, one display each; ``camera_size`` the
+    calibration's camera, which a live camera is checked against as soon as it connects) or ``command:…`` (a
     command shows and photographs). Stage C and
     evaluation project through :func:`device_pipeline`, which opens it and puts the calibration's lens after it."""
     if not spec:
@@ -209,7 +211,7 @@ def open_device(spec: str | None, projector: Projector | None = None,
     if kind in ("live", "command"):
         if projector is None:
             raise CaptureError(f"a {kind} device needs the calibrated projector to size its frames")
-        return open_camera_device(spec, projector, others=others, progress=progress)
+        return open_camera_device(spec, projector, others=others, progress=progress, camera_size=camera_size)
     if kind == "folder":
         return FolderDevice(Path(where))
     from ..lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
@@ -233,7 +235,10 @@ def device_pipeline(spec: str | None, calibration: Calibration, *, device: Devic
     # Read before a window opens, so that a capture set that cannot say which lens it lost is refused first.
     lens = None if device_kind(spec) == "folder" else camera_lens_of(calibration)
     if device is None:
-        device = open_device(spec, calibration.rig.projector, progress, others=calibration.rig.others)
+        # a live camera is checked against the calibration's as it connects, before seconds of measuring it
+        size = tuple(calibration.rig.camera.intrinsics.size) if device_kind(spec) == "live" else None
+        device = open_device(spec, calibration.rig.projector, progress, others=calibration.rig.others,
+                             camera_size=size)
     if lens is not None:
         (progress or quiet)(f"the camera's frames go through the lens taken out of the calibration's photographs "
                             f"({lens.source})", 0.0)
