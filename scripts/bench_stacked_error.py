@@ -20,10 +20,12 @@ in the solve, σ texels, as ``--effects defocus`` does), then:
 
 ``--noise-free``: the lab's sensor noise switched off (a copy of the truth in a temporary folder).
 
-``--sources``: instead of the loop, where the rig's blur comes from. Each projector alone shows texel noise (0.5 ±
-0.2, every texel drawn apart: the finest detail there is) through the lab as it is, without its lens defocus, and
-with the camera rendered at 2 and 4 times its resolution (the lab's camera lens then resamples finer pixels; the
-same samples per camera pixel); each capture against the operator's prediction as above.
+``--sources [VARIANTS]``: instead of the loop, where the rig's blur comes from. Each projector alone shows texel
+noise (0.5 ± 0.2, every texel drawn apart: the finest detail there is) through the lab as it is, without its lens
+defocus, and with the camera rendered at 2 and 4 times its resolution (the lab's camera lens then resamples finer
+pixels; the same samples per camera pixel); each capture against the operator's prediction as above. VARIANTS
+(comma-separated) names others: ``asis``, ``ss2``…``ss4``, or effects switched off joined by ``+``
+(``defocus+distortion``). ``--operator-spp N``: the operators rendered again in memory at N direct samples a pixel.
 """
 
 from __future__ import annotations
@@ -108,12 +110,13 @@ def main() -> None:
     ap.add_argument("--targets", default="forest,city")
     ap.add_argument("--blur", type=float, default=0.0)
     ap.add_argument("--noise-free", action="store_true")
-    ap.add_argument("--sources", action="store_true")
+    ap.add_argument("--sources", nargs="?", const=SOURCES, default=None, metavar="VARIANTS")
+    ap.add_argument("--operator-spp", type=int, default=None)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         truth = args.folder / "lab.truth.json"
         if args.sources:
-            blur_sources(args.folder, Path(tmp))
+            blur_sources(args.folder, Path(tmp), args.sources, args.operator_spp)
             return
         if args.noise_free:
             truth = truth_without(truth, Path(tmp))
@@ -124,28 +127,46 @@ def main() -> None:
             h.close()
 
 
-def blur_sources(folder: Path, tmp: Path) -> None:
+#: ``--sources`` variants when none are named: the lab as it is, without its defocus, its camera rendered finer.
+SOURCES = "asis,defocus,ss2,ss4"
+
+
+def blur_sources(folder: Path, tmp: Path, variants: str = SOURCES, operator_spp: int | None = None) -> None:
+    """Each projector alone showing texel noise, its capture against its operator's prediction, through each variant
+    of the lab: ``asis``, ``ssN`` (camera rendered N× finer, the same samples per camera pixel), or effects to
+    switch off joined by ``+`` (``defocus+distortion``). ``operator_spp``: the operators rendered again at that many
+    direct samples per pixel (in memory; the stored ones are left as they are)."""
     from procam.addon.lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
+    from procam.addon.stages.transport import build_transport
 
     cal = bench.calibrate_step.read(folder / "cal")
     comps = bench.projectors.JointStage(cal, bench.StageCOptions()).compensators
+    operators = [c.transport if operator_spp is None else build_transport(cal.for_projector(k), spp=operator_spp)
+                 for k, c in enumerate(comps)]
     truth = folder / "lab.truth.json"
     samples = bench.LabTruth.load(truth).samples
     cam = cal.rig.camera.intrinsics.size
-    rng = np.random.default_rng(1)
-    print("each projector alone showing texel noise, its capture against its operator's prediction:")
-    for label, path, ss in (("the lab as it is", truth, 1), ("without its lens defocus", truth_without(truth, tmp,
-                            "defocus"), 1), ("camera rendered 2x", truth, 2), ("camera rendered 4x", truth, 4)):
+    print("each projector alone showing texel noise, its capture against its operator's prediction"
+          + ("" if operator_spp is None else f" (operators rendered at {operator_spp} samples a pixel)") + ":")
+    for variant in variants.split(","):
+        path, ss = truth, int(variant[2:]) if re.fullmatch(r"ss[1-4]", variant) else 1
+        if variant != "asis" and ss == 1:
+            for effect in variant.split("+"):
+                (tmp / variant / effect).mkdir(parents=True)
+                path = truth_without(path, tmp / variant / effect, effect)
+        label = ("the lab as it is" if variant == "asis" else f"camera rendered {ss}x" if ss > 1 else
+                 "without " + " and ".join(variant.split("+")))
         lab = LabDevice(bench.LabTruth.load(path), supersample=ss, samples=max(1, samples // (ss * ss)))
         device = bench.device_pipeline(f"lab:{path}", cal, device=lab)
+        rng = np.random.default_rng(1)  # the same noise for every variant
         try:
-            for k, comp in enumerate(comps):
+            for k, (comp, op) in enumerate(zip(comps, operators)):
                 iw, ih = comp.rig.projector.input_size
                 z = np.clip(0.5 + 0.2 * rng.standard_normal((ih, iw, 1)), 0, 1).repeat(3, axis=2).astype(np.float32)
                 frames = [c.rig.projector.frame_from_input(comp.warp_w(z) if i == k else np.zeros_like(z))
                           for i, c in enumerate(comps)]
                 capture = np.mean([bench.projectors.project_all(device, frames, cam) for _ in range(2)], axis=0)
-                dx, dy, sigma, gain = shift_and_blur(capture, comp.transport.apply(z).reshape(capture.shape))
+                dx, dy, sigma, gain = shift_and_blur(capture, op.apply(z).reshape(capture.shape))
                 print(f"  {label}: projector {k + 1}: shift ({dx:+.3f}, {dy:+.3f}) camera px, blur σ {sigma:.2f} "
                       f"camera px (gain {gain:.2f})", flush=True)
         finally:
