@@ -53,11 +53,6 @@ RIDGE = 1e-3
 #: ridge of the lens blur's one-dimensional regularised inverse (:func:`deblur_taps`): 0.1–0.3 did best on the lab's
 #: curve at 800×600 (σ 0.74 texels, one refinement step; 0.02 and 1.0 were 0.04–0.18 dB lower on the operator)
 DEBLUR_RIDGE = 0.2
-#: share of the previous frame's answer a warm-started frame lets go of (:meth:`RealtimeView.solve`)
-WARM_LEAK = 0.1
-#: mean absolute change of the light wanted between two frames above which a frame is solved afresh (a scene cut);
-#: a pan of 3 pixels a frame changes it by about 0.01
-SCENE_CUT = 0.1
 
 
 class InverseError(ProCamError):
@@ -356,7 +351,7 @@ class RealtimeView:
     adjoint through the blur, as stage C's). The interreflection is then taken from the light after the blur."""
 
     def __init__(self, view: TransportRows | BlurredRows, inverse: ApproximateInverse,
-                 gain: np.ndarray | None = None, warm_start: bool = True) -> None:
+                 gain: np.ndarray | None = None) -> None:
         self.blur: LensBlurBox | None = None
         if isinstance(view, BlurredRows):
             self.blur = LensBlurBox(view.view, view.sigma)
@@ -404,12 +399,6 @@ class RealtimeView:
         self.texels = view.texels if self.blur is None else self.blur.texels
         self._prev = dr.zeros(fl, len(view.texels) * 3)  # the light on the active texels of the previous answer
         self._warm = False
-        #: start each frame from the previous frame's answer (module doc); off, every frame is solved afresh
-        self.warm_start = bool(warm_start)
-        self._answer: Any = None  # the previous answer (compact input), None until a frame was solved
-        self._wanted: Any = None  # the light wanted of the previous frame, to tell a scene cut
-        #: how the last frame started: "fresh" (first frame, scene cut, warm start off) or "warm"
-        self.started = "fresh"
         self._ind = dr.zeros(fl, n_rows * 3)
         dr.eval(self.row_sums, self.col_sums, self._prev, self._ind)
 
@@ -469,15 +458,7 @@ class RealtimeView:
         """The compact input (a Dr.Jit array, :attr:`texels` × 3 flat) for the rows' ``target`` and θ (the camera
         sees ``g·T z − θ``, or ``g·T B z − θ`` through a lens blur): the previous frame's interreflection taken off
         the light wanted, ``A`` applied and the box clipped (with a lens blur: its regularised inverse applied and
-        clipped again), then ``steps`` SIRT steps with that interreflection held.
-
-        With :attr:`warm_start` (the default) every frame after the first starts from the previous frame's answer
-        ``z'``: ``A`` is applied to what ``z'`` leaves wanting, ``z = clip(k z' + A(want/g − ind − k D z'))`` with
-        ``k = 1 −`` :data:`WARM_LEAK` (through a lens blur ``H A`` and ``D B z'``). The part of the answer the
-        model's camera hardly sees (where the projector has more texels than the camera pixels) then carries over
-        from frame to frame instead of being set anew by ``A`` from each frame's sub-pixel phase, which the real
-        camera sees as flicker; the leak lets that part settle to ``A``'s in a few frames. A scene cut (the light
-        wanted changes by more than :data:`SCENE_CUT` on average) starts afresh, as the first frame does."""
+        clipped again), then ``steps`` SIRT steps with that interreflection held."""
         dr, fl = self._dr, self._float
         want = fl(np.ascontiguousarray(target if theta is None else target + theta, np.float32).ravel())
         if not self._warm:
@@ -485,31 +466,17 @@ class RealtimeView:
             # (1.9 dB below the next frames at 1600×1200 on the lab's curve without this).
             self._warm = True
             self.solve(target, theta, steps)
-        blur = self.blur
-        keep = 0.0
-        if self.warm_start and self._answer is not None and self._wanted is not None:
-            change = float(dr.mean(dr.abs(want - self._wanted))[0])
-            keep = 0.0 if change > SCENE_CUT else 1.0 - WARM_LEAK
-        self.started = "warm" if keep else "fresh"
         ind = self._indirect(self._prev)
         direct = want / dr.maximum(self.gain, 1e-3) - ind
-        if keep:
-            # self._prev is the previous answer's light on the active texels (B z' through a lens blur)
-            direct = direct - keep * self._direct(self._prev)
         u = dr.block_sum(dr.gather(fl, direct, self._st_src, self._st_live) * self._st_w, self._taps)
         dr.eval(u)
-        zc = self._adjoint_direct(u) * self._inv_c
-        if not keep:
-            zc = dr.clip(zc, 0.0, 1.0)
-            dr.eval(zc)
-            light = zc  # the light on the active texels: the input itself without a lens blur
-            if blur is not None:
-                zc = dr.clip(blur.from_active(zc, deblur=True), 0.0, 1.0)
-        elif blur is None:
-            zc = light = dr.clip(keep * self._answer + zc, 0.0, 1.0)
-        else:  # the answer's light is taken after the steps (warm start)
-            zc = light = dr.clip(keep * self._answer + blur.from_active(zc, deblur=True), 0.0, 1.0)
+        zc = dr.clip(self._adjoint_direct(u) * self._inv_c, 0.0, 1.0)
         dr.eval(zc)
+        blur = self.blur
+        light = zc  # the light on the active texels: the input itself without a lens blur
+        if blur is not None:
+            zc = dr.clip(blur.from_active(zc, deblur=True), 0.0, 1.0)
+            dr.eval(zc)
         for _ in range(steps):
             light = zc if blur is None else blur.to_active(zc)
             resid = want - self.gain * (self._direct(light) + ind)
@@ -519,14 +486,9 @@ class RealtimeView:
                 step = blur.from_active(step)
             zc = dr.clip(zc + step / self.col_sums, 0.0, 1.0)
             dr.eval(zc)
-        if blur is not None and self.warm_start:
-            # The next frame's start subtracts the answer's own light, so it is taken exactly (a third of a step).
-            light = blur.to_active(zc)
-            dr.eval(light)
-        # Without the warm start, through a lens blur the last step's light before its update stands for the
-        # answer's (interreflection is smooth and slow; blurring the answer once more would cost a third of a step).
+        # Through a lens blur the last step's light before its update stands for the answer's (interreflection is
+        # smooth and slow; blurring the answer once more would cost a third of a step).
         self._prev = zc if blur is None else light
-        self._answer, self._wanted = zc, want
         return zc
 
     def compact(self, zc: Any) -> np.ndarray:

@@ -5,8 +5,7 @@
 projectors), so a live show places, maps (``--range``) and adapts
 (``--effects``) each picture exactly as a show does, and solves it with
 ``stages/realtime.py``: the approximate inverse in one pass, then
-``refine_steps`` SIRT steps from there, the interreflection taken from the previous frame's answer, and every
-frame after the first (and after a scene cut) started from the previous frame's answer. A source
+``refine_steps`` SIRT steps from there, the interreflection taken from the previous frame's answer. A source
 frame becomes every projector's native frame in one call (:meth:`RealtimeSolver.solve`). With ``--effects
 defocus`` each projector's lens blur is held as stage C holds it (``T B``): the one-pass answer is deblurred by
 the blur's regularised inverse and the refinement steps run through the blur.
@@ -87,11 +86,8 @@ class RealtimeSolver:
     the joint solve's on the lab (scripts/bench_live_show.py)."""
 
     def __init__(self, stage: StageC | JointStage, inverses: list[ApproximateInverse | None], *,
-                 refine_steps: int = REFINE_STEPS, hold_blur: bool = True, warm_start: bool = True,
-                 progress: Progress | None = None) -> None:
+                 refine_steps: int = REFINE_STEPS, hold_blur: bool = True, progress: Progress | None = None) -> None:
         self.stage, self.inverses, self.refine_steps = stage, inverses, int(refine_steps)
-        #: start each frame from the previous frame's answer (``RealtimeView.solve``); off, every frame afresh
-        self.warm_start = bool(warm_start)
         #: solve through each projector's lens blur where stage C holds one (``--effects defocus``); off, the blur is
         #: left out of the solve, as before it was held (the benchmark's comparison)
         self.hold_blur = bool(hold_blur)
@@ -111,7 +107,7 @@ class RealtimeSolver:
         return [stage.adapter]
 
     @classmethod
-    def for_stage(cls, stage: StageC | JointStage, *, refine_steps: int = REFINE_STEPS, warm_start: bool = True,
+    def for_stage(cls, stage: StageC | JointStage, *, refine_steps: int = REFINE_STEPS,
                   progress: Progress | None = None) -> "RealtimeSolver":
         """The solver for ``stage`` (open loop, ``transport`` operators loaded): every projector's stored inverse,
         or one built now (saying so; ``procam precompute --live`` stores it)."""
@@ -136,7 +132,7 @@ class RealtimeSolver:
                 stage.estimate_bias()
         elif stage.bias is None:
             stage.estimate_bias()
-        return cls(stage, inverses, refine_steps=refine_steps, warm_start=warm_start, progress=say)
+        return cls(stage, inverses, refine_steps=refine_steps, progress=say)
 
     @property
     def camera_size(self) -> tuple[int, int]:
@@ -174,7 +170,7 @@ class RealtimeSolver:
             assert inverse is not None
             # --effects defocus: the lens's blur held as stage C holds it (T B), through its own regularised inverse
             held = BlurredRows(view, comp.input_blur) if comp.input_blur and self.hold_blur else view
-            rv = RealtimeView(held, inverse, None if gain is None else gain.reshape(-1, 3)[rows], self.warm_start)
+            rv = RealtimeView(held, inverse, None if gain is None else gain.reshape(-1, 3)[rows])
             views.append(rv)
             gathers.append(FrameGather(view, comp.rig.projector, comp.warp, rv.texels) if adapters[k] is None
                            else None)
