@@ -53,6 +53,9 @@ RIDGE = 1e-3
 #: ridge of the lens blur's one-dimensional regularised inverse (:func:`deblur_taps`): 0.1–0.3 did best on the lab's
 #: curve at 800×600 (σ 0.74 texels, one refinement step; 0.02 and 1.0 were 0.04–0.18 dB lower on the operator)
 DEBLUR_RIDGE = 0.2
+#: solves of the first frame before its answer, each taking its interreflection from the one before
+#: (:meth:`RealtimeView.solve`): three settle its level to within 0.0003 of the next frames'
+FIRST_FRAME_SOLVES = 3
 
 
 class InverseError(ProCamError):
@@ -462,10 +465,14 @@ class RealtimeView:
         dr, fl = self._dr, self._float
         want = fl(np.ascontiguousarray(target if theta is None else target + theta, np.float32).ravel())
         if not self._warm:
-            # The first frame has no previous answer to take its interreflection from: solve it once for that
-            # (1.9 dB below the next frames at 1600×1200 on the lab's curve without this).
+            # The first frame has no previous answer to take its interreflection from: solve it first for that
+            # (1.9 dB below the next frames at 1600×1200 on the lab's curve without this). Each solve takes the
+            # interreflection of the one before, so the level settles by a damped oscillation: with one such solve
+            # the first frames' mean level swung by 0.007, 0.0015, 0.0003 on the lab's curve at 1920×1080, a
+            # flicker of the whole picture the real camera saw (scripts/bench_live_show.py).
             self._warm = True
-            self.solve(target, theta, steps)
+            for _ in range(FIRST_FRAME_SOLVES):
+                self.solve(target, theta, steps)
         ind = self._indirect(self._prev)
         direct = want / dr.maximum(self.gain, 1e-3) - ind
         u = dr.block_sum(dr.gather(fl, direct, self._st_src, self._st_live) * self._st_w, self._taps)
