@@ -68,7 +68,7 @@ def lab(work: Path, surface: str, layout: str, args: argparse.Namespace) -> tupl
     """The lab set and its calibration (made once in ``work``)."""
     caps, truth, cal = work / "lab", work / "lab.truth.json", work / "cal"
     step(["lab", "--surface", surface, "--projectors", "2", "--layout", layout, "--overlap", "0.2", "--effects",
-          "realistic", "--projector-effects", SECOND, "--scale", str(args.scale), "--samples", str(args.samples),
+          args.effects, "--projector-effects", SECOND, "--scale", str(args.scale), "--samples", str(args.samples),
           "--out", str(caps), "--truth", str(truth)], caps)
     step(["calibrate", str(caps), "--out", str(cal)], cal)
     return cal, truth
@@ -226,8 +226,8 @@ def stacked(work: Path, surface: str, args: argparse.Namespace) -> None:
             table["ours_blur"].append(row_blur["psnr"])
     finally:
         h.close()
-    print(f"\n{surface}, two projectors stacked on one area, bright targets (99.5th percentile at 1), scale "
-          f"{args.scale}, closed loop; the diagnosis's blur σ " + ", ".join(
+    print(f"\n{surface}, two projectors stacked on one area, bright targets (99.5th percentile at 1), effects "
+          f"{args.effects}, scale {args.scale}, closed loop; the diagnosis's blur σ " + ", ".join(
               "none" if s is None else f"{s:.2f}" for s in sigmas) + " texels")
     print("| Target | range ceiling, projector 1 alone | both | both, through the camera's noise | reach ceiling "
           "(blur held) | through the camera's noise | projector 1 alone | ours, both | ours, blur held |")
@@ -395,6 +395,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--surfaces", default="curve,vedge")
     ap.add_argument("--scale", type=float, default=0.5)
+    # another lab than the issue's (e.g. realistic,distortion=0: what the camera's lens costs); a new --work folder
+    ap.add_argument("--effects", default="realistic")
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--targets", type=int, default=6)
