@@ -96,12 +96,14 @@ def targets_for(work: Path, area: Any, count: int, bright: bool = False) -> list
 class Harness:
     """The open-loop solves of one calibration of several projectors, each projected through the lab and scored."""
 
-    def __init__(self, cal_dir: Path, truth: Path, iterations: int | None) -> None:
+    def __init__(self, cal_dir: Path, truth: Path, iterations: int | None, device: Any = None) -> None:
+        """``device``: the lab of ``truth`` as opened elsewhere (e.g. with an effect switched off); it is closed
+        with the harness."""
         self.cal = calibrate_step.read(cal_dir)
         self.options = StageCOptions(iterations=iterations)
         self.stage = projectors.JointStage(self.cal, self.options)
         self.stage.estimate_bias()
-        self.device = device_pipeline(f"lab:{truth}", self.cal)
+        self.device = device if device is not None else device_pipeline(f"lab:{truth}", self.cal)
         self.cam = self.cal.rig.camera.intrinsics.size
 
     def fitted(self, path: Path) -> tuple[np.ndarray, Any]:

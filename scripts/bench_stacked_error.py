@@ -18,7 +18,7 @@ in the solve, σ texels, as ``--effects defocus`` does), then:
 * the sharpness ceiling: the best the operators show in the box with no θ and no noise, with a lens blur of σ texels
   held in them (0 the calibrated operators), the most the closed loop could reach if the rig blurred that much.
 
-``--noise-free``: the lab's sensor noise switched off (a copy of the truth in a temporary folder).
+``--noise-free``: the lab's sensor noise switched off (the sealed truth with that effect at 0, in memory).
 
 ``--sources [VARIANTS]``: instead of the loop, where the rig's blur comes from. Each projector alone shows texel
 noise (0.5 ± 0.2, every texel drawn apart: the finest detail there is) through the lab as it is, without its lens
@@ -31,10 +31,9 @@ pixels; the same samples per camera pixel); each capture against the operator's 
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
-import tempfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -63,29 +62,24 @@ def detail(x: np.ndarray, sigma: float = BAND) -> np.ndarray:
     return g - cv2.GaussianBlur(g, (0, 0), sigma)
 
 
-def truth_without(truth: Path, folder: Path, effect: str = "noise") -> Path:
-    """A copy of the sealed truth in ``folder`` with ``effect`` switched off (the camera's, the scene's and every
-    projector's own)."""
-    doc = json.loads(truth.read_text())
+def lab_without(truth: Any, *effects: str) -> Any:
+    """The sealed truth with ``effects`` switched off (the camera's, the scene's and every projector's own)."""
+    shared, own = truth.effects, dict(truth.projector_effects)
+    for effect in effects:
+        shared = shared.with_effect(effect, 0.0)
+        own = {k: e.with_effect(effect, 0.0) for k, e in own.items()}
+    return replace(truth, effects=shared, projector_effects=own)
 
-    def off(effects: dict[str, Any]) -> None:
-        if effect not in effects.get("effects", {}):
-            return
-        del effects["effects"][effect]  # an effect the truth does not list is off
-        effects["active"] = [a for a in effects["active"] if a != effect]
-        if isinstance(effects.get("spec"), str):  # the spec names it too: "…,noise=0.4,…"
-            effects["spec"] = re.sub(rf"(?<![a-z_]){effect}=[0-9.]+", f"{effect}=0", effects["spec"])
 
-    off(doc["effects"])
-    for own in (doc.get("projector_effects") or {}).values():
-        off(own)
-    if isinstance(doc.get("effects_spec"), str):
-        doc["effects_spec"] = re.sub(rf"(?<![a-z_]){effect}=[0-9.]+", f"{effect}=0", doc["effects_spec"])
-    mesh = truth.parent / doc["surface"]["mesh"]
-    (folder / mesh.name).write_bytes(mesh.read_bytes())
-    out = folder / truth.name
-    out.write_text(json.dumps(doc))
-    return out
+def lab_device(path: Path, cal: Any, *effects: str, supersample: int = 1) -> Any:
+    """The lab of the truth file ``path`` without ``effects``, through ``cal``'s device pipeline (the camera
+    rendered ``supersample`` times finer, with the same samples per camera pixel)."""
+    from procam.addon.lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
+
+    truth = bench.LabTruth.load(path)
+    lab = LabDevice(lab_without(truth, *effects), supersample=supersample,
+                    samples=max(1, truth.samples // (supersample * supersample)))
+    return bench.device_pipeline(f"lab:{path}", cal, device=lab)
 
 
 def shift_and_blur(capture: np.ndarray, prediction: np.ndarray) -> tuple[float, float, float, float]:
@@ -113,51 +107,42 @@ def main() -> None:
     ap.add_argument("--sources", nargs="?", const=SOURCES, default=None, metavar="VARIANTS")
     ap.add_argument("--operator-spp", type=int, default=None)
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        truth = args.folder / "lab.truth.json"
-        if args.sources:
-            blur_sources(args.folder, Path(tmp), args.sources, args.operator_spp)
-            return
-        if args.noise_free:
-            truth = truth_without(truth, Path(tmp))
-        h = bench.Harness(args.folder / "cal", truth, None)
-        try:
-            run(h, args)
-        finally:
-            h.close()
+    if args.sources:
+        blur_sources(args.folder, args.sources, args.operator_spp)
+        return
+    cal = bench.calibrate_step.read(args.folder / "cal")
+    device = lab_device(args.folder / "lab.truth.json", cal, *(["noise"] if args.noise_free else []))
+    h = bench.Harness(args.folder / "cal", args.folder / "lab.truth.json", None, device=device)
+    try:
+        run(h, args)
+    finally:
+        h.close()
 
 
 #: ``--sources`` variants when none are named: the lab as it is, without its defocus, its camera rendered finer.
 SOURCES = "asis,defocus,ss2,ss4"
 
 
-def blur_sources(folder: Path, tmp: Path, variants: str = SOURCES, operator_spp: int | None = None) -> None:
+def blur_sources(folder: Path, variants: str = SOURCES, operator_spp: int | None = None) -> None:
     """Each projector alone showing texel noise, its capture against its operator's prediction, through each variant
     of the lab: ``asis``, ``ssN`` (camera rendered N× finer, the same samples per camera pixel), or effects to
     switch off joined by ``+`` (``defocus+distortion``). ``operator_spp``: the operators rendered again at that many
     direct samples per pixel (in memory; the stored ones are left as they are)."""
-    from procam.addon.lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
     from procam.addon.stages.transport import build_transport
 
     cal = bench.calibrate_step.read(folder / "cal")
     comps = bench.projectors.JointStage(cal, bench.StageCOptions()).compensators
     operators = [c.transport if operator_spp is None else build_transport(cal.for_projector(k), spp=operator_spp)
                  for k, c in enumerate(comps)]
-    truth = folder / "lab.truth.json"
-    samples = bench.LabTruth.load(truth).samples
     cam = cal.rig.camera.intrinsics.size
     print("each projector alone showing texel noise, its capture against its operator's prediction"
           + ("" if operator_spp is None else f" (operators rendered at {operator_spp} samples a pixel)") + ":")
     for variant in variants.split(","):
-        path, ss = truth, int(variant[2:]) if re.fullmatch(r"ss[1-4]", variant) else 1
-        if variant != "asis" and ss == 1:
-            for effect in variant.split("+"):
-                (tmp / variant / effect).mkdir(parents=True)
-                path = truth_without(path, tmp / variant / effect, effect)
+        ss = int(variant[2:]) if re.fullmatch(r"ss[1-4]", variant) else 1
+        off = variant.split("+") if variant != "asis" and ss == 1 else []
         label = ("the lab as it is" if variant == "asis" else f"camera rendered {ss}x" if ss > 1 else
-                 "without " + " and ".join(variant.split("+")))
-        lab = LabDevice(bench.LabTruth.load(path), supersample=ss, samples=max(1, samples // (ss * ss)))
-        device = bench.device_pipeline(f"lab:{path}", cal, device=lab)
+                 "without " + " and ".join(off))
+        device = lab_device(folder / "lab.truth.json", cal, *off, supersample=ss)
         rng = np.random.default_rng(1)  # the same noise for every variant
         try:
             for k, (comp, op) in enumerate(zip(comps, operators)):
