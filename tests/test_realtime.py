@@ -12,9 +12,8 @@ import pytest
 from procam.addon.capture.targets import natural_target
 from procam.addon.cli.app import main
 from procam.addon.stages.metrics import area_psnr
-from procam.addon.stages.realtime import (FrameGather, InverseError, LensBlurBox, deblur_taps, gaussian_taps,
-                                         solve_batched)
-from procam.addon.stages.transport import lens_blur
+from procam.addon.stages.realtime import FrameGather, InverseError, LensBlurBox, deblur_taps, solve_batched
+from procam.addon.stages.transport import gaussian_taps, lens_blur
 from procam.addon.stages.warp_model import Warp
 from procam.addon.steps import calibrate as calibrate_step
 from procam.addon.steps import inverse as inverse_step

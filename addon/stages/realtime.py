@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import ProCamError
 from ..progress import Progress, quiet
-from .transport import BlurredRows, TransportOperator, TransportRows
+from .transport import BlurredRows, TransportOperator, TransportRows, gaussian_taps
 from .warp_model import bilinear_taps, pixel_centres
 
 FORMAT, VERSION = "procam-inverse", 1
@@ -262,12 +262,6 @@ def build_inverse(op: TransportOperator, progress: Progress | None = None) -> Ap
                   "seconds": round(time.perf_counter() - t0, 2), "megabytes": round(inv.nbytes / 2 ** 20, 1)}
     say("approximate inverse ready", 1.0)
     return inv
-
-
-def gaussian_taps(sigma: float) -> np.ndarray:
-    """The lens blur's one-dimensional Gaussian of ``sigma`` texels, the taps ``lens_blur`` (stage C's ``T B``)
-    blurs with: the blur is separable, ``B = B_y B_x``."""
-    return cv2.getGaussianKernel(int(round(8.0 * float(sigma) + 1.0)) | 1, float(sigma), cv2.CV_32F).ravel()
 
 
 def deblur_taps(sigma: float, ridge: float = DEBLUR_RIDGE) -> np.ndarray:
@@ -587,4 +581,4 @@ class FrameGather:
 
 
 __all__ = ["ApproximateInverse", "FrameGather", "InverseError", "LensBlurBox", "RealtimeView", "build_inverse",
-           "building_bytes", "deblur_taps", "gaussian_taps"]
+           "building_bytes", "deblur_taps"]

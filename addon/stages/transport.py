@@ -428,9 +428,16 @@ class TransportRows:
         return out.reshape(ih, iw, 3)
 
 
+def gaussian_taps(sigma: float) -> np.ndarray:
+    """The lens blur's one-dimensional Gaussian of ``sigma`` texels (±4σ, as OpenCV sizes it): the blur is
+    separable, ``B = B_y B_x``, and the real-time solve filters with the same taps."""
+    return cv2.getGaussianKernel(int(round(8.0 * float(sigma) + 1.0)) | 1, float(sigma), cv2.CV_32F).ravel()
+
+
 def lens_blur(z: np.ndarray, sigma: float) -> np.ndarray:
     """An input-size image after a Gaussian lens blur of ``sigma`` texels, with no light beyond its edges."""
-    return cv2.GaussianBlur(np.asarray(z, np.float32), (0, 0), float(sigma), borderType=cv2.BORDER_CONSTANT)
+    g = gaussian_taps(sigma)
+    return cv2.sepFilter2D(np.asarray(z, np.float32), -1, g, g, borderType=cv2.BORDER_CONSTANT)
 
 
 class BlurredRows:
@@ -605,4 +612,4 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP
 
 
 __all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "build_transport", "building_bytes",
-           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes"]
+           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes", "gaussian_taps"]
