@@ -161,8 +161,7 @@ def noise_free_device(truth: Path, cal: Calibration) -> Any:
     from procam.addon.lab.cycles_device import LabDevice  # bpy
     from procam.addon.lab.truth import LabTruth
 
-    sealed = LabTruth.load(truth)
-    quiet = LabDevice(replace(sealed, effects=sealed.effects.with_effect("noise", 0.0)), repeat_draws=True)
+    quiet = LabDevice(LabTruth.load(truth).without("noise"), repeat_draws=True)
     return device_pipeline(f"lab:{truth}", cal, device=quiet)
 
 

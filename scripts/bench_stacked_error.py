@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -62,22 +61,13 @@ def detail(x: np.ndarray, sigma: float = BAND) -> np.ndarray:
     return g - cv2.GaussianBlur(g, (0, 0), sigma)
 
 
-def lab_without(truth: Any, *effects: str) -> Any:
-    """The sealed truth with ``effects`` switched off (the camera's, the scene's and every projector's own)."""
-    shared, own = truth.effects, dict(truth.projector_effects)
-    for effect in effects:
-        shared = shared.with_effect(effect, 0.0)
-        own = {k: e.with_effect(effect, 0.0) for k, e in own.items()}
-    return replace(truth, effects=shared, projector_effects=own)
-
-
 def lab_device(path: Path, cal: Any, *effects: str, supersample: int = 1) -> Any:
     """The lab of the truth file ``path`` without ``effects``, through ``cal``'s device pipeline (the camera
     rendered ``supersample`` times finer, with the same samples per camera pixel)."""
     from procam.addon.lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
 
     truth = bench.LabTruth.load(path)
-    lab = LabDevice(lab_without(truth, *effects), supersample=supersample,
+    lab = LabDevice(truth.without(*effects), supersample=supersample,
                     samples=max(1, truth.samples // (supersample * supersample)))
     return bench.device_pipeline(f"lab:{path}", cal, device=lab)
 

@@ -231,6 +231,19 @@ def test_same_seed_same_captures_other_seed_other_noise(base, frames):
     np.testing.assert_array_equal(lab_depth(truth)[0], lab_depth(truth)[0])
 
 
+def test_a_truth_without_an_effect_switches_it_off_everywhere_and_keeps_the_rest(base):
+    """``LabTruth.without``: the effect off in the shared effects and in every projector's own, the others and the
+    truth it came from as they were."""
+    truth = replace(base, effects=parse_effects("realistic"),
+                    projector_effects={0: parse_effects("defocus=0.5,response=0.6")})
+    off = truth.without("defocus", "noise")
+    assert not off.effects["noise"].active and not off.effects["defocus"].active
+    assert not off.effects_of(0)["defocus"].active
+    assert off.effects_of(0)["response"].strength == truth.effects_of(0)["response"].strength == 0.6
+    assert off.effects["distortion"] == truth.effects["distortion"] and off.rig is truth.rig
+    assert truth.effects_of(0)["defocus"].active and truth.effects["noise"].active
+
+
 def test_repeated_draws_capture_a_frame_shown_twice_alike(base, frames):
     """``repeat_draws``: every shot draws the first one's samples and sensor noise, so the same frame gives the same
     capture (the flicker benchmark's camera without noise of its own); a device without it draws afresh."""

@@ -90,6 +90,15 @@ class LabTruth:
         own = self.projector_effects.get(index)
         return self.effects if own is None else with_projector_effects(self.effects, own)
 
+    def without(self, *names: str) -> "LabTruth":
+        """The same truth with the effects ``names`` switched off, shared and every projector's own (what a
+        benchmark compares against: the lab without its sensor noise, without a lens's blur)."""
+        shared, own = self.effects, dict(self.projector_effects)
+        for name in names:
+            shared = shared.with_effect(name, 0.0)
+            own = {k: e.with_effect(name, 0.0) for k, e in own.items()}
+        return replace(self, effects=shared, projector_effects=own)
+
     @property
     def nominal_camera(self) -> Camera:
         """The camera as the pipeline is told it is."""
