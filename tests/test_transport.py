@@ -165,6 +165,19 @@ def test_a_damaged_operator_is_refused_before_any_gather_reads_outside_it(operat
         TransportOperator.from_arrays(arrays)
 
 
+def test_an_operator_of_direct_light_alone_reads_back(operator):
+    """``precompute --bounces 0`` stores an operator with no indirect blocks; stage C must read it back, not call it
+    damaged (which sent users to ``--force``, which stores the same again)."""
+    _, op, _ = operator
+    direct = TransportOperator(op.camera_size, op.input_size, op.index, op.weight, (0, 0),
+                               np.zeros((0, 1, 1, 3), np.float32))
+    back = TransportOperator.from_arrays({k: np.array(v) for k, v in direct.arrays().items()})
+    z = np.full((op.input_size[1], op.input_size[0], 3), 0.5, np.float32)
+    assert back.blocks == (0, 0) and np.allclose(back.apply(z), op.direct(z), atol=1e-5)
+    with pytest.raises(TransportError, match="block count"):
+        TransportOperator.from_arrays({**direct.arrays(), "blocks": np.asarray((0, 2))})
+
+
 @pytest.mark.parametrize("device", [False, True])
 def test_compensate_on_the_operator(operator, lab_calibration, tmp_path, device):
     """Stage C on the operator, open and closed loop, matches what the camera sees and beats the plain target."""

@@ -212,8 +212,8 @@ class TransportOperator:
         entry outside the input (a damaged or edited file) would read outside the array, and a weight that is no
         number would spread NaN through every solve."""
         (cw, ch), (iw, ih), (bx, by) = self.camera_size, self.input_size, self.blocks
-        if min(cw, ch, iw, ih, bx, by) < 1:
-            return "a size or block count below 1"
+        if min(cw, ch, iw, ih) < 1 or min(bx, by) < 0 or (bx * by == 0 and (bx, by) != (0, 0)):
+            return "a size below 1 or a block count below 0"  # (0, 0) blocks: direct light only (bounces 0)
         p = cw * ch
         if self.index.ndim != 2 or self.index.shape[0] != p or self.weight.shape != (*self.index.shape, 3):
             return f"entries of shape {self.index.shape} and {self.weight.shape} for {p} camera pixels"
