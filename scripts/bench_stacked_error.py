@@ -2,8 +2,9 @@
 """Where the stacked closed loop's error is: frequency band, noise or systematic, the solve or the rig, per projector.
 
 Usage: ``.venv/bin/python scripts/bench_stacked_error.py DIR [--targets forest,city] [--blur SIGMA]
-[--noise-free]``, DIR a folder of ``scripts/bench_projectors.py --parts stacked --work W`` (``W/curve-stacked``:
-``cal``, ``lab.truth.json``, ``targets``).
+[--noise-free] [--off EFFECTS] [--oracle-operators]``, ``… DIR --oracle``, ``… DIR --sources``; DIR a folder of
+``scripts/bench_projectors.py --parts stacked --work W`` (``W/curve-stacked``: ``cal``, ``lab.truth.json``,
+``targets``).
 
 For each target, the joint closed loop as ``procam compensate`` runs it (``--blur``: each projector's lens blur held
 in the solve, σ texels, as ``--effects defocus`` does), then:
@@ -18,7 +19,17 @@ in the solve, σ texels, as ``--effects defocus`` does), then:
 * the sharpness ceiling: the best the operators show in the box with no θ and no noise, with a lens blur of σ texels
   held in them (0 the calibrated operators), the most the closed loop could reach if the rig blurred that much.
 
-``--noise-free``: the lab's sensor noise switched off (the sealed truth with that effect at 0, in memory).
+``--noise-free``: the lab's sensor noise switched off (the sealed truth with that effect at 0, in memory); ``--off
+EFFECTS`` (comma-separated) switches off others.
+
+``--oracle [--spacing S]``: the oracle ceiling, the most any inputs in [0, 1] show through the lab's own light
+transport rather than through ProCam's model of it. Each projector's transport is measured from the lab's captures
+(lattices of every S-th texel, the lab's nonlinear effects, offsets, noise and bounce light switched off and every
+shot drawn with the same random numbers, so that it is linear; kept in ``DIR/oracle-S.npz``), checked against a
+capture of texel noise, then the open-loop solve runs on it (as the reach ceiling, 1,000 steps) for every target
+(``--targets``, default all six) and is printed beside the camera's noise and ours from the bench's evaluations
+(``DIR/eval-plain``, ``DIR/eval-blur``). ``--oracle-operators``: the closed loop above on those measured operators
+instead of the rendered ones.
 
 ``--sources [VARIANTS]``: instead of the loop, where the rig's blur comes from. Each projector alone shows texel
 noise (0.5 ± 0.2, every texel drawn apart: the finest detail there is) through the lab as it is, without its lens
@@ -31,6 +42,7 @@ pixels; the same samples per camera pixel); each capture against the operator's 
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
 from pathlib import Path
@@ -61,15 +73,23 @@ def detail(x: np.ndarray, sigma: float = BAND) -> np.ndarray:
     return g - cv2.GaussianBlur(g, (0, 0), sigma)
 
 
-def lab_device(path: Path, cal: Any, *effects: str, supersample: int = 1) -> Any:
+def lab_device(path: Path, cal: Any, *effects: str, supersample: int = 1, repeat_draws: bool = False) -> Any:
     """The lab of the truth file ``path`` without ``effects``, through ``cal``'s device pipeline (the camera
-    rendered ``supersample`` times finer, with the same samples per camera pixel)."""
+    rendered ``supersample`` times finer, with the same samples per camera pixel; ``repeat_draws``: every shot
+    rendered with the first shot's random numbers, so the lab is linear in what it is shown)."""
     from procam.addon.lab.cycles_device import LabDevice  # bpy: the lab renders with Cycles
 
     truth = bench.LabTruth.load(path)
-    lab = LabDevice(truth.without(*effects), supersample=supersample,
+    lab = LabDevice(truth.without(*effects), supersample=supersample, repeat_draws=repeat_draws,
                     samples=max(1, truth.samples // (supersample * supersample)))
     return bench.device_pipeline(f"lab:{path}", cal, device=lab)
+
+
+def alone(device: Any, comps: list[Any], k: int, z: np.ndarray) -> np.ndarray:
+    """The capture of projector ``k`` showing the virtual input ``z`` (through its warp), the others black."""
+    frames = [c.rig.projector.frame_from_input(c.warp_w(z) if i == k else np.zeros(
+        (c.rig.projector.input_size[1], c.rig.projector.input_size[0], 3), np.float32)) for i, c in enumerate(comps)]
+    return bench.projectors.project_all(device, frames, comps[0].camera_size)
 
 
 def shift_and_blur(capture: np.ndarray, prediction: np.ndarray) -> tuple[float, float, float, float]:
@@ -96,14 +116,27 @@ def main() -> None:
     ap.add_argument("--noise-free", action="store_true")
     ap.add_argument("--sources", nargs="?", const=SOURCES, default=None, metavar="VARIANTS")
     ap.add_argument("--operator-spp", type=int, default=None)
+    ap.add_argument("--oracle", action="store_true")
+    ap.add_argument("--oracle-operators", action="store_true")
+    ap.add_argument("--off", default="", metavar="EFFECTS")
+    ap.add_argument("--spacing", type=int, default=ORACLE_SPACING)
     args = ap.parse_args()
     if args.sources:
         blur_sources(args.folder, args.sources, args.operator_spp)
         return
+    if args.oracle:
+        oracle(args.folder, args.targets if args.targets != ap.get_default("targets") else ALL_TARGETS,
+               args.spacing)
+        return
     cal = bench.calibrate_step.read(args.folder / "cal")
-    device = lab_device(args.folder / "lab.truth.json", cal, *(["noise"] if args.noise_free else []))
+    off = (["noise"] if args.noise_free else []) + [e for e in args.off.split(",") if e]
+    device = lab_device(args.folder / "lab.truth.json", cal, *off)
     h = bench.Harness(args.folder / "cal", args.folder / "lab.truth.json", None, device=device)
     try:
+        if args.oracle_operators:
+            for c, op in zip(h.stage.compensators, oracle_operators(args.folder, cal, h.stage.compensators,
+                                                                      args.spacing)):
+                c.transport = op
         run(h, args)
     finally:
         h.close()
@@ -124,7 +157,6 @@ def blur_sources(folder: Path, variants: str = SOURCES, operator_spp: int | None
     comps = bench.projectors.JointStage(cal, bench.StageCOptions()).compensators
     operators = [c.transport if operator_spp is None else build_transport(cal.for_projector(k), spp=operator_spp)
                  for k, c in enumerate(comps)]
-    cam = cal.rig.camera.intrinsics.size
     print("each projector alone showing texel noise, its capture against its operator's prediction"
           + ("" if operator_spp is None else f" (operators rendered at {operator_spp} samples a pixel)") + ":")
     for variant in variants.split(","):
@@ -138,14 +170,137 @@ def blur_sources(folder: Path, variants: str = SOURCES, operator_spp: int | None
             for k, (comp, op) in enumerate(zip(comps, operators)):
                 iw, ih = comp.rig.projector.input_size
                 z = np.clip(0.5 + 0.2 * rng.standard_normal((ih, iw, 1)), 0, 1).repeat(3, axis=2).astype(np.float32)
-                frames = [c.rig.projector.frame_from_input(comp.warp_w(z) if i == k else np.zeros_like(z))
-                          for i, c in enumerate(comps)]
-                capture = np.mean([bench.projectors.project_all(device, frames, cam) for _ in range(2)], axis=0)
+                capture = np.mean([alone(device, comps, k, z) for _ in range(2)], axis=0)
                 dx, dy, sigma, gain = shift_and_blur(capture, op.apply(z).reshape(capture.shape))
                 print(f"  {label}: projector {k + 1}: shift ({dx:+.3f}, {dy:+.3f}) camera px, blur σ {sigma:.2f} "
                       f"camera px (gain {gain:.2f})", flush=True)
         finally:
             device.close()
+
+
+#: What the oracle's lab switches off: what is not linear in the light shown (the projectors' and the camera's
+#: responses; the colour crosstalk, which a white lattice cannot tell apart per channel), the offsets (black level),
+#: the sensor noise, and the bounced light (a lattice capture would give it to the nearest node). What stays is what
+#: blurs, dims or bends the light on its way: the projectors' defocus and vignetting, the glossy lobe, the camera's
+#: lens distortion.
+ORACLE_OFF = ("noise", "response", "crosstalk", "black_level", "camera_response", "interreflection")
+#: Lattice spacing (texels) of the oracle's captures: wider than the widest blurred footprint (the lab's defocus is
+#: σ 0.9 texel with a disk, the camera's lens about 0.7 texel more), so each camera pixel sees one node.
+ORACLE_SPACING = 12
+#: Entries kept per camera pixel (a blurred footprint spans more texels than the rendered operators' 16).
+ORACLE_ENTRIES = 36
+ALL_TARGETS = "city,courtyard,forest,interior,studio,sunrise"
+
+
+def measured_operator(device: Any, comps: list[Any], k: int, cam: tuple[int, int], spacing: int) -> Any:
+    """Projector ``k``'s light transport read off the lab's own captures instead of rendered from the calibration:
+    one capture per lattice offset (every ``spacing``-th texel white, the rest and the other projectors black, the
+    black capture taken off), each camera pixel's value given to the lattice node nearest where the calibration
+    says it looks, the largest :data:`ORACLE_ENTRIES` kept."""
+    from procam.addon.stages.transport import TransportOperator, camera_to_input
+
+    iw, ih = comps[k].rig.projector.input_size
+    u, lit = camera_to_input(comps[k].calibration, cam)
+    flat_u, ok = u.reshape(-1, 2), lit.ravel()
+    black = alone(device, comps, k, np.zeros((ih, iw, 3), np.float32)).reshape(-1, 3)
+    index, weight = [], []
+    for a in range(spacing):
+        for b in range(spacing):
+            z = np.zeros((ih, iw, 3), np.float32)
+            z[a::spacing, b::spacing] = 1.0
+            img = alone(device, comps, k, z).reshape(-1, 3) - black
+            col = b + spacing * np.round((np.nan_to_num(flat_u[:, 0]) - 0.5 - b) / spacing)
+            row = a + spacing * np.round((np.nan_to_num(flat_u[:, 1]) - 0.5 - a) / spacing)
+            inside = ok & (col >= 0) & (col < iw) & (row >= 0) & (row < ih)
+            index.append(np.where(inside, row * iw + col, 0).astype(np.int32))
+            weight.append(np.where(inside[:, None], np.maximum(img, 0.0), 0.0).astype(np.float32))
+        print(f"  projector {k + 1}: lattice row {a + 1}/{spacing} captured", flush=True)
+    idx, w = np.stack(index, axis=1), np.stack(weight, axis=1)
+    keep = np.argsort(-w.sum(axis=2), axis=1)[:, :ORACLE_ENTRIES]
+    total = float(w.sum())
+    idx, w = np.take_along_axis(idx, keep, axis=1), np.take_along_axis(w, keep[..., None], axis=1)
+    op = TransportOperator(tuple(cam), (iw, ih), idx, w, (0, 0), np.zeros((0, 1, 1, 3), np.float32))
+    op.report = {"light_dropped": round(1.0 - float(w.sum()) / max(total, 1e-12), 5), "black": black}
+    return op
+
+
+def oracle_operators(folder: Path, cal: Any, comps: list[Any], spacing: int) -> list[Any]:
+    """Every projector's :func:`measured_operator` through the lab without :data:`ORACLE_OFF` (kept in
+    ``folder/oracle-SPACING.npz`` once measured), each checked against a capture of texel noise."""
+    from procam.addon.stages.transport import TransportOperator
+
+    cam = cal.rig.camera.intrinsics.size
+    store = folder / f"oracle-{spacing}.npz"
+    device = lab_device(folder / "lab.truth.json", cal, *ORACLE_OFF, repeat_draws=True)
+    print(f"the lab without {', '.join(ORACLE_OFF)}, every shot with the first shot's random numbers; lattice every "
+          f"{spacing} texels:", flush=True)
+    try:
+        if store.exists():
+            data = np.load(store)
+            ops = []
+            for k in range(len(comps)):
+                op = TransportOperator(cam, tuple(data[f"{k}-input_size"]), data[f"{k}-index"],
+                                       data[f"{k}-weight"], (0, 0), data[f"{k}-indirect"])
+                op.report = {"light_dropped": float(data[f"{k}-dropped"]), "black": data[f"{k}-black"]}
+                ops.append(op)
+        else:
+            ops = [measured_operator(device, comps, k, cam, spacing) for k in range(len(comps))]
+            arrays = {f"{k}-{n}": v for k, op in enumerate(ops) for n, v in op.arrays().items()}
+            arrays.update({f"{k}-dropped": np.asarray(op.report["light_dropped"]) for k, op in enumerate(ops)})
+            arrays.update({f"{k}-black": op.report["black"] for k, op in enumerate(ops)})
+            np.savez(store, **arrays)
+        rng = np.random.default_rng(1)
+        for k, (comp, op) in enumerate(zip(comps, ops)):
+            iw, ih = comp.rig.projector.input_size
+            z = np.clip(0.5 + 0.2 * rng.standard_normal((ih, iw, 1)), 0, 1).repeat(3, axis=2).astype(np.float32)
+            capture = alone(device, comps, k, z) - op.report["black"].reshape(cam[1], cam[0], 3)
+            pred = op.apply(z).reshape(capture.shape)
+            lit = pred.mean(axis=2) > 0.05
+            dx, dy, sigma, gain = shift_and_blur(capture, pred)
+            rendered = shift_and_blur(capture, comp.transport.apply(z).reshape(capture.shape))
+            print(f"  projector {k + 1}: light dropped {op.report['light_dropped']:.4f}; texel noise captured against "
+                  f"the measured operator {db(float(np.mean((capture - pred)[lit] ** 2))):.2f} dB, shift "
+                  f"({dx:+.3f}, {dy:+.3f}) px, blur σ {sigma:.2f} px (gain {gain:.2f}); against the rendered "
+                  f"operator blur σ {rendered[2]:.2f} px", flush=True)
+    finally:
+        device.close()
+    return ops
+
+
+def oracle(folder: Path, targets: str, spacing: int) -> None:
+    """The most any inputs in [0, 1] show through the lab's own light transport (measured, module doc of
+    :func:`measured_operator`), next to the noise ceiling and ours from the bench's evaluations."""
+    cal = bench.calibrate_step.read(folder / "cal")
+    stage = bench.projectors.JointStage(cal, bench.StageCOptions())
+    comps = stage.compensators
+    names = targets.split(",")
+    fitted = {}
+    for name in names:  # the display area and fitted target of the bench's own runs, before the operators change
+        image, _ = stage.load(folder / "targets" / f"{name}.png")
+        area = stage.area_for(image)
+        fitted[name] = (stage.fitted(image, area), area)
+    ops = oracle_operators(folder, cal, comps, spacing)
+    for c, op in zip(comps, ops):
+        c.input_blur = None
+        c.transport = op
+    evals = {key: {t["name"]: t for t in json.loads((folder / f"eval-{key}" / "metrics.json").read_text())["targets"]}
+             for key in ("plain", "blur") if (folder / f"eval-{key}" / "metrics.json").exists()}
+    print("\n| target | oracle ceiling (500 / 1000 steps) | through the camera's noise | noise ceiling | ours | "
+          "ours, blur held | ours (blur held) below the oracle through the noise |\n|---|---|---|---|---|---|---|")
+    rows = []
+    for name in names:
+        f, area = fitted[name]
+        best = [stage.joint.run(f, area, use_bias=False, iterations_z=n, iterations_joint=0, blend="none")
+                .report["psnr_simulated"] for n in (bench.REACH_ITERATIONS // 2, bench.REACH_ITERATIONS)]
+        plain, blur = (evals.get(key, {}).get(name, {}) for key in ("plain", "blur"))
+        noise_mse = float(plain.get("capture_noise_rmse", 0.0)) ** 2
+        through = db(10 ** (-best[1] / 10) + noise_mse)
+        ours, held = plain.get("psnr", float("nan")), blur.get("psnr", float("nan"))
+        rows.append((best[1], through, plain.get("noise_ceiling", float("nan")), ours, held, through - held))
+        print(f"| {name} | {best[0]:.2f} / {best[1]:.2f} | {through:.2f} | {rows[-1][2]:.2f} | {ours:.2f} | "
+              f"{held:.2f} | {through - held:.2f} |", flush=True)
+    m = np.mean(rows, axis=0)
+    print(f"| mean | {m[0]:.2f} | {m[1]:.2f} | {m[2]:.2f} | {m[3]:.2f} | {m[4]:.2f} | {m[5]:.2f} |")
 
 
 def run(h: Any, args: argparse.Namespace) -> None:
@@ -173,7 +328,9 @@ def run(h: Any, args: argparse.Namespace) -> None:
         sys_e = mean_y - fitted
         lap = np.abs(cv2.Laplacian(fitted.mean(axis=2), cv2.CV_32F))
         edges = lap > np.percentile(lap, 80)
-        print(f"\n{name}, blur held {args.blur} texels{', noise-free lab' if args.noise_free else ''}: capture "
+        print(f"\n{name}, blur held {args.blur} texels{', noise-free lab' if args.noise_free else ''}"
+              f"{', the lab without ' + args.off if args.off else ''}"
+              f"{', the oracle operators' if args.oracle_operators else ''}: capture "
               f"PSNR per capture " + " ".join(f"{p:.2f}" for p in trace))
         mse = {"all": np.mean(e ** 2), "low": np.mean(low(e) ** 2), "detail": np.mean(detail(e) ** 2),
                "edges": np.mean(e[edges] ** 2), "rest": np.mean(e[~edges] ** 2)}
@@ -191,6 +348,8 @@ def run(h: Any, args: argparse.Namespace) -> None:
             dx, dy, sigma, gain = shift_and_blur(alone, predicted)
             print(f"  projector {k + 1} alone against its operator: shift ({dx:+.3f}, {dy:+.3f}) camera px, "
                   f"its detail fits the prediction blurred by σ {sigma:.1f} camera px (gain {gain:.2f})")
+        if args.oracle_operators:
+            continue  # the sharpness ceiling is the rendered operators'; --oracle gives the oracle's
         ceiling = []
         for s in BLURS:
             for c in comps:
