@@ -12,7 +12,8 @@ inside the overlap, outside it, the seam step), and in the open loop three ways 
 projected through the lab: jointly with the derived blend prior, jointly without it, and each projector alone on its
 linear edge-blend ramp (the baseline).
 ``stacked``: two projectors on the same area, bright targets: the range ceiling of both together against one
-projector's, and ours.
+projector's, and ours; the reach ceiling (through the operators with the diagnosed blur held) and the oracle ceiling
+(through the lab's own light transport, measured from its captures: ``bench_stacked_error.py --oracle``).
 ``shift``: projector 2's calibrated pose moved sideways by one camera pixel after calibration (its operator rendered
 again): how much the overlap loses, with the blend prior and without, in the open loop.
 ``timing``: seconds per target of the joint solve against one projector's, on the same calibration.
@@ -244,6 +245,12 @@ def stacked(work: Path, surface: str, args: argparse.Namespace) -> None:
           f"{m['noise'] - m['ours']:.2f} dB below the noise ceiling; with the blur held "
           f"{m['reach_noise'] - m['ours_blur']:.2f} dB below the reach ceiling through the noise "
           f"({m['noise'] - m['reach_noise']:.2f} dB of the noise ceiling no input reaches through the blur)")
+    # The oracle ceiling: the most any inputs show through the lab's own light transport, measured from its captures
+    # (bench_stacked_error.py --oracle, which imports this module: imported here).
+    import bench_stacked_error
+
+    print()
+    bench_stacked_error.oracle(work, ",".join(p.stem for p in paths), bench_stacked_error.ORACLE_SPACING)
 
 
 def shift(work: Path, surface: str, args: argparse.Namespace) -> None:

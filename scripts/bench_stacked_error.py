@@ -20,7 +20,8 @@ in the solve, σ texels, as ``--effects defocus`` does), then:
   held in them (0 the calibrated operators), the most the closed loop could reach if the rig blurred that much.
 
 ``--noise-free``: the lab's sensor noise switched off (the sealed truth with that effect at 0, in memory); ``--off
-EFFECTS`` (comma-separated) switches off others.
+EFFECTS`` (comma-separated) switches off others. ``--iterations-joint N``, ``--captures N``: the transport
+schedule's closed loop with more solver steps or captures.
 
 ``--oracle [--spacing S]``: the oracle ceiling, the most any inputs in [0, 1] show through the lab's own light
 transport rather than through ProCam's model of it. Each projector's transport is measured from the lab's captures
@@ -45,6 +46,7 @@ import argparse
 import json
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_projectors as bench  # noqa: E402
 
 from procam.addon.stages import joint as joint_module  # noqa: E402
+from procam.addon.stages.schedule import get_schedule  # noqa: E402
 
 BAND = 1.5  # camera pixels: the Gaussian that splits the low band from the detail
 BLURS = (0.0, 0.45, 0.9, 1.0, 1.3)
@@ -119,6 +122,8 @@ def main() -> None:
     ap.add_argument("--oracle", action="store_true")
     ap.add_argument("--oracle-operators", action="store_true")
     ap.add_argument("--off", default="", metavar="EFFECTS")
+    ap.add_argument("--iterations-joint", type=int, default=None)
+    ap.add_argument("--captures", type=int, default=None)
     ap.add_argument("--spacing", type=int, default=ORACLE_SPACING)
     args = ap.parse_args()
     if args.sources:
@@ -314,12 +319,17 @@ def run(h: Any, args: argparse.Namespace) -> None:
         return y
 
     joint_module.JointSolve.capture = logged  # type: ignore[method-assign]
+    schedule: dict[str, Any] = {}
+    if args.iterations_joint or args.captures:
+        base = get_schedule("transport")
+        schedule["schedule"] = replace(base, iterations_joint=args.iterations_joint or base.iterations_joint,
+                                       captures=args.captures or base.captures)
     for name in args.targets.split(","):
         fitted, area = h.fitted(args.folder / "targets" / f"{name}.png")
         for c in comps:
             c.input_blur = args.blur or None
         trace.clear()
-        res = h.stage.joint.run(fitted, area, device=h.device, **h.options.run_arguments())
+        res = h.stage.joint.run(fitted, area, device=h.device, **{**h.options.run_arguments(), **schedule})
         ys = [area.crop(bench.projectors.project_all(h.device, res.x_frames, h.cam)) for _ in range(3)]
         y, mean_y, pred = ys[0], np.mean(ys, axis=0), area.crop(res.simulated)
         e = y - fitted
@@ -330,8 +340,10 @@ def run(h: Any, args: argparse.Namespace) -> None:
         edges = lap > np.percentile(lap, 80)
         print(f"\n{name}, blur held {args.blur} texels{', noise-free lab' if args.noise_free else ''}"
               f"{', the lab without ' + args.off if args.off else ''}"
-              f"{', the oracle operators' if args.oracle_operators else ''}: capture "
-              f"PSNR per capture " + " ".join(f"{p:.2f}" for p in trace))
+              f"{', the oracle operators' if args.oracle_operators else ''}"
+              + (f", {schedule['schedule'].iterations_joint} joint steps over {schedule['schedule'].captures} "
+                 "captures" if schedule else "") + ": capture "
+              "PSNR per capture " + " ".join(f"{p:.2f}" for p in trace))
         mse = {"all": np.mean(e ** 2), "low": np.mean(low(e) ** 2), "detail": np.mean(detail(e) ** 2),
                "edges": np.mean(e[edges] ** 2), "rest": np.mean(e[~edges] ** 2)}
         print(f"  final capture {db(mse['all']):.2f} dB: low band {db(mse['low']):.2f}, detail {db(mse['detail']):.2f}"
