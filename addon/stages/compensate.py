@@ -72,7 +72,7 @@ from .display_area import DisplayArea, fit_target
 from .metrics import area_psnr
 from .schedule import (ALPHA, CAPTURE_EVERY, DEFAULT_SCHEDULE, ITERATIONS_JOINT, ITERATIONS_Z, LEARNING_RATE, MODES,
                        REFERENCE_SPP, SCHEDULES, CompensationError, Schedule, get_schedule, matched_alpha, plateaued,
-                       split_iterations)
+                       split_iterations, with_held_blur)
 from .solve_render import RenderSolve
 from .solve_transport import TransportSolve
 from .transport import BlurredRows, TransportOperator, TransportRows, build_transport
@@ -327,6 +327,8 @@ class Compensator:
         if self.input_blur and not sched.transport:
             raise CompensationError(f"the projector lens's blur is held by the transport schedule only, not by "
                                     f"{sched.name!r}: compensate with --schedule transport")
+        if self.input_blur:
+            sched = with_held_blur(sched, schedule, iterations_joint)
         area = area.check(self.camera_size)
         placed = area.place(fit_target(target, area, what=f"target {name!r}"), self.camera_size)
         mode, bias = self.bias_for(placed, device, use_bias, open_loop_theta, say, name)
