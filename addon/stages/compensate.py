@@ -324,10 +324,10 @@ class Compensator:
                                   alpha=alpha, capture_every=capture_every)
         if theta_init not in ("capture", "zero"):
             raise CompensationError(f"theta_init must be 'capture' or 'zero', got {theta_init!r}")
-        if self.input_blur and not sched.transport:
-            raise CompensationError(f"the projector lens's blur is held by the transport schedule only, not by "
-                                    f"{sched.name!r}: compensate with --schedule transport")
         if self.input_blur:
+            if not sched.transport:
+                raise CompensationError(f"the projector lens's blur is held by the transport schedule only, not by "
+                                        f"{sched.name!r}: compensate with --schedule transport")
             sched = with_held_blur(sched, schedule, iterations_joint)
         area = area.check(self.camera_size)
         placed = area.place(fit_target(target, area, what=f"target {name!r}"), self.camera_size)

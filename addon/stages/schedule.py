@@ -210,8 +210,7 @@ DEFAULT_SCHEDULE = "transport"
 #: With a lens blur held in the transport solve (``--effects defocus``) every step deconvolves, which SIRT does
 #: slowly: the joint phase of a named schedule takes this many times its steps, over the same captures. Two
 #: projectors stacked, blur held, closed loop: 30 → 150 steps over 15 captures +0.63 dB on forest, +0.38 on city
-#: (docs/results.md, "What the closed loop leaves between ours and the oracle"); a target's solve costs about a
-#: second more at 640×480 on 2 cores, far less than its 15 captures.
+#: (docs/results.md, "What the closed loop leaves between ours and the oracle").
 HELD_BLUR_STEPS = 5
 
 
