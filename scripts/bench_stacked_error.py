@@ -204,7 +204,7 @@ def measured_operator(device: Any, comps: list[Any], k: int, cam: tuple[int, int
     one capture per lattice offset (every ``spacing``-th texel white, the rest and the other projectors black, the
     black capture taken off), each camera pixel's value given to the lattice node nearest where the calibration
     says it looks, the largest :data:`ORACLE_ENTRIES` kept."""
-    from procam.addon.stages.transport import TransportOperator, camera_to_input
+    from procam.addon.stages.transport import TransportOperator, camera_to_input, lattice_nodes
 
     iw, ih = comps[k].rig.projector.input_size
     u, lit = camera_to_input(comps[k].calibration, cam)
@@ -216,10 +216,8 @@ def measured_operator(device: Any, comps: list[Any], k: int, cam: tuple[int, int
             z = np.zeros((ih, iw, 3), np.float32)
             z[a::spacing, b::spacing] = 1.0
             img = alone(device, comps, k, z).reshape(-1, 3) - black
-            col = b + spacing * np.round((np.nan_to_num(flat_u[:, 0]) - 0.5 - b) / spacing)
-            row = a + spacing * np.round((np.nan_to_num(flat_u[:, 1]) - 0.5 - a) / spacing)
-            inside = ok & (col >= 0) & (col < iw) & (row >= 0) & (row < ih)
-            index.append(np.where(inside, row * iw + col, 0).astype(np.int32))
+            node, inside = lattice_nodes(flat_u, ok, a, b, spacing, (iw, ih))
+            index.append(node)
             weight.append(np.where(inside[:, None], np.maximum(img, 0.0), 0.0).astype(np.float32))
         print(f"  projector {k + 1}: lattice row {a + 1}/{spacing} captured", flush=True)
     idx, w = np.stack(index, axis=1), np.stack(weight, axis=1)

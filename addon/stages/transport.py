@@ -528,6 +528,18 @@ def footprint_radius(u: np.ndarray) -> np.ndarray:
     return 0.5 * math.sqrt(2.0) * stretch + 1.0
 
 
+def lattice_nodes(flat_u: np.ndarray, ok: np.ndarray, a: int, b: int, spacing: int, input_size: tuple[int, int]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """For the lattice of every ``spacing``-th texel from row ``a``, column ``b``: the node nearest to where each
+    camera pixel looks (``flat_u``, (P, 2) input coordinates, texel centres at index + 0.5), as a flat texel index
+    (0 where none), and whether it has one (``ok``: the pixel sees the projector; the node inside the input)."""
+    iw, ih = input_size
+    col = b + spacing * np.round((np.nan_to_num(flat_u[:, 0]) - 0.5 - b) / spacing)
+    row = a + spacing * np.round((np.nan_to_num(flat_u[:, 1]) - 0.5 - a) / spacing)
+    inside = ok & (col >= 0) & (col < iw) & (row >= 0) & (row < ih)
+    return np.where(inside, row * iw + col, 0).astype(np.int32), inside
+
+
 def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP, seed: int = 0, blocks: int = 8,
                     indirect_scale: float = 0.25, indirect_spp: int = 64, variant: str | None = None,
                     progress: Progress | None = None, cancel: Cancel | None = None) -> TransportOperator:
@@ -561,11 +573,8 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP
         z = np.zeros((ih, iw, 3), np.float32)
         z[a::spacing, b::spacing] = 1.0
         img = model.render_input(z, seed=seed, spp=spp).reshape(-1, 3)
-        # The lattice node nearest to where each pixel looks (texel centres at index + 0.5).
-        col = b + spacing * np.round((np.nan_to_num(flat_u[:, 0]) - 0.5 - b) / spacing)
-        row = a + spacing * np.round((np.nan_to_num(flat_u[:, 1]) - 0.5 - a) / spacing)
-        inside = ok & (col >= 0) & (col < iw) & (row >= 0) & (row < ih)
-        entries_i.append(np.where(inside, row * iw + col, 0).astype(np.int32))
+        node, inside = lattice_nodes(flat_u, ok, a, b, spacing, (iw, ih))
+        entries_i.append(node)
         entries_w.append(np.where(inside[:, None], img, 0.0).astype(np.float32))
     index = np.stack(entries_i, axis=1)  # (P, n)
     weight = np.stack(entries_w, axis=1)  # (P, n, 3)
@@ -612,4 +621,4 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP
 
 
 __all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "build_transport", "building_bytes",
-           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes", "gaussian_taps"]
+           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes", "gaussian_taps", "lattice_nodes"]
