@@ -447,7 +447,8 @@ def test_a_rig_of_two_projectors_shows_each_ones_frame_in_its_own_window(xvfb, t
     assert opened == []
     # A display area only projector 1 reaches (camera columns 20–50): projector 2's window stays black.
     dark: list = []
-    report = run_live_show(LiveShowOptions(two_stored, str(clip), TWO, hold=0.0, duration=1.0, area=(20, 30, 30, 30)),
+    # 2 s: a status comes every STATUS_EVERY (1 s), and a show of exactly 1 s could end before its first one
+    report = run_live_show(LiveShowOptions(two_stored, str(clip), TWO, hold=0.0, duration=2.0, area=(20, 30, 30, 30)),
                            on_status=lambda s: dark.append([_grab(r) for r in regions]))
     assert "warning: projector 2 lights nothing inside the display area: its frame is black" in report.said
     assert report.shown >= 10 and dark, report.lines()
