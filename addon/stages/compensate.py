@@ -320,15 +320,13 @@ class Compensator:
         """
         t_start = time.perf_counter()
         say = progress or (lambda msg, frac: None)
-        sched = self.schedule_for(schedule, iterations_z=iterations_z, iterations_joint=iterations_joint, lr=lr,
-                                  alpha=alpha, capture_every=capture_every)
+        sched = self.schedule_for(schedule, held_blur=bool(self.input_blur), iterations_z=iterations_z,
+                                  iterations_joint=iterations_joint, lr=lr, alpha=alpha, capture_every=capture_every)
         if theta_init not in ("capture", "zero"):
             raise CompensationError(f"theta_init must be 'capture' or 'zero', got {theta_init!r}")
-        if self.input_blur:
-            if not sched.transport:
-                raise CompensationError(f"the projector lens's blur is held by the transport schedule only, not by "
-                                        f"{sched.name!r}: compensate with --schedule transport")
-            sched = with_held_blur(sched, schedule, iterations_joint)
+        if self.input_blur and not sched.transport:
+            raise CompensationError(f"the projector lens's blur is held by the transport schedule only, not by "
+                                    f"{sched.name!r}: compensate with --schedule transport")
         area = area.check(self.camera_size)
         placed = area.place(fit_target(target, area, what=f"target {name!r}"), self.camera_size)
         mode, bias = self.bias_for(placed, device, use_bias, open_loop_theta, say, name)
@@ -340,8 +338,9 @@ class Compensator:
             z0, init, theta_init, t_start)
 
     @staticmethod
-    def schedule_for(schedule: str | Schedule, **given: Any) -> Schedule:
-        """The schedule a run follows: ``schedule`` with the values ``given`` (None: the schedule's) over it."""
+    def schedule_for(schedule: str | Schedule, *, held_blur: bool = False, **given: Any) -> Schedule:
+        """The schedule a run follows: ``schedule`` with the values ``given`` (None: the schedule's) over it, and
+        with ``held_blur`` (a lens blur held in the solve) :func:`~.schedule.with_held_blur`'s steps."""
         for what in ("iterations_z", "iterations_joint", "capture_every"):
             v = given[what]
             if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
@@ -352,8 +351,9 @@ class Compensator:
                 raise CompensationError(f"{what} must be a number, got {v!r}")
         if given["capture_every"] is not None:
             given["captures"] = None  # an explicit interval replaces the schedule's number of captures
-        return replace(get_schedule(schedule), **{k: v for k, v in given.items()
-                                                  if v is not None or k == "captures"}).check()
+        sched = replace(get_schedule(schedule), **{k: v for k, v in given.items()
+                                                   if v is not None or k == "captures"}).check()
+        return with_held_blur(sched, schedule, given["iterations_joint"]) if held_blur else sched
 
     def bias_for(self, placed: np.ndarray, device: Device | None, use_bias: bool,
                  open_loop_theta: np.ndarray | BiasModel | None, say: Progress, name: str

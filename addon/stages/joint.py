@@ -78,7 +78,7 @@ from .bias import BiasModel
 from .compensate import CompensationResult, Compensator
 from .display_area import DisplayArea, fit_target
 from .metrics import area_psnr
-from .schedule import CompensationError, Schedule, with_held_blur
+from .schedule import CompensationError, Schedule
 from .solve_transport import TransportSolve
 from .transport import BlurredRows, TransportOperator, TransportRows
 
@@ -583,15 +583,14 @@ class JointCompensator:
         say = progress or (lambda msg, frac: None)
         if blend not in BLENDS:
             raise CompensationError(f"blend must be one of {', '.join(BLENDS)}, got {blend!r}")
-        sched = Compensator.schedule_for(schedule, iterations_z=iterations_z, iterations_joint=iterations_joint,
-                                         lr=None, alpha=None, capture_every=capture_every)
+        comps = self.compensators
+        sched = Compensator.schedule_for(schedule, held_blur=any(c.input_blur for c in comps),
+                                         iterations_z=iterations_z, iterations_joint=iterations_joint, lr=None,
+                                         alpha=None, capture_every=capture_every)
         if not sched.transport:
             raise CompensationError(f"several projectors are solved jointly on their transport operators; the "
                                     f"schedule {sched.name!r} renders instead: compensate with --schedule transport")
         area, placed = self._place(target, area, name)
-        comps = self.compensators
-        if any(c.input_blur for c in comps):
-            sched = with_held_blur(sched, schedule, iterations_joint)
         mode, gains, theta = self._mode(device, use_bias, biases, black)
         views = [comp.transport_view(area) for comp in comps]
         joint = JointRows(views, [None if g is None else g.reshape(-1, 3)[views[0].rows] for g in gains])
