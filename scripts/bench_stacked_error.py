@@ -204,7 +204,7 @@ def measured_operator(device: Any, comps: list[Any], k: int, cam: tuple[int, int
     one capture per lattice offset (every ``spacing``-th texel white, the rest and the other projectors black, the
     black capture taken off), each camera pixel's value given to the lattice node nearest where the calibration
     says it looks, the largest :data:`ORACLE_ENTRIES` kept."""
-    from procam.addon.stages.transport import TransportOperator, camera_to_input, lattice_nodes
+    from procam.addon.stages.transport import TransportOperator, camera_to_input, largest_entries, lattice_nodes
 
     iw, ih = comps[k].rig.projector.input_size
     u, lit = camera_to_input(comps[k].calibration, cam)
@@ -220,12 +220,9 @@ def measured_operator(device: Any, comps: list[Any], k: int, cam: tuple[int, int
             index.append(node)
             weight.append(np.where(inside[:, None], np.maximum(img, 0.0), 0.0).astype(np.float32))
         print(f"  projector {k + 1}: lattice row {a + 1}/{spacing} captured", flush=True)
-    idx, w = np.stack(index, axis=1), np.stack(weight, axis=1)
-    keep = np.argsort(-w.sum(axis=2), axis=1)[:, :ORACLE_ENTRIES]
-    total = float(w.sum())
-    idx, w = np.take_along_axis(idx, keep, axis=1), np.take_along_axis(w, keep[..., None], axis=1)
+    idx, w, dropped = largest_entries(np.stack(index, axis=1), np.stack(weight, axis=1), ORACLE_ENTRIES)
     op = TransportOperator(tuple(cam), (iw, ih), idx, w, (0, 0), np.zeros((0, 1, 1, 3), np.float32))
-    op.report = {"light_dropped": round(1.0 - float(w.sum()) / max(total, 1e-12), 5), "black": black}
+    op.report = {"light_dropped": round(dropped, 5), "black": black}
     return op
 
 
@@ -244,8 +241,8 @@ def oracle_operators(folder: Path, cal: Any, comps: list[Any], spacing: int) -> 
             data = np.load(store)
             ops = []
             for k in range(len(comps)):
-                op = TransportOperator(cam, tuple(data[f"{k}-input_size"]), data[f"{k}-index"],
-                                       data[f"{k}-weight"], (0, 0), data[f"{k}-indirect"])
+                op = TransportOperator.from_arrays({n.split("-", 1)[1]: data[n] for n in data.files
+                                                    if n.startswith(f"{k}-")})
                 op.report = {"light_dropped": float(data[f"{k}-dropped"]), "black": data[f"{k}-black"]}
                 ops.append(op)
         else:
@@ -331,8 +328,8 @@ def curved_best(stage: Any, f: np.ndarray, area: Any, curve: tuple[Any, Any]) ->
         light = area.crop(r.simulated)
         seen = fwd(light)
         best = min(best, float(np.mean((seen - f) ** 2)))
-        slope = (fwd(light + 1e-3) - fwd(np.maximum(light - 1e-3, 0.0))) / (light + 1e-3 - np.maximum(light - 1e-3,
-                                                                                                        0.0))
+        lo, hi = np.maximum(light - 1e-3, 0.0), light + 1e-3
+        slope = (fwd(hi) - fwd(lo)) / (hi - lo)
         want = np.clip(want + (f - seen) / np.maximum(slope, 0.05), 0.0, None)
         zs = r.z
     return best

@@ -540,6 +540,17 @@ def lattice_nodes(flat_u: np.ndarray, ok: np.ndarray, a: int, b: int, spacing: i
     return np.where(inside, row * iw + col, 0).astype(np.int32), inside
 
 
+def largest_entries(index: np.ndarray, weight: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each camera pixel's ``k`` largest entries of (P, n) ``index`` and (P, n, 3) ``weight`` (all of them, in their
+    order, when there are no more than ``k``), and the share of the light the others held."""
+    total = float(weight.sum())
+    if index.shape[1] > k:
+        keep = np.argsort(-weight.sum(axis=2), axis=1)[:, :k]
+        index = np.take_along_axis(index, keep, axis=1)
+        weight = np.take_along_axis(weight, keep[..., None], axis=1)
+    return index, weight, 1.0 - float(weight.sum()) / max(total, 1e-12)
+
+
 def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP, seed: int = 0, blocks: int = 8,
                     indirect_scale: float = 0.25, indirect_spp: int = 64, variant: str | None = None,
                     progress: Progress | None = None, cancel: Cancel | None = None) -> TransportOperator:
@@ -576,15 +587,7 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP
         node, inside = lattice_nodes(flat_u, ok, a, b, spacing, (iw, ih))
         entries_i.append(node)
         entries_w.append(np.where(inside[:, None], img, 0.0).astype(np.float32))
-    index = np.stack(entries_i, axis=1)  # (P, n)
-    weight = np.stack(entries_w, axis=1)  # (P, n, 3)
-    k = min(MAX_ENTRIES, n)
-    total = float(weight.sum())
-    if n > k:
-        keep = np.argsort(-weight.sum(axis=2), axis=1)[:, :k]
-        index = np.take_along_axis(index, keep, axis=1)
-        weight = np.take_along_axis(weight, keep[..., None], axis=1)
-    dropped = 1.0 - float(weight.sum()) / max(total, 1e-12)
+    index, weight, dropped = largest_entries(np.stack(entries_i, axis=1), np.stack(entries_w, axis=1), MAX_ENTRIES)
     # -- indirect blocks
     blocks_xy = (blocks, blocks) if bounces > 0 else (0, 0)
     indirect = np.zeros((0, 1, 1, 3), np.float32)
@@ -621,4 +624,5 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP
 
 
 __all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "build_transport", "building_bytes",
-           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes", "gaussian_taps", "lattice_nodes"]
+           "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes", "gaussian_taps", "largest_entries",
+           "lattice_nodes"]
