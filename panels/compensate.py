@@ -40,6 +40,8 @@ class PROCAM_PT_compensate(bpy.types.Panel):
             layout.label(text="Device: the Live panel's projector and camera", icon="LINKED")
         else:
             layout.prop(scene, "procam_device")
+        if scene.procam_compensation_mode != "OPEN":  # the rule a closed loop follows its captures by
+            layout.prop(scene, "procam_loop", expand=True)
         row = layout.row(align=True)
         row.prop(scene, "procam_schedule", text="")
         row.prop(scene, "procam_iterations")

@@ -52,7 +52,8 @@ def test_the_same_checks_hold_for_options_made_in_python(given):
 
 def test_the_sidebar_reads_the_same_declaration():
     scene = {"procam_schedule": "paper", "procam_iterations": 0, "procam_seed": 3, "procam_area": " ",
-             "procam_use_bias": True, "procam_device": "", "procam_effects": "", "procam_range": "0.8,0.02"}
+             "procam_use_bias": True, "procam_device": "", "procam_effects": "", "procam_range": "0.8,0.02",
+             "procam_loop": "measured"}
     options = from_values(StageCOptions, scene.__getitem__, device=None)
     assert options == StageCOptions(schedule="paper", iterations=None, seed=3, range="0.8,0.02")
     scene.update(procam_iterations=12, procam_area="0,0,64,48")
@@ -173,7 +174,7 @@ FLAGS = {
                        "--depth-native-width --depth-units --encoding --force --no-exposure-check --out --rig",
     "lab-board": "--board --effects --force --out --poses --samples --scale --seed --square --supersample --truth",
     "lab": "--camera-fov-error --camera-size --effects --force --full-binary --layout --no-graycode --nominal-error "
-           "--out --overlap --projector-effects --projector-shift --projector-size --projectors --samples --scale "
+           "--other-forms --out --overlap --projector-effects --projector-shift --projector-size --projectors --samples --scale "
            "--seed --supersample --surface --truth",
     "live-show": "--area --device --diagnosis --duration --effects --hold --range --refine-steps --source "
                  "--target-encoding",
@@ -183,7 +184,7 @@ FLAGS = {
     "precompute": "--bounces --force --live --seed",
     "report": "--force --out --thumbnails --title",
     "show": "--area --bounces --capture-every --chunk --cluster --cold-start --connect-timeout --device --diagnosis "
-            "--effects --fail-fast --force --iterations --lr --no-bias --out --range --schedule --seed --spp "
+            "--effects --fail-fast --force --iterations --loop --lr --no-bias --out --range --schedule --seed --spp "
             "--target-encoding --threads --workers",
     "undistort-captures": "--force --out --rig",
 }

@@ -37,6 +37,7 @@ from ..capture.format import DepthInfo
 from ..errors import LabError
 from ..rig.model import Camera, Projector, Rig
 from .effects import apply_camera, apply_projector, camera_render_intrinsics, render_settings
+from .other_forms import OtherForms
 import bpy
 from mathutils import Matrix, Vector
 
@@ -91,6 +92,8 @@ class LabDevice(Device):
         self.camera = truth.rig.camera
         self.effects = truth.effects  # the camera's and the scene's effects (and the first projector's)
         self._projector_effects = [truth.effects_of(k) for k in range(len(self._projectors))]
+        self._other_forms = [OtherForms(truth.other_forms, truth.first_projector + k)
+                             for k in range(len(self._projectors))]
         self.samples = _whole(truth.samples if samples is None else samples, "Cycles samples", 1)
         self.seed = _whole(truth.seed if seed is None else seed, "the seed", 0)
         self._settings = render_settings(truth.effects, self.camera.intrinsics)
@@ -207,8 +210,9 @@ class LabDevice(Device):
             # so the difference (the indirect light) is not much noisier than either render
             direct = render_cycles(self._scene, samples=self.samples, bounces=0, seed=seed, room_light=room_light)
             img = direct + np.float32(gain) * (img - direct)
-        return apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k),
-                            supersample=self.supersample)
+        recorded = apply_camera(img, self.effects, self.camera.intrinsics, _stream(self.seed, k),
+                                supersample=self.supersample)
+        return self._other_forms[0].camera_record(recorded)
 
     def project(self, frame: np.ndarray) -> np.ndarray:
         self._check_open()
@@ -225,9 +229,11 @@ class LabDevice(Device):
 
     def _show(self, frames: list[np.ndarray]) -> np.ndarray:
         t = 1.0 if (self.session_shots is None or self.phase == "show") else self._shots / self.session_shots
-        for light, f, proj, effects, depth in zip(self._lights, frames, self._projectors, self._projector_effects,
-                                                  self._projector_depths):
-            blender_rig.set_projector_image(light, apply_projector(f, effects, proj, depth=depth, t=t))
+        for light, f, proj, effects, depth, other in zip(self._lights, frames, self._projectors,
+                                                         self._projector_effects, self._projector_depths,
+                                                         self._other_forms):
+            emitted = apply_projector(f, effects, proj, depth=depth, t=t)
+            blender_rig.set_projector_image(light, other.projector_light(emitted, proj.intrinsics.width))
         return self._render()
 
     @contextlib.contextmanager

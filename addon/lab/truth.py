@@ -32,6 +32,7 @@ from ..surface.shapes import SHAPES, builtin_surface
 from .depth import depth_capture, sensor_resolution
 from .layouts import LAYOUTS, MAX_PROJECTORS, lay_out
 from .effects import EffectSet, camera_render_intrinsics, parse_effects
+from .other_forms import check_strength
 
 
 TRUTH_FORMAT = "procam-lab-truth"
@@ -75,6 +76,10 @@ class LabTruth:
     nominal_others: tuple[Projector, ...] = ()
     #: projector index → that projector's own projector effects, in place of those of ``effects`` (mixed projectors)
     projector_effects: dict[int, EffectSet] = field(default_factory=dict)
+    #: strength of the other-forms rig on top of ``effects`` (:mod:`.other_forms`; 0 off)
+    other_forms: float = 0.0
+    #: the number (from 0) of this truth's first projector in the rig it was taken from (:meth:`for_projector`)
+    first_projector: int = 0
 
     def __post_init__(self) -> None:
         if len(self.nominal_others) != len(self.rig.others):
@@ -122,7 +127,7 @@ class LabTruth:
         projectors' captures do not share their noise."""
         proj = self.rig.projector_at(index)
         alone = {"rig": Rig(self.rig.camera, proj), "nominal_others": (), "effects": self.effects_of(index),
-                 "projector_effects": {}}
+                 "projector_effects": {}, "first_projector": self.first_projector + index}
         if index == 0:
             return replace(self, **alone)
         nominal = self.nominal_others[index - 1]
@@ -159,6 +164,7 @@ class LabTruth:
                   if self.projector_effects else {}),
                "surface": {"source": self.surface_source, "mesh": mesh_path.name, "name": self.surface.name},
                "effects": self.effects.to_dict(), "effects_spec": self.effects.spec,
+               **({"other_forms": float(self.other_forms)} if self.other_forms else {}),
                "seed": int(self.seed), "samples": int(self.samples)}
         write_atomic_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())
         return path
@@ -184,7 +190,8 @@ class LabTruth:
                             Intrinsics.from_dict(doc["nominal_camera_intrinsics"])
                             if "nominal_camera_intrinsics" in doc else None,
                             tuple(Projector.from_dict(p) for p in doc.get("nominal_projectors", [])[1:]),
-                            {int(k): EffectSet.from_dict(e) for k, e in doc.get("projector_effects", {}).items()})
+                            {int(k): EffectSet.from_dict(e) for k, e in doc.get("projector_effects", {}).items()},
+                            check_strength(doc.get("other_forms", 0.0)))
         except FileNotFoundError as exc:
             raise LabError(f"lab truth not found: {exc.filename}") from None
         except (OSError, *MALFORMED) as exc:
@@ -291,7 +298,7 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
                surface_source: str | None = None, projector_shift: tuple[float, float] | None = None,
                nominal_error: tuple[float, float] = (0.0, 0.0), camera_fov_error: float = 0.0,
                projectors: int = 1, layout: str = "side-by-side", overlap: float = 0.2,
-               projector_effects: str | Mapping[int, Any] | None = None) -> LabTruth:
+               projector_effects: str | Mapping[int, Any] | None = None, other_forms: float = 0.0) -> LabTruth:
     """A lab session on a built-in surface (``plane``, ``curve``, ``vedge``, ``hedge``), a mesh file or a mesh.
 
     ``rig`` replaces the demo rig (then ``camera_size``/``projector_size``/``projector_shift``
@@ -315,6 +322,7 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
     seed = _whole(seed, "the seed", 0)
     samples = _whole(samples, "Cycles samples", 1)
     effect_set = parse_effects(effects)
+    other_forms = check_strength(other_forms)
     count = _whole(projectors, "the number of projectors", 1)
     if count > MAX_PROJECTORS:
         raise LabError(f"the lab lays out 1 to {MAX_PROJECTORS} projectors, got {count}")
@@ -365,7 +373,7 @@ def make_truth(surface: str | Path | SurfaceMesh = "curve", *, effects: str | Ef
     others = tuple(replace(p, intrinsics=spec_sheet(p.intrinsics) or p.intrinsics,
                            camera_from_projector=rough_pose(p.camera_from_projector, rng)) for p in rig.others)
     return LabTruth(rig, mesh, source, effect_set, seed, samples, first_pose, nominal_k, nominal_cam, others,
-                    own_effects)
+                    own_effects, other_forms)
 
 
 def load_mesh_file(path: Path) -> SurfaceMesh:

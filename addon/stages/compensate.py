@@ -299,7 +299,7 @@ class Compensator:
     def run(self, target: np.ndarray, area: DisplayArea, *, device: Device | None = None,
             schedule: str | Schedule = DEFAULT_SCHEDULE, iterations_z: int | None = None,
             iterations_joint: int | None = None, lr: float | None = None, alpha: float | None = None,
-            capture_every: int | None = None, progress: Progress | None = None,
+            capture_every: int | None = None, loop: str | None = None, progress: Progress | None = None,
             cancel: Cancel | None = None, open_loop_theta: np.ndarray | BiasModel | None = None,
             use_bias: bool = True, init: str = "inverse", theta_init: str = "capture",
             name: str = "target", start: np.ndarray | None = None, verify: bool | None = None
@@ -313,7 +313,8 @@ class Compensator:
         ``use_bias=False``: no θ at all (mode ``'none'``, the paper's ablation).
         ``schedule``: ``'transport'`` (default), ``'fast'``, ``'paper'`` or a :class:`Schedule`;
         ``iterations_z``, ``iterations_joint``, ``lr``, ``alpha`` and
-        ``capture_every`` override its values when given. ``start``: the virtual input z to start from (a warm
+        ``capture_every`` override its values when given; ``loop`` the closed loop's rule (``measured`` or
+        ``damped``, :attr:`~.schedule.Schedule.loop`). ``start``: the virtual input z to start from (a warm
         start, e.g. the previous frame's answer) instead of ``init``. ``verify``: overrides the schedule's
         ``verify`` (the transport schedule's closing Mitsuba render). Raises :class:`CompensationError`
         when the optimisation diverges, :class:`Cancelled` when ``cancel()`` turns true.
@@ -321,7 +322,8 @@ class Compensator:
         t_start = time.perf_counter()
         say = progress or (lambda msg, frac: None)
         sched = self.schedule_for(schedule, held_blur=bool(self.input_blur), iterations_z=iterations_z,
-                                  iterations_joint=iterations_joint, lr=lr, alpha=alpha, capture_every=capture_every)
+                                  iterations_joint=iterations_joint, lr=lr, alpha=alpha, capture_every=capture_every,
+                                  loop=loop)
         if theta_init not in ("capture", "zero"):
             raise CompensationError(f"theta_init must be 'capture' or 'zero', got {theta_init!r}")
         if self.input_blur and not sched.transport:

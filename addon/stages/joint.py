@@ -567,7 +567,7 @@ class JointCompensator:
     def run(self, target: np.ndarray, area: DisplayArea, *, device: Device | None = None,
             schedule: str | Schedule = "transport", biases: Sequence[BiasModel] | None = None,
             use_bias: bool = True, blend: str = "derived", iterations_z: int | None = None,
-            iterations_joint: int | None = None, capture_every: int | None = None,
+            iterations_joint: int | None = None, capture_every: int | None = None, loop: str | None = None,
             progress: Progress | None = None, cancel: Cancel | None = None, name: str = "target",
             start: Sequence[np.ndarray] | None = None, black: np.ndarray | None = None) -> JointResult:
         """Every projector's input ``x*_k = W_k(z_k)`` so that together they look like ``target`` in ``area``.
@@ -577,8 +577,9 @@ class JointCompensator:
         calibration's captures when None; ``black``: the camera image with every projector black, module doc);
         ``use_bias=False``: no θ. ``blend``: ``'derived'`` (the prior, module doc) or ``'none'``. Only the
         ``transport`` schedule (or one with ``transport=True``): the operators are what make the solve joint.
-        ``start``: each projector's starting virtual input. Raises :class:`CompensationError` (a bad target,
-        a diverging solve), :class:`~procam.addon.errors.Cancelled` when ``cancel()`` turns true."""
+        ``start``: each projector's starting virtual input; ``loop``: the closed loop's rule (``measured`` or
+        ``damped``, :attr:`~.schedule.Schedule.loop`; None: the schedule's). Raises :class:`CompensationError`
+        (a bad target, a diverging solve), :class:`~procam.addon.errors.Cancelled` when ``cancel()`` turns true."""
         t_start = time.perf_counter()
         say = progress or (lambda msg, frac: None)
         if blend not in BLENDS:
@@ -586,7 +587,7 @@ class JointCompensator:
         comps = self.compensators
         sched = Compensator.schedule_for(schedule, held_blur=any(c.input_blur for c in comps),
                                          iterations_z=iterations_z, iterations_joint=iterations_joint, lr=None,
-                                         alpha=None, capture_every=capture_every)
+                                         alpha=None, capture_every=capture_every, loop=loop)
         if not sched.transport:
             raise CompensationError(f"several projectors are solved jointly on their transport operators; the "
                                     f"schedule {sched.name!r} renders instead: compensate with --schedule transport")
@@ -617,7 +618,8 @@ def ramp_baseline(joint: JointCompensator, target: np.ndarray, area: DisplayArea
                   schedule: str | Schedule = "transport", biases: Sequence[BiasModel] | None = None,
                   use_bias: bool = True, black: np.ndarray | None = None, iterations_z: int | None = None,
                   iterations_joint: int | None = None, progress: Progress | None = None,
-                  cancel: Cancel | None = None, name: str = "target", device: Device | None = None) -> JointResult:
+                  cancel: Cancel | None = None, name: str = "target", device: Device | None = None,
+                  loop: str | None = None) -> JointResult:
     """The blend users know, for comparison: each projector compensated alone (its own transport solve) on the
     target times a linear edge-blend ramp across the overlap, in the open loop or with no θ. The ramps are the
     classic distance blend (:func:`blend_shares` with every certainty 1): across a strip-shaped overlap each falls
@@ -642,7 +644,7 @@ def ramp_baseline(joint: JointCompensator, target: np.ndarray, area: DisplayArea
         share = np.asarray(ramp, np.float32)[..., None]
         own = BiasModel(share * theta, g, "ramp share")
         res: CompensationResult = comp.run(area.crop(share * placed), area, schedule=schedule,
-                                           iterations_z=iterations_z, iterations_joint=iterations_joint,
+                                           iterations_z=iterations_z, iterations_joint=iterations_joint, loop=loop,
                                            open_loop_theta=None if mode == "closed-loop" else own,
                                            device=OneProjector(device, k) if mode == "closed-loop" else None,
                                            use_bias=mode != "none", progress=say,

@@ -66,6 +66,8 @@ FIXED_POINT_STEP = 0.7
 #: Samples per pixel of renders that are not inside the loop (θ references, final simulation): less noise.
 REFERENCE_SPP = 16
 MODES = ("closed-loop", "open-loop", "none")
+#: The closed loop's rules (:attr:`Schedule.loop`).
+LOOPS = ("measured", "damped")
 
 
 class CompensationError(ProCamError):
@@ -134,6 +136,9 @@ class Schedule:
     #: with ``transport``: render the answer once with Mitsuba to report what the scene (not the operator)
     #: predicts; costs one render, more than the solve itself at full resolution
     verify: bool = True
+    #: closed loop with ``transport``: ``damped`` follows each capture by Eq. 10 (the paper's θ); ``measured``
+    #: learns each pixel's slope and averages against the noise, stopping at the noise floor (stages/closed_loop.py)
+    loop: str = "damped"
 
     def check(self) -> "Schedule":
         """Self, or a CompensationError naming the first bad value."""
@@ -168,6 +173,8 @@ class Schedule:
         if not (isinstance(self.fixed_point_step, (int, float)) and 0 < self.fixed_point_step <= 1):
             raise CompensationError(f"fixed_point_step must lie in (0, 1] (1 is the Newton step of direct light), "
                                     f"got {self.fixed_point_step!r}")
+        if self.loop not in LOOPS:
+            raise CompensationError(f"the closed loop's rule must be one of {', '.join(LOOPS)}, got {self.loop!r}")
         if not (math.isfinite(self.plateau_tol) and 0 <= self.plateau_tol < 1):
             raise CompensationError(f"plateau_tol must lie in [0, 1), got {self.plateau_tol!r}")
         return self

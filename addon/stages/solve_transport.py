@@ -33,6 +33,7 @@ from ..capture.devices import Device
 from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .bias import BiasModel, predict_capture
+from .closed_loop import MeasuredCorrection, RowGrid, noise_variance_model
 from .display_area import DisplayArea
 from .metrics import area_psnr, psnr
 from .schedule import CompensationError, Schedule
@@ -42,6 +43,11 @@ from .transport import BlurredRows
 class TransportSolve:
     """One target's solve on ``T`` (module doc) for the :class:`~.compensate.Compensator` ``comp``, from the
     virtual input ``z``; :meth:`run` gives its ``CompensationResult``."""
+
+    #: the measured loop's record (stages/closed_loop.py), and why it stopped early when the captures say the rig
+    #: changed under it (None: it did not)
+    loop: dict[str, Any] | None = None
+    loop_problem: str | None = None
 
     def __init__(self, comp: Any, placed: np.ndarray, area: DisplayArea, z: np.ndarray, sched: Schedule, mode: str,
                  bias: BiasModel | None, device: Device | None, say: Progress, cancel: Cancel | None,
@@ -140,12 +146,62 @@ class TransportSolve:
             zc, theta = self.solve(zc, theta, per, residual, f_now)
         return zc, theta
 
+    def measured_loop(self, zc: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The joint phase of the measured loop (stages/closed_loop.py): the first input captured twice for the
+        noise, then after each capture θ from the measured correction and the solver steps up to the next one,
+        until the residual reaches the noise floor, the capture budget is spent, or the captures say the rig
+        changed (then the best answer captured is kept)."""
+        sched = self.sched
+        budget = max(2, sched.captures or max(1, sched.iterations_joint // sched.capture_interval))
+        per = max(1, sched.iterations_joint // budget)
+        corr: MeasuredCorrection | None = None
+        best: tuple[float, np.ndarray, np.ndarray] | None = None
+        stopped = "capture budget"
+        while self.captures < budget:
+            t_dev = time.perf_counter()
+            y = self.capture(zc)
+            repeats = 1
+            if corr is None:
+                second = self.capture(zc)
+                corr = MeasuredCorrection(self.target, RowGrid(self.rows, self.comp.camera_size),
+                                          noise_variance_model(y, second))
+                y, repeats = 0.5 * (y + second), 2
+            self.seconds_device += time.perf_counter() - t_dev
+            self.captures += repeats
+            q = self.gain * self.forward(zc)
+            changed = corr.check(y, q)
+            if changed is not None:
+                self.loop_problem = changed
+                stopped = "the rig changed"
+                break
+            mse = float(np.mean((self.target - y) ** 2))
+            if best is None or mse < best[0]:
+                best = (mse, zc, theta)
+            theta = corr.update(y, q, repeats=repeats)
+            h = corr.history[-1]
+            self.say(f"{self.name}: capture {self.captures}, residual RMS {h['residual_rms']:.4f} (noise "
+                     f"{np.sqrt(corr.floor):.4f})", self.done / max(self.total, 1))
+            reason = corr.stop_reason()
+            if reason == "diverging":
+                self.loop_problem = ("the residual grew over the last captures (the correction diverges): the rig "
+                                     "differs from the calibration more than the loop can follow; calibrate again")
+            if reason is not None:
+                stopped = reason
+                break
+            zc, _ = self.solve(zc, theta, per)
+        if self.loop_problem is not None and best is not None:
+            _, zc, theta = best
+        self.loop = {"rule": "measured", "captures": self.captures, "stopped": stopped, "problem": self.loop_problem,
+                     "noise_rms": None if corr is None else round(float(np.sqrt(corr.floor)), 5),
+                     "per_capture": [] if corr is None else corr.history}
+        return zc, theta
+
     def run(self, verify: bool, t_start: float) -> Any:
         """The solve, its answer and report (``t_start``: when the target's stage C began)."""
         sched = self.sched
         zc, theta = self.solve(self.zc0, self.theta0, sched.iterations_z)
         if self.mode == "closed-loop":
-            zc, theta = self.closed_loop(zc, theta)
+            zc, theta = (self.measured_loop if sched.loop == "measured" else self.closed_loop)(zc, theta)
         elif sched.iterations_joint:
             zc, theta = self.solve(zc, theta, sched.iterations_joint)
         return self.answer(zc, theta, verify, t_start)
@@ -182,6 +238,7 @@ class TransportSolve:
                   "psnr_simulated": area_psnr(simulated, placed, area), "warp": comp.warp is not None,
                   "simulated_by": "mitsuba" if verify else "operator",
                   "operator_vs_mitsuba_psnr": agreement, "bounces": comp.bounces, "seed": comp.seed,
-                  "seconds_device": round(self.seconds_device, 2), "seconds_verify": round(seconds_verify, 2)}
+                  "seconds_device": round(self.seconds_device, 2), "seconds_verify": round(seconds_verify, 2),
+                  **({"loop": self.loop} if self.loop is not None else {})}
         return comp.result(z, th, simulated, raw, placed, area, self.losses, mode, self.captures, report,
                            t_start=t_start, seconds_device=self.seconds_device, name=self.name, say=self.say)

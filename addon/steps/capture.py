@@ -146,6 +146,12 @@ class LabOptions:
              "--effects: e.g. '1:response=0.6,crosstalk=0.3' for a second projector of another make; a "
              "black_level there is that projector's panel leak only (the room's ambient light stays --effects') "
              "(default none)")
+    other_forms: float = option(
+        0.0, min=0.0, max=1.0, metavar="STRENGTH",
+        help="add a rig whose effects have forms ProCam does not model (a response and colour mixing that vary "
+             "over the frame, an off-centre vignette, a disk blur growing across the frame, a camera knee curve "
+             "and JPEG photos), at STRENGTH 0 (off, default) to 1, on top of --effects: what a real rig does to "
+             "the models")
     force: bool = False
 
     def paths(self) -> tuple[Path, Path]:
@@ -171,7 +177,7 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
                        projector_shift=options.projector_shift, nominal_error=options.nominal_error,
                        camera_fov_error=options.camera_fov_error, projectors=options.projectors,
                        layout=options.projector_layout, overlap=options.overlap,
-                       projector_effects=options.projector_effects)
+                       projector_effects=options.projector_effects, other_forms=options.other_forms)
     (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, inputs=inputs, graycode=options.graycode,
                       fast_binary=not options.full_binary, supersample=options.supersample, progress=progress,

@@ -25,8 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..capture.devices import Device
-from ..errors import Cancelled, ImageError, ProCamError
+from ..errors import Cancelled, CaptureError, ImageError, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_image
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest
 from ..progress import Cancel, Progress, check, part, quiet
@@ -124,6 +126,11 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
                                     "status": "failed", "error": str(exc)})
                     break
                 records.append({**record, "file_sha256": sha})
+                problem = (record.get("loop") or {}).get("problem")
+                if problem:  # the rig changed under the loop: its best answer is kept, the rest waits for the user
+                    failure = CaptureError(f"the closed loop of {name!r} stopped: {problem} (its best answer so far "
+                                           f"is kept in {options.out})")
+                    break
             finished = sum(r["status"] == "done" for r in records)
             if stopped is not None and not finished:
                 raise stopped
@@ -173,6 +180,10 @@ def _one_target(stage: StageC, tmp: Path, image: Any, note: Any, name: str, path
     write_image(tmp / files["frame"], done.frame)
     write_image(tmp / files["simulated"], res.simulated)
     write_image(tmp / files["target"], done.fitted)
+    loop = res.report.get("loop")
+    if loop:  # where the measured loop corrected the model: |θ| per camera pixel, linear, in the display area
+        loop = {**loop, "correction": layout.correction_file(name)}
+        write_image(tmp / loop["correction"], np.abs(np.asarray(res.theta, np.float32)))
     return {"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
             "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
             "seconds": round(res.seconds, 2), "captures": res.captures,
@@ -185,7 +196,8 @@ def _one_target(stage: StageC, tmp: Path, image: Any, note: Any, name: str, path
             "loss_last": res.losses[-1] if res.losses else None,
             "losses": [round(v, 7) for v in res.losses],
             "psnr_simulated_start": round(float(res.report["psnr_simulated_start"]), 3),
-            "psnr_simulated": round(float(res.report["psnr_simulated"]), 3)}
+            "psnr_simulated": round(float(res.report["psnr_simulated"]), 3),
+            **({"loop": loop} if loop else {})}
 
 
 # -- reading ---------------------------------------------------------------------------------------
@@ -277,6 +289,7 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
             lines.append(f"{t['name']}: simulated PSNR {fmt(t.get('psnr_simulated_start'), '.1f')} → "
                          f"{fmt(t.get('psnr_simulated'), '.1f')} dB in the display area, {t.get('mode', '?')}, "
                          f"{fmt(t.get('seconds'), '.1f', ' s')}" + _shares(t, count))
+            lines += _loop_line(t)
         else:
             lines.append(f"{t.get('name', '?')}: {t.get('status', '?')} — {t.get('error', '')}")
         if count > 1:  # what several projectors warn of (one that lights nothing in the area) is said here
@@ -288,6 +301,19 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
         head += f" on {count} projectors"
     return Summary(True, head, tuple(lines), {"targets": done, "complete": doc.get("complete", True),
                                              "projector_count": count})
+
+
+def _loop_line(record: dict[str, Any]) -> list[str]:
+    """How the measured closed loop went for a target: its captures, the residual against the noise floor, and why
+    it stopped (nothing for other loops)."""
+    loop = record.get("loop")
+    if not isinstance(loop, dict) or not loop.get("per_capture"):
+        return []
+    rms = [h.get("residual_rms") for h in loop["per_capture"] if isinstance(h, dict)]
+    return [f"  closed loop: {loop.get('captures')} captures, residual RMS {fmt(rms[0], '.4f')} → "
+            f"{fmt(rms[-1], '.4f')} against the camera's noise {fmt(loop.get('noise_rms'), '.4f')}; "
+            f"stopped: {loop.get('stopped')}"
+            + (f": {loop['problem']}" if loop.get("problem") else "")]
 
 
 def _shares(record: dict[str, Any], count: int) -> str:

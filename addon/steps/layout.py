@@ -135,6 +135,11 @@ def projector_frame_name(number: int, digits: int, projector: int) -> str:
     return f"{PROJECTOR_FOLDER.format(k=projector + 1)}/{frame_name(number, digits)}"
 
 
+def correction_file(name: str) -> str:
+    """Where ``procam compensate`` puts the measured closed loop's correction of target ``name`` (|θ|, float EXR)."""
+    return f"{name}_correction.exr"
+
+
 def target_files(name: str) -> dict[str, str]:
     """The files ``procam compensate`` writes for the target ``name``."""
     return {k: v.format(name=name) for k, v in TARGET_FILES.items()}

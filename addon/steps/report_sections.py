@@ -264,6 +264,9 @@ class Reader:
             else:
                 wanted.append((t["input"], "input", "projector input"))
             pics = [(self.image(folder, file, f"{what} of {t['name']!r}", blocks), cap) for file, what, cap in wanted]
+            loop = t.get("loop")
+            if isinstance(loop, dict) and loop.get("per_capture"):
+                blocks += self.closed_loop(folder, t["name"], loop)
             shown = [(p, c) for p, c in pics if p is not None]
             if shown:
                 given = "the images the projectors are" if len(several) > 1 else "the image the projector is"
@@ -271,6 +274,33 @@ class Reader:
                                       f"{t['name']}: what was asked, what the simulation expects the camera to see, "
                                       f"and {given} given.", f"compensation of {t['name']}"))
         return "Compensation", blocks
+
+    def closed_loop(self, folder: Path, name: str, loop: dict[str, Any]) -> list[Block]:
+        """The measured closed loop of one target: its residual over the captures against the camera's noise, and
+        the map of where it corrected the model."""
+        blocks: list[Block] = []
+        rms = [h.get("residual_rms") for h in loop["per_capture"] if isinstance(h, dict)]
+        if rms and all(isinstance(v, (int, float)) for v in rms):
+            noise = loop.get("noise_rms")
+            plot = figures.series(list(range(1, len(rms) + 1)), {"residual RMS": rms}, xlabel="capture",
+                                  ylabel="RMS, linear", title=f"{name}: closed loop", from_zero=True,
+                                  levels={"camera noise": noise} if isinstance(noise, (int, float)) else None)
+            blocks.append(_figure(plot, f"{name}: the camera's residual (target − capture, RMS over the display area) "
+                                        f"at each capture of the closed loop, beside the camera's own noise measured "
+                                        f"from two captures of its first input; it stopped: {loop.get('stopped')}"
+                                  + (f" — {loop['problem']}" if loop.get("problem") else "") + ".",
+                                  f"closed loop of {name}"))
+        correction = loop.get("correction")
+        if isinstance(correction, str):
+            theta = self.image(folder, correction, f"the closed loop's correction of {name!r}", blocks)
+            if theta is not None:
+                mag = np.asarray(theta, np.float32).mean(axis=2)
+                scale = max(float(np.percentile(mag, 99.5)), 1e-4)
+                blocks.append(_figure(figures.heat_maps([mag], ["|θ|"], scale, "light the model lacks or adds"),
+                                      f"{name}: where the closed loop corrected the model (|θ|, the light per camera "
+                                      "pixel the model missed or added, mean of the channels; 0 outside the display "
+                                      "area).", f"correction map of {name}"))
+        return blocks
 
     def evaluation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
         blocks: list[Block] = []

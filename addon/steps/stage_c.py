@@ -58,6 +58,11 @@ SCHEDULE_CHOICES = (
                            "needed"),
     Choice("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ"))
 
+LOOP_CHOICES = (
+    Choice("measured", "Measured", "Learn each pixel's slope from the captures, average against the camera's noise, "
+                                   "stop at its noise floor"),
+    Choice("damped", "Damped", "The paper's θ: a third of the way towards each capture's residual"))
+
 
 @dataclass(frozen=True)
 class StageCOptions:
@@ -85,6 +90,11 @@ class StageCOptions:
     capture_every: int | None = option(
         None, min=1, help="closed loop: capture W(z) every K joint iterations (default: the schedule's; 1 = the "
                           "paper, for fast real hardware)")
+    loop: str = option(
+        "measured", label="Loop Rule", choices=LOOP_CHOICES,
+        help="closed loop on the transport schedule: 'measured' learns each pixel's slope from the captures, "
+             "averages them against the camera's noise and stops at its noise floor (default); 'damped' is the "
+             "paper's θ, a third of the way towards each capture's residual")
     spp: int = option(4, min=1, help="samples per pixel inside the loop")
     bounces: int = option(1, min=0, help="indirect bounces simulated")
     seed: int = option(0, min=0, label="Seed", help="seed of every random stream; the same seed repeats the result")
@@ -122,7 +132,7 @@ class StageCOptions:
         """The schedule keywords of :meth:`Compensator.run`: the schedule's name and only the values given."""
         iterations_z, iterations_joint = split_iterations(self.iterations, self.schedule)
         given = {"iterations_z": iterations_z, "iterations_joint": iterations_joint, "lr": self.lr,
-                 "alpha": self.alpha, "capture_every": self.capture_every}
+                 "alpha": self.alpha, "capture_every": self.capture_every, "loop": self.loop}
         return {"schedule": self.schedule, **{k: v for k, v in given.items() if v is not None}}
 
     def resolved(self) -> Schedule:
@@ -427,7 +437,7 @@ class StageC:
     @staticmethod
     def target_files(name: str) -> list[str]:
         """Every file ``procam compensate`` writes for a target ``name`` (a target cut short leaves none)."""
-        return list(layout.target_files(name).values())
+        return [*layout.target_files(name).values(), layout.correction_file(name)]
 
     def bias_record(self) -> dict[str, Any] | None:
         """The open-loop θ model as the manifest records it (None in the closed loop)."""

@@ -1,0 +1,184 @@
+#!/usr/bin/env python3
+"""The closed loop on a rig of other forms: the paper's damped θ against the measured loop, and where the gap lies.
+
+Usage: ``.venv/bin/python scripts/bench_closed_loop.py [--surface curve] [--scale 0.5] [--other-forms 1]
+[--lab-effects noise=0.4] [--rules damped,measured] [--effects auto] [--work DIR]``
+
+Renders a lab capture set with ``procam lab --other-forms`` (a rig whose response,
+colour mixing, vignetting, blur, camera curve and JPEG photos have forms ProCam
+does not model: ``addon/lab/other_forms.py``; ``--other-forms 0`` is the lab's own
+forms), calibrates it, and compensates six natural photographs at full
+brightness (each scaled so its 99.5th percentile is 1) with ``--range auto``,
+closed loop through that lab, once per loop rule (``procam compensate --loop``);
+then evaluates each (two captures of every answer: the camera's noise and the
+noise ceiling). Prints per target the noise ceiling, each rule's PSNR and its
+distance to the ceiling, the captures each used, and where the squared error
+beyond the camera's noise lies (the last rule's answer):
+
+* ``at limit``: pixels whose input already gives all it can (evaluate's
+  ``ceiling_gap_at_limit``): no loop can push further there;
+* ``edges``: the tenth of the area where the target changes fastest (a blur or a
+  misregistration the model lacks shows there), not at the limit;
+* ``fine`` / ``coarse``: the rest, finer or coarser than 1.5 camera pixels.
+
+Beside the noise ceiling it prints the **gamut ceiling** (``addon/stages/gamut.py``): the target moved to the
+nearest colour each pixel can show at all (the lab's captures of black and the three primaries), through the same
+noise; where the projector mixes its colours the noise ceiling counts saturated colours no input can show.
+
+``--effects auto`` diagnoses the calibration first and compensates with the effects it selected around stage C.
+``--work DIR`` keeps and reuses every folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from procam.addon.capture.targets import DEFAULT_TARGETS, natural_target
+from procam.addon.cli.app import main as procam
+from procam.addon.imageio import read_image, write_image
+
+#: Error finer than this (σ, camera pixels) counts as fine.
+FINE_PX = 1.5
+#: The share of the area, by the target's gradient, that counts as its edges.
+EDGE_SHARE = 0.1
+
+
+def step(args: list[str], done: Path) -> None:
+    if done.exists():
+        return
+    if procam(args) != 0:
+        raise SystemExit(f"procam {args[0]} failed")
+
+
+def error_parts(comp: Path, ev: Path, row: dict) -> dict[str, float]:
+    """The capture's squared error beyond the camera's noise, split as the module doc says (shares of it)."""
+    import cv2
+
+    a, name = row["area"], row["name"]
+    inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
+
+    def area_of(path: Path) -> np.ndarray:
+        image = np.asarray(read_image(path), np.float32)
+        return image if image.shape[:2] == (a["height"], a["width"]) else image[inside]
+
+    capture, target = area_of(ev / f"{name}_capture.png"), area_of(comp / f"{name}_target.png")
+    err = (capture - target) ** 2
+    noise = row.get("capture_noise_rmse", 0.0) ** 2
+    beyond = max(float(err.mean()) - noise, 1e-12)
+    at_limit = (row.get("ceiling_gap_at_limit") or 0.0)
+    grad = np.abs(cv2.Laplacian(cv2.GaussianBlur(target, (0, 0), 0.7), cv2.CV_32F)).max(axis=2)
+    edges = grad > np.quantile(grad, 1.0 - EDGE_SHARE)
+    e = capture - target
+    fine = e - cv2.GaussianBlur(e, (0, 0), FINE_PX)
+    # each part's excess over the noise it holds (noise is white: spread evenly, mostly fine)
+    edge_excess = max(float(err[edges].sum()) / err.size - EDGE_SHARE * noise, 0.0)
+    rest = ~edges
+    fine_noise = noise * float(np.mean((np.random.default_rng(0).normal(size=(64, 64)) - cv2.GaussianBlur(
+        np.random.default_rng(0).normal(size=(64, 64)), (0, 0), FINE_PX)) ** 2))
+    fine_excess = max(float((fine[rest] ** 2).sum()) / err.size - rest.mean() * fine_noise, 0.0)
+    coarse_excess = max(float((err[rest] - fine[rest] ** 2).sum()) / err.size - rest.mean() * (noise - fine_noise),
+                        0.0)
+    parts = {"edges": edge_excess, "fine": fine_excess, "coarse": coarse_excess}
+    total = sum(parts.values()) or 1e-12
+    # the limit share is evaluate's, of the whole excess; the others share what is left in their proportions
+    return {"at limit": at_limit, **{k: (1.0 - at_limit) * v / total for k, v in parts.items()},
+            "excess_mse": beyond}
+
+
+def primaries(truth: Path, repeats: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The lab's captures of black and of the three primaries at full (each the mean of ``repeats``): what
+    :func:`~procam.addon.stages.gamut.gamut_clip` needs."""
+    from procam.addon.lab.cycles_device import LabDevice
+    from procam.addon.lab.truth import LabTruth
+
+    lab = LabTruth.load(truth)
+    w, h = lab.rig.projector.intrinsics.size
+    with LabDevice(lab, seed=lab.seed + 977) as device:
+        def shot(colour: tuple[float, float, float]) -> np.ndarray:
+            frame = np.broadcast_to(np.asarray(colour, np.float32), (h, w, 3)).copy()
+            return np.mean([device.project(frame) for _ in range(repeats)], axis=0)
+        return shot((0.0, 0.0, 0.0)), np.stack([shot(c) for c in ((1, 0, 0), (0, 1, 0), (0, 0, 1))])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--surface", default="curve")
+    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--other-forms", type=float, default=1.0, help="procam lab --other-forms (0: the lab's own)")
+    ap.add_argument("--lab-effects", default="noise=0.4", help="procam lab --effects under the other forms")
+    ap.add_argument("--rules", default="damped,measured", help="procam compensate --loop rules, in order")
+    ap.add_argument("--effects", choices=("none", "auto"), default="none",
+                    help="auto: run procam diagnose and compensate with the effects it selected")
+    ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
+    args = ap.parse_args()
+    rules = args.rules.split(",")
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        lab, truth = work / "lab", work / "lab.truth.json"
+        step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--other-forms", str(args.other_forms),
+              "--scale", str(args.scale), "--out", str(lab), "--truth", str(truth)], lab)
+        step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
+        targets = []
+        (work / "targets").mkdir(exist_ok=True)
+        for name in DEFAULT_TARGETS:
+            img = natural_target(name, (400, 300))
+            img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
+            targets.append(str(write_image(work / "targets" / f"{name}.png", img)))
+        effects, fx = [], ""
+        if args.effects == "auto":
+            step(["diagnose", str(work / "cal"), "--out", str(work / "diagnosis")], work / "diagnosis")
+            effects, fx = ["--effects", "auto", "--diagnosis", str(work / "diagnosis")], "-fx"
+        rows, comps = {}, {}
+        for rule in rules:
+            comp, ev = work / f"comp-{rule}{fx}", work / f"eval-{rule}{fx}"
+            step(["compensate", str(work / "cal"), *targets, "--device", f"lab:{truth}", "--range", "auto",
+                  "--loop", rule, *effects, "--out", str(comp)], comp)
+            step(["evaluate", str(work / "cal"), "--inputs", str(comp), "--targets", *targets, "--device",
+                  f"lab:{truth}", "--out", str(ev)], ev)
+            rows[rule] = json.loads((ev / "metrics.json").read_text())
+            comps[rule] = {t["name"]: t for t in json.loads((comp / "compensation.json").read_text())["targets"]}
+        from procam.addon.stages.gamut import gamut_ceiling
+
+        black, prims = primaries(truth)
+        gamut = {}
+        for t in rows[rules[0]]["targets"]:
+            a = t["area"]
+            inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
+            target = np.asarray(read_image(work / f"comp-{rules[0]}{fx}" / f"{t['name']}_target.png"), np.float32)
+            target = target if target.shape[:2] == (a["height"], a["width"]) else target[inside]
+            gamut[t["name"]] = gamut_ceiling(target, black[inside], prims[:, inside[0], inside[1]],
+                                             t.get("capture_noise_rmse", 0.0) ** 2)
+        print(f"\n{args.surface}, lab --effects {args.lab_effects} --other-forms {args.other_forms}, "
+              f"scale {args.scale}, --range auto --effects {args.effects}, closed loop\n")
+        head = " | ".join(f"{r}: PSNR (below the ceiling), captures, s/capture" for r in rules)
+        last = rules[-1]
+        print(f"| target | noise ceiling | gamut ceiling | {head} "
+              f"| {last}: beyond the noise: at limit / edges / fine / coarse |")
+        print("|---|---|---|" + "---|" * len(rules) + "---|")
+        for i, name in enumerate(t["name"] for t in rows[rules[0]]["targets"]):
+            ceil = rows[rules[0]]["targets"][i].get("noise_ceiling")
+            cells = []
+            for r in rules:
+                t, c = rows[r]["targets"][i], comps[r][name]
+                per = c["seconds"] / max(c["captures"], 1)
+                below = "–" if ceil is None else f"{ceil - t['psnr']:.2f}"
+                cells.append(f"{t['psnr']:.2f} ({below}), {c['captures']}, {per:.2f}")
+            parts = error_parts(work / f"comp-{last}{fx}", work / f"eval-{last}{fx}", rows[last]["targets"][i])
+            split = " / ".join(f"{100 * parts[k]:.0f} %" for k in ("at limit", "edges", "fine", "coarse"))
+            print(f"| {name} | {'–' if ceil is None else f'{ceil:.2f}'} | {gamut[name]:.2f} | " + " | ".join(cells)
+                  + f" | {split} |")
+        mean_ceil = rows[rules[0]].get("mean_noise_ceiling")
+        cells = [f"{rows[r]['mean']['psnr']:.2f}" + ("" if mean_ceil is None else
+                                                    f" ({mean_ceil - rows[r]['mean']['psnr']:.2f})")
+                 for r in rules]
+        print(f"| mean | {mean_ceil} | {np.mean(list(gamut.values())):.2f} | " + " | ".join(cells) + " | |")
+
+
+if __name__ == "__main__":
+    main()
