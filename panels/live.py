@@ -103,6 +103,7 @@ def draw_show(layout: bpy.types.UILayout, scene: bpy.types.Scene) -> None:
     col.prop(scene, "procam_live_refine_steps")
     col.prop(scene, "procam_live_hold")
     col.prop(scene, "procam_live_duration")
+    layout.prop(scene, "procam_live_correction")  # written while following the camera, read without one
     summary = show_summary()
     if show_running() is not None:  # the measured figures in place of a progress bar: a show has no end
         box = layout.box()

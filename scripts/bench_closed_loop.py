@@ -2,7 +2,8 @@
 """The closed loop on a rig of other forms: the paper's damped θ against the measured loop, and where the gap lies.
 
 Usage: ``.venv/bin/python scripts/bench_closed_loop.py [--surface curve] [--scale 0.5] [--other-forms 1]
-[--lab-effects noise=0.4] [--rules damped,measured] [--effects auto] [--work DIR]``
+[--lab-effects noise=0.4] [--rules damped,measured] [--effects auto] [--projectors 2] [--attribute]
+[--work DIR]``
 
 Renders a lab capture set with ``procam lab --other-forms`` (a rig whose response,
 colour mixing, vignetting, blur, camera curve and JPEG photos have forms ProCam
@@ -18,13 +19,19 @@ beyond the camera's noise lies (the last rule's answer):
 * ``at limit``: pixels whose input already gives all it can (evaluate's
   ``ceiling_gap_at_limit``): no loop can push further there;
 * ``edges``: the tenth of the area where the target changes fastest (a blur or a
-  misregistration the model lacks shows there), not at the limit;
-* ``fine`` / ``coarse``: the rest, finer or coarser than 1.5 camera pixels.
+  misregistration the model lacks shows there);
+* ``fine`` / ``coarse``: the rest, finer or coarser than 1.5 camera pixels;
+
+the last three share what ``at limit`` leaves, in proportion to their own excess over the noise.
 
 Beside the noise ceiling it prints the **gamut ceiling** (``addon/stages/gamut.py``): the target moved to the
 nearest colour each pixel can show at all (the lab's captures of black and the three primaries), through the same
 noise; where the projector mixes its colours the noise ceiling counts saturated colours no input can show.
 
+``--projectors 2`` lays out two projectors side by side (20 % overlap) and prints each rule's seam step too.
+``--attribute`` also runs the last rule with twice the captures, with its slope held at 1, and through a copy
+of the lab without sensor noise (evaluated through the lab with it), and prints what each is worth: too few
+captures, the slope, and the noise the loop carries into its answer.
 ``--effects auto`` diagnoses the calibration first and compensates with the effects it selected around stage C.
 ``--work DIR`` keeps and reuses every folder.
 """
@@ -32,8 +39,10 @@ noise; where the projector mixes its colours the noise ceiling counts saturated 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -91,18 +100,31 @@ def error_parts(comp: Path, ev: Path, row: dict) -> dict[str, float]:
 
 
 def primaries(truth: Path, repeats: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """The lab's captures of black and of the three primaries at full (each the mean of ``repeats``): what
-    :func:`~procam.addon.stages.gamut.gamut_clip` needs."""
+    """The lab's captures of black and of the three primaries at full on every projector (each the mean of
+    ``repeats``): what :func:`~procam.addon.stages.gamut.gamut_clip` needs."""
     from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.lab.truth import LabTruth
 
     lab = LabTruth.load(truth)
-    w, h = lab.rig.projector.intrinsics.size
     with LabDevice(lab, seed=lab.seed + 977) as device:
         def shot(colour: tuple[float, float, float]) -> np.ndarray:
-            frame = np.broadcast_to(np.asarray(colour, np.float32), (h, w, 3)).copy()
-            return np.mean([device.project(frame) for _ in range(repeats)], axis=0)
+            frames = [np.broadcast_to(np.asarray(colour, np.float32), (p.intrinsics.height, p.intrinsics.width, 3))
+                      .copy() for p in lab.rig.projectors]
+            return np.mean([device.project_all(frames) for _ in range(repeats)], axis=0)
         return shot((0.0, 0.0, 0.0)), np.stack([shot(c) for c in ((1, 0, 0), (0, 1, 0), (0, 0, 1))])
+
+
+@contextlib.contextmanager
+def slope_fixed() -> Iterator[None]:
+    """The measured loop with every pixel's slope held at the model's (1): what measuring the slope buys."""
+    from procam.addon.stages import closed_loop
+
+    before = closed_loop.PRIOR_WEIGHT
+    closed_loop.PRIOR_WEIGHT = 1e12
+    try:
+        yield
+    finally:
+        closed_loop.PRIOR_WEIGHT = before
 
 
 def main() -> None:
@@ -114,6 +136,11 @@ def main() -> None:
     ap.add_argument("--rules", default="damped,measured", help="procam compensate --loop rules, in order")
     ap.add_argument("--effects", choices=("none", "auto"), default="none",
                     help="auto: run procam diagnose and compensate with the effects it selected")
+    ap.add_argument("--projectors", type=int, default=1, help="procam lab --projectors (side by side, 20 %% overlap)")
+    ap.add_argument("--attribute", action="store_true",
+                    help="also run the last rule with twice the captures, with its slope held at 1, and through a "
+                         "copy of the lab without sensor noise (evaluated through the lab with it): what more "
+                         "captures, the measured slope and the noise carried into the answer are each worth")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
     rules = args.rules.split(",")
@@ -122,7 +149,8 @@ def main() -> None:
         work.mkdir(parents=True, exist_ok=True)
         lab, truth = work / "lab", work / "lab.truth.json"
         step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--other-forms", str(args.other_forms),
-              "--scale", str(args.scale), "--out", str(lab), "--truth", str(truth)], lab)
+              "--scale", str(args.scale), "--projectors", str(args.projectors), "--out", str(lab), "--truth",
+              str(truth)], lab)
         step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
         targets = []
         (work / "targets").mkdir(exist_ok=True)
@@ -135,14 +163,28 @@ def main() -> None:
             step(["diagnose", str(work / "cal"), "--out", str(work / "diagnosis")], work / "diagnosis")
             effects, fx = ["--effects", "auto", "--diagnosis", str(work / "diagnosis")], "-fx"
         rows, comps = {}, {}
-        for rule in rules:
-            comp, ev = work / f"comp-{rule}{fx}", work / f"eval-{rule}{fx}"
-            step(["compensate", str(work / "cal"), *targets, "--device", f"lab:{truth}", "--range", "auto",
-                  "--loop", rule, *effects, "--out", str(comp)], comp)
+        runs = [(rule, rule, [], truth, contextlib.nullcontext) for rule in rules]
+        if args.attribute:
+            from procam.addon.lab.truth import LabTruth
+
+            quiet = work / "lab-quiet.truth.json"
+            if not quiet.exists():
+                LabTruth.load(truth).without("noise").save(quiet)
+            last = rules[-1]
+            runs += [(f"{last}, 30 captures", last, ["--iterations", "80", "--capture-every", "2"], truth,
+                      contextlib.nullcontext),
+                     (f"{last}, slope held at 1", last, [], truth, slope_fixed),
+                     (f"{last}, loop without noise", last, [], quiet, contextlib.nullcontext)]
+        for label, rule, extra, device_truth, patch in runs:
+            slug = label.replace(", ", "-").replace(" ", "_")
+            comp, ev = work / f"comp-{slug}{fx}", work / f"eval-{slug}{fx}"
+            with patch():
+                step(["compensate", str(work / "cal"), *targets, "--device", f"lab:{device_truth}", "--range",
+                      "auto", "--loop", rule, *extra, *effects, "--out", str(comp)], comp)
             step(["evaluate", str(work / "cal"), "--inputs", str(comp), "--targets", *targets, "--device",
                   f"lab:{truth}", "--out", str(ev)], ev)
-            rows[rule] = json.loads((ev / "metrics.json").read_text())
-            comps[rule] = {t["name"]: t for t in json.loads((comp / "compensation.json").read_text())["targets"]}
+            rows[label] = json.loads((ev / "metrics.json").read_text())
+            comps[label] = {t["name"]: t for t in json.loads((comp / "compensation.json").read_text())["targets"]}
         from procam.addon.stages.gamut import gamut_ceiling
 
         black, prims = primaries(truth)
@@ -156,29 +198,46 @@ def main() -> None:
                                              t.get("capture_noise_rmse", 0.0) ** 2)
         print(f"\n{args.surface}, lab --effects {args.lab_effects} --other-forms {args.other_forms}, "
               f"scale {args.scale}, --range auto --effects {args.effects}, closed loop\n")
-        head = " | ".join(f"{r}: PSNR (below the ceiling), captures, s/capture" for r in rules)
+        several = args.projectors > 1
+        head = " | ".join(f"{r}: PSNR (below the ceiling), captures, s/capture" + (", seam step" if several else "")
+                          for r in rules)
         last = rules[-1]
         print(f"| target | noise ceiling | gamut ceiling | {head} "
               f"| {last}: beyond the noise: at limit / edges / fine / coarse |")
         print("|---|---|---|" + "---|" * len(rules) + "---|")
+
+        def cell(label: str, i: int, name: str, ceil: float | None) -> str:
+            t, c = rows[label]["targets"][i], comps[label][name]
+            per = c["seconds"] / max(c["captures"], 1)
+            below = "–" if ceil is None else f"{ceil - t['psnr']:.2f}"
+            seam = t.get("seam_step")
+            return f"{t['psnr']:.2f} ({below}), {c['captures']}, {per:.2f}" + (
+                "" if not several else f", {'–' if seam is None else f'{seam:.4f}'}")
+
         for i, name in enumerate(t["name"] for t in rows[rules[0]]["targets"]):
             ceil = rows[rules[0]]["targets"][i].get("noise_ceiling")
-            cells = []
-            for r in rules:
-                t, c = rows[r]["targets"][i], comps[r][name]
-                per = c["seconds"] / max(c["captures"], 1)
-                below = "–" if ceil is None else f"{ceil - t['psnr']:.2f}"
-                cells.append(f"{t['psnr']:.2f} ({below}), {c['captures']}, {per:.2f}")
             parts = error_parts(work / f"comp-{last}{fx}", work / f"eval-{last}{fx}", rows[last]["targets"][i])
             split = " / ".join(f"{100 * parts[k]:.0f} %" for k in ("at limit", "edges", "fine", "coarse"))
-            print(f"| {name} | {'–' if ceil is None else f'{ceil:.2f}'} | {gamut[name]:.2f} | " + " | ".join(cells)
-                  + f" | {split} |")
+            print(f"| {name} | {'–' if ceil is None else f'{ceil:.2f}'} | {gamut[name]:.2f} | "
+                  + " | ".join(cell(r, i, name, ceil) for r in rules) + f" | {split} |")
         mean_ceil = rows[rules[0]].get("mean_noise_ceiling")
-        cells = [f"{rows[r]['mean']['psnr']:.2f}" + ("" if mean_ceil is None else
-                                                    f" ({mean_ceil - rows[r]['mean']['psnr']:.2f})")
-                 for r in rules]
-        print(f"| mean | {mean_ceil} | {np.mean(list(gamut.values())):.2f} | " + " | ".join(cells) + " | |")
 
+        def mean(label: str) -> str:
+            psnr = rows[label]["mean"]["psnr"]
+            return f"{psnr:.2f}" + ("" if mean_ceil is None else f" ({mean_ceil - psnr:.2f})")
+
+        print(f"| mean | {mean_ceil} | {np.mean(list(gamut.values())):.2f} | " + " | ".join(mean(r) for r in rules)
+              + " | |")
+        extra = [label for label in rows if label not in rules]
+        if extra:
+            base = rows[last]["mean"]["psnr"]
+            print(f"\nWhat each part is worth to {last} (mean PSNR, and its change):\n")
+            print("| run | mean PSNR | change | captures a target |")
+            print("|---|---|---|---|")
+            for label in [last, *extra]:
+                psnr = rows[label]["mean"]["psnr"]
+                caps = np.mean([c["captures"] for c in comps[label].values()])
+                print(f"| {label} | {psnr:.2f} | {psnr - base:+.2f} | {caps:.1f} |")
 
 if __name__ == "__main__":
     main()

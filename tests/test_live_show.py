@@ -357,8 +357,14 @@ def test_the_real_time_solver_shows_a_clip_end_to_end(xvfb, stored, tmp_path, ca
     cam_size = tuple(calibrate.read(stored).rig.camera.intrinsics.size)
     with LoopbackCamera(LoopbackRig((*ORIGIN, *size), cam_size)) as camera:
         closed = run_live_show(LiveShowOptions(stored, str(clip), f"{DEVICE},camera={camera.url},encoding=linear",
-                                               hold=0.0))
+                                               hold=0.0, correction=tmp_path / "learned.npz"))
     assert closed.closed_loop and closed.follows >= 10 and closed.stopped == "the video ended", closed.lines()
+    # What it learned while following is kept, and a show without a camera starts from it.
+    assert (tmp_path / "learned.npz").is_file() and any("learned while following" in m for m in closed.said)
+    said: list[str] = []
+    run_live_show(LiveShowOptions(stored, str(clip), DEVICE, hold=0.0, duration=0.5,
+                                  correction=tmp_path / "learned.npz"), lambda m, f: said.append(m))
+    assert any(m.startswith("using the correction learned in") for m in said), said
     capsys.readouterr()
     assert main(["live-show", str(stored), "--source", str(clip), "--device", DEVICE, "--hold", "0",
                  "--duration", "1"]) == 0

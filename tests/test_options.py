@@ -174,9 +174,9 @@ FLAGS = {
                        "--depth-native-width --depth-units --encoding --force --no-exposure-check --out --rig",
     "lab-board": "--board --effects --force --out --poses --samples --scale --seed --square --supersample --truth",
     "lab": "--camera-fov-error --camera-size --effects --force --full-binary --layout --no-graycode --nominal-error "
-           "--other-forms --out --overlap --projector-effects --projector-shift --projector-size --projectors --samples --scale "
-           "--seed --supersample --surface --truth",
-    "live-show": "--area --device --diagnosis --duration --effects --hold --range --refine-steps --source "
+           "--other-forms --out --overlap --projector-effects --projector-shift --projector-size --projectors "
+           "--samples --scale --seed --supersample --surface --truth",
+    "live-show": "--area --correction --device --diagnosis --duration --effects --hold --range --refine-steps --source "
                  "--target-encoding",
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width --projectors",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "

@@ -310,3 +310,45 @@ def test_a_still_picture_shown_twice_gets_the_same_answer_from_the_first_frame(c
             swing[solves] = float(np.mean(np.abs(rv.compact(second.inputs[0]) - rv.compact(first.inputs[0]))))
     assert realtime_stage.FIRST_FRAME_SOLVES > 1
     assert swing[realtime_stage.FIRST_FRAME_SOLVES] < 0.3 * swing[1], swing
+
+
+def test_a_correction_learned_while_following_carries_to_other_pictures(calibration, tmp_path):
+    """A camera whose pixels answer with a gain and offset of their own (0.7–1.2, the model's 1 nowhere): followed
+    over sixteen frames of a pan over one photograph, the correction it learns (written and read back as
+    --correction does) brings another photograph, shown without a camera, far closer to the target than the open
+    loop's θ (measured: a mean squared error of 0.00004 against 0.0003)."""
+    cal = calibrate_step.read(calibration)
+    cw, ch = 192, 144
+    yy, xx = np.mgrid[0:ch, 0:cw]
+    gain = (0.7 + 0.5 * xx / cw)[..., None] * np.array([1.0, 0.95, 1.05])
+    with StageC(cal, StageCOptions()) as stage:
+        solver = RealtimeSolver.for_stage(stage)
+
+        def camera(frame) -> np.ndarray:
+            rows = solver._plan(frame.area).views[0].view.rows
+            image = np.zeros((ch * cw, 3), np.float32)
+            image[rows] = solver.predicted(frame)
+            return np.clip(gain * image.reshape(ch, cw, 3) + 0.01, 0.0, 1.0).astype(np.float32)
+
+        learn = 0.05 + 0.6 * natural_target("city", (240, 180))  # the camera never clips
+        for i in range(16):
+            out = solver.solve(np.roll(learn, 4 * i, axis=1))
+            solver.follow(camera(out), out)
+        sha = calibrate_step.identity(calibration)["sha256"]
+        path = solver.save_learned(tmp_path / "learned.npz", sha)
+        assert path is not None and path.is_file()
+        fresh = RealtimeSolver(stage, solver.inverses)
+        assert fresh.load_learned(path, sha) == 1
+        other = 0.05 + 0.6 * natural_target("forest", (240, 180))
+        plain = RealtimeSolver(stage, solver.inverses)
+        errs = {}
+        for name, s in (("open", plain), ("learned", fresh)):
+            out = s.solve(other)
+            target = s._fitted(other, out.area)
+            rows = s._plan(out.area).views[0].view.rows
+            errs[name] = float(np.mean((camera(out).reshape(-1, 3)[rows] - target) ** 2))
+        assert errs["learned"] < 0.3 * errs["open"], errs
+        with pytest.raises(InverseError, match="another calibration"):
+            fresh.load_learned(path, "0" * 64)
+        assert RealtimeSolver(stage, solver.inverses).save_learned(tmp_path / "none.npz", sha) is None
+        assert not (tmp_path / "none.npz").exists()

@@ -317,3 +317,25 @@ def test_the_measured_loop_follows_a_rig_of_other_slopes_and_stops_when_it_is_bu
     bumped = comp.run(target, area, device=_OtherRig(cal, op, bumped_after=6), loop="measured", verify=False)
     loop = bumped.report["loop"]
     assert loop["stopped"] == "the rig changed" and "moved" in loop["problem"] and bumped.captures == 7
+
+
+def test_a_compensation_whose_camera_is_bumped_keeps_the_best_answer_and_says_so(operator, lab_calibration, tmp_path):
+    """The step: the rig changes under the loop of the first target; the run stops with a CaptureError (exit 2 on
+    the command line) that says why, and the folder holds that target's best answer and the loop's record."""
+    from procam.addon.errors import CaptureError
+    from procam.addon.imageio import write_image
+    from procam.addon.steps import compensate as compensate_step
+    from procam.addon.steps.stage_c import StageCOptions
+
+    cal, op, truth_path = operator
+    cal_dir, _, _ = lab_calibration()
+    targets = [write_image(tmp_path / f"t{i}.png", 0.05 + 0.4 * _smooth_input(cal, i)[..., ::-1]) for i in (3, 6)]
+    options = compensate_step.CompensateOptions(cal_dir, tuple(targets), tmp_path / "comp",
+                                                StageCOptions(device=f"lab:{truth_path}", loop="measured"))
+    with pytest.raises(CaptureError, match="moved.*best answer so far is kept"):
+        compensate_step.run(options, device=_OtherRig(cal, op, bumped_after=4))
+    doc = json.loads((tmp_path / "comp" / "compensation.json").read_text())
+    first = doc["targets"][0]
+    assert doc["complete"] is False and len(doc["targets"]) == 1 and first["status"] == "done"
+    assert first["loop"]["stopped"] == "the rig changed" and (tmp_path / "comp" / first["loop"]["correction"]).is_file()
+    assert (tmp_path / "comp" / first["frame"]).is_file()

@@ -69,6 +69,8 @@ FLOOR_FACTOR = 1.1
 #: A capture that moved from the last by more than this many times what the input's change and the noise explain
 #: means the rig changed (module doc).
 JUMP_FACTOR = 6.0
+#: A change of the captures under this mean square (an RMS of about 0.007 of white) is never called a rig change.
+JUMP_FLOOR = 5e-5
 #: Residual mean squares growing this many captures in a row: the correction diverges.
 DIVERGING_CAPTURES = 3
 #: A capture with more than this share of its values at 0 (or at 1) where the last had under half of that is
@@ -210,10 +212,15 @@ class MeasuredCorrection:
                 return (f"the capture is {what} ({100 * share:.0f} % of the display area, the last {100 * before:.0f} "
                         "%): the camera or projector changed (lens cap, exposure, a dark or bright frame shown); "
                         "check the rig and run again")
-        explained = float(np.mean((self.slope * (q - last_q)) ** 2)) + 2.0 * self.floor
-        moved = float(np.mean((y - last_y) ** 2))
-        if moved > JUMP_FACTOR * explained and moved > 4.0 * 2.0 * self.floor:
-            return (f"the capture changed {np.sqrt(moved / explained):.1f}× more than the input's change and the "
+        # What the input's change should have done to the last capture, by the measured slope; what is left is the
+        # camera's noise (twice: two captures), the model's own error on that change (at an edge the light moves
+        # between pixels, where a slope per pixel cannot say it: up to the whole change), or a rig that changed. An
+        # absolute floor keeps a noiseless camera from calling its model's small misses a change.
+        change = self.slope * (q - last_q)
+        unexplained = float(np.mean((y - last_y - change) ** 2))
+        allowed = 2.0 * self.floor + float(np.mean(change ** 2)) + JUMP_FLOOR
+        if unexplained > JUMP_FACTOR * allowed:
+            return (f"the capture changed {np.sqrt(unexplained / allowed):.1f}× more than the input's change and the "
                     "camera's noise explain: the camera or the surface moved, or the light in the room changed; put "
                     "the rig back (or calibrate again) and run again")
         return None

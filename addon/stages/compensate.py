@@ -324,6 +324,8 @@ class Compensator:
         sched = self.schedule_for(schedule, held_blur=bool(self.input_blur), iterations_z=iterations_z,
                                   iterations_joint=iterations_joint, lr=lr, alpha=alpha, capture_every=capture_every,
                                   loop=loop)
+        if not sched.transport and sched.loop != "damped":  # the schedules that render follow Eq. 10: say so
+            sched = replace(sched, loop="damped")
         if theta_init not in ("capture", "zero"):
             raise CompensationError(f"theta_init must be 'capture' or 'zero', got {theta_init!r}")
         if self.input_blur and not sched.transport:

@@ -136,9 +136,10 @@ class Schedule:
     #: with ``transport``: render the answer once with Mitsuba to report what the scene (not the operator)
     #: predicts; costs one render, more than the solve itself at full resolution
     verify: bool = True
-    #: closed loop with ``transport``: ``damped`` follows each capture by Eq. 10 (the paper's θ); ``measured``
-    #: learns each pixel's slope and averages against the noise, stopping at the noise floor (stages/closed_loop.py)
-    loop: str = "damped"
+    #: closed loop with ``transport`` (the schedules that render follow Eq. 10): ``measured`` learns each pixel's
+    #: slope and averages against the camera's noise, stopping at its noise floor (stages/closed_loop.py);
+    #: ``damped`` follows each capture by Eq. 10 (the paper's θ)
+    loop: str = "measured"
 
     def check(self) -> "Schedule":
         """Self, or a CompensationError naming the first bad value."""

@@ -58,7 +58,7 @@ from ..progress import Cancel, Progress, never, part, quiet
 from ..video import VideoReader
 from . import calibrate as calibrate_step
 from .projectors import JointStage
-from .realtime import REFINE_STEPS, RealtimeSolver
+from .realtime import LEARN_MIN_FRAMES, REFINE_STEPS, RealtimeSolver
 from .stage_c import StageC, StageCOptions, camera_lens_of
 
 #: Seconds between two status lines, and between two camera frames given to the solver's θ (closed loop: at 10 a
@@ -114,6 +114,13 @@ class LiveShowOptions:
     hold: float = option(2.0, min=0.0, max=3600.0, metavar="SECONDS", label="Hold", prop="procam_live_hold",
                          help="a source that stalls or ends: hold its last frame this long, then black (default 2)")
     # The sidebar's 0 stands for no limit (its blank); the command line refuses 0 (_seconds).
+    correction: Path | None = option(
+        None, metavar="FILE", label="Learned Correction", prop="procam_live_correction", subtype="FILE_PATH",
+        blank="",
+        help="with camera=: write the per-pixel correction learned while following the camera (each camera "
+             "pixel's gain and offset against the model, from the frames shown) to FILE when the show ends; "
+             "without a camera: start from the correction in FILE, learned so by an earlier show of this "
+             "calibration and display area, instead of the validation captures' θ (default none)")
     duration: float | None = option(None, check=_seconds, metavar="SECONDS", label="Duration",
                                     prop="procam_live_duration", blank=0.0, min=0.0,
                                     help="stop after this many seconds (default: until the source ends, Esc in the "
@@ -263,6 +270,10 @@ class Solver(Protocol):
 
     def follow(self, capture: np.ndarray, shown: Any = None) -> None: ...
 
+    def load_learned(self, path: Path, calibration_sha256: str) -> int: ...
+
+    def save_learned(self, path: Path, calibration_sha256: str) -> Path | None: ...
+
 
 def open_solver(stage: StageC | JointStage, refine_steps: int, say: Progress) -> Solver:
     """The calibration's real-time solver for ``stage`` (its stored approximate inverse, or built in memory)."""
@@ -303,7 +314,18 @@ def run_live_show(options: LiveShowOptions, progress: Progress | None = None, ca
             if options.range == "auto" or str(options.range).strip().lower().startswith("bright"):
                 _fix_range(stage, source, say)
             solver = solver_for(stage, options.refine_steps, noted)
-            return _show(options, spec, cal, stage, solver, source, say, cancel or never, on_status, said)
+            sha = calibrate_step.identity(options.calibration)["sha256"]
+            if options.correction is not None and spec.camera is None:
+                areas = solver.load_learned(options.correction, sha)
+                say(f"using the correction learned in {options.correction} ({areas} display area(s))", 0.0)
+            report = _show(options, spec, cal, stage, solver, source, say, cancel or never, on_status, said)
+            if options.correction is not None and spec.camera is not None:
+                written = solver.save_learned(options.correction, sha)
+                report.said.append(f"the correction learned while following the camera is in {written}" if written
+                                   else f"too few camera frames were followed to learn a correction (at least "
+                                        f"{LEARN_MIN_FRAMES}); nothing written to {options.correction}")
+                say(report.said[-1], 1.0)
+            return report
     finally:
         source.close()
 

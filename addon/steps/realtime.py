@@ -26,13 +26,17 @@ because a show never writes into a calibration folder.
 
 from __future__ import annotations
 
+import io
 import time
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
+from ..imageio import read_arrays, write_atomic_bytes
 from ..progress import Progress, quiet
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target
 from ..stages.realtime import ApproximateInverse, FrameGather, InverseError, RealtimeView, build_inverse
@@ -43,6 +47,16 @@ from .stage_c import StageC
 
 #: θ's step towards each camera image's residual (module doc)
 FOLLOW_RATE = 0.05
+#: A learned correction needs this many followed camera frames of its display area (:meth:`RealtimeSolver.learned`).
+LEARN_MIN_FRAMES = 8
+#: The learned gain's ridge towards the model's 1, per frame, in squared light: a pixel (with its neighbours) whose
+#: light varied by less than about 0.03 over the frames keeps nearly the model's gain.
+LEARN_RIDGE = 1e-3
+#: The learned correction is the coarse relation of camera to model: both blurred by this σ (camera pixels) first,
+#: and each pixel's regression pools the frames of the pixels within this σ (camera pixels) of it.
+LEARN_SIGMA, LEARN_WINDOW = 2.0, 6.0
+#: The learned gain is kept within a factor of 3 of the model's.
+LEARN_GAIN_RANGE = (1.0 / 3.0, 3.0)
 #: SIRT steps after the one-pass inverse: one brings it within 0.15 dB of the full ``transport`` solve on the
 #: operator and 0.25 dB captured, on the lab's targets (scripts/bench_live_show.py)
 REFINE_STEPS = 1
@@ -72,6 +86,17 @@ class _Plan:
     gathers: list[FrameGather | None]
     shares: list[np.ndarray | None]
     theta: np.ndarray
+    #: the camera frames followed: count, Σf, Σy, Σf², Σfy per row and channel (f the model's light, y the camera)
+    sums: np.ndarray | None = None
+    #: a correction learned by following (:meth:`RealtimeSolver.learned`): each row's gain and offset, y = a·f + b
+    learned: tuple[np.ndarray, np.ndarray] | None = None
+
+    def want(self, fitted: np.ndarray) -> np.ndarray:
+        """The light the model is asked for, so that the camera sees ``fitted`` (rows × 3)."""
+        if self.learned is None:
+            return fitted + self.theta
+        a, b = self.learned
+        return (fitted - b) / a
 
 
 class RealtimeSolver:
@@ -203,7 +228,7 @@ class RealtimeSolver:
         comps, adapters = self._compensators(stage), self._adapters(stage)
         area = stage.area_for(image)
         plan = self._plan(area)
-        want = self._fitted(image, area) + plan.theta
+        want = plan.want(self._fitted(image, area))
         frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 4), np.uint8) for comp in comps]
         inputs = []
         for k, rv, gather, share in zip(plan.keep, plan.views, plan.gathers, plan.shares):
@@ -242,8 +267,73 @@ class RealtimeSolver:
                                f"{y.shape[1]}×{y.shape[0]}")
         plan = self._plan(shown.area)
         f = self.predicted(shown)
-        residual = np.clip(f - y.reshape(-1, 3)[plan.views[0].view.rows], f - 1.0, f)
+        seen = y.reshape(-1, 3)[plan.views[0].view.rows]
+        residual = np.clip(f - seen, f - 1.0, f)
         plan.theta += 2.0 * FOLLOW_RATE * (residual - plan.theta)
+        # The correction to keep is what holds for any picture: the coarse relation of camera to model at each
+        # pixel. What a picture's own edges add (a blur or a shift the model lacks) moves with the picture.
+        f64, y64 = (cv2.GaussianBlur(v.reshape(shown.area.height, shown.area.width, 3).astype(np.float64), (0, 0),
+                                     LEARN_SIGMA).reshape(-1, 3) for v in (f, seen))
+        if plan.sums is None:
+            plan.sums = np.zeros((5, *f.shape), np.float64)
+        plan.sums += np.stack([np.ones_like(f64), f64, y64, f64 * f64, f64 * y64])
+
+    def learned(self, area: DisplayArea) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each row's gain and offset (y = a·f + b, rows × 3) from the camera frames followed in ``area``: what
+        the model gets wrong at every pixel and level, learned while the picture moved (a ridge pulls the gain
+        towards the model's 1 where the frames did not vary). None before :data:`LEARN_MIN_FRAMES` frames."""
+        plan = self._plan(area)
+        if plan.sums is None or plan.sums[0].max() < LEARN_MIN_FRAMES:
+            return None
+        # The camera's departures from the model change slowly over the surface (a response, a vignette, a colour
+        # mixing that drifts): each pixel's regression pools its neighbours' frames (LEARN_WINDOW), so a pan that
+        # barely changes one pixel's light still pins its gain through the pixels around it.
+        h, w = area.height, area.width
+        n, sf, sy, sff, sfy = (cv2.GaussianBlur(v.reshape(h, w, 3), (0, 0), LEARN_WINDOW).reshape(-1, 3)
+                               for v in plan.sums)
+        ridge = LEARN_RIDGE * n
+        a = np.clip((sfy - sf * sy / n + ridge) / (sff - sf * sf / n + ridge), *LEARN_GAIN_RANGE)
+        return a.astype(np.float32), ((sy - a * sf) / n).astype(np.float32)
+
+    def save_learned(self, path: str | Path, calibration_sha256: str) -> Path | None:
+        """Write every display area's learned correction (:meth:`learned`) to ``path`` (npz, atomically) with the
+        calibration's hash; None (nothing written) when no area has followed enough frames."""
+        keys, gains, offsets = [], [], []
+        for key in list(self._plans):
+            got = self.learned(DisplayArea(*key))
+            if got is not None:
+                keys.append(key)
+                gains.append(got[0])
+                offsets.append(got[1])
+        if not keys:
+            return None
+        arrays = {"calibration_sha256": np.asarray(calibration_sha256), "areas": np.asarray(keys, np.int64),
+                  "camera_size": np.asarray(self.camera_size, np.int64),
+                  **{f"gain_{i}": g for i, g in enumerate(gains)}, **{f"offset_{i}": o for i, o in enumerate(offsets)}}
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        write_atomic_bytes(Path(path), buf.getvalue())
+        return Path(path)
+
+    def load_learned(self, path: str | Path, calibration_sha256: str) -> int:
+        """Use the corrections of ``path`` (written by :meth:`save_learned` for this calibration) for their display
+        areas from now on; how many areas it holds. :class:`InverseError` when it is another calibration's or
+        another camera's."""
+        data = read_arrays(path, None, error=InverseError,
+                           remedy="follow the camera in a live show with --correction to learn it again")
+        if str(data.get("calibration_sha256")) != calibration_sha256:
+            raise InverseError(f"the learned correction {path} was learned on another calibration: follow the camera "
+                               "with this calibration to learn it again")
+        if tuple(int(v) for v in data["camera_size"]) != tuple(self.camera_size):
+            raise InverseError(f"the learned correction {path} is for a {data['camera_size'][0]}×"
+                               f"{data['camera_size'][1]} camera, not this calibration's")
+        for i, key in enumerate(np.asarray(data["areas"]).reshape(-1, 4)):
+            plan = self._plan(DisplayArea(*(int(v) for v in key)))
+            gain, offset = np.asarray(data[f"gain_{i}"], np.float32), np.asarray(data[f"offset_{i}"], np.float32)
+            if gain.shape != plan.theta.shape or offset.shape != plan.theta.shape:
+                raise InverseError(f"the learned correction {path} does not fit its display area; learn it again")
+            plan.learned = (gain, offset)
+        return len(np.asarray(data["areas"]).reshape(-1, 4))
 
 
-__all__ = ["FOLLOW_RATE", "InverseError", "REFINE_STEPS", "RealtimeFrame", "RealtimeSolver"]
+__all__ = ["FOLLOW_RATE", "InverseError", "LEARN_MIN_FRAMES", "REFINE_STEPS", "RealtimeFrame", "RealtimeSolver"]

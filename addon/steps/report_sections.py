@@ -266,7 +266,7 @@ class Reader:
             pics = [(self.image(folder, file, f"{what} of {t['name']!r}", blocks), cap) for file, what, cap in wanted]
             loop = t.get("loop")
             if isinstance(loop, dict) and loop.get("per_capture"):
-                blocks += self.closed_loop(folder, t["name"], loop)
+                blocks += self.closed_loop(folder, t["name"], loop, t.get("area"))
             shown = [(p, c) for p, c in pics if p is not None]
             if shown:
                 given = "the images the projectors are" if len(several) > 1 else "the image the projector is"
@@ -275,12 +275,13 @@ class Reader:
                                       f"and {given} given.", f"compensation of {t['name']}"))
         return "Compensation", blocks
 
-    def closed_loop(self, folder: Path, name: str, loop: dict[str, Any]) -> list[Block]:
+    def closed_loop(self, folder: Path, name: str, loop: dict[str, Any], area: Any) -> list[Block]:
         """The measured closed loop of one target: its residual over the captures against the camera's noise, and
         the map of where it corrected the model."""
         blocks: list[Block] = []
-        rms = [h.get("residual_rms") for h in loop["per_capture"] if isinstance(h, dict)]
-        if rms and all(isinstance(v, (int, float)) for v in rms):
+        rms = [float(h["residual_rms"]) for h in loop["per_capture"]
+               if isinstance(h, dict) and isinstance(h.get("residual_rms"), (int, float))]
+        if rms:
             noise = loop.get("noise_rms")
             plot = figures.series(list(range(1, len(rms) + 1)), {"residual RMS": rms}, xlabel="capture",
                                   ylabel="RMS, linear", title=f"{name}: closed loop", from_zero=True,
@@ -295,11 +296,13 @@ class Reader:
             theta = self.image(folder, correction, f"the closed loop's correction of {name!r}", blocks)
             if theta is not None:
                 mag = np.asarray(theta, np.float32).mean(axis=2)
+                if isinstance(area, dict) and all(isinstance(area.get(k), int) for k in ("x", "y", "width", "height")):
+                    mag = mag[area["y"]:area["y"] + area["height"], area["x"]:area["x"] + area["width"]]
                 scale = max(float(np.percentile(mag, 99.5)), 1e-4)
                 blocks.append(_figure(figures.heat_maps([mag], ["|θ|"], scale, "light the model lacks or adds"),
                                       f"{name}: where the closed loop corrected the model (|θ|, the light per camera "
-                                      "pixel the model missed or added, mean of the channels; 0 outside the display "
-                                      "area).", f"correction map of {name}"))
+                                      "pixel the model missed or added, mean of the channels), over the display area.",
+                                      f"correction map of {name}"))
         return blocks
 
     def evaluation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:

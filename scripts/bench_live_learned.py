@@ -1,0 +1,126 @@
+#!/usr/bin/env python3
+"""A live show's learned correction: follow the camera on one clip, then play another clip without a camera.
+
+Usage: ``.venv/bin/python scripts/bench_live_learned.py [--other-forms 1] [--scale 0.5] [--follow 24]
+[--frames 8] [--work DIR]``
+
+Renders (or reuses, in ``--work``: the folders ``scripts/bench_closed_loop.py`` makes) a lab of other forms
+(``procam lab --other-forms``, sensor noise on) and its calibration, then, with the real-time solver a live show
+uses (``--range auto``):
+
+1. **follows** the lab camera on ``--follow`` frames of a panning clip of one photograph (city): every frame
+   solved, shown, captured through the lab and given to :meth:`RealtimeSolver.follow`, as ``procam live-show
+   --device live:camera=…,display=…`` does; the correction learned (each camera pixel's gain and offset against
+   the model) is written as ``procam live-show --correction FILE`` writes it;
+2. **plays** ``--frames`` frames of a panning clip of other photographs (forest, then studio) open loop, as a show
+   without a camera does, three ways, each answer captured through the lab: today's open loop (θ from the
+   validation captures), the θ the follow left in memory (what today's live show keeps, for its own display
+   area), and the learned correction read back from the file (``--correction FILE`` without a camera).
+
+Prints the captured PSNR inside the display area of each way (mean over the frames) and the real-time solve's
+milliseconds with and without the learned correction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from procam.addon.capture.targets import natural_target
+from procam.addon.cli.app import main as procam
+
+
+def step(args: list[str], done: Path) -> None:
+    if done.exists():
+        return
+    if procam(args) != 0:
+        raise SystemExit(f"procam {args[0]} failed")
+
+
+def panning(image: np.ndarray, frame: int, step_px: int = 3) -> np.ndarray:
+    """Frame ``frame`` of a slow pan over ``image``."""
+    return np.roll(image, step_px * frame, axis=1)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--surface", default="curve")
+    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--other-forms", type=float, default=1.0)
+    ap.add_argument("--lab-effects", default="noise=0.4")
+    ap.add_argument("--follow", type=int, default=24, help="frames followed with the camera (default 24)")
+    ap.add_argument("--frames", type=int, default=8, help="frames played without a camera, per way (default 8)")
+    ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
+    args = ap.parse_args()
+
+    from procam.addon.stages.metrics import psnr
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps.realtime import RealtimeSolver
+    from procam.addon.steps.stage_c import StageC, StageCOptions, device_pipeline
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        lab, truth = work / "lab", work / "lab.truth.json"
+        step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--other-forms", str(args.other_forms),
+              "--scale", str(args.scale), "--out", str(lab), "--truth", str(truth)], lab)
+        step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
+        cal = calibrate_step.read(work / "cal")
+        sha = calibrate_step.identity(work / "cal")["sha256"]
+        cw, ch = cal.rig.camera.intrinsics.size
+        size = (round(1.25 * cw), round(1.25 * ch))
+        learn_clip = natural_target("city", size)
+        play_clips = [natural_target("forest", size), natural_target("studio", size)]
+        device = device_pipeline(f"lab:{truth}", cal)
+        assert device is not None
+
+        def shown(frame) -> np.ndarray:
+            return device.project(frame.frames[0][..., :3].astype(np.float32) / 255.0)
+
+        learned_file = work / "learned-correction.npz"
+        try:
+            with StageC(cal, StageCOptions(range="auto")) as stage:
+                sample = [panning(learn_clip, i) for i in range(0, args.follow, 6)] + \
+                         [panning(c, i) for c in play_clips for i in range(0, args.frames, 4)]
+                stage.fix_range(sample)
+                today = RealtimeSolver.for_stage(stage)
+                followed = RealtimeSolver(stage, today.inverses)
+                for i in range(args.follow):
+                    out = followed.solve(panning(learn_clip, i))
+                    followed.follow(shown(out), out)
+                written = followed.save_learned(learned_file, sha)
+                print(f"followed {args.follow} frames; learned correction written to {written}")
+                learned = RealtimeSolver(stage, today.inverses)
+                learned.load_learned(learned_file, sha)
+                ways = {"open loop (validation θ)": today, "θ left by the follow": followed,
+                        "learned correction": learned}
+                scores: dict[str, list[float]] = {k: [] for k in ways}
+                ms: dict[str, list[float]] = {k: [] for k in ways}
+                for clip in play_clips:
+                    for i in range(args.frames):
+                        image = panning(clip, i)
+                        for name, solver in ways.items():
+                            out = solver.solve(image)
+                            area = out.area
+                            target = solver._fitted(image, area).reshape(area.height, area.width, 3)
+                            seen = area.crop(shown(out))
+                            scores[name].append(psnr(np.clip(seen, 0, 1), target))
+                            ms[name].append(out.solve_ms)
+        finally:
+            device.close()
+        print(f"\nlab --effects {args.lab_effects} --other-forms {args.other_forms}, scale {args.scale}; followed "
+              f"{args.follow} frames of city, then {len(play_clips) * args.frames} frames of forest and studio "
+              "without a camera, --range auto\n")
+        print("| way | captured PSNR (mean) | change | solve ms (median) |")
+        print("|---|---|---|---|")
+        base = float(np.mean(scores["open loop (validation θ)"]))
+        for name in ways:
+            m = float(np.mean(scores[name]))
+            print(f"| {name} | {m:.2f} | {m - base:+.2f} | {np.median(ms[name][2:]):.1f} |")
+
+
+if __name__ == "__main__":
+    main()
