@@ -118,7 +118,8 @@ class LiveShowOptions:
         None, metavar="FILE", label="Learned Correction", prop="procam_live_correction", subtype="FILE_PATH",
         blank="",
         help="with camera=: write the per-pixel correction learned while following the camera (each camera "
-             "pixel's gain and offset against the model, from the frames shown) to FILE when the show ends; "
+             "pixel's gain and offset against the model, from the frames shown) to FILE when the show ends (a file "
+             "there is replaced); "
              "without a camera: start from the correction in FILE, learned so by an earlier show of this "
              "calibration and display area, instead of the validation captures' θ (default none)")
     duration: float | None = option(None, check=_seconds, metavar="SECONDS", label="Duration",
