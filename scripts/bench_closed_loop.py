@@ -41,27 +41,22 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from procam.addon.capture.targets import DEFAULT_TARGETS, natural_target
-from procam.addon.cli.app import main as procam
-from procam.addon.imageio import read_image, write_image
+from procam.addon.imageio import read_image
+
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_range import full_brightness_targets, step  # noqa: E402
 
 #: Error finer than this (σ, camera pixels) counts as fine.
 FINE_PX = 1.5
 #: The share of the area, by the target's gradient, that counts as its edges.
 EDGE_SHARE = 0.1
-
-
-def step(args: list[str], done: Path) -> None:
-    if done.exists():
-        return
-    if procam(args) != 0:
-        raise SystemExit(f"procam {args[0]} failed")
 
 
 def error_parts(comp: Path, ev: Path, row: dict) -> dict[str, float]:
@@ -152,12 +147,7 @@ def main() -> None:
               "--scale", str(args.scale), "--projectors", str(args.projectors), "--out", str(lab), "--truth",
               str(truth)], lab)
         step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
-        targets = []
-        (work / "targets").mkdir(exist_ok=True)
-        for name in DEFAULT_TARGETS:
-            img = natural_target(name, (400, 300))
-            img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
-            targets.append(str(write_image(work / "targets" / f"{name}.png", img)))
+        targets = full_brightness_targets(work / "targets")
         effects, fx = [], ""
         if args.effects == "auto":
             step(["diagnose", str(work / "cal"), "--out", str(work / "diagnosis")], work / "diagnosis")

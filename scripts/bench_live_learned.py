@@ -24,25 +24,17 @@ milliseconds with and without the learned correction.
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from procam.addon.capture.targets import natural_target
-from procam.addon.cli.app import main as procam
 
-
-def step(args: list[str], done: Path) -> None:
-    if done.exists():
-        return
-    if procam(args) != 0:
-        raise SystemExit(f"procam {args[0]} failed")
-
-
-def panning(image: np.ndarray, frame: int, step_px: int = 3) -> np.ndarray:
-    """Frame ``frame`` of a slow pan over ``image``."""
-    return np.roll(image, step_px * frame, axis=1)
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_live_show import panning  # noqa: E402
+from bench_range import step  # noqa: E402
 
 
 def main() -> None:

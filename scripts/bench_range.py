@@ -40,6 +40,18 @@ def step(args: list[str], done: Path) -> None:
         raise SystemExit(f"procam {args[0]} failed")
 
 
+def full_brightness_targets(folder: Path) -> list[str]:
+    """The six natural photographs at 400×300 in ``folder``, each scaled so its 99.5th percentile is 1 (the case
+    where compensation clips); their paths."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name in DEFAULT_TARGETS:
+        img = natural_target(name, (400, 300))
+        img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
+        out.append(str(write_image(folder / f"{name}.png", img)))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--surface", default="curve")
@@ -72,12 +84,7 @@ def main() -> None:
                  work / "lab-undistorted")
             lab = work / "lab-undistorted"
         step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
-        targets = []
-        (work / "targets").mkdir(exist_ok=True)
-        for name in DEFAULT_TARGETS:
-            img = natural_target(name, (400, 300))
-            img = np.clip(img / max(float(np.percentile(img, 99.5)), 1e-6), 0.0, 1.0)
-            targets.append(str(write_image(work / "targets" / f"{name}.png", img)))
+        targets = full_brightness_targets(work / "targets")
         effects, fx = [], ""
         if args.effects == "auto":
             scale = [] if args.diagnose_scale is None else ["--scale", str(args.diagnose_scale)]
