@@ -29,9 +29,10 @@ nearest colour each pixel can show at all (the lab's captures of black and the t
 noise; where the projector mixes its colours the noise ceiling counts saturated colours no input can show.
 
 ``--projectors 2`` lays out two projectors side by side (20 % overlap) and prints each rule's seam step too.
-``--attribute`` also runs the last rule with twice the captures, with its slope held at 1, and through a copy
-of the lab without sensor noise (evaluated through the lab with it), and prints what each is worth: too few
-captures, the slope, and the noise the loop carries into its answer.
+``--attribute`` also runs the last rule with twice the captures, with its slope held at 1, through a copy of
+the lab without sensor noise (evaluated through the lab with it), and, on a lab of other forms, through the lab
+without one of its parts at a time (its blur, its colour mixing, its response; loop and evaluation alike), and
+prints what each is worth and how far each lands below its own noise ceiling.
 ``--effects auto`` diagnoses the calibration first and compensates with the effects it selected around stage C.
 ``--work DIR`` keeps and reuses every folder.
 """
@@ -45,6 +46,7 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -109,6 +111,33 @@ def primaries(truth: Path, repeats: int = 2) -> tuple[np.ndarray, np.ndarray]:
         return shot((0.0, 0.0, 0.0)), np.stack([shot(c) for c in ((1, 0, 0), (0, 1, 0), (0, 0, 1))])
 
 
+#: What ``--attribute`` takes out of the lab of other forms, one at a time, for the loop and its evaluation alike:
+#: name → the parameters of :class:`~procam.addon.lab.other_forms.OtherForms` that make it the identity.
+PARTS_OFF = {"blur": {"blur": (0.0, 0.0)},
+             "colour mixing": {"mix_left": np.eye(3, dtype=np.float32), "mix_right": np.eye(3, dtype=np.float32)},
+             "response": {"gamma": np.ones(3, np.float32), "gamma_drift": 0.0, "knee_mix": 0.0}}
+
+
+def without_part(part: str) -> Any:
+    """A context in which every lab of other forms opened lacks ``part`` (:data:`PARTS_OFF`)."""
+    @contextlib.contextmanager
+    def patch() -> Iterator[None]:
+        from procam.addon.lab import other_forms
+
+        init = other_forms.OtherForms.__post_init__
+
+        def patched(self: Any) -> None:
+            init(self)
+            for name, value in PARTS_OFF[part].items():
+                setattr(self, name, value)
+        other_forms.OtherForms.__post_init__ = patched  # type: ignore[method-assign]
+        try:
+            yield
+        finally:
+            other_forms.OtherForms.__post_init__ = init  # type: ignore[method-assign]
+    return patch
+
+
 @contextlib.contextmanager
 def slope_fixed() -> Iterator[None]:
     """The measured loop with every pixel's slope held at the model's (1): what measuring the slope buys."""
@@ -165,14 +194,18 @@ def main() -> None:
                       contextlib.nullcontext),
                      (f"{last}, slope held at 1", last, [], truth, slope_fixed),
                      (f"{last}, loop without noise", last, [], quiet, contextlib.nullcontext)]
+            if args.other_forms:
+                runs += [(f"{last}, lab without its {part}", last, [], truth, without_part(part)) for part in PARTS_OFF]
         for label, rule, extra, device_truth, patch in runs:
             slug = label.replace(", ", "-").replace(" ", "_")
             comp, ev = work / f"comp-{slug}{fx}", work / f"eval-{slug}{fx}"
             with patch():
                 step(["compensate", str(work / "cal"), *targets, "--device", f"lab:{device_truth}", "--range",
                       "auto", "--loop", rule, *extra, *effects, "--out", str(comp)], comp)
-            step(["evaluate", str(work / "cal"), "--inputs", str(comp), "--targets", *targets, "--device",
-                  f"lab:{truth}", "--out", str(ev)], ev)
+                # a part taken out of the lab is out of the evaluation too; the loop without noise is evaluated
+                # through the lab with it
+                step(["evaluate", str(work / "cal"), "--inputs", str(comp), "--targets", *targets, "--device",
+                      f"lab:{truth}", "--out", str(ev)], ev)
             rows[label] = json.loads((ev / "metrics.json").read_text())
             comps[label] = {t["name"]: t for t in json.loads((comp / "compensation.json").read_text())["targets"]}
         from procam.addon.stages.gamut import gamut_ceiling
@@ -222,12 +255,13 @@ def main() -> None:
         if extra:
             base = rows[last]["mean"]["psnr"]
             print(f"\nWhat each part is worth to {last} (mean PSNR, and its change):\n")
-            print("| run | mean PSNR | change | captures a target |")
-            print("|---|---|---|---|")
+            print("| run | mean PSNR | change | below its own noise ceiling | captures a target |")
+            print("|---|---|---|---|---|")
             for label in [last, *extra]:
-                psnr = rows[label]["mean"]["psnr"]
+                psnr, ceil = rows[label]["mean"]["psnr"], rows[label].get("mean_noise_ceiling")
                 caps = np.mean([c["captures"] for c in comps[label].values()])
-                print(f"| {label} | {psnr:.2f} | {psnr - base:+.2f} | {caps:.1f} |")
+                print(f"| {label} | {psnr:.2f} | {psnr - base:+.2f} | {'–' if ceil is None else f'{ceil - psnr:.2f}'} "
+                      f"| {caps:.1f} |")
 
 if __name__ == "__main__":
     main()

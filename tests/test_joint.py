@@ -186,6 +186,7 @@ def test_the_closed_loop_finds_the_offset_the_camera_sees(side):
     target = _target(area, 7, lo=0.1)
     res = side.run(target, area, device=device)
     assert res.mode == "closed-loop" and res.captures == device.shown == 15
+    assert res.report["loop"]["rule"] == "measured" and res.report["loop"]["problem"] is None  # several projectors too
     inside = area.mask(CAMERA)
     err = np.abs(res.theta[inside] + offset[inside])  # the model's θ is the light the model lacks, negated
     assert float(np.median(err)) < 0.005, float(np.median(err))

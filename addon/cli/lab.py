@@ -37,7 +37,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"capture set: {out} ({describe_run(cs, time.perf_counter() - t0)}, projector{'s' if cs.others else ''} "
           f"{sizes}, {args.samples} spp)")
     print(f"sealed truth: {truth_path}")
-    print(f"effects: {args.effects or 'none'}")
+    print(f"effects: {args.effects or 'none'}" + (f"; other forms at {options.other_forms:g} (procam lab --help)"
+                                                  if options.other_forms else ""))
     return 0
 
 

@@ -421,7 +421,8 @@ class JointSolve(TransportSolve):
                   else None, "iterations": {"z": sched.iterations_z, "joint": self.done - sched.iterations_z,
                                             "total": self.done},
                   "texels_solved": [int(len(v.texels)) for v in self.joint.views],
-                  "psnr_simulated_start": self.psnr_start, "bias": self.owner.last_bias}
+                  "psnr_simulated_start": self.psnr_start, "bias": self.owner.last_bias,
+                  **({"loop": self.loop} if self.loop is not None else {})}
         return _finish(self.comps, self.joint, self.joint.expand(zc, self.zs0), theta, self.placed, self.area,
                        self.owner.overlap(), self.losses, self.mode, self.captures, report, t_start,
                        self.seconds_device)

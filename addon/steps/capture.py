@@ -178,7 +178,8 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
                        camera_fov_error=options.camera_fov_error, projectors=options.projectors,
                        layout=options.projector_layout, overlap=options.overlap,
                        projector_effects=options.projector_effects, other_forms=options.other_forms)
-    (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}", 0.0)
+    (progress or quiet)(f"surface {truth.surface_source}, effects {truth.effects.spec}"
+                        + (f", other forms at {truth.other_forms:g}" if truth.other_forms else ""), 0.0)
     return render_lab(truth, out, truth_path=truth_path, force=options.force, inputs=inputs, graycode=options.graycode,
                       fast_binary=not options.full_binary, supersample=options.supersample, progress=progress,
                       cancel=cancel)

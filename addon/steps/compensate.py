@@ -25,8 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..capture.devices import Device
 from ..errors import Cancelled, CaptureError, ImageError, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_image
@@ -36,7 +34,7 @@ from ..safepaths import inside
 from ..stages.range import range_line
 from . import calibrate as calibrate_step
 from . import layout, projectors
-from .stage_c import StageC, StageCOptions, stage_c_inputs
+from .stage_c import StageC, StageCOptions, loop_record, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.COMPENSATION
@@ -180,10 +178,7 @@ def _one_target(stage: StageC, tmp: Path, image: Any, note: Any, name: str, path
     write_image(tmp / files["frame"], done.frame)
     write_image(tmp / files["simulated"], res.simulated)
     write_image(tmp / files["target"], done.fitted)
-    loop = res.report.get("loop")
-    if loop:  # where the measured loop corrected the model: |θ| per camera pixel, linear, in the display area
-        loop = {**loop, "correction": layout.correction_file(name)}
-        write_image(tmp / loop["correction"], np.abs(np.asarray(res.theta, np.float32)))
+    loop = loop_record(tmp, name, res.report, res.theta)
     return {"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
             "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
             "seconds": round(res.seconds, 2), "captures": res.captures,

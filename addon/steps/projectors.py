@@ -76,7 +76,7 @@ from . import calibrate as calibrate_step
 from . import diagnose as diagnose_step
 from . import layout
 from . import transport as transport_step
-from .stage_c import StageCOptions, device_pipeline
+from .stage_c import StageCOptions, device_pipeline, loop_record
 
 
 def projector_files(name: str, count: int) -> dict[str, Any]:
@@ -556,7 +556,8 @@ class JointStage:
     def target_files(self, name: str) -> list[str]:
         """Every file a target ``name`` writes (a target cut short leaves none)."""
         files = projector_files(name, self.count)
-        return [files["simulated"], files["target"], *(v for e in files["projectors"] for v in e.values())]
+        return [files["simulated"], files["target"], *(v for e in files["projectors"] for v in e.values()),
+                layout.correction_file(name)]
 
     def bias_record(self) -> list[dict[str, Any]] | None:
         """Each projector's open-loop θ model as the manifest records it (None in the closed loop)."""
@@ -629,6 +630,7 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
     if stage.adapters is not None:  # the lens's blur each projector's solve held (its σ, input texels)
         for entry, comp in zip(projectors, stage.compensators):
             entry["input_blur"] = comp.input_blur
+    loop = loop_record(tmp, name, res.report, res.theta)
     return {"name": name, "status": "done", "warnings": done.warnings, "mode": res.mode,
             "area": done.area.to_dict(), "input": projectors[0]["input"], "frame": projectors[0]["frame"],
             "simulated": files["simulated"], "target": files["target"], "projectors": projectors,
@@ -637,7 +639,8 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
             "psnr_simulated_start": res.report.get("psnr_simulated_start"),
             "psnr_simulated": res.report.get("psnr_simulated"),
             "psnr_simulated_overlap": res.report.get("psnr_overlap"),
-            "psnr_simulated_outside": res.report.get("psnr_outside_overlap")}
+            "psnr_simulated_outside": res.report.get("psnr_outside_overlap"),
+            **({"loop": loop} if loop else {})}
 
 
 def one_target(stage: "JointStage", tmp: Path, image: np.ndarray, note: str, name: str, path: Path, i: int, n: int,

@@ -23,6 +23,7 @@ from ..capture.devices import Device, FolderDevice, LensRemovedDevice
 from ..rig.lens import RigLens
 from ..capture.photos import removed_lens
 from ..errors import CaptureError, ProCamError
+from ..imageio import write_image
 from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
 from ..lab.truth import LabTruth
 from ..live.shoot import open_camera_device, parse_camera_device
@@ -266,6 +267,17 @@ class TargetResult:
     input: np.ndarray  # the projector input to send (input size)
     frame: np.ndarray  # that input in the native projector frame
     warnings: list[str]
+
+
+def loop_record(tmp: Path, name: str, report: dict[str, Any], theta: np.ndarray) -> dict[str, Any] | None:
+    """The measured closed loop's record of target ``name`` (None for other loops), with where it corrected the
+    model written into ``tmp``: |θ| per camera pixel, linear (``layout.correction_file``)."""
+    loop = report.get("loop")
+    if not loop:
+        return None
+    loop = {**loop, "correction": layout.correction_file(name)}
+    write_image(tmp / loop["correction"], np.abs(np.asarray(theta, np.float32)))
+    return loop
 
 
 class StageC:
