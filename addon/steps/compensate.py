@@ -178,7 +178,7 @@ def _one_target(stage: StageC, tmp: Path, image: Any, note: Any, name: str, path
     write_image(tmp / files["frame"], done.frame)
     write_image(tmp / files["simulated"], res.simulated)
     write_image(tmp / files["target"], done.fitted)
-    loop = loop_record(tmp, name, res.report, res.theta)
+    loop = loop_record(tmp, name, res)
     return {"name": name, "file": str(path.absolute()), "status": "done", "encoding": note,
             "warnings": done.warnings, "mode": res.mode, "area": done.area.to_dict(), **files,
             "seconds": round(res.seconds, 2), "captures": res.captures,

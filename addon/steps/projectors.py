@@ -630,7 +630,7 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
     if stage.adapters is not None:  # the lens's blur each projector's solve held (its σ, input texels)
         for entry, comp in zip(projectors, stage.compensators):
             entry["input_blur"] = comp.input_blur
-    loop = loop_record(tmp, name, res.report, res.theta)
+    loop = loop_record(tmp, name, res)
     return {"name": name, "status": "done", "warnings": done.warnings, "mode": res.mode,
             "area": done.area.to_dict(), "input": projectors[0]["input"], "frame": projectors[0]["frame"],
             "simulated": files["simulated"], "target": files["target"], "projectors": projectors,

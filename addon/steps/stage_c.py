@@ -269,14 +269,14 @@ class TargetResult:
     warnings: list[str]
 
 
-def loop_record(tmp: Path, name: str, report: dict[str, Any], theta: np.ndarray) -> dict[str, Any] | None:
-    """The measured closed loop's record of target ``name`` (None for other loops), with where it corrected the
-    model written into ``tmp``: |θ| per camera pixel, linear (``layout.correction_file``)."""
-    loop = report.get("loop")
+def loop_record(tmp: Path, name: str, result: Any) -> dict[str, Any] | None:
+    """The measured closed loop's record of target ``name`` from its stage-C ``result`` (None for other loops), with
+    where it corrected the model written into ``tmp``: |θ| per camera pixel, linear (``layout.correction_file``)."""
+    loop = result.report.get("loop")
     if not loop:
         return None
     loop = {**loop, "correction": layout.correction_file(name)}
-    write_image(tmp / loop["correction"], np.abs(np.asarray(theta, np.float32)))
+    write_image(tmp / loop["correction"], np.abs(np.asarray(result.theta, np.float32)))
     return loop
 
 
