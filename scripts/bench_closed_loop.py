@@ -50,10 +50,8 @@ from typing import Any
 
 import numpy as np
 
-from procam.addon.imageio import read_image
-
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_range import full_brightness_targets, step  # noqa: E402
+from bench_range import area_image, full_brightness_targets, step  # noqa: E402
 
 #: Error finer than this (σ, camera pixels) counts as fine.
 FINE_PX = 1.5
@@ -66,13 +64,7 @@ def error_parts(comp: Path, ev: Path, row: dict) -> dict[str, float]:
     import cv2
 
     a, name = row["area"], row["name"]
-    inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
-
-    def area_of(path: Path) -> np.ndarray:
-        image = np.asarray(read_image(path), np.float32)
-        return image if image.shape[:2] == (a["height"], a["width"]) else image[inside]
-
-    capture, target = area_of(ev / f"{name}_capture.png"), area_of(comp / f"{name}_target.png")
+    capture, target = area_image(ev / f"{name}_capture.png", a), area_image(comp / f"{name}_target.png", a)
     err = (capture - target) ** 2
     noise = row.get("capture_noise_rmse", 0.0) ** 2
     beyond = max(float(err.mean()) - noise, 1e-12)
@@ -215,8 +207,7 @@ def main() -> None:
         for t in rows[rules[0]]["targets"]:
             a = t["area"]
             inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
-            target = np.asarray(read_image(work / f"comp-{rules[0]}{fx}" / f"{t['name']}_target.png"), np.float32)
-            target = target if target.shape[:2] == (a["height"], a["width"]) else target[inside]
+            target = area_image(work / f"comp-{rules[0]}{fx}" / f"{t['name']}_target.png", a)
             gamut[t["name"]] = gamut_ceiling(target, black[inside], prims[:, inside[0], inside[1]],
                                              t.get("capture_noise_rmse", 0.0) ** 2)
         print(f"\n{args.surface}, lab --effects {args.lab_effects} --other-forms {args.other_forms}, "

@@ -173,22 +173,25 @@ def scaled_rig_file(src: Path, camera: dict, dst: Path) -> Path:
 FINE_PX = 1.5
 
 
+def area_image(path: Path, area: dict) -> np.ndarray:
+    """The image at ``path`` inside the display ``area`` (a record's ``area``): as it is when it has the area's size
+    (a target), else cropped to it (a camera image)."""
+    from procam.addon.imageio import read_image
+
+    image = np.asarray(read_image(path), np.float32)
+    if image.shape[:2] == (area["height"], area["width"]):
+        return image
+    return image[area["y"]:area["y"] + area["height"], area["x"]:area["x"] + area["width"]]
+
+
 def error_scales(comp: Path, ev: Path, row: dict) -> list[tuple[float, float]]:
     """Mean squared error inside the display area, and its part finer than :data:`FINE_PX`, of the capture
     against the target, of stage C's prediction against the target, and of the capture against the prediction."""
     import cv2
 
-    from procam.addon.imageio import read_image
-
     a, name = row["area"], row["name"]
-    inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
-
-    def area_of(path: Path) -> np.ndarray:
-        image = np.asarray(read_image(path), np.float32)
-        return image if image.shape[:2] == (a["height"], a["width"]) else image[inside]
-
-    capture, target = area_of(ev / f"{name}_capture.png"), area_of(comp / f"{name}_target.png")
-    simulated = area_of(comp / f"{name}_simulated.png")
+    capture, target = area_image(ev / f"{name}_capture.png", a), area_image(comp / f"{name}_target.png", a)
+    simulated = area_image(comp / f"{name}_simulated.png", a)
     out = []
     for e in (capture - target, simulated - target, capture - simulated):
         fine = e - cv2.GaussianBlur(e, (0, 0), FINE_PX)
