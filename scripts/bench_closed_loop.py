@@ -143,6 +143,17 @@ def slope_fixed() -> Iterator[None]:
         closed_loop.PRIOR_WEIGHT = before
 
 
+def lab_and_calibration(work: Path, surface: str, effects: str, other_forms: float, scale: float,
+                        projectors: int = 1) -> Path:
+    """The lab of other forms in ``work`` (``lab``, its truth, ``cal``), rendered and calibrated unless there
+    already; the truth file's path."""
+    lab, truth = work / "lab", work / "lab.truth.json"
+    step(["lab", "--surface", surface, "--effects", effects, "--other-forms", str(other_forms), "--scale", str(scale),
+          "--projectors", str(projectors), "--out", str(lab), "--truth", str(truth)], lab)
+    step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
+    return truth
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--surface", default="curve")
@@ -154,20 +165,17 @@ def main() -> None:
                     help="auto: run procam diagnose and compensate with the effects it selected")
     ap.add_argument("--projectors", type=int, default=1, help="procam lab --projectors (side by side, 20 %% overlap)")
     ap.add_argument("--attribute", action="store_true",
-                    help="also run the last rule with twice the captures, with its slope held at 1, and through a "
-                         "copy of the lab without sensor noise (evaluated through the lab with it): what more "
-                         "captures, the measured slope and the noise carried into the answer are each worth")
+                    help="also run the last rule with twice the captures, with its slope held at 1, through a copy "
+                         "of the lab without sensor noise (evaluated through the lab with it) and, on a lab of other "
+                         "forms, without its blur, colour mixing or response in turn: what each is worth")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
     rules = args.rules.split(",")
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        lab, truth = work / "lab", work / "lab.truth.json"
-        step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--other-forms", str(args.other_forms),
-              "--scale", str(args.scale), "--projectors", str(args.projectors), "--out", str(lab), "--truth",
-              str(truth)], lab)
-        step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
+        truth = lab_and_calibration(work, args.surface, args.lab_effects, args.other_forms, args.scale,
+                                    args.projectors)
         targets = full_brightness_targets(work / "targets")
         effects, fx = [], ""
         if args.effects == "auto":

@@ -33,8 +33,8 @@ import numpy as np
 from procam.addon.capture.targets import natural_target
 
 sys.path.insert(0, str(Path(__file__).parent))
+from bench_closed_loop import lab_and_calibration  # noqa: E402
 from bench_live_show import panning  # noqa: E402
-from bench_range import step  # noqa: E402
 
 
 def main() -> None:
@@ -56,10 +56,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        lab, truth = work / "lab", work / "lab.truth.json"
-        step(["lab", "--surface", args.surface, "--effects", args.lab_effects, "--other-forms", str(args.other_forms),
-              "--scale", str(args.scale), "--out", str(lab), "--truth", str(truth)], lab)
-        step(["calibrate", str(lab), "--out", str(work / "cal")], work / "cal")
+        truth = lab_and_calibration(work, args.surface, args.lab_effects, args.other_forms, args.scale)
         cal = calibrate_step.read(work / "cal")
         sha = calibrate_step.identity(work / "cal")["sha256"]
         cw, ch = cal.rig.camera.intrinsics.size

@@ -168,13 +168,10 @@ class MeasuredCorrection:
         self._last: tuple[np.ndarray, np.ndarray] | None = None
         self._updates = 0
 
-    def variance(self, level: np.ndarray) -> np.ndarray:
-        return self.noise(level)
-
     @property
     def floor(self) -> float:
         """The mean noise variance over the target's levels: the residual of a perfect answer's capture."""
-        return float(np.mean(self.variance(self.target)))
+        return float(np.mean(self.noise(self.target)))
 
     def _update_slope(self, q: np.ndarray, y: np.ndarray, weight: float) -> None:
         f = FORGET
@@ -186,7 +183,7 @@ class MeasuredCorrection:
         sw = max(self._sw, 1e-9)
         var_q = np.maximum(self._sqq - self._sq ** 2 / sw, 0.0)
         cov = self._sqy - self._sq * self._sy / sw
-        prior = PRIOR_WEIGHT * self.variance(self.target)
+        prior = PRIOR_WEIGHT * self.noise(self.target)
         self.slope = np.clip((cov + prior) / (var_q + prior), *SLOPE_RANGE).astype(np.float32)
 
     def fine(self, values: np.ndarray) -> np.ndarray:
@@ -234,7 +231,7 @@ class MeasuredCorrection:
     def update(self, y: np.ndarray, q: np.ndarray, *, repeats: int = 1) -> np.ndarray:
         """θ after the capture ``y`` (the mean of ``repeats`` captures) of an input the operator predicts as ``q``."""
         y = y.astype(np.float64)
-        var = self.variance(y) / repeats
+        var = self.noise(y) / repeats
         self._update_fine_slope(q, y)
         self._update_slope(self.grid.blur(q, FINE_SIGMA), self.grid.blur(y, FINE_SIGMA), float(repeats))
         s, sf = self.slope, self.fine_slope

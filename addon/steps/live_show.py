@@ -315,7 +315,8 @@ def run_live_show(options: LiveShowOptions, progress: Progress | None = None, ca
             if options.range == "auto" or str(options.range).strip().lower().startswith("bright"):
                 _fix_range(stage, source, say)
             solver = solver_for(stage, options.refine_steps, noted)
-            sha = calibrate_step.identity(options.calibration)["sha256"]
+            # a learned correction belongs to this calibration: its hash goes with it (hashed only when used)
+            sha = calibrate_step.identity(options.calibration)["sha256"] if options.correction is not None else ""
             if options.correction is not None and spec.camera is None:
                 areas = solver.load_learned(options.correction, sha)
                 say(f"using the correction learned in {options.correction} ({areas} display area(s))", 0.0)
