@@ -48,6 +48,7 @@ class PROCAM_PT_compensate(bpy.types.Panel):
         col = layout.column(align=True)
         col.prop(scene, "procam_area")
         col.prop(scene, "procam_effects")
+        col.prop(scene, "procam_radiometry")
         col.prop(scene, "procam_range")
         row = col.row(align=True)
         row.prop(scene, "procam_use_bias")

@@ -53,7 +53,7 @@ def test_the_same_checks_hold_for_options_made_in_python(given):
 def test_the_sidebar_reads_the_same_declaration():
     scene = {"procam_schedule": "paper", "procam_iterations": 0, "procam_seed": 3, "procam_area": " ",
              "procam_use_bias": True, "procam_device": "", "procam_effects": "", "procam_range": "0.8,0.02",
-             "procam_loop": "measured"}
+             "procam_loop": "measured", "procam_radiometry": "auto"}
     options = from_values(StageCOptions, scene.__getitem__, device=None)
     assert options == StageCOptions(schedule="paper", iterations=None, seed=3, range="0.8,0.02")
     scene.update(procam_iterations=12, procam_area="0,0,64,48")
@@ -184,8 +184,8 @@ FLAGS = {
     "precompute": "--bounces --force --live --seed",
     "report": "--force --out --thumbnails --title",
     "show": "--area --bounces --capture-every --chunk --cluster --cold-start --connect-timeout --device --diagnosis "
-            "--effects --fail-fast --force --iterations --loop --lr --no-bias --out --range --schedule --seed --spp "
-            "--target-encoding --threads --workers",
+            "--effects --fail-fast --force --iterations --loop --lr --no-bias --out --radiometry --range --schedule "
+            "--seed --spp --target-encoding --threads --workers",
     "undistort-captures": "--force --out --rig",
 }
 

@@ -500,6 +500,8 @@ class SharedCamera:
 
 #: What one projector of several inverts from its own diagnosis: the effects of its lamp, lens and electronics
 #: (``steps/diagnose.py`` PROJECTOR_EFFECTS), each on its own frame; its blur held in the joint solve.
+#: What a per-pixel radiometric model holds (``stages/radiometry.py``): the effects it replaces when stage C uses it.
+RADIOMETRIC = ("response", "crosstalk", "black_level", "vignetting", "camera_response", "glossy")
 PROJECTOR_SIDE = ("response", "crosstalk", "black_level", "vignetting", "defocus")
 #: Why the camera's and the surface's effects are not inverted from one projector's diagnosis of several.
 SHARED_EFFECT = ("the camera's and the surface's effects are every projector's: fitted once on every projector's "

@@ -67,12 +67,12 @@ def estimate_bias(comp: Any, captures: Any = None, *, ridge: float = 0.05) -> Bi
     if len(entries) < 3:
         raise CalibrationError(f"the capture set {captures.path} has {len(entries)} captures of known patterns "
                                "(white, black, validation); open-loop θ needs at least 3")
-    sims, caps = _simulate_patterns(comp, captures, entries)
+    sims, caps = simulate_patterns(comp, captures, entries)
     lit = comp.white().mean(axis=2) > 1e-3
     return fit_bias(sims, caps, lit, [e.name for e in entries], ridge=ridge)
 
 
-def _simulate_patterns(comp: Any, captures: Any, entries: list[Any]) -> tuple[np.ndarray, np.ndarray]:
+def simulate_patterns(comp: Any, captures: Any, entries: list[Any]) -> tuple[np.ndarray, np.ndarray]:
     """The simulations ``f̂(M(x))`` of the patterns ``entries`` name and their captures (float64 stacks)."""
     proj = comp.rig.projector
     x0, y0 = proj.input_offset

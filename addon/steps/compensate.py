@@ -106,6 +106,9 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         failure: ProCamError | None = None
         stopped: BaseException | None = None  # Ctrl-C or Cancel: the targets finished so far are kept
         try:
+            if isinstance(stage, StageC) and stage.options.radiometry != "global":
+                say("measuring each camera pixel's response and colour mixing, judged on held-out captures", 0.02)
+                stage.choose_radiometry()
             if stage.options.mode == "open-loop":
                 say("estimating θ from the validation captures (open loop)", 0.02)
                 stage.estimate_bias()
@@ -269,6 +272,21 @@ def read(folder: str | Path) -> CompensationView:
     return CompensationView(folder, doc, out)
 
 
+def _radiometry_line(record: Any) -> list[str]:
+    """The summary's line on the radiometric model stage C worked through (none for a folder without the record)."""
+    if not isinstance(record, dict) or "used" not in record:
+        return []
+    rmse = record.get("held_out_rmse") or {}
+    judged = (f" (held-out RMS {fmt(rmse.get('pixel'), '.4f')} per pixel, {fmt(rmse.get('global'), '.4f')} global)"
+              if rmse else "")
+    if record["used"] == "pixel":
+        replaced = record.get("replaces_effects") or []
+        return [f"radiometry: each camera pixel's own response and colour mixing{judged}"
+                + (f"; it replaces the effect models {', '.join(replaced)}" if replaced else "")]
+    why = record.get("reason")
+    return [f"radiometry: global{judged if rmse else ''}" + (f" — {why}" if why and not rmse else "")]
+
+
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     targets = [t for t in doc.get("targets", []) if isinstance(t, dict)]
     done = [t for t in targets if t.get("status") == "done"]
@@ -277,6 +295,7 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     if isinstance(effects, dict):
         lines.append(f"effect models: {', '.join(effects.get('used') or []) or 'none'}"
                      + (f"; not inverted: {', '.join(effects['not_inverted'])}" if effects.get("not_inverted") else ""))
+    lines += _radiometry_line(doc.get("radiometry"))
     several = doc.get("projectors") if isinstance(doc.get("projectors"), list) else []
     count = len(several) or 1
     for t in targets:

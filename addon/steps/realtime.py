@@ -36,6 +36,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..errors import ProCamError
 from ..imageio import read_arrays, write_atomic_bytes
 from ..progress import Progress, quiet
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target
@@ -137,6 +138,11 @@ class RealtimeSolver:
         """The solver for ``stage`` (open loop, ``transport`` operators loaded): every projector's stored inverse,
         or one built now (saying so; ``procam precompute --live`` stores it)."""
         say = progress or quiet
+        if isinstance(stage, StageC):
+            stage.keep_global_radiometry("the real-time solver works through the global models")
+            if stage.pixel is not None:
+                raise ProCamError("the real-time solver cannot work through the per-pixel radiometric model this "
+                                  "stage already chose: run it with --radiometry global")
         comps, adapters = cls._compensators(stage), cls._adapters(stage)
         opts = stage.options
         inverses: list[ApproximateInverse | None] = []

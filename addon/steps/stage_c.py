@@ -22,9 +22,10 @@ import numpy as np
 from ..capture.devices import Device, FolderDevice, LensRemovedDevice
 from ..rig.lens import RigLens
 from ..capture.photos import removed_lens
-from ..errors import CaptureError, ProCamError
+from ..errors import CalibrationError, CaptureError, ProCamError
 from ..imageio import write_image
-from ..gap.compensation import AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options, effects_wanted
+from ..gap.compensation import (RADIOMETRIC, AdaptedCaptures, AdaptedDevice, EffectAdapter, adapter_from_options,
+                                effects_wanted)
 from ..lab.truth import LabTruth
 from ..live.shoot import open_camera_device, parse_camera_device
 from ..options import Choice, option, validate
@@ -35,6 +36,7 @@ from ..stages.compensate import (DEFAULT_SCHEDULE, ITERATIONS_JOINT, ITERATIONS_
                                  CompensationResult, Compensator, Schedule, get_schedule, split_iterations)
 from ..stages.display_area import (TARGET_ENCODINGS, DisplayArea, TargetAspectWarning, choose_area, fit_target,
                                    load_target, parse_area)
+from ..stages.radiometry import PixelRadiometry, choose_radiometry
 from ..stages.range import RangeError, RangeMap, fit_rule, parse_range
 from ..stages.transport import TransportMemoryError, check_memory
 from . import calibrate as calibrate_step
@@ -58,6 +60,13 @@ SCHEDULE_CHOICES = (
     Choice("fast", "Fast", "Fixed-point start, 150 joint iterations, 15 captures: renders every step; no operator "
                            "needed"),
     Choice("paper", "Paper", "The paper's 200 iterations on z, then 300 on z and θ"))
+
+RADIOMETRY_CHOICES = (
+    Choice("auto", "Auto", "Each camera pixel's own response and colour mixing where it predicts held-out captures "
+                           "better than the global models"),
+    Choice("pixel", "Per Pixel", "Each camera pixel's own response and colour mixing, measured from the calibration's "
+                                 "flat and ramp captures"),
+    Choice("global", "Global", "The global effect models and θ only"))
 
 LOOP_CHOICES = (
     Choice("measured", "Measured", "Learn each pixel's slope from the captures, average against the camera's noise, "
@@ -120,6 +129,14 @@ class StageCOptions:
         help="effect models around stage C, fitted by procam diagnose: 'auto' (the ones it selected), NAME,... or "
              "'none' (default); needs --diagnosis")
     diagnosis: Path | None = option(None, subtype="DIR_PATH", help="the procam diagnose folder for --effects")
+    radiometry: str = option(
+        "auto", label="Radiometry", choices=RADIOMETRY_CHOICES,
+        help="how a camera pixel's colour follows the simulated light: 'pixel' measures each camera pixel's own "
+             "response and colour mixing from the calibration's black, white, grey and ramp captures and stage C "
+             "works through it (the global response, colour mixing, vignetting, black level and camera curve of "
+             "--effects are then left out; a closed loop starts from its answer and corrects it in the camera's "
+             "units); 'global' keeps the global models and θ; 'auto' (default) uses the per-pixel model where it "
+             "predicts the held-out random-texture captures better, and says which it used")
     range: str = option(
         "none", label="Range", check=parse_range, blank="",
         help="what the targets become before compensation: 'auto' fits one gain and offset to all the targets so "
@@ -307,10 +324,16 @@ class StageC:
                 (options.bounces, options.spp, options.seed):
             raise ProCamError("the compensator given was made with other bounces/spp/seed than the options'")
         self._owned = device is None
-        #: the device stage C projects through (:func:`device_pipeline`: lens, then effect models); None: open loop
-        self.device = device_pipeline(options.device, calibration, device=device, adapter=self.adapter,
-                                      progress=part(say, 0.0, 0.0, "device: ")) \
+        #: the per-pixel radiometric model when :meth:`choose_radiometry` chose it, and the record of that choice
+        self.pixel: PixelRadiometry | None = None
+        self.radiometry: dict[str, Any] | None = None
+        #: the device as it is, with the calibration's lens (:func:`device_pipeline`); None: open loop
+        self._lensed = device_pipeline(options.device, calibration, device=device,
+                                       progress=part(say, 0.0, 0.0, "device: ")) \
             if options.mode == "closed-loop" else None
+        #: the device stage C projects through: that, then the effect models
+        self.device: Device | AdaptedDevice | None = \
+            self._lensed if self._lensed is None or self.adapter is None else AdaptedDevice(self._lensed, self.adapter)
         try:
             say("loading the calibrated scene", 0.0)
             if compensator is not None:
@@ -347,8 +370,63 @@ class StageC:
     def bounces(self) -> int:
         return self.compensator.bounces
 
+    def choose_radiometry(self) -> dict[str, Any]:
+        """Whether stage C works through each camera pixel's own radiometric model (``--radiometry``,
+        stages/radiometry.py), decided once for the run by held-out captures; returns the record of the choice.
+        Chosen, it replaces the effect models' radiometric part (their lens's blur and scene stay) and the
+        open-loop θ (zero: the model predicts the patterns it was measured from)."""
+        if self.radiometry is not None:
+            return self.radiometry
+        rule = self.options.radiometry
+        if rule == "global":
+            self.radiometry = {"used": "global", "rule": rule}
+            return self.radiometry
+        if self.captures is None:
+            if rule == "pixel":
+                raise CalibrationError(f"--radiometry pixel needs the calibration's capture set, which cannot be "
+                                       f"read at {self.calibration.capture_dir!r}: put it back, or use --radiometry "
+                                       "global")
+            self.radiometry = {"used": "global", "rule": rule, "reason": "the calibration's capture set cannot be read"}
+            return self.radiometry
+        adapter = self.adapter
+        view = None if adapter is None else AdaptedCaptures(self.captures, adapter)
+        space = None if adapter is None or not adapter.camera_side else adapter.camera_to_light
+        pixel, record = choose_radiometry(self.compensator, self.captures, rule, global_view=view, to_space=space)
+        self.radiometry = record
+        if pixel is None:
+            return record
+        self.pixel = pixel
+        if adapter is not None:
+            kept = {n: p for n, p in adapter.params.items() if n not in RADIOMETRIC}
+            record["replaces_effects"] = [n for n in adapter.used if n in RADIOMETRIC]
+            self.adapter = replace(adapter, params=kept) if kept else None
+        if self._lensed is not None:
+            # the closed loop measures each pixel's slope in the camera's own units (stages/closed_loop.py): it
+            # starts from the per-pixel model's answer and corrects it there (:meth:`compensate`)
+            self.device = self._lensed if self.adapter is None else AdaptedDevice(self._lensed, self.adapter)
+            record["closed_loop"] = "starts from the per-pixel model's answer, corrects in the camera's units"
+        cw, ch = self.compensator.camera_size
+        self.bias = BiasModel(np.zeros((ch, cw, 3), np.float32), None, "pixel",
+                              {"radiometry": "each camera pixel's own model; θ = 0"})
+        return record
+
+    def keep_global_radiometry(self, why: str) -> None:
+        """Use the global models whatever ``--radiometry`` says (a path that cannot take the per-pixel model)."""
+        if self.radiometry is None:
+            self.radiometry = {"used": "global", "rule": self.options.radiometry, "reason": why}
+
+    def model_target(self, fitted: np.ndarray, area: DisplayArea) -> np.ndarray:
+        """A target fitted to the display area, in the units stage C compares with f̂ (through the per-pixel model
+        or the effect models' camera side)."""
+        if self.pixel is not None:
+            return self.pixel.crop(area).to_light(fitted)
+        return fitted if self.adapter is None else self.adapter.model_target(fitted, area)
+
     def estimate_bias(self) -> BiasModel:
         """θ of the open loop, from the calibration's validation captures (seen through the effect models)."""
+        if self.pixel is not None:  # θ = 0 (choose_radiometry)
+            assert self.bias is not None
+            return self.bias
         captures = self.captures
         if captures is not None and self.adapter is not None:
             captures = AdaptedCaptures(captures, self.adapter)
@@ -399,6 +477,7 @@ class StageC:
         """Stage C for one target image; :class:`ProCamError` when this target cannot be compensated.
         ``start``: the virtual input z to start from (a warm start, :meth:`start_from_frame`). ``verify``: render
         the answer with Mitsuba after a solve on the transport operator (None: the schedule's choice)."""
+        self.choose_radiometry()
         if self.options.mode == "open-loop" and self.bias is None:
             self.estimate_bias()
         area = self.area_for(image)
@@ -407,9 +486,20 @@ class StageC:
             fitted = fit_target(image, area, what=what)
             if self.range_map is not None:
                 fitted = self.range_map.apply(fitted, area)
-            model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
-            res = self.compensator.run(model_target, area, device=self.device, **self.options.run_arguments(),
-                                       progress=progress, cancel=cancel, open_loop_theta=self.bias,
+            model_target = self.model_target(fitted, area)
+            arguments = self.options.run_arguments()
+            if self.pixel is not None and self.device is not None:
+                # the closed loop starts from the per-pixel model's open-loop answer, then corrects it in the
+                # camera's units (without the effect models' radiometric part, which the per-pixel model replaced)
+                first = self.compensator.run(
+                    model_target, area, **{**arguments, "iterations_z": self.schedule.iterations_z,
+                                           "iterations_joint": 0},
+                    cancel=cancel, open_loop_theta=self.bias, name=name, start=start, verify=False)
+                start, arguments["iterations_z"] = first.z, 0
+                model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
+            res = self.compensator.run(model_target, area, device=self.device, **arguments,
+                                       progress=progress, cancel=cancel,
+                                       open_loop_theta=self.bias if self.device is None else None,
                                        use_bias=self.options.use_bias, name=name, start=start, verify=verify)
         if self.adapter is None:
             x_input, frame = res.x_input, res.x_frame
@@ -420,6 +510,7 @@ class StageC:
     def initial_input(self, image: np.ndarray) -> np.ndarray:
         """The z stage C starts a target from on its own (its ``inverse`` init, as :meth:`compensate` places the
         target): with :meth:`start_from_frame`, a warm start carries the previous frame's correction over."""
+        self.choose_radiometry()
         if self.options.mode == "open-loop" and self.bias is None:
             self.estimate_bias()
         area = self.area_for(image)
@@ -428,7 +519,7 @@ class StageC:
             fitted = fit_target(image, area)
             if self.range_map is not None:
                 fitted = self.range_map.apply(fitted, area)
-            model_target = fitted if self.adapter is None else self.adapter.model_target(fitted, area)
+            model_target = self.model_target(fitted, area)
             placed = area.place(fit_target(model_target, area), self.compensator.camera_size)
         bias = self.bias if self.options.mode == "open-loop" else None
         return self.compensator.initial_input(placed, bias)
@@ -453,7 +544,9 @@ class StageC:
 
     def bias_record(self) -> dict[str, Any] | None:
         """The open-loop θ model as the manifest records it (None in the closed loop)."""
-        return None if self.bias is None else {"kind": self.bias.kind, **self.bias.report}
+        if self.bias is None or self.options.mode != "open-loop":
+            return None
+        return {"kind": self.bias.kind, **self.bias.report}
 
     def settings(self) -> dict[str, Any]:
         """What decides the pixels of every target: the manifest's record of how stage C ran."""
@@ -466,6 +559,7 @@ class StageC:
                 "bounces": self.bounces, "spp": o.spp, "seed": o.seed, "warp": self.calibration.warp is not None,
                 "area_given": list(o.area) if o.area else None, "target_encoding": o.target_encoding,
                 "range": None if self.range_map is None else self.range_map.to_dict(),
+                "radiometry": self.radiometry,
                 "effects": None if self.adapter is None else {
                     "diagnosis": str(Path(o.diagnosis).absolute()), "used": self.adapter.used,
                     "not_inverted": self.adapter.not_used, "params": self.adapter.params}}
