@@ -19,7 +19,7 @@ from .operators.compensate import (PROCAM_OT_add_targets, PROCAM_OT_compensate, 
                                    PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated, PROCAM_OT_remove_target)
 from .operators.create_rig import PROCAM_OT_create_rig
 from .operators.diagnose import PROCAM_OT_diagnose
-from .operators.export import PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames
+from .operators.export import PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_export_mpcdi
 from .operators.live import PROCAM_OT_live_capture, PROCAM_OT_live_check, PROCAM_OT_live_preview
 from .operators.live_show import PROCAM_OT_live_show_start, PROCAM_OT_live_show_stop
 from .operators.open_report import PROCAM_OT_open_report
@@ -44,7 +44,8 @@ OPERATORS = (PROCAM_OT_create_rig, PROCAM_OT_add_projector, PROCAM_OT_set_surfac
              PROCAM_OT_add_targets, PROCAM_OT_remove_target,
              PROCAM_OT_compensate, PROCAM_OT_evaluate, PROCAM_OT_prepare_show, PROCAM_OT_preview_compensated,
              PROCAM_OT_diagnose, PROCAM_OT_show_image, PROCAM_OT_show_text, PROCAM_OT_open_report,
-             PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_cancel_job,
+             PROCAM_OT_export_calibration_blend, PROCAM_OT_export_frames, PROCAM_OT_export_mpcdi,
+             PROCAM_OT_cancel_job,
              PROCAM_OT_live_check, PROCAM_OT_live_preview, PROCAM_OT_live_capture, PROCAM_OT_live_show_start,
              PROCAM_OT_live_show_stop)
 #: Sidebar panels in workflow order (a sub-panel right after its parent, which must be registered first).

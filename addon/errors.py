@@ -68,3 +68,7 @@ class Cancelled(Exception):
 #: key or item, a value of another type (a list where an object was, ``int(None)``), a bad or infinite number.
 #: A manifest reader catches these around its parsing and raises its own error, which says what to do.
 MALFORMED = (LookupError, TypeError, ValueError, AttributeError, OverflowError)
+
+
+class MpcdiError(ProCamError):
+    """A VESA MPCDI file that cannot be written from a calibration, or read back: its structure, its files."""

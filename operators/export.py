@@ -1,11 +1,15 @@
-"""ProCam ▸ Export: save the calibration as a .blend, or the compensated frames as a numbered 16-bit PNG sequence."""
+"""ProCam ▸ Export: save the calibration as a .blend or as a VESA MPCDI file for media servers, or the compensated
+frames as a numbered 16-bit PNG sequence."""
 
 import bpy
-from bpy.props import BoolProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..addon.blender.blend_file import save_calibration_blend_atomic
 from ..addon.errors import ProCamError
+from ..addon.options import spec_of
 from ..addon.steps import export as export_step
+from ..addon.steps import mpcdi as mpcdi_step
+from ..addon.steps.mpcdi import ExportMpcdiOptions
 from ..addon.steps.layout import CALIBRATION, COMPENSATION
 from . import paths
 from .messages import REPLACE_BOX, sidebar_text
@@ -80,4 +84,49 @@ class PROCAM_OT_export_frames(bpy.types.Operator):
             self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘Folder’"}))
             return {"CANCELLED"}
         self.report({"INFO"}, f"Projector frames written to {out}")
+        return {"FINISHED"}
+
+
+def _profile_items() -> list[tuple[str, str, str]]:
+    return [(c.value, c.label, c.description) for c in spec_of(ExportMpcdiOptions, "profile").offered]
+
+
+class PROCAM_OT_export_mpcdi(bpy.types.Operator):
+    """Write the calibration as a VESA MPCDI file (warp, blend and black level per projector) for media servers"""
+
+    bl_idname = "procam.export_mpcdi"
+    bl_label = "Export MPCDI"
+    bl_options = {"REGISTER"}  # writes a file, changes no data
+
+    filepath: StringProperty(name="File", subtype="FILE_PATH")
+    filter_glob: StringProperty(default="*.mpcdi", options={"HIDDEN", "SKIP_SAVE"})
+    profile: EnumProperty(name="Profile", items=_profile_items())
+    force: BoolProperty(name="Replace", description="Replace an existing MPCDI file")
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest) is None:
+            cls.poll_message_set("no calibration folder: run Calibrate or choose one")
+            return False
+        return True
+
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
+        if not self.filepath:
+            folder = paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest)
+            self.filepath = str(folder.parent / f"{folder.name}.mpcdi")
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        try:
+            done = mpcdi_step.run_export(mpcdi_step.ExportMpcdiOptions(
+                paths.resolve(context.scene.procam_calibration_dir, "calibration folder"),
+                paths.resolve(self.filepath, ".mpcdi file"), profile=self.profile, force=self.force))
+        except ProCamError as exc:
+            self.report({"ERROR"}, sidebar_text(str(exc), REPLACE_BOX | {"--out": "‘File’"}))
+            return {"CANCELLED"}
+        for line in done.warnings:
+            self.report({"WARNING"}, line)
+        self.report({"INFO"}, f"Wrote the MPCDI file {done.path} ({len(done.report['projectors'])} projector(s), "
+                              f"{done.bytes // 1024} KiB)")
         return {"FINISHED"}

@@ -1,5 +1,5 @@
-"""View3D ▸ Sidebar ▸ ProCam ▸ Export: save the calibration .blend, export the projector frame sequence, prepare
-a show from the image sequence folder."""
+"""View3D ▸ Sidebar ▸ ProCam ▸ Export: save the calibration .blend or MPCDI file, export the projector frame
+sequence, prepare a show from the image sequence folder."""
 
 import bpy
 
@@ -19,6 +19,7 @@ class PROCAM_PT_export(bpy.types.Panel):
         col = self.layout.column(align=True)
         col.operator("procam.export_calibration_blend", icon="FILE_BLEND")
         col.operator("procam.export_frames", icon="SEQUENCE")
+        col.operator("procam.export_mpcdi", icon="EXPORT")
         layout = self.layout
         scene = context.scene
         layout.prop(scene, "procam_show_dir")

@@ -91,6 +91,7 @@ def _options_classes():
     from procam.addon.steps.export import ExportFramesOptions
     from procam.addon.steps.live import LiveCaptureOptions, LiveCheckOptions, LiveRigSheet
     from procam.addon.steps.live_show import LiveShowOptions
+    from procam.addon.steps.mpcdi import ApplyMpcdiOptions, ExportMpcdiOptions
     from procam.addon.steps.report import ReportOptions
     from procam.addon.steps.rig import RigOptions
     from procam.addon.steps.show import ShowOptions
@@ -107,6 +108,7 @@ def _options_classes():
             (DepthSensorSize, [capture, live]), (CameraSize, [capture]), (ImportOptions, [capture]),
             (UndistortOptions, [capture]), (LiveCaptureOptions, [live]), (LiveCheckOptions, [live]),
             (LiveRigSheet, [live]), (LiveShowOptions, [live]), (RigOptions, [cli / "rig.py"]),
+            (ExportMpcdiOptions, [cli / "mpcdi.py"]), (ApplyMpcdiOptions, [cli / "mpcdi.py"]),
             (ReportOptions, [cli / "report.py"])]
 
 
@@ -115,7 +117,7 @@ SIDEBAR_TABLES = ("panels/properties.py", "panels/board.py", "operators/messages
                   "operators/capture_io.py", "operators/live.py", "operators/calibrate_rig.py")
 
 
-@pytest.mark.parametrize("index", range(22))
+@pytest.mark.parametrize("index", range(24))
 def test_no_declared_option_is_declared_a_second_time(index):
     """A declared option's flag is added to no parser by hand, its scene property made by no hand, and its name in
     messages written in no table: the declaration on the Options class is the only one. (``--diagnosis`` is named
@@ -161,6 +163,7 @@ def test_every_options_class_is_covered():
 
 #: every command's flags as users know them (before the options were declared on the steps)
 FLAGS = {
+    "apply-mpcdi": "--first --force --out",
     "calibrate-rig": "--board --camera-distortion --force --out --projector --projector-distortion --square --window",
     "capture": "--area --camera-fov --checker --depth --depth-native-height --depth-native-width --depth-units "
                "--device --force --input-height --input-width --layout --no-exposure-check --no-graycode "
@@ -170,6 +173,7 @@ FLAGS = {
             "--targets",
     "evaluate": "--classical --device --force --inputs --no-repeat --out --target-encoding --targets",
     "export-frames": "--first --force --out",
+    "export-mpcdi": "--area --content-size --force --out --profile --warp-step",
     "import-captures": "--add-to --camera-fov --camera-height --camera-width --depth --depth-native-height "
                        "--depth-native-width --depth-units --encoding --force --no-exposure-check --out --rig",
     "lab-board": "--board --effects --force --out --poses --samples --scale --seed --square --supersample --truth",
@@ -209,6 +213,10 @@ def test_each_command_keeps_its_flags(command):
     ["show", "c", "t", "--out", "o", "--connect-timeout", "nan"], ["show", "c", "t", "--out", "o", "--threads", "-2"],
     ["evaluate", "c", "--inputs", "i", "--targets", "t", "--out", "o", "--device", "camera:0"],
     ["export-frames", "c", "--out", "o", "--first", "-1"], ["precompute", "c", "--bounces", "-1"],
+    ["export-mpcdi", "c", "--out", "o.mpcdi", "--profile", "3d"], ["export-mpcdi", "c", "--out", "o.mpcdi",
+                                                                     "--content-size", "1920"],
+    ["export-mpcdi", "c", "--out", "o.mpcdi", "--warp-step", "0"], ["apply-mpcdi", "f", "c", "--out", "o", "--first",
+                                                                      "-1"],
     ["precompute", "c", "--seed", "-1"], ["demo", "--samples", "0"], ["demo", "--scale", "nan"],
     ["demo", "--iterations", "2.5"], ["demo", "--schedule", "slow"], ["lab", "--out", "o", "--seed", "-1"],
     ["lab", "--out", "o", "--supersample", "9"], ["lab-board", "--out", "o", "--poses", "2"],

@@ -73,7 +73,7 @@ def _fill_missing_help(parser: argparse.ArgumentParser) -> None:
 #: The modules of this package that define subcommands, in the order ``procam --help`` lists them: the workflow's
 #: steps first. Imported when the parser is built, because each registers itself with :func:`command`.
 COMMAND_MODULES = ("lab", "capture", "live", "calibrate", "precompute", "rig", "compensate", "show", "evaluate",
-                   "diagnose", "export", "report", "demo", "build")
+                   "diagnose", "export", "mpcdi", "report", "demo", "build")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -224,7 +224,13 @@ def calibration_certainty(calibration: Any) -> float:
 def blend_shares(operators: Sequence[TransportOperator], certainties: Sequence[float] | None = None) -> np.ndarray:
     """(K, H, W) the derived blend (module doc): each projector's share ``β_k`` of the light at each camera pixel,
     ``c_k d_k / Σ_l c_l d_l`` with ``d_k`` the distance to the edge of its footprint; 0 where no projector lights."""
-    masks = footprints(operators)
+    return distance_shares(footprints(operators), certainties)
+
+
+def distance_shares(masks: np.ndarray, certainties: Sequence[float] | None = None) -> np.ndarray:
+    """:func:`blend_shares` of footprints given as (K, H, W) masks (from the operators there; from the model's
+    coverage and the captures where a calibration has no operator: the classic geometric ramps)."""
+    masks = np.asarray(masks, bool)
     c = [1.0] * len(masks) if certainties is None else [float(v) for v in certainties]
     if len(c) != len(masks) or not all(math.isfinite(v) and v > 0 for v in c):
         raise CompensationError(f"certainties must be {len(masks)} positive numbers, got {certainties!r}")
@@ -663,5 +669,5 @@ def ramp_baseline(joint: JointCompensator, target: np.ndarray, area: DisplayArea
 
 
 __all__ = ["BLENDS", "BLEND_WEIGHT", "JointCompensator", "JointResult", "JointRows", "JointSolve",
-           "blend_reach", "blend_shares", "calibration_certainty", "combined_reach", "footprints", "masked_psnr",
-           "overlap_mask", "ramp_baseline", "white_of"]
+           "blend_reach", "blend_shares", "calibration_certainty", "combined_reach", "distance_shares", "footprints",
+           "masked_psnr", "overlap_mask", "ramp_baseline", "white_of"]
