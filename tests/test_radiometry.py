@@ -186,3 +186,14 @@ def test_pixel_radiometry_is_refused_clearly_where_the_captures_cannot_give_it(o
         choose_radiometry(Compensator(cal, spp=2), stripped, "pixel")
     model, record = choose_radiometry(Compensator(cal, spp=2), stripped, "auto")
     assert model is None and record["used"] == "global" and "ramp" in record["reason"]
+
+
+def test_several_projectors_refuse_the_per_pixel_model_before_any_work():
+    from types import SimpleNamespace
+
+    from procam.addon.stages.compensate import CompensationError
+    from procam.addon.steps.projectors import JointStage
+    from procam.addon.steps.stage_c import StageCOptions
+
+    with pytest.raises(CompensationError, match="--radiometry auto or global"):
+        JointStage(SimpleNamespace(projector_count=2), StageCOptions(radiometry="pixel"))

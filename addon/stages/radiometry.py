@@ -28,10 +28,11 @@ black and the white, the flat greys (0.25, 0.5, 0.75), and the per-channel
 ramps, which say each primary's colour direction in the camera. A ramp
 covers one level per pixel, dark on one side, so the directions are pooled
 over a few pixels, weighted by the ramp's level; each column's length comes
-from the white (``W − b = M · 1``), each curve from the greys
-(``r(L) = M⁻¹(G_L − b)``), smoothed over 1.5 px against the camera's noise.
-Whether it is used is decided by held-out captures (the random textures,
-which none of this reads): :func:`held_out_error` against the global model's.
+from the white (averaged with the session's closing white: ``W − b = M · 1``),
+each curve from the greys (``r(L) = M⁻¹(G_L − b)``), smoothed over 1.5 px
+against the camera's noise. Whether it is used is decided by held-out captures
+(the random textures, which none of this reads) against the global models'
+prediction of them (:func:`choose_radiometry`).
 """
 
 from __future__ import annotations
@@ -176,14 +177,6 @@ def fit_pixel_radiometry(black: np.ndarray, white: np.ndarray, greys: dict[float
                            np.asarray(white_sim, np.float32), report)
 
 
-def held_out_error(model: PixelRadiometry, sims: list[np.ndarray], captures: list[np.ndarray],
-                   lit: np.ndarray) -> float:
-    """RMS of ``f̂ − to_light(c)`` over the lit pixels of held-out patterns (their simulations ``sims``, captures
-    ``captures``): the error of the model in the units stage C solves in."""
-    errs = [(np.asarray(f, np.float32) - model.to_light(c))[lit] for f, c in zip(sims, captures)]
-    return float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))
-
-
 #: The pixels a decision compares: lit at least this share of the model's brightest white, away from the edge.
 DECISION_LIT = 0.2
 #: … and this many camera pixels inside the lit region's edge (where blur and misregistration dominate both models).
@@ -205,14 +198,14 @@ class RadiometryPatterns:
     """Which captures of a set the per-pixel model reads and which it holds out (entries of a capture set)."""
 
     black: Any
-    white: Any
+    whites: list[Any]  # the white, and white shown again (the session's closing white): averaged
     greys: dict[float, Any]
     ramps: dict[int, Any]
     held_out: list[Any]
 
     @property
     def fit(self) -> list[Any]:
-        return [self.black, self.white, *self.greys.values(), *self.ramps.values()]
+        return [self.black, *self.whites, *self.greys.values(), *self.ramps.values()]
 
     @classmethod
     def of(cls, captures: Any) -> "RadiometryPatterns | str":
@@ -228,6 +221,8 @@ class RadiometryPatterns:
                 continue
             if p.get("pattern") == "grey" and 0.0 < float(p.get("level", 0.0)) < 1.0:
                 greys.setdefault(float(p["level"]), e)
+            elif p.get("pattern") == "grey" and float(p.get("level", 0.0)) == 1.0 and whites:
+                whites.append(e)
             elif p.get("pattern") == "ramp" and p.get("channel") in ("r", "g", "b"):
                 ramps.setdefault("rgb".index(p["channel"]), e)
             elif p.get("pattern") == "random":
@@ -238,7 +233,7 @@ class RadiometryPatterns:
         if missing:
             listed = ", ".join(missing[:-1]) + (" and " if len(missing) > 1 else "") + missing[-1]
             return f"the capture set lacks {listed}"
-        return cls(blacks[0], whites[0], greys, ramps, held)
+        return cls(blacks[0], whites, greys, ramps, held)
 
 
 def choose_radiometry(comp: Any, captures: Any, rule: str, *, global_view: Any = None,
@@ -265,8 +260,10 @@ def choose_radiometry(comp: Any, captures: Any, rule: str, *, global_view: Any =
     n = len(fit)
     ramp_at = {k: n - len(patterns.ramps) + i for i, k in enumerate(patterns.ramps)}
     level = {k: sims[i][..., k] / np.maximum(white_sim[..., k], 1e-6) for k, i in ramp_at.items()}
-    greys = {v: caps[2 + i] for i, v in enumerate(patterns.greys)}
-    model = fit_pixel_radiometry(caps[0], caps[1], greys, {k: (caps[i], level[k]) for k, i in ramp_at.items()},
+    nw = len(patterns.whites)
+    greys = {v: caps[1 + nw + i] for i, v in enumerate(patterns.greys)}
+    model = fit_pixel_radiometry(caps[0], caps[1:1 + nw].mean(axis=0), greys,
+                                 {k: (caps[i], level[k]) for k, i in ramp_at.items()},
                                  white_sim)
     region = decision_region(white_sim)
     space = to_space or (lambda image: image)

@@ -297,6 +297,9 @@ class JointStage:
             raise CompensationError(f"several projectors are solved together on their light-transport operators "
                                     f"only: compensate with --schedule transport (the {schedule.name!r} schedule "
                                     "renders one projector)")
+        if options.radiometry == "pixel":
+            raise CompensationError(f"--radiometry pixel is built for one projector; these {count} projectors are "
+                                    "solved through the global models: use --radiometry auto or global")
         self.calibration, self.options, self.schedule = calibration, options, schedule
         #: each projector's diagnosed effect models (module doc), None without --effects
         self.adapters = effect_adapters(options, calibration)
@@ -547,7 +550,10 @@ class JointStage:
                                "joint": s.iterations_joint},
                 "bounces": o.bounces, "spp": o.spp, "seed": o.seed, "area_given": list(o.area) if o.area else None,
                 "target_encoding": o.target_encoding, "blend": "derived", "projector_count": self.count,
-                "range": None if self.range_map is None else self.range_map.to_dict(), "effects": self.effects()}
+                "range": None if self.range_map is None else self.range_map.to_dict(), "effects": self.effects(),
+                "radiometry": {"used": "global", "rule": o.radiometry,
+                               **({} if o.radiometry == "global" else
+                                  {"reason": "each camera pixel's own model is built for one projector"})}}
 
     def load(self, path: str | Path) -> tuple[np.ndarray, str]:
         """A target image as stage C reads it (linear light; the note says how it was decoded)."""
