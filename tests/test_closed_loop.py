@@ -147,3 +147,17 @@ def test_the_gamut_clip_keeps_what_the_pixel_can_show_and_moves_what_it_cannot()
 
     white_image = np.broadcast_to(white, (1, 3, 3))
     assert gamut_ceiling(target, black, prims, 0.0) < range_ceiling(target, black, white_image) - 10
+
+
+def test_the_mean_of_two_captures_reaches_the_noise_floor_only_at_its_own_noise():
+    """The first input is captured twice and the mean holds half the noise: a residual at one capture's noise is
+    then still a bias of 0.7 σ, which the loop must go on correcting (it stopped there on the realistic lab)."""
+    rows, target, _ = _rig()
+    rng = np.random.default_rng(5)
+    biased = MeasuredCorrection(target, RowGrid(rows, (W, H)), NoiseModel.flat(NOISE ** 2))
+    bias = 0.7 * NOISE * np.sign(rng.normal(size=target.shape))
+    biased.update(target + bias + rng.normal(0, NOISE / np.sqrt(2), target.shape), target, repeats=2)
+    assert biased.stop_reason() is None
+    done = MeasuredCorrection(target, RowGrid(rows, (W, H)), NoiseModel.flat(NOISE ** 2))
+    done.update(target + rng.normal(0, NOISE / np.sqrt(2), target.shape), target, repeats=2)
+    assert done.stop_reason() == "noise floor"

@@ -253,7 +253,7 @@ class MeasuredCorrection:
             self.n_avg = n.astype(np.float32)
         self.theta = theta.astype(np.float32)
         self._last = (y, q)
-        self.history.append({"residual_rms": round(float(np.sqrt(np.mean(resid ** 2))), 5),
+        self.history.append({"residual_rms": round(float(np.sqrt(np.mean(resid ** 2))), 5), "repeats": repeats,
                              "converged_share": round(float(converged.mean()), 3),
                              "slope_median": round(float(np.median(s)), 3),
                              "fine_slope_median": round(float(np.median(sf)), 3)})
@@ -263,7 +263,8 @@ class MeasuredCorrection:
         """'noise floor' when the last residual reached it, 'diverging' when it grew :data:`DIVERGING_CAPTURES`
         captures in a row, else None."""
         rms = [h["residual_rms"] for h in self.history]
-        if rms and rms[-1] ** 2 <= FLOOR_FACTOR * self.floor:
+        # a capture that is the mean of several holds that much less noise: a perfect answer's residual is smaller
+        if rms and rms[-1] ** 2 <= FLOOR_FACTOR * self.floor / self.history[-1].get("repeats", 1):
             return "noise floor"
         if len(rms) > DIVERGING_CAPTURES and all(b > a * 1.02 for a, b in zip(rms[-DIVERGING_CAPTURES - 1:-1],
                                                                               rms[-DIVERGING_CAPTURES:])):

@@ -82,8 +82,7 @@ class PixelRadiometry:
 
     def to_light(self, image: np.ndarray) -> np.ndarray:
         """The light the model must simulate for the camera to see ``image`` (a capture or a target)."""
-        c = np.asarray(image, np.float32)
-        u = np.einsum("...jk,...k->...j", self.inverse, c - self.black)
+        u = np.einsum("...jk,...k->...j", self.inverse, np.asarray(image, np.float32) - self.black)
         v = _inverse_curve(self.levels, self.gamma, self.curves, u)
         return (np.clip(v, 0.0, None) * self.white).astype(np.float32)
 
