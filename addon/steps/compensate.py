@@ -272,19 +272,19 @@ def read(folder: str | Path) -> CompensationView:
     return CompensationView(folder, doc, out)
 
 
-def _radiometry_line(record: Any) -> list[str]:
-    """The summary's line on the radiometric model stage C worked through (none for a folder without the record)."""
+def radiometry_text(record: Any) -> str | None:
+    """What the run's ``radiometry`` record says stage C worked through (None for a folder without the record)."""
     if not isinstance(record, dict) or "used" not in record:
-        return []
+        return None
     rmse = record.get("held_out_rmse") or {}
     judged = (f" (held-out RMS {fmt(rmse.get('pixel'), '.4f')} per pixel, {fmt(rmse.get('global'), '.4f')} global)"
               if rmse else "")
     if record["used"] == "pixel":
         replaced = record.get("replaces_effects") or []
-        return [f"radiometry: each camera pixel's own response and colour mixing{judged}"
-                + (f"; it replaces the effect models {', '.join(replaced)}" if replaced else "")]
+        return (f"each camera pixel's own response and colour mixing{judged}"
+                + (f"; it replaces the effect models {', '.join(replaced)}" if replaced else ""))
     why = record.get("reason")
-    return [f"radiometry: global{judged if rmse else ''}" + (f" — {why}" if why and not rmse else "")]
+    return f"global{judged}" + (f" — {why}" if why and not rmse else "")
 
 
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
@@ -295,7 +295,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     if isinstance(effects, dict):
         lines.append(f"effect models: {', '.join(effects.get('used') or []) or 'none'}"
                      + (f"; not inverted: {', '.join(effects['not_inverted'])}" if effects.get("not_inverted") else ""))
-    lines += _radiometry_line(doc.get("radiometry"))
+    radiometry = radiometry_text(doc.get("radiometry"))
+    lines += [f"radiometry: {radiometry}"] if radiometry else []
     several = doc.get("projectors") if isinstance(doc.get("projectors"), list) else []
     count = len(several) or 1
     for t in targets:

@@ -23,6 +23,7 @@ from ..imageio import read_arrays, read_image
 from ..report import figures
 from ..safepaths import inside
 from ..steps.summary import fmt
+from . import compensate as compensate_step
 from . import layout
 
 Block = dict[str, Any]
@@ -243,7 +244,9 @@ class Reader:
     def compensation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
         blocks: list[Block] = [{"type": "facts", "items": [
             ("mode", str(doc.get("mode"))), ("device", str(doc.get("device") or "none (open loop)")),
-            ("effects inverted", ", ".join((doc.get("effects") or {}).get("used") or []) or "none")]}]
+            ("effects inverted", ", ".join((doc.get("effects") or {}).get("used") or []) or "none"),
+            *([("radiometry", radiometry)] if (radiometry := compensate_step.radiometry_text(doc.get("radiometry")))
+              else [])]}]
         rows = []
         for t in doc["targets"]:
             rows.append([t["name"], t.get("status", "?"), t.get("mode", ""), fmt(t.get("seconds"), ".1f", " s"),
