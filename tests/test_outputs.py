@@ -8,10 +8,13 @@ Every check runs before any rendering, so these tests use tiny or fabricated fol
 from __future__ import annotations
 
 import ast
+import contextlib
 import json
 import os
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,8 +24,9 @@ import pytest
 from procam.addon.cli.app import main
 from procam.addon.errors import Cancelled, LabError
 from procam.addon.imageio import write_image
-from procam.addon.outputs import (AtomicFolder, OutputError, check_file_replaceable, check_replaceable,
-                                  folder_in_place, hidden_sibling, stale_siblings, write_manifest)
+from procam.addon.outputs import (AtomicFolder, OutputBusyError, OutputError, check_file_replaceable,
+                                  check_replaceable, folder_in_place, hidden_sibling, holds_writer, lock_path,
+                                  stale_siblings, write_manifest, writer_lock)
 from procam.addon.steps import layout
 from procam.addon.steps.stage_c import StageC
 
@@ -449,3 +453,121 @@ def test_a_manifest_holds_only_json_a_value_that_is_no_number_is_null(tmp_path):
     path = write_manifest(tmp_path / "m.json", {"psnr": float("nan"), "seam": np.float32(np.inf), "ok": 1.5,
                                                  "rows": np.array([1.0, np.nan]), "n": np.int64(3)})
     assert strict(path.read_text()) == {"psnr": None, "seam": None, "ok": 1.5, "rows": [1.0, None], "n": 3}
+
+
+# -- issue 53: one writer at a time, whatever the command ---------------------------------------------------------
+
+@contextlib.contextmanager
+def _another_run_writing(target: Path) -> Iterator[int]:
+    """Another process holds the writer lock of ``target`` for the ``with`` block; yields its process id."""
+    code = ("import sys\nfrom procam.addon.outputs import writer_lock\nwith writer_lock(sys.argv[1]):\n"
+            "    print('held', flush=True)\n    sys.stdin.read()\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(target)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "held\n"
+        yield proc.pid
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        proc.wait(60)
+
+
+def test_a_second_writer_of_an_output_is_refused_while_the_first_writes(tmp_path):
+    kind = layout.FRAMES
+    out = tmp_path / "frames"
+    with _another_run_writing(out) as pid:
+        assert lock_path(out).is_file()
+        with pytest.raises(OutputBusyError, match=rf"another procam run \(process {pid} on .*\) is writing to "):
+            AtomicFolder(out, what=kind.what, replaceable=kind.holds, inputs=())
+        with pytest.raises(OutputBusyError, match="another procam run"), writer_lock(out):
+            pass
+    assert not lock_path(out).exists()  # the other run let go, and removed its lock file
+    folder = AtomicFolder(out, what=kind.what, replaceable=kind.holds, inputs=())
+    assert holds_writer(out) and lock_path(out).is_file()
+    _manifest(folder.tmp, kind, frames=[])
+    folder.commit()
+    assert not holds_writer(out) and not lock_path(out).exists()
+    # in one run, nested holders share the lock (a step holds it, and so does the folder it writes)
+    with writer_lock(out):
+        with writer_lock(out):
+            pass
+        assert holds_writer(out)
+        folder = AtomicFolder(out, force=True, what=kind.what, replaceable=kind.holds, inputs=())
+        folder.abort()
+        assert holds_writer(out)
+    assert not holds_writer(out)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_another_thread_is_another_writer(tmp_path):
+    out = tmp_path / "out"
+    held, done = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with writer_lock(out):
+            held.set()
+            done.wait(30)
+
+    thread = threading.Thread(target=hold)
+    thread.start()
+    try:
+        assert held.wait(30)
+        with pytest.raises(OutputBusyError, match="another procam run"), writer_lock(out):
+            pass
+    finally:
+        done.set()
+        thread.join()
+    with writer_lock(out):
+        pass
+
+
+@pytest.mark.parametrize("flock", [True, False])
+def test_a_lock_left_by_a_killed_run_never_blocks_the_next(tmp_path, monkeypatch, flock):
+    import procam.addon.outputs as outputs
+
+    if not flock:  # where the OS has no advisory locks: an exclusive file, stale once its process has ended
+        monkeypatch.setattr(outputs, "_fcntl", None)
+    out = tmp_path / "out"
+    host = hidden_sibling(tmp_path / "probe", "tmp").name.split(".tmp-")[1].rsplit("-", 2)[0]
+    lock_path(out).write_text(f"{host} {_dead_pid()}\n")
+    with writer_lock(out):
+        assert lock_path(out).read_text() == f"{host} {os.getpid()}\n"
+    assert not lock_path(out).exists()
+    if not flock:  # a live process's lock file is honoured
+        live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+        try:
+            lock_path(out).write_text(f"{host} {live.pid}\n")
+            with pytest.raises(OutputBusyError, match=f"process {live.pid}"), writer_lock(out):
+                pass
+        finally:
+            live.kill()
+            live.wait()
+
+
+def test_a_refused_writer_leaves_no_folder_it_made_for_its_lock(tmp_path):
+    out = tmp_path / "a" / "b" / "out"
+    with _another_run_writing(out), pytest.raises(OutputBusyError), writer_lock(out):
+        pass
+    assert not (tmp_path / "a").exists()
+
+
+#: the commands of STEPS, and those that write in place or one file: show, report, precompute
+WRITERS = {**{name: args for name, (args, _) in STEPS.items()},
+           "show": lambda i: ["show", str(i.cal), str(i.targets), "--out", "OUT"],
+           "report": lambda i: ["report", str(i.comp), "--out", "OUT"]}
+
+
+@pytest.mark.parametrize("step", sorted(WRITERS))
+def test_every_writer_refuses_an_output_another_run_is_writing_before_any_work(step, tmp_path, capsys):
+    i = _inputs(tmp_path)
+    out = tmp_path / ("report.html" if step == "report" else "rig-out.json" if step == "calibrate-rig" else "out")
+    before = _snapshot(tmp_path)
+    cmd = [str(out) if a == "OUT" else a for a in WRITERS[step](i)]
+    with _another_run_writing(out):
+        assert main(cmd) == 2
+        err = capsys.readouterr().err
+        assert "another procam run" in err and f"is writing to {out}" in err, err
+    assert _snapshot(tmp_path) == before
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,7 @@ import pytest
 
 from procam.addon.cli.app import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
 from procam.addon.imageio import write_image
+from procam.addon.outputs import OutputBusyError
 from procam.addon.steps.layout import frame_name
 from procam.addon.steps.show import MANIFEST, SequenceError, ShowFolder, frame_digits, list_frames
 
@@ -93,9 +95,19 @@ def test_show_folder_refuses_foreign_folders_and_second_writers(tmp_path):
         ShowFolder(user).open()
     first = ShowFolder(tmp_path / "show")
     assert first.open() is None
-    try:
-        with pytest.raises(SequenceError, match="another procam run"):
-            ShowFolder(tmp_path / "show").open()
+    try:  # another run: another process, or another thread (a second job in Blender)
+        refused: list[BaseException] = []
+
+        def second() -> None:
+            try:
+                ShowFolder(tmp_path / "show").open()
+            except OutputBusyError as exc:
+                refused.append(exc)
+
+        thread = threading.Thread(target=second)
+        thread.start()
+        thread.join()
+        assert len(refused) == 1 and "another procam run" in str(refused[0])
     finally:
         first.unlock()
     second = ShowFolder(tmp_path / "show")

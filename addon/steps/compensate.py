@@ -28,7 +28,8 @@ from typing import Any
 from ..capture.devices import Device
 from ..errors import Cancelled, CaptureError, ImageError, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_image
-from ..outputs import AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest
+from ..outputs import (AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest,
+                       writer_lock)
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
 from ..stages.range import range_line
@@ -79,6 +80,12 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     # The output is checked before anything is read (and again, with the capture set, when it is created).
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.calibration, *paths, *stage_c_inputs(options.stage_c)))
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        return _run(options, say, cancel, device, paths)
+
+
+def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, device: Device | None,
+         paths: list[Path]) -> "CompensationView":
     say("reading the calibration and the targets", 0.0)
     options.stage_c.check()
     cal = calibrate_step.read(options.calibration)

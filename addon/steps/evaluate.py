@@ -49,7 +49,7 @@ from ..capture.devices import Device
 from ..errors import ImageError, ProCamError
 from ..imageio import read_image, write_image
 from ..options import option, same_option, validate
-from ..outputs import AtomicFolder, check_replaceable, file_sha256, output_names, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, file_sha256, output_names, write_manifest, writer_lock
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
 from ..stages.calibrate import Calibration
@@ -549,6 +549,11 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     validate(options)
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.calibration, options.inputs, *options.targets, *device_inputs(options.device)))
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        return _run(options, say, cancel, device)
+
+
+def _run(options: EvaluateOptions, say: Progress, cancel: Cancel | None, device: Device | None) -> dict[str, Any]:
     cal = calibrate_step.read(options.calibration)
     inputs = CompensationInputs.load(options.inputs)
     notes = inputs.check_against(cal, options.calibration)  # inputs of another rig fail before any projection

@@ -44,7 +44,7 @@ from ..imageio import read_image, write_atomic_bytes, write_image
 from ..lab.layouts import MAX_PROJECTORS
 from ..live.shoot import check_camera_device, open_camera_device, parse_camera_device
 from ..options import option, same_option, validate
-from ..outputs import check_replaceable
+from ..outputs import check_replaceable, writer_lock
 from ..progress import Cancel, Progress, never, part, quiet
 from ..rig.model import Projector, projector_intrinsics_from_throw
 from .capture import ImportOptions, PatternsOptions, PhotoSettings, ProjectorSheet, run_import
@@ -217,6 +217,11 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     check_replaceable(options.out, force=options.force, what="capture set", replaceable=is_capture_set,
                       inputs=(options.session, options.depth_path, options.rig),
                       error=CaptureError)
+    with writer_lock(options.out):  # another run of this capture set (and its session) is refused before any work
+        return _capture(options, say, stop, count)
+
+
+def _capture(options: LiveCaptureOptions, say: Progress, stop: Cancel, count: int) -> CaptureSet:
     doc, done = open_session(options)
     session = options.session
     sequences = [load_sequence(_sequence_dir(session, k)) for k in range(count)]
