@@ -78,6 +78,24 @@ def _input_at(path: str | Path, inputs: Iterable[str | Path | None], *, inside_p
     return None
 
 
+def check_apart_from_inputs(target: str | Path, inputs: Iterable[str | Path | None], *,
+                            error: type[ProCamError] = OutputError) -> None:
+    """Refuse an output folder ``target`` that is one of ``inputs``, holds one (replacing it would take the input
+    along) or lies inside one (a step never writes into what it reads, not even a new folder there); real paths
+    compared, so a link to an input folder is that folder."""
+    inputs = tuple(inputs)
+    given = _input_at(target, inputs, inside_path=True)
+    if given is not None:
+        which = "is" if _real(given) == _real(target) else "holds"
+        raise error(f"{target} {which} an input of this run ({given}); a step never replaces what it reads — "
+                    "choose another output folder")
+    real = _real(target)
+    for given in inputs:
+        if given is not None and _real(given) in real.parents:
+            raise error(f"{target} lies inside {given}, an input of this run; a step never writes into what it "
+                        "reads — choose an output outside it")
+
+
 def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable: Callable[[Path], bool],
                       inputs: Iterable[str | Path | None], error: type[ProCamError] = OutputError) -> bool:
     """Refuse an output ``target`` that must not be replaced; True when it holds something ``force`` replaces.
@@ -87,14 +105,11 @@ def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable
     file, a non-empty folder that is not ``replaceable`` (user data), and an
     input of this run or a folder holding one (``inputs``: the files and
     folders the run reads), even with ``force``. A non-empty ``replaceable``
-    folder is replaced only with ``force``.
+    folder is replaced only with ``force``. Never written at all: a folder inside an input
+    (:func:`check_apart_from_inputs`).
     """
     target = Path(target)
-    given = _input_at(target, inputs, inside_path=True)
-    if given is not None:
-        which = "is" if _real(given) == _real(target) else "holds"
-        raise error(f"{target} {which} an input of this run ({given}); a step never replaces what it reads — "
-                    "choose another output folder")
+    check_apart_from_inputs(target, inputs, error=error)
     if not target.exists():
         return False
     if not target.is_dir():

@@ -571,3 +571,54 @@ def test_every_writer_refuses_an_output_another_run_is_writing_before_any_work(s
     assert _snapshot(tmp_path) == before
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+# -- issue 53: an output never lies inside an input ---------------------------------------------------------------
+
+#: (command line with OUT, the input folder OUT is put inside)
+INSIDE = {
+    "import-captures": (STEPS["import-captures"][0], lambda i: i.photos),
+    "import-captures --add-to": (lambda i: ["import-captures", str(i.seq), str(i.photos), "--add-to", str(i.cset),
+                                            "--out", "OUT"], lambda i: i.cset),
+    "undistort-captures": (STEPS["undistort-captures"][0], lambda i: i.cset),
+    "calibrate": (STEPS["calibrate"][0], lambda i: i.cset),
+    "calibrate-rig": (STEPS["calibrate-rig"][0], lambda i: i.session),
+    "compensate": (STEPS["compensate"][0], lambda i: i.cal),
+    "evaluate": (STEPS["evaluate"][0], lambda i: i.comp),
+    "evaluate (device)": (STEPS["evaluate"][0], lambda i: i.cset),
+    "diagnose": (STEPS["diagnose"][0], lambda i: i.cal),
+    "export-frames": (STEPS["export-frames"][0], lambda i: i.comp),
+    "show": (WRITERS["show"], lambda i: i.cal),
+    "show (folder of targets)": (WRITERS["show"], lambda i: i.targets),
+    "report": (WRITERS["report"], lambda i: i.comp),
+}
+
+
+@pytest.mark.parametrize("step", sorted(INSIDE))
+@pytest.mark.parametrize("force", [False, True])
+def test_every_step_refuses_an_output_inside_one_of_its_inputs(step, force, tmp_path, capsys):
+    args, folder = INSIDE[step]
+    i = _inputs(tmp_path)
+    name = {"report": "report.html", "calibrate-rig": "rig-out.json"}.get(step, "nested")
+    out = folder(i) / "deeper" / name
+    before = _snapshot(tmp_path)
+    listing = sorted(str(p) for p in tmp_path.rglob("*"))
+    cmd = [str(out) if a == "OUT" else a for a in args(i)] + (["--force"] if force else [])
+    assert main(cmd) == 2
+    err = capsys.readouterr().err
+    assert f"{folder(i)}" in err and ("inside" in err or "would be written into" in err), err
+    assert _snapshot(tmp_path) == before
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == listing  # not even an empty folder or a lock file
+
+
+def test_check_replaceable_refuses_an_output_inside_an_input(tmp_path):
+    kind = layout.FRAMES
+    inp = _user_folder(tmp_path / "in")
+    with pytest.raises(OutputError, match=rf"{tmp_path / 'in' / 'out'} lies inside {inp}, an input of this run"):
+        check_replaceable(inp / "out", force=True, what=kind.what, replaceable=kind.holds, inputs=[inp])
+    os.symlink(inp, tmp_path / "link")  # the same folder by another name
+    with pytest.raises(OutputError, match="lies inside"):
+        check_replaceable(tmp_path / "link" / "out", force=True, what=kind.what, replaceable=kind.holds, inputs=[inp])
+    # a file input: its folder is no input
+    assert check_replaceable(tmp_path / "out", force=True, what=kind.what, replaceable=kind.holds,
+                             inputs=[inp / "notes.txt"]) is False

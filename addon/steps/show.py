@@ -86,7 +86,8 @@ from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
 from ..imageio import DAMAGED_ARRAYS, READ_IMAGE_SUFFIXES, write_atomic_bytes
 from ..options import option, validate
-from ..outputs import file_sha256, hold_writer, jsonable, natural_key, release_writer, write_manifest, writer_lock
+from ..outputs import (check_apart_from_inputs, file_sha256, hold_writer, jsonable, natural_key, release_writer,
+                       write_manifest, writer_lock)
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
 from ..stages.compensate import BiasModel, Compensator
@@ -98,7 +99,7 @@ from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
 from .projectors import JointStage
 from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
-from .stage_c import StageC, StageCOptions
+from .stage_c import StageC, StageCOptions, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.SHOW
@@ -535,6 +536,10 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     sc.check()
     mode = sc.mode
     options.check(mode)
+    # what the show reads: the calibration, the targets (a numbered pattern reads its folder), the device's files
+    targets = [Path(t) for t in options.targets]
+    check_apart_from_inputs(options.out, (options.calibration, *targets, *(t.parent for t in targets if not t.exists()),
+                                          *stage_c_inputs(sc)), error=SequenceError)
     with writer_lock(options.out):  # another run of this show is refused before any work
         return _locked(options, frames, sc, mode, say, cancel, device, compensator)
 
