@@ -97,7 +97,8 @@ def check_apart_from_inputs(target: str | Path, inputs: Iterable[str | Path | No
 
 
 def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable: Callable[[Path], bool],
-                      inputs: Iterable[str | Path | None], error: type[ProCamError] = OutputError) -> bool:
+                      inputs: Iterable[str | Path | None], error: type[ProCamError] = OutputError,
+                      incomplete: Callable[[Path], bool] | None = None) -> bool:
     """Refuse an output ``target`` that must not be replaced; True when it holds something ``force`` replaces.
 
     ``replaceable(path)`` says whether an existing folder is of the kind this
@@ -105,7 +106,8 @@ def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable
     file, a non-empty folder that is not ``replaceable`` (user data), and an
     input of this run or a folder holding one (``inputs``: the files and
     folders the run reads), even with ``force``. A non-empty ``replaceable``
-    folder is replaced only with ``force``. Never written at all: a folder inside an input
+    folder is replaced only with ``force``, or when ``incomplete(path)`` says a failed or cancelled run left it
+    (marked incomplete: a failed run never blocks its own retry). Never written at all: a folder inside an input
     (:func:`check_apart_from_inputs`).
     """
     target = Path(target)
@@ -123,8 +125,8 @@ def check_replaceable(target: str | Path, *, force: bool, what: str, replaceable
     if not replaceable(target):
         raise error(f"{target} exists, is not empty and is not a {what}; refusing to replace it — choose another "
                     "output folder")
-    if not force:
-        raise error(f"{target} already holds a {what}; it is never overwritten without --force (force=True)")
+    if not force and not (incomplete is not None and incomplete(target)):
+        raise error(f"{target} already holds a {what}; it is never overwritten without --force")
     return True
 
 
@@ -149,7 +151,7 @@ def check_file_replaceable(path: str | Path, *, force: bool, what: str, replacea
     if path.is_symlink() or not replaceable(path):
         raise error(f"{path} exists and is not a {what}; refusing to replace it — choose another file name")
     if not force:
-        raise error(f"the {what} {path} already exists; it is never overwritten without --force (force=True)")
+        raise error(f"the {what} {path} already exists; it is never overwritten without --force")
     return True
 
 
@@ -429,18 +431,19 @@ class AtomicFolder:
 
     def __init__(self, target: str | Path, *, force: bool = False, what: str = "folder",
                  replaceable: Callable[[Path], bool], inputs: Iterable[str | Path | None],
-                 error: type[ProCamError] = OutputError) -> None:
+                 error: type[ProCamError] = OutputError, incomplete: Callable[[Path], bool] | None = None) -> None:
         self.target = Path(target)
         self.error = error
         self.force = force
         self.what = what
         inputs = tuple(inputs)
-        check_replaceable(self.target, force=force, what=what, replaceable=replaceable, inputs=inputs, error=error)
+        check_replaceable(self.target, force=force, what=what, replaceable=replaceable, inputs=inputs, error=error,
+                          incomplete=incomplete)
         self._lock = hold_writer(self.target)  # no other run writes it until this one is done
         try:
             # again, now that no other run can: one that finished meanwhile may have left a result here
             check_replaceable(self.target, force=force, what=what, replaceable=replaceable, inputs=inputs,
-                              error=error)
+                              error=error, incomplete=incomplete)
             self.target.parent.mkdir(parents=True, exist_ok=True)
             remove_stale_siblings(self.target, replaceable)
             self.tmp = hidden_sibling(self.target, "tmp")

@@ -622,3 +622,67 @@ def test_check_replaceable_refuses_an_output_inside_an_input(tmp_path):
     # a file input: its folder is no input
     assert check_replaceable(tmp_path / "out", force=True, what=kind.what, replaceable=kind.holds,
                              inputs=[inp / "notes.txt"]) is False
+
+
+# -- issue 53: a refused compensate is refused before any work, and never blocks its own retry --------------------
+
+@pytest.mark.parametrize("projectors", [2, 3])
+def test_compensate_with_a_device_of_another_rig_is_refused_before_any_work(tmp_path, capsys, projectors):
+    from procam.addon.lab.truth import make_truth
+
+    cal = _calibration_folder(tmp_path, tmp_path / "captures")  # one projector
+    truth = tmp_path / f"lab{projectors}.json"
+    make_truth("plane", camera_size=(32, 24), projector_size=(40, 30), projectors=projectors).save(truth)
+    target = write_image(tmp_path / "t.png", np.full((6, 8, 3), 0.5, np.float32))
+    out = tmp_path / "comp"
+    for step in (["compensate", str(cal), str(target)], ["show", str(cal), str(target)]):
+        assert main([*step, "--device", f"lab:{truth}", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert f"lab:{truth} shows {projectors} projectors, but the calibration {cal} is of 1" in err, err
+        assert "%" not in err  # no progress: refused before any work
+        for internal in ("project_all", "LabTruth", "for_projector", "force=True"):
+            assert internal not in err, err
+        assert not out.exists()
+
+
+def test_check_device_fits_names_each_side(tmp_path):
+    from procam.addon.lab.truth import make_truth
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps.stage_c import check_device_fits
+
+    cal = calibrate_step.read(_calibration_folder(tmp_path, tmp_path / "captures"))
+    one = tmp_path / "one.json"
+    make_truth("plane", camera_size=(32, 24), projector_size=(40, 30)).save(one)
+    check_device_fits(f"lab:{one}", cal)  # the same rig's number of projectors: nothing to say
+    check_device_fits(None, cal)
+    check_device_fits(f"folder:{tmp_path / 'missing'}", cal)  # what the device itself says, when it opens
+    cset = write_small_set(tmp_path / "set").path
+    check_device_fits(f"folder:{cset}", cal)
+
+
+def test_an_incomplete_folder_of_a_failed_run_is_replaced_without_force(tmp_path, monkeypatch):
+    from procam.addon.steps import compensate as compensate_step
+
+    kind = layout.COMPENSATION
+    half = _manifest(tmp_path / "half", kind, complete=False, targets=[])
+    whole = _manifest(tmp_path / "whole", kind, complete=True, targets=[])
+    check = lambda target, force=False: check_replaceable(  # noqa: E731
+        target, force=force, what=kind.what, replaceable=kind.holds, inputs=(), incomplete=kind.incomplete)
+    assert check(half) is True
+    with pytest.raises(OutputError, match="never overwritten without --force") as refused:
+        check(whole)
+    assert "force=True" not in str(refused.value)
+    with pytest.raises(OutputError, match="never overwritten without --force"):  # an incomplete one of a kind
+        check_replaceable(half, force=False, what=kind.what, replaceable=kind.holds, inputs=())  # that cannot tell
+
+    # the run: Ctrl-C after the first target leaves an incomplete folder, and the same command redoes it whole
+    cal = _calibration_folder(tmp_path, tmp_path / "captures")
+    targets = tuple(write_image(tmp_path / f"{n}.png", np.full((6, 8, 3), 0.5, np.float32)) for n in "abc")
+    monkeypatch.setattr(compensate_step, "StageC", _Stage)
+    out = tmp_path / "comp"
+    with pytest.raises(Cancelled, match="run the same command again to redo it whole; no --force is needed"):
+        compensate_step.run(compensate_step.CompensateOptions(cal, targets, out))
+    assert compensate_step.read(out).doc["complete"] is False
+    monkeypatch.setattr(compensate_step, "StageC", type("S", (_Stage,), {"stop": "none"}))
+    view = compensate_step.run(compensate_step.CompensateOptions(cal, targets, out))
+    assert view.doc["complete"] is True and [t.name for t in view.targets] == ["a", "b", "c"]

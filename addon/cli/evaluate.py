@@ -39,7 +39,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
                         "flicker")
     p.add_argument("--out", type=Path, required=True, help="folder to create for the metrics and images")
     add_arguments(p, EvaluateOptions)
-    p.add_argument("--force", action="store_true", help="replace an existing evaluation folder at --out")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing evaluation folder at --out (one a failed or cancelled run left, marked "
+                        "incomplete, is replaced without it)")
 
 
 @command("evaluate", "Project compensated inputs through a device and measure PSNR/SSIM against the targets.",

@@ -63,7 +63,7 @@ from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout, projectors
 from .show_work import source_record
-from .stage_c import StageCOptions, device_inputs, device_pipeline
+from .stage_c import StageCOptions, check_device_fits, device_inputs, device_pipeline
 from .summary import Summary, cached, fmt
 
 KIND = layout.EVALUATION
@@ -548,13 +548,15 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     say = progress or quiet
     validate(options)
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration, options.inputs, *options.targets, *device_inputs(options.device)))
+                      inputs=(options.calibration, options.inputs, *options.targets, *device_inputs(options.device)),
+                      incomplete=KIND.incomplete)
     with writer_lock(options.out):  # another run of this output is refused before any work
         return _run(options, say, cancel, device)
 
 
 def _run(options: EvaluateOptions, say: Progress, cancel: Cancel | None, device: Device | None) -> dict[str, Any]:
     cal = calibrate_step.read(options.calibration)
+    check_device_fits(options.device, cal, device=device)  # a device of another rig: refused before any projection
     inputs = CompensationInputs.load(options.inputs)
     notes = inputs.check_against(cal, options.calibration)  # inputs of another rig fail before any projection
     if inputs.doc.get("video"):
@@ -570,7 +572,7 @@ def _run(options: EvaluateOptions, say: Progress, cancel: Cancel | None, device:
             notes.append(note)
     folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                           inputs=(options.calibration, options.inputs, cal.capture_dir, *options.targets,
-                                  *device_inputs(options.device)))
+                                  *device_inputs(options.device)), incomplete=KIND.incomplete)
     owned = device is None
     try:
         if not options.device:

@@ -99,7 +99,7 @@ from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
 from .projectors import JointStage
 from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
-from .stage_c import StageC, StageCOptions, stage_c_inputs
+from .stage_c import StageC, StageCOptions, check_device_fits, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.SHOW
@@ -547,6 +547,7 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
 def _locked(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions, mode: str, say: Progress,
             cancel: Cancel | None, device: Device | None, compensator: Compensator | None) -> ShowResult:
     cal = calibrate_step.read(options.calibration)  # says how to make one when the folder is not a calibration
+    check_device_fits(sc.device, cal, device=device)  # a device of another rig: refused before any frame
     ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
     say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
