@@ -220,9 +220,12 @@ def check_device_fits(spec: str | None, calibration: Calibration, *, device: Dev
     target was computed."""
     if not spec:
         return
-    count = len(device.projectors) if device is not None else _projector_count(spec)
+    shown = getattr(device, "projectors", None)  # a device relayed from Blender's main thread may not say
+    count = len(shown) if shown is not None else _projector_count(spec)
+    if count is None:
+        return
     want = calibration.projector_count
-    if count is None or count == want:
+    if count == want:
         return
     where = f" {calibration.folder}" if calibration.folder else ""
     raise CaptureError(f"the device {spec} shows {count} projector{'s' if count > 1 else ''}, but the calibration"
