@@ -224,7 +224,7 @@ def check_device_fits(spec: str | None, calibration: Calibration, *, device: Dev
     count = len(shown) if shown is not None else _projector_count(spec)
     if count is None:
         return
-    want = calibration.projector_count
+    want = 1 + len(calibration.rig.others)  # the calibration's projector_count, from its rig
     if count == want:
         return
     where = f" {calibration.folder}" if calibration.folder else ""
