@@ -115,7 +115,15 @@ SIDEBAR_TABLES = ("panels/properties.py", "panels/board.py", "operators/messages
                   "operators/capture_io.py", "operators/live.py", "operators/calibrate_rig.py")
 
 
-@pytest.mark.parametrize("index", range(22))
+#: how many classes :func:`_options_classes` lists (checked below, so that none is left out of the test after it)
+OPTION_CLASSES = 23
+
+
+def test_every_options_class_is_checked():
+    assert len(_options_classes()) == OPTION_CLASSES
+
+
+@pytest.mark.parametrize("index", range(OPTION_CLASSES))
 def test_no_declared_option_is_declared_a_second_time(index):
     """A declared option's flag is added to no parser by hand, its scene property made by no hand, and its name in
     messages written in no table: the declaration on the Options class is the only one. (``--diagnosis`` is named
@@ -134,7 +142,8 @@ def test_no_declared_option_is_declared_a_second_time(index):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Dict):
                 for key in node.keys:
-                    if isinstance(key, ast.Constant):
+                    # --force and --out: every command's, which messages.py names for all their messages
+                    if isinstance(key, ast.Constant) and key.value not in ("--force", "--out"):
                         assert key.value not in flags | props, f"{path.name} declares {key.value} again"
             if isinstance(node, ast.keyword) and node.arg == "name" and isinstance(node.value, ast.Constant):
                 # a dialog's or panel's own field of a declared option takes its label from the declaration
