@@ -686,3 +686,11 @@ def test_an_incomplete_folder_of_a_failed_run_is_replaced_without_force(tmp_path
     monkeypatch.setattr(compensate_step, "StageC", type("S", (_Stage,), {"stop": "none"}))
     view = compensate_step.run(compensate_step.CompensateOptions(cal, targets, out))
     assert view.doc["complete"] is True and [t.name for t in view.targets] == ["a", "b", "c"]
+
+
+def test_export_of_a_compensation_without_finished_targets_names_the_command(tmp_path, capsys):
+    comp = _manifest(tmp_path / "comp", layout.COMPENSATION, mode="none", targets=[], complete=False)
+    assert main(["export-frames", str(comp), "--out", str(tmp_path / "frames")]) == 2
+    err = capsys.readouterr().err
+    assert "holds no finished targets to export; run procam compensate first" in err, err
+    assert "run Compensate" not in err
