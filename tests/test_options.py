@@ -268,3 +268,22 @@ def test_the_board_panel_fields_come_from_the_declaration():
     options = from_values(RigOptions, scene.__getitem__, sessions=(Path("a"),), out=Path("r.json"), board=(9, 7),
                           projector_size=(8, 6))
     assert (options.window, options.camera_model, options.projector_model) == (31, "k1k2", "auto")
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["show", "cal", "frames", "--out", "o", "--chunk", "x"], "--chunk takes a whole number, got 'x'"),
+    (["compensate", "cal", "t.png", "--out", "o", "--lr", "fast"], "--lr takes a number, got 'fast'"),
+    (["live-check", "--device", "live:camera=0,display=x"], "display= takes whole numbers (display=1+2), got 'x'"),
+    (["live-check", "--device", "live:camera=0,position=a:b"],
+     "position= takes whole numbers (position=X:Y, several as X:Y+X:Y), got 'a:b'"),
+    (["live-check", "--device", "live:camera=0,latency=soon"], "latency= takes a number of seconds or auto, got "
+                                                               "'soon'"),
+])
+def test_a_value_that_is_no_number_is_named_without_python_words(argv, says, capsys):
+    from procam.addon.cli.app import main
+
+    with pytest.raises(SystemExit) as exit_:
+        raise SystemExit(main(argv))
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert says in err and "invalid literal" not in err and "could not convert" not in err, err
