@@ -295,7 +295,8 @@ def test_show_refuses_a_foreign_folder_before_any_work(lab_calibration, tmp_path
     assert [p.name for p in user.iterdir()] == ["notes.txt"]
     assert main(["show", str(cal_dir), str(tmp_path / "nothing_####.png"), "--out", str(tmp_path / "o")]) == EXIT_USER
     assert "no file" in capsys.readouterr().err and not (tmp_path / "o").exists()
-    assert main(["show", str(tmp_path), str(seq), "--out", str(tmp_path / "o")]) == EXIT_USER
+    (tmp_path / "not_a_calibration").mkdir()  # (tmp_path itself would be an input holding the output)
+    assert main(["show", str(tmp_path / "not_a_calibration"), str(seq), "--out", str(tmp_path / "o")]) == EXIT_USER
     assert "calibration" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
