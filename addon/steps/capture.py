@@ -74,6 +74,10 @@ def pixel_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+#: side-by-side footprints overlap by a fifth unless --overlap says otherwise
+LAB_OVERLAP = 0.2
+
+
 @dataclass(frozen=True)
 class LabOptions:
     """What ``procam lab`` and Run Virtual Lab ask for."""
@@ -137,7 +141,7 @@ class LabOptions:
         help="with --projectors above 1: side-by-side (footprints in a row, overlapping by --overlap) or stacked "
              "(all on the same area from slightly different positions) (default side-by-side)")
     overlap: float = option(
-        0.2, min=0.0, max=0.9, metavar="FRACTION",
+        LAB_OVERLAP, min=0.0, max=0.9, metavar="FRACTION",
         help="side-by-side: how much neighbouring footprints overlap, as a fraction of a footprint's width "
              "(default 0.2)")
     projector_effects: str = option(
@@ -164,6 +168,9 @@ class LabOptions:
 def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
     """Render a calibration capture set in the virtual lab; every argument is checked before the first render."""
     validate(options, LabError)
+    if options.projector_layout == "stacked" and options.overlap != LAB_OVERLAP:
+        raise LabError("--overlap sets how far side-by-side footprints overlap; stacked projectors all light the "
+                       "same area, so it has no meaning there: leave --overlap out, or use --layout side-by-side")
     out, truth_path = options.paths()
     # What the truth must not be written into: the mesh read, and any step folder (another set's capture.json…).
     named = isinstance(options.surface, (str, Path)) and Path(options.surface).is_file()
