@@ -40,7 +40,8 @@ def test_live_spec_parsing():
     assert spec.size == (1280, 720)
     for bad, message in (("live:display=1", "say which camera"), ("live:camera=0,average=0", "average must be"),
                          ("live:camera=0,average=2,noise=0.01", "not both"), ("live:camera=0,encoding=hdr", "srgb"),
-                         ("live:camera=0,display=x", "display= takes whole numbers"), ("live:camera=/nonexistent/video9", "neither"),
+                         ("live:camera=0,display=x", "display= takes whole numbers"),
+                         ("live:camera=/nonexistent/video9", "neither"),
                          ("live:camera=0,camera=1", "twice"), ("live:bogus", "key=value")):
         with pytest.raises(LiveError, match=message):
             LiveSpec.parse(bad)
