@@ -648,3 +648,23 @@ def test_a_damaged_video_is_refused(tmp_path, capsys):
         list_frames([damaged])
     assert main(["show", str(tmp_path), str(damaged), "--out", str(tmp_path / "out")]) == EXIT_USER
     assert "damaged" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+def test_a_local_cluster_writes_nothing_outside_the_folders_given(run_python, tmp_path):
+    """Dask's workers keep their scratch space (and its global.lock, purge.lock) beside the show folder, and it goes
+    when the cluster closes: nothing is left in $TMPDIR (issue 53)."""
+    tmpdir, out = tmp_path / "tmpdir", tmp_path / "show"
+    tmpdir.mkdir()
+    proc = run_python("""
+        import sys
+        from pathlib import Path
+        from procam.addon.steps.show_cluster import Cluster
+        cluster = Cluster(workers=1, threads=1, beside=Path(sys.argv[1]))
+        print(cluster.describe)
+        print(sorted(p.name for p in Path(sys.argv[1]).parent.iterdir()))
+        cluster.close()
+    """, str(out), env={"TMPDIR": str(tmpdir)}, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "'.show.tmp-" in proc.stdout  # the scratch space, while the cluster runs
+    assert sorted(p.name for p in tmpdir.rglob("*")) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tmpdir"]

@@ -671,7 +671,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointS
              else f"a local cluster of {options.workers} worker(s)")
     say(f"starting {where}", 0.0)
     cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads,
-                      connect_timeout=options.connect_timeout,
+                      connect_timeout=options.connect_timeout, beside=Path(options.out),
                       poll=lambda: check(cancel, f"show cancelled while reaching {where}"))
     try:
         say(f"{where}: {cluster.describe}", 0.0)
