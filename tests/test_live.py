@@ -325,3 +325,11 @@ def test_a_window_placed_entirely_off_the_desktop_is_refused(xvfb, where):
         ProjectorWindow((64, 48), position=where)
     window = ProjectorWindow((64, 48), position=(SCREEN[0] - 10, SCREEN[1] - 10))  # partly on: the user's choice
     window.close()
+
+
+def test_the_help_says_displays_are_numbered_from_0():
+    """SDL numbers displays from 0, and so do --list-displays and display=N: the help says so (issue 53)."""
+    from procam.addon.steps import live, live_show
+
+    for text in (live.DEVICE_HELP, live_show.DEVICE_HELP):
+        assert "numbered from 0, as procam live-check --list-displays lists them" in text

@@ -54,7 +54,8 @@ SESSION_MANIFEST = "session.json"
 
 
 DEVICE_HELP = ("live:camera=SOURCE,display=N — SOURCE a camera index, a device path or a URL (http://…mjpg, "
-               "rtsp://…); display=N covers display N (at the projector's native size), position=X:Y puts the "
+               "rtsp://…); display=N covers display N (at the projector's native size; displays are numbered "
+               "from 0, as procam live-check --list-displays lists them), position=X:Y puts the "
                "window at desktop coordinates instead; several projectors: one display each, display=1+2 (or "
                "position=X:Y+X:Y); options: average=N or noise=σ (frames per capture), encoding=srgb|linear, "
                "latency=auto|SECONDS, size=WxH. A stills camera: shoot='COMMAND … {out} …' instead of camera= "
