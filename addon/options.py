@@ -206,6 +206,14 @@ def validate(options: Any, error: type[ProCamError] = ProCamError) -> None:
 
 # -- the command line ------------------------------------------------------------------------------------------
 
+def _number(kind: type, text: str, what: str) -> Any:
+    """``kind(text)``, or a ValueError that says ``what`` the option takes and what it got (not Python's words)."""
+    try:
+        return kind(text)
+    except ValueError:
+        raise ValueError(f"{what}, got {text!r}") from None
+
+
 def _text_type(d: Declared) -> Callable[[str], Any]:
     """argparse's ``type``: text → a value :func:`check_value` accepts, with argparse's own message on failure."""
     def convert(text: str) -> Any:
@@ -213,9 +221,9 @@ def _text_type(d: Declared) -> Callable[[str], Any]:
             if d.spec.parse is not None:
                 value = d.spec.parse(text)
             elif d.kind is int:
-                value = int(text)
+                value = _number(int, text, f"{d.spec.cli_flag(d.name)} takes a whole number")
             elif d.kind is float:
-                value = float(text)
+                value = _number(float, text, f"{d.spec.cli_flag(d.name)} takes a number")
             elif d.kind is Path:
                 value = Path(text)
             else:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from hypothesis import HealthCheck, Phase, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from tests.bad_input import (FAST, FAST_C, Case, Figures, link_folder_outside, make_world, mutate_file,  # noqa: E402
-                             mutate_json, reset_example, run_case)
+                             mutate_json, reset_example, run_case, snapshot)
 
 SCALE = float(os.environ.get("PROCAM_BAD_INPUT_SCALE", "1"))
 #: Fresh random draws (the benchmark), or the same cases every run (the default suite: a failure repeats).
@@ -244,32 +245,87 @@ def test_video(world):
     _check(world, "video", ["cal", "captures", "clip.avi"], scenario, 8)
 
 
+def _writers(case: Case) -> dict[str, tuple[Callable[[str], list[str]], list[Path], list[Path]]]:
+    """The commands that write a folder from the world's folders: (argv for an output, the folders it reads that
+    an output could be put at or in, every input it reads)."""
+    w = case.w
+    return {
+        "import-captures": (lambda out: _import(case, ["--out", out, "--force"]), [w / "seq", w / "photos"],
+                            [w / "seq", w / "photos"]),
+        "undistort-captures": (lambda out: ["undistort-captures", str(w / "set"), "--rig", str(w / "rig.json"),
+                                            "--out", out, "--force"], [w / "set"], [w / "set"]),
+        "compensate": (lambda out: _compensate(case, ["--out", out, "--force"]), [w / "cal", w / "frames"],
+                       [w / "cal", w / "captures", w / "frames"]),
+        "export-frames": (lambda out: ["export-frames", str(w / "comp"), "--out", out, "--force"],
+                          [w / "comp"], [w / "comp"]),
+        "evaluate": (lambda out: ["evaluate", str(w / "cal"), "--inputs", str(w / "comp"), "--targets",
+                                  str(w / "frames" / "shot_0001.png"), "--device", f"lab:{w / 'truth.json'}",
+                                  "--out", out, "--no-repeat", "--force"], [w / "comp", w / "cal"],
+                     [w / "cal", w / "comp", w / "frames"]),
+    }
+
+
+_WRITER_WORLD = ["seq", "photos", "set", "rig.json", "cal", "captures", "frames", "comp", "truth.json",
+                 "truth.surface.npz"]
+
+
 def test_replacing_folders(world):
     """``--out --force`` naming a user's folder or the command's own input: refused, nothing lost."""
     def scenario(case, draw):
-        w, mine = case.w, case.example / "mine"
-        commands = {
-            "import-captures": (lambda out: _import(case, ["--out", out, "--force"]), [w / "seq", w / "photos"],
-                                [w / "seq", w / "photos"]),
-            "undistort-captures": (lambda out: ["undistort-captures", str(w / "set"), "--rig", str(w / "rig.json"),
-                                                "--out", out, "--force"], [w / "set"], [w / "set"]),
-            "compensate": (lambda out: _compensate(case, ["--out", out, "--force"]), [w / "cal", w / "frames"],
-                           [w / "cal", w / "captures", w / "frames"]),
-            "export-frames": (lambda out: ["export-frames", str(w / "comp"), "--out", out, "--force"],
-                              [w / "comp"], [w / "comp"]),
-            "evaluate": (lambda out: ["evaluate", str(w / "cal"), "--inputs", str(w / "comp"), "--targets",
-                                      str(w / "frames" / "shot_0001.png"), "--device", f"lab:{w / 'truth.json'}",
-                                      "--out", out, "--no-repeat", "--force"], [w / "comp", w / "cal"],
-                         [w / "cal", w / "comp", w / "frames"]),
-        }
+        mine = case.example / "mine"
+        commands = _writers(case)
         name = draw(st.sampled_from(sorted(commands)))
         make, targets, inputs = commands[name]
         out = draw(st.sampled_from([mine, *targets]))
         case.did.append(f"{name} --out {out.relative_to(case.example)} --force")
         return make(str(out)), [*inputs, mine], None
 
-    _check(world, "--out --force", ["seq", "photos", "set", "rig.json", "cal", "captures", "frames", "comp",
-                                    "truth.json", "truth.surface.npz"], scenario, 16)
+    _check(world, "--out --force", _WRITER_WORLD, scenario, 16)
+
+
+def test_an_output_inside_an_input_or_written_by_another_run_is_refused(world):
+    """Issue 53: ``--out`` inside a folder the command reads, or an output another run is writing (a thread of this
+    process holds its writer lock, as a second job in Blender would): exit 2 with the reason, and every input
+    exactly as it was, not even a file or a folder added."""
+    from procam.addon.outputs import writer_lock
+
+    @_settings(12)
+    @given(data=st.data())
+    def one(data):
+        case = Case(world)
+        reset_example(case, _WRITER_WORLD)
+        name = data.draw(st.sampled_from(sorted(_writers(case))))
+        make, targets, inputs = _writers(case)[name]
+        busy = data.draw(st.booleans())
+        # the folders it is given (compensate is given target files, not the folder that holds them)
+        folders = [t for t in targets if not (name == "compensate" and t.name == "frames")]
+        out = case.example / "new" if busy else data.draw(st.sampled_from(folders)) / data.draw(
+            st.sampled_from(["nested", "a/b"]))
+        before = {p: snapshot(p) for p in inputs}
+        held, done = threading.Event(), threading.Event()
+
+        def hold() -> None:
+            with writer_lock(out):
+                held.set()
+                done.wait(60)
+
+        holder = threading.Thread(target=hold)
+        if busy:
+            holder.start()
+            assert held.wait(30)
+        try:
+            result = run_case(case, make(str(out)), inputs)
+        finally:
+            done.set()
+            if busy:
+                holder.join()
+        what = f"{name} --out {out.relative_to(case.example)}" + (" while another run writes it" if busy else "")
+        assert result.code == 2, f"{what}: exit {result.code}\n{result.stderr}"
+        assert ("another procam run" if busy else "lies inside") in result.stderr, f"{what}: {result.stderr}"
+        assert {p: snapshot(p) for p in inputs} == before, f"{what}: an input changed"
+        assert not result.escapes, f"{what}: {result.escapes}"
+
+    one()
 
 
 # -- defects the suite found, each pinned by a case of its own -----------------------------------------------

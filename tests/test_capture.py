@@ -802,7 +802,8 @@ def test_a_live_camera_sees_through_the_lens_import_took_out(tmp_path, monkeypat
     plain = stage_c.device_pipeline(spec, calibration({}, tmp_path / "x"))
     assert not isinstance(plain, LensRemovedDevice)
     # The lab's camera too (a lab set undistorted with undistort-captures); a replayed capture set is not.
-    monkeypatch.setattr(stage_c, "LabTruth", SimpleNamespace(load=lambda path: path))
+    monkeypatch.setattr(stage_c, "LabTruth", SimpleNamespace(load=lambda path: SimpleNamespace(  # one projector
+        rig=SimpleNamespace(projectors=(proj,)))))
     from procam.addon.lab import cycles_device  # where stage C takes the lab's device from when it renders
 
     monkeypatch.setattr(cycles_device, "LabDevice", lambda truth: Camera_("lab", proj))

@@ -7,6 +7,7 @@ stays fast. Tests are evaluation code: they may read the lab truth.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import types
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 
 from procam.addon.cli.app import main
-from procam.addon.errors import CaptureError
+from procam.addon.errors import CaptureError, ProCamError
 
 
 def _target(w: int = 160, h: int = 120, seed: int = 3) -> np.ndarray:
@@ -348,3 +349,38 @@ def test_esc_during_an_evaluation_writes_nothing_and_counts_as_cancelled(env):
     snap = job.snapshot()
     assert snap.status == jobs.CANCELLED and "cancelled" in snap.error, snap
     assert not out.exists() and not [p for p in env.root.iterdir() if out.name in p.name]
+
+
+# -- issue 53: evaluate takes the target forms show takes ---------------------------------------------------------
+
+def test_evaluate_takes_a_folder_a_numbered_pattern_or_a_video_as_show_does(tmp_path, monkeypatch):
+    from procam.addon.imageio import write_image
+    from procam.addon.steps import evaluate as evaluate_step
+    from procam.addon.steps.show import SequenceError, list_frames
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for n in (10, 2, 1):
+        write_image(frames / f"shot_{n:04d}.png", np.full((6, 8, 3), 0.5, np.float32))
+    (frames / ".hidden.png").write_bytes(b"x")
+    in_order = [frames / f"shot_{n:04d}.png" for n in (1, 2, 10)]
+    assert [f.path for f in list_frames([frames])] == in_order
+    assert evaluate_step.target_files([frames]) == tuple(in_order)
+    assert evaluate_step.target_files([frames / "shot_####.png"]) == tuple(in_order)
+    assert evaluate_step.target_files([frames / "shot_%04d.png"]) == tuple(in_order)
+    files = (frames / "shot_0002.png", frames / "shot_0001.png")
+    assert evaluate_step.target_files(files) == files  # files as given, in the order given
+    video = tmp_path / "clip.mp4"
+    assert evaluate_step.target_files([video]) == (video,)  # a video stays one target (its frames are measured)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SequenceError, match="no images"):
+        evaluate_step.target_files([tmp_path / "empty"])
+
+    seen = []
+    monkeypatch.setattr(evaluate_step, "_run", lambda options, *rest: seen.append(options) or {})
+    options = evaluate_step.EvaluateOptions(tmp_path / "cal", tmp_path / "comp", (frames / "shot_####.png",),
+                                            "folder:x", tmp_path / "ev")
+    evaluate_step.run(options)
+    assert seen[0].targets == tuple(in_order)
+    with pytest.raises(ProCamError, match="lies inside"):  # the folder of the targets is an input
+        evaluate_step.run(dataclasses.replace(options, out=frames / "ev"))

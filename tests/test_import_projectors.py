@@ -153,3 +153,26 @@ def test_every_projector_goes_through_one_camera_calibration(tmp_path, capsys):
     undistorted = CaptureSet.load(tmp_path / "u")
     assert len(undistorted.projectors) == 2 and undistorted.camera_lens["distortion"] == two.camera_lens["distortion"]
     assert np.allclose(undistorted.for_projector(1).image("white"), two.for_projector(1).image("white"), atol=1e-4)
+
+
+def test_a_projector_whose_photographs_are_copies_of_another_ones_is_refused(session, tmp_path, capsys):
+    """Projector 2's photographs copied from projector 1's (issue 53, item 5): said at import, not left to the
+    calibration's "same pose" (which no stage can mend)."""
+    root, _, seq2, photos1, photos2 = session
+    copied = tmp_path / "copied"
+    copied.mkdir()
+    ones = sorted(photos1.iterdir())[1:]  # projector 1's, without the surface photo projector 2's sequence lacks
+    for one, two in zip(ones, sorted(photos2.iterdir()), strict=True):
+        write_image(copied / two.name, read_image(one))
+    out = tmp_path / "set"
+    assert main(["import-captures", str(seq2), str(copied), "--add-to", str(root / "set1"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"capture set {out}: projector 2's photographs are the same as projector 1's" in err, err
+    assert "copied" in err and "numbered from 0" not in err
+    assert not out.exists() and siblings(out) == []
+    # nearly the same (a copy saved again with a little noise) is the same too
+    rng = np.random.default_rng(0)
+    for p in copied.iterdir():
+        write_image(p, np.clip(read_image(p) + rng.normal(0, 0.002, read_image(p).shape), 0, 1).astype(np.float32))
+    assert main(["import-captures", str(seq2), str(copied), "--add-to", str(root / "set1"), "--out", str(out)]) == 2
+    assert "are the same as projector 1's" in capsys.readouterr().err

@@ -694,3 +694,15 @@ def test_each_projector_shown_at_once_through_its_own_effects():
         lit = white.mean(axis=2) > 0.5 * np.percentile(white.mean(axis=2), 99)
         ratios.append(float(np.median(grey.mean(axis=2)[lit] / white.mean(axis=2)[lit])))
     assert ratios[0] == pytest.approx(0.3, abs=0.05) and ratios[1] < 0.15, ratios  # projector 2: gamma 2.2
+
+
+def test_overlap_with_stacked_projectors_is_refused_not_ignored(tmp_path, capsys):
+    """Stacked projectors all light one area: an --overlap given with them was ignored without a word (issue 53)."""
+    from procam.addon.cli.app import main
+
+    out = tmp_path / "lab"
+    assert main(["lab", "--projectors", "2", "--layout", "stacked", "--overlap", "0.4", "--scale", "0.05",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--overlap" in err and "stacked" in err and "%" not in err, err
+    assert not out.exists()

@@ -40,7 +40,8 @@ def test_live_spec_parsing():
     assert spec.size == (1280, 720)
     for bad, message in (("live:display=1", "say which camera"), ("live:camera=0,average=0", "average must be"),
                          ("live:camera=0,average=2,noise=0.01", "not both"), ("live:camera=0,encoding=hdr", "srgb"),
-                         ("live:camera=0,display=x", "not a number"), ("live:camera=/nonexistent/video9", "neither"),
+                         ("live:camera=0,display=x", "display= takes whole numbers"),
+                         ("live:camera=/nonexistent/video9", "neither"),
                          ("live:camera=0,camera=1", "twice"), ("live:bogus", "key=value")):
         with pytest.raises(LiveError, match=message):
             LiveSpec.parse(bad)
@@ -295,3 +296,40 @@ def test_the_live_panels_rig_is_one_device_string_checked_field_by_field():
         LiveRigOptions(display="1,camera=2").device()
     with pytest.raises(LiveError, match="no live camera"):
         LiveRigOptions(camera=" ").device()
+
+
+def test_no_display_is_refused_even_where_sdl_falls_back_to_drawing_off_screen(run_python):
+    """With no X server, SDL falls back to its off-screen driver, which "shows" frames nobody sees (issue 53, item
+    4): listing the displays, a check and a show all refuse, exit 2, as with no driver at all."""
+    proc = run_python("""
+        import os
+        os.environ.pop("SDL_VIDEODRIVER", None)
+        from procam.addon.cli.app import main
+        codes = [main(["live-check", "--list-displays"]),
+                 main(["live-check", "--device", "live:camera=0,display=0", "--projector-width", "1024",
+                       "--projector-height", "768"])]
+        import pygame
+        print("driver tried:", pygame.display.get_init() and pygame.display.get_driver())
+        raise SystemExit(max(codes) if min(codes) == 2 else 1)
+    """, env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert proc.stderr.count("no display to open the projector window on") == 2, proc.stderr
+    assert "display 0:" not in proc.stdout and "Traceback" not in proc.stderr
+    assert "driver tried: False" in proc.stdout  # SDL's video was let go again
+
+
+@pytest.mark.parametrize("where", [(5000, 5000), (-64, 10), (10, SCREEN[1]), (-5000, -5000)])
+def test_a_window_placed_entirely_off_the_desktop_is_refused(xvfb, where):
+    """A window nobody sees shows nothing on the projector (issue 53, item 4): refused, saying where the desktop is."""
+    with pytest.raises(LiveError, match=rf"at {where[0]}:{where[1]} lies entirely off the desktop"):
+        ProjectorWindow((64, 48), position=where)
+    window = ProjectorWindow((64, 48), position=(SCREEN[0] - 10, SCREEN[1] - 10))  # partly on: the user's choice
+    window.close()
+
+
+def test_the_help_says_displays_are_numbered_from_0():
+    """SDL numbers displays from 0, and so do --list-displays and display=N: the help says so (issue 53)."""
+    from procam.addon.steps import live, live_show
+
+    for text in (live.DEVICE_HELP, live_show.DEVICE_HELP):
+        assert "numbered from 0, as procam live-check --list-displays lists them" in text

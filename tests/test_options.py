@@ -117,7 +117,15 @@ SIDEBAR_TABLES = ("panels/properties.py", "panels/board.py", "operators/messages
                   "operators/capture_io.py", "operators/live.py", "operators/calibrate_rig.py")
 
 
-@pytest.mark.parametrize("index", range(24))
+#: how many classes :func:`_options_classes` lists (checked below, so that none is left out of the test after it)
+OPTION_CLASSES = 25
+
+
+def test_every_options_class_is_checked():
+    assert len(_options_classes()) == OPTION_CLASSES
+
+
+@pytest.mark.parametrize("index", range(OPTION_CLASSES))
 def test_no_declared_option_is_declared_a_second_time(index):
     """A declared option's flag is added to no parser by hand, its scene property made by no hand, and its name in
     messages written in no table: the declaration on the Options class is the only one. (``--diagnosis`` is named
@@ -136,7 +144,8 @@ def test_no_declared_option_is_declared_a_second_time(index):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Dict):
                 for key in node.keys:
-                    if isinstance(key, ast.Constant):
+                    # --force and --out: every command's, which messages.py names for all their messages
+                    if isinstance(key, ast.Constant) and key.value not in ("--force", "--out"):
                         assert key.value not in flags | props, f"{path.name} declares {key.value} again"
             if isinstance(node, ast.keyword) and node.arg == "name" and isinstance(node.value, ast.Constant):
                 # a dialog's or panel's own field of a declared option takes its label from the declaration
@@ -267,3 +276,22 @@ def test_the_board_panel_fields_come_from_the_declaration():
     options = from_values(RigOptions, scene.__getitem__, sessions=(Path("a"),), out=Path("r.json"), board=(9, 7),
                           projector_size=(8, 6))
     assert (options.window, options.camera_model, options.projector_model) == (31, "k1k2", "auto")
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["show", "cal", "frames", "--out", "o", "--chunk", "x"], "--chunk takes a whole number, got 'x'"),
+    (["compensate", "cal", "t.png", "--out", "o", "--lr", "fast"], "--lr takes a number, got 'fast'"),
+    (["live-check", "--device", "live:camera=0,display=x"], "display= takes whole numbers (display=1+2), got 'x'"),
+    (["live-check", "--device", "live:camera=0,position=a:b"],
+     "position= takes whole numbers (position=X:Y, several as X:Y+X:Y), got 'a:b'"),
+    (["live-check", "--device", "live:camera=0,latency=soon"], "latency= takes a number of seconds or auto, got "
+                                                               "'soon'"),
+])
+def test_a_value_that_is_no_number_is_named_without_python_words(argv, says, capsys):
+    from procam.addon.cli.app import main
+
+    with pytest.raises(SystemExit) as exit_:
+        raise SystemExit(main(argv))
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert says in err and "invalid literal" not in err and "could not convert" not in err, err

@@ -8,10 +8,13 @@ Every check runs before any rendering, so these tests use tiny or fabricated fol
 from __future__ import annotations
 
 import ast
+import contextlib
 import json
 import os
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,8 +24,9 @@ import pytest
 from procam.addon.cli.app import main
 from procam.addon.errors import Cancelled, LabError
 from procam.addon.imageio import write_image
-from procam.addon.outputs import (AtomicFolder, OutputError, check_file_replaceable, check_replaceable,
-                                  folder_in_place, hidden_sibling, stale_siblings, write_manifest)
+from procam.addon.outputs import (AtomicFolder, OutputBusyError, OutputError, check_file_replaceable,
+                                  check_replaceable, folder_in_place, hidden_sibling, holds_writer, lock_path,
+                                  stale_siblings, write_manifest, writer_lock)
 from procam.addon.steps import layout
 from procam.addon.steps.stage_c import StageC
 
@@ -449,3 +453,244 @@ def test_a_manifest_holds_only_json_a_value_that_is_no_number_is_null(tmp_path):
     path = write_manifest(tmp_path / "m.json", {"psnr": float("nan"), "seam": np.float32(np.inf), "ok": 1.5,
                                                  "rows": np.array([1.0, np.nan]), "n": np.int64(3)})
     assert strict(path.read_text()) == {"psnr": None, "seam": None, "ok": 1.5, "rows": [1.0, None], "n": 3}
+
+
+# -- issue 53: one writer at a time, whatever the command ---------------------------------------------------------
+
+@contextlib.contextmanager
+def _another_run_writing(target: Path) -> Iterator[int]:
+    """Another process holds the writer lock of ``target`` for the ``with`` block; yields its process id."""
+    code = ("import sys\nfrom procam.addon.outputs import writer_lock\nwith writer_lock(sys.argv[1]):\n"
+            "    print('held', flush=True)\n    sys.stdin.read()\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(target)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "held\n"
+        yield proc.pid
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        proc.wait(60)
+
+
+def test_a_second_writer_of_an_output_is_refused_while_the_first_writes(tmp_path):
+    kind = layout.FRAMES
+    out = tmp_path / "frames"
+    with _another_run_writing(out) as pid:
+        assert lock_path(out).is_file()
+        with pytest.raises(OutputBusyError, match=rf"another procam run \(process {pid} on .*\) is writing to "):
+            AtomicFolder(out, what=kind.what, replaceable=kind.holds, inputs=())
+        with pytest.raises(OutputBusyError, match="another procam run"), writer_lock(out):
+            pass
+    assert not lock_path(out).exists()  # the other run let go, and removed its lock file
+    folder = AtomicFolder(out, what=kind.what, replaceable=kind.holds, inputs=())
+    assert holds_writer(out) and lock_path(out).is_file()
+    _manifest(folder.tmp, kind, frames=[])
+    folder.commit()
+    assert not holds_writer(out) and not lock_path(out).exists()
+    # in one run, nested holders share the lock (a step holds it, and so does the folder it writes)
+    with writer_lock(out):
+        with writer_lock(out):
+            pass
+        assert holds_writer(out)
+        folder = AtomicFolder(out, force=True, what=kind.what, replaceable=kind.holds, inputs=())
+        folder.abort()
+        assert holds_writer(out)
+    assert not holds_writer(out)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_another_thread_is_another_writer(tmp_path):
+    out = tmp_path / "out"
+    held, done = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with writer_lock(out):
+            held.set()
+            done.wait(30)
+
+    thread = threading.Thread(target=hold)
+    thread.start()
+    try:
+        assert held.wait(30)
+        with pytest.raises(OutputBusyError, match="another procam run"), writer_lock(out):
+            pass
+    finally:
+        done.set()
+        thread.join()
+    with writer_lock(out):
+        pass
+
+
+@pytest.mark.parametrize("flock", [True, False])
+def test_a_lock_left_by_a_killed_run_never_blocks_the_next(tmp_path, monkeypatch, flock):
+    import procam.addon.outputs as outputs
+
+    if not flock:  # where the OS has no advisory locks: an exclusive file, stale once its process has ended
+        monkeypatch.setattr(outputs, "_fcntl", None)
+    out = tmp_path / "out"
+    host = hidden_sibling(tmp_path / "probe", "tmp").name.split(".tmp-")[1].rsplit("-", 2)[0]
+    lock_path(out).write_text(f"{host} {_dead_pid()}\n")
+    with writer_lock(out):
+        assert lock_path(out).read_text() == f"{host} {os.getpid()}\n"
+    assert not lock_path(out).exists()
+    if not flock:  # a live process's lock file is honoured
+        live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+        try:
+            lock_path(out).write_text(f"{host} {live.pid}\n")
+            with pytest.raises(OutputBusyError, match=f"process {live.pid}"), writer_lock(out):
+                pass
+        finally:
+            live.kill()
+            live.wait()
+
+
+def test_a_refused_writer_leaves_no_folder_it_made_for_its_lock(tmp_path):
+    out = tmp_path / "a" / "b" / "out"
+    with _another_run_writing(out), pytest.raises(OutputBusyError), writer_lock(out):
+        pass
+    assert not (tmp_path / "a").exists()
+
+
+#: the commands of STEPS, and those that write in place or one file: show, report, precompute
+WRITERS = {**{name: args for name, (args, _) in STEPS.items()},
+           "show": lambda i: ["show", str(i.cal), str(i.targets), "--out", "OUT"],
+           "report": lambda i: ["report", str(i.comp), "--out", "OUT"]}
+
+
+@pytest.mark.parametrize("step", sorted(WRITERS))
+def test_every_writer_refuses_an_output_another_run_is_writing_before_any_work(step, tmp_path, capsys):
+    i = _inputs(tmp_path)
+    out = tmp_path / ("report.html" if step == "report" else "rig-out.json" if step == "calibrate-rig" else "out")
+    before = _snapshot(tmp_path)
+    cmd = [str(out) if a == "OUT" else a for a in WRITERS[step](i)]
+    with _another_run_writing(out):
+        assert main(cmd) == 2
+        err = capsys.readouterr().err
+        assert "another procam run" in err and f"is writing to {out}" in err, err
+    assert _snapshot(tmp_path) == before
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+# -- issue 53: an output never lies inside an input ---------------------------------------------------------------
+
+#: (command line with OUT, the input folder OUT is put inside)
+INSIDE = {
+    "import-captures": (STEPS["import-captures"][0], lambda i: i.photos),
+    "import-captures --add-to": (lambda i: ["import-captures", str(i.seq), str(i.photos), "--add-to", str(i.cset),
+                                            "--out", "OUT"], lambda i: i.cset),
+    "undistort-captures": (STEPS["undistort-captures"][0], lambda i: i.cset),
+    "calibrate": (STEPS["calibrate"][0], lambda i: i.cset),
+    "calibrate-rig": (STEPS["calibrate-rig"][0], lambda i: i.session),
+    "compensate": (STEPS["compensate"][0], lambda i: i.cal),
+    "evaluate": (STEPS["evaluate"][0], lambda i: i.comp),
+    "evaluate (device)": (STEPS["evaluate"][0], lambda i: i.cset),
+    "diagnose": (STEPS["diagnose"][0], lambda i: i.cal),
+    "export-frames": (STEPS["export-frames"][0], lambda i: i.comp),
+    "show": (WRITERS["show"], lambda i: i.cal),
+    "show (folder of targets)": (WRITERS["show"], lambda i: i.targets),
+    "report": (WRITERS["report"], lambda i: i.comp),
+}
+
+
+@pytest.mark.parametrize("step", sorted(INSIDE))
+@pytest.mark.parametrize("force", [False, True])
+def test_every_step_refuses_an_output_inside_one_of_its_inputs(step, force, tmp_path, capsys):
+    args, folder = INSIDE[step]
+    i = _inputs(tmp_path)
+    name = {"report": "report.html", "calibrate-rig": "rig-out.json"}.get(step, "nested")
+    out = folder(i) / "deeper" / name
+    before = _snapshot(tmp_path)
+    listing = sorted(str(p) for p in tmp_path.rglob("*"))
+    cmd = [str(out) if a == "OUT" else a for a in args(i)] + (["--force"] if force else [])
+    assert main(cmd) == 2
+    err = capsys.readouterr().err
+    assert f"{folder(i)}" in err and ("inside" in err or "would be written into" in err), err
+    assert _snapshot(tmp_path) == before
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == listing  # not even an empty folder or a lock file
+
+
+def test_check_replaceable_refuses_an_output_inside_an_input(tmp_path):
+    kind = layout.FRAMES
+    inp = _user_folder(tmp_path / "in")
+    with pytest.raises(OutputError, match=rf"{tmp_path / 'in' / 'out'} lies inside {inp}, an input of this run"):
+        check_replaceable(inp / "out", force=True, what=kind.what, replaceable=kind.holds, inputs=[inp])
+    os.symlink(inp, tmp_path / "link")  # the same folder by another name
+    with pytest.raises(OutputError, match="lies inside"):
+        check_replaceable(tmp_path / "link" / "out", force=True, what=kind.what, replaceable=kind.holds, inputs=[inp])
+    # a file input: its folder is no input
+    assert check_replaceable(tmp_path / "out", force=True, what=kind.what, replaceable=kind.holds,
+                             inputs=[inp / "notes.txt"]) is False
+
+
+# -- issue 53: a refused compensate is refused before any work, and never blocks its own retry --------------------
+
+@pytest.mark.parametrize("projectors", [2, 3])
+def test_compensate_with_a_device_of_another_rig_is_refused_before_any_work(tmp_path, capsys, projectors):
+    from procam.addon.lab.truth import make_truth
+
+    cal = _calibration_folder(tmp_path, tmp_path / "captures")  # one projector
+    truth = tmp_path / f"lab{projectors}.json"
+    make_truth("plane", camera_size=(32, 24), projector_size=(40, 30), projectors=projectors).save(truth)
+    target = write_image(tmp_path / "t.png", np.full((6, 8, 3), 0.5, np.float32))
+    out = tmp_path / "comp"
+    for step in (["compensate", str(cal), str(target)], ["show", str(cal), str(target)]):
+        assert main([*step, "--device", f"lab:{truth}", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert f"lab:{truth} shows {projectors} projectors, but the calibration {cal} is of 1" in err, err
+        assert "%" not in err  # no progress: refused before any work
+        for internal in ("project_all", "LabTruth", "for_projector", "force=True"):
+            assert internal not in err, err
+        assert not out.exists()
+
+
+def test_check_device_fits_names_each_side(tmp_path):
+    from procam.addon.lab.truth import make_truth
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps.stage_c import check_device_fits
+
+    cal = calibrate_step.read(_calibration_folder(tmp_path, tmp_path / "captures"))
+    one = tmp_path / "one.json"
+    make_truth("plane", camera_size=(32, 24), projector_size=(40, 30)).save(one)
+    check_device_fits(f"lab:{one}", cal)  # the same rig's number of projectors: nothing to say
+    check_device_fits(None, cal)
+    check_device_fits(f"folder:{tmp_path / 'missing'}", cal)  # what the device itself says, when it opens
+    cset = write_small_set(tmp_path / "set").path
+    check_device_fits(f"folder:{cset}", cal)
+
+
+def test_an_incomplete_folder_of_a_failed_run_is_replaced_without_force(tmp_path, monkeypatch):
+    from procam.addon.steps import compensate as compensate_step
+
+    kind = layout.COMPENSATION
+    half = _manifest(tmp_path / "half", kind, complete=False, targets=[])
+    whole = _manifest(tmp_path / "whole", kind, complete=True, targets=[])
+    check = lambda target, force=False: check_replaceable(  # noqa: E731
+        target, force=force, what=kind.what, replaceable=kind.holds, inputs=(), incomplete=kind.incomplete)
+    assert check(half) is True
+    with pytest.raises(OutputError, match="never overwritten without --force") as refused:
+        check(whole)
+    assert "force=True" not in str(refused.value)
+    with pytest.raises(OutputError, match="never overwritten without --force"):  # an incomplete one of a kind
+        check_replaceable(half, force=False, what=kind.what, replaceable=kind.holds, inputs=())  # that cannot tell
+
+    # the run: Ctrl-C after the first target leaves an incomplete folder, and the same command redoes it whole
+    cal = _calibration_folder(tmp_path, tmp_path / "captures")
+    targets = tuple(write_image(tmp_path / f"{n}.png", np.full((6, 8, 3), 0.5, np.float32)) for n in "abc")
+    monkeypatch.setattr(compensate_step, "StageC", _Stage)
+    out = tmp_path / "comp"
+    with pytest.raises(Cancelled, match="run the same command again to redo it whole; no --force is needed"):
+        compensate_step.run(compensate_step.CompensateOptions(cal, targets, out))
+    assert compensate_step.read(out).doc["complete"] is False
+    monkeypatch.setattr(compensate_step, "StageC", type("S", (_Stage,), {"stop": "none"}))
+    view = compensate_step.run(compensate_step.CompensateOptions(cal, targets, out))
+    assert view.doc["complete"] is True and [t.name for t in view.targets] == ["a", "b", "c"]
+
+
+def test_export_of_a_compensation_without_finished_targets_names_the_command(tmp_path, capsys):
+    comp = _manifest(tmp_path / "comp", layout.COMPENSATION, mode="none", targets=[], complete=False)
+    assert main(["export-frames", str(comp), "--out", str(tmp_path / "frames")]) == 2
+    err = capsys.readouterr().err
+    assert "holds no finished targets to export; run procam compensate first" in err, err
+    assert "run Compensate" not in err

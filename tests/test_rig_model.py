@@ -146,7 +146,7 @@ def test_one_projector_rig_dict_is_unchanged_and_several_round_trip():
     (lambda d: d.update(projectors=[3]), "list of one or more"),
     (lambda d: d["projectors"][0].update(intensity=9.0), "'projector' differs from the first"),
     (lambda d: d["projectors"][1].update(camera_from_projector=d["projectors"][0]["camera_from_projector"]),
-     "projectors 0 and 1 .* same pose"),
+     "projectors 1 and 2 .* same pose"),
     (lambda d: d["projectors"][1].pop("intrinsics"), "lacks 'intrinsics'"),
 ])
 def test_bad_projector_lists_are_refused(change, message):
@@ -203,3 +203,10 @@ def test_a_scaled_working_size_keeps_square_pixels():
     for size in ((1279, 1023), (1920, 1080), (1000, 750)):
         w, h = square_scaled_size(*size, 0.1)
         assert abs(w - 0.1 * size[0]) <= 0.1 * 0.1 * size[0] and abs(w * size[1] / size[0] - h) <= 0.05
+
+
+def test_two_projectors_at_one_pose_are_named_from_1():
+    rig = demo_rig()
+    with pytest.raises(RigError, match=r"projectors 1 and 2 have the same pose") as refused:
+        Rig(rig.camera, rig.projector, (rig.projector,))
+    assert "numbered from 0" not in str(refused.value)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,7 @@ import pytest
 
 from procam.addon.cli.app import EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, EXIT_USER, main
 from procam.addon.imageio import write_image
+from procam.addon.outputs import OutputBusyError
 from procam.addon.steps.layout import frame_name
 from procam.addon.steps.show import MANIFEST, SequenceError, ShowFolder, frame_digits, list_frames
 
@@ -93,9 +95,19 @@ def test_show_folder_refuses_foreign_folders_and_second_writers(tmp_path):
         ShowFolder(user).open()
     first = ShowFolder(tmp_path / "show")
     assert first.open() is None
-    try:
-        with pytest.raises(SequenceError, match="another procam run"):
-            ShowFolder(tmp_path / "show").open()
+    try:  # another run: another process, or another thread (a second job in Blender)
+        refused: list[BaseException] = []
+
+        def second() -> None:
+            try:
+                ShowFolder(tmp_path / "show").open()
+            except OutputBusyError as exc:
+                refused.append(exc)
+
+        thread = threading.Thread(target=second)
+        thread.start()
+        thread.join()
+        assert len(refused) == 1 and "another procam run" in str(refused[0])
     finally:
         first.unlock()
     second = ShowFolder(tmp_path / "show")
@@ -283,7 +295,8 @@ def test_show_refuses_a_foreign_folder_before_any_work(lab_calibration, tmp_path
     assert [p.name for p in user.iterdir()] == ["notes.txt"]
     assert main(["show", str(cal_dir), str(tmp_path / "nothing_####.png"), "--out", str(tmp_path / "o")]) == EXIT_USER
     assert "no file" in capsys.readouterr().err and not (tmp_path / "o").exists()
-    assert main(["show", str(tmp_path), str(seq), "--out", str(tmp_path / "o")]) == EXIT_USER
+    (tmp_path / "not_a_calibration").mkdir()  # (tmp_path itself would be an input holding the output)
+    assert main(["show", str(tmp_path / "not_a_calibration"), str(seq), "--out", str(tmp_path / "o")]) == EXIT_USER
     assert "calibration" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
@@ -635,3 +648,23 @@ def test_a_damaged_video_is_refused(tmp_path, capsys):
         list_frames([damaged])
     assert main(["show", str(tmp_path), str(damaged), "--out", str(tmp_path / "out")]) == EXIT_USER
     assert "damaged" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+def test_a_local_cluster_writes_nothing_outside_the_folders_given(run_python, tmp_path):
+    """Dask's workers keep their scratch space (and its global.lock, purge.lock) beside the show folder, and it goes
+    when the cluster closes: nothing is left in $TMPDIR (issue 53)."""
+    tmpdir, out = tmp_path / "tmpdir", tmp_path / "show"
+    tmpdir.mkdir()
+    proc = run_python("""
+        import sys
+        from pathlib import Path
+        from procam.addon.steps.show_cluster import Cluster
+        cluster = Cluster(workers=1, threads=1, beside=Path(sys.argv[1]))
+        print(cluster.describe)
+        print(sorted(p.name for p in Path(sys.argv[1]).parent.iterdir()))
+        cluster.close()
+    """, str(out), env={"TMPDIR": str(tmpdir)}, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "'.show.tmp-" in proc.stdout  # the scratch space, while the cluster runs
+    assert sorted(p.name for p in tmpdir.rglob("*")) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tmpdir"]

@@ -18,6 +18,7 @@ from typing import Any
 from ..errors import CaptureError
 from ..progress import Progress, quiet
 from .format import SHARED_KINDS, CaptureSet, CaptureSetWriter
+from .others_black import check_distinct_projectors
 
 
 def combine_projector_sets(sets: Sequence[CaptureSet], out: str | Path, *, force: bool = False,
@@ -25,7 +26,7 @@ def combine_projector_sets(sets: Sequence[CaptureSet], out: str | Path, *, force
                            progress: Progress | None = None) -> CaptureSet:
     """A new capture set of ``len(sets)`` projectors: projector ``k``'s captures from ``sets[k]`` (a set of one
     projector each), the shared surface photo, depth and targets from ``sets[0]``. Nothing is written when they
-    disagree on the camera."""
+    disagree on the camera, or when two projectors' photographs are the same (:func:`.check_distinct_projectors`)."""
     say = progress or quiet
     if len(sets) < 2:
         raise CaptureError("combining capture sets needs one set per projector, at least two")
@@ -47,7 +48,8 @@ def combine_projector_sets(sets: Sequence[CaptureSet], out: str | Path, *, force
                           camera_status=first.camera_status, projector_status=first.projector_status,
                           projector_pose_known=first.projector_pose_known,
                           notes={**first.notes, **(notes or {})}, camera_lens=first.camera_lens, force=force,
-                          inputs=(*(cs.path for cs in sets), *inputs)) as writer:
+                          inputs=(*(cs.path for cs in sets), *inputs),
+                          check=lambda written: check_distinct_projectors(written, where=str(out))) as writer:
         for k, cs in enumerate(sets):
             for e in cs.entries:
                 done += 1

@@ -76,4 +76,62 @@ def check_others_black(captures: CaptureSet, *, tolerance: float = BLACK_TOLERAN
     return excess
 
 
-__all__ = ["BLACK_TOLERANCE", "check_others_black"]
+#: Two projectors' captures of the same pattern that differ by less than this (mean absolute difference, a fraction
+#: of their mean level), pattern after pattern, are one projector's photographs twice. Two real projectors differ
+#: far more in their checkerboards and Gray codes, even stacked on one another: a fraction of a pixel of pose moves
+#: every edge; a copy saved again, or re-encoded, stays well under it.
+SAME_TOLERANCE = 0.01
+#: The kinds compared: what a projector shows, so what tells two projectors apart.
+_COMPARED = ("white", "checker", "graycode")
+
+
+def check_distinct_projectors(captures: CaptureSet, *, tolerance: float = SAME_TOLERANCE,
+                              where: str | None = None) -> None:
+    """Refuse a multi-projector capture set in which two projectors' photographs are the same (identical, or nearly:
+    saved again, re-encoded): one projector's photographs given as another's, which no calibration can tell apart
+    but as two projectors at one pose. Their captures of the same patterns (kind and parameters alike) are compared
+    pattern after pattern; the first pair that differs by more than ``tolerance`` of its level ends the
+    comparison. ``where`` names the set in the message (default its folder)."""
+    count = len(captures.projectors)
+    if count < 2:
+        return
+    shown = []
+    for k in range(count):
+        view = captures.for_projector(k)
+        shown.append({(e.kind, repr(sorted((n, v) for n, v in e.params.items() if n != "source"))): e
+                      for e in view.entries if e.kind in _COMPARED})
+    for j in range(1, count):
+        for k in range(j):
+            alike = [key for key in shown[j] if key in shown[k]]
+            if not alike:
+                continue
+            worst = 0.0
+            for key in alike:
+                a = read_image(captures.file(shown[k][key]))
+                b = read_image(captures.file(shown[j][key]))
+                if a.shape != b.shape:
+                    worst = np.inf
+                    break
+                level = max(float(a.mean() + b.mean()) / 2, 1e-6)
+                worst = max(worst, float(np.abs(a - b).mean()) / level)
+                if worst >= tolerance:
+                    break
+            if worst < tolerance:
+                raise CaptureError(
+                    f"capture set {where or captures.path}: projector {j + 1}'s photographs are the same as projector "
+                    f"{k + 1}'s ({len(alike)} photographs of the same patterns differ by {worst:.2%} of their level "
+                    f"at most; two projectors differ far more): were projector {j + 1}'s photographs copied from "
+                    f"projector {k + 1}'s? Photograph projector {j + 1}'s own sequence, shown on projector {j + 1} "
+                    "with every other projector black, and import those")
+
+
+def check_projector_captures(captures: CaptureSet, *, where: str | None = None) -> None:
+    """Both checks of a multi-projector capture set: no projector's photographs are another's
+    (:func:`check_distinct_projectors`), and each projector's were taken with the others black
+    (:func:`check_others_black`)."""
+    check_distinct_projectors(captures, where=where)
+    check_others_black(captures, where=where)
+
+
+__all__ = ["BLACK_TOLERANCE", "SAME_TOLERANCE", "check_distinct_projectors", "check_others_black",
+           "check_projector_captures"]

@@ -27,7 +27,7 @@ from ..progress import Progress, quiet
 from ..rig.model import Camera, Projector, intrinsics_from_fov
 from .depth_io import MIN_VALID, DepthReading, find_alignment, read_depth, shift_image
 from .exposure import Shot, check_exposure, reduce_image
-from .others_black import check_others_black
+from .others_black import check_projector_captures
 from .format import CAMERA_KINDS, SHARED_KINDS, CaptureSet, CaptureSetWriter, DepthInfo, Entry, srgb_to_linear
 from ..rig.lens import RigLens
 from .sequence import SequenceInfo, load_sequence, sequence_frame
@@ -426,7 +426,8 @@ def add_projector_captures(base: CaptureSet, sequence_dir: str | Path, captures_
     as ``base``'s photographs (``undistort``) or none (:func:`_check_same_lens`). ``projector`` (default the
     sequence's) is its model, e.g. from its rig file. The surface photo, the depth and the targets are
     ``base``'s; a surface frame in the sequence is left out. The finished set must pass
-    :func:`.others_black.check_others_black` before it is moved into place; any problem raises a
+    :func:`.others_black.check_projector_captures` (no projector's photographs another's; the others black)
+    before it is moved into place; any problem raises a
     :class:`CaptureError` and nothing is written.
     """
     say = progress or quiet
@@ -464,7 +465,7 @@ def add_projector_captures(base: CaptureSet, sequence_dir: str | Path, captures_
                                             and undistort is not None else "nominal"),
                           projector_pose_known=pose_known, notes=notes, camera_lens=base.camera_lens, force=force,
                           inputs=(base.path, sequence_dir, captures_dir, *inputs),
-                          check=lambda written: check_others_black(written, where=str(out))) as writer:
+                          check=lambda written: check_projector_captures(written, where=str(out))) as writer:
         say(f"copying the {len(base.entries)} images of {base.path}", 0.0)
         for e in base.entries:
             writer.copy(base, e)

@@ -44,7 +44,9 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="folder to create for the projector inputs")
     add_schedule_options(p)
     add_effect_options(p)
-    p.add_argument("--force", action="store_true", help="replace an existing compensation folder at --out")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing compensation folder at --out (one a failed or cancelled run left, marked "
+                        "incomplete, is replaced without it)")
 
 
 @command("compensate", "Find the projector input for each target image (stage C).", _configure)

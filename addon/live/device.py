@@ -40,8 +40,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -126,18 +127,23 @@ class LiveSpec:
         if "camera" not in values and camera_required:
             raise LiveError(f"live device: say which camera, e.g. live:camera=0,display=1 (got {text!r}); only "
                             "`procam live-show` runs without one (open loop)")
-        try:
-            displays = tuple(int(v) for v in values["display"].split("+")) if "display" in values else ()
-            display = displays[0] if displays else None
-            positions = tuple(tuple(int(v) for v in one.split(":")) for one in values["position"].split("+")) \
-                if "position" in values else ()
-            position = positions[0] if positions else None
-            average = int(values["average"]) if "average" in values else None
-            noise = float(values["noise"]) if "noise" in values else None
-            latency = None if values.get("latency", "auto") == "auto" else float(values["latency"])
-            size = tuple(int(v) for v in values["size"].lower().split("x")) if "size" in values else None
-        except ValueError as exc:
-            raise LiveError(f"live device: a value in {text!r} is not a number ({exc})") from None
+        def number(key: str, read: Callable[[str], Any], what: str) -> Any:
+            try:
+                return read(values[key]) if key in values else None
+            except ValueError:
+                raise LiveError(f"live device: {key}= takes {what}, got {values[key]!r}") from None
+
+        displays = number("display", lambda v: tuple(int(n) for n in v.split("+")), "whole numbers (display=1+2)") \
+            or ()
+        display = displays[0] if displays else None
+        positions = number("position", lambda v: tuple(tuple(int(n) for n in one.split(":")) for one in v.split("+")),
+                           "whole numbers (position=X:Y, several as X:Y+X:Y)") or ()
+        position = positions[0] if positions else None
+        average = number("average", int, "a whole number of frames")
+        noise = number("noise", float, "a number (linear units)")
+        latency = None if values.get("latency", "auto") == "auto" else \
+            number("latency", float, "a number of seconds or auto")
+        size = number("size", lambda v: tuple(int(n) for n in v.lower().split("x")), "whole numbers (WIDTHxHEIGHT)")
         if display is None and position is None:
             display = 0
         if any(len(p) != 2 for p in positions) or size is not None and len(size) != 2:
@@ -154,10 +160,8 @@ class LiveSpec:
         if encoding not in (("auto", "srgb", "linear") if shoot else ("srgb", "linear")):
             raise LiveError(f"live device: encoding must be {'auto, ' if shoot else ''}srgb or linear, got "
                             f"{encoding!r}")
-        try:
-            timeout = float(values.get("timeout", DEFAULT_TIMEOUT))
-        except ValueError as exc:
-            raise LiveError(f"live device: a value in {text!r} is not a number ({exc})") from None
+        timeout = number("timeout", float, "a number of seconds")
+        timeout = DEFAULT_TIMEOUT if timeout is None else timeout
         if not 0 < timeout <= 3600:
             raise LiveError(f"live device: timeout must be 0 … 3600 s, got {timeout:g}")
         if displays and positions:

@@ -56,15 +56,29 @@ def _pygame() -> Any:
     return pygame
 
 
+#: SDL's video drivers that draw where nobody sees: SDL falls back to them when there is no desktop to draw on.
+_UNSEEN_DRIVERS = ("offscreen", "dummy", "evdev")
+
+
+def _no_display(why: str) -> LiveError:
+    return LiveError(f"no display to open the projector window on ({why}). Run on the machine the projector is "
+                     "plugged into, inside its desktop session (not over SSH), or use the folder workflow "
+                     "(`procam patterns` / `procam import-captures`)")
+
+
 def _init_video(pygame: Any) -> None:
     if pygame.display.get_init():
         return
     try:
         pygame.display.init()
     except pygame.error as exc:
-        raise LiveError(f"no display to open the projector window on ({exc}). Run on the machine the projector "
-                        "is plugged into, inside its desktop session (not over SSH), or use the folder workflow "
-                        "(`procam patterns` / `procam import-captures`)") from None
+        raise _no_display(str(exc)) from None
+    driver = str(pygame.display.get_driver())
+    asked = os.environ.get("SDL_VIDEODRIVER", "").strip().lower()
+    # a driver nobody sees is taken only when asked for by name (a test's virtual display, a headless check)
+    if driver.lower() in _UNSEEN_DRIVERS and driver.lower() != asked:
+        pygame.display.quit()
+        raise _no_display(f"no desktop session was found, and SDL's '{driver}' driver draws where nobody sees")
 
 
 def list_displays() -> list[tuple[int, int, int, float]]:
@@ -74,6 +88,27 @@ def list_displays() -> list[tuple[int, int, int, float]]:
     sizes = pygame.display.get_desktop_sizes()
     rates = pygame.display.get_desktop_refresh_rates()
     return [(i, int(w), int(h), float(rates[i]) if i < len(rates) else 0.0) for i, (w, h) in enumerate(sizes)]
+
+
+def _check_on_desktop(where: tuple[int, int], size: tuple[int, int], displays: list[tuple[int, int, int, float]],
+                      who: str) -> None:
+    """Refuse a window at desktop position ``where`` that lies entirely off the desktop: nobody would see it. With
+    one display the desktop is that display; with several SDL does not say where each lies, so only a window off
+    every place they could lie (each one's size, summed, on every side of the first) is refused."""
+    if not displays:
+        return
+    x, y = where
+    w, h = size
+    if len(displays) == 1:
+        left, top, right, bottom = 0, 0, displays[0][1], displays[0][2]
+        desktop = f"its one display is {right}×{bottom}, from 0:0"
+    else:
+        wide, tall = sum(d[1] for d in displays), sum(d[2] for d in displays)
+        left, top, right, bottom = -wide, -tall, wide, tall
+        desktop = f"{len(displays)} displays of {', '.join(f'{d[1]}×{d[2]}' for d in displays)}"
+    if x + w <= left or x >= right or y + h <= top or y >= bottom:
+        raise LiveError(f"{who}'s window of {w}×{h} at {x}:{y} lies entirely off the desktop ({desktop}): give the "
+                        "desktop position of the projector's output (its top-left corner), or display=N")
 
 
 class ProjectorWindow:
@@ -103,6 +138,7 @@ class ProjectorWindow:
             self.refresh_hz = hz or self.refresh_hz
         else:
             where = (int(position[0]), int(position[1]))
+            _check_on_desktop(where, self.size, list_displays(), who)
         try:
             self._window = pygame.Window(title, self.size, position=where, borderless=True)
         except (pygame.error, ValueError) as exc:

@@ -360,7 +360,7 @@ class Rig:
                 apart = float(np.linalg.norm(a.position - b.position))
                 turn = math.degrees(math.acos(float(np.clip(a.direction @ b.direction, -1.0, 1.0))))
                 if apart < MIN_SEPARATION and turn < MIN_TURN_DEG:
-                    raise RigError(f"projectors {i} and {j} (numbered from 0) have the same pose (centres "
+                    raise RigError(f"projectors {i + 1} and {j + 1} have the same pose (centres "
                                    f"{apart * 1000:.2f} mm apart, same direction); each projector needs its own pose")
 
     @property

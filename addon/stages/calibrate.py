@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from ..capture.format import CaptureSet
-from ..capture.others_black import check_others_black
+from ..capture.others_black import check_projector_captures
 from ..errors import CalibrationError, ProCamError, RigError
 from ..progress import Cancel, Progress, quiet
 from ..render.forward import ForwardModel
@@ -295,8 +295,8 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     (:func:`albedo_from_projectors`), and stage B for each. What one projector's
     stage refuses names it ("projector 2: …"). Fitting the intrinsics and a
     given start pose are one projector's and are refused there. A set in
-    which a projector was not black while another's sequence was taken is
-    refused first, naming both (:func:`~..capture.others_black.check_others_black`).
+    which a projector was not black while another's sequence was taken, or one projector's photographs stand for
+    another's, is refused first, naming both (:func:`~..capture.others_black.check_projector_captures`).
     """
     if projector_intrinsics not in PROJECTOR_INTRINSICS:
         raise CalibrationError(f"unknown projector intrinsics {projector_intrinsics!r}; choose one of "
@@ -319,8 +319,8 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
                 raise CalibrationError(("", "projector {k}: ")[many].format(k=k + 1) +
                                        f"the capture set {captures.path} has no '{kind}' capture; calibration "
                                        "needs white and black captures, and a checkerboard or Gray code for stage B")
-    if many:  # each sequence must have been taken with the other projectors black: else it is refused by name
-        check_others_black(captures)
+    if many:  # each sequence its own projector's, taken with the others black: else it is refused by name
+        check_projector_captures(captures)
     # Stage B fits its warp to a projected checkerboard by rendering; a session without one (OpenCV's
     # structured-light sequence: Gray code, white, black) gets it from the decoded Gray code instead.
     warp_sources = ["checker" if v.entries_of("checker") else "graycode" if v.entries_of("graycode") else None

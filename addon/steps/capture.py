@@ -35,7 +35,7 @@ from ..lab.layouts import LAYOUTS as PROJECTOR_LAYOUTS, MAX_PROJECTORS
 from ..rig.demo import demo_rig
 from ..options import option, same_option, validate
 from ..progress import Cancel, Progress, quiet
-from ..outputs import check_replaceable, file_sha256
+from ..outputs import check_replaceable, file_sha256, writer_lock
 from ..capture.patterns import LAYOUTS
 from ..rig.model import Camera, Intrinsics, Projector, Rig, intrinsics_from_fov, projector_intrinsics_from_throw
 from ..surface.mesh import SurfaceMesh
@@ -72,6 +72,10 @@ def pixel_size(text: str) -> tuple[int, int]:
     if w < 8 or h < 6 or w > 8192 or h > 8192:
         raise ValueError(f"expected a size from 8x6 to 8192x8192 pixels, got {text!r}")
     return w, h
+
+
+#: side-by-side footprints overlap by a fifth unless --overlap says otherwise
+LAB_OVERLAP = 0.2
 
 
 @dataclass(frozen=True)
@@ -137,7 +141,7 @@ class LabOptions:
         help="with --projectors above 1: side-by-side (footprints in a row, overlapping by --overlap) or stacked "
              "(all on the same area from slightly different positions) (default side-by-side)")
     overlap: float = option(
-        0.2, min=0.0, max=0.9, metavar="FRACTION",
+        LAB_OVERLAP, min=0.0, max=0.9, metavar="FRACTION",
         help="side-by-side: how much neighbouring footprints overlap, as a fraction of a footprint's width "
              "(default 0.2)")
     projector_effects: str = option(
@@ -164,6 +168,9 @@ class LabOptions:
 def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cancel | None = None) -> CaptureSet:
     """Render a calibration capture set in the virtual lab; every argument is checked before the first render."""
     validate(options, LabError)
+    if options.projector_layout == "stacked" and options.overlap != LAB_OVERLAP:
+        raise LabError("--overlap sets how far side-by-side footprints overlap; stacked projectors all light the "
+                       "same area, so it has no meaning there: leave --overlap out, or use --layout side-by-side")
     out, truth_path = options.paths()
     # What the truth must not be written into: the mesh read, and any step folder (another set's capture.json…).
     named = isinstance(options.surface, (str, Path)) and Path(options.surface).is_file()
@@ -171,6 +178,13 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     inputs = (mesh, *layout.step_folders_around(truth_path))
     check_lab_outputs(out, truth_path, force=options.force, inputs=inputs)  # before reading any mesh
     check_supersample(options.supersample)
+    # another run of this capture set or truth file is refused before any work
+    with writer_lock(out), writer_lock(truth_path):
+        return _run_lab(options, out, truth_path, inputs, progress, cancel)
+
+
+def _run_lab(options: LabOptions, out: Path, truth_path: Path, inputs: tuple[Path | None, ...],
+             progress: Progress | None, cancel: Cancel | None) -> CaptureSet:
     truth = make_truth(options.surface, effects=options.effects, seed=options.seed, samples=options.samples,
                        scale=options.scale, rig=options.rig, surface_source=options.surface_source,
                        camera_size=options.camera_size, projector_size=options.projector_size,
@@ -421,10 +435,11 @@ def run_undistort(options: UndistortOptions, progress: Progress | None = None,
     del cancel  # a few seconds of image remapping
     check_replaceable(options.out, force=options.force, what=layout.CAPTURES.what, replaceable=layout.CAPTURES.holds,
                       inputs=(options.captures_dir, options.rig), error=CaptureError)
-    captures = CaptureSet.load(options.captures_dir)
-    _, _, lens = rig_models(options.rig, captures.projector, captures.camera)
-    return undistort_captures(captures, lens, options.out, force=options.force,
-                              inputs=(options.captures_dir, options.rig), progress=progress)
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        captures = CaptureSet.load(options.captures_dir)
+        _, _, lens = rig_models(options.rig, captures.projector, captures.camera)
+        return undistort_captures(captures, lens, options.out, force=options.force,
+                                  inputs=(options.captures_dir, options.rig), progress=progress)
 
 
 def run_import(options: ImportOptions, progress: Progress | None = None,
@@ -436,8 +451,13 @@ def run_import(options: ImportOptions, progress: Progress | None = None,
                       inputs=(options.sequence_dir, options.photos_dir, options.depth_path, options.rig,
                               options.add_to),
                       error=CaptureError)
-    if options.add_to is not None:
-        return _run_add(options, options.add_to, progress)
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        if options.add_to is not None:
+            return _run_add(options, options.add_to, progress)
+        return _import(options, progress)
+
+
+def _import(options: ImportOptions, progress: Progress | None) -> CaptureSet:
     camera, projector, lens = options.camera, None, None
     if options.rig is not None:
         camera, projector, lens = rig_models(options.rig, load_sequence(options.sequence_dir).projector, camera)

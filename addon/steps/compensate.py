@@ -28,13 +28,14 @@ from typing import Any
 from ..capture.devices import Device
 from ..errors import Cancelled, CaptureError, ImageError, ProCamError
 from ..imageio import READ_IMAGE_SUFFIXES, write_image
-from ..outputs import AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest
+from ..outputs import (AtomicFolder, check_replaceable, file_sha256, natural_key, output_names, write_manifest,
+                       writer_lock)
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
 from ..stages.range import range_line
 from . import calibrate as calibrate_step
 from . import layout, projectors
-from .stage_c import StageC, StageCOptions, loop_record, stage_c_inputs
+from .stage_c import StageC, StageCOptions, check_device_fits, loop_record, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.COMPENSATION
@@ -78,10 +79,18 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         raise ImageError("no target images: add target files or choose an image sequence folder")
     # The output is checked before anything is read (and again, with the capture set, when it is created).
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration, *paths, *stage_c_inputs(options.stage_c)))
-    say("reading the calibration and the targets", 0.0)
+                      inputs=(options.calibration, *paths, *stage_c_inputs(options.stage_c)),
+                      incomplete=KIND.incomplete)
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        return _run(options, say, cancel, device, paths)
+
+
+def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, device: Device | None,
+         paths: list[Path]) -> "CompensationView":
     options.stage_c.check()
     cal = calibrate_step.read(options.calibration)
+    check_device_fits(options.stage_c.device, cal, device=device)  # a device of another rig: refused first
+    say("reading the calibration and the targets", 0.0)
     ident = calibrate_step.identity(options.calibration)
     several = cal.projector_count > 1  # one joint solve on every projector, a frame per projector
     opening = (projectors.JointStage if several else StageC)(cal, options.stage_c, device=device,
@@ -101,7 +110,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         names = output_names(paths)
         folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                               inputs=(options.calibration, cal.capture_dir, *paths,
-                                      *stage_c_inputs(options.stage_c)))
+                                      *stage_c_inputs(options.stage_c)), incomplete=KIND.incomplete)
         records: list[dict[str, Any]] = []
         failure: ProCamError | None = None
         stopped: BaseException | None = None  # Ctrl-C or Cancel: the targets finished so far are kept
@@ -153,8 +162,8 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
         folder.commit()
     if stopped is not None:
         raise Cancelled(f"compensation was cancelled after {finished} of {len(paths)} target(s); the finished ones "
-                        f"are kept in {options.out} (marked incomplete): run the same command with --force to "
-                        "redo it whole", kept=True)
+                        f"are kept in {options.out} (marked incomplete): run the same command again to redo it "
+                        "whole; no --force is needed", kept=True)
     say("done", 1.0)
     if failure is not None:
         raise failure

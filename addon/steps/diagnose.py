@@ -26,7 +26,7 @@ from ..gap import shared
 from ..gap.overlap import overlap_falloffs
 from ..imageio import write_atomic_bytes, write_image
 from ..options import option, validate
-from ..outputs import AtomicFolder, check_replaceable, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, write_manifest, writer_lock
 from ..progress import Cancel, Progress, part, quiet
 from . import calibrate as calibrate_step
 from . import layout
@@ -76,6 +76,11 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     options.check()
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.calibration,), error=ProCamError)
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        return _run(options, say, cancel)
+
+
+def _run(options: DiagnoseOptions, say: Progress, cancel: Cancel | None) -> dict[str, Any]:
     cal = calibrate_step.read(options.calibration)
     try:
         captures = calibrate_step.captures_of(cal, verify_images=True)

@@ -38,7 +38,8 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -49,7 +50,7 @@ from ..capture.devices import Device
 from ..errors import ImageError, ProCamError
 from ..imageio import read_image, write_image
 from ..options import option, same_option, validate
-from ..outputs import AtomicFolder, check_replaceable, file_sha256, output_names, write_manifest
+from ..outputs import AtomicFolder, check_replaceable, file_sha256, output_names, write_manifest, writer_lock
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
 from ..stages.calibrate import Calibration
@@ -63,7 +64,7 @@ from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout, projectors
 from .show_work import source_record
-from .stage_c import StageCOptions, device_inputs, device_pipeline
+from .stage_c import StageCOptions, check_device_fits, device_inputs, device_pipeline
 from .summary import Summary, cached, fmt
 
 KIND = layout.EVALUATION
@@ -541,15 +542,40 @@ def video_targets(inputs: CompensationInputs, given: tuple[Path, ...], encoding:
     return VideoTargets(path, names, encoding)
 
 
+def target_files(given: Sequence[str | Path]) -> tuple[Path, ...]:
+    """The targets as ``procam show`` takes them (:func:`.show.list_frames`): one folder (its images in frame
+    order) or one numbered pattern (``frames/shot_####.png``) becomes its image files; image files, and one video
+    (whose frames a show made from it measures), stay as given."""
+    items = tuple(Path(p) for p in given)
+    if len(items) == 1 and not is_video(items[0]) and (items[0].is_dir() or not items[0].exists()):
+        from .show import list_frames  # the show's reader of target forms, one for both steps
+
+        return tuple(f.path for f in list_frames(items))
+    return items
+
+
 def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
         device: Device | None = None) -> dict[str, Any]:
     """Measure every target of ``options`` into a new evaluation folder; returns ``metrics.json``'s document.
-    ``device``: an open device to use instead of opening ``options.device`` (the manifest names the latter)."""
+    ``device``: an open device to use instead of opening ``options.device`` (the manifest names the latter).
+    The targets may be a folder or a numbered pattern, as ``procam show`` takes them (:func:`target_files`)."""
     say = progress or quiet
     validate(options)
+    given = tuple(Path(p) for p in options.targets)
+    options = replace(options, targets=target_files(given))
+    # a folder or pattern given is an input too: the output must not lie inside it
+    folders = tuple(p if p.is_dir() else p.parent for p in given if p.is_dir() or not p.exists())
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration, options.inputs, *options.targets, *device_inputs(options.device)))
+                      inputs=(options.calibration, options.inputs, *options.targets, *folders,
+                              *device_inputs(options.device)),
+                      incomplete=KIND.incomplete)
+    with writer_lock(options.out):  # another run of this output is refused before any work
+        return _run(options, say, cancel, device)
+
+
+def _run(options: EvaluateOptions, say: Progress, cancel: Cancel | None, device: Device | None) -> dict[str, Any]:
     cal = calibrate_step.read(options.calibration)
+    check_device_fits(options.device, cal, device=device)  # a device of another rig: refused before any projection
     inputs = CompensationInputs.load(options.inputs)
     notes = inputs.check_against(cal, options.calibration)  # inputs of another rig fail before any projection
     if inputs.doc.get("video"):
@@ -565,7 +591,7 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
             notes.append(note)
     folder = AtomicFolder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                           inputs=(options.calibration, options.inputs, cal.capture_dir, *options.targets,
-                                  *device_inputs(options.device)))
+                                  *device_inputs(options.device)), incomplete=KIND.incomplete)
     owned = device is None
     try:
         if not options.device:

@@ -55,16 +55,19 @@ def run_frames(options: ExportFramesOptions, progress: Progress | None = None, c
                       inputs=(options.compensation,), error=ImageError)
     view = compensate_step.read(options.compensation)
     if not view.targets:
-        raise ImageError(f"{options.compensation} holds no finished targets to export; run Compensate first")
+        raise ImageError(f"{options.compensation} holds no finished targets to export; run procam compensate first "
+                         "(Compensate in Blender)")
     count = view.projector_count
     for t in view.targets:
         if len(t.frame_paths) != count:  # a record that does not name every projector's frame
             raise ImageError(f"target {t.name!r} of {options.compensation} names the frames of {len(t.frame_paths)} "
-                             f"projector(s), but the compensation is for {count}; run Compensate again")
+                             f"projector(s), but the compensation is for {count}; run procam compensate again "
+                             "(Compensate in Blender)")
         for k, path in enumerate(t.frame_paths):
             if not path.is_file():
                 which = f" (projector {k + 1})" if count > 1 else ""
-                raise ImageError(f"compensated frame {path}{which} is missing; run Compensate again")
+                raise ImageError(f"compensated frame {path}{which} is missing; run procam compensate again "
+                                 "(Compensate in Blender)")
     digits = max(4, len(str(options.first + len(view.targets) - 1)))
     sources = [p for t in view.targets for p in t.frame_paths]
     with fresh_output_folder(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,

@@ -47,6 +47,15 @@ class FolderKind:
         """Whether ``path`` (a folder) holds this kind's manifest with its format tag: what ``force`` may replace."""
         return holds_manifest(path, self.manifest, self.format)
 
+    def incomplete(self, path: str | Path) -> bool:
+        """Whether ``path`` holds this kind's manifest marked ``"complete": false``: what a failed or cancelled run
+        left, which the next run replaces without ``force`` (a failed run never blocks its own retry)."""
+        try:
+            doc = json.loads((Path(path) / self.manifest).read_text())
+        except (OSError, ValueError, UnicodeDecodeError):
+            return False
+        return isinstance(doc, dict) and doc.get("format") == self.format and doc.get("complete") is False
+
 
 CAPTURES = FolderKind("capture set", capture_format.MANIFEST, capture_format.FORMAT, capture_format.VERSION,
                       "procam lab / procam import-captures")

@@ -44,7 +44,7 @@ from ..imageio import read_image, write_atomic_bytes, write_image
 from ..lab.layouts import MAX_PROJECTORS
 from ..live.shoot import check_camera_device, open_camera_device, parse_camera_device
 from ..options import option, same_option, validate
-from ..outputs import check_replaceable
+from ..outputs import check_replaceable, writer_lock
 from ..progress import Cancel, Progress, never, part, quiet
 from ..rig.model import Projector, projector_intrinsics_from_throw
 from .capture import ImportOptions, PatternsOptions, PhotoSettings, ProjectorSheet, run_import
@@ -54,7 +54,8 @@ SESSION_MANIFEST = "session.json"
 
 
 DEVICE_HELP = ("live:camera=SOURCE,display=N — SOURCE a camera index, a device path or a URL (http://…mjpg, "
-               "rtsp://…); display=N covers display N (at the projector's native size), position=X:Y puts the "
+               "rtsp://…); display=N covers display N (at the projector's native size; displays are numbered "
+               "from 0, as procam live-check --list-displays lists them), position=X:Y puts the "
                "window at desktop coordinates instead; several projectors: one display each, display=1+2 (or "
                "position=X:Y+X:Y); options: average=N or noise=σ (frames per capture), encoding=srgb|linear, "
                "latency=auto|SECONDS, size=WxH. A stills camera: shoot='COMMAND … {out} …' instead of camera= "
@@ -217,6 +218,11 @@ def run_live_capture(options: LiveCaptureOptions, progress: Progress | None = No
     check_replaceable(options.out, force=options.force, what="capture set", replaceable=is_capture_set,
                       inputs=(options.session, options.depth_path, options.rig),
                       error=CaptureError)
+    with writer_lock(options.out):  # another run of this capture set (and its session) is refused before any work
+        return _capture(options, say, stop, count)
+
+
+def _capture(options: LiveCaptureOptions, say: Progress, stop: Cancel, count: int) -> CaptureSet:
     doc, done = open_session(options)
     session = options.session
     sequences = [load_sequence(_sequence_dir(session, k)) for k in range(count)]

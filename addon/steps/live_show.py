@@ -72,7 +72,8 @@ CAMERA_LOST_S = 3.0
 RANGE_SAMPLE = 32
 
 DEVICE_HELP = ("live:display=N[,camera=SOURCE] — the projector window(s) as procam capture opens them (display=N, "
-               "position=X:Y; several projectors display=1+2); with camera=SOURCE θ follows the camera slowly "
+               "position=X:Y; several projectors display=1+2; displays are numbered from 0, as procam live-check "
+               "--list-displays lists them); with camera=SOURCE θ follows the camera slowly "
                "(closed loop), without one the show runs open loop")
 
 

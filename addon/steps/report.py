@@ -29,7 +29,7 @@ from typing import Any
 from ..errors import ProCamError
 from ..imageio import write_atomic_bytes
 from ..options import option, validate
-from ..outputs import check_file_replaceable
+from ..outputs import check_file_replaceable, writer_lock
 from ..progress import Cancel, Progress, check, quiet
 from ..report import figures, page
 from . import layout, report_sections
@@ -242,7 +242,6 @@ def run(options: ReportOptions, progress: Progress | None = None, cancel: Cancel
                           "not ship them): run `procam report FOLDER --out report.html` from ProCam's environment "
                           "(scripts/setup.sh installs them)")
     t0 = time.perf_counter()
-    say = progress or quiet
     out = Path(options.out)
     if out.suffix.lower() not in (".html", ".htm"):
         raise ReportError(f"the report {out} must be an .html file; give a name ending in .html")
@@ -250,6 +249,13 @@ def run(options: ReportOptions, progress: Progress | None = None, cancel: Cancel
     # checked before the work (a refusal costs nothing) and again before writing (it may have appeared since)
     check_file_replaceable(out, force=options.force, what="ProCam report", replaceable=page.written_by_report,
                            inputs=_inputs_to_protect(walk), error=ReportError)
+    with writer_lock(out):  # another run writing this report is refused before any work
+        return _write(options, out, progress, cancel, t0)
+
+
+def _write(options: ReportOptions, out: Path, progress: Progress | None, cancel: Cancel | None,
+           t0: float) -> ReportResult:
+    say = progress or quiet
     html, walk = build(options, progress, cancel)
     check(cancel, "the report was cancelled; nothing was written")
     check_file_replaceable(out, force=options.force, what="ProCam report", replaceable=page.written_by_report,

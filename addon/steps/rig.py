@@ -32,7 +32,7 @@ from ..capture.patterns import gray_code_bits
 from ..errors import MALFORMED, CalibrationError, CaptureError
 from ..imageio import READ_IMAGE_SUFFIXES, read_image
 from ..options import Choice, option, validate
-from ..outputs import check_file_replaceable, holds_manifest, write_manifest
+from ..outputs import check_file_replaceable, holds_manifest, write_manifest, writer_lock
 from ..progress import Cancel, Progress, quiet
 from ..stages.rig_calibration import DISTORTION_MODELS, PoseSource, RigCalibration, calibrate_rig
 from . import layout
@@ -194,6 +194,12 @@ def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | 
                                "fixes only the total number of Gray-code bits, which many sizes share")
     validate(options, CalibrationError)
     _check_out(out, options.force, tuple(options.sessions))
+    with writer_lock(out):  # another run writing this file is refused before any work
+        return _run(options, out, say, cancel, started)
+
+
+def _run(options: RigOptions, out: Path, say: Progress, cancel: Cancel | None, started: float) -> RigCalibration:
+    assert options.projector_size is not None
     size = (int(options.projector_size[0]), int(options.projector_size[1]))
     if len(set(Path(s).resolve() for s in options.sessions)) != len(options.sessions):
         raise CaptureError("the same session folder is given twice; give each board pose once")

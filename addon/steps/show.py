@@ -23,8 +23,8 @@ renamed into place, and only then entered in the manifest, so:
   manifest and the next frames go on (unless ``fail_fast``); a rerun retries it.
 
 One :class:`.stage_c.StageC` (scene loaded, kernels compiled) serves every
-frame, as it serves the compensate step's targets. Two runs on one folder at once are refused (an OS lock on the
-folder, released by the OS when a process dies).
+frame, as it serves the compensate step's targets. Two runs on one folder at once are refused (every writer's lock,
+:func:`..outputs.writer_lock`, which the OS lets go of when a process dies).
 
 The targets are image files or the frames of one video file (numbered 1…N;
 its size and SHA-256 are recorded, so a changed video is noticed like a
@@ -86,7 +86,8 @@ from ..capture.devices import Device
 from ..errors import Cancelled, ProCamError
 from ..imageio import DAMAGED_ARRAYS, READ_IMAGE_SUFFIXES, write_atomic_bytes
 from ..options import option, validate
-from ..outputs import file_sha256, jsonable, natural_key, write_manifest
+from ..outputs import (check_apart_from_inputs, file_sha256, hold_writer, jsonable, natural_key, release_writer,
+                       write_manifest, writer_lock)
 from ..progress import Cancel, Progress, check, quiet
 from ..safepaths import inside
 from ..stages.compensate import BiasModel, Compensator
@@ -98,7 +99,7 @@ from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
 from .projectors import JointStage
 from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
-from .stage_c import StageC, StageCOptions
+from .stage_c import StageC, StageCOptions, check_device_fits, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.SHOW
@@ -350,32 +351,21 @@ class ShowFolder:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.doc: dict[str, Any] | None = None
-        self._lock_fd: int | None = None
+        self._lock: Path | None = None
 
-    # locking: flock on the folder itself, so no lock file is left behind and a dead process frees it
+    # locking: every writer's lock (outputs.writer_lock), which a dead process lets go of
     def lock(self) -> None:
-        try:
-            import fcntl
-        except ImportError:  # Windows: no advisory locks here; two runs on one folder are the user's to avoid
-            return
-        fd = os.open(self.path, os.O_RDONLY)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            raise SequenceError(f"another procam run is writing to {self.path}; wait for it to finish or "
-                                "choose another --out") from None
-        self._lock_fd = fd
+        self._lock = hold_writer(self.path)
 
     @property
     def locked(self) -> bool:
-        """Whether this object holds the folder's lock (False where the OS has no advisory locks)."""
-        return self._lock_fd is not None
+        """Whether this object holds the folder's lock."""
+        return self._lock is not None
 
     def unlock(self) -> None:
-        if self._lock_fd is not None:
-            os.close(self._lock_fd)  # closing releases the flock
-            self._lock_fd = None
+        if self._lock is not None:
+            release_writer(self._lock)
+            self._lock = None
 
     def open(self, *, force: bool = False) -> dict[str, Any] | None:
         """Create or check the folder, and lock it; return the existing manifest (None for a new show).
@@ -546,7 +536,18 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     sc.check()
     mode = sc.mode
     options.check(mode)
+    # what the show reads: the calibration, the targets (a numbered pattern reads its folder), the device's files
+    targets = [Path(t) for t in options.targets]
+    check_apart_from_inputs(options.out, (options.calibration, *targets, *(t.parent for t in targets if not t.exists()),
+                                          *stage_c_inputs(sc)), error=SequenceError)
+    with writer_lock(options.out):  # another run of this show is refused before any work
+        return _locked(options, frames, sc, mode, say, cancel, device, compensator)
+
+
+def _locked(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions, mode: str, say: Progress,
+            cancel: Cancel | None, device: Device | None, compensator: Compensator | None) -> ShowResult:
     cal = calibrate_step.read(options.calibration)  # says how to make one when the folder is not a calibration
+    check_device_fits(sc.device, cal, device=device)  # a device of another rig: refused before any frame
     ident = calibrate_step.identity(options.calibration)
     digits = frame_digits(frames)
     say(f"show: {len(frames)} frame(s) {frames[0].number}…{frames[-1].number} → {options.out}", 0.0)
@@ -670,7 +671,7 @@ def _run(options: ShowOptions, frames: list[SourceFrame], stage: StageC | JointS
              else f"a local cluster of {options.workers} worker(s)")
     say(f"starting {where}", 0.0)
     cluster = Cluster(workers=options.workers, address=options.cluster, threads=options.threads,
-                      connect_timeout=options.connect_timeout,
+                      connect_timeout=options.connect_timeout, beside=Path(options.out),
                       poll=lambda: check(cancel, f"show cancelled while reaching {where}"))
     try:
         say(f"{where}: {cluster.describe}", 0.0)

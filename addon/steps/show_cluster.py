@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import signal
 import threading
 import uuid
@@ -47,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ProCamError
+from ..outputs import hidden_sibling
 from ..stages.compensate import BiasModel
 from ..stages.display_area import DisplayArea
 from ..stages.range import RangeMap
@@ -198,8 +200,12 @@ class Cluster:
     """A Dask client: on a local cluster of ``workers`` processes started here, or attached to ``address``."""
 
     def __init__(self, *, workers: int | None = None, address: str | None = None, threads: int | None = None,
-                 connect_timeout: float = CONNECT_TIMEOUT, poll: Callable[[], None] = lambda: None) -> None:
-        """``poll`` is called while waiting for a cluster at ``address`` (it raises to cancel)."""
+                 connect_timeout: float = CONNECT_TIMEOUT, poll: Callable[[], None] = lambda: None,
+                 beside: Path | None = None) -> None:
+        """``poll`` is called while waiting for a cluster at ``address`` (it raises to cancel). A local cluster's
+        workers keep their scratch space (Dask's ``global.lock``, ``purge.lock``, spilled data) in a hidden folder
+        beside ``beside`` (the show folder), removed when the cluster closes; without it, in Dask's temporary
+        directory."""
         try:
             from distributed import Client, LocalCluster
         except ImportError:
@@ -207,6 +213,7 @@ class Cluster:
                                "it is not installed in this Python") from None
         self.local = None
         self.client = None
+        self.scratch: Path | None = None
         self.threads: int | None = threads
         try:
             if address:
@@ -215,14 +222,22 @@ class Cluster:
             else:
                 n = max(1, int(workers or 1))
                 self.threads = threads or max(1, (os.cpu_count() or 1) // n)
+                if beside is not None:  # no write outside the folders the user gave
+                    self.scratch = hidden_sibling(Path(beside), "tmp")
                 # Ctrl-C in a terminal reaches every process of its group, the workers too: they would die with
                 # tracebacks mid-frame and the show would end as a bug. So only this process hears it and cancels
                 # the show cleanly: the workers start with SIGINT ignored (inherited through exec), then leave the
                 # terminal's process group (ignoring alone does not last: Dr.Jit installs its own SIGINT handler
                 # while kernels run). They still exit with this process (Dask watches their parent).
-                with _sigint_ignored():
+                import dask
+
+                # the scheduler's scratch space too (it takes Dask's temporary directory, not local_directory)
+                where = contextlib.nullcontext() if self.scratch is None else \
+                    dask.config.set({"temporary-directory": str(self.scratch)})
+                with _sigint_ignored(), where:
                     self.local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                               dashboard_address=None, silence_logs=logging.ERROR,
+                                              local_directory=None if self.scratch is None else str(self.scratch),
                                               preload=[_OWN_GROUP] if hasattr(os, "setpgid") else None)
                 self.client = Client(self.local)
         except (OSError, TimeoutError, ValueError) as exc:
@@ -279,3 +294,6 @@ class Cluster:
         if self.local is not None:
             self.local.close()
             self.local = None
+        if self.scratch is not None:
+            shutil.rmtree(self.scratch, ignore_errors=True)
+            self.scratch = None

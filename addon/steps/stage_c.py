@@ -214,6 +214,43 @@ def stage_c_inputs(options: "StageCOptions") -> tuple[Path, ...]:
     return (*device_inputs(options.device), *((options.diagnosis,) if options.diagnosis else ()))
 
 
+def _projector_count(spec: str) -> int | None:
+    """How many projectors the device ``spec`` shows, told from its files without opening it (a lab truth, a
+    replayed capture set); None where only opening it tells (a live camera's windows follow the calibration) or
+    its files cannot be read (opening it then says what is wrong)."""
+    kind, where = device_kind(spec), spec.partition(":")[2]
+    try:
+        if kind == "lab" and where:
+            return len(LabTruth.load(Path(where)).rig.projectors)
+        if kind == "folder" and where:
+            from ..capture.format import CaptureSet
+
+            return len(CaptureSet.load(Path(where), verify_images=False).projectors)
+    except ProCamError:
+        return None
+    return None
+
+
+def check_device_fits(spec: str | None, calibration: Calibration, *, device: Device | None = None) -> None:
+    """Refuse, before any work, a device (``spec``, or ``device`` already open) that shows another number of
+    projectors than ``calibration`` holds: the device of another rig, whose first capture would fail after every
+    target was computed."""
+    if not spec:
+        return
+    shown = getattr(device, "projectors", None)  # a device relayed from Blender's main thread may not say
+    count = len(shown) if shown is not None else _projector_count(spec)
+    if count is None:
+        return
+    want = 1 + len(calibration.rig.others)  # the calibration's projector_count, from its rig
+    if count == want:
+        return
+    where = f" {calibration.folder}" if calibration.folder else ""
+    raise CaptureError(f"the device {spec} shows {count} projector{'s' if count > 1 else ''}, but the calibration"
+                       f"{where} is of {want}: give the device of the rig that was calibrated (a lab truth or "
+                       f"capture set of {want} projector{'s' if want > 1 else ''}), or calibrate this device's rig "
+                       "first")
+
+
 def camera_lens_of(calibration: Calibration) -> RigLens | None:
     """The camera lens import took out of the photographs ``calibration`` was made from (None: none was): as the
     calibration records it, else as its capture set does (calibrations made before they recorded it)."""
@@ -260,6 +297,7 @@ def device_pipeline(spec: str | None, calibration: Calibration, *, device: Devic
         if device is not None:
             raise ValueError("a device given without the spec that names it: which lens it needs is unknown")
         return None
+    check_device_fits(spec, calibration, device=device)
     # Read before a window opens, so that a capture set that cannot say which lens it lost is refused first.
     lens = None if device_kind(spec) == "folder" else camera_lens_of(calibration)
     if device is None:

@@ -24,6 +24,7 @@ from typing import Any
 from ..errors import CalibrationError
 from ..imageio import read_arrays
 from ..options import option, validate
+from ..outputs import writer_lock
 from ..progress import Cancel, Progress, part, quiet
 from ..safepaths import inside
 from ..stages.calibrate import Calibration
@@ -57,6 +58,11 @@ def run(options: PrecomputeOptions, progress: Progress | None = None, cancel: Ca
     validate(options, CalibrationError)
     say = progress or quiet
     folder = Path(options.calibration)
+    with writer_lock(folder):  # it writes into the calibration: another run writing it is refused first
+        return _run(options, folder, say, cancel)
+
+
+def _run(options: PrecomputeOptions, folder: Path, say: Progress, cancel: Cancel | None) -> dict[str, Any]:
     cal = calibrate_step.read(folder)
     count = cal.projector_count
     docs = []
