@@ -11,6 +11,7 @@ import xml.etree.ElementTree as ET
 import zipfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -67,7 +68,9 @@ def test_the_archive_has_the_standards_structure(two):
     root = _xml(path)
     assert root.tag == "MPCDI"
     a = root.attrib
-    assert a["profile"] == "2d" and a["version"] == "2.0" and a["geometry"] in "12" and a["color"] == "2"
+    # version 1.0: the reference library refuses 2.0 (test_the_reference_library_reads_every_value_written); the
+    # v2.0 attributes (geometry, color) are written beside v1.0's level
+    assert a["profile"] == "2d" and a["version"] == "1.0" and a["geometry"] in "12" and a["color"] == "2"
     assert a["level"] in "1234" and re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d", a["date"])
     assert [c.tag for c in root] == ["display", "files", "extensionSet"]
     buffers = root.find("display").findall("buffer")
@@ -100,11 +103,11 @@ def test_the_archive_has_the_standards_structure(two):
         for tag, children in (("alphaMap", {"path", "componentDepth", "bitDepth", "gammaEmbedded"}),
                               ("betaMap", {"path", "componentDepth", "bitDepth"})):
             el = fs.find(tag)
-            assert {c.tag for c in el} == children and el.findtext("bitDepth") == "16"
+            assert {c.tag for c in el} == children and el.findtext("bitDepth") == "8"  # all the library holds
             png = members[el.findtext("path")]
             assert png.startswith(b"\x89PNG\r\n\x1a\n")
             width, height, depth, colour = struct.unpack(">IIBB", png[16:26])
-            assert (width, height, depth) == (w, h, 16) and colour == 0  # grey: componentDepth 1
+            assert (width, height, depth) == (w, h, 8) and colour == 0  # grey: componentDepth 1
             assert el.findtext("componentDepth") == "1"
     ext = root.find("extensionSet/extension")
     assert ext.get("name") == "procam" and "geometric ramps" in ext.find("definitions").get("blend")
@@ -121,13 +124,114 @@ def test_a_round_trip_gives_back_what_was_written(two, tmp_path):
     for r, s in zip(m.regions, back.regions):
         assert (r.id, r.x, r.y, r.xsize, r.ysize, r.resolution) == (s.id, s.x, s.y, s.xsize, s.ysize, s.resolution)
         np.testing.assert_array_equal(r.warp, s.warp)  # floats, NaN included
-        np.testing.assert_allclose(r.alpha, s.alpha, atol=0.5 / 65535)
-        np.testing.assert_allclose(r.beta, s.beta, atol=0.5 / 65535)
+        np.testing.assert_array_equal(r.alpha, s.alpha)  # 8-bit levels read back are written back as they are
+        np.testing.assert_array_equal(r.beta, s.beta)
+    assert back.map_bits == m.map_bits == 8
+    # 16-bit maps, for readers that take them, on request
+    fine = tmp_path / "fine.mpcdi"
+    with open(fine, "wb") as fh:
+        write_archive(dataclasses.replace(m, map_bits=16), fh)
+    assert read_mpcdi(fine).map_bits == 16 and _xml(fine).find("files/fileset/alphaMap/bitDepth").text == "16"
     # Unknown samples are NaN with an error of 1; known ones carry no error estimate (NaN), §3.6.2.
     w = m.regions[0].warp
     unknown = np.isnan(w[..., 0])
     assert unknown.any() and (~unknown).any()
     assert np.all(w[unknown][:, 2] == 1.0) and np.all(np.isnan(w[~unknown][:, 2]))
+
+
+def _reference_read(path: Path) -> dict[str, dict]:
+    """What the reference C++ library (github.com/scaredyfish/MPCDI, ``src/IO/mpcdiReaderIntern.cpp``,
+    ``mpcdiPfmIO.cpp``, ``mpcdiPNGReadWrite.cpp``) reads of a file, done its way, failing where it fails: names matched
+    exactly (tinyxml2), the root's ``version`` major at most 1 (``Read`` refuses "MPACS Version 2.0" with error 16
+    unless the caller turns CheckVersionSupported off, and nDisplay does not), every child of ``display`` a
+    ``buffer`` and of a buffer a ``region``, every ``fileset`` carrying ``region``, the required texts of
+    geometryWarpFile, alphaMap and betaMap; a PFM read as "PF", width, height, scale, one byte, then the rows
+    bottom-first in the host's (little-endian) order whatever the scale's sign; a PNG read into one byte per
+    component (``DataMap`` holds ``unsigned char``: a 16-bit PNG's two bytes become two samples). Per region: its
+    attributes, the warp as the library indexes it ((x, y) → [y, x], y = 0 the file's last row) and the maps'
+    bytes."""
+    def need(el, name):
+        assert el is not None and el.get(name) is not None, f"the reference reader needs attribute {name!r}"
+        return el.get(name)
+
+    def text(el, name):
+        c = el.find(name)  # ElementTree's find is exact, as tinyxml2's FirstChildElement
+        assert c is not None and (c.text or "").strip(), f"the reference reader needs <{name}> in <{el.tag}>"
+        return c.text.strip()
+
+    with zipfile.ZipFile(path) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    root = ET.fromstring(members["mpcdi.xml"])
+    assert root.tag == "MPCDI"
+    version = need(root, "version")
+    assert "." in version and int(version.split(".")[0]) <= 1, \
+        f"version {version!r}: the reference reader supports 1.0 only and refuses a later major version"
+    for a in ("profile", "date"):
+        need(root, a)
+    int(need(root, "level"))
+    out: dict[str, dict] = {}
+    display = root.find("display")
+    assert display is not None
+    for b in display:
+        assert b.tag == "buffer", f"<display> holds <{b.tag}>; the reference reader expects only <buffer>"
+        need(b, "id")
+        for r in b:
+            assert r.tag == "region", f"<buffer> holds <{r.tag}>; the reference reader expects only <region>"
+            rid = need(r, "id")
+            got = {k: float(need(r, k)) for k in ("x", "y", "xsize", "ysize")}
+            got.update({k: int(need(r, k)) for k in ("Xresolution", "Yresolution")})
+            filesets = [f for f in root.find("files") if need(f, "region") == rid]
+            assert len(filesets) == 1
+            fs = filesets[0]
+            gw, am = fs.find("geometryWarpFile"), fs.find("alphaMap")
+            assert gw is not None and am is not None
+            for t in ("geometricUnit", "interpolation", "originof3DData"):
+                text(gw, t)
+            pfm = members[text(gw, "path")]
+            assert pfm[:2] == b"PF"
+            head = re.match(rb"PF.\s*(\d+)\s+(\d+)\s+(\S+)\s", pfm, re.S)  # istream >> sizeX >> sizeY >> scale
+            assert head is not None
+            cols, rows = int(head.group(1)), int(head.group(2))
+            data = np.frombuffer(pfm, "<f4", rows * cols * 3, head.end()).reshape(rows, cols, 3)
+            got["warp"] = data[::-1]  # the library's row y = the file's row rows-1-y
+            maps = {"alpha": am, "beta": fs.find("betaMap")}
+            for kind, el in maps.items():
+                if el is None:
+                    continue
+                for t in ("componentDepth", "bitDepth"):
+                    int(text(el, t))
+                if kind == "alpha":
+                    float(text(el, "gammaEmbedded"))
+                png = members[text(el, "path")]
+                raw = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+                # libpng's rows as bytes, one byte a sample: 16-bit samples are big-endian pairs of bytes
+                width, comps = raw.shape[1], (1 if raw.ndim == 2 else 3)
+                rgb = raw if raw.ndim == 2 else raw[..., ::-1]
+                rowbytes = rgb.astype(">u2").view(np.uint8) if raw.dtype == np.uint16 else rgb.astype(np.uint8)
+                got[kind] = rowbytes.reshape(raw.shape[0], -1)[:, :width * comps].reshape(raw.shape[0], width, comps)
+            out[rid] = got
+    return out
+
+
+@pytest.mark.parametrize("profile", ["2d", "sl"])
+def test_the_reference_library_reads_every_value_written(tmp_path, profile):
+    """The reference reader (emulated as :func:`_reference_read`; ``scripts/check_mpcdi_reference.sh`` runs the real
+    one) reads the file and gets back ProCam's values: the version it accepts, its names, the warp bit for bit in
+    ProCam's orientation, and the blend maps as 8-bit values (the only depth it holds)."""
+    cal = _calibration(tmp_path / "cal")
+    path = run_export(ExportMpcdiOptions(cal, tmp_path / "show.mpcdi", profile=profile,
+                                         content_size=(160, 90))).path
+    ref, m = _reference_read(path), read_mpcdi(path)
+    assert sorted(ref) == sorted(r.id for r in m.regions)
+    for r in m.regions:
+        got = ref[r.id]
+        assert (got["Xresolution"], got["Yresolution"]) == r.resolution
+        np.testing.assert_allclose([got[k] for k in ("x", "y", "xsize", "ysize")], [r.x, r.y, r.xsize, r.ysize])
+        np.testing.assert_array_equal(got["warp"], r.warp)
+        for kind, img in (("alpha", r.alpha), ("beta", r.beta)):
+            want = np.round(np.clip(img, 0, 1) * 255).astype(np.uint8).reshape(got[kind].shape)
+            np.testing.assert_array_equal(got[kind], want, err_msg=f"{r.id}'s {kind} map as the library reads it")
+        assert 0 < np.count_nonzero((r.alpha > 0) & (r.alpha < 1))  # the overlap's ramp is in what was compared
 
 
 def test_pfm_either_endianness_and_a_cut_file():

@@ -25,9 +25,21 @@ What the format says, and where it says it (read before changing anything here):
   v1.0 and spells names its own way: ``level`` (v1.0's single level, 1–4) where v2.0 has ``geometry``/``color``,
   ``Xresolution``/``Yresolution``, ``xsize``/``ysize``, ``originof3DData``; it matches names exactly (tinyxml2) and
   *requires* ``geometricUnit``, ``interpolation`` and ``originof3DData`` in every geometryWarpFile, even in 2d.
-  drwrose/PyMPCDI (``MpcdiFile.py``) reads the same v1.0 spellings. The standard says tag and attribute names are
-  case-insensitive (§3.5.2), so this writer writes each name in the v2.0 spelling **and**, where the reference
-  library's differs, in its spelling too, with the same value; this reader matches names without regard to case.
+  (drwrose/PyMPCDI's ``MpcdiFile.py`` asks for ``XResolution``/``YResolution``; it is not a reader this module
+  aims at.) The standard says tag and attribute names are case-insensitive (§3.5.2), so this writer writes each
+  name in the v2.0 spelling **and**, where the reference library's differs, in its spelling too, with the same
+  value; this reader matches names without regard to case.
+* What else the reference library reads, found by reading ProCam's files with it (``scripts/check_mpcdi_reference.sh``
+  builds it and compares every value it reads with what was written; results, "Media servers: MPCDI"): its
+  ``Reader::Read`` refuses a file whose ``version`` has a major number above 1 ("MPACS Version: 2.0 is not
+  supported", error 16) unless the caller turns CheckVersionSupported off, which nDisplay does not; so the file
+  says ``version="1.0"`` — it holds every v1.0 name, and v2.0's additions (``geometry``, ``color``, the ``color``
+  tag, ``extensionSet``) are tags and attributes a v1.0 reader passes over. Its ``DataMap`` holds one byte per
+  component, and ``PNGReadWrite::Read`` copies libpng's row bytes into it one byte a sample: a 16-bit PNG's high
+  and low bytes become two samples and the map comes out scrambled; so the blend maps are 8-bit
+  (:attr:`Mpcdi.map_bits`; 16 on request, for readers known to take it). Its PFM reader takes ``PF``, width, height,
+  scale and one byte, then the rows last-first in the host's byte order whatever the scale's sign: little-endian,
+  as written here.
 * Rows of a PFM: netpbm's PFM stores the bottom row first, and the reference library writes and reads it so
   (``PfmIO::Write`` runs ``y`` from the last row to the first); §3.6.1's "the first pixel is the top left" describes
   the image, not the byte order. Here a warp array's row 0 is the top of the projector's raster.
@@ -154,10 +166,11 @@ class Mpcdi:
     geometric_unit: str = "unknown"
     origin: str = "unknown"
     date: str = ""
-    version: str = "2.0"
+    version: str = "1.0"  # module doc: the reference library refuses 2.0; the v2.0 names are written beside v1.0's
     geometry_level: int = 0  # read back from a file; written from the regions (:func:`levels`)
     color_level: int = 0
     extension: dict[str, str] | None = None
+    map_bits: int = 8  # the alpha and beta maps' bit depth, 8 or 16 (module doc: the reference library reads 8)
 
     def region(self, id: str) -> Region:
         for r in self.regions:
@@ -211,7 +224,7 @@ def read_pfm(data: bytes, what: str = "PFM") -> np.ndarray:
 
 # -- blend maps ---------------------------------------------------------------------------------------------------
 
-def png_bytes(image: np.ndarray, bits: int = 16) -> bytes:
+def png_bytes(image: np.ndarray, bits: int = 8) -> bytes:
     """A blend map as a PNG of 1 or 3 components (grey or RGB), ``bits`` 8 or 16, values in [0, 1]."""
     a = np.asarray(image, np.float32)
     if a.ndim == 3 and a.shape[2] == 1:
@@ -282,6 +295,8 @@ def _check(m: Mpcdi) -> None:
         raise MpcdiError(f"ProCam writes the MPCDI profiles {', '.join(WRITTEN_PROFILES)}, not {m.profile!r}")
     if not m.regions:
         raise MpcdiError("an MPCDI file needs at least one region (one per projector)")
+    if m.map_bits not in (8, 16):
+        raise MpcdiError(f"blend maps are PNGs of 8 or 16 bits (§3.7), not {m.map_bits}")
     ids = [r.id for r in m.regions]
     if len(set(ids)) != len(ids) or not all(_MEMBER.fullmatch(i) for i in ids):
         raise MpcdiError(f"region ids must be unique plain names (letters, digits, _ . -), got {ids}")
@@ -358,13 +373,13 @@ def to_xml(m: Mpcdi) -> bytes:
         am = _sub(fs, "alphaMap")
         _sub(am, "path", names["alpha"])
         _sub(am, "componentDepth", 3 if r.alpha.ndim == 3 else 1)
-        _sub(am, "bitDepth", 16)
+        _sub(am, "bitDepth", m.map_bits)
         _sub(am, "gammaEmbedded", float(r.alpha_gamma))
         if r.beta is not None:
             bm = _sub(fs, "betaMap")
             _sub(bm, "path", names["beta"])
             _sub(bm, "componentDepth", 3 if r.beta.ndim == 3 else 1)
-            _sub(bm, "bitDepth", 16)
+            _sub(bm, "bitDepth", m.map_bits)
         if r.distortion is not None:
             _sub(_sub(fs, "distortionMap"), "path", names["distortion"])
     extras = [(r, k) for r in m.regions for k in r.extra]
@@ -386,13 +401,13 @@ def archive_members(m: Mpcdi) -> dict[str, bytes]:
     for r in m.regions:
         names = file_names(r)
         out[names["warp"]] = pfm_bytes(r.warp)
-        out[names["alpha"]] = png_bytes(r.alpha)
+        out[names["alpha"]] = png_bytes(r.alpha, m.map_bits)
         if r.beta is not None:
-            out[names["beta"]] = png_bytes(r.beta)
+            out[names["beta"]] = png_bytes(r.beta, m.map_bits)
         if r.distortion is not None:
             out[names["distortion"]] = pfm_bytes(r.distortion)
         for k, v in r.extra.items():
-            out[names[k]] = png_bytes(v)
+            out[names[k]] = png_bytes(v, 16)  # ProCam's own files: no other reader takes them
     return out
 
 
@@ -518,6 +533,7 @@ def _read(archive: _Archive, path: Path) -> Mpcdi:
     regions: list[Region] = []
     filesets = {_attr(f, "region", "a fileset"): f for f in _children(files, "fileset")}
     unit = origin = "unknown"
+    map_bits = 8
     for b in _children(display, "buffer"):
         bid = _attr(b, "id", "a buffer")
         buffers[bid] = (_attr(b, "xResolution", f"buffer {bid}", int, required=False) or 0,
@@ -542,17 +558,19 @@ def _read(archive: _Archive, path: Path) -> Mpcdi:
             unit = _text(gw, "geometricUnit", what, required=False) or unit
             origin = _text(gw, "originOf3DData", what, required=False) or origin
             interpolation = _text(gw, "interpolation", what, required=False) or "unknown"
-            alpha, _ = read_png(archive.read(_text(am, "path", f"{what}'s alphaMap"), "its alpha map"),
+            alpha, bits = read_png(archive.read(_text(am, "path", f"{what}'s alphaMap"), "its alpha map"),
                                 f"{what}'s alpha map")
             depth = _text(am, "componentDepth", f"{what}'s alphaMap", int)
             if depth != (3 if alpha.ndim == 3 else 1):
                 raise MpcdiError(f"{what}: its alphaMap declares componentDepth {depth} but its PNG has "
                                  f"{3 if alpha.ndim == 3 else 1} component(s)")
             gamma = _text(am, "gammaEmbedded", f"{what}'s alphaMap", float, required=False) or 1.0
+            map_bits = max(map_bits, bits)
             beta = None
             if bm is not None:
-                beta, _ = read_png(archive.read(_text(bm, "path", f"{what}'s betaMap"), "its beta map"),
+                beta, bits = read_png(archive.read(_text(bm, "path", f"{what}'s betaMap"), "its beta map"),
                                    f"{what}'s beta map")
+                map_bits = max(map_bits, bits)
             distortion = None
             if dm is not None:
                 distortion = read_pfm(archive.read(_text(dm, "path", f"{what}'s distortionMap"), "its distortion "
@@ -580,7 +598,7 @@ def _read(archive: _Archive, path: Path) -> Mpcdi:
                 r.extra[kind], _ = read_png(archive.read(f.text.strip(), f"extension file {kind}"),
                                             f"{path}: region {r.id}'s {kind}")
     m = Mpcdi(profile, buffers, regions, unit, origin, _attr(root, "date", "MPCDI", required=False) or "", version,
-              int(geometry), int(color), extension)
+              int(geometry), int(color), extension, map_bits)
     for r in regions:
         if not all(math.isfinite(v) for v in (r.x, r.y, r.xsize, r.ysize)) or r.xsize <= 0 or r.ysize <= 0:
             raise MpcdiError(f"{path}: region {r.id} has a place in its buffer that is not a box: "
