@@ -328,7 +328,7 @@ def test_cli_writes_set_and_truth_and_reports_progress_on_stderr(cli_set, capsys
     (["--effects", "noise=2"], "strength of 'noise' must lie in [0, 1]"),
     (["--effects", "noise.sigma=9"], "noise.sigma must lie in"),
     (["--samples", "0"], "--samples must be a whole number ≥ 1, got 0"),
-    (["--samples", "2.5"], "argument --samples: invalid literal for int()"),
+    (["--samples", "2.5"], "argument --samples: --samples takes a whole number, got '2.5'"),
     (["--scale", "9"], "--scale must be between 0.05 and 2, got 9.0"),
     (["--scale", "nan"], "--scale must be a finite number"),
     (["--projector-shift", "0,nan"], "expected two finite percentages"),

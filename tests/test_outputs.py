@@ -374,6 +374,9 @@ class _Stage:
     def estimate_bias(self) -> None:
         pass
 
+    def choose_radiometry(self) -> dict:
+        return {"used": "global", "rule": "auto"}
+
     def compensate(self, image, *, name, what, cancel, verify, progress):
         if name == self.stop:
             raise self.interrupt("compensation was cancelled")

@@ -63,6 +63,7 @@ from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
 from . import layout, projectors
+from .show import list_frames
 from .show_work import source_record
 from .stage_c import StageCOptions, check_device_fits, device_inputs, device_pipeline
 from .summary import Summary, cached, fmt
@@ -548,8 +549,6 @@ def target_files(given: Sequence[str | Path]) -> tuple[Path, ...]:
     (whose frames a show made from it measures), stay as given."""
     items = tuple(Path(p) for p in given)
     if len(items) == 1 and not is_video(items[0]) and (items[0].is_dir() or not items[0].exists()):
-        from .show import list_frames  # the show's reader of target forms, one for both steps
-
         return tuple(f.path for f in list_frames(items))
     return items
 

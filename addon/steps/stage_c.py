@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..capture.devices import Device, FolderDevice, LensRemovedDevice
+from ..capture.format import CaptureSet
 from ..rig.lens import RigLens
 from ..capture.photos import removed_lens
 from ..errors import CalibrationError, CaptureError, ProCamError
@@ -223,8 +224,6 @@ def _projector_count(spec: str) -> int | None:
         if kind == "lab" and where:
             return len(LabTruth.load(Path(where)).rig.projectors)
         if kind == "folder" and where:
-            from ..capture.format import CaptureSet
-
             return len(CaptureSet.load(Path(where), verify_images=False).projectors)
     except ProCamError:
         return None
