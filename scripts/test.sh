@@ -8,4 +8,5 @@ bash scripts/setup.sh
 mkdir -p .venv/mypy-path && ln -sfn ../.. .venv/mypy-path/procam
 .venv/bin/ruff check --quiet .
 .venv/bin/mypy
-exec .venv/bin/python -m pytest -q -p no:cacheprovider "$@"
+# the 15 slowest tests at the end of every run: where the suite's minutes go
+exec .venv/bin/python -m pytest -q -p no:cacheprovider --durations=15 "$@"
