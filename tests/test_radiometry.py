@@ -197,3 +197,17 @@ def test_several_projectors_refuse_the_per_pixel_model_before_any_work():
 
     with pytest.raises(CompensationError, match="--radiometry auto or global"):
         JointStage(SimpleNamespace(projector_count=2), StageCOptions(radiometry="pixel"))
+
+
+def test_a_closed_loop_keeps_the_global_models_unless_asked(other_forms_calibration):
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps.stage_c import StageC, StageCOptions
+
+    root = other_forms_calibration
+    cal = calibrate_step.read(root / "cal")
+    with StageC(cal, StageCOptions(device=f"lab:{root / 'truth.json'}", spp=2)) as stage:
+        record = stage.choose_radiometry()
+        assert record["used"] == "global" and "its own captures" in record["reason"] and stage.pixel is None
+    with StageC(cal, StageCOptions(device=f"lab:{root / 'truth.json'}", spp=2, radiometry="pixel")) as stage:
+        assert stage.choose_radiometry()["used"] == "pixel" and stage.pixel is not None
+        assert stage.bias_record() is None  # θ = 0 is the open loop's; the closed loop records its loop instead

@@ -136,8 +136,9 @@ class StageCOptions:
              "response and colour mixing from the calibration's black, white, grey and ramp captures and stage C "
              "works through it (the global response, colour mixing, vignetting, black level and camera curve of "
              "--effects are then left out; a closed loop starts from its answer and corrects it in the camera's "
-             "units); 'global' keeps the global models and θ; 'auto' (default) uses the per-pixel model where it "
-             "predicts the held-out random-texture captures better, and says which it used")
+             "units); 'global' keeps the global models and θ; 'auto' (default) uses the per-pixel model in the open "
+             "loop where it predicts the held-out random-texture captures better, and says which it used (a "
+             "closed loop learns each pixel's response itself and keeps the global models)")
     range: str = option(
         "none", label="Range", check=parse_range, blank="",
         help="what the targets become before compensation: 'auto' fits one gain and offset to all the targets so "
@@ -417,6 +418,13 @@ class StageC:
         rule = self.options.radiometry
         if rule == "global":
             self.radiometry = {"used": "global", "rule": rule}
+            return self.radiometry
+        if rule == "auto" and self.options.mode == "closed-loop":
+            # The measured loop learns each pixel's slope from its own captures: started from the per-pixel model's
+            # answer it gained 0.10 dB on the lab of other forms and lost 0.06 on the lab's own forms (one target
+            # 0.13; docs/results.md), so a closed loop starts from it only when asked.
+            self.radiometry = {"used": "global", "rule": rule, "reason": "a closed loop learns each pixel's response "
+                               "from its own captures (--radiometry pixel starts it from the per-pixel model)"}
             return self.radiometry
         if self.captures is None:
             if rule == "pixel":
