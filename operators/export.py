@@ -15,6 +15,14 @@ from . import paths
 from .messages import REPLACE_BOX, sidebar_text
 
 
+def _has_calibration(cls: type, context: bpy.types.Context) -> bool:
+    """The poll of an export from the calibration folder: there is one."""
+    if paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest) is None:
+        cls.poll_message_set("no calibration folder: run Calibrate or choose one")  # type: ignore[attr-defined]
+        return False
+    return True
+
+
 class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
     """Save the calibration (rig, textured surface, diagnostic images) as a .blend file; the open file is untouched"""
 
@@ -28,10 +36,7 @@ class PROCAM_OT_export_calibration_blend(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest) is None:
-            cls.poll_message_set("no calibration folder: run Calibrate or choose one")
-            return False
-        return True
+        return _has_calibration(cls, context)
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         if not self.filepath:
@@ -105,10 +110,7 @@ class PROCAM_OT_export_mpcdi(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        if paths.existing(context.scene.procam_calibration_dir, CALIBRATION.manifest) is None:
-            cls.poll_message_set("no calibration folder: run Calibrate or choose one")
-            return False
-        return True
+        return _has_calibration(cls, context)
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         if not self.filepath:
