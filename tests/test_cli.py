@@ -112,6 +112,33 @@ def test_exit_codes_and_messages(fake_commands, capsys):
     assert main(["ok", "--n", "x"]) == EXIT_USER and "invalid int" in capsys.readouterr().err
 
 
+def test_numerical_warnings_go_to_a_log_file_not_the_terminal(run_python, tmp_path):
+    """A command whose numpy arithmetic divides by zero or subtracts infinities (as calibration did on pixels
+    outside the surface) prints no RuntimeWarning on the terminal: the warnings go to a log file in PROCAM_LOG_DIR;
+    other warnings still reach the terminal."""
+    logs = tmp_path / "logs"
+    done = run_python("""
+        import sys
+        import warnings
+
+        import numpy as np
+        from procam.addon.cli import app
+
+        def noisy(args):
+            print(np.array([1.0, 0.0]) / np.array([0.0, 0.0]), np.array([np.inf]) - np.array([np.inf]))
+            warnings.warn("a warning meant for the user")
+            return 0
+
+        app._COMMANDS[:] = [("noisy", "warns", lambda p: None, noisy)]
+        sys.exit(app.main(["noisy"]))
+        """, env={"PROCAM_LOG_DIR": str(logs)}, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "RuntimeWarning" not in done.stderr and "encountered" not in done.stderr, done.stderr
+    assert "a warning meant for the user" in done.stderr
+    written = "".join(p.read_text() for p in logs.glob("procam-noisy-*.log"))
+    assert "divide by zero encountered" in written and "invalid value encountered in subtract" in written
+
+
 def test_cancel_on_interrupt_in_process():
     before = signal.getsignal(signal.SIGINT)  # Python's default, or SIG_IGN when started in the background
     with terminal.cancel_on_interrupt() as cancel:

@@ -176,3 +176,37 @@ def test_a_tone_curve_traded_against_the_cameras_curve_blames_no_other_projector
         "projector": 0.0, "ambient_r": a, "ambient_g": a, "ambient_b": a}}]} for a in (-0.0015, 0.0)]
     assert diagnose_step.attribute_held_out(tiny)["differs"]["projector"] == 1
     assert diagnose_step.attribute_held_out(tiny, params=diagnose_step.attribute(levels))["differs"] is None
+
+
+def test_the_headline_names_every_projector_whose_tone_curve_differs_as_its_parameter_lines_do():
+    """Both projectors had a tone curve: projector 1's alone removed a little more of the held-out error, projector
+    2's fit lies further from none, so the headline named projector 1 and the parameter lines under it projector 2.
+    Each alone removes far more than the bar and lies far from none: the headline names both, with the figures of
+    the lines under it, and the lines of the projectors it names come first."""
+    from pathlib import Path
+
+    from procam.addon.steps import diagnose as diagnose_step
+
+    def gap(gamma: float) -> dict:
+        params = {"gamma_r": gamma, "gamma_g": gamma, "gamma_b": gamma, "contrast": 0.0, "pivot": 0.5}
+        return {"selected": ["response"], "effects": [{"name": "response", "params": params}]}
+
+    by_parameters = diagnose_step.attribute([gap(1.4), gap(0.4)])
+    whose = [{"effect": "response", "alone": [0.62, 0.55], "every": 0.9, "differ": 0.3}]
+    verdict = diagnose_step.attribute_held_out(whose, params=by_parameters)
+    head = verdict["headline"]
+    assert head.startswith("Projectors 1 and 2 differ from each other by their response"), head
+    assert verdict["differs"]["projectors"] == [1, 2] and verdict["held_out"][0]["projectors"] == [1, 2]
+    far = {r["projector"]: r["from_none"] for r in by_parameters["ranking"]}
+    for k in (1, 2):
+        assert f"projector {k}'s alone removes {whose[0]['alone'][k - 1]:.0%} (its fit lies {far[k]:.0%} of its " \
+               f"range from none)" in head
+        assert f"projector_{k}/summary.md" in head
+    lines = diagnose_step._summary(Path("/nowhere"), {"projector_count": 2, "headline": head, **verdict,
+                                                      "projectors": [{}, {}]}).lines
+    assert "response held out: removes projector 1 alone 62%, projector 2 alone 55%, every projector apart 90%, " \
+           "alike – of the error without it: projectors 1 and 2's" in lines
+    # a projector whose curve alone predicts nothing is not named beside the one that does
+    alone = diagnose_step.attribute_held_out([{**whose[0], "alone": [0.01, 0.9]}], params=by_parameters)
+    assert alone["headline"].startswith("Projector 2 differs from the others by its response")
+    assert alone["differs"]["projectors"] == [2]

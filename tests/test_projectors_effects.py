@@ -154,3 +154,70 @@ def test_a_diagnosis_of_another_rig_or_a_shared_effect_named_is_refused(rig, tmp
     assert procam(base + ["--effects", "glossy", "--diagnosis", str(both)]) == 2
     assert "the surface's effects and the camera's lens are not" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+
+
+def test_the_compensation_summary_lists_the_effects_each_projector_used():
+    """``--effects auto`` on two projectors recorded response and crosstalk on both (defocus on projector 2, the
+    camera's curve once for both): the summary and the report list them per projector, not "none"."""
+    from procam.addon.steps import compensate as compensate_step
+    from procam.addon.steps.report_sections import Reader
+
+    used = [["response", "crosstalk"], ["response", "crosstalk", "defocus"]]
+    doc = {"mode": "open-loop", "targets": [], "projectors": [{}, {}], "effects": {
+        "diagnosis": "/d", "camera": {"used": ["camera_response"], "params": {"camera_response": {"curve": 0.3}}},
+        "projectors": [{"used": u, "not_inverted": {"glossy": "the camera's and the surface's effects are every "
+                                                             "projector's"} if k == 0 else {},
+                        "params": {}, "input_blur": None} for k, u in enumerate(used)]}}
+    lines = compensate_step._summary(Path("/nowhere"), doc).lines
+    line = next(x for x in lines if x.startswith("effect models:"))
+    assert line == ("effect models: projector 1: response, crosstalk; projector 2: response, crosstalk, defocus; "
+                    "the camera's, for every projector: camera_response; not inverted: projector 1: glossy")
+    _, blocks = Reader([], lambda *_: None).compensation(Path("/nowhere"), doc)
+    facts = dict(blocks[0]["items"])
+    assert facts["effects inverted"] == line.removeprefix("effect models: ")
+    # one projector: as before
+    one = {"targets": [], "effects": {"used": ["response"], "not_inverted": {"distortion": "why"}}}
+    assert "effect models: response; not inverted: distortion" in compensate_step._summary(Path("/x"), one).lines
+    none = {"targets": [], "effects": {"diagnosis": "/d", "camera": None, "projectors": [
+        {"used": [], "not_inverted": {}, "params": {}, "input_blur": None}] * 2}}
+    assert "effect models: none" in compensate_step._summary(Path("/x"), none).lines
+
+
+def test_each_projectors_diagnosis_says_what_the_joint_run_inverts_for_it():
+    """Projector 1's own diagnosis would invert its defocus and the camera's curve; the fit on both projectors'
+    patterns kept its tone curve alone and took the camera's curve once for both. Its summary and gap.json say what
+    compensation of the rig with --effects auto does for it, not what its own diagnosis alone would."""
+    from procam.addon.gap.diagnose import summary_markdown
+    from procam.addon.steps import diagnose as diagnose_step
+
+    curve = {"gamma_r": 1.3, "gamma_g": 1.3, "gamma_b": 1.3}
+    own = {"compensation": {"effects": ["defocus", "camera_response"],
+                            "params": {"defocus": {"sigma": 0.8}, "camera_response": {"curve": 0.3}},
+                            "left_out": {"black_level": "stage C's θ already holds a constant offset"}}}
+    joint = {"compensation": {"shared": {"camera_response": {"curve": 0.25}},
+                              "projectors": [{"response": curve}, {}], "left_out": {}}}
+    said = diagnose_step.rig_compensation(own, joint, 0)
+    assert said["effects"] == ["response", "camera_response"] and said["params"] == {"response": curve}
+    assert "defocus" in said["left_out"] and "every projector's patterns" in said["left_out"]["defocus"]
+    assert said["left_out"]["black_level"].startswith("stage C")
+    assert said["alone"] == own["compensation"]["effects"]
+    # without the fit on every projector's patterns: its own projector effects, the camera's left out
+    alone = diagnose_step.rig_compensation(own, None, 0)
+    assert alone["effects"] == ["defocus"] and "camera_response" in alone["left_out"]
+
+    doc = json.loads(json.dumps(_SUMMARY_DOC))
+    doc["compensation"] = said
+    text = summary_markdown(doc)
+    line = next(x for x in text.splitlines() if x.startswith("**Compensation"))
+    assert line.startswith("**Compensation of the rig with `--effects auto` inverts for this projector:** response, "
+                           "camera_response"), line
+    assert "not defocus: " in line
+
+
+_SUMMARY_DOC = {"headline": "h", "calibration": "c", "patterns": {"fit": [], "held_out": []},
+                "residual": {"rmse": 0.1, "psnr": 20.0, "rmse_structured": 0.1},
+                "residual_after": {"rmse": 0.05, "psnr": 26.0, "rmse_structured": 0.05},
+                "smooth_sigma_px": 2, "session": {"changed": False}, "unexplained": {"detected": False},
+                "selected": ["defocus"], "absorbed": [], "modelled": ["defocus"], "effects": [], "steps": [],
+                "min_share": 0.06, "regions": [], "selected_params": {"defocus": {"sigma": 0.8}}, "evidence": {},
+                "error_split": {}}

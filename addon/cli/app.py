@@ -12,7 +12,10 @@ scripts can rely on (also printed by ``procam --help``):
 130   cancelled (Ctrl-C, or :class:`~procam.addon.errors.Cancelled`); finished work is kept
 ====  =====================================================================
 
-Results go to stdout, progress and errors to stderr.
+Results go to stdout, progress and errors to stderr. Numerical warnings (numpy's
+``RuntimeWarning``: a division by zero or an infinity subtracted on pixels that
+hold no data) are no news to a user: they go to a log file in PROCAM_LOG_DIR,
+not to the terminal (:func:`_warnings_to_log`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,10 @@ import sys
 import tempfile
 import time
 import traceback
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
 
 from ..errors import Cancelled, ProCamError
 
@@ -42,7 +48,7 @@ exit codes:
 
 Results go to stdout, progress and errors to stderr. `procam COMMAND --help` describes each command.
 Inside Blender: blender --background --command procam COMMAND ...
-Environment: PROCAM_LOG_DIR (where internal-error logs go; default the temporary folder),
+Environment: PROCAM_LOG_DIR (where internal-error logs and numerical warnings go; default the temporary folder),
 PROCAM_TRACEBACK=1 (also print the traceback on stderr)."""
 
 Command = tuple[str, str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
@@ -99,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _crash_log(name: str, exc: BaseException) -> str:
     """Write the traceback of an unexpected error to a log file; its path, or why it could not be written."""
-    folder = os.environ.get("PROCAM_LOG_DIR") or tempfile.gettempdir()
+    folder = _log_folder()
     text = "".join(traceback.format_exception(exc))
     try:
         os.makedirs(folder, exist_ok=True)
@@ -110,6 +116,44 @@ def _crash_log(name: str, exc: BaseException) -> str:
         return path
     except OSError as err:
         return f"(not written: {err}); set PROCAM_TRACEBACK=1 to see it"
+
+
+def _log_folder() -> str:
+    return os.environ.get("PROCAM_LOG_DIR") or tempfile.gettempdir()
+
+
+@contextmanager
+def _warnings_to_log(name: str) -> Iterator[None]:
+    """While a command runs, numerical warnings (``RuntimeWarning``) are written to a log file
+    (``procam-NAME-DATE-….log`` in PROCAM_LOG_DIR, made at the first one) instead of the terminal; other
+    warnings are shown as before."""
+    previous = warnings.showwarning
+    path: list[str] = []
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+             line: str | None = None) -> None:
+        if not issubclass(category, RuntimeWarning):
+            previous(message, category, filename, lineno, file, line)
+            return
+        try:
+            if not path:
+                os.makedirs(_log_folder(), exist_ok=True)
+                fd, made = tempfile.mkstemp(prefix=f"procam-{name}-{time.strftime('%Y%m%d-%H%M%S')}-",
+                                            suffix=".log", dir=_log_folder())
+                os.close(fd)
+                path.append(made)
+                with open(made, "w") as fh:
+                    fh.write(f"procam {name}: numerical warnings\nargv: {sys.argv!r}\n\n")
+            with open(path[0], "a") as fh:
+                fh.write(warnings.formatwarning(message, category, filename, lineno, line))
+        except OSError:
+            pass  # a log that cannot be written: the warning is dropped, never shown to the user
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = previous
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -127,7 +171,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     name = args.command
     try:
-        return int(args._run(args) or 0)
+        with _warnings_to_log(name):
+            return int(args._run(args) or 0)
     except Cancelled as exc:
         print(f"procam {name}: cancelled: {exc}", file=sys.stderr)
         return EXIT_CANCELLED

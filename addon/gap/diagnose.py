@@ -227,7 +227,8 @@ def _overlay(base: np.ndarray, regions: list[Any], size: tuple[int, int]) -> np.
     return img.astype(np.float32) / 255.0
 
 
-def _summary(doc: dict[str, Any]) -> str:
+def summary_markdown(doc: dict[str, Any]) -> str:
+    """``summary.md`` of a ``gap.json`` document."""
     res, after = doc["residual"], doc["residual_after"]
     lines = ["# ProCam sim-to-real diagnosis", "", f"**{doc['headline']}**", "",
              f"Calibration `{doc['calibration']}`; {len(doc['patterns']['fit'])} patterns fitted, "
@@ -252,7 +253,8 @@ def _summary(doc: dict[str, Any]) -> str:
                                  "absorbed none"), "",
              *([f"**Absorbed by calibration** (found from its inputs, nothing left to model): "
                 f"{', '.join(doc['absorbed'])}", ""] if doc["absorbed"] else []),
-             *([f"**Compensation with `--effects auto` inverts:** "
+             *([f"**Compensation {'of the rig ' if 'alone' in doc['compensation'] else ''}with `--effects auto` "
+                f"inverts{' for this projector' if 'alone' in doc['compensation'] else ''}:** "
                 f"{', '.join(doc['compensation']['effects']) or 'none'}"
                 + "".join(f"; not {n}: {why}" for n, why in doc["compensation"]["left_out"].items()), ""]
                if doc["modelled"] else []),
@@ -472,7 +474,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
               # 8-bit readers get the region numbers (1 = the first region, 0 = none)
               "regions_label.png": label_image(regions, data.mask.shape, cam_full).astype(np.float32) / 255.0}
     say("done", 1.0)
-    return Diagnosis(doc, images, _summary(doc), data)
+    return Diagnosis(doc, images, summary_markdown(doc), data)
 
 
 def _clipped_white_gain(data: GapData, sel: Selection, camera_size: tuple[int, int]) -> dict[str, Any] | None:

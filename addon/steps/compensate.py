@@ -296,14 +296,38 @@ def radiometry_text(record: Any) -> str | None:
     return f"global{judged}" + (f" — {why}" if why and not rmse else "")
 
 
+def _names(value: Any) -> list[str]:
+    """The effect names of a record's ``used`` (a list) or ``not_inverted`` (names to reasons)."""
+    return [str(n) for n in value] if isinstance(value, (list, dict)) else []
+
+
+def effects_text(record: Any) -> str | None:
+    """The effect models a run used, as its ``effects`` record says (None for a run without --effects): one
+    projector's list, or each projector's of several and the camera's curve, every projector's; then those not
+    inverted."""
+    if not isinstance(record, dict):
+        return None
+    several = record.get("projectors")
+    if not isinstance(several, list):
+        used = ", ".join(_names(record.get("used"))) or "none"
+        left = _names(record.get("not_inverted"))
+        return used + (f"; not inverted: {', '.join(left)}" if left else "")
+    mine = [p if isinstance(p, dict) else {} for p in several]
+    camera = _names((record.get("camera") or {}).get("used")) if isinstance(record.get("camera"), dict) else []
+    parts = [f"projector {k + 1}: {', '.join(_names(p.get('used'))) or 'none'}" for k, p in enumerate(mine)]
+    parts += [f"the camera's, for every projector: {', '.join(camera)}"] if camera else []
+    used = "; ".join(parts) if camera or any(_names(p.get("used")) for p in mine) else "none"
+    left = [f"projector {k + 1}: {', '.join(_names(p.get('not_inverted')))}" for k, p in enumerate(mine)
+            if _names(p.get("not_inverted"))]
+    return used + (f"; not inverted: {'; '.join(left)}" if left else "")
+
+
 def _summary(root: Path, doc: dict[str, Any]) -> Summary:
     targets = [t for t in doc.get("targets", []) if isinstance(t, dict)]
     done = [t for t in targets if t.get("status") == "done"]
     lines = []
-    effects = doc.get("effects")
-    if isinstance(effects, dict):
-        lines.append(f"effect models: {', '.join(effects.get('used') or []) or 'none'}"
-                     + (f"; not inverted: {', '.join(effects['not_inverted'])}" if effects.get("not_inverted") else ""))
+    effects = effects_text(doc.get("effects"))
+    lines += [f"effect models: {effects}"] if effects is not None else []
     radiometry = radiometry_text(doc.get("radiometry"))
     lines += [f"radiometry: {radiometry}"] if radiometry else []
     several = doc.get("projectors") if isinstance(doc.get("projectors"), list) else []

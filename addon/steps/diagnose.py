@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ProCamError
-from ..gap.compensation import HELD_BY_STAGE_C
+from ..gap.compensation import HELD_BY_STAGE_C, PROJECTOR_SIDE, SHARED_EFFECT
 from ..gap.data import DiagnosisError
-from ..gap.diagnose import diagnose
+from ..gap.diagnose import diagnose, summary_markdown
 from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import MODELS, NAMES, describe_params
 from ..gap import shared
@@ -158,6 +158,11 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
                           progress=part(say, 0.98 * (count - 0.5) / count, 0.99, "the camera: "),
                           falloffs_measured=_measured(falloffs, count)) \
         if all(d is not None for d in datas) else None
+    for k, d in enumerate(docs):  # each projector's diagnosis says what compensation of the rig inverts for it
+        d["compensation"] = rig_compensation(d, joint, k)
+        sub = tmp / projector_folder(k)
+        write_manifest(sub / KIND.manifest, d)
+        write_atomic_bytes(sub / layout.DIAGNOSIS_SUMMARY, summary_markdown(d).encode())
     verdict = attribute(docs, falloffs)
     if joint is not None:
         # the camera's (or surface's) part fitted once, each projector effect is judged by how well it predicts
@@ -226,6 +231,33 @@ def joint_effects(datas: list[Any], docs: list[dict[str, Any]], candidates: tupl
                                             for k in range(len(datas))],
                              "left_out": {n: SHARED_LEFT_OUT[n] for n in sel.shared if n in SHARED_LEFT_OUT}},
             "whose": [w.record() for w in whose], "attribution_docs": attribution_docs}
+
+
+def rig_compensation(doc: dict[str, Any], joint: dict[str, Any] | None, k: int) -> dict[str, Any]:
+    """What compensation of the whole rig with ``--effects auto`` inverts for projector ``k`` (0-based), as
+    ``steps/projectors.py`` reads this diagnosis: its own projector effects (:data:`PROJECTOR_SIDE`) as the fit on
+    every projector's patterns kept them (``joint``; without it, as its own diagnosis selected them), the camera's
+    curve of that fit once for every projector; ``effects``, ``params``, ``left_out`` (why the others its own
+    diagnosis would invert are not) and ``alone`` (what its own diagnosis alone would invert)."""
+    own = doc.get("compensation") or {}
+    alone = [str(n) for n in own.get("effects") or []]
+    if joint is not None:
+        comp = joint.get("compensation") or {}
+        params = {n: v for n, v in (comp.get("projectors") or [{}] * (k + 1))[k].items() if n in PROJECTOR_SIDE}
+        shared_ones = [str(n) for n in comp.get("shared") or {}]
+    else:
+        params = {n: v for n, v in (own.get("params") or {}).items() if n in PROJECTOR_SIDE}
+        shared_ones = []
+    left = dict(own.get("left_out") or {})
+    for n in alone:
+        if n in params or n in shared_ones:
+            continue
+        if n in PROJECTOR_SIDE:
+            left[n] = ("not selected for this projector when fitted on every projector's patterns together"
+                       if joint is not None else "not among its fitted parameters")
+        else:
+            left[n] = SHARED_LEFT_OUT.get(n, SHARED_EFFECT)
+    return {"effects": [*params, *shared_ones], "params": params, "left_out": left, "alone": alone}
 
 
 def shared_sentence(joint: dict[str, Any], count: int) -> str:
@@ -337,10 +369,31 @@ def attribute_held_out(whose: list[dict[str, Any]], *, min_share: float = MIN_SH
         apart = max((float(r["difference"]) for r in ranking if r["effect"] == w["effect"]), default=None)
         named = bool(alone) and not w.get("errors") and np.isfinite(differ) and differ >= min_share and \
             alone[best] >= min_share and (apart is None or apart >= DIFFERS_BY)
-        judged.append({**w, "one_projector": best + 1 if named else None, "parameters_apart": apart})
+        # beside the one named, every projector whose effect alone also removes the bar's share and whose fit lies
+        # as far from none: both projectors' own tone curves are a difference of both
+        far = {int(r["projector"]): float(r["from_none"]) for r in ranking if r["effect"] == w["effect"]}
+        every = [k + 1 for k, a in enumerate(alone)
+                 if k == best or (a >= min_share and far.get(k + 1, 1.0) >= DIFFERS_BY)]
+        judged.append({**w, "one_projector": best + 1 if named else None, "projectors": every if named else [],
+                       "parameters_apart": apart})
     differing = sorted((j for j in judged if j["one_projector"] is not None), key=lambda j: -float(j["differ"]))
     selected = list(dict.fromkeys([*(j["effect"] for j in judged), *(r["effect"] for r in ranking)]))
     base = {"held_out": judged, "ranking": ranking, "selected": selected}
+    if differing and len(differing[0]["projectors"]) > 1:
+        top = differing[0]
+        named = [int(k) for k in top["projectors"]]
+        far = {int(r["projector"]): float(r["from_none"]) for r in ranking if r["effect"] == top["effect"]}
+        each = ", ".join(f"projector {k}'s alone removes {top['alone'][k - 1]:.0%}"
+                         + (f" (its fit lies {far[k]:.0%} of its range from none)" if k in far else "")
+                         for k in named)
+        whom = "each other" if len(named) == len(top["alone"]) else "the others"
+        head = (f"Projectors {_and(named)} differ from {whom} by their {str(top['effect']).replace('_', ' ')}: fitted "
+                f"apart on each projector it removes {top['differ']:.0%} more of the held-out error than alike on all; "
+                f"{each}; see {_and([f'projector_{k}/summary.md' for k in named])} for what to do.")
+        k = int(top["one_projector"])
+        differs = {"projector": k, "projectors": named, "effect": top["effect"], "differ": top["differ"],
+                   "alone": top["alone"][k - 1], "every": top["every"]}
+        return {"headline": head, "differs": differs, **base}
     if differing:
         top = differing[0]
         k = int(top["one_projector"])
@@ -351,8 +404,8 @@ def attribute_held_out(whose: list[dict[str, Any]], *, min_share: float = MIN_SH
         head = (f"Projector {k} differs from the others by its {effect}: fitted apart on each projector it removes "
                 f"{top['differ']:.0%} more of the held-out error than alike on all; on projector {k} alone "
                 f"{top['alone'][k - 1]:.0%} ({elsewhere}); see projector_{k}/summary.md for what to do.")
-        differs = {"projector": k, "effect": top["effect"], "differ": top["differ"], "alone": top["alone"][k - 1],
-                   "every": top["every"]}
+        differs = {"projector": k, "projectors": [k], "effect": top["effect"], "differ": top["differ"],
+                   "alone": top["alone"][k - 1], "every": top["every"]}
         return {"headline": head, "differs": differs, **base}
     overlap = next((r for r in ranking if r["effect"] == "vignetting" and r["difference"] >= DIFFERS_BY
                     and all(j["effect"] != "vignetting" for j in judged)), None)
@@ -360,6 +413,12 @@ def attribute_held_out(whose: list[dict[str, Any]], *, min_share: float = MIN_SH
         return {"headline": _by_parameters(overlap), "differs": overlap, **base}
     alike = [str(j["effect"]).replace("_", " ") for j in judged if float(j["every"]) >= min_share]
     return {"headline": _agree(alike), "differs": None, **base}
+
+
+def _and(items: list[Any]) -> str:
+    """"1", "1 and 2", "1, 2 and 3"."""
+    said = [str(i) for i in items]
+    return said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}"
 
 
 def _agree(alike: list[str]) -> str:
@@ -457,11 +516,18 @@ def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
                      f"{p.get('headline', '')}")
     for h in doc.get("held_out") or []:
         alone = ", ".join(f"projector {k + 1} alone {fmt(a, '.0%')}" for k, a in enumerate(h.get("alone") or []))
-        whose = f"projector {h['one_projector']}'s" if h.get("one_projector") else "no one projector's"
+        named = [int(k) for k in h.get("projectors") or []] or ([int(h["one_projector"])] if h.get("one_projector")
+                                                                 else [])
+        whose = (f"projector{'s' if len(named) > 1 else ''} {_and(named)}'s" if named else "no one projector's")
         lines.append(f"{h.get('effect')} held out: removes {alone}, every projector apart "
                      f"{fmt(h.get('every'), '.0%')}, alike {fmt(h.get('tied'), '.0%')} of the error without it: "
                      f"{whose}")
-    for r in (doc.get("ranking") or [])[:4]:
+    named = (doc.get("differs") or {}) if isinstance(doc.get("differs"), dict) else {}
+    first = [int(k) for k in named.get("projectors") or ([named["projector"]] if named.get("projector") else [])]
+    # the parameters of the projectors the headline names first, as it says them
+    ranking = sorted(doc.get("ranking") or [], key=lambda r: not (r.get("effect") == named.get("effect")
+                                                                    and r.get("projector") in first))
+    for r in ranking[:4]:
         lines.append(f"{r.get('effect')} on projector {r.get('projector')}: fitted {fmt(r.get('difference'), '.0%')} "
                      f"of its range from the others', {fmt(r.get('from_none'), '.0%')} from none")
     head = str(doc.get("headline") or "")

@@ -244,7 +244,7 @@ class Reader:
     def compensation(self, folder: Path, doc: dict[str, Any]) -> tuple[str, list[Block]]:
         blocks: list[Block] = [{"type": "facts", "items": [
             ("mode", str(doc.get("mode"))), ("device", str(doc.get("device") or "none (open loop)")),
-            ("effects inverted", ", ".join((doc.get("effects") or {}).get("used") or []) or "none"),
+            ("effects inverted", compensate_step.effects_text(doc.get("effects")) or "none"),
             *([("radiometry", radiometry)] if (radiometry := compensate_step.radiometry_text(doc.get("radiometry")))
               else [])]}]
         rows = []
