@@ -522,10 +522,10 @@ def _summary_projectors(root: Path, doc: dict[str, Any]) -> Summary:
         lines.append(f"{h.get('effect')} held out: removes {alone}, every projector apart "
                      f"{fmt(h.get('every'), '.0%')}, alike {fmt(h.get('tied'), '.0%')} of the error without it: "
                      f"{whose}")
-    named = (doc.get("differs") or {}) if isinstance(doc.get("differs"), dict) else {}
-    first = [int(k) for k in named.get("projectors") or ([named["projector"]] if named.get("projector") else [])]
+    differs = (doc.get("differs") or {}) if isinstance(doc.get("differs"), dict) else {}
+    first = [int(k) for k in differs.get("projectors") or ([differs["projector"]] if differs.get("projector") else [])]
     # the parameters of the projectors the headline names first, as it says them
-    ranking = sorted(doc.get("ranking") or [], key=lambda r: not (r.get("effect") == named.get("effect")
+    ranking = sorted(doc.get("ranking") or [], key=lambda r: not (r.get("effect") == differs.get("effect")
                                                                     and r.get("projector") in first))
     for r in ranking[:4]:
         lines.append(f"{r.get('effect')} on projector {r.get('projector')}: fitted {fmt(r.get('difference'), '.0%')} "
