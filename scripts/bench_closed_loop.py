@@ -15,16 +15,23 @@ closed loop through that lab, once per loop rule (``procam compensate --loop``)
 or in the open loop (``open``), each through the global models or each camera
 pixel's own (``/pixel``: ``procam compensate --radiometry``); then evaluates
 each (two captures of every answer: the camera's noise and the noise ceiling).
-Prints per target the noise ceiling, each rule's PSNR and its distance to the
-ceiling, the captures each used, and where the squared error beyond the
+Prints per target the three ceilings below, each rule's PSNR and its distance to the
+perfect answer's ceiling, the captures each used, and where the squared error beyond the
 camera's noise lies (the last rule's answer).
 
-The noise ceiling is each target's highest over the runs: evaluate measures the
-camera's noise from two captures of the answer, and on a rig whose photos are
-JPEG (the lab of other forms) the artefacts follow the texture of what is
-shown, so a sharper, grainier answer reads a noisier camera and a lower ceiling
-of its own (the measured loop's answers: 1–3 dB lower than the open loop's).
-Every run is held to the ceiling of the answer whose captures varied least.
+Each target has three ceilings:
+
+* the **noise ceiling** ``procam evaluate`` prints, the highest over the runs: it measures the camera's noise from
+  two captures of the answer. On a rig whose photos are JPEG (the lab of other forms) the compression's error
+  depends on the image and is the same in both captures, so the difference misses it, and what it does see
+  follows the answer's texture (a blurred answer reads a quieter camera); it is a ceiling on a raw camera only;
+* the **perfect answer** (``addon/lab/perfect.py``): what the lab's camera records of an answer whose noiseless
+  capture is the target at every pixel (its noise, processing and JPEG), scored against the target. The lab
+  knows its camera; this is the ceiling the camera sets, and every run's "below" is measured against it;
+* the **perfect answer in the gamut**: the same for the target moved to the nearest colour each pixel can show
+  (``addon/stages/gamut.py``, from the lab's captures of black and the three primaries), scored against the
+  target: the best any answer can score on this rig.
+
 The error beyond the noise splits into:
 
 * ``at limit``: pixels whose input already gives all it can (evaluate's
@@ -229,25 +236,42 @@ def main() -> None:
                       f"lab:{truth}", "--out", str(ev)], ev)
             rows[label] = json.loads((ev / "metrics.json").read_text())
             comps[label] = {t["name"]: t for t in json.loads((comp / "compensation.json").read_text())["targets"]}
-        from procam.addon.stages.gamut import gamut_ceiling
+        from procam.addon.imageio import read_image
+        from procam.addon.lab.perfect import perfect_ceiling, render_noise
+        from procam.addon.lab.truth import LabTruth
+        from procam.addon.stages.gamut import gamut_ceiling, gamut_clip
 
         black, prims = primaries(truth)
-        gamut = {}
+        lab_truth = LabTruth.load(truth)
+        last = rules[-1]
+        gamut, perfect, perfect_gamut = {}, {}, {}
         for t in rows[rules[0]]["targets"]:
             a = t["area"]
             inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
             target = area_image(work / f"comp-{slug(rules[0])}{fx}" / f"{t['name']}_target.png", a)
             gamut[t["name"]] = gamut_ceiling(target, black[inside], prims[:, inside[0], inside[1]],
                                              t.get("capture_noise_rmse", 0.0) ** 2)
+            # the perfect answer: the target placed in a capture of the camera (its surround reaches the JPEG's
+            # blocks at the area's border), then the same within the colours each pixel can show
+            placed = read_image(work / f"eval-{slug(rules[0])}{fx}" / f"{t['name']}_capture.png").copy()
+            placed[inside] = target
+            # the render's noise, drawn from two renders of the last run's answer (its light is near the target's)
+            names = [f"{t['name']}_frame.png"] if args.projectors == 1 else \
+                [f"{t['name']}_frame_p{k + 1}.png" for k in range(args.projectors)]
+            render = render_noise(lab_truth, [read_image(work / f"comp-{slug(last)}{fx}" / n) for n in names],
+                                  seed=lab_truth.seed + 991)
+            perfect[t["name"]] = perfect_ceiling(lab_truth, placed, inside, render=render)
+            placed[inside] = gamut_clip(target, black[inside], prims[:, inside[0], inside[1]])
+            perfect_gamut[t["name"]] = perfect_ceiling(lab_truth, placed, inside, target=target, render=render)
         print(f"\n{args.surface}, lab --effects {args.lab_effects} --other-forms {args.other_forms}, "
               f"scale {args.scale}, --range auto --effects {args.effects}, closed loop\n")
         several = args.projectors > 1
         head = " | ".join(f"{r}: PSNR (below the ceiling), captures, s/capture" + (", seam step" if several else "")
                           for r in rules)
         last = rules[-1]
-        print(f"| target | noise ceiling | gamut ceiling | {head} "
-              f"| {last}: beyond the noise: at limit / edges / fine / coarse |")
-        print("|---|---|---|" + "---|" * len(rules) + "---|")
+        print(f"| target | noise ceiling (evaluate) | gamut ceiling | perfect answer | perfect answer in the gamut "
+              f"| {head} | {last}: beyond the noise: at limit / edges / fine / coarse |")
+        print("|---|---|---|---|---|" + "---|" * len(rules) + "---|")
 
         def cell(label: str, i: int, name: str, ceil: float | None) -> str:
             t, c = rows[label]["targets"][i], comps[label][name]
@@ -261,22 +285,29 @@ def main() -> None:
             got = [r["targets"][i].get("noise_ceiling") for r in rows.values()]
             return max(got) if all(c is not None for c in got) else None
 
-        for i, name in enumerate(t["name"] for t in rows[rules[0]]["targets"]):
-            ceil = ceiling(i)
+        names = [t["name"] for t in rows[rules[0]]["targets"]]
+        for i, name in enumerate(names):
+            ceil = perfect[name]
             parts = error_parts(work / f"comp-{slug(last)}{fx}", work / f"eval-{slug(last)}{fx}",
                                 rows[last]["targets"][i])
             split = " / ".join(f"{100 * parts[k]:.0f} %" for k in ("at limit", "edges", "fine", "coarse"))
-            print(f"| {name} | {'–' if ceil is None else f'{ceil:.2f}'} | {gamut[name]:.2f} | "
+            noise = ceiling(i)
+            print(f"| {name} | {'–' if noise is None else f'{noise:.2f}'} | {gamut[name]:.2f} | {ceil:.2f} | "
+                  f"{perfect_gamut[name]:.2f} | "
                   + " | ".join(cell(r, i, name, ceil) for r in rules) + f" | {split} |")
-        ceilings = [ceiling(i) for i in range(len(rows[rules[0]]["targets"]))]
-        mean_ceil = round(float(np.mean(ceilings)), 2) if all(c is not None for c in ceilings) else None
+        noise_ceilings = [ceiling(i) for i in range(len(names))]
+        mean_noise = round(float(np.mean(noise_ceilings)), 2) if all(c is not None for c in noise_ceilings) else None
+        mean_ceil = round(float(np.mean([perfect[n] for n in names])), 2)
+        mean_shown = round(float(np.mean([perfect_gamut[n] for n in names])), 2)
 
         def mean(label: str) -> str:
             psnr = rows[label]["mean"]["psnr"]
             return f"{psnr:.2f}" + ("" if mean_ceil is None else f" ({mean_ceil - psnr:.2f})")
 
-        print(f"| mean | {mean_ceil} | {np.mean(list(gamut.values())):.2f} | " + " | ".join(mean(r) for r in rules)
-              + " | |")
+        print(f"| mean | {mean_noise} | {np.mean(list(gamut.values())):.2f} | {mean_ceil:.2f} | {mean_shown:.2f} | "
+              + " | ".join(mean(r) for r in rules) + " | |")
+        print("\nBelow the perfect answer within the gamut (the best any answer can score): "
+              + ", ".join(f"{r} {mean_shown - rows[r]['mean']['psnr']:.2f} dB" for r in rules))
         extra = [label for label in rows if label not in rules]
         if extra:
             base = rows[last]["mean"]["psnr"]

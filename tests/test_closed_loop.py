@@ -161,3 +161,33 @@ def test_the_mean_of_two_captures_reaches_the_noise_floor_only_at_its_own_noise(
     done = MeasuredCorrection(target, RowGrid(rows, (W, H)), NoiseModel.flat(NOISE ** 2))
     done.update(target + rng.normal(0, NOISE / np.sqrt(2), target.shape), target, repeats=2)
     assert done.stop_reason() == "noise floor"
+
+
+def test_a_perfect_answers_capture_inverts_the_camera_and_keeps_only_its_noise_and_compression():
+    """lab/perfect.py: the sensor signal whose noiseless recording is the target is found through white balance,
+    tone curves and the knee; a perfect answer's capture then differs from the target by the camera's noise and,
+    on a camera that writes JPEG, by its compression of the target's texture, which two captures' difference
+    cannot see."""
+    from procam.addon.lab.effects import record_signal
+    from procam.addon.lab.perfect import perfect_capture, perfect_ceiling, sensor_signal
+    from procam.addon.lab.truth import make_truth
+
+    rng = np.random.default_rng(3)
+    target = np.clip(0.05 + 0.6 * rng.random((48, 64, 3)), 0, 1).astype(np.float32)
+    inside = np.s_[8:40, 8:56]
+    quiet = make_truth("plane", effects="camera_response=0.8", camera_size=(64, 48), projector_size=(80, 60),
+                       other_forms=1.0)
+    other = OtherForms(1.0)
+    signal = sensor_signal(quiet, target)
+    assert np.abs(other.camera_tone(record_signal(signal, quiet.effects, None)) - target).max() < 1e-4
+    # noiseless, the JPEG alone: two captures agree exactly, yet differ from the target by its compression
+    a, b = (perfect_capture(quiet, target, np.random.default_rng(k)) for k in (0, 1))
+    assert np.array_equal(a, b) and np.mean((a - target) ** 2) > 1e-5
+    raw = make_truth("plane", effects="camera_response=0.8", camera_size=(64, 48), projector_size=(80, 60))
+    assert perfect_ceiling(raw, target, inside) > 80.0  # 16-bit recording only
+    noisy = make_truth("plane", effects="noise=0.4", camera_size=(64, 48), projector_size=(80, 60))
+    assert 30.0 < perfect_ceiling(noisy, target, inside) < 60.0
+    assert perfect_ceiling(quiet, target, inside) < perfect_ceiling(raw, target, inside) - 20.0
+    # against another reference (a clipped target's answer scored against the target): the clip's error counts
+    dimmer = target * 0.9
+    assert perfect_ceiling(raw, dimmer, inside, target=target[inside]) < 40.0

@@ -887,11 +887,18 @@ def apply_camera(image: np.ndarray, effects: EffectSet, camera_intrinsics: Intri
         img = img[my * ss:(my + intr.height) * ss, mx * ss:(mx + intr.width) * ss]
     if ss > 1:
         img = cv2.resize(img, (intr.width, intr.height), interpolation=cv2.INTER_AREA)
+    if effects["noise"].active and rng is None:
+        raise LabError("sensor noise needs a seeded np.random.Generator")
+    return record_signal(img, effects, rng)
 
+
+def record_signal(image: np.ndarray, effects: EffectSet, rng: np.random.Generator | None) -> np.ndarray:
+    """What the camera records of the linear signal ``image`` reaching its sensor (camera-sized, after the lens):
+    sensor noise (Poisson-Gaussian; the sensor saturates at 1), then its processing (white balance gains, tone
+    curve), clipped and quantised to 16 bits as written to a capture PNG. ``rng`` None: without the noise."""
+    img = image
     e = effects["noise"]
-    if e.active:
-        if rng is None:
-            raise LabError("sensor noise needs a seeded np.random.Generator")
+    if e.active and rng is not None:
         sig = np.clip(img, 0.0, None).astype(np.float64)
         if e["gain"] > 0:
             sig = rng.poisson(sig / e["gain"]) * e["gain"]  # photo-electrons are Poisson counts

@@ -163,18 +163,21 @@ class OtherForms:
             x = (1 - t) * stack[lo, :, cols].transpose(1, 0, 2) + t * stack[lo + 1, :, cols].transpose(1, 0, 2)
         return np.clip(x, 0.0, 1.0).astype(np.float32)
 
-    def camera_record(self, image: np.ndarray) -> np.ndarray:
-        """What the camera writes of its linear image (H×W×3, [0, 1], after its sensor noise): white balance, a
-        knee tone curve, a JPEG round trip, read back as linear."""
-        if not self.active:
-            return image
+    def camera_tone(self, image: np.ndarray) -> np.ndarray:
+        """The camera's processing of its linear image before the JPEG: white balance and the knee tone curve."""
         v = np.clip(np.asarray(image, np.float32) * self.wb, 0.0, None)
         k = self.camera_knee
         if k < 1.0:
             over = np.maximum(v - k, 0.0) / (1.0 - k)
             v = np.where(v > k, k + (1.0 - k) * (1.0 - np.exp(-1.6 * over)) / (1.0 - math.exp(-1.6)), v)
-        v = np.clip(v, 0.0, 1.0)
-        code = np.round(srgb_encode(v) * 255.0).astype(np.uint8)
+        return np.clip(v, 0.0, 1.0).astype(np.float32)
+
+    def camera_record(self, image: np.ndarray) -> np.ndarray:
+        """What the camera writes of its linear image (H×W×3, [0, 1], after its sensor noise): white balance, a
+        knee tone curve, a JPEG round trip, read back as linear."""
+        if not self.active:
+            return image
+        code = np.round(srgb_encode(self.camera_tone(image)) * 255.0).astype(np.uint8)
         ok, buf = cv2.imencode(".jpg", code[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
             raise LabError("the other-forms camera could not encode its JPEG")
