@@ -406,7 +406,9 @@ def noise_ceiling(target: np.ndarray, black: np.ndarray, white: np.ndarray, nois
     """The range ceiling as a capture can score it: the clipped target seen through the camera's noise of
     variance ``noise_mse`` (independent of the image, so the two squared errors add). With the range mapped
     (``--range auto``) the clipped target is almost the target, the range ceiling reaches 59–68 dB on the lab,
-    and no capture of a camera with noise comes near it: this is the one a result can be held to."""
+    and no capture of a camera with noise comes near it: this is the one a result can be held to. A camera that
+    compresses its photos (JPEG) quantises the picture's texture as well, the same way in two captures of one
+    input, which ``noise_mse`` (their difference) misses: there it is optimistic (lab/perfect.py)."""
     return _psnr_of(_clip_mse(target, black, white) + max(float(noise_mse), 0.0))
 
 

@@ -493,7 +493,10 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                       "clipped target's, the share where the input the pixel sees is already at full (capture too "
                       "dark) or at zero (too bright), which no solver can push further; capture_noise_rmse: the "
                       "camera's noise, from a second capture of the compensated input; noise_ceiling: the range "
-                      "ceiling as a capture scores it, through that noise; " + RELATIVE_MEASURE,
+                      "ceiling as a capture scores it, through that noise (a camera that compresses its photos, JPEG, "
+                      "also quantises the picture's texture the same way in both captures: the difference misses "
+                      "that, so on such a camera the ceiling is optimistic and reads higher for a blurred answer "
+                      "than for a sharp one); " + RELATIVE_MEASURE,
            "range": None if range_map is None else range_map.to_dict(),
            "classical": None if model is None else model.report,
            "targets": rows, "mean": mean_scores(done),
