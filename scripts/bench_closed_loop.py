@@ -86,7 +86,7 @@ def error_parts(comp: Path, ev: Path, row: dict) -> dict[str, float]:
     err = (capture - target) ** 2
     noise = row.get("capture_noise_rmse", 0.0) ** 2
     beyond = max(float(err.mean()) - noise, 1e-12)
-    at_limit = (row.get("ceiling_gap_at_limit") or 0.0)
+    at_limit = row.get("ceiling_gap_at_limit") or row.get("at_limit_joint") or 0.0
     grad = np.abs(cv2.Laplacian(cv2.GaussianBlur(target, (0, 0), 0.7), cv2.CV_32F)).max(axis=2)
     edges = grad > np.quantile(grad, 1.0 - EDGE_SHARE)
     e = capture - target
@@ -104,6 +104,41 @@ def error_parts(comp: Path, ev: Path, row: dict) -> dict[str, float]:
     # the limit share is evaluate's, of the whole excess; the others share what is left in their proportions
     return {"at limit": at_limit, **{k: (1.0 - at_limit) * v / total for k, v in parts.items()},
             "excess_mse": beyond}
+
+
+def joint_at_limit(work: Path, comp: Path, ev: Path, row: dict, black: np.ndarray, white: np.ndarray) -> float:
+    """Of a several-projector answer's squared error beyond the target clipped to [black, white] (camera-sized),
+    the share where every projector that lights the pixel already gives all it can: the capture too dark with
+    each one's input at full, or too bright with each at zero (what evaluate's ``ceiling_gap_at_limit`` says for
+    one projector)."""
+    from procam.addon.imageio import read_image
+    from procam.addon.stages.range import ceiling_gap_at_limit
+    from procam.addon.stages.transport import camera_to_input
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps.evaluate import input_seen
+
+    cal = calibrate_step.read(work / "cal")
+    a, name = row["area"], row["name"]
+    inside = np.s_[a["y"]:a["y"] + a["height"], a["x"]:a["x"] + a["width"]]
+    cam_size = cal.rig.camera.intrinsics.size
+    seen = []
+    for k in range(cal.projector_count):
+        one = cal.for_projector(k)
+        looks_at, _ = camera_to_input(one, cam_size)
+        if one.warp is not None:
+            hit = np.isfinite(looks_at[..., 0])
+            looks_at[hit] = one.warp.map_m(looks_at[hit], one.rig.projector.input_size)
+        frame = read_image(comp / f"{name}_frame_p{k + 1}.png")
+        seen.append(input_seen(frame, one.rig.projector, looks_at)[inside])
+    capture, target = area_image(ev / f"{name}_capture.png", a), area_image(comp / f"{name}_target.png", a)
+    stack = np.stack(seen)
+    lit = np.isfinite(stack).any(axis=0)
+    lowest = np.where(lit, np.nanmin(np.where(np.isfinite(stack), stack, np.inf), axis=0), np.nan)
+    highest = np.where(lit, np.nanmax(np.where(np.isfinite(stack), stack, -np.inf), axis=0), np.nan)
+    # too dark: at the limit only if the dimmest projector there is at full; too bright: if the brightest is at 0
+    x = np.where(capture < target, lowest, highest)
+    got = ceiling_gap_at_limit(target, capture, black[inside], white[inside], x)
+    return 0.0 if got is None else got
 
 
 def primaries(truth: Path, repeats: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -256,9 +291,9 @@ def main() -> None:
             placed = read_image(work / f"eval-{slug(rules[0])}{fx}" / f"{t['name']}_capture.png").copy()
             placed[inside] = target
             # the render's noise, drawn from two renders of the last run's answer (its light is near the target's)
-            names = [f"{t['name']}_frame.png"] if args.projectors == 1 else \
+            frame_files = [f"{t['name']}_frame.png"] if args.projectors == 1 else \
                 [f"{t['name']}_frame_p{k + 1}.png" for k in range(args.projectors)]
-            render = render_noise(lab_truth, [read_image(work / f"comp-{slug(last)}{fx}" / n) for n in names],
+            render = render_noise(lab_truth, [read_image(work / f"comp-{slug(last)}{fx}" / n) for n in frame_files],
                                   seed=lab_truth.seed + 991)
             perfect[t["name"]] = perfect_ceiling(lab_truth, placed, inside, render=render)
             placed[inside] = gamut_clip(target, black[inside], prims[:, inside[0], inside[1]])
@@ -286,6 +321,11 @@ def main() -> None:
             return max(got) if all(c is not None for c in got) else None
 
         names = [t["name"] for t in rows[rules[0]]["targets"]]
+        if several:  # evaluate splits the limit out for one projector only
+            white = black + np.sum(np.maximum(prims - black[None], 0.0), axis=0)
+            for r in rows[last]["targets"]:
+                r["at_limit_joint"] = joint_at_limit(work, work / f"comp-{slug(last)}{fx}",
+                                                     work / f"eval-{slug(last)}{fx}", r, black, white)
         for i, name in enumerate(names):
             ceil = perfect[name]
             parts = error_parts(work / f"comp-{slug(last)}{fx}", work / f"eval-{slug(last)}{fx}",
