@@ -191,6 +191,17 @@ def test_console_script_exit_codes(tmp_path):
             and "Traceback" not in bad.stderr)
 
 
+def test_the_package_runs_as_a_module_with_the_commands_exit_codes(tmp_path):
+    """``python -m procam.addon.cli`` is the procam command (a checkout on the path, not installed)."""
+    ok = subprocess.run([sys.executable, "-m", "procam.addon.cli", "--help"], capture_output=True, text=True,
+                        timeout=120)
+    assert ok.returncode == EXIT_OK and "exit codes:" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "procam.addon.cli", "evaluate", str(tmp_path / "none"), "--inputs",
+                          str(tmp_path), "--targets", "t.png", "--device", "lab:x", "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == EXIT_USER and "Traceback" not in bad.stderr and bad.stderr.startswith("procam")
+
+
 # -- progress on stderr --------------------------------------------------------------------------
 
 class _Tty(io.StringIO):
