@@ -259,3 +259,36 @@ def test_the_overlap_measures_each_projectors_falloff_that_calibration_absorbed(
     assert diagnose_step.attribute(docs)["differs"] is None
     verdict = diagnose_step.attribute(docs, [f_1, f_2])
     assert (verdict["differs"]["projector"], verdict["differs"]["effect"]) == (2, "vignetting")
+
+
+def test_a_missing_operator_of_the_second_projector_is_said_recorded_and_not_written_into_the_calibration(
+        two_projectors, tmp_path, capsys):
+    """Issue 53: without ``transport_p2.npz`` every compensation rendered projector 2's operator again without a
+    word (the progress line was throttled away). The run says so on stderr and in its record and summary, names the
+    command that stores it, and leaves the calibration folder as it was (an input)."""
+    import json
+    import shutil
+
+    from procam.addon.cli.app import main as procam
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps import transport as transport_step
+
+    root, targets = two_projectors
+    cal = tmp_path / "cal"
+    shutil.copytree(root / "cal", cal)
+    (cal / "transport_p2.npz").unlink()
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in cal.rglob("*"))
+    view = calibrate_step.read(cal).for_projector(1)
+    assert "is missing (transport_p2.npz not in" in transport_step.find(view, bounces=1, seed=0).problem
+    assert "was made with --bounces 1 --seed 0, and this run uses --bounces 0" in \
+        transport_step.find(calibrate_step.read(cal).for_projector(0), bounces=0, seed=0).problem
+    capsys.readouterr()
+    assert procam(["compensate", str(cal), str(targets[0]), "--iterations", "5", "--out",
+                   str(tmp_path / "comp")]) == 0
+    out, err = capsys.readouterr()
+    said = "projector 2: the stored light-transport operator transport_p2.npz is missing"
+    assert said in err and f"procam precompute {cal}`" in err and "projector 1: the stored" not in err
+    doc = json.loads((tmp_path / "comp" / "compensation.json").read_text())
+    assert len(doc["transport_notes"]) == 1 and doc["transport_notes"][0].startswith(said)
+    assert f"note: {said}" in out  # the summary
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in cal.rglob("*")) == before  # nothing written into it

@@ -343,6 +343,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
         if count > 1:  # what several projectors warn of (one that lights nothing in the area) is said here
             lines += [f"{t.get('name', '?')}: warning: {w}" for w in (t.get("warnings") or [])]
     lines += range_line(doc.get("range"))
+    notes = doc.get("transport_notes")
+    lines += [f"note: {n}" for n in notes if isinstance(n, str)] if isinstance(notes, list) else []
     mode = doc.get("mode")
     head = f"{len(done)}/{len(targets)} targets compensated ({mode if isinstance(mode, str) else 'mixed modes'})"
     if count > 1:
