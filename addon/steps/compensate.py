@@ -77,9 +77,12 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     paths = list(options.targets)
     if not paths:
         raise ImageError("no target images: add target files or choose an image sequence folder")
-    # The output is checked before anything is read (and again, with the capture set, when it is created).
+    # The output is checked before any work, against every input: the calibration's capture set too (read from
+    # its manifest: open-loop θ, the per-pixel radiometry and the display area read it), which the full read of
+    # the calibration would only name after the scene is loaded and an operator perhaps rendered.
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration, *paths, *stage_c_inputs(options.stage_c)),
+                      inputs=(options.calibration, calibrate_step.capture_set_of(options.calibration), *paths,
+                              *stage_c_inputs(options.stage_c)),
                       incomplete=KIND.incomplete)
     with writer_lock(options.out):  # another run of this output is refused before any work
         return _run(options, say, cancel, device, paths)
