@@ -32,6 +32,7 @@ from ..outputs import (AtomicFolder, check_replaceable, file_sha256, natural_key
                        writer_lock)
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
+from ..stages.closed_loop import OtherRigError
 from ..stages.range import range_line
 from . import calibrate as calibrate_step
 from . import layout, projectors
@@ -134,6 +135,8 @@ def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, devic
                         (folder.tmp / file).unlink(missing_ok=True)
                     break
                 except ProCamError as exc:
+                    if isinstance(exc, OtherRigError) and not any(r["status"] == "done" for r in records):
+                        raise  # the device is another rig's and nothing is finished: no folder is left behind
                     failure = exc
                     records.append({"name": name, "file": str(path.absolute()), "file_sha256": sha,
                                     "status": "failed", "error": str(exc)})
