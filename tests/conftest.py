@@ -62,7 +62,7 @@ def _two_projector_lab(tmp_path_factory) -> Path:
 
     root = tmp_path_factory.mktemp("two-projectors")
     assert main(["lab", "--surface", "curve", "--projectors", "2", "--overlap", "0.2", "--projector-effects",
-                 "1:response=0.9", "--scale", "0.2", "--samples", "4", "--out", str(root / "lab"), "--truth",
+                 "2:response=0.9", "--scale", "0.2", "--samples", "4", "--out", str(root / "lab"), "--truth",
                  str(root / "lab.truth.json")]) == 0
     assert main(["calibrate", str(root / "lab"), "--out", str(root / "cal"), "--no-blend-output"]) == 0
     return root

@@ -389,7 +389,7 @@ def test_one_projector_manifest_has_no_projector_fields(tmp_path):
     (lambda d: d["images"][3].update(projector=2), "numbered 0 to 1, got 2"),
     (lambda d: d["images"][3].update(projector="1"), "numbered 0 to 1, got '1'"),
     (lambda d: d["images"][0].update(projector=1), "surface image is shared by every projector"),
-    (lambda d: [e.pop("projector", None) for e in d["images"]], "no captures of projector\\(s\\) 1"),
+    (lambda d: [e.pop("projector", None) for e in d["images"]], "no captures of projector\\(s\\) 2 \\(numbered from 1"),
     (lambda d: d["projectors"][0].update(intensity=9.0), "'projector' differs from the first"),
     (lambda d: d.update(projectors=[]), "list of one or more"),
 ])
@@ -406,15 +406,15 @@ def test_writer_checks_each_projector_frame_and_index(tmp_path):
     second = Projector(projector_intrinsics_from_throw(*FRAME2, 1.6), look_at_pose((-0.3, 0.1, 0.0), (0, 0, 1.6)))
     shape = (CAM[1], CAM[0], 3)
     w = CaptureSet.writer(tmp_path / "new", cam, first, others=(second,))
-    with pytest.raises(CaptureError, match="projector 1's frame is 64×40"):
+    with pytest.raises(CaptureError, match="projector 2's frame is 64×40"):
         w.add("white", np.zeros(shape), projector_index=1, frame=np.zeros((60, 80, 3)))
     with pytest.raises(CaptureError, match="numbered 0 to 1, got 2"):
         w.add("white", np.zeros(shape), projector_index=2)
     with pytest.raises(CaptureError, match="target image is shared"):
         w.add("target", np.zeros((8, 8, 3)), projector_index=1)
     w.add("white", np.zeros(shape), frame=np.zeros((60, 80, 3)))
-    with pytest.raises(CaptureError, match="no captures of projector\\(s\\) 1"):
-        w.commit()  # projector 1's sequence never captured
+    with pytest.raises(CaptureError, match="no captures of projector\\(s\\) 2"):
+        w.commit()  # the second projector's sequence never captured
     assert not (tmp_path / "new").exists() and siblings(tmp_path / "new") == []
 
 

@@ -518,7 +518,7 @@ def test_truth_of_two_projectors_round_trips_and_one_projector_truth_is_unchange
     doc = json.loads((tmp_path / "one.json").read_text())
     assert "nominal_projectors" not in doc and "projectors" not in doc["rig"]
     two = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2, nominal_error=(0.05, 0),
-                     effects="noise=0.5,vignetting=0.5", projector_effects="1:response=0.8")
+                     effects="noise=0.5,vignetting=0.5", projector_effects="2:response=0.8")
     # the first projector's nominal pose is off its true one by what it is with one projector (the layout moved it)
     np.testing.assert_allclose(two.nominal_pose[:3, 3] - two.rig.projector.position,
                                one.nominal_pose[:3, 3] - one.rig.projector.position)
@@ -548,21 +548,21 @@ def test_truth_of_two_projectors_round_trips_and_one_projector_truth_is_unchange
 def test_a_projector_black_level_of_its_own_is_its_panel_leak_the_room_stays_shared():
     two = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2,
                      effects="black_level.projector=0.006,black_level.ambient=0.02,response=0.5",
-                     projector_effects="1:black_level.projector=0.03,crosstalk=0.3")
+                     projector_effects="2:black_level.projector=0.03,crosstalk=0.3")
     first, second = two.effects_of(0)["black_level"], two.effects_of(1)["black_level"]
     assert first["projector"] == pytest.approx(0.006) and second["projector"] == pytest.approx(0.03)
     assert first["ambient"] == second["ambient"] == pytest.approx(0.02)  # one room
     assert two.effects_of(1)["response"].strength == 0 and two.effects_of(1)["crosstalk"].active
     # naming another effect leaves the panel's leak as the shared effects give it
     other = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2,
-                       effects="black_level.projector=0.006", projector_effects="1:response=0.8")
+                       effects="black_level.projector=0.006", projector_effects="2:response=0.8")
     assert other.effects_of(1)["black_level"]["projector"] == pytest.approx(0.006)
 
 
 def test_one_projector_leaking_black_is_in_every_projector_s_captures(tmp_path):
     out = tmp_path / "set"
     assert main(["lab", "--surface", "plane", "--out", str(out), *SMALL, "--projectors", "2",
-                 "--projector-effects", "1:black_level.projector=0.08"]) == 0
+                 "--projector-effects", "2:black_level.projector=0.08"]) == 0
     cs = CaptureSet.load(out)
     first, second = footprints(cs)
     alone = second & ~first
@@ -576,7 +576,8 @@ def test_one_projector_leaking_black_is_in_every_projector_s_captures(tmp_path):
 @pytest.mark.parametrize("spec, message", [
     ("1:noise=0.3", "noise act.* shared by every projector"),
     ("1:black_level.ambient=0.1", "black_level.ambient is the room's light"),
-    ("2:response=0.5", "projector 2, but the lab has 2 projector"),
+    ("3:response=0.5", r"projector 3, but the lab has 2 projector\(s\), numbered from 1"),
+    ("0:response=0.5", "numbered from 1 .*add 1 to each number"),
     ("response=0.5", "K:EFFECTS items"),
     ("1:response=0.5;1:crosstalk=0.2", "projector 1 twice"),
     ("1:respons=0.5", "unknown effect 'respons'"),
@@ -586,10 +587,21 @@ def test_bad_projector_effects_are_refused(spec, message):
         make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2, projector_effects=spec)
 
 
+def test_projector_effects_number_projectors_from_1_as_every_other_message_does():
+    """``--projector-effects 1:…`` is the first projector (it was the second when the option counted from 0)."""
+    two = make_truth("plane", camera_size=(64, 48), projector_size=(80, 60), projectors=2,
+                     projector_effects="1:response=0.7")
+    assert two.effects_of(0)["response"].strength == pytest.approx(0.7)
+    assert two.effects_of(1)["response"].strength == 0
+    assert set(two.projector_effects) == {0}
+    with pytest.raises(LabError, match="gives effects of projector.s. 3, but has 2 projector.s., numbered from 1"):
+        replace(two, projector_effects={2: two.effects})
+
+
 def test_cli_two_projectors_side_by_side_overlap_by_the_fraction_asked(tmp_path, capsys):
     out = tmp_path / "set"
     assert main(["lab", "--surface", "plane", "--out", str(out), *SMALL, "--projectors", "2",
-                 "--layout", "side-by-side", "--overlap", "0.25", "--projector-effects", "1:response=1"]) == 0
+                 "--layout", "side-by-side", "--overlap", "0.25", "--projector-effects", "2:response=1"]) == 0
     assert "of 2 projectors" in capsys.readouterr().out
     truth = LabTruth.load(tmp_path / "set.truth.json")
     poses = [p.camera_from_projector for p in truth.rig.projectors]
@@ -684,7 +696,7 @@ def test_two_projectors_shown_at_once_in_one_render():
 
 def test_each_projector_shown_at_once_through_its_own_effects():
     truth = make_truth("plane", seed=5, samples=8, camera_size=(64, 48), projector_size=(80, 60), projectors=2,
-                       overlap=0.3, projector_effects="1:response=1")
+                       overlap=0.3, projector_effects="2:response=1")
     w, b = np.ones((60, 80, 3), np.float32), np.zeros((60, 80, 3), np.float32)
     g = np.full_like(w, 0.3)
     with LabDevice(truth) as device:

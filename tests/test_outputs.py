@@ -587,11 +587,15 @@ INSIDE = {
     "calibrate": (STEPS["calibrate"][0], lambda i: i.cset),
     "calibrate-rig": (STEPS["calibrate-rig"][0], lambda i: i.session),
     "compensate": (STEPS["compensate"][0], lambda i: i.cal),
+    # the calibration's capture set, named only in its manifest: refused before the calibration is read
+    "compensate (capture set)": (STEPS["compensate"][0], lambda i: i.cset),
     "evaluate": (STEPS["evaluate"][0], lambda i: i.comp),
     "evaluate (device)": (STEPS["evaluate"][0], lambda i: i.cset),
     "diagnose": (STEPS["diagnose"][0], lambda i: i.cal),
+    "diagnose (capture set)": (STEPS["diagnose"][0], lambda i: i.cset),
     "export-frames": (STEPS["export-frames"][0], lambda i: i.comp),
     "show": (WRITERS["show"], lambda i: i.cal),
+    "show (capture set)": (WRITERS["show"], lambda i: i.cset),
     "show (folder of targets)": (WRITERS["show"], lambda i: i.targets),
     "report": (WRITERS["report"], lambda i: i.comp),
 }

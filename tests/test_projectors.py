@@ -259,3 +259,73 @@ def test_the_overlap_measures_each_projectors_falloff_that_calibration_absorbed(
     assert diagnose_step.attribute(docs)["differs"] is None
     verdict = diagnose_step.attribute(docs, [f_1, f_2])
     assert (verdict["differs"]["projector"], verdict["differs"]["effect"]) == (2, "vignetting")
+
+
+def test_a_missing_operator_of_the_second_projector_is_said_recorded_and_not_written_into_the_calibration(
+        two_projectors, tmp_path, capsys):
+    """Issue 53: without ``transport_p2.npz`` every compensation rendered projector 2's operator again without a
+    word (the progress line was throttled away). The run says so on stderr and in its record and summary, names the
+    command that stores it, and leaves the calibration folder as it was (an input)."""
+    import json
+    import shutil
+
+    from procam.addon.cli.app import main as procam
+    from procam.addon.steps import calibrate as calibrate_step
+    from procam.addon.steps import transport as transport_step
+
+    root, targets = two_projectors
+    cal = tmp_path / "cal"
+    shutil.copytree(root / "cal", cal)
+    (cal / "transport_p2.npz").unlink()
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in cal.rglob("*"))
+    view = calibrate_step.read(cal).for_projector(1)
+    assert "is missing (transport_p2.npz not in" in transport_step.find(view, bounces=1, seed=0).problem
+    assert "was made with --bounces 1 --seed 0, and this run uses --bounces 0" in \
+        transport_step.find(calibrate_step.read(cal).for_projector(0), bounces=0, seed=0).problem
+    capsys.readouterr()
+    assert procam(["compensate", str(cal), str(targets[0]), "--iterations", "5", "--out",
+                   str(tmp_path / "comp")]) == 0
+    out, err = capsys.readouterr()
+    said = "projector 2: the stored light-transport operator transport_p2.npz is missing"
+    assert said in err and f"procam precompute {cal}`" in err and "projector 1: the stored" not in err
+    doc = json.loads((tmp_path / "comp" / "compensation.json").read_text())
+    assert len(doc["transport_notes"]) == 1 and doc["transport_notes"][0].startswith(said)
+    assert f"note: {said}" in out  # the summary
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in cal.rglob("*")) == before  # nothing written into it
+
+
+def test_a_closed_loop_through_another_rig_with_as_many_projectors_is_refused_and_leaves_nothing(
+        two_projectors, tmp_path, capsys):
+    """Issue 53: the side-by-side calibration compensated through a lab truth of stacked projectors (same count, same
+    camera) exited 0 while the loop chased light that landed elsewhere (the simulated PSNR fell from 20.9 to 7.3 dB
+    on the issue's rig). The first capture's departure from the operator's prediction refuses it, exit 2, no folder
+    left; the calibrated rig's own device passes the same check (the test above, and the share measured here)."""
+    from procam.addon.cli.app import main as procam
+    from procam.addon.lab.truth import make_truth
+
+    root, targets = two_projectors
+    other = make_truth("curve", projectors=2, layout="stacked", scale=0.2, samples=4, effects="realistic")
+    other.save(tmp_path / "stacked.truth.json")
+    capsys.readouterr()
+    out = tmp_path / "comp"
+    device = f"lab:{tmp_path / 'stacked.truth.json'}"
+    assert procam(["compensate", str(root / "cal"), str(targets[1]), "--device", device, "--iterations", "10",
+                   "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "is not the rig of this calibration" in err and "departs from what the calibration predicts" in err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_the_other_rig_share_ignores_exposure_black_level_and_noise_and_sees_light_moved():
+    from procam.addon.stages.closed_loop import OTHER_RIG_SHARE, other_rig_share
+
+    rng = np.random.default_rng(3)
+    q = np.clip(rng.uniform(0.1, 0.8, (2000, 3)), 0, 1).astype(np.float32)
+    sigma = 0.02
+    same = 0.8 * q + 0.03 + rng.normal(0, sigma, q.shape)  # another exposure, the room's light, sensor noise
+    assert other_rig_share(same, q, sigma ** 2) < 0.03
+    moved = 0.8 * np.roll(q, 700, axis=0) + 0.03  # the same light, landing on other pixels
+    assert other_rig_share(moved, q) > OTHER_RIG_SHARE
+    # a dim target: the noise is no reason to refuse
+    dim = 0.03 * q / q.mean()
+    assert other_rig_share(dim + rng.normal(0, 0.01, q.shape), dim) < OTHER_RIG_SHARE

@@ -199,10 +199,12 @@ def _check_sequences(entries: list[Entry], count: int, where: str) -> None:
     """Each projector of a multi-projector set has captures of its own: a projector listed without them is a
     sequence that was never captured (or got lost), refused before calibration meets it."""
     shown = {e.projector for e in entries if e.kind not in SHARED_KINDS}
-    missing = [str(k) for k in range(count) if k not in shown]
+    # named from 1 as every message names projectors; the manifest's "projector" field counts from 0
+    missing = [str(k + 1) for k in range(count) if k not in shown]
     if missing:
         raise CaptureError(f"{where}: the set lists {count} projectors, but holds no captures of projector(s) "
-                           f"{', '.join(missing)}; capture each projector's sequence (while the others show black)")
+                           f"{', '.join(missing)} (numbered from 1; an entry's \"projector\" is that number less 1); "
+                           "capture each projector's sequence (while the others show black)")
 
 
 def _lens_removed(value: Any, where: str) -> dict[str, Any] | None:
@@ -412,7 +414,7 @@ class CaptureSet:
             if e.pattern:
                 pat = self._read(e.pattern)
                 if _size(pat) != frame:
-                    whose = f"projector {e.projector}'s" if self.others else "the projector"
+                    whose = f"projector {e.projector + 1}'s" if self.others else "the projector"
                     raise CaptureError(f"{self.path / e.pattern}: projected pattern is "
                                        f"{_size(pat)[0]}×{_size(pat)[1]}, "
                                        f"but {whose} frame is {frame[0]}×{frame[1]}")
@@ -529,7 +531,7 @@ class CaptureSet:
         if count == 1:
             return self
         if not any(e.projector == index and e.kind not in SHARED_KINDS for e in self.entries):
-            raise CaptureError(f"capture set {self.path} holds no captures of projector {index}; capture its "
+            raise CaptureError(f"capture set {self.path} holds no captures of projector {index + 1}; capture its "
                                "sequence (while the other projectors show black) and make the set again")
         return CaptureSet(self.path, self.camera, self.projectors[index],
                           [replace(e, projector=0) for e in self.entries if e.projector == index or
@@ -674,7 +676,7 @@ class CaptureSetWriter:
         pat = np.asarray(pattern, dtype=np.float32)
         frame = self.projectors[projector].intrinsics.size
         if _size(pat) != frame:
-            whose = f"projector {projector}'s" if self.others else "the projector"
+            whose = f"projector {projector + 1}'s" if self.others else "the projector"
             raise CaptureError(f"{name}: projected pattern is {_size(pat)[0]}×{_size(pat)[1]}, "
                                f"but {whose} frame is {frame[0]}×{frame[1]}; pass the native frame "
                                "(Projector.frame_from_input)")

@@ -208,7 +208,7 @@ def run_step(label: str, step: Callable[..., T], options: Any, *, total: int = 1
     fraction scaled; a percentage by default) and Ctrl-C as a clean cancel."""
     with cancel_on_interrupt() as cancel, ProgressBar(total, label, unit=unit) as bar:
         def report(message: str, fraction: float) -> None:
-            if "warning:" in message:
+            if "warning:" in message or "note:" in message:
                 progress(message)  # never throttled away
             bar.update(fraction * total, message)
 

@@ -74,7 +74,7 @@ class LabTruth:
     nominal_camera_intrinsics: Intrinsics | None = None
     #: projectors 2…N as the pipeline is told they are (nominal pose and intrinsics), one per ``rig.others``
     nominal_others: tuple[Projector, ...] = ()
-    #: projector index → that projector's own projector effects, in place of those of ``effects`` (mixed projectors)
+    #: projector index (from 0) → its own projector effects, in place of those of ``effects`` (mixed projectors)
     projector_effects: dict[int, EffectSet] = field(default_factory=dict)
     #: strength of the other-forms rig on top of ``effects`` (:mod:`.other_forms`; 0 off)
     other_forms: float = 0.0
@@ -85,10 +85,10 @@ class LabTruth:
         if len(self.nominal_others) != len(self.rig.others):
             raise LabError(f"the lab truth has {len(self.rig.projectors)} projectors but nominal descriptions of "
                            f"{1 + len(self.nominal_others)}; make the lab captures and their truth again")
-        odd = [k for k in self.projector_effects if not 0 <= k < len(self.rig.projectors)]
+        odd = [k + 1 for k in self.projector_effects if not 0 <= k < len(self.rig.projectors)]
         if odd:
             raise LabError(f"the lab truth gives effects of projector(s) {', '.join(map(str, odd))}, but has "
-                           f"{len(self.rig.projectors)} projector(s), numbered from 0")
+                           f"{len(self.rig.projectors)} projector(s), numbered from 1")
 
     def effects_of(self, index: int) -> EffectSet:
         """The effects projector ``index`` is rendered with: the shared ones, its projector effects its own if given."""
@@ -247,7 +247,13 @@ def with_projector_effects(shared: EffectSet, own: EffectSet) -> EffectSet:
 
 
 def parse_projector_effects(spec: str | Mapping[int, Any] | None, count: int | None = None) -> dict[int, EffectSet]:
-    """``"1:response=0.6,vignetting=0.5;2:crosstalk=0.3"`` → projector index (from 0) → its own projector effects.
+    """``"2:response=0.6,vignetting=0.5;3:crosstalk=0.3"`` → projector index (from 0) → its own projector effects.
+
+    The text (and a mapping's keys) number projectors from 1, as every other place a user reads or names a
+    projector does (``projector_2/``, ``transport_p2.npz``, "projector 2: …"); the result is keyed by index from 0,
+    as :class:`LabTruth` and the rig are. Until 2026-11-29 the option numbered them from 0, so a ``0`` is refused
+    with a message that says so rather than read as something else: ``1`` then meant the second projector, and
+    reading it silently as the first would give an old command another rig.
 
     Each projector named gets exactly these projector effects instead of those of the shared effects (a mixed
     rig: another response, colour or lens). Effects that act in the scene, the camera or the depth sensor are
@@ -264,18 +270,22 @@ def parse_projector_effects(spec: str | Mapping[int, Any] | None, count: int | N
             head, colon, text = part.partition(":")
             if part and (not colon or not head.strip().isdigit()):
                 raise LabError(f"projector effects are K:EFFECTS items separated by ';', K a projector numbered "
-                               f"from 0 (e.g. 1:response=0.6,vignetting=0.5), got {part!r}")
+                               f"from 1 (e.g. 2:response=0.6,vignetting=0.5), got {part!r}")
             if part:
                 items.append((int(head), text))
     else:
-        raise LabError(f"projector effects must be text like '1:response=0.6', got {type(spec).__name__}")
+        raise LabError(f"projector effects must be text like '2:response=0.6', got {type(spec).__name__}")
     out: dict[int, EffectSet] = {}
-    for k, text in items:
-        k = _whole(k, "a projector's number", 0)
-        if count is not None and k >= count:
+    for number, text in items:
+        if number == 0 and not isinstance(number, bool):
+            raise LabError("projector effects name projector 0, but projectors are numbered from 1 (the first is 1, "
+                           "as in projector_1/ and every message); before 2026-11-29 this option numbered them from "
+                           "0: add 1 to each number")
+        k = _whole(number, "a projector's number", 1)
+        if count is not None and k > count:
             raise LabError(f"projector effects name projector {k}, but the lab has {count} projector(s), numbered "
-                           "from 0")
-        if k in out:
+                           "from 1")
+        if k - 1 in out:
             raise LabError(f"projector effects name projector {k} twice; give all its effects in one item")
         effects = parse_effects(text)
         shared = [n for n in effects.active if effects[n].kind.stage != "projector" and n != "black_level"]
@@ -288,7 +298,7 @@ def parse_projector_effects(spec: str | Mapping[int, Any] | None, count: int | N
             raise LabError(f"projector {k}'s own black level is its panel's leak only (black_level.projector); "
                            f"black_level.{', black_level.'.join(room)} is the room's light, shared by every "
                            "projector: give it in the effects")
-        out[k] = effects
+        out[k - 1] = effects
     return out
 
 

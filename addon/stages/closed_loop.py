@@ -36,6 +36,10 @@ than the input's change explains (camera bumped, surface moved, a lamp
 switched on), a capture black or saturated where the last was not, or a
 residual that grew three captures in a row (the correction diverging). Then
 the best answer captured so far is kept and the reason is reported.
+
+Before all that, the first capture must be of the calibrated rig (:func:`other_rig_share`): a device of another
+rig with as many projectors (another lab truth, another room) put its light elsewhere, and the loop then chased
+it from 20.9 to 7.3 dB and exited 0.
 """
 
 from __future__ import annotations
@@ -45,6 +49,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+
+from .schedule import CompensationError
 
 #: Damping of the Newton step on the measured slope: step = ŝ/(ŝ² + κ); 1/(1 + κ) at the model's slope.
 KAPPA = 0.05
@@ -81,6 +87,52 @@ DIVERGING_CAPTURES = 3
 #: A capture with more than this share of its values at 0 (or at 1) where the last had under half of that is
 #: black (saturated).
 EXTREME_SHARE = 0.5
+#: How far the closed loop's first capture may depart from the operator's prediction, as a share of the image's RMS,
+#: once one gain and one offset per channel are taken out (exposure, the room's light and black level, the
+#: response's slope: what the loop itself corrects). What is left on the calibrated rig is the model's local error
+#: (blur, edges, a response that bends, colour that varies over the frame): measured on the lab's own rigs, noise
+#: taken out, 0.04–0.13 (the curve with the realistic effects 0.08 on city, 0.04 on grey; the other-forms rig at full
+#: strength 0.09; two projectors with tone curves of their own 0.13, the worst). A device of another rig puts its
+#: light elsewhere and leaves a share of the image itself: 0.40 (a curve's calibration, a plane's lab) and 0.60–0.75
+#: (side-by-side projectors' calibration, stacked projectors' lab), runs that ended 5 to 18 dB below where they
+#: started. 0.3 lies more than twice the worst agreement of a calibrated rig above it (a real rig's model is worse
+#: than the lab's own), and below every rig whose light lands elsewhere.
+OTHER_RIG_SHARE = 0.3
+#: The image's RMS is taken as at least this level (of white): a dim target's capture is mostly the room's light and
+#: the noise, which do not tell one rig from another.
+OTHER_RIG_LEVEL = 0.1
+
+
+class OtherRigError(CompensationError):
+    """The closed loop's first capture is not of the calibrated rig (:func:`other_rig_share`)."""
+
+
+def other_rig_share(y: np.ndarray, q: np.ndarray, noise_variance: float = 0.0) -> float:
+    """How far the capture ``y`` departs from the operator's prediction ``q`` (rows × 3 of the display area): the RMS
+    left after a least-squares gain and offset per channel, the capture noise (``noise_variance``, of ``y``) taken
+    out, as a share of the prediction's RMS (at least :data:`OTHER_RIG_LEVEL`). Compared with
+    :data:`OTHER_RIG_SHARE`."""
+    y64, q64 = np.asarray(y, np.float64).reshape(-1, 3), np.asarray(q, np.float64).reshape(-1, 3)
+    left = 0.0
+    for c in range(3):
+        design = np.stack([q64[:, c], np.ones(len(q64))], axis=1)
+        coef, *_ = np.linalg.lstsq(design, y64[:, c], rcond=None)
+        left += float(np.mean((y64[:, c] - design @ coef) ** 2)) / 3.0
+    excess = max(left - float(noise_variance), 0.0)
+    level = max(float(np.sqrt(np.mean(q64 ** 2))), OTHER_RIG_LEVEL)
+    return float(np.sqrt(excess)) / level
+
+
+def check_first_capture(y: np.ndarray, q: np.ndarray, name: str, noise_variance: float = 0.0) -> None:
+    """Refuse (:class:`OtherRigError`) a first capture of target ``name`` that is not of the calibrated rig."""
+    share = other_rig_share(y, q, noise_variance)
+    if share > OTHER_RIG_SHARE:
+        raise OtherRigError(
+            f"the device's first capture of {name!r} departs from what the calibration predicts by {share:.0%} of the "
+            f"image (a calibrated rig stays within about {OTHER_RIG_SHARE:.0%}, after exposure and black level): the "
+            "device is not the rig of this calibration (another lab truth or room, another camera or projector, or "
+            "the rig moved since it was calibrated). Give the device of this calibration, or calibrate this rig "
+            "again (procam calibrate CAPTURES --out CAL)")
 
 
 @dataclass(frozen=True)
@@ -272,4 +324,5 @@ class MeasuredCorrection:
         return None
 
 
-__all__ = ["MeasuredCorrection", "NoiseModel", "RowGrid", "noise_variance_model"]
+__all__ = ["MeasuredCorrection", "NoiseModel", "OtherRigError", "RowGrid", "check_first_capture",
+           "noise_variance_model", "other_rig_share"]

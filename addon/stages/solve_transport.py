@@ -33,7 +33,7 @@ from ..capture.devices import Device
 from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .bias import BiasModel, predict_capture
-from .closed_loop import MeasuredCorrection, RowGrid, noise_variance_model
+from .closed_loop import MeasuredCorrection, RowGrid, check_first_capture, noise_variance_model
 from .display_area import DisplayArea
 from .metrics import area_psnr, psnr
 from .schedule import CompensationError, Schedule
@@ -137,6 +137,8 @@ class TransportSolve:
             f_now = self.forward(zc)
             residual = np.clip(f_now - y, f_now - 1.0, f_now).astype(np.float32)
             if self.captures == 1:
+                # one capture, no noise measured: the check's level floor keeps a dim target from failing on noise
+                check_first_capture(y, self.gain * f_now, self.name)
                 # θ starts at the first residual (fast's theta_init='capture'); later captures move it by
                 # Eq. 10, a third of the way each. Replacing θ by every residual diverged on a rig whose
                 # captures sit a little off the model (the live loopback: 14 dB against 23 uncompensated):
@@ -161,14 +163,18 @@ class TransportSolve:
             t_dev = time.perf_counter()
             y = self.capture(zc)
             repeats = 1
+            first = corr is None
             if corr is None:
                 second = self.capture(zc)
                 corr = MeasuredCorrection(self.target, RowGrid(self.rows, self.comp.camera_size),
                                           noise_variance_model(y, second))
+                noise = float(np.mean((y - second) ** 2)) / 4.0  # the variance of their mean
                 y, repeats = 0.5 * (y + second), 2
             self.seconds_device += time.perf_counter() - t_dev
             self.captures += repeats
             q = self.gain * self.forward(zc)
+            if first:  # a device of another rig: refused before the loop chases its light (stages/closed_loop.py)
+                check_first_capture(y, q, self.name, noise)
             changed = corr.check(y, q)
             if changed is not None:
                 self.loop_problem = changed

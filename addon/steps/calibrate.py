@@ -336,6 +336,18 @@ def captures_of(cal: Calibration, *, verify_images: bool = False, required: bool
         return None
 
 
+def capture_set_of(folder: str | Path) -> Path | None:
+    """The capture set a calibration folder names, read from its manifest alone (no mesh, no checks), so that a
+    step can refuse an output inside it before any work; None when the manifest cannot tell (:func:`read` then
+    says what is wrong)."""
+    try:
+        doc = json.loads((Path(folder) / KIND.manifest).read_text())
+    except (OSError, ValueError):
+        return None
+    given = doc.get("capture_set") if isinstance(doc, dict) else None
+    return Path(given) if isinstance(given, str) and given else None
+
+
 def _mesh(folder: Path, name: object) -> Path:
     """The surface mesh a calibration manifest names: a file of the calibration folder."""
     return inside(folder, name, what="the surface mesh", error=CalibrationError)

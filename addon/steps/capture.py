@@ -146,8 +146,8 @@ class LabOptions:
              "(default 0.2)")
     projector_effects: str = option(
         "", metavar="K:EFFECTS[;K:EFFECTS…]", check=parse_projector_effects,
-        help="projectors with effects of their own, numbered from 0, in place of the projector effects of "
-             "--effects: e.g. '1:response=0.6,crosstalk=0.3' for a second projector of another make; a "
+        help="projectors with effects of their own, numbered from 1, in place of the projector effects of "
+             "--effects: e.g. '2:response=0.6,crosstalk=0.3' for a second projector of another make; a "
              "black_level there is that projector's panel leak only (the room's ambient light stays --effects') "
              "(default none)")
     other_forms: float = option(

@@ -32,6 +32,7 @@ from ..outputs import (AtomicFolder, check_replaceable, file_sha256, natural_key
                        writer_lock)
 from ..progress import Cancel, Progress, check, part, quiet
 from ..safepaths import inside
+from ..stages.closed_loop import OtherRigError
 from ..stages.range import range_line
 from . import calibrate as calibrate_step
 from . import layout, projectors
@@ -77,9 +78,12 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
     paths = list(options.targets)
     if not paths:
         raise ImageError("no target images: add target files or choose an image sequence folder")
-    # The output is checked before anything is read (and again, with the capture set, when it is created).
+    # The output is checked before any work, against every input: the calibration's capture set too (read from
+    # its manifest: open-loop θ, the per-pixel radiometry and the display area read it), which the full read of
+    # the calibration would only name after the scene is loaded and an operator perhaps rendered.
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration, *paths, *stage_c_inputs(options.stage_c)),
+                      inputs=(options.calibration, calibrate_step.capture_set_of(options.calibration), *paths,
+                              *stage_c_inputs(options.stage_c)),
                       incomplete=KIND.incomplete)
     with writer_lock(options.out):  # another run of this output is refused before any work
         return _run(options, say, cancel, device, paths)
@@ -131,6 +135,8 @@ def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, devic
                         (folder.tmp / file).unlink(missing_ok=True)
                     break
                 except ProCamError as exc:
+                    if isinstance(exc, OtherRigError) and not any(r["status"] == "done" for r in records):
+                        raise  # the device is another rig's and nothing is finished: no folder is left behind
                     failure = exc
                     records.append({"name": name, "file": str(path.absolute()), "file_sha256": sha,
                                     "status": "failed", "error": str(exc)})
@@ -343,6 +349,8 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
         if count > 1:  # what several projectors warn of (one that lights nothing in the area) is said here
             lines += [f"{t.get('name', '?')}: warning: {w}" for w in (t.get("warnings") or [])]
     lines += range_line(doc.get("range"))
+    notes = doc.get("transport_notes")
+    lines += [f"note: {n}" for n in notes if isinstance(n, str)] if isinstance(notes, list) else []
     mode = doc.get("mode")
     head = f"{len(done)}/{len(targets)} targets compensated ({mode if isinstance(mode, str) else 'mixed modes'})"
     if count > 1:

@@ -63,7 +63,7 @@ def second_projector(effects: str) -> str:
     shared = parse_effects(effects)
     own = {n: shared[n].strength for n in shared.active if shared[n].kind.stage == "projector"}
     own["response"] = SECOND_RESPONSE
-    return "1:" + ",".join(f"{n}={v:g}" for n, v in own.items())
+    return "2:" + ",".join(f"{n}={v:g}" for n, v in own.items())
 
 
 def _names(text: str) -> tuple[str, ...]:

@@ -75,7 +75,8 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     say = progress or quiet
     options.check()
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration,), error=ProCamError)
+                      inputs=(options.calibration, calibrate_step.capture_set_of(options.calibration)),
+                      error=ProCamError)
     with writer_lock(options.out):  # another run of this output is refused before any work
         return _run(options, say, cancel)
 

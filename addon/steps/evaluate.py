@@ -568,8 +568,8 @@ def run(options: EvaluateOptions, progress: Progress | None = None, cancel: Canc
     # a folder or pattern given is an input too: the output must not lie inside it
     folders = tuple(p if p.is_dir() else p.parent for p in given if p.is_dir() or not p.exists())
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
-                      inputs=(options.calibration, options.inputs, *options.targets, *folders,
-                              *device_inputs(options.device)),
+                      inputs=(options.calibration, calibrate_step.capture_set_of(options.calibration),
+                              options.inputs, *options.targets, *folders, *device_inputs(options.device)),
                       incomplete=KIND.incomplete)
     with writer_lock(options.out):  # another run of this output is refused before any work
         return _run(options, say, cancel, device)

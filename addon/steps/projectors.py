@@ -316,6 +316,8 @@ class JointStage:
         self.device: Any = device_pipeline(options.device, calibration, device=device,
                                            progress=part(say, 0.0, 0.0, "device: ")) \
             if options.mode == "closed-loop" else None
+        #: what the run says of each projector's stored operator (one rendered in memory, and why), for its record
+        self.transport_notes: list[str] = []
         try:
             if self.device is not None and len(getattr(self.device, "projectors", (None,))) != count:
                 raise CaptureError(f"the device {options.device} shows {len(self.device.projectors)} projector(s), "
@@ -324,12 +326,14 @@ class JointStage:
             for k, view in enumerate(self.views):
                 say(f"projector {k + 1}/{count}: loading the calibrated scene", 0.0)
                 comp = Compensator(view, bounces=options.bounces, spp=options.spp, seed=options.seed)
-                op = transport_step.load(view, bounces=options.bounces, seed=options.seed)
-                if op is None:
-                    say(f"projector {k + 1}: no precomputed transport operator: rendering it now (procam "
-                        "precompute stores it once)", 0.0)
+                found = transport_step.find(view, bounces=options.bounces, seed=options.seed)
+                if found.operator is None:  # said unthrottled and recorded: every run pays for it until stored
+                    note = f"projector {k + 1}: " + transport_step.rebuild_note(view, found, bounces=options.bounces,
+                                                                                seed=options.seed)
+                    self.transport_notes.append(note)
+                    say(f"note: {note}", 0.0)
                 else:
-                    comp.transport = op
+                    comp.transport = found.operator
                 adapter = None if self.adapters is None else self.adapters[k]
                 if adapter is not None:
                     adapter.blur_in_solve(comp)  # its lens's blur held in the joint solve: T_k B_k
@@ -553,7 +557,8 @@ class JointStage:
                 "range": None if self.range_map is None else self.range_map.to_dict(), "effects": self.effects(),
                 "radiometry": {"used": "global", "rule": o.radiometry,
                                **({} if o.radiometry == "global" else
-                                  {"reason": "each camera pixel's own model is built for one projector"})}}
+                                  {"reason": "each camera pixel's own model is built for one projector"})},
+                **({"transport_notes": list(self.transport_notes)} if self.transport_notes else {})}
 
     def load(self, path: str | Path) -> tuple[np.ndarray, str]:
         """A target image as stage C reads it (linear light; the note says how it was decoded)."""

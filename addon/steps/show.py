@@ -538,7 +538,8 @@ def run(options: ShowOptions, progress: Progress | None = None, cancel: Cancel |
     options.check(mode)
     # what the show reads: the calibration, the targets (a numbered pattern reads its folder), the device's files
     targets = [Path(t) for t in options.targets]
-    check_apart_from_inputs(options.out, (options.calibration, *targets, *(t.parent for t in targets if not t.exists()),
+    check_apart_from_inputs(options.out, (options.calibration, calibrate_step.capture_set_of(options.calibration),
+                                          *targets, *(t.parent for t in targets if not t.exists()),
                                           *stage_c_inputs(sc)), error=SequenceError)
     with writer_lock(options.out):  # another run of this show is refused before any work
         return _locked(options, frames, sc, mode, say, cancel, device, compensator)

@@ -372,6 +372,8 @@ class StageC:
         #: the device stage C projects through: that, then the effect models
         self.device: Device | AdaptedDevice | None = \
             self._lensed if self._lensed is None or self.adapter is None else AdaptedDevice(self._lensed, self.adapter)
+        #: what the run says of the calibration's stored operator (one rendered in memory, and why), for its record
+        self.transport_notes: list[str] = []
         try:
             say("loading the calibrated scene", 0.0)
             if compensator is not None:
@@ -384,15 +386,18 @@ class StageC:
                                                             seed=options.seed)
             if self.schedule.transport:
                 # With effect models the operator is the moved scene's, rendered here; else the stored one.
-                op = None if self.adapter is not None else \
-                    transport_step.load(calibration, bounces=options.bounces, seed=options.seed)
-                if op is not None:
-                    self.compensator.transport = op
+                found = None if self.adapter is not None else \
+                    transport_step.find(calibration, bounces=options.bounces, seed=options.seed)
+                if found is not None and found.operator is not None:
+                    self.compensator.transport = found.operator
                 else:
                     try:
                         check_memory(calibration.rig.camera.intrinsics.size, bounces=options.bounces)
-                        say("no precomputed transport operator for this calibration: rendering it now (procam "
-                            "precompute stores it once)", 0.0)
+                        if found is not None:  # said unthrottled and recorded: every run pays for it until stored
+                            note = transport_step.rebuild_note(calibration, found, bounces=options.bounces,
+                                                               seed=options.seed)
+                            self.transport_notes.append(note)
+                            say(f"note: {note}", 0.0)
                     except TransportMemoryError as exc:
                         say(f"warning: {exc}; this run renders every step instead (schedule fast)", 0.0)
                         self.options = replace(options, schedule="fast")
@@ -607,7 +612,8 @@ class StageC:
                 "radiometry": self.radiometry,
                 "effects": None if self.adapter is None else {
                     "diagnosis": str(Path(o.diagnosis).absolute()), "used": self.adapter.used,
-                    "not_inverted": self.adapter.not_used, "params": self.adapter.params}}
+                    "not_inverted": self.adapter.not_used, "params": self.adapter.params},
+                **({"transport_notes": list(self.transport_notes)} if self.transport_notes else {})}
 
     def rig_record(self) -> dict[str, Any]:
         """The rig the inputs are for, which evaluation checks before projecting them."""

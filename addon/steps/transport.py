@@ -103,24 +103,62 @@ def load(calibration: Calibration, *, bounces: int, seed: int) -> TransportOpera
     """The stored operator of ``calibration`` when it belongs to it (same hashes, bounces and seed), else None: of
     its projector ``calibration.projector_index`` for a :meth:`~.Calibration.for_projector` view (a calibration of
     several projectors itself: its first projector's)."""
-    if not calibration.folder:
-        return None
-    folder = Path(calibration.folder)
+    return find(calibration, bounces=bounces, seed=seed).operator
+
+
+@dataclass(frozen=True)
+class StoredOperator:
+    """What a calibration folder holds of one projector's operator: the operator when it is this calibration's
+    and this run's, else None and why not (``problem``)."""
+
+    operator: TransportOperator | None
+    #: the operator's file name (``transport.npz``, ``transport_p2.npz`` …)
+    file: str
+    #: why the stored operator is not used ("is missing", "was made with --bounces 0 …"); None when it is
+    problem: str | None = None
+
+
+def find(calibration: Calibration, *, bounces: int, seed: int) -> StoredOperator:
+    """:func:`load`, saying why no operator is used when there is none (:class:`StoredOperator`)."""
     index = calibration.projector_index if calibration.projector_count == 1 else 0
+    names = transport_files(index)
+    if not calibration.folder:
+        return StoredOperator(None, names[0], "has no calibration folder to be read from")
+    folder = Path(calibration.folder)
     # Fixed names, but the files may be links: the operator of another folder is not this calibration's.
     operator, report = (inside(folder, name, what="the light-transport operator file", error=TransportError)
-                        for name in transport_files(index))
+                        for name in names)
     if not operator.is_file() or not report.is_file():
-        return None
+        gone = [p.name for p in (operator, report) if not p.is_file()]
+        return StoredOperator(None, names[0], f"is missing ({' and '.join(gone)} not in the calibration folder)")
     try:
         doc = json.loads(report.read_text())
         ident = calibrate_step.identity(folder)
     except (OSError, ValueError, CalibrationError):
-        return None
+        return StoredOperator(None, names[0], f"cannot be used ({names[1]} cannot be read)")
     if not isinstance(doc, dict):  # not the record precompute writes: no operator of this calibration
-        return None
-    if (doc.get("calibration_sha256"), doc.get("surface_sha256"), doc.get("bounces"), doc.get("seed")) != \
-            (ident["sha256"], ident["surface_sha256"], bounces, seed):
-        return None
+        return StoredOperator(None, names[0], f"cannot be used ({names[1]} is not an operator's record)")
+    if (doc.get("calibration_sha256"), doc.get("surface_sha256")) != (ident["sha256"], ident["surface_sha256"]):
+        return StoredOperator(None, names[0], "was made for another calibration (the folder was calibrated again "
+                                              "since)")
+    if (doc.get("bounces"), doc.get("seed")) != (bounces, seed):
+        return StoredOperator(None, names[0], f"was made with --bounces {doc.get('bounces')} --seed "
+                                              f"{doc.get('seed')}, and this run uses --bounces {bounces} --seed {seed}")
     data = read_arrays(operator, error=TransportError, remedy=f"run procam precompute {folder} --force")
-    return TransportOperator.from_arrays(data, doc)
+    return StoredOperator(TransportOperator.from_arrays(data, doc), names[0])
+
+
+def rebuild_note(calibration: Calibration, found: StoredOperator, *, bounces: int, seed: int) -> str:
+    """What a run that renders an operator in memory says (progress and its record): which file, why, and the
+    command that stores it.
+
+    A run that reads a calibration never writes the operator into it, even when it has just rendered it: the
+    calibration is an input (issue 53), which several runs may read at once and a user may have archived or
+    shared; storing is what ``procam precompute`` (and ``procam calibrate``) is for, under the calibration's
+    own writer lock. So the note says that every run renders it again until it is stored, and how to store it.
+    """
+    folder = calibration.folder or "CALIBRATION"
+    settings = (f" --bounces {bounces}" if bounces != 1 else "") + (f" --seed {seed}" if seed else "")
+    return (f"the stored light-transport operator {found.file} {found.problem}: this run renders it in memory "
+            f"(every run does until it is stored: a run that reads a calibration never writes into it): run "
+            f"`procam precompute {folder}{settings}` once to store it")
