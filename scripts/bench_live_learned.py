@@ -2,7 +2,7 @@
 """A live show's learned correction: follow the camera on one clip, then play another clip without a camera.
 
 Usage: ``.venv/bin/python scripts/bench_live_learned.py [--other-forms 1] [--scale 0.5] [--follow 24]
-[--frames 8] [--work DIR]``
+[--frames 8] [--timing 0] [--work DIR]``
 
 Renders (or reuses, in ``--work``: the folders ``scripts/bench_closed_loop.py`` makes) a lab of other forms
 (``procam lab --other-forms``, sensor noise on) and its calibration, then, with the real-time solver a live show
@@ -18,7 +18,8 @@ uses (``--range auto``):
    area), and the learned correction read back from the file (``--correction FILE`` without a camera).
 
 Prints the captured PSNR inside the display area of each way (mean over the frames) and the real-time solve's
-milliseconds with and without the learned correction.
+milliseconds with and without the learned correction; ``--timing N`` also times N solves of each way back to back,
+without the lab's renders between them.
 """
 
 from __future__ import annotations
@@ -37,6 +38,19 @@ from bench_closed_loop import lab_and_calibration  # noqa: E402
 from bench_live_show import panning  # noqa: E402
 
 
+def time_solves(ways: dict, images: list[np.ndarray], reps: int) -> dict[str, list[float]]:
+    """Each way's solve milliseconds over ``reps`` solves, the ways interleaved frame by frame so that whatever
+    else the cores do falls on all of them alike (each way's first solve of a frame's area not counted)."""
+    got: dict[str, list[float]] = {name: [] for name in ways}
+    for solver in ways.values():
+        solver.solve(images[0])
+    for k in range(reps):
+        image = images[k % len(images)]
+        for name, solver in ways.items():
+            got[name].append(solver.solve(image).solve_ms)
+    return got
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--surface", default="curve")
@@ -45,6 +59,11 @@ def main() -> None:
     ap.add_argument("--lab-effects", default="noise=0.4")
     ap.add_argument("--follow", type=int, default=24, help="frames followed with the camera (default 24)")
     ap.add_argument("--frames", type=int, default=8, help="frames played without a camera, per way (default 8)")
+    ap.add_argument("--timing", type=int, default=0,
+                    help="also time this many solves of each way back to back, without the lab between them (the "
+                         "solve's own speed; the quality part's milliseconds share the cores with the lab's renders)")
+    ap.add_argument("--timing-only", action="store_true",
+                    help="with --timing and --work: reuse the correction learned there, time the solves alone")
     ap.add_argument("--work", type=Path, help="keep the folders here and reuse them")
     args = ap.parse_args()
 
@@ -77,18 +96,23 @@ def main() -> None:
                 stage.fix_range(sample)
                 today = RealtimeSolver.for_stage(stage)
                 followed = RealtimeSolver(stage, today.inverses)
-                for i in range(args.follow):
+                if args.timing_only and not learned_file.exists():
+                    raise SystemExit(f"--timing-only reuses {learned_file}: run once without it first")
+                for i in range(0 if args.timing_only else args.follow):
                     out = followed.solve(panning(learn_clip, i))
                     followed.follow(shown(out), out)
-                written = followed.save_learned(learned_file, sha)
-                print(f"followed {args.follow} frames; learned correction written to {written}")
+                if not args.timing_only:
+                    written = followed.save_learned(learned_file, sha)
+                    print(f"followed {args.follow} frames; learned correction written to {written}")
                 learned = RealtimeSolver(stage, today.inverses)
                 learned.load_learned(learned_file, sha)
                 ways = {"open loop (validation θ)": today, "θ left by the follow": followed,
                         "learned correction": learned}
+                if args.timing_only:
+                    del ways["θ left by the follow"]
                 scores: dict[str, list[float]] = {k: [] for k in ways}
                 ms: dict[str, list[float]] = {k: [] for k in ways}
-                for clip in play_clips:
+                for clip in [] if args.timing_only else play_clips:
                     for i in range(args.frames):
                         image = panning(clip, i)
                         for name, solver in ways.items():
@@ -98,17 +122,34 @@ def main() -> None:
                             seen = area.crop(shown(out))
                             scores[name].append(psnr(np.clip(seen, 0, 1), target))
                             ms[name].append(out.solve_ms)
+                if args.timing:
+                    timing = time_solves(ways, [panning(c, i) for c in play_clips for i in range(args.frames)],
+                                         args.timing)
         finally:
             device.close()
-        print(f"\nlab --effects {args.lab_effects} --other-forms {args.other_forms}, scale {args.scale}; followed "
-              f"{args.follow} frames of city, then {len(play_clips) * args.frames} frames of forest and studio "
-              "without a camera, --range auto\n")
-        print("| way | captured PSNR (mean) | change | solve ms (median) |")
-        print("|---|---|---|---|")
-        base = float(np.mean(scores["open loop (validation θ)"]))
-        for name in ways:
-            m = float(np.mean(scores[name]))
-            print(f"| {name} | {m:.2f} | {m - base:+.2f} | {np.median(ms[name][2:]):.1f} |")
+        if not args.timing_only:
+            print_quality(args, ways, scores, ms)
+        if args.timing:
+            print(f"\nsolve alone, {args.timing} solves of each way, interleaved (camera {cw}×{ch}, projector "
+                  f"{cal.rig.projector.intrinsics.width}×{cal.rig.projector.intrinsics.height}):\n")
+            print("| way | ms (median) | ms (90th percentile) | frames a second (median) |")
+            print("|---|---|---|---|")
+            for name, got in timing.items():
+                print(f"| {name} | {np.median(got):.1f} | {np.percentile(got, 90):.1f} | {1000 / np.median(got):.0f} |")
+
+
+def print_quality(args: argparse.Namespace, ways: dict, scores: dict[str, list[float]],
+                  ms: dict[str, list[float]]) -> None:
+    """The quality part's table: each way's captured PSNR and its change against today's open loop."""
+    print(f"\nlab --effects {args.lab_effects} --other-forms {args.other_forms}, scale {args.scale}; followed "
+          f"{args.follow} frames of city, then {2 * args.frames} frames of forest and studio without a camera, "
+          "--range auto\n")
+    print("| way | captured PSNR (mean) | change | solve ms (median) |")
+    print("|---|---|---|---|")
+    base = float(np.mean(scores["open loop (validation θ)"]))
+    for name in ways:
+        m = float(np.mean(scores[name]))
+        print(f"| {name} | {m:.2f} | {m - base:+.2f} | {np.median(ms[name][2:]):.1f} |")
 
 
 if __name__ == "__main__":
