@@ -5,6 +5,7 @@ diagnosis of another rig refused."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -221,3 +222,22 @@ _SUMMARY_DOC = {"headline": "h", "calibration": "c", "patterns": {"fit": [], "he
                 "selected": ["defocus"], "absorbed": [], "modelled": ["defocus"], "effects": [], "steps": [],
                 "min_share": 0.06, "regions": [], "selected_params": {"defocus": {"sigma": 0.8}}, "evidence": {},
                 "error_split": {}}
+
+
+def test_a_projectors_headline_does_not_advise_what_the_rigs_run_leaves_out():
+    """Projector 1's own diagnosis names its defocus and advises --effects auto, which the rig's run does not invert
+    for it: its headline says that and why, not the advice; an effect the rig's run inverts keeps the advice."""
+    from procam.addon.gap.diagnose import ACTIONS
+    from procam.addon.steps import diagnose as diagnose_step
+
+    why = "not selected for this projector when fitted on every projector's patterns together"
+    for name in ("defocus", "crosstalk", "response", "camera_response", "glossy"):
+        said = ACTIONS[name].format(where=" towards the left of the camera image")
+        said = said[0].upper() + said[1:] + "; 40% of the residual above the noise stays unexplained."
+        doc = {"headline": said, "modelled": [name], "compensation": {"left_out": {name: why}}}
+        got = diagnose_step.rig_headline(doc)
+        assert "compensate with --effects auto" not in got and f"does not invert it ({why})" in got, got
+        assert got.endswith("; 40% of the residual above the noise stays unexplained."), got
+        assert got.startswith(re.split(r"(?:, or |; |: )compensate", said)[0]), got  # what the effect is stays
+        kept = {**doc, "compensation": {"left_out": {}}}
+        assert diagnose_step.rig_headline(kept) == said

@@ -10,6 +10,7 @@ set and writes what it found.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -161,6 +162,7 @@ def _run_projectors(options: DiagnoseOptions, cal: Any, captures: Any, tmp: Path
         if all(d is not None for d in datas) else None
     for k, d in enumerate(docs):  # each projector's diagnosis says what compensation of the rig inverts for it
         d["compensation"] = rig_compensation(d, joint, k)
+        d["headline"] = rig_headline(d)
         sub = tmp / projector_folder(k)
         write_manifest(sub / KIND.manifest, d)
         write_atomic_bytes(sub / layout.DIAGNOSIS_SUMMARY, summary_markdown(d).encode())
@@ -259,6 +261,23 @@ def rig_compensation(doc: dict[str, Any], joint: dict[str, Any] | None, k: int) 
         else:
             left[n] = SHARED_LEFT_OUT.get(n, SHARED_EFFECT)
     return {"effects": [*params, *shared_ones], "params": params, "left_out": left, "alone": alone}
+
+
+#: The advice of a one-projector headline (gap/diagnose.py ACTIONS) to invert its effect around stage C.
+_INVERT_ADVICE = re.compile(r"(, or |; |: )compensate with --effects auto(, which [^;.]*)?")
+
+
+def rig_headline(doc: dict[str, Any]) -> str:
+    """Projector ``doc``'s headline as compensation of the whole rig reads it: where its own diagnosis advises
+    ``--effects auto`` for an effect that the rig's run does not invert for it (``doc['compensation']['left_out']``,
+    :func:`rig_compensation`), the advice says so and why instead."""
+    text = str(doc.get("headline") or "")
+    named = (doc.get("modelled") or [None])[0]
+    why = ((doc.get("compensation") or {}).get("left_out") or {}).get(named)
+    if not why:
+        return text
+    return _INVERT_ADVICE.sub(lambda m: f"{'; ' if m.group(1) == ', or ' else m.group(1)}compensation of the rig "
+                              f"with --effects auto does not invert it ({why})", text, count=1)
 
 
 def shared_sentence(joint: dict[str, Any], count: int) -> str:
