@@ -3,13 +3,15 @@
 
     .venv/bin/python scripts/bench_intrinsics.py [--surfaces plane,curve,vedge,hedge] [--scale 0.5]
         [--nominal-error 10,20] [--camera-fov-error 0] [--effects realistic] [--samples 16] [--targets city]
-        [--iterations N] [--supersample 1]
+        [--iterations N] [--supersample 1] [--projectors 1]
 
 For each surface: a lab capture set whose projector spec is wrong by ``--nominal-error`` (focal length %, vertical
 lens shift % of the height) and whose camera's field of view is ``--camera-fov-error`` degrees off, calibrated
 both ways; focal length (%) and principal point (px) errors, projector
 position (mm) and axis (°) errors against the sealed truth; then closed-loop compensation through the lab of the
 built-in targets with each calibration, and its PSNR (the evaluate step's, inside the display area).
+``--projectors 2`` lays two projectors side by side (both with the wrong spec): a row per projector, each fitted to
+its own Gray code with the camera held (the PSNR is the rig's, on each row).
 """
 
 from __future__ import annotations
@@ -40,14 +42,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--targets", default="city")
     ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--projectors", type=int, default=1, help="as procam lab's (side by side)")
     args = ap.parse_args(argv)
     error = tuple(float(v) / 100 for v in args.nominal_error.split(","))
     print(f"spec wrong by {args.nominal_error} (focal %, shift % of height), "
           f"camera FoV {args.camera_fov_error:+g}°; scale {args.scale:g}, effects "
           f"{args.effects or 'none'}, {args.samples} spp; targets {args.targets}, closed loop, fast schedule")
-    print("| surface | K from | focal err % | principal point err px | determined | camera focal err % | pose mm | "
-          "axis ° | PSNR dB |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| surface | projector | K from | focal err % | principal point err px | determined | camera focal err % | "
+          "pose mm | axis ° | PSNR dB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for surface in args.surfaces.split(","):
         with tempfile.TemporaryDirectory() as tmp:
             root = Path(tmp)
@@ -55,9 +58,8 @@ def main(argv: list[str] | None = None) -> int:
             capture.run_lab(capture.LabOptions(caps, surface=surface, effects=args.effects, samples=args.samples,
                                                scale=args.scale, truth=truth_path, nominal_error=error,
                                                camera_fov_error=args.camera_fov_error,
-                                               supersample=args.supersample))
+                                               supersample=args.supersample, projectors=args.projectors))
             truth = LabTruth.load(truth_path)
-            tk, tp = truth.rig.projector.intrinsics, truth.rig.projector
             cals = {m: calibrate.run(calibrate.CalibrateOptions(caps, root / f"cal-{m}", with_blend=False,
                                                                 projector_intrinsics=m)) for m in ("spec", "fit")}
             area = choose_area(cals["fit"], aspect=4 / 3)
@@ -65,16 +67,6 @@ def main(argv: list[str] | None = None) -> int:
             targets = tuple(write_image(root / "targets" / f"{n}.png", natural_target(n, area.size))
                             for n in args.targets.split(","))
             for m, cal in cals.items():
-                k, p = cal.rig.projector.intrinsics, cal.rig.projector
-                pos = 1000 * float(np.linalg.norm(p.position - tp.position))
-                ang = float(np.degrees(np.arccos(np.clip(p.direction @ tp.direction, -1, 1))))
-                det = (cal.report.get("projector_intrinsics") or {}).get("determined")
-                cam_err = 100 * (cal.rig.camera.intrinsics.fx / truth.rig.camera.intrinsics.fx - 1)
-                lens = (cal.report.get("projector_intrinsics") or {}).get("camera_distortion") or {}
-                if lens.get("determined"):
-                    print(f"#   {surface} {m}: camera k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f} (lab: "
-                          f"{truth.effects['distortion']['k1']:+.4f}, {truth.effects['distortion']['k2']:+.4f})",
-                          flush=True)
                 device = f"lab:{truth_path}"
                 compensate.run(compensate.CompensateOptions(
                     root / f"cal-{m}", targets, root / f"comp-{m}",
@@ -82,11 +74,22 @@ def main(argv: list[str] | None = None) -> int:
                 metrics = evaluate.run(evaluate.EvaluateOptions(root / f"cal-{m}", root / f"comp-{m}", targets,
                                                                 device, root / f"eval-{m}"))
                 psnr = np.mean([t["psnr"] for t in metrics["targets"] if t.get("status") == "done"])
-                det_s = "—" if det is None else ", ".join(n for n, v in det.items() if v) or "nothing"
-                print(f"| {surface} | {m} | {100 * (k.fx / tk.fx - 1):+.2f} | "
-                      f"{np.hypot(k.cx - tk.cx, k.cy - tk.cy):.1f} | {det_s} | {cam_err:+.2f} | {pos:.1f} | "
-                      f"{ang:.3f} | {psnr:.2f} |",
-                      flush=True)
+                cam_err = 100 * (cal.rig.camera.intrinsics.fx / truth.rig.camera.intrinsics.fx - 1)
+                for j in range(cal.projector_count):
+                    one, tp = cal.for_projector(j), truth.rig.projectors[j]
+                    k, p, tk = one.rig.projector.intrinsics, one.rig.projector, tp.intrinsics
+                    pos = 1000 * float(np.linalg.norm(p.position - tp.position))
+                    ang = float(np.degrees(np.arccos(np.clip(p.direction @ tp.direction, -1, 1))))
+                    det = (one.report.get("projector_intrinsics") or {}).get("determined")
+                    lens = (one.report.get("projector_intrinsics") or {}).get("camera_distortion") or {}
+                    if lens.get("determined"):
+                        print(f"#   {surface} {m} projector {j + 1}: camera k1 {lens['k1']:+.4f}, k2 "
+                              f"{lens['k2']:+.4f} (lab: {truth.effects['distortion']['k1']:+.4f}, "
+                              f"{truth.effects['distortion']['k2']:+.4f})", flush=True)
+                    det_s = "—" if det is None else ", ".join(n for n, v in det.items() if v) or "nothing"
+                    print(f"| {surface} | {j + 1} | {m} | {100 * (k.fx / tk.fx - 1):+.2f} | "
+                          f"{np.hypot(k.cx - tk.cx, k.cy - tk.cy):.1f} | {det_s} | {cam_err:+.2f} | {pos:.1f} | "
+                          f"{ang:.3f} | {psnr:.2f} |", flush=True)
     return 0
 
 

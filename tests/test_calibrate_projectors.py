@@ -173,11 +173,31 @@ def test_a_projector_that_lights_nothing_is_named_and_nothing_written(two, tmp_p
 
 def test_options_of_one_projector_are_refused_for_several(two, tmp_path):
     captures, _, _, _ = two
-    with pytest.raises(CalibrationError, match="not implemented yet for several projectors"):
-        calibrate_step.run(CalibrateOptions(captures, tmp_path / "a", projector_intrinsics="fit"))
     with pytest.raises(CalibrationError, match="is one projector's"):
         calibrate_step.run(CalibrateOptions(captures, tmp_path / "b", init="given", initial_pose=np.eye(4)))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_each_projectors_intrinsics_fitted_to_its_own_gray_code_the_camera_held(two, tmp_path):
+    """--projector-intrinsics fit with several projectors: each projector's K judged on its own Gray code (its own
+    record and summary line), the camera's focal length held as given (every projector's poses rest on it)."""
+    captures, truth_path, _, spec = two
+    cal = calibrate_step.run(CalibrateOptions(captures, tmp_path / "fit", projector_intrinsics="fit",
+                                              precompute=False))
+    given = CaptureSet.load(captures, verify_images=False).camera.intrinsics
+    assert cal.rig.camera.intrinsics == given
+    for k in range(2):
+        fit = cal.for_projector(k).report["projector_intrinsics"]
+        held = fit["uncertainty"]["values"]["camera_focal"]
+        assert held["kept"] == "spec" and held["reason"] == "shared", held
+        assert fit["camera_focal"]["held"] == "shared" and not fit["camera_focal"]["determined"]
+        assert "every projector's" in fit["summary"]
+    text = "\n".join(calibrate_step.summary(tmp_path / "fit").lines)
+    assert text.count("projector intrinsics (fitted to the Gray code)") == 2
+    # the lab's spec is right here: fitted or kept, no projector lands worse than with the spec by more than a hair
+    for (p_fit, a_fit), (p_spec, a_spec) in zip(errors(cal, LabTruth.load(truth_path)),
+                                                errors(spec, LabTruth.load(truth_path))):
+        assert p_fit < p_spec + 0.3 and a_fit < a_spec + 0.1
 
 
 def test_projectors_of_different_resolutions(tmp_path):

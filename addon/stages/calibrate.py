@@ -293,8 +293,10 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     the mesh), then stage A for each projector on its own captures
     (:meth:`.CaptureSet.for_projector`), the albedo from all of them
     (:func:`albedo_from_projectors`), and stage B for each. What one projector's
-    stage refuses names it ("projector 2: …"). Fitting the intrinsics and a
-    given start pose are one projector's and are refused there. A set in
+    stage refuses names it ("projector 2: …"). ``projector_intrinsics='fit'``
+    fits each projector's own K to its own Gray code, the camera's focal length
+    held as given (it is every projector's); a given start pose is one
+    projector's and is refused there. A set in
     which a projector was not black while another's sequence was taken, or one projector's photographs stand for
     another's, is refused first, naming both (:func:`~..capture.others_black.check_projector_captures`).
     """
@@ -304,10 +306,6 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
     say = progress or quiet
     count = len(captures.projectors)
     many = count > 1
-    if many and projector_intrinsics == "fit" and "pose" in plan:
-        raise CalibrationError(f"fitting the projectors' intrinsics to the Gray code is not implemented yet for "
-                               f"several projectors (the capture set has {count}); calibrate them with their spec "
-                               "(projector intrinsics 'spec', the default)")
     if many and init == "given" and "pose" in plan:
         raise CalibrationError(f"a given start pose (init 'given', or the scene's projector) is one projector's; "
                                f"for the {count} projectors of this capture set it is not implemented yet: start "
@@ -396,7 +394,7 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         with _naming(run.index, many):
             mesh = _pose_stage(run, mesh, report, plan, state, init=init, initial_pose=initial_pose, seed=seed,
                                stage_a=stage_a, projector_intrinsics=projector_intrinsics, surface_from=surface_from,
-                               surface_mesh=surface_mesh, depth_offset=depth_offset,
+                               surface_mesh=surface_mesh, depth_offset=depth_offset, camera_shared=many,
                                say=_span(say, 0.1, 0.5, run.index, count, many), cancel=cancel, images=images)
     if "pose" in plan:
         t0 = time.perf_counter()
@@ -451,9 +449,10 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
                 state: dict[str, str], *, init: str, initial_pose: np.ndarray | None, seed: int, stage_a: str,
                 projector_intrinsics: str, surface_from: str, surface_mesh: SurfaceMesh | str | Path | None,
                 depth_offset: float | None, say: Progress, cancel: Cancel | None,
-                images: dict[str, np.ndarray]) -> SurfaceMesh:
+                images: dict[str, np.ndarray], camera_shared: bool = False) -> SurfaceMesh:
     """Stage A of one projector (after the intrinsics fit when asked): sets ``run.rig`` and ``run.captures``; the
-    surface it returns is the one given unless the fit found the camera's focal length and made it again."""
+    surface it returns is the one given unless the fit found the camera's focal length and made it again (never
+    with ``camera_shared``: the camera of several projectors is held as given, each projector's own K fitted)."""
     captures, previous, own, seconds = run.captures, run.previous, run.report, run.seconds
     pose_iterations, start_label = None, None  # stage A's default for its start
     if "pose" in plan and projector_intrinsics == "fit":
@@ -469,7 +468,7 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
         say("projector intrinsics: fitting focal length and principal point to the Gray code", 0.1)
         fit = estimate_projector_intrinsics(captures, surface_view(mesh, captures.camera.intrinsics),
                                             target_mask(captures)[0], seed=seed,
-                                            depth_bias_known=depth_offset is not None)
+                                            depth_bias_known=depth_offset is not None, camera_shared=camera_shared)
         say(f"projector intrinsics: {fit.summary()}", 0.1)
         own["projector_intrinsics"] = fit.to_dict()
         # From here on the capture set's projector is the fitted one: stage A, the albedo and stage B all use it.

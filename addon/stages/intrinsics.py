@@ -142,7 +142,8 @@ class IntrinsicsFit:
                                    "the surface better",
                        "surface": f"this surface does not determine it (at least {pinned})",
                        "agrees": f"the data pin it to {pinned} and put the fit {v.get('z') or 0.0:.1f} σ from it: "
-                                 "no sign it is wrong"}.get(
+                                 "no sign it is wrong",
+                       "shared": "the camera is every projector's: one projector's Gray code does not move it"}.get(
                     v.get("reason") or "", f"the data pin it only to {pinned}")
                 parts.append(f"{what}: kept the {given}'s {v['spec']:.1f} px "
                              f"(±{scale * v['std']:.2f}{unit}); {why}")
@@ -608,10 +609,13 @@ def intrinsic_priors(captures: CaptureSet, focal_px: float, height: int) -> dict
 
 
 def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *,
-                                  seed: int = 0, depth_bias_known: bool = False) -> IntrinsicsFit:
+                                  seed: int = 0, depth_bias_known: bool = False,
+                                  camera_shared: bool = False) -> IntrinsicsFit:
     """Fit the projector's focal length and principal point, and the camera's radial distortion, to the capture
     set's Gray code (module doc), and judge what the data pin down (:func:`judge_fit`): ``depth_bias_known`` when
-    the depth's constant bias was given (a wall depth image in the set counts too)."""
+    the depth's constant bias was given (a wall depth image in the set counts too). ``camera_shared``: the camera
+    is other projectors' too (a rig of several), so its focal length is held as given: one projector's Gray code
+    must not move what every projector's pose and the surface rest on."""
     nominal = captures.projector.intrinsics
     obj, img, cam_px, _ = graycode_correspondences(captures, view, mask, max_points=FIT_POINTS, seed=seed)
     depth, camera, aspect = view.points[..., 2], captures.camera.intrinsics, nominal.fy / nominal.fx
@@ -664,8 +668,8 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     x_cam, r_cam, j_cam = _levenberg_marquardt(gv.residuals, x, steps, free)
     sd_cam = _covariance_std(j_cam, r_cam)
     focal: dict[str, Any] = {"factor": 1.0, "std": float(sd_cam[-1]), "determined": False,
-                             "given_fx": camera.fx}
-    if sd_cam[-1] < CAMERA_FOCAL_STD_MAX and np.isfinite(x_cam).all():
+                             "given_fx": camera.fx, **({"held": "shared"} if camera_shared else {})}
+    if not camera_shared and sd_cam[-1] < CAMERA_FOCAL_STD_MAX and np.isfinite(x_cam).all():
         x, r, sd, used = x_cam, r_cam, sd_cam, free
         focal.update(factor=float(x[11]), determined=True)
         if lens["determined"]:
@@ -710,8 +714,10 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
             focal.update(factor=float(x[11]), fitted_fx=camera.fx * float(x[11]))
         else:
             focal.update(factor=1.0, determined=False, fitted_fx=camera.fx)
+    if camera_shared:  # held as given whatever the data say (the docstring): judged as such
+        judged["values"].pop("camera_focal", None)
     if "camera_focal" not in judged["values"]:  # held as given from the start: the covariance alone refused it
-        judged["values"]["camera_focal"] = {"kept": "spec", "reason": "surface",
+        judged["values"]["camera_focal"] = {"kept": "spec", "reason": "shared" if camera_shared else "surface",
                                             "prior_std": priors["camera_focal"], "data_std": focal["std"],
                                             "covariance_std": focal["std"], "std": priors["camera_focal"]}
     # whose values the fit was judged against: a spec sheet's, or a rig calibration's (its tighter priors)

@@ -73,9 +73,10 @@ class CalibrateOptions:
             Choice("fit", "Fit to Gray Code", "Fit the projector's focal length and principal point to the Gray code "
                                               "on a curved or edged surface before finding its pose (kept at the "
                                               "spec where the surface cannot tell, e.g. a flat wall)")),
-        help="the projector's focal length and principal point (default spec); fit is refused for a capture set "
-             "of several projectors (not implemented yet) and against a surface triangulated from the Gray code "
-             "(it needs a depth image or a mesh)")
+        help="the projector's focal length and principal point (default spec); fit fits each projector's own to "
+             "its own Gray code (with several projectors the camera's focal length is held as given: it is every "
+             "projector's); refused against a surface triangulated from the Gray code (it needs a depth image or a "
+             "mesh)")
     stage_a: str = option(
         "ours", choices=("ours", "paper"),
         help="stage A's mask refinement: ours (debiased soft mask, annealed border smoothing) or the paper's "
