@@ -47,6 +47,7 @@ class PROCAM_PT_compensate(bpy.types.Panel):
         row.prop(scene, "procam_iterations")
         col = layout.column(align=True)
         col.prop(scene, "procam_area")
+        col.prop(scene, "procam_surround")
         col.prop(scene, "procam_effects")
         col.prop(scene, "procam_radiometry")
         col.prop(scene, "procam_range")

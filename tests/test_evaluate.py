@@ -384,3 +384,20 @@ def test_evaluate_takes_a_folder_a_numbered_pattern_or_a_video_as_show_does(tmp_
     assert seen[0].targets == tuple(in_order)
     with pytest.raises(ProCamError, match="lies inside"):  # the folder of the targets is an input
         evaluate_step.run(dataclasses.replace(options, out=frames / "ev"))
+
+
+def test_evaluate_reports_the_spill_outside_the_area(env, capsys):
+    """Issue 50: the light outside the display area where the projector reaches, as a share of the picture's level,
+    per target (compensated and uncompensated) and over the run, in metrics.json and the summary."""
+    out = env.root / "eval_spill"
+    assert _evaluate(env, out, env.targets / "a.png", env.targets / "b.png") == 0
+    doc = json.loads((out / "metrics.json").read_text())
+    for row in doc["targets"]:
+        assert row["outside_pixels"] > 0 and row["picture_level"] > 0
+        assert -0.05 < row["spill_mean"] < 0.2 and row["spill_mean"] <= row["spill_p995"] < 2
+        assert isinstance(row["uncompensated"]["spill_p995"], float)
+    s = doc["spill"]
+    assert s["mean"] == pytest.approx(np.mean([r["spill_mean"] for r in doc["targets"]]), abs=1e-4)
+    assert s["guard_px"] >= 2 and "spill_mean" in doc["measure"]
+    text = capsys.readouterr().out
+    assert "spill outside the area: mean" in text and "99.5th pixel" in text

@@ -261,3 +261,22 @@ def test_the_blend_reach_fades_the_overlaps_extra_light_in_and_the_solve_keeps_t
         over[flag] = float(np.mean(np.maximum(raw - cap, 0.0)[capped]))
     # measured: 2e-6 above the reach with the cap, 0.0027 without
     assert over[True] < 0.5 * over[False], over
+
+
+def test_every_projector_holds_the_surround_outside_the_area_with_a_lens_blur_held():
+    """Issue 50: a joint solve through each projector's held lens blur (T_k B_k) leaves every texel whose light lands
+    outside the display area at the surround; before, those reaching it through bounce light alone were solved."""
+    joint = JointCompensator(_rig("curve", "side-by-side", 1))
+    lit = footprints(joint.operators).any(axis=0)
+    ys, xs = np.nonzero(lit)
+    # a band across both footprints, well inside them: much of each projector's input lands outside it
+    h = int(ys.max() - ys.min()) // 3
+    area = DisplayArea(int(xs.min()) + 3, int(ys.min()) + h, int(xs.max() - xs.min()) - 6, h)
+    for comp in joint.compensators:
+        comp.input_blur = 1.0
+        comp.surround = (0.1, 0.0, 0.05)
+    res = joint.run(_target(area, 4), area, use_bias=False, iterations_z=30, iterations_joint=0)
+    for comp, z in zip(joint.compensators, res.z):
+        keep = comp.area_texels(area)
+        assert 0 < keep.sum() < keep.size
+        np.testing.assert_array_equal(z[~keep], np.broadcast_to(np.float32([0.1, 0.0, 0.05]), z[~keep].shape))

@@ -26,16 +26,18 @@ def _parser() -> argparse.ArgumentParser:
 
 def test_the_command_line_is_derived_from_the_declaration():
     args = _parser().parse_args(["--schedule", "fast", "--iterations", "40", "--lr", "0.02", "--area", "1,2,30,40",
-                                 "--no-bias", "--device", "lab:x.json", "--range", "auto", "--spp", "2"])
+                                 "--no-bias", "--device", "lab:x.json", "--range", "auto", "--spp", "2",
+                                 "--surround", "0.1,0.2,0"])
     options = from_arguments(StageCOptions, args)
     assert options == StageCOptions(schedule="fast", iterations=40, lr=0.02, area=(1, 2, 30, 40), use_bias=False,
-                                    device="lab:x.json", range="auto", spp=2)
+                                    device="lab:x.json", range="auto", spp=2, surround=(0.1, 0.2, 0.0))
     assert from_arguments(StageCOptions, _parser().parse_args([])) == StageCOptions()
 
 
 @pytest.mark.parametrize("argv", [["--lr", "nan"], ["--lr", "inf"], ["--spp", "2.5"], ["--spp", "0"],
                                   ["--iterations", "-1"], ["--schedule", "slow"], ["--area", "1,2,3"],
-                                  ["--range", "dim"], ["--device", "camera:0"], ["--capture-every", "0"]])
+                                  ["--range", "dim"], ["--device", "camera:0"], ["--capture-every", "0"],
+                                  ["--surround", "1.5"], ["--surround", "0,0"]])
 def test_a_bad_value_is_refused_where_it_is_parsed(argv):
     with pytest.raises((argparse.ArgumentError, SystemExit)):
         _parser().parse_args(argv)
@@ -53,11 +55,13 @@ def test_the_same_checks_hold_for_options_made_in_python(given):
 def test_the_sidebar_reads_the_same_declaration():
     scene = {"procam_schedule": "paper", "procam_iterations": 0, "procam_seed": 3, "procam_area": " ",
              "procam_use_bias": True, "procam_device": "", "procam_effects": "", "procam_range": "0.8,0.02",
-             "procam_loop": "measured", "procam_radiometry": "auto"}
+             "procam_loop": "measured", "procam_radiometry": "auto", "procam_surround": ""}
     options = from_values(StageCOptions, scene.__getitem__, device=None)
     assert options == StageCOptions(schedule="paper", iterations=None, seed=3, range="0.8,0.02")
     scene.update(procam_iterations=12, procam_area="0,0,64,48")
     assert from_values(StageCOptions, scene.__getitem__).area == (0, 0, 64, 48)
+    scene.update(procam_surround="0.05")
+    assert from_values(StageCOptions, scene.__getitem__).surround == (0.05, 0.05, 0.05)
     names = sidebar_names([StageCOptions])
     assert names["--no-bias"] == "‘Bias θ’" and names["--schedule"] == "‘Schedule’" and "--spp" not in names
 
@@ -198,7 +202,7 @@ FLAGS = {
     "report": "--force --out --thumbnails --title",
     "show": "--area --bounces --capture-every --chunk --cluster --cold-start --connect-timeout --device --diagnosis "
             "--effects --fail-fast --force --iterations --loop --lr --no-bias --out --radiometry --range --schedule "
-            "--seed --spp --target-encoding --threads --workers",
+            "--seed --spp --surround --target-encoding --threads --workers",
     "undistort-captures": "--force --out --rig",
 }
 

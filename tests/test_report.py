@@ -228,3 +228,34 @@ def test_several_projectors_each_projector_s_images_are_shown(tmp_path, monkeypa
     assert len(strips) == 2 and "projector 2's input" in strips[1]["caption"]
     assert [len(s["thumbs"]) for s in strips] == [2, 2] and strips[0]["thumbs"][0] != strips[1]["thumbs"][0]
     assert skipped == []
+
+
+def test_the_report_shows_the_spill_and_each_projector_s_share_of_the_area(tmp_path, monkeypatch):
+    """Issue 50: the evaluation's facts and table say the light outside the display area, compensated beside
+    uncompensated, and with several projectors what share of the area each lights."""
+    drawn: list[list[str]] = []
+    pictures = figures.pictures
+    monkeypatch.setattr(figures, "pictures", lambda imgs, caps, **kw: drawn.append(caps) or pictures(imgs, caps, **kw))
+    rng = np.random.default_rng(0)
+    for name in ("t_target.png", "t_simulated.png", "t_input_p1.png", "t_input_p2.png"):
+        write_image(tmp_path / name, rng.random((12, 16, 3)).astype(np.float32))
+    reader = Reader([], lambda folder, why: None)
+    reader.compensation(tmp_path, {"mode": "open", "targets": [{
+        "name": "t", "status": "done", "target": "t_target.png", "simulated": "t_simulated.png",
+        "input": "t_input_p1.png", "area_shares": [0.61, 0.65],
+        "projectors": [{"input": "t_input_p1.png", "share": 0.5, "area_share": 0.61},
+                       {"input": "t_input_p2.png", "share": 0.5, "area_share": 0.65}]}]})
+    assert drawn[-1][2:] == ["projector 1 input (share 50%), lights 61% of the area",
+                             "projector 2 input (share 50%), lights 65% of the area"]
+    target = {"name": "t", "status": "done", "psnr": 25.0, "ssim": 0.9, "spill_mean": 0.012, "spill_p995": 0.21,
+              "area_shares": [0.61, 0.65], "area": {"x": 0, "y": 0, "width": 16, "height": 12},
+              "image": "t_strip.png",
+              "uncompensated": {"psnr": 16.0, "ssim": 0.6, "spill_mean": 0.015, "spill_p995": 0.4}}
+    spill = {"mean": 0.012, "p995": 0.21, "worst_p995": 0.21, "uncompensated_mean": 0.015,
+             "uncompensated_p995": 0.4, "guard_px": 2}
+    _, blocks = reader.evaluation(tmp_path, {"projector_count": 2, "targets": [target], "mean": {},
+                                             "mean_uncompensated": {}, "spill": spill})
+    facts = dict(blocks[0]["items"])
+    assert facts["spill outside the area (mean)"].startswith("mean 1.5% → 1.2%, 99.5th pixel 40.0% → 21.0%")
+    spill_table = next(b for b in blocks if b["type"] == "table" and "spill mean comp." in b["head"])
+    assert spill_table["rows"] == [["t", "1.5%", "1.2%", "40.0%", "21.0%", "61%, 65%"]]

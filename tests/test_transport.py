@@ -343,3 +343,49 @@ def test_a_compensation_whose_camera_is_bumped_keeps_the_best_answer_and_says_so
     assert doc["complete"] is False and len(doc["targets"]) == 1 and first["status"] == "done"
     assert first["loop"]["stopped"] == "the rig changed" and (tmp_path / "comp" / first["loop"]["correction"]).is_file()
     assert (tmp_path / "comp" / first["frame"]).is_file()
+
+
+def test_a_blurred_views_unknowns_are_the_direct_texels_grown_by_the_blur(operator):
+    """Texels whose light reaches the rows only through bounce light are held, as TransportRows holds them: solved
+    too, the SIRT step (normalised by their tiny column sums) lit the surround in bright blocks."""
+    _, op, _ = operator
+    cw, ch = op.camera_size
+    rows = _patch(cw, ch)
+    view = op.rows(rows)
+    blurred = BlurredRows(view, 1.0)
+    assert set(view.texels.tolist()) <= set(blurred.texels.tolist())
+    iw, ih = op.input_size
+    assert len(view.texels) < len(blurred.texels) < iw * ih
+
+
+def _patch(cw: int, ch: int) -> np.ndarray:
+    """A small block of camera rows in the middle of the image."""
+    m = np.zeros((ch, cw), bool)
+    m[ch // 2 - ch // 8:ch // 2 + ch // 8, cw // 2 - cw // 8:cw // 2 + cw // 8] = True
+    return np.flatnonzero(m.ravel())
+
+
+@pytest.mark.parametrize("blur", [None, 1.5])
+def test_the_surround_holds_black_or_the_colour_asked_whatever_the_solve(operator, blur):
+    """Issue 50: texels whose light lands outside the display area are not solved for; they hold the surround
+    (black by default) — with the lens's blur held (``--effects auto`` with a defocus) they were lit."""
+    from procam.addon.capture.targets import natural_target
+    from procam.addon.stages.compensate import Compensator
+    from procam.addon.stages.display_area import DisplayArea
+
+    cal, op, _ = operator
+    comp = Compensator(cal)
+    comp.transport = op
+    comp.input_blur = blur
+    cw, ch = op.camera_size
+    area = DisplayArea(cw // 3, ch // 3, cw // 3, ch // 3)
+    target = 0.1 + 0.5 * natural_target("city", (area.width, area.height))
+    zero = np.zeros((ch, cw, 3), np.float32)
+    keep = comp.area_texels(area)
+    assert 0 < keep.sum() < keep.size / 2
+    res = comp.run(target, area, open_loop_theta=zero, iterations_z=60, iterations_joint=0, verify=False)
+    assert np.all(res.z[~keep] == 0.0)
+    assert res.report["psnr_simulated"] > res.report["psnr_simulated_start"]
+    comp.surround = (0.2, 0.1, 0.0)
+    grey = comp.run(target, area, open_loop_theta=zero, iterations_z=20, iterations_joint=0, verify=False)
+    np.testing.assert_array_equal(grey.z[~keep], np.broadcast_to(np.float32([0.2, 0.1, 0.0]), grey.z[~keep].shape))

@@ -98,6 +98,11 @@ class CompensationResult:
 
 
 
+#: camera pixels beyond the display area's edge within which a texel's light may still land and be solved for:
+#: an edge pixel shares texels with the surround, and holding those black would darken the area's edge
+SURROUND_PAD = 0.5
+
+
 class Compensator:
     """Stage C for one calibration: holds the loaded Mitsuba scene so that many targets reuse it.
 
@@ -139,6 +144,10 @@ class Compensator:
         #: runs through it (:class:`BlurredRows`) and its answer is the input to send before the blur. It blurs
         #: z, not the real input x: the two differ by the stage-B warp, a fraction of a texel.
         self.input_blur: float | None = None
+        #: the light (a share of white, R, G, B) the input holds outside the display area: texels whose light lands
+        #: more than :data:`SURROUND_PAD` camera pixels outside it are not solved for but held at this (black
+        #: by default), whatever the solve would gain from them through a blur's tail or bounce light
+        self.surround: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     # ------------------------------------------------------------------ helpers
 
@@ -221,6 +230,21 @@ class Compensator:
             self._correspondence = ((cam[:, 0] - 0.5).reshape(shape).astype(np.float32),
                                     (cam[:, 1] - 0.5).reshape(shape).astype(np.float32), visible.reshape(shape))
         return self._correspondence
+
+    def area_texels(self, area: DisplayArea) -> np.ndarray:
+        """(ih, iw) bool: the input texels stage C solves for in ``area``: those whose light lands on the camera
+        inside it or within :data:`SURROUND_PAD` pixels of its edge (the texels an edge pixel shares with the
+        surround); the others hold the :attr:`surround`."""
+        mx, my, visible = self.correspondence()
+        pad = SURROUND_PAD
+        return (visible & (mx >= area.x - 0.5 - pad) & (mx <= area.x + area.width - 0.5 + pad)
+                & (my >= area.y - 0.5 - pad) & (my <= area.y + area.height - 0.5 + pad))
+
+    def hold_surround(self, z: np.ndarray, area: DisplayArea) -> np.ndarray:
+        """``z`` (input size) with every texel outside :meth:`area_texels` at the :attr:`surround`."""
+        keep = self.area_texels(area)
+        return np.where(keep[..., None], np.asarray(z, np.float32),
+                        np.asarray(self.surround, np.float32)).astype(np.float32)
 
     def camera_to_input(self, image: np.ndarray) -> np.ndarray:
         """Sample a camera-space image at each input pixel's camera location (black where not seen)."""
@@ -335,6 +359,7 @@ class Compensator:
         placed = area.place(fit_target(target, area, what=f"target {name!r}"), self.camera_size)
         mode, bias = self.bias_for(placed, device, use_bias, open_loop_theta, say, name)
         z0 = self.initial_input(placed, bias, init) if start is None else self.start_input(start)
+        z0 = self.hold_surround(z0, area)  # the surround is not solved for: it holds its colour from the start
         if sched.transport:
             solve = TransportSolve(self, placed, area, z0, sched, mode, bias, device, say, cancel, name)
             return solve.run(sched.verify if verify is None else bool(verify), t_start)
@@ -393,6 +418,9 @@ class Compensator:
                t_start: float, seconds_device: float, name: str, say: Progress) -> CompensationResult:
         """A solver's answer for the virtual input ``z`` as stage C gives it: the real input ``W(z)``, its native
         frame, and the report closed with the seconds of compute (all since ``t_start`` but the device's)."""
+        # The solves on the operator never move the surround; a solve that renders may have (its gradient reaches
+        # texels whose light lands just outside the area): they are put back to the surround here.
+        z = self.hold_surround(z, area)
         x_input = self.warp_w(z)
         seconds = time.perf_counter() - t_start
         report["seconds_compute"] = round(seconds - seconds_device, 2)

@@ -132,6 +132,22 @@ def parse_area(text: str) -> tuple[int, int, int, int]:
     return values
 
 
+def parse_surround(text: str) -> tuple[float, float, float]:
+    """``"R,G,B"`` (each 0–1, a share of the projector's white) → a tuple; a :class:`DisplayAreaError` saying what
+    is wrong. One number is a grey."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) == 1:
+        values = values * 3
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+        raise DisplayAreaError(f"a surround colour is R,G,B, each from 0 to 1 as a share of the projector's white "
+                               f"(e.g. 0.05,0.05,0.05, or one number for a grey), got {text!r}")
+    return values  # type: ignore[return-value]
+
+
 # -- the projector's footprint -------------------------------------------------------------------
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -230,11 +246,16 @@ def auto_area(calibration: Any, aspect: float, *, captures: Any = None, margin_p
     return area_inside(cover, aspect, margin_px=margin_px)
 
 
+def edge_margin(camera_width: int) -> int:
+    """The automatic area's margin from the footprint's edge: 1.5 % of the camera's width, at least 2 pixels."""
+    return max(2, round(0.015 * camera_width))
+
+
 def area_inside(cover: np.ndarray, aspect: float, *, margin_px: int | None = None,
                 what: str = "the projector covers") -> DisplayArea:
     """The largest rectangle of ``aspect`` inside the camera pixels ``cover``, ``margin_px`` from its edge
     (default 1.5 % of the camera's width)."""
-    margin = max(2, round(0.015 * cover.shape[1])) if margin_px is None else int(margin_px)
+    margin = edge_margin(cover.shape[1]) if margin_px is None else int(margin_px)
     rect = largest_rectangle(_erode(cover, margin), aspect)
     if rect is None:
         raise DisplayAreaError(f"{what} too little of the camera image to hold a display area "
@@ -313,4 +334,5 @@ def fit_target(target: np.ndarray, area: DisplayArea, *, what: str = "the target
 
 
 __all__ = ["DisplayArea", "DisplayAreaError", "TargetAspectWarning", "auto_area", "capture_coverage",
-           "choose_area", "fit_target", "largest_rectangle", "load_target", "model_coverage", "parse_area"]
+           "choose_area", "edge_margin", "fit_target", "largest_rectangle", "load_target", "model_coverage",
+           "parse_area", "parse_surround"]

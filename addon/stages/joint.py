@@ -364,6 +364,9 @@ class JointSolve(TransportSolve):
         self.theta0 = theta0
         self.fixed = joint.fixed_sums(zs)
         self.zc0 = joint.compact(zs)
+        #: the unknowns held at each projector's surround (TransportSolve.held)
+        self.held = np.concatenate([~comp.area_texels(area).reshape(-1)[v.texels]
+                                    for comp, v in zip(self.comps, joint.views)])
         self.row_sums = np.maximum(joint.row_ones, 1e-3)
         self.weight = owner.blend_weight if shares is not None else 0.0
         lights = joint.light_parts()
@@ -614,6 +617,8 @@ class JointCompensator:
             if len(start) != len(comps):
                 raise CompensationError(f"{len(start)} starting inputs for {len(comps)} projectors")
             zs = [comp.start_input(z) for comp, z in zip(comps, start)]
+        # Every projector's surround holds its colour: it is not solved for (Compensator.area_texels)
+        zs = [comp.hold_surround(z, area) for comp, z in zip(comps, zs)]
         self.last_blend = blend
         shares = None if blend == "none" else split.reshape(len(comps), -1)[:, joint.rows]
         solve = JointSolve(self, joint, placed, area, zs, sched, mode, theta.reshape(-1, 3)[joint.rows], shares,

@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import ProCamError
 from ..progress import Progress, quiet
-from .transport import BlurredRows, TransportOperator, TransportRows, gaussian_taps
+from .transport import BlurredRows, TransportOperator, TransportRows, gaussian_taps, lens_blur
 from .warp_model import bilinear_taps, pixel_centres
 
 FORMAT, VERSION = "procam-inverse", 1
@@ -507,7 +507,7 @@ class RealtimeView:
         """(R, 3) ``g·T z`` (``g·T B z`` through a lens blur) of the compact ``zc`` by the full operator
         (unclipped)."""
         if self.blur is not None:
-            return self._gain_np * BlurredRows(self.view, self.blur.sigma).apply_compact(self.expand(zc))
+            return self._gain_np * self.view.apply(lens_blur(self.expand(zc), self.blur.sigma))
         return self._gain_np * self.view.apply_compact(self.compact(zc))
 
     def predicted(self, zc: Any, theta: np.ndarray | None = None) -> np.ndarray:

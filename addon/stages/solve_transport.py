@@ -62,6 +62,8 @@ class TransportSolve:
         self.theta0 = np.zeros_like(self.target) if bias is None else bias.theta.reshape(-1, 3)[rows]
         self.fixed = view.fixed_sums(z)
         self.zc0 = view.compact(z)
+        #: the unknowns held at the surround (their light lands outside the area: Compensator.area_texels)
+        self.held = ~comp.area_texels(area).reshape(-1)[view.texels]
         self.row_sums = np.maximum(self.gain * view.row_ones, 1e-3)
         self.col_sums = np.maximum(view.adjoint_compact(self.gain), 1e-3)
         self.losses: list[float] = []
@@ -96,6 +98,7 @@ class TransportSolve:
                 theta = np.clip(theta + 2.0 * self.alpha * (residual - theta), f - 1.0, f)
             resid = self.target + theta - self.gain * f
             z_new = np.clip(self.update(y, resid), 0.0, 1.0)
+            z_new[self.held] = self.zc0[self.held]
             y = z_new + (k / (k + 3.0)) * (z_new - prev)
             prev = z_new
             self.done += 1

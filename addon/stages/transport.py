@@ -447,44 +447,66 @@ class BlurredRows:
     Why inside the solve rather than pre-sharpening its answer: a camera pixel averages several texels, so the
     camera sees only the blur's effect at its own resolution; a solve through ``T B`` sharpens for that, within
     [0, 1], where matching the wanted input texel by texel (what pre-sharpening does) spends the input's range on
-    detail no camera pixel resolves. Every texel is an unknown (a blur carries light from texels the rows do
-    not see directly, so none is held fixed). The blur has zero borders, no light beyond the input's edge, which
-    makes it symmetric: it is its own adjoint."""
+    detail no camera pixel resolves. The unknowns are the texels whose blurred light reaches a texel the rows see
+    directly (the view's active texels grown by the blur's reach, :func:`gaussian_taps`); the others are held at
+    the start's values, as :class:`TransportRows` holds its inactive texels. Those reach the rows through
+    interreflection alone, as their block's mean: solved too, they lit the surround outside the display area in
+    bright blocks, which bounce only a little light into it (`--effects auto` on the lab: 93–108 % of the
+    picture's level outside the area). The blur has zero borders, no light beyond the input's edge, which makes it
+    symmetric: it is its own adjoint."""
 
     def __init__(self, view: TransportRows, sigma: float) -> None:
         self.view, self.sigma = view, float(sigma)
         self.op, self.rows = view.op, view.rows
         iw, ih = view.op.input_size
         self._shape = (ih, iw, 3)
-        self.texels = np.arange(iw * ih)
+        direct = np.zeros((ih, iw), np.uint8)
+        direct.reshape(-1)[view.texels] = 1
+        reach = len(gaussian_taps(self.sigma)) // 2
+        grown = cv2.dilate(direct, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8))
+        #: the unknowns (flat input indices): the texels whose blurred light reaches the rows directly
+        self.texels = np.flatnonzero(grown.reshape(-1))
         self._row_ones: np.ndarray | None = None
 
     def blur(self, z: np.ndarray) -> np.ndarray:
-        """``B z`` for a compact or input-size ``z`` (input size)."""
+        """``B z`` for an input-size ``z``."""
         return lens_blur(np.asarray(z, np.float32).reshape(self._shape), self.sigma)
 
     def compact(self, z: np.ndarray) -> np.ndarray:
-        return np.array(z, np.float32).reshape(-1, 3)
+        """(A, 3) values of the unknown texels of an input-size ``z``."""
+        return np.asarray(z, np.float32).reshape(-1, 3)[self.texels]
 
     def expand(self, zc: np.ndarray, z: np.ndarray) -> np.ndarray:
-        return np.asarray(zc, np.float32).reshape(np.shape(z))
+        """``z`` (input size) with its unknown texels replaced by ``zc``."""
+        out = np.array(z, np.float32).reshape(-1, 3)
+        out[self.texels] = zc
+        return out.reshape(np.shape(z))
 
-    def fixed_sums(self, z: np.ndarray) -> None:
-        return None
+    def fixed_sums(self, z: np.ndarray) -> np.ndarray:
+        """The held texels: ``z`` (input size) with its unknowns zeroed (what :meth:`apply_compact` adds)."""
+        out = np.array(z, np.float32).reshape(-1, 3)
+        out[self.texels] = 0.0
+        return out.reshape(self._shape)
 
     @property
     def row_ones(self) -> np.ndarray:
         if self._row_ones is None:
-            self._row_ones = self.apply_compact(np.ones(self._shape, np.float32))
+            self._row_ones = self.apply(np.ones(self._shape, np.float32))
         return self._row_ones
 
-    def apply_compact(self, zc: np.ndarray, fixed: None = None) -> np.ndarray:
-        """(R, 3) ``T B z``."""
-        return self.view.apply(self.blur(zc))
+    def apply(self, z: np.ndarray) -> np.ndarray:
+        """(R, 3) ``T B z`` for an input-size ``z``."""
+        return self.view.apply(self.blur(z))
+
+    def apply_compact(self, zc: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
+        """(R, 3) ``T B z`` where ``z`` holds ``zc`` on the unknowns and ``fixed`` (:meth:`fixed_sums`; None:
+        black) elsewhere."""
+        held = np.zeros(self._shape, np.float32) if fixed is None else fixed
+        return self.apply(self.expand(zc, held))
 
     def adjoint_compact(self, r: np.ndarray) -> np.ndarray:
-        """(texels, 3) ``Bᵀ Tᵀ r`` = ``B Tᵀ r``."""
-        return self.blur(self.view.adjoint(r)).reshape(-1, 3)
+        """(A, 3) ``Bᵀ Tᵀ r`` = ``B Tᵀ r`` on the unknowns."""
+        return self.blur(self.view.adjoint(r)).reshape(-1, 3)[self.texels]
 
 
 # -- building -------------------------------------------------------------------------------------------------

@@ -378,9 +378,11 @@ def _shares(record: dict[str, Any], count: int) -> str:
     if count < 2 or not several:
         return ""
     shares = [p.get("share") if isinstance(p, dict) else None for p in several]
-    return "; share of the light " + ", ".join(
+    text = "; share of the light " + ", ".join(
         f"projector {k + 1} {fmt(100 * v if isinstance(v, (int, float)) else None, '.0f', '%')}"
         for k, v in enumerate(shares))
+    lit = record.get("area_shares")
+    return text + (f"; {projectors.shares_text(lit)}" if isinstance(lit, list) and lit else "")
 
 
 def summary(folder: str | Path) -> Summary:

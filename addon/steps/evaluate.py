@@ -59,6 +59,8 @@ from ..stages.compensate import Compensator
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, load_target
 from ..stages.metrics import check_capture, mean_scores, measure, psnr, side_by_side, uncompensated_input
 from ..stages.range import RangeMap, capture_noise_mse, ceiling_gap_at_limit, noise_ceiling, range_ceiling
+from ..stages import spill as spill_module
+from ..stages.spill import one_projector_reach, spill
 from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
@@ -405,6 +407,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
     range_map = RangeMap.from_dict(inputs.doc.get("range"))
     captures = calibrate_step.captures_of(calibration)
     white, black = captures.image("white"), captures.image("black")
+    reach = one_projector_reach(calibration, white, black)  # where the spill is measured (stages/spill.py)
     looks_at, _ = camera_to_input(calibration, cam_size)
     if calibration.warp is not None:  # the model's texel q shows what the real projector puts at φ_M(q)
         seen = np.isfinite(looks_at[..., 0])
@@ -442,7 +445,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                                    **relative_scores(range_map, area, captured, area.crop(plain.capture), given),
                                    "range_ceiling": round(range_ceiling(fitted, seen_black, seen_white), 2),
                                    "ceiling_gap_at_limit": None if at_limit is None else round(at_limit, 3)}
-            replayed = False
+            replayed, again = False, None
             if repeat:
                 again = check_capture(device.project(frame), cam_size)
                 # The same image twice is a replay (a capture folder, a noiseless simulator), not a second shot: a
@@ -452,6 +455,9 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                     noise = capture_noise_mse(captured, area.crop(again))
                     row["capture_noise_rmse"] = round(noise ** 0.5, 5)
                     row["noise_ceiling"] = round(noise_ceiling(fitted, seen_black, seen_white, noise), 2)
+            row.update(spill(got.capture, black, area, reach, again=None if replayed else again))
+            plain_spill = spill(plain.capture, black, area, reach)
+            row["uncompensated"].update(spill_mean=plain_spill["spill_mean"], spill_p995=plain_spill["spill_p995"])
             extra = []
             if model is not None:
                 t0 = time.perf_counter()
@@ -496,7 +502,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                       "ceiling as a capture scores it, through that noise (a camera that compresses its photos, JPEG, "
                       "also quantises the picture's texture the same way in both captures: the difference misses "
                       "that, so on such a camera the ceiling is optimistic and reads higher for a blurred answer "
-                      "than for a sharp one); " + RELATIVE_MEASURE,
+                      "than for a sharp one); " + RELATIVE_MEASURE + "; " + spill_module.MEASURE,
            "range": None if range_map is None else range_map.to_dict(),
            "classical": None if model is None else model.report,
            "targets": rows, "mean": mean_scores(done),
@@ -506,7 +512,7 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
            "mean_noise_ceiling": (round(float(np.mean([r["noise_ceiling"] for r in done])), 2)
                                   if done and all("noise_ceiling" in r for r in done) else None),
            "mean_classical": mean_scores(done, "classical") if model is not None else None,
-           "flicker": seen.report(),
+           "flicker": seen.report(), "spill": spill_module.summarise(done, cam_size[0]),
            "complete": failure is None}
     return EvaluationRun(doc, failure)
 
@@ -706,7 +712,9 @@ def _target_line(t: dict[str, Any]) -> str:
             + (f" ({fmt(t['noise_ceiling'], '.2f')} dB through the camera's noise, RMS "
                f"{fmt(t.get('capture_noise_rmse'), '.4f')})" if "noise_ceiling" in t else "")
             + (f", {fmt(t['ceiling_gap_at_limit'], '.0%')} of the gap to it where the input is already at its limit"
-               if t.get("ceiling_gap_at_limit") is not None else ""))
+               if t.get("ceiling_gap_at_limit") is not None else "")
+            + ("; " + spill_module.spill_text(t["spill_mean"], t.get("spill_p995"), u.get("spill_mean"),
+                                              u.get("spill_p995")) if "spill_mean" in t else ""))
 
 
 def _overlap_line(doc: dict[str, Any]) -> str:
@@ -735,6 +743,12 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
                         f"{fmt(doc.get('mean_uncompensated_psnr_relative'), '.2f')} → "
                         f"{fmt(doc.get('mean_psnr_relative'), '.2f')} dB (uncompensated → compensated; comparable "
                         "across maps)" if doc.get("brightness_kept") is not None else ""))
+    sp = doc.get("spill")
+    if isinstance(sp, dict):
+        lines.append(spill_module.spill_text(sp.get("mean"), sp.get("p995"), sp.get("uncompensated_mean"),
+                                             sp.get("uncompensated_p995"))
+                     + f", mean over targets (worst 99.5th pixel {fmt(sp.get('worst_p995'), '.1%')}; pixels the "
+                     f"projectors reach farther than {sp.get('guard_px')} px from the area)")
     f = doc.get("flicker")
     if isinstance(f, dict):
         lines.append(f"flicker over {f.get('pairs')} consecutive pair(s): captured {fmt(f.get('captured'), '.4f')}, "

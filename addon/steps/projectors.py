@@ -70,6 +70,8 @@ from ..stages.display_area import (DisplayArea, TargetAspectWarning, area_inside
                                    fit_target, load_target, model_coverage)
 from ..stages.joint import JointCompensator, JointResult
 from ..stages.metrics import check_capture, psnr, side_by_side, ssim
+from ..stages import spill as spill_module
+from ..stages.spill import spill
 from ..stages.range import (RangeError, RangeMap, capture_noise_mse, fit_rule, noise_ceiling, parse_range,
                             range_ceiling)
 from . import calibrate as calibrate_step
@@ -108,6 +110,20 @@ def footprints(views: list[Calibration], captures: list[CaptureSet] | None = Non
                 cover &= real
         out.append(cover)
     return np.stack(out)
+
+
+def area_shares(cover: np.ndarray, area: DisplayArea) -> list[float]:
+    """The share of ``area``'s camera pixels each projector lights (``cover``: (N, H, W) footprints); they add up
+    to more than 1 where projectors overlap."""
+    crop = np.asarray(cover, bool)[:, area.y:area.y + area.height, area.x:area.x + area.width]
+    return [round(float(c.mean()), 4) for c in crop]
+
+
+def shares_text(shares: list[Any]) -> str:
+    """"projector 1 lights 62 % of the area, projector 2 58 %"."""
+    parts = [f"{100 * v:.0f} %" if isinstance(v, (int, float)) else "?" for v in shares]
+    return "projector 1 lights " + ", ".join(
+        f"{p}" if k == 0 else f"projector {k + 1} {p}" for k, p in enumerate(parts)) + " of the area"
 
 
 def joint_area(views: list[Calibration], aspect: float, *, captures: list[CaptureSet] | None = None,
@@ -326,6 +342,7 @@ class JointStage:
             for k, view in enumerate(self.views):
                 say(f"projector {k + 1}/{count}: loading the calibrated scene", 0.0)
                 comp = Compensator(view, bounces=options.bounces, spp=options.spp, seed=options.seed)
+                comp.surround = options.surround or (0.0, 0.0, 0.0)  # held outside the display area, not solved
                 found = transport_step.find(view, bounces=options.bounces, seed=options.seed)
                 if found.operator is None:  # said unthrottled and recorded: every run pays for it until stored
                     note = f"projector {k + 1}: " + transport_step.rebuild_note(view, found, bounces=options.bounces,
@@ -553,6 +570,7 @@ class JointStage:
                 "iterations": {"total": s.iterations_z + s.iterations_joint, "z": s.iterations_z,
                                "joint": s.iterations_joint},
                 "bounces": o.bounces, "spp": o.spp, "seed": o.seed, "area_given": list(o.area) if o.area else None,
+                "surround": list(o.surround or (0.0, 0.0, 0.0)),
                 "target_encoding": o.target_encoding, "blend": "derived", "projector_count": self.count,
                 "range": None if self.range_map is None else self.range_map.to_dict(), "effects": self.effects(),
                 "radiometry": {"used": "global", "rule": o.radiometry,
@@ -637,13 +655,15 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
     write_image(tmp / files["simulated"], res.simulated)
     write_image(tmp / files["target"], done.fitted)
     shares = res.report.get("share_of_light") or [None] * stage.count
-    projectors = [{**entry, "share": shares[k]} for k, entry in enumerate(files["projectors"])]
+    lit = area_shares(stage.coverage(), done.area)  # what each projector lights of the area, besides its light
+    projectors = [{**entry, "share": shares[k], "area_share": lit[k]} for k, entry in enumerate(files["projectors"])]
     if stage.adapters is not None:  # the lens's blur each projector's solve held (its σ, input texels)
         for entry, comp in zip(projectors, stage.compensators):
             entry["input_blur"] = comp.input_blur
     loop = loop_record(tmp, name, res)
     return {"name": name, "status": "done", "warnings": done.warnings, "mode": res.mode,
-            "area": done.area.to_dict(), "input": projectors[0]["input"], "frame": projectors[0]["frame"],
+            "area": done.area.to_dict(), "area_shares": lit, "input": projectors[0]["input"],
+            "frame": projectors[0]["frame"],
             "simulated": files["simulated"], "target": files["target"], "projectors": projectors,
             "seconds": round(res.seconds, 2), "captures": res.captures,
             "losses": [round(float(v), 7) for v in res.losses],
@@ -661,7 +681,7 @@ def one_target(stage: "JointStage", tmp: Path, image: np.ndarray, note: str, nam
     check(cancel, "compensation was cancelled")
     area = stage.area_for(image)
     say(f"target {i + 1}/{n}: {name} on {stage.count} projectors ({area.width}×{area.height} at "
-        f"{area.x},{area.y})", 0.05 + 0.95 * i / n)
+        f"{area.x},{area.y}; {shares_text(area_shares(stage.coverage(), area))})", 0.05 + 0.95 * i / n)
     done = stage.compensate(image, name=name, what=f"target {path.name}", cancel=cancel,
                             progress=part(say, 0.05 + 0.95 * i / n, 0.05 + 0.95 * (i + 1) / n,
                                           f"target {i + 1}/{n} {name}: "))
@@ -721,6 +741,10 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
     assert captures is not None
     cover = footprints(views, captures_views(captures, len(views)))
     black, white = combined_black_white(captures)
+    # The spill's black: every projector's black capture was taken while the others showed black too, so each
+    # holds the whole rig's black; their mean halves the noise, where the combined black's min() and sums add it.
+    dark = np.mean([v.image("black") for v in captures_views(captures, len(views)) or []], axis=0)
+    reach = cover.any(axis=0)
     range_map = RangeMap.from_dict(inputs.doc.get("range"))
     rows: list[dict[str, Any]] = []
     failure: ProCamError | None = None
@@ -745,12 +769,19 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
                                    "uncompensated": score(plain, fitted, area, masks),
                                    "range_ceiling": round(range_ceiling(fitted, area.crop(black), area.crop(white)),
                                                           2)}
+            again = None
             if repeat:
                 again = project_all(device, frames, cam)
                 if not np.array_equal(again, got):
                     noise = capture_noise_mse(area.crop(got), area.crop(again))
                     row["capture_noise_rmse"] = round(noise ** 0.5, 5)
                     row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
+                else:
+                    again = None
+            row.update(spill(got, dark, area, reach, again=again))
+            plain_spill = spill(plain, dark, area, reach)
+            row["uncompensated"].update(spill_mean=plain_spill["spill_mean"], spill_p995=plain_spill["spill_p995"])
+            row["area_shares"] = area_shares(cover, area)
         except ProCamError as exc:
             failure = exc
             rows.append({"name": name, "status": "failed", "error": str(exc)})
@@ -779,10 +810,11 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
                       "does; psnr_border: a 2-px band either side of the overlap's edge; seam_step: the mean "
                       "absolute step of the capture's error across the overlap's edge (linear 0–1; a seam is a "
                       "step); uncompensated: each projector showing the target as is, split evenly where they "
-                      "overlap; range_ceiling: the target clipped to what the projectors reach together",
+                      "overlap; range_ceiling: the target clipped to what the projectors reach together; "
+                      "area_shares: the share of the area's pixels each projector lights; " + spill_module.MEASURE,
            "range": None if range_map is None else range_map.to_dict(),
            "targets": rows, "mean": {k: mean(k) for k in keys},
            "mean_uncompensated": {k: mean(k, "uncompensated") for k in keys},
            "mean_range_ceiling": mean("range_ceiling"), "mean_noise_ceiling": mean("noise_ceiling"),
-           "flicker": None, "complete": failure is None}
+           "flicker": None, "spill": spill_module.summarise(done, cam[0]), "complete": failure is None}
     return doc, failure

@@ -262,7 +262,9 @@ class Reader:
             if len(several) > 1:  # every projector's input, with its share of the light where recorded
                 wanted += [(p["input"], f"projector {k + 1}'s input",
                             f"projector {k + 1} input" + (f" (share {p['share']:.0%})"
-                                                          if isinstance(p.get("share"), (int, float)) else ""))
+                                                          if isinstance(p.get("share"), (int, float)) else "")
+                            + (f", lights {p['area_share']:.0%} of the area"
+                               if isinstance(p.get("area_share"), (int, float)) else ""))
                            for k, p in enumerate(several)]
             else:
                 wanted.append((t["input"], "input", "projector input"))
@@ -325,6 +327,13 @@ class Reader:
                                          ("along its edge", "psnr_border"))]
             items.append(("seam step (mean)", f"{fmt(u.get('seam_step'), '.4f')} → {fmt(m.get('seam_step'), '.4f')} "
                                               "(the jump across the overlap's border; lower is smoother)"))
+        sp = doc.get("spill")
+        if isinstance(sp, dict):  # the light outside the display area (stages/spill.py)
+            items.append(("spill outside the area (mean)",
+                          f"mean {fmt(sp.get('uncompensated_mean'), '.1%')} → {fmt(sp.get('mean'), '.1%')}, 99.5th "
+                          f"pixel {fmt(sp.get('uncompensated_p995'), '.1%')} → {fmt(sp.get('p995'), '.1%')} of the "
+                          f"picture's level (uncompensated → compensated; where the projector{'s' if many else ''} "
+                          f"reach{'' if many else 'es'}, farther than {sp.get('guard_px')} px from the area)"))
         blocks.append({"type": "facts", "items": items})
         done = [t for t in doc["targets"] if t.get("status") == "done"]
         for t in doc["targets"]:
@@ -337,6 +346,15 @@ class Reader:
         blocks.append({"type": "table", "head": ["target", "PSNR uncomp.", "PSNR comp.", "SSIM uncomp.", "SSIM comp.",
                                                  "range ceiling", "noise ceiling", "gap at input limit"],
                        "rows": rows})
+        if any("spill_mean" in t for t in done):
+            blocks.append({"type": "table", "head": ["target", "spill mean uncomp.", "spill mean comp.",
+                                                     "99.5th pixel uncomp.", "99.5th pixel comp."]
+                           + (["area lit by each projector"] if many else []),
+                           "rows": [[t["name"], fmt(t["uncompensated"].get("spill_mean"), ".1%"),
+                                     fmt(t.get("spill_mean"), ".1%"), fmt(t["uncompensated"].get("spill_p995"), ".1%"),
+                                     fmt(t.get("spill_p995"), ".1%")]
+                                    + ([", ".join(fmt(v, ".0%") for v in t.get("area_shares") or [])] if many else [])
+                                    for t in done]})
         if many:
             blocks.append({"type": "table", "head": ["target", "overlap share", "inside the overlap", "outside it",
                                                      "along its edge", "seam step"],

@@ -326,7 +326,9 @@ def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: st
             "device": options.device_spec, "mode": mode, "schedule": schedule, "spp": options.spp,
             "bounces": options.bounces, "seed": options.seed, "area": list(options.area) if options.area else "auto",
             "target_encoding": options.target_encoding, "digits": digits, "effects": effects,
-            "range": None if range_map is None else range_map.to_dict(), "warm_start": warm}
+            "range": None if range_map is None else range_map.to_dict(), "warm_start": warm,
+            # a surround other than black (the default, which earlier shows held too) changes the frames
+            **({"surround": list(options.surround)} if options.surround and any(options.surround) else {})}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:

@@ -36,7 +36,7 @@ from ..stages.calibrate import Calibration
 from ..stages.compensate import (DEFAULT_SCHEDULE, ITERATIONS_JOINT, ITERATIONS_Z, SCHEDULES, BiasModel,
                                  CompensationResult, Compensator, Schedule, get_schedule, split_iterations)
 from ..stages.display_area import (TARGET_ENCODINGS, DisplayArea, TargetAspectWarning, choose_area, fit_target,
-                                   load_target, parse_area)
+                                   load_target, parse_area, parse_surround)
 from ..stages.radiometry import PixelRadiometry, choose_radiometry
 from ..stages.range import RangeError, RangeMap, fit_rule, parse_range
 from ..stages.transport import TransportMemoryError, check_memory
@@ -112,7 +112,12 @@ class StageCOptions:
     area: tuple[int, int, int, int] | None = option(
         None, label="Display Area", parse=parse_area, blank="",
         help="display area x,y,width,height in camera pixels (default: the capture set's, else the largest "
-             "rectangle of the target's aspect ratio that the projector covers)")
+             "rectangle of the target's aspect ratio that the projector covers; with several projectors, that they "
+             "light together)")
+    surround: tuple[float, float, float] | None = option(
+        None, label="Surround", parse=parse_surround, blank="", metavar="R,G,B",
+        help="the light outside the display area, as a share of the projector's white per channel, 0–1 (default "
+             "black): the input there is held at it, not solved for, whatever effect models are inverted")
     target_encoding: str = option("auto", choices=TARGET_ENCODINGS,
                                   help="auto: 8-bit files are sRGB and are linearised, 16-bit/float are linear")
     use_bias: bool = option(True, negate="--no-bias", label="Bias θ",
@@ -384,6 +389,8 @@ class StageC:
             else:
                 self.compensator = self.adapter.compensator(calibration, bounces=options.bounces, spp=options.spp,
                                                             seed=options.seed)
+            # outside the display area the input holds the surround (black unless asked): it is not solved for
+            self.compensator.surround = options.surround or (0.0, 0.0, 0.0)
             if self.schedule.transport:
                 # With effect models the operator is the moved scene's, rendered here; else the stored one.
                 found = None if self.adapter is not None else \
@@ -607,7 +614,8 @@ class StageC:
                                "joint": s.iterations_joint},
                 "lr": s.lr, "capture_every": s.capture_every if mode == "closed-loop" else None,
                 "bounces": self.bounces, "spp": o.spp, "seed": o.seed, "warp": self.calibration.warp is not None,
-                "area_given": list(o.area) if o.area else None, "target_encoding": o.target_encoding,
+                "area_given": list(o.area) if o.area else None, "surround": list(o.surround or (0.0, 0.0, 0.0)),
+                "target_encoding": o.target_encoding,
                 "range": None if self.range_map is None else self.range_map.to_dict(),
                 "radiometry": self.radiometry,
                 "effects": None if self.adapter is None else {
