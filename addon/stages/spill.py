@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .display_area import DisplayArea, edge_margin
+from .display_area import DisplayArea, capture_coverage, edge_margin, model_coverage
 
 #: the percentile of the outside's light reported beside its mean
 PERCENTILE = 99.5
@@ -73,8 +73,6 @@ def spill(capture: np.ndarray, black: np.ndarray, area: DisplayArea, reach: np.n
 
 def one_projector_reach(calibration: Any, white: np.ndarray, black: np.ndarray) -> np.ndarray:
     """The camera pixels one calibrated projector lights: its model's coverage ∩ its captured white − black."""
-    from .display_area import capture_coverage, model_coverage
-
     cover = model_coverage(calibration)
     real = capture_coverage(white, black)
     return cover & real if real.shape == cover.shape else cover
