@@ -127,15 +127,30 @@ def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):
     cal_dir, _, _ = response_case
     data = load_gap_data(cal_dir, scale=1.0, spp=8)
     obs = [o for o in data.observations if o.fine][:2] + [o for o in data.observations if not o.fine][:1]
-    for names in (("response", "defocus"), ("response", "defocus", "depth_noise")):
+    for names in (("response", "defocus"), ("response", "defocus", "depth_noise"),
+                  ("response", "crosstalk", "black_level", "interreflection", "camera_response")):
         kept = Composite(data, names)
         thetas = []
         for sigma, gamma in [(0.0, 1.0), (1.2, 1.0), (1.2, 1.6), (0.0, 1.6), (1.5, 1.0), (1.2, 1.6), (0.0, 1.0)]:
             t = kept.initial()
-            t[kept.slices["defocus"].start], t[kept.slices["response"]][:3] = sigma, gamma
+            if "defocus" in names:
+                t[kept.slices["defocus"].start] = sigma
+            t[kept.slices["response"]][:3] = gamma
             if "depth_noise" in names:
                 t[kept.slices["depth_noise"].start] = 0.02
             thetas.append(t)
+        # one channel's exponent, the scene's and the camera's parameters moved alone, then back (the image before
+        # the scene's light and before the camera's is kept on the parameters it depends on)
+        for k, v in [(0, 1.3), (1, 0.8), (0, 1.0)]:
+            t = thetas[-1].copy()
+            t[kept.slices["response"].start + k] = v
+            thetas.append(t)
+        for name, v in [("interreflection", 0.5), ("camera_response", 0.4), ("black_level", 0.03)]:
+            if name in names:
+                t = thetas[-1].copy()
+                t[kept.slices[name].stop - 1] = v
+                thetas.append(t)
+        thetas.append(thetas[0])
         for t in thetas:
             for o in obs:
                 np.testing.assert_array_equal(kept.predict(t, o), Composite(data, names).predict(t, o))
@@ -157,6 +172,13 @@ def test_a_composite_on_some_pixels_predicts_what_the_whole_image_holds_there(re
         assert got.shape == (len(pixels), 1, 3)
         want = whole.predict(theta, data.observations[i]).reshape(-1, 3)[pixels]
         np.testing.assert_allclose(got[:, 0], want, atol=1e-6)
+    # the fit's patterns stacked into one observation: their pixels one pattern after another, as predicted alone
+    index = [0, 1, 5, len(data.observations) - 1]
+    stack = whole.on_pixels(pixels, index)
+    got = stack.predict(theta, stack.data.observations[stack.data.fit_index[0]])
+    assert got.shape == (len(index) * len(pixels), 1, 3)
+    want = np.concatenate([part.predict(theta, part.data.observations[i]) for i in index])
+    np.testing.assert_allclose(got, want, atol=1e-6)
     with pytest.raises(ValueError, match="distortion"):
         Composite(data, ("distortion",)).on_pixels(pixels)
 
