@@ -432,7 +432,10 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
     # Indirect light as the difference of two path tracers that share their random numbers, so the direct
     # part (and its noise) cancels; it is smooth, so more samples and a light blur keep its noise small.
     indirect_model = model(bounces=INDIRECT_BOUNCES, integrator="prb", spp=2 * spp)
-    direct_prb = model(bounces=0, integrator="prb", spp=2 * spp)
+    # The direct-light integrator draws the same camera rays from the same seed, and a delta projector's light
+    # along them is the path tracer's first bounce exactly (checked: the two renders are equal, bit for bit), in
+    # less than half the time.
+    direct_prb = model(spp=2 * spp)
     glossy_models = {r: model(glossy_roughness=r) for r in GLOSSY_ROUGHNESS}
     observations: list[Observation] = []
     for i, e in enumerate(entries):
@@ -442,13 +445,14 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
         x = input_of(e)
         z = warp_m(x)
         s = 1000 + 10 * i
-        direct = direct_model.render_input(z, seed=s)
         if float(z.max()) > 0:
+            direct = direct_model.render_input(z, seed=s)
             extra = indirect_model.render_input(z, seed=s + 1) - direct_prb.render_input(z, seed=s + 1)
             indirect = cv2.GaussianBlur(extra, (0, 0), 1.0)
-        else:
-            indirect = np.zeros_like(direct)
-        glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
+            glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
+        else:  # a black input: the projector is the only light, so every render is black
+            direct = indirect = np.zeros((size[1], size[0], 3), np.float32)
+            glossy = {r: direct for r in glossy_models}
         capture = _downsize(captures.image(e.kind, name=e.name), size)
         sampled = sample_input(x, corr)
         observations.append(Observation(e.name, e.kind, x, capture, direct, indirect, glossy, sampled,
