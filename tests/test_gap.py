@@ -120,6 +120,31 @@ def test_identity_parameters_reproduce_the_base_model(response_case):
         np.testing.assert_allclose(comp.predict(theta, obs), np.clip(obs.direct, 0, 1), atol=2e-3)
 
 
+def test_nested_parameters_the_selection_held_are_not_tried_free_beside_later_candidates(response_case, monkeypatch):
+    """The response's S-curve (nested parameters) is tried free only where no round has held it: once the round
+    that selected the response kept its plain power law, later rounds' fits hold the curve too (tried again beside
+    every later candidate, it doubled their fits and was kept in none)."""
+    cal_dir, _, _ = response_case
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    real = gap_fit._fit_box
+    calls = []
+
+    def counted(data, comp, start, **kw):
+        calls.append((comp.names, bool(kw.get("nudge"))))
+        return real(data, comp, start, **kw)
+
+    monkeypatch.setattr(gap_fit, "_fit_box", counted)
+    held = gap_fit.fit_composite(data, ("response", "black_level"), hold=("response",))
+    assert calls == [(("response", "black_level"), False)] and held.nested_held() == ("response",)
+    calls.clear()
+    gap_fit.fit_composite(data, ("response", "black_level"))
+    assert [free for _, free in calls] == [False, True]  # without ``hold``, tried free
+    calls.clear()
+    sel = gap_fit.select_effects(data, ("response", "black_level", "defocus"), min_share=0.0, max_effects=2)
+    assert sel.selected[0] == "response" and "response" in sel.alone["response"].nested_held()
+    assert [names for names, free in calls if free] == [("response",)]  # the response alone, in the first round
+
+
 def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):
     """A composite keeps the blurred input and the response's curve of the last few parameter values (a fit's
     finite differences move one parameter at a time); any sequence of parameters predicts what a new composite

@@ -93,14 +93,23 @@ class Fit:
         shares = [(b - a) / b for b, a in zip(before.held_mse_classes, self.held_mse_classes) if b > 0]
         return float(max(shares)) if shares else 0.0
 
-    def params(self) -> dict[str, dict[str, float]]:
-
+    def values(self) -> dict[str, np.ndarray]:
+        """Each model's fitted parameters, unrounded."""
         comp_slices, i = {}, 0
         for n in (n for n in NAMES if n in self.names):
             k = len(MODELS[n].params)
             comp_slices[n] = self.theta[i:i + k]
             i += k
-        return {n: describe_params(n, v) for n, v in comp_slices.items()}
+        return comp_slices
+
+    def params(self) -> dict[str, dict[str, float]]:
+        return {n: describe_params(n, v) for n, v in self.values().items()}
+
+    def nested_held(self) -> tuple[str, ...]:
+        """The models of this fit whose nested parameters stayed at their identity values (:func:`fit_composite`
+        kept the fit that held them)."""
+        return tuple(n for n, v in self.values().items() if MODELS[n].nested and
+                     all(v[k] == MODELS[n].identity[k] for k in MODELS[n].nested))
 
 
 def structured(residual: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
@@ -234,11 +243,12 @@ def _fit_pixels(data: GapData, seed: int = 0) -> np.ndarray:
 
 
 def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.ndarray] | None = None,
-                  iterations: int = 15) -> Fit:
+                  iterations: int = 15, hold: tuple[str, ...] = ()) -> Fit:
     """Fit the composite of ``names`` on the fit patterns (starting from ``start`` where given).
 
     Nested parameters (``EffectModel.nested``) are first held at their identity values; they are then freed from
-    that fit's answer and kept only if they lower the fit patterns' robust MSE by :data:`NESTED_GAIN`.
+    that fit's answer and kept only if they lower the fit patterns' robust MSE by :data:`NESTED_GAIN`. Those of the
+    models in ``hold`` stay held (not tried free).
     """
     comp = Composite(data, names)
     held = [comp.slices[n].start + k for n in comp.names for k in MODELS[n].nested]
@@ -246,12 +256,14 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
         return _fit_box(data, comp, start)
     lo, hi = comp.bounds()
     ident = np.concatenate([np.asarray(MODELS[n].identity, float) for n in comp.names])
+    stay = [comp.slices[n].start + k for n in comp.names if n in hold for k in MODELS[n].nested]
+    tried = [k for k in held if k not in stay]
     simple = _fit_box(data, comp, start, pinned=held, iterations=iterations)
-    if simple.error is not None:
+    if simple.error is not None or not tried:
         return simple
     free = _fit_box(data, comp, {n: v for n, v in zip(comp.names, (simple.theta[comp.slices[n]]
                                                                    for n in comp.names))},
-                    iterations=iterations, nudge={k: ident[k] + 0.01 * (hi[k] - lo[k]) for k in held},
+                    iterations=iterations, pinned=stay, nudge={k: ident[k] + 0.01 * (hi[k] - lo[k]) for k in tried},
                     loss_scale=simple.loss_scale)
     if free.error is None and free.fit_rmse ** 2 < (1.0 - NESTED_GAIN) * simple.fit_rmse ** 2:
         free.seconds += simple.seconds
@@ -376,8 +388,12 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
 
     def fit(selected: list[str], name: str, current: Fit) -> Fit:
         start = current.params() if selected else {}
+        # A selected effect whose nested parameters its own round left at identity (its fit with them free was no
+        # better) keeps them there in later rounds: tried free again beside each later candidate, they doubled
+        # every fit of those rounds and were kept in none (the demo's set, a response and blur set).
         return fit_composite(data, tuple(selected) + (name,),
-                             start={n: np.array(list(v.values())) for n, v in start.items()})
+                             start={n: np.array(list(v.values())) for n, v in start.items()},
+                             hold=current.nested_held() if selected else ())
 
     def say(fraction: float, name: str, selected: list[str]) -> None:
         report(f"round {len(selected) + 1}: fitting {'+'.join([*selected, name])}", fraction)
