@@ -226,9 +226,9 @@ class Composite:
         sub = copy.copy(self)
         repeat = 1 if index is None else len(index)
 
-        def col(a: np.ndarray) -> np.ndarray:
+        def col(a: np.ndarray) -> np.ndarray | None:
             c = column(a, pixels)
-            return c if repeat == 1 else np.concatenate([c] * repeat)
+            return c if repeat == 1 or c is None else np.concatenate([c] * repeat)
 
         sub.data = self.data.on_pixels(pixels) if index is None else self.data.stacked(pixels, index)
         sub._xn, sub._yn, sub._vig_r = (col(a) for a in (self._xn, self._yn, self._vig_r))
