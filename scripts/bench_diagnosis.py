@@ -255,7 +255,8 @@ def timing(args: argparse.Namespace) -> int:
     from procam.addon.steps import calibrate, capture, demo, diagnose
     from procam.addon.steps.capture import LabOptions
 
-    work = args.work / f"timing_{args.timing_surface}_{args.timing_effects.replace(',', '+')}_s{args.timing_scale:g}"
+    work = args.work / (f"timing_{args.timing_surface}_{args.timing_effects.replace(',', '+')}_s{args.timing_scale:g}"
+                        + (f"_p{args.timing_projectors}" if args.timing_projectors > 1 else ""))
     scale = args.timing_scale
     cam, proj = (round(640 * scale), round(480 * scale)), (round(800 * scale), round(600 * scale))
     if not (work / "captures" / "capture.json").is_file():  # the lab is not timed: reused when there
