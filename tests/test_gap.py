@@ -143,6 +143,10 @@ def test_nested_parameters_the_selection_held_are_not_tried_free_beside_later_ca
     sel = gap_fit.select_effects(data, ("response", "black_level", "defocus"), min_share=0.0, max_effects=2)
     assert sel.selected[0] == "response" and "response" in sel.alone["response"].nested_held()
     assert [names for names, free in calls if free] == [("response",)]  # the response alone, in the first round
+    # beside the camera's tone curve, which the S-curve trades against, it is tried free again
+    calls.clear()
+    gap_fit.select_effects(data, ("response", "camera_response"), min_share=0.0, max_effects=2)
+    assert [names for names, free in calls if free] == [("response",), ("response", "camera_response")]
 
 
 def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):

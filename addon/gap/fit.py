@@ -66,6 +66,9 @@ SMOOTH_SIGMA = 1.5
 #: residuals beyond it weigh in proportion to their size rather than its square. Wider than the usual 1.345
 #: (95 % efficiency on Gaussian noise), which took too much weight from a local effect's own residuals.
 HUBER_K = 3.0
+#: Models a nested parameter can trade against (both bend the levels): beside one of them, the selected effects'
+#: nested parameters are tried free in every round (:func:`select_effects`).
+TRADES_WITH_NESTED = ("camera_response",)
 #: A model's nested parameters (``EffectModel.nested``) are freed only when that lowers the fit patterns' robust
 #: mean squared error (:func:`huber_rms` squared) by at least this share.
 NESTED_GAIN = 0.05
@@ -388,12 +391,14 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
 
     def fit(selected: list[str], name: str, current: Fit) -> Fit:
         start = current.params() if selected else {}
+        names = tuple(selected) + (name,)
         # A selected effect whose nested parameters its own round left at identity (its fit with them free was no
         # better) keeps them there in later rounds: tried free again beside each later candidate, they doubled
-        # every fit of those rounds and were kept in none (the demo's set, a response and blur set).
-        return fit_composite(data, tuple(selected) + (name,),
-                             start={n: np.array(list(v.values())) for n, v in start.items()},
-                             hold=current.nested_held() if selected else ())
+        # every fit of those rounds and were kept in none (the demo's set, a response and blur set), except beside
+        # the camera's tone curve, which the response's S-curve trades against (on a two-projector demo set the
+        # fit with both curves kept the S-curve, and the camera's curve then removed less than the threshold).
+        hold = current.nested_held() if selected and not any(n in names for n in TRADES_WITH_NESTED) else ()
+        return fit_composite(data, names, start={n: np.array(list(v.values())) for n, v in start.items()}, hold=hold)
 
     def say(fraction: float, name: str, selected: list[str]) -> None:
         report(f"round {len(selected) + 1}: fitting {'+'.join([*selected, name])}", fraction)
