@@ -13,6 +13,11 @@ compensation PSNR with and without the selected effects. Resumable: each case's
 folders under ``--work`` are reused when complete.
 
     .venv/bin/python scripts/bench_diagnosis.py --work /tmp/gapbench --out /tmp/gapbench/report
+
+``--timing`` only times calibrate and diagnose on the demo's case, in one process as ``procam demo`` runs them, and
+prints the diagnosis's verdict (what a faster diagnosis must leave as it was):
+
+    .venv/bin/python scripts/bench_diagnosis.py --work /tmp/gapbench --timing
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import argparse
 import filecmp
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -230,6 +236,64 @@ def compensation_gain(cal_dir: Path, truth_path: Path, doc: dict, targets: list[
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
+def verdict(doc: dict) -> dict:
+    """What a diagnosis concludes, without its figures: what a faster diagnosis must leave as it was."""
+    return {"selected": doc.get("selected"), "modelled": doc.get("modelled"), "absorbed": doc.get("absorbed"),
+            "ranking": [e["name"] for e in doc.get("effects", [])],
+            "rounds": [(s["added"], s["candidate"]) for s in doc.get("steps", [])],
+            "confidence": {e["name"]: e.get("confidence", {}).get("level") for e in doc.get("effects", [])},
+            "regions": [(r.get("cause"), tuple(r["bbox"])) for r in doc.get("regions", [])],
+            "compensation": (doc.get("compensation") or {}).get("effects"), "headline": doc.get("headline")}
+
+
+def timing(args: argparse.Namespace) -> int:
+    """The demo's lab, calibration and diagnosis (``procam demo``'s defaults: vedge, the realistic effects, half
+    the paper's resolution, a diagnosis at 192×144), run in this process as the demo runs them: the seconds
+    (wall and this process's CPU, every thread) of calibrate and of diagnose, their ratio, and the verdict."""
+    import resource
+
+    from procam.addon.steps import calibrate, capture, demo, diagnose
+    from procam.addon.steps.capture import LabOptions
+
+    work = args.work / (f"timing_{args.timing_surface}_{args.timing_effects.replace(',', '+')}_s{args.timing_scale:g}"
+                        + (f"_p{args.timing_projectors}" if args.timing_projectors > 1 else ""))
+    scale = args.timing_scale
+    cam, proj = (round(640 * scale), round(480 * scale)), (round(800 * scale), round(600 * scale))
+    if not (work / "captures" / "capture.json").is_file():  # the lab is not timed: reused when there
+        capture.run_lab(LabOptions(work / "captures", surface=args.timing_surface, effects=args.timing_effects,
+                                   seed=0, samples=args.samples, truth=work / "lab-truth.json", camera_size=cam,
+                                   projector_size=proj, projectors=args.timing_projectors,
+                                   projector_effects=demo.second_projector(args.timing_effects)
+                                   if args.timing_projectors > 1 else "", force=True))
+
+    def timed(run) -> tuple[float, float, object]:
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = run()
+        return time.perf_counter() - t0, time.process_time() - c0, out
+
+    from procam.addon.cli.calibrate import blend_writer  # the demo's calibration writes its scene.blend too
+
+    cal_wall, cal_cpu, _ = timed(lambda: calibrate.run(calibrate.CalibrateOptions(
+        work / "captures", work / "calibration", seed=0, with_blend=True, force=True), blend_writer=blend_writer()))
+    diag_wall, diag_cpu, doc = timed(lambda: diagnose.run(diagnose.DiagnoseOptions(
+        work / "calibration", work / "diagnosis", scale=min(1.0, 0.3 / scale), force=True)))
+    load = os.getloadavg()[0]
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"| step | wall s | CPU s |\n|---|---|---|\n| calibrate | {cal_wall:.1f} | {cal_cpu:.1f} |\n"
+          f"| diagnose | {diag_wall:.1f} | {diag_cpu:.1f} |\n| diagnose ÷ calibrate | {diag_wall / cal_wall:.2f} | "
+          f"{diag_cpu / cal_cpu:.2f} |")
+    print(f"({work}; {args.timing_projectors} projector(s), {args.timing_surface}, {args.timing_effects}, scale "
+          f"{scale:g}; load average {load:.1f} on {os.cpu_count()} CPUs at the end; peak RSS {peak:.0f} MB)")
+    projectors = [doc] if args.timing_projectors == 1 else \
+        [json.loads((work / "diagnosis" / p["folder"] / "gap.json").read_text()) for p in doc["projectors"]]
+    for k, d in enumerate(projectors):
+        print(f"verdict{'' if len(projectors) == 1 else f' of projector {k + 1}'}: "
+              + json.dumps({**verdict(d), "seconds": d.get("seconds")}))
+    if args.timing_projectors > 1:
+        print("rig: " + json.dumps({k: doc.get(k) for k in ("headline", "differs")}))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="folder for the cases (reused when rerun)")
@@ -256,7 +320,16 @@ def main(argv: list[str] | None = None) -> int:
                          "effect is ranked first (the stronger ones are not run)")
     ap.add_argument("--summarise", type=Path, default=None,
                     help="only print the tables of the case rows (JSON lines) an earlier, interrupted run logged")
+    ap.add_argument("--timing", action="store_true",
+                    help="only time calibrate and diagnose on the demo's case (see --timing-*) and print the verdict")
+    ap.add_argument("--timing-scale", type=float, default=0.5, help="the timed lab's share of the paper's resolution "
+                    "(the demo's default 0.5); the diagnosis works at 0.3 of it, as the demo's")
+    ap.add_argument("--timing-surface", default="vedge")
+    ap.add_argument("--timing-effects", default="realistic")
+    ap.add_argument("--timing-projectors", type=int, default=1)
     args = ap.parse_args(argv)
+    if args.timing:
+        return timing(args)
     if args.summarise:
         rows = [json.loads(line) for line in args.summarise.read_text().splitlines() if line.startswith("{")]
         # A case logged twice (e.g. seed 0 of --cases none after the full matrix) counts once, as last logged.

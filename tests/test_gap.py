@@ -120,6 +120,35 @@ def test_identity_parameters_reproduce_the_base_model(response_case):
         np.testing.assert_allclose(comp.predict(theta, obs), np.clip(obs.direct, 0, 1), atol=2e-3)
 
 
+def test_nested_parameters_the_selection_held_are_not_tried_free_beside_later_candidates(response_case, monkeypatch):
+    """The response's S-curve (nested parameters) is tried free only where no round has held it: once the round
+    that selected the response kept its plain power law, later rounds' fits hold the curve too (tried again beside
+    every later candidate, it doubled their fits and was kept in none)."""
+    cal_dir, _, _ = response_case
+    data = load_gap_data(cal_dir, scale=1.0, spp=8)
+    real = gap_fit._fit_box
+    calls = []
+
+    def counted(data, comp, start, **kw):
+        calls.append((comp.names, bool(kw.get("nudge"))))
+        return real(data, comp, start, **kw)
+
+    monkeypatch.setattr(gap_fit, "_fit_box", counted)
+    held = gap_fit.fit_composite(data, ("response", "black_level"), hold=("response",))
+    assert calls == [(("response", "black_level"), False)] and held.nested_held() == ("response",)
+    calls.clear()
+    gap_fit.fit_composite(data, ("response", "black_level"))
+    assert [free for _, free in calls] == [False, True]  # without ``hold``, tried free
+    calls.clear()
+    sel = gap_fit.select_effects(data, ("response", "black_level", "defocus"), min_share=0.0, max_effects=2)
+    assert sel.selected[0] == "response" and "response" in sel.alone["response"].nested_held()
+    assert [names for names, free in calls if free] == [("response",)]  # the response alone, in the first round
+    # beside the camera's tone curve, which the S-curve trades against, it is tried free again
+    calls.clear()
+    gap_fit.select_effects(data, ("response", "camera_response"), min_share=0.0, max_effects=2)
+    assert [names for names, free in calls if free] == [("response",), ("response", "camera_response")]
+
+
 def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):
     """A composite keeps the blurred input and the response's curve of the last few parameter values (a fit's
     finite differences move one parameter at a time); any sequence of parameters predicts what a new composite
@@ -127,15 +156,30 @@ def test_remembered_inputs_and_curves_give_the_fresh_prediction(response_case):
     cal_dir, _, _ = response_case
     data = load_gap_data(cal_dir, scale=1.0, spp=8)
     obs = [o for o in data.observations if o.fine][:2] + [o for o in data.observations if not o.fine][:1]
-    for names in (("response", "defocus"), ("response", "defocus", "depth_noise")):
+    for names in (("response", "defocus"), ("response", "defocus", "depth_noise"),
+                  ("response", "crosstalk", "black_level", "interreflection", "camera_response")):
         kept = Composite(data, names)
         thetas = []
         for sigma, gamma in [(0.0, 1.0), (1.2, 1.0), (1.2, 1.6), (0.0, 1.6), (1.5, 1.0), (1.2, 1.6), (0.0, 1.0)]:
             t = kept.initial()
-            t[kept.slices["defocus"].start], t[kept.slices["response"]][:3] = sigma, gamma
+            if "defocus" in names:
+                t[kept.slices["defocus"].start] = sigma
+            t[kept.slices["response"]][:3] = gamma
             if "depth_noise" in names:
                 t[kept.slices["depth_noise"].start] = 0.02
             thetas.append(t)
+        # one channel's exponent, the scene's and the camera's parameters moved alone, then back (the image before
+        # the scene's light and before the camera's is kept on the parameters it depends on)
+        for k, v in [(0, 1.3), (1, 0.8), (0, 1.0)]:
+            t = thetas[-1].copy()
+            t[kept.slices["response"].start + k] = v
+            thetas.append(t)
+        for name, v in [("interreflection", 0.5), ("camera_response", 0.4), ("black_level", 0.03)]:
+            if name in names:
+                t = thetas[-1].copy()
+                t[kept.slices[name].stop - 1] = v
+                thetas.append(t)
+        thetas.append(thetas[0])
         for t in thetas:
             for o in obs:
                 np.testing.assert_array_equal(kept.predict(t, o), Composite(data, names).predict(t, o))
@@ -157,6 +201,13 @@ def test_a_composite_on_some_pixels_predicts_what_the_whole_image_holds_there(re
         assert got.shape == (len(pixels), 1, 3)
         want = whole.predict(theta, data.observations[i]).reshape(-1, 3)[pixels]
         np.testing.assert_allclose(got[:, 0], want, atol=1e-6)
+    # the fit's patterns stacked into one observation: their pixels one pattern after another, as predicted alone
+    index = [0, 1, 5, len(data.observations) - 1]
+    stack = whole.on_pixels(pixels, index)
+    got = stack.predict(theta, stack.data.observations[stack.data.fit_index[0]])
+    assert got.shape == (len(index) * len(pixels), 1, 3)
+    want = np.concatenate([part.predict(theta, part.data.observations[i]) for i in index])
+    np.testing.assert_allclose(got, want, atol=1e-6)
     with pytest.raises(ValueError, match="distortion"):
         Composite(data, ("distortion",)).on_pixels(pixels)
 

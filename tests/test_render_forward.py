@@ -240,6 +240,8 @@ def test_indirect_bounces_add_light_only_where_the_surface_sees_itself() -> None
     assert np.allclose(ForwardModel(rig, plane, spp=4, bounces=1).render(white, seed=2), direct, atol=1e-6)
     vedge = uniform(builtin_surface("vedge", resolution=8))
     d0 = ForwardModel(rig, vedge, spp=16, clamp=False).render(white, seed=2)
+    # the diagnosis's indirect light is a path tracer's bounces less its first, which the direct integrator gives
+    assert np.array_equal(ForwardModel(rig, vedge, spp=16, clamp=False, integrator="prb").render(white, seed=2), d0)
     d1 = ForwardModel(rig, vedge, spp=16, clamp=False, bounces=1).render(white, seed=2)
     # The concave crease is at camera column 80: one bounce adds ≈ 6 % there, ≈ 1 % far out on the sides.
     crease = d1[40:80, 76:84].mean() / d0[40:80, 76:84].mean()

@@ -76,6 +76,9 @@ class Observation:
     #: x averaged over each pixel's footprint, then read at its light path (None where a pixel spans at most
     #: :data:`MAX_TEXELS_PER_PIXEL` texels): what a blur's change is measured against (``models.Composite``)
     averaged: np.ndarray | None = None
+    #: a stack of several patterns' pixels (:meth:`GapData.stacked`): each part's input, in row order (``x`` is
+    #: the first's); None for one pattern
+    inputs: tuple[np.ndarray, ...] | None = None
 
     @property
     def fine(self) -> bool:
@@ -136,6 +139,39 @@ class GapData:
                        mask=col(self.mask), gain=col(self.gain), corr=col(self.corr),
                        corr_per_metre=col(self.corr_per_metre), points=col(self.points), rays=col(self.rays),
                        crease=col(self.crease))
+
+    def stacked(self, pixels: np.ndarray, index: list[int]) -> "GapData":
+        """The patterns ``index`` at the working pixels ``pixels`` as one observation (the second; the first is
+        white, repeated to its length), its rows the pixels of the first pattern, then of the second…, each
+        pixel's own data repeated as often: a fit predicts all its patterns in one call instead of one call a
+        pattern (per-pixel models give row for row what :meth:`on_pixels` gives; measured on the demo's
+        diagnosis: most of a fit's time was numpy's overhead on 8,000-pixel arrays, twelve times over)."""
+        n = len(index)
+
+        def col(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else column(a, pixels)
+
+        def tile(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else np.concatenate([col(a)] * n)
+
+        def cat(arrays: list[np.ndarray | None]) -> np.ndarray | None:
+            return None if any(a is None for a in arrays) else np.concatenate([col(a) for a in arrays])
+
+        parts = [self.observations[i] for i in index]
+        w = self.white
+        white = replace(w, capture=tile(w.capture), direct=tile(w.direct), indirect=tile(w.indirect),
+                        sampled=tile(w.sampled), glossy={r: tile(g) for r, g in w.glossy.items()},
+                        edges=tile(w.edges), averaged=tile(w.averaged))
+        stack = Observation("+".join(o.name for o in parts), "stack", parts[0].x,
+                            cat([o.capture for o in parts]), cat([o.direct for o in parts]),
+                            cat([o.indirect for o in parts]),
+                            {r: cat([o.glossy[r] for o in parts]) for r in parts[0].glossy},
+                            cat([o.sampled for o in parts]), cat([o.edges for o in parts]),
+                            cat([o.averaged for o in parts]), inputs=tuple(o.x for o in parts))
+        return replace(self, observations=[white, stack], size=(1, n * len(pixels)), mask=tile(self.mask),
+                       gain=tile(self.gain), corr=tile(self.corr), corr_per_metre=tile(self.corr_per_metre),
+                       points=tile(self.points), rays=tile(self.rays), crease=tile(self.crease), fit_index=[1],
+                       held_index=[])
 
 
 def column(a: np.ndarray | None, pixels: np.ndarray) -> np.ndarray | None:
@@ -335,6 +371,16 @@ def footprint_sigma(spans: float | None) -> float:
     return float(np.sqrt(spans * spans / 12.0 - 1.0 / 6.0))
 
 
+def sample_pattern(obs: Observation, corr: np.ndarray, footprint: float = 0.0, blur: float = 0.0) -> np.ndarray:
+    """:func:`sample_input` of a pattern's input blurred by ``blur`` texels (0: none); of a stack of patterns
+    (:meth:`GapData.stacked`), each part's rows read its own input."""
+    inputs = obs.inputs if obs.inputs is not None else (obs.x,)
+    rows = corr.shape[0] // len(inputs)
+    out = [sample_input(cv2.GaussianBlur(x, (0, 0), blur) if blur > 0 else x, corr[k * rows:(k + 1) * rows],
+                        footprint) for k, x in enumerate(inputs)]
+    return out[0] if len(out) == 1 else np.concatenate(out)
+
+
 def sample_input(x: np.ndarray, corr: np.ndarray, footprint: float = 0.0) -> np.ndarray:
     """The input image's value at each camera pixel's light path (bilinear; black off the input), averaged over
     the pixel's ``footprint`` first (:func:`footprint_sigma`)."""
@@ -386,7 +432,10 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
     # Indirect light as the difference of two path tracers that share their random numbers, so the direct
     # part (and its noise) cancels; it is smooth, so more samples and a light blur keep its noise small.
     indirect_model = model(bounces=INDIRECT_BOUNCES, integrator="prb", spp=2 * spp)
-    direct_prb = model(bounces=0, integrator="prb", spp=2 * spp)
+    # The direct-light integrator draws the same camera rays from the same seed, and a delta projector's light
+    # along them is the path tracer's first bounce exactly (checked: the two renders are equal, bit for bit), in
+    # less than half the time.
+    direct_prb = model(spp=2 * spp)
     glossy_models = {r: model(glossy_roughness=r) for r in GLOSSY_ROUGHNESS}
     observations: list[Observation] = []
     for i, e in enumerate(entries):
@@ -396,13 +445,14 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
         x = input_of(e)
         z = warp_m(x)
         s = 1000 + 10 * i
-        direct = direct_model.render_input(z, seed=s)
         if float(z.max()) > 0:
+            direct = direct_model.render_input(z, seed=s)
             extra = indirect_model.render_input(z, seed=s + 1) - direct_prb.render_input(z, seed=s + 1)
             indirect = cv2.GaussianBlur(extra, (0, 0), 1.0)
-        else:
-            indirect = np.zeros_like(direct)
-        glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
+            glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
+        else:  # a black input: the projector is the only light, so every render is black
+            direct = indirect = np.zeros((size[1], size[0], 3), np.float32)
+            glossy = {r: direct for r in glossy_models}
         capture = _downsize(captures.image(e.kind, name=e.name), size)
         sampled = sample_input(x, corr)
         observations.append(Observation(e.name, e.kind, x, capture, direct, indirect, glossy, sampled,

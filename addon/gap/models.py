@@ -32,7 +32,7 @@ import numpy as np
 from ..colour import srgb_encode
 from ..rig.lens import undistort_normalised
 from ..stages.calibrate import SATURATED
-from .data import GLOSSY_ROUGHNESS, GapData, Observation, column, sample_input
+from .data import GLOSSY_ROUGHNESS, GapData, Observation, column, sample_pattern
 
 #: Width (share of the working image width) over which the diffuse white is carried into clipped highlights.
 FILL_SIGMA = 0.04
@@ -88,6 +88,10 @@ MODELS: dict[str, EffectModel] = {m.name: m for m in (
                 "at edges of the projected pattern, along the projector–camera baseline"),
 )}
 NAMES: tuple[str, ...] = tuple(MODELS)
+#: The models :meth:`Composite.predict` applies before the scene's extra light (on the input, the lens, the light
+#: paths; black level's projector part is among them, its ambient part on the camera's side), and the scene's.
+PROJECTOR_SIDE = ("depth_noise", "defocus", "response", "crosstalk", "black_level", "vignetting")
+SCENE_SIDE = ("interreflection", "glossy")
 
 
 def projector_tone(a: np.ndarray, gammas: np.ndarray, contrast: float = 0.0, pivot: float = 0.5) -> np.ndarray:
@@ -98,7 +102,7 @@ def projector_tone(a: np.ndarray, gammas: np.ndarray, contrast: float = 0.0, piv
     """
     y = np.power(np.clip(a, 0.0, 1.0), np.asarray(gammas, np.float32))
     if contrast <= 1e-6:
-        return y.astype(np.float32)
+        return y.astype(np.float32, copy=False)
     lo, hi = _logistic(0.0, contrast, pivot), _logistic(1.0, contrast, pivot)
     return ((_logistic(y, contrast, pivot) - lo) / (hi - lo)).astype(np.float32)
 
@@ -201,25 +205,46 @@ class Composite:
         self._inputs: dict[float, dict[int, np.ndarray]] = {}
         self._tones: dict[tuple[float, ...], dict[int, np.ndarray]] = {}
         self._scales: dict[float, np.ndarray] = {}
+        # ... and the image before the scene's effects and before the camera's (keyed by the parameters they
+        # depend on): a column of the camera's or the scene's parameters recomputes only the stages after it.
+        # Every column moves off the same point, so a composite on a few pixels (:meth:`on_pixels`) keeps one entry
+        # a column and a few more; one on the whole image the last three.
+        self._lit: dict[tuple[float, ...], dict[int, np.ndarray]] = {}
+        self._scene: dict[tuple[float, ...], dict[int, np.ndarray]] = {}
+        self._keep = 3
+        #: rows of ``data`` that repeat the first ``len / _repeat`` (a stack of patterns, :meth:`on_pixels`)
+        self._repeat = 1
 
-    def on_pixels(self, pixels: np.ndarray) -> "Composite":
+    def on_pixels(self, pixels: np.ndarray, index: list[int] | None = None) -> "Composite":
         """This composite at some working pixels only (:meth:`GapData.on_pixels`; predictions n×1×3): a fit's
         residual uses 8,000 pixels a pattern (:data:`fit.FIT_PIXELS`), and predicting the whole image for it
-        was most of a diagnosis's time. Not with a lens distortion, which moves the image."""
+        was most of a diagnosis's time. With ``index``, the patterns ``index`` stacked into one observation
+        (:meth:`GapData.stacked`, ``data.observations[data.fit_index[0]]``; predictions (len(index)·n)×1×3).
+        Not with a lens distortion, which moves the image."""
         if "distortion" in self.names:
             raise ValueError("a distortion moves the image: predict the whole image")
         sub = copy.copy(self)
-        sub.data = self.data.on_pixels(pixels)
-        sub._xn, sub._yn, sub._vig_r = (column(a, pixels) for a in (self._xn, self._yn, self._vig_r))
-        sub._saturated, sub._diffuse_white = column(self._saturated, pixels), column(self._diffuse_white, pixels)
-        sub._inputs, sub._tones, sub._scales = {}, {}, {}
+        repeat = 1 if index is None else len(index)
+
+        def col(a: np.ndarray) -> np.ndarray | None:
+            c = column(a, pixels)
+            return c if repeat == 1 or c is None else np.concatenate([c] * repeat)
+
+        sub.data = self.data.on_pixels(pixels) if index is None else self.data.stacked(pixels, index)
+        sub._xn, sub._yn, sub._vig_r = (col(a) for a in (self._xn, self._yn, self._vig_r))
+        sub._saturated, sub._diffuse_white = col(self._saturated), col(self._diffuse_white)
+        sub._inputs, sub._tones, sub._scales, sub._lit, sub._scene = {}, {}, {}, {}, {}
+        sub._repeat = repeat
+        # images of a few thousand pixels: enough for every column of a finite-difference Jacobian
+        sub._keep = self.size + 3
         return sub
 
-    def _per_pattern(self, cache: dict, key: Any, obs: Observation, make: Any) -> np.ndarray:
-        """``make()`` for this pattern, remembered in ``cache`` under ``key`` (None: made every time)."""
+    def _per_pattern(self, cache: dict, key: Any, obs: Observation, make: Any, keep: int = 3) -> np.ndarray:
+        """``make()`` for this pattern, remembered in ``cache`` under ``key`` (None: made every time) with the
+        ``keep`` most recent keys."""
         if key is None:
             return make()
-        per = _recent(cache, key, dict)
+        per = _recent(cache, key, dict, keep)
         out = per.get(id(obs))
         if out is None:
             out = per[id(obs)] = make()
@@ -233,27 +258,46 @@ class Composite:
         def make() -> np.ndarray:
             moved = corr is not d.corr
             if sigma <= 0:
-                return sample_input(obs.x, corr) if moved else obs.sampled
-            x = cv2.GaussianBlur(obs.x, (0, 0), sigma)
+                return sample_pattern(obs, corr) if moved else obs.sampled
             if d.footprint <= 0:
-                return sample_input(x, corr)
+                return sample_pattern(obs, corr, blur=sigma)
             # A pixel wider than two texels sees the blur's change averaged over its footprint (data.py).
-            plain, averaged = (sample_input(obs.x, corr), sample_input(obs.x, corr, d.footprint)) if moved else \
+            plain, averaged = (sample_pattern(obs, corr), sample_pattern(obs, corr, d.footprint)) if moved else \
                 (obs.sampled, obs.averaged)
-            return plain + sample_input(x, corr, d.footprint) - averaged
+            return plain + sample_pattern(obs, corr, d.footprint, sigma) - averaged
 
         return self._per_pattern(self._inputs, sigma if corr is d.corr else None, obs, make)
 
     def _tone(self, a: np.ndarray, obs: Observation, r: np.ndarray, sigma: float | None) -> np.ndarray:
         """:func:`projector_tone` of the pattern's input ``a`` (from :meth:`_input_at` with a blur of ``sigma``);
-        remembered unless ``sigma`` is None (light paths moved)."""
-        def make() -> np.ndarray:
-            return projector_tone(a, r[:3], float(r[3]), float(r[4]))
+        remembered unless ``sigma`` is None (light paths moved), each channel on its own parameters: a column of
+        a channel's exponent recomputes that channel alone (the curve was a sixth of a demo diagnosis's fits)."""
+        contrast, pivot = float(r[3]), float(r[4])
+        if sigma is None:
+            return projector_tone(a, r[:3], contrast, pivot)
+        out = np.empty_like(a)
+        for c in range(3):
+            def make(c: int = c) -> np.ndarray:
+                return projector_tone(a[..., c], np.float32(r[c]), contrast, pivot)
 
-        return self._per_pattern(self._tones, None if sigma is None else (sigma, *map(float, r)), obs, make)
+            out[..., c] = self._per_pattern(self._tones, (sigma, c, float(r[c]), contrast, pivot), obs, make,
+                                            3 * self._keep)
+        return out
 
     def _light_scale(self, curve: float) -> np.ndarray:
-        return _recent(self._scales, curve, lambda: light_scale(self.data.gain, curve))
+        def make() -> np.ndarray:
+            if self._repeat == 1:
+                return light_scale(self.data.gain, curve)
+            # a stack repeats each pixel's gain: the curve's table is inverted once a pixel
+            rows = len(self.data.gain) // self._repeat
+            return np.concatenate([light_scale(self.data.gain[:rows], curve)] * self._repeat)
+
+        return _recent(self._scales, curve, make)
+
+    @staticmethod
+    def _key(p: dict[str, np.ndarray], names: tuple[str, ...]) -> tuple[float, ...]:
+        """The values of the parameters of ``names`` that act there (black level: its projector part)."""
+        return tuple(v for n in names if n in p for v in (p[n][:1] if n == "black_level" else p[n]).tolist())
 
     def initial(self) -> np.ndarray:
         return np.concatenate([MODELS[n].initial() for n in self.names]) if self.names else np.zeros(0)
@@ -281,31 +325,30 @@ class Composite:
         """The capture this composite model predicts for one pattern (h×w×3, clipped to [0, 1])."""
         p = self.split(theta)
         d = self.data
-        if corr is None:
-            corr = self._corr(p)
-        sigma = float(p["defocus"][0]) if "defocus" in p and p["defocus"][0] > 0.05 else 0.0
-        a = self._input_at(obs, sigma, corr)
-        if "response" in p:
-            a = self._tone(a, obs, p["response"], sigma if corr is d.corr else None)
-        if "crosstalk" in p:
-            a = a @ crosstalk_matrix(p["crosstalk"]).T
-        if "black_level" in p:
-            b = float(p["black_level"][0])
-            a = b + (1.0 - b) * a
-        if "vignetting" in p:
-            falloff, exponent = p["vignetting"]
-            a = a * (1.0 - falloff * np.power(self._vig_r, exponent))[..., None]
-        img = obs.direct + d.gain * (a - obs.sampled)
-        # The albedo was estimated from the white capture, so it already holds white's share of any extra
-        # light (indirect, glossy): the model adds only what a pattern gets beyond white × its input level.
-        white = d.white
-        if "interreflection" in p:
-            img = img + float(p["interreflection"][0]) * (obs.indirect - white.indirect * obs.sampled)
-        if "glossy" in p:
-            weight, rough = p["glossy"]
-            img = img + weight * (glossy_at(obs, float(rough)) - glossy_at(white, float(rough)) * obs.sampled)
-            if weight > 0 and self._saturated.any():  # weight 0 is the identity, exactly
-                img = img * self.clipped_white_gain(float(weight), float(rough))
+        given = corr is not None
+        # the image the projector side gives (input, lens, light paths), then with the scene's extra light:
+        # remembered on their own parameters unless the light paths were given
+        lit_key = None if given else ("lit", *self._key(p, PROJECTOR_SIDE))
+        scene_key = None if lit_key is None else (*lit_key, *self._key(p, SCENE_SIDE))
+
+        def lit() -> np.ndarray:
+            return self._lit_image(p, obs, corr if given else self._corr(p))
+
+        def scene() -> np.ndarray:
+            img = self._per_pattern(self._lit, lit_key, obs, lit, self._keep)
+            # The albedo was estimated from the white capture, so it already holds white's share of any extra
+            # light (indirect, glossy): the model adds only what a pattern gets beyond white × its input level.
+            white = d.white
+            if "interreflection" in p:
+                img = img + float(p["interreflection"][0]) * (obs.indirect - white.indirect * obs.sampled)
+            if "glossy" in p:
+                weight, rough = p["glossy"]
+                img = img + weight * (glossy_at(obs, float(rough)) - glossy_at(white, float(rough)) * obs.sampled)
+                if weight > 0 and self._saturated.any():  # weight 0 is the identity, exactly
+                    img = img * self.clipped_white_gain(float(weight), float(rough))
+            return img
+
+        img = self._per_pattern(self._scene, scene_key, obs, scene, self._keep)
         if "camera_response" in p:
             # The albedo holds the curve at white: take the image to light with white's scale before the
             # ambient light adds and the curve applies (white-balance gains cancel against the albedo).
@@ -317,6 +360,24 @@ class Composite:
         if "camera_response" in p:
             img = camera_curve(img, float(p["camera_response"][0]))
         return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+    def _lit_image(self, p: dict[str, np.ndarray], obs: Observation, corr: np.ndarray) -> np.ndarray:
+        """The image of the pattern's direct light through the projector-side models (before the scene's)."""
+        d = self.data
+        sigma = float(p["defocus"][0]) if "defocus" in p and p["defocus"][0] > 0.05 else 0.0
+        a = self._input_at(obs, sigma, corr)
+        if "response" in p:
+            a = self._tone(a, obs, p["response"], sigma if corr is d.corr else None)
+        if "crosstalk" in p:
+            # as one (pixels × 3) product: a stack of one-pixel rows (n×1×3) multiplied row by row took 9× longer
+            a = (a.reshape(-1, 3) @ crosstalk_matrix(p["crosstalk"]).T).reshape(a.shape)
+        if "black_level" in p:
+            b = float(p["black_level"][0])
+            a = b + (1.0 - b) * a
+        if "vignetting" in p:
+            falloff, exponent = p["vignetting"]
+            a = a * (1.0 - falloff * np.power(self._vig_r, exponent))[..., None]
+        return obs.direct + d.gain * (a - obs.sampled)
 
     def clipped_white_gain(self, weight: float, rough: float) -> np.ndarray:
         """The glossy model's camera-side gain (h×w×3): where the white capture clipped, the albedo holds only

@@ -124,7 +124,7 @@ def fit_joint(datas: list[GapData], items: tuple[Item, ...], *, start: dict[Item
         if len(flat) > pixels:
             flat = np.sort(rng.choice(flat, pixels, replace=False))
         picks.append(flat)
-        subs.append(comp.on_pixels(flat) if "distortion" not in comp.names else None)
+        subs.append(comp.on_pixels(flat, d.fit_index) if "distortion" not in comp.names else None)
         caps.append(np.concatenate([d.observations[i].capture.reshape(-1, 3)[flat].ravel() for i in d.fit_index]))
     cap = np.concatenate(caps)
 
@@ -132,8 +132,8 @@ def fit_joint(datas: list[GapData], items: tuple[Item, ...], *, start: dict[Item
         preds = []
         for k, (d, comp, sub, flat) in enumerate(zip(datas, comps, subs, picks)):
             tk = per_projector(t, k)
-            if sub is not None:
-                preds += [sub.predict(tk, sub.data.observations[i]).ravel() for i in d.fit_index]
+            if sub is not None:  # every fit pattern of this projector in one prediction
+                preds.append(sub.predict(tk, sub.data.observations[sub.data.fit_index[0]]).ravel())
             else:
                 preds += [comp.predict(tk, d.observations[i]).reshape(-1, 3)[flat].ravel() for i in d.fit_index]
         return (np.concatenate(preds) - cap).astype(np.float64)
