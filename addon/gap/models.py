@@ -215,7 +215,7 @@ class Composite:
         #: rows of ``data`` that repeat the first ``len / _repeat`` (a stack of patterns, :meth:`on_pixels`)
         self._repeat = 1
 
-    def on_pixels(self, pixels: np.ndarray, index: list[int] | None = None) -> "Composite":
+    def on_pixels(self, pixels: np.ndarray, index: list[int] | None = None) -> Composite:
         """This composite at some working pixels only (:meth:`GapData.on_pixels`; predictions n×1×3): a fit's
         residual uses 8,000 pixels a pattern (:data:`fit.FIT_PIXELS`), and predicting the whole image for it
         was most of a diagnosis's time. With ``index``, the patterns ``index`` stacked into one observation
@@ -278,7 +278,7 @@ class Composite:
         out = np.empty_like(a)
         for c in range(3):
             def make(c: int = c) -> np.ndarray:
-                return projector_tone(a[..., c], np.float32(r[c]), contrast, pivot)
+                return projector_tone(a[..., c], np.asarray(r[c], np.float32), contrast, pivot)
 
             out[..., c] = self._per_pattern(self._tones, (sigma, c, float(r[c]), contrast, pivot), obs, make,
                                             3 * self._keep)
@@ -332,7 +332,7 @@ class Composite:
         scene_key = None if lit_key is None else (*lit_key, *self._key(p, SCENE_SIDE))
 
         def lit() -> np.ndarray:
-            return self._lit_image(p, obs, corr if given else self._corr(p))
+            return self._lit_image(p, obs, corr if corr is not None else self._corr(p))
 
         def scene() -> np.ndarray:
             img = self._per_pattern(self._lit, lit_key, obs, lit, self._keep)
