@@ -105,14 +105,14 @@ class Job:
             if self._status in (PENDING, RUNNING):
                 self._message = "cancelling…"
 
-    def start(self) -> "Job":
+    def start(self) -> Job:
         """Run in a daemon worker thread; returns at once."""
         self._begin()
         self._thread = threading.Thread(target=self._run, name=f"procam-{self.name}", daemon=True)
         self._thread.start()
         return self
 
-    def run(self) -> "Job":
+    def run(self) -> Job:
         """Run in the calling thread (Blender in background mode has no event loop to poll a worker)."""
         self._begin()
         self._run()

@@ -504,7 +504,7 @@ def fresh_output_folder(path: str | Path, *, force: bool = False, what: str = "r
     folder.commit()
 
 
-def output_names(paths: "Iterable[str | Path]") -> list[str]:
+def output_names(paths: Iterable[str | Path]) -> list[str]:
     """Output names from file stems, made unique (a/x.png and b/x.png become x and x_2)."""
     out: list[str] = []
     for p in paths:
@@ -563,9 +563,10 @@ def folder_in_place(path: str | Path, *, force: bool = False, what: str = "resul
     target = Path(path).absolute()
     inputs = tuple(inputs)
     check_replaceable(target, force=force, what=what, replaceable=replaceable, inputs=inputs)
-    with writer_lock(target):  # no other run writes it until this one is done
-        with _in_place(target, force=force, what=what, replaceable=replaceable, inputs=inputs) as out:
-            yield out
+    # the lock first: no other run writes it until this one is done
+    with writer_lock(target), _in_place(target, force=force, what=what, replaceable=replaceable,
+                                        inputs=inputs) as out:
+        yield out
 
 
 @contextlib.contextmanager

@@ -116,7 +116,7 @@ class VideoReader:
             self._cap.release()
             self._cap = None
 
-    def __enter__(self) -> "VideoReader":
+    def __enter__(self) -> VideoReader:
         return self
 
     def __exit__(self, *exc: object) -> None:

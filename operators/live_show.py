@@ -123,7 +123,7 @@ class PROCAM_OT_live_show_start(JobOperator, bpy.types.Operator):
             return "Follow Camera needs the Live panel's camera (its index, device path or URL)"
         return None
 
-    def make_job(self, context: bpy.types.Context, relay: "jobs.MainThreadRelay | None") -> jobs.Job:
+    def make_job(self, context: bpy.types.Context, relay: jobs.MainThreadRelay | None) -> jobs.Job:
         return jobs.Job("live show", play_live_show, show_options(context.scene))
 
     def apply(self, context: bpy.types.Context, result: object) -> str:

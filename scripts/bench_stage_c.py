@@ -89,7 +89,7 @@ class TimedDevice:
         self.device.close()
 
 
-def levers() -> list[tuple[str, "Schedule"]]:
+def levers() -> list[tuple[str, Schedule]]:
     """The paper's schedule, then each lever of the fast one added on top of the previous row (the last row is
     ``fast``), then the earlier fast schedule (coarse-to-fine z, plateau stop, 1 spp, cosine lr) for comparison."""
     from procam.addon.stages.compensate import SCHEDULES, Schedule
@@ -116,7 +116,7 @@ def levers() -> list[tuple[str, "Schedule"]]:
     return rows
 
 
-def summarise(results: list[dict], rows: list[tuple[str, "Schedule"]]) -> list[dict]:
+def summarise(results: list[dict], rows: list[tuple[str, Schedule]]) -> list[dict]:
     """One row per schedule (in lever order): means over the targets it ran on."""
     table = []
     for label, sched in (r for r in levers() if r in rows):

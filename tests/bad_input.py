@@ -51,9 +51,7 @@ _OPENED: list[str] | None = None  # the paths opened while a case runs; None: no
 def _audit(event: str, args: tuple) -> None:
     if _OPENED is None:
         return
-    if event == "open" and args and isinstance(args[0], (str, bytes, os.PathLike)):
-        _OPENED.append(os.fsdecode(args[0]))
-    elif event in ("os.listdir", "os.scandir") and args and isinstance(args[0], (str, bytes, os.PathLike)):
+    if event in ("open", "os.listdir", "os.scandir") and args and isinstance(args[0], (str, bytes, os.PathLike)):
         _OPENED.append(os.fsdecode(args[0]))
 
 
@@ -375,7 +373,7 @@ def _crafted_png(width: int, height: int) -> bytes:
 
 
 def _crafted_npy(shape: tuple[int, ...]) -> bytes:
-    header = "{'descr': '<f4', 'fortran_order': False, 'shape': %r, }" % (shape,)
+    header = f"{{'descr': '<f4', 'fortran_order': False, 'shape': {shape!r}, }}"
     header += " " * (118 - len(header)) + "\n"
     return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header.encode() + b"\x00" * 64
 

@@ -212,8 +212,8 @@ def test_steps_never_import_the_blender_side():
     """The steps run where Blender is not: what writes a .blend is handed to them (``blend_writer``), never
     imported, not even inside a function."""
     for path in sorted((ADDON / "steps").glob("*.py")):
-        blender = sorted(m for m in _imports(path) if m == "procam.addon.blender" or
-                         m.startswith("procam.addon.blender.") or m == "bpy" or m.startswith("bpy."))
+        blender = sorted(m for m in _imports(path) if m in ("procam.addon.blender", "bpy") or
+                         m.startswith(("procam.addon.blender.", "bpy.")))
         assert not blender, f"{path.relative_to(ROOT)} imports {blender}"
 
 

@@ -280,15 +280,14 @@ def test_existing_set_not_overwritten(good_set):
 
 def test_failed_write_leaves_old_set(good_set):
     cam, proj = small_camera(), small_projector()
-    with pytest.raises(CaptureError, match="camera resolution is 64×48"):
-        with CaptureSet.writer(good_set, cam, proj, force=True) as w:
-            w.add("surface", np.zeros((CAM[1], CAM[0], 3)))
-            w.add("white", np.zeros((10, 10, 3)))
+    with pytest.raises(CaptureError, match="camera resolution is 64×48"), \
+            CaptureSet.writer(good_set, cam, proj, force=True) as w:
+        w.add("surface", np.zeros((CAM[1], CAM[0], 3)))
+        w.add("white", np.zeros((10, 10, 3)))
     assert len(CaptureSet.load(good_set)) == 10 and siblings(good_set) == []
-    with pytest.raises(RuntimeError):
-        with CaptureSet.writer(good_set, cam, proj, force=True) as w:
-            w.add("surface", np.zeros((CAM[1], CAM[0], 3)))
-            raise RuntimeError("renderer crashed")
+    with pytest.raises(RuntimeError), CaptureSet.writer(good_set, cam, proj, force=True) as w:
+        w.add("surface", np.zeros((CAM[1], CAM[0], 3)))
+        raise RuntimeError("renderer crashed")
     assert len(CaptureSet.load(good_set)) == 10 and siblings(good_set) == []
 
 
@@ -437,7 +436,7 @@ def test_basic_patterns():
     vals = validation_patterns((50, 40), seed=3)
     assert [n for n, _, _ in vals] == ["val_grey_0.25", "val_grey_0.5", "val_grey_0.75", "val_ramp_r", "val_ramp_g",
                                        "val_ramp_b", "val_random_3", "val_random_4"]
-    ramp = dict((n, img) for n, _, img in vals)["val_ramp_g"]
+    ramp = {n: img for n, _, img in vals}["val_ramp_g"]
     assert ramp[..., 0].max() == 0 and np.all(np.diff(ramp[0, :, 1]) > 0)
     with pytest.raises(CaptureError):
         checkerboard((40, 30), 0)

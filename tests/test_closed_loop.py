@@ -120,7 +120,7 @@ def test_other_forms_off_is_the_identity_and_on_differs_from_every_model_form():
     assert np.array_equal(OtherForms(1.0).projector_light(grey, 80), light)
     assert not np.allclose(OtherForms(1.0, projector=1).projector_light(grey, 80), light)
     seen = forms.camera_record(np.full((40, 50, 3), 0.9, np.float32))
-    assert seen.shape == (40, 50, 3) and 0 <= seen.min() and seen.max() <= 1
+    assert seen.shape == (40, 50, 3) and seen.min() >= 0 and seen.max() <= 1
     assert abs(float(seen[..., 1].mean()) - 0.9) > 0.02  # green keeps its white balance: the knee curve moved it
 
 

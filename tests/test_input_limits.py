@@ -181,9 +181,9 @@ def test_an_out_folder_we_may_not_look_into_is_a_clear_error(tmp_path, monkeypat
     monkeypatch.setattr(pathlib.Path, "iterdir", denied)
     with pytest.raises(OutputError, match="cannot look into .*Permission denied"):
         AtomicFolder(out, force=True, replaceable=lambda p: True, inputs=())
-    with pytest.raises(OutputError, match="cannot look into"):
-        with folder_in_place(out, force=True, replaceable=lambda p: True, inputs=()):
-            pass
+    with pytest.raises(OutputError, match="cannot look into"), \
+            folder_in_place(out, force=True, replaceable=lambda p: True, inputs=()):
+        pass
     with pytest.raises(ProCamError, match="cannot write the show folder") as info:
         ShowFolder(out).open()
     assert info.value.exit_code == 2

@@ -153,7 +153,7 @@ def _projector(size=SIZE) -> Projector:
 def test_latency_is_measured_and_no_capture_shows_the_previous_frame(xvfb, delay):
     loop, _, _ = painted_wall(SIZE, ORIGIN, delay_s=delay)
     loop.noise = 0.0
-    with LoopbackCamera(loop) as cam:
+    with LoopbackCamera(loop) as cam:  # noqa: SIM117 (the device is opened on the camera's URL)
         with LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear",
                         _projector()) as device:
             frame = device.report.camera_frame_s
@@ -175,17 +175,15 @@ def test_latency_is_measured_and_no_capture_shows_the_previous_frame(xvfb, delay
 
 def test_auto_exposure_is_refused(xvfb):
     loop, _, _ = painted_wall(SIZE, ORIGIN, auto_exposure=True)
-    with LoopbackCamera(loop) as cam:
-        with pytest.raises(LiveError, match="exposure is not locked"):
-            LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
+    with LoopbackCamera(loop) as cam, pytest.raises(LiveError, match="exposure is not locked"):
+        LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
 
 
 def test_camera_that_sees_nothing_is_refused(xvfb):
     loop, _, _ = painted_wall(SIZE, ORIGIN)
     loop.region = (520, 380, *SIZE)  # films a part of the screen where the window is not
-    with LoopbackCamera(loop) as cam:
-        with pytest.raises(LiveError, match="did not see the projector"):
-            LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
+    with LoopbackCamera(loop) as cam, pytest.raises(LiveError, match="did not see the projector"):
+        LiveDevice(f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear", _projector())
 
 
 def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, capsys, monkeypatch):

@@ -48,9 +48,8 @@ class _Captures:
         self.projectors = [object()] * len(blacks)
         self.room, self.blacks, self.whites, self.photo = room, blacks, whites, photo
 
-    def for_projector(self, k: int) -> "_Captures":
-        view = _Captures(self.room, [self.blacks[k]], [self.whites[k]], self.photo)
-        return view
+    def for_projector(self, k: int) -> _Captures:
+        return _Captures(self.room, [self.blacks[k]], [self.whites[k]], self.photo)
 
     def entries_of(self, kind: str) -> list[str]:
         return ["surface"] if kind == "surface" and self.photo else []

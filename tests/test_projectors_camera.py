@@ -101,7 +101,7 @@ def _gap_data(seed: int, curve: float, s_mix: float):
         inputs.append((f"random_{j}", "validation", (r - r.min()) / (r.max() - r.min())))
     zero = np.zeros((h, w, 3), np.float32)
     obs = [Observation(n, kind, x.astype(np.float32), zero.copy(), gain * x.astype(np.float32), zero,
-                       {r: zero for r in (0.2, 0.4, 0.6)}, x.astype(np.float32)) for n, kind, x in inputs]
+                       dict.fromkeys((0.2, 0.4, 0.6), zero), x.astype(np.float32)) for n, kind, x in inputs]
     lens = SimpleNamespace(cx=w / 2, cy=h / 2, fx=w, fy=w)
     fit, held = split_patterns(obs)
     projector = SimpleNamespace(input_size=(w, h), intrinsics=lens, input_offset=(0, 0))

@@ -124,7 +124,7 @@ def test_grid_image():
     m = _smooth_shifts(8, 3.0, seed=7)
     img = grid_image(Warp(8, (600, 600), m, np.zeros_like(m)), (300, 300), exaggerate=3)
     assert img.shape == (300, 300, 3) and img.dtype == np.float32
-    assert 0.0 <= img.min() and img.max() <= 1.0 and (img > 0.9).any()
+    assert img.min() >= 0.0 and img.max() <= 1.0 and (img > 0.9).any()
 
 
 def test_drjit_warp_gradient_matches_finite_differences():
@@ -215,7 +215,7 @@ def test_warp_absorbs_a_wrong_pose_and_aligns_corners(fitted):
     assert result.inverse_error_px < 0.1
     assert _inverse_error(result.warp) < 0.1
     fr = [f for _, f in calls]
-    assert fr == sorted(fr) and fr[-1] == 1.0 and 0.0 <= fr[0]
+    assert fr == sorted(fr) and fr[-1] == 1.0 and fr[0] >= 0.0
     h, w = fitted[2].camera.intrinsics.height, fitted[2].camera.intrinsics.width
     for name in ("checker_capture", "checker_target", "render_before", "render_after", "compare_before",
                  "compare_after"):

@@ -123,7 +123,7 @@ def test_a_blurred_projector_is_sharpened_for_what_the_camera_sees(operator):
     sharp = comp.run(target, area, open_loop_theta=zero, iterations_z=200, iterations_joint=0, verify=False)
     comp.input_blur = sigma
     held = comp.run(target, area, open_loop_theta=zero, iterations_z=200, iterations_joint=0, verify=False)
-    assert held.report["input_blur"] == sigma and 0.0 <= held.z.min() and held.z.max() <= 1.0
+    assert held.report["input_blur"] == sigma and held.z.min() >= 0.0 and held.z.max() <= 1.0
     wanted = area.crop(held.target)
     err_held = psnr(camera(held.z), wanted)
     err_pre = psnr(camera(presharpen(sharp.z, sigma)), wanted)

@@ -201,7 +201,7 @@ class PhotoCommand:
         argv = [self._substitute(a, subs) for a in self.argv]
         start = time.perf_counter()
         try:
-            done = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            done = subprocess.run(argv, stdin=subprocess.DEVNULL, capture_output=True,
                                   timeout=self.timeout)
         except FileNotFoundError:
             raise CaptureError(f"{self.what}: {argv[0]!r} was not found; install it or give its full path") from None
@@ -337,7 +337,7 @@ class CommandSpec:
     FORM = "command:run='TOOL … {frame} … {out}' (the frame ProCam writes, the photograph the tool writes)"
 
     @staticmethod
-    def parse(text: str) -> "CommandSpec":
+    def parse(text: str) -> CommandSpec:
         values = split_spec(text, "command:", ("run", "timeout", "encoding", "average", "suffix"), CommandSpec.FORM)
         if "run" not in values:
             raise CaptureError(f"command device: say which command shows and photographs a frame, {CommandSpec.FORM}"

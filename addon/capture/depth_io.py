@@ -191,7 +191,7 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, str]:
     if fmt == "ascii":
         lines = data[body:].decode("ascii", "replace").splitlines()
         skip = sum(e[1] for e in elements[:vi])
-        rows = [ln for ln in lines[skip:skip + count]]
+        rows = lines[skip:skip + count]
         if len(rows) < count:
             raise CaptureError(truncated)
         try:

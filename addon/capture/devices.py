@@ -90,7 +90,7 @@ class Device(ABC):
                                f"{len(frames)} frame(s)")
         return [self.check_frame(f, k) for k, f in enumerate(frames)]
 
-    def __enter__(self) -> "Device":
+    def __enter__(self) -> Device:
         return self
 
     def __exit__(self, *exc: Any) -> None:

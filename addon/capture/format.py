@@ -111,7 +111,7 @@ class DepthInfo:
                 "units": "metres", "missing": 0}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "DepthInfo":
+    def from_dict(d: dict[str, Any]) -> DepthInfo:
         size = d.get("native_size")
         if (not isinstance(size, (list, tuple)) or len(size) != 2
                 or not all(isinstance(v, int) and v > 0 for v in size)):
@@ -281,7 +281,7 @@ class CaptureSet:
     # -- loading ---------------------------------------------------------------------------------
 
     @staticmethod
-    def load(path: str | Path, *, verify_images: bool = True) -> "CaptureSet":
+    def load(path: str | Path, *, verify_images: bool = True) -> CaptureSet:
         """Read and validate a capture set; every problem is a :class:`CaptureError` naming the file.
 
         With ``verify_images`` (default) every image is decoded once to check it
@@ -306,7 +306,7 @@ class CaptureSet:
         return cs
 
     @staticmethod
-    def _from_doc(root: Path, doc: Any, where: str) -> "CaptureSet":
+    def _from_doc(root: Path, doc: Any, where: str) -> CaptureSet:
         if not isinstance(doc, dict):
             raise CaptureError(f"{where}: expected a JSON object")
         # capture.json is standard JSON (its writer refuses NaN and infinities): a value that is not, which only a
@@ -517,7 +517,7 @@ class CaptureSet:
             raise CaptureError(f"capture set {self.path}: {entry.file} records no projected pattern")
         return self._file(entry.pattern)
 
-    def for_projector(self, index: int) -> "CaptureSet":
+    def for_projector(self, index: int) -> CaptureSet:
         """The one-projector set of projector ``index`` (0 = the first): the camera, that projector, its captures
         and the shared ones (surface photo, depth, targets), as single-projector code reads any set.
 
@@ -558,7 +558,7 @@ class CaptureSet:
                 "images": [e.to_dict() for e in self.entries]}
 
     @staticmethod
-    def writer(path: str | Path, camera: Camera, projector: Projector, **kwargs: Any) -> "CaptureSetWriter":
+    def writer(path: str | Path, camera: Camera, projector: Projector, **kwargs: Any) -> CaptureSetWriter:
         """Start a new capture set at ``path``; see :class:`CaptureSetWriter`."""
         return CaptureSetWriter(path, camera, projector, **kwargs)
 
@@ -601,7 +601,7 @@ class CaptureSetWriter:
                  camera_status: str = "nominal", projector_status: str = "nominal",
                  projector_pose_known: bool = False, notes: dict[str, Any] | None = None,
                  camera_lens: dict[str, Any] | None = None, force: bool = False,
-                 inputs: Iterable[str | Path | None] = (), check: Callable[["CaptureSet"], Any] | None = None) -> None:
+                 inputs: Iterable[str | Path | None] = (), check: Callable[[CaptureSet], Any] | None = None) -> None:
         self.others = tuple(others)
         self._check = check
         self._folder = AtomicFolder(path, force=force, what="capture set", replaceable=is_capture_set, inputs=inputs,
@@ -712,7 +712,7 @@ class CaptureSetWriter:
         self._names.add(name)
         return entry
 
-    def copy(self, source: "CaptureSet", entry: Entry, *, name: str | None = None, projector_index: int | None = None,
+    def copy(self, source: CaptureSet, entry: Entry, *, name: str | None = None, projector_index: int | None = None,
              image: Callable[[Entry, np.ndarray], np.ndarray] | None = None) -> Entry:
         """Add ``entry`` of the set ``source``: its image (through ``image(entry, pixels)`` when given; a depth
         map's too), projected pattern and parameters, under ``name`` (default its own) and as projector
@@ -750,7 +750,7 @@ class CaptureSetWriter:
     def abort(self) -> None:
         self._folder.abort()
 
-    def __enter__(self) -> "CaptureSetWriter":
+    def __enter__(self) -> CaptureSetWriter:
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:

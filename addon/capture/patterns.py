@@ -212,7 +212,7 @@ def decode_gray_code(captures: Sequence[np.ndarray], size: Size, *, white_captur
     return GrayCodeDecoding(coords, valid, (w, h), (int(offset[0]), int(offset[1])))
 
 
-def decode_gray_code_set(captures: "CaptureSet", **thresholds: Any) -> GrayCodeDecoding:
+def decode_gray_code_set(captures: CaptureSet, **thresholds: Any) -> GrayCodeDecoding:
     """Decode the Gray-code images of a capture set into native projector-frame coordinates.
 
     The latest decoding is kept (read-only arrays), keyed by the Gray-code, white and black files' paths, sizes

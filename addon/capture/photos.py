@@ -477,7 +477,7 @@ def add_projector_captures(base: CaptureSet, sequence_dir: str | Path, captures_
     return CaptureSet.load(out, verify_images=False)
 
 
-def undistort_captures(captures: CaptureSet, lens: "RigLens", out: str | Path, *, force: bool = False,
+def undistort_captures(captures: CaptureSet, lens: RigLens, out: str | Path, *, force: bool = False,
                        inputs: Iterable[str | Path | None] = (), progress: Progress | None = None) -> CaptureSet:
     """A new capture set: ``captures`` with the calibrated camera ``lens`` taken out of every camera image and
     depth map, as ``import-captures --rig`` does at import, for a set captured (or rendered by the lab) before

@@ -21,7 +21,7 @@ def _configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing calibration folder")
 
 
-def blend_writer() -> "BlendWriter":
+def blend_writer() -> BlendWriter:
     """Blender's writer of a calibration's scene.blend: bpy is imported here, by the command, never by the steps."""
     from ..blender.blend_file import save_calibration_blend
 

@@ -32,7 +32,7 @@ def _stamp(message: str) -> str:
 
 
 #: The bar currently drawn in place on a terminal, so that :func:`progress` can print above it.
-_drawn: "ProgressBar | None" = None
+_drawn: ProgressBar | None = None
 
 
 def progress(message: str) -> None:
@@ -160,7 +160,7 @@ class ProgressBar:
         if _drawn is self:
             _drawn = None
 
-    def __enter__(self) -> "ProgressBar":
+    def __enter__(self) -> ProgressBar:
         return self
 
     def __exit__(self, *exc: Any) -> None:

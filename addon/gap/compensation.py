@@ -489,7 +489,7 @@ class SharedCamera:
         scale = self.scale if area is None else area.crop(self.scale)
         return (inverse_camera_curve(np.asarray(image, np.float32), self.curve) / scale).astype(np.float32)
 
-    def for_projector(self, k: int, adapter: "EffectAdapter | None", projector: Any) -> "EffectAdapter":
+    def for_projector(self, k: int, adapter: EffectAdapter | None, projector: Any) -> EffectAdapter:
         """Projector ``k``'s own effects (``adapter``) with the camera's curve in its own units (its white alone):
         what its captures, taken with the others black, are read through for its open-loop θ."""
         own = {} if adapter is None else adapter.params

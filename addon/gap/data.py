@@ -85,7 +85,7 @@ class Observation:
         """Binary patterns with sharp edges (checker, Gray code): where blur and misregistration show."""
         return self.kind in ("checker", "graycode")
 
-    def on_pixels(self, pixels: np.ndarray) -> "Observation":
+    def on_pixels(self, pixels: np.ndarray) -> Observation:
         """This pattern at some working pixels only (:func:`column`); the input stays whole."""
         return replace(self, capture=column(self.capture, pixels), direct=column(self.direct, pixels),
                        indirect=column(self.indirect, pixels), sampled=column(self.sampled, pixels),
@@ -128,7 +128,7 @@ class GapData:
         """The white pattern: calibration estimated the albedo from it."""
         return next(o for o in self.observations if o.kind == "white")
 
-    def on_pixels(self, pixels: np.ndarray) -> "GapData":
+    def on_pixels(self, pixels: np.ndarray) -> GapData:
         """These data at some working pixels only (flat indices into the working image), each a row of a
         one-pixel-wide image: what a fit's per-pixel models need, at a fraction of the whole image's cost.
         Anything spatial (smoothing, regions, a lens distortion) needs the whole image."""
@@ -140,7 +140,7 @@ class GapData:
                        corr_per_metre=col(self.corr_per_metre), points=col(self.points), rays=col(self.rays),
                        crease=col(self.crease))
 
-    def stacked(self, pixels: np.ndarray, index: list[int]) -> "GapData":
+    def stacked(self, pixels: np.ndarray, index: list[int]) -> GapData:
         """The patterns ``index`` at the working pixels ``pixels`` as one observation (the second; the first is
         white, repeated to its length), its rows the pixels of the first pattern, then of the second…, each
         pixel's own data repeated as often: a fit predicts all its patterns in one call instead of one call a
@@ -452,7 +452,7 @@ def load_gap_data(cal: Calibration, captures: CaptureSet, *, source: str = "", s
             glossy = {r: m.render_input(z, seed=s + 2 + j) for j, (r, m) in enumerate(glossy_models.items())}
         else:  # a black input: the projector is the only light, so every render is black
             direct = indirect = np.zeros((size[1], size[0], 3), np.float32)
-            glossy = {r: direct for r in glossy_models}
+            glossy = dict.fromkeys(glossy_models, direct)
         capture = _downsize(captures.image(e.kind, name=e.name), size)
         sampled = sample_input(x, corr)
         observations.append(Observation(e.name, e.kind, x, capture, direct, indirect, glossy, sampled,

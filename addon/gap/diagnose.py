@@ -442,7 +442,7 @@ def diagnose(calibration: Calibration, captures: CaptureSet, *, source: str, for
            # whether the rig stayed the same during the session, and what the selected effects leave unexplained
            "session": session.to_dict(),
            "unexplained": unexplained,
-           "steps": [{k: v for k, v in s.items()} for s in sel.steps],
+           "steps": [dict(s) for s in sel.steps],
            # selected: on the residual (modelled, fitted jointly: ``selected_params``), then found where
            # calibration absorbed them (nothing left to model: ``absorbed``).
            "selected": list(sel.selected) + found,

@@ -89,7 +89,7 @@ class Fit:
     held_mse_classes: tuple[float, float] = (float("nan"), float("nan"))  # structured MSE: smooth parts, edges
     loss_scale: float = 0.0  # the Huber scale ``fit_rmse`` is measured at
 
-    def share_of(self, before: "Fit") -> float:
+    def share_of(self, before: Fit) -> float:
         """Share of ``before``'s held-out error this fit removes: the larger of the two pixel classes."""
         if self.error is not None:
             return float("-inf")
@@ -264,8 +264,7 @@ def fit_composite(data: GapData, names: tuple[str, ...], *, start: dict[str, np.
     simple = _fit_box(data, comp, start, pinned=held, iterations=iterations)
     if simple.error is not None or not tried:
         return simple
-    free = _fit_box(data, comp, {n: v for n, v in zip(comp.names, (simple.theta[comp.slices[n]]
-                                                                   for n in comp.names))},
+    free = _fit_box(data, comp, {n: simple.theta[comp.slices[n]] for n in comp.names},
                     iterations=iterations, pinned=stay, nudge={k: ident[k] + 0.01 * (hi[k] - lo[k]) for k in tried},
                     loss_scale=simple.loss_scale)
     if free.error is None and free.fit_rmse ** 2 < (1.0 - NESTED_GAIN) * simple.fit_rmse ** 2:

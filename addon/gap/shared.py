@@ -71,7 +71,7 @@ class JointFit:
     seconds: float
     error: str | None = None
 
-    def share_of(self, before: "JointFit") -> float:
+    def share_of(self, before: JointFit) -> float:
         if self.error is not None:
             return float("-inf")
         shares = [(b - a) / b for b, a in zip(before.held_mse_classes, self.held_mse_classes) if b > 0]

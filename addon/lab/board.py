@@ -108,7 +108,7 @@ class BoardTruth:
         write_atomic_bytes(path, (json.dumps(doc, indent=1) + "\n").encode())
 
     @staticmethod
-    def load(path: Path) -> "BoardTruth":
+    def load(path: Path) -> BoardTruth:
         try:
             doc = json.loads(Path(path).read_text())
             return BoardTruth(Rig.from_dict(doc["rig"]), tuple(doc["board"]), float(doc["square"]),

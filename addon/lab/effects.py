@@ -51,7 +51,8 @@ import difflib
 import functools
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Any
+from collections.abc import Callable, Mapping
 
 import cv2
 import numpy as np
@@ -326,7 +327,7 @@ class EffectSet:
     def __str__(self) -> str:
         return self.spec
 
-    def with_effect(self, name: str, strength: float, **overrides: float) -> "EffectSet":
+    def with_effect(self, name: str, strength: float, **overrides: float) -> EffectSet:
         """A copy with ``name`` set to ``strength`` (and parameter overrides), validated like a spec."""
         base = {e.name: e.strength for e in self.effects}
         base[name] = strength
@@ -334,7 +335,7 @@ class EffectSet:
         keep = [f"{e.name}.{k}={v!r}" for e in self.effects if e.name != name for k, v in e.overrides.items()]
         return parse_effects(",".join(items + keep))
 
-    def only(self, *names: str) -> "EffectSet":
+    def only(self, *names: str) -> EffectSet:
         """A copy with every effect not in ``names`` switched off."""
         for n in names:
             self[n]  # validates the name
@@ -347,7 +348,7 @@ class EffectSet:
                                      "params": e.params} for e in self.effects}}
 
     @staticmethod
-    def from_dict(d: Mapping[str, Any]) -> "EffectSet":
+    def from_dict(d: Mapping[str, Any]) -> EffectSet:
         """Rebuild from :meth:`to_dict`; the stored parameters are taken as they are (validated)."""
         if not isinstance(d, Mapping) or not isinstance(d.get("effects"), Mapping):
             raise LabError("an effects description needs an 'effects' mapping of NAME -> {strength, params}")
@@ -369,7 +370,7 @@ class EffectSet:
         return EffectSet(tuple(out))
 
     @staticmethod
-    def none() -> "EffectSet":
+    def none() -> EffectSet:
         return EffectSet(tuple(_effect(n, 0.0) for n in NAMES))
 
 
@@ -421,7 +422,7 @@ def _param_value(name: str, param: str, text: Any) -> float:
     return v
 
 
-def parse_effects(spec: "str | Mapping[str, Any] | EffectSet | None") -> EffectSet:
+def parse_effects(spec: str | Mapping[str, Any] | EffectSet | None) -> EffectSet:
     """Parse ``"response=0.5,crosstalk=0.3,noise.sigma=0.01"``, ``"realistic"`` or ``"none"``.
 
     Items are comma-separated; a preset name sets its strengths, later items

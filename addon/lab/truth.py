@@ -95,7 +95,7 @@ class LabTruth:
         own = self.projector_effects.get(index)
         return self.effects if own is None else with_projector_effects(self.effects, own)
 
-    def without(self, *names: str) -> "LabTruth":
+    def without(self, *names: str) -> LabTruth:
         """The same truth with the effects ``names`` switched off, shared and every projector's own (what a
         benchmark compares against: the lab without its sensor noise, without a lens's blur)."""
         shared, own = self.effects, dict(self.projector_effects)
@@ -121,7 +121,7 @@ class LabTruth:
         """Every projector as the pipeline is told it is, the first first."""
         return (self.nominal_projector, *self.nominal_others)
 
-    def for_projector(self, index: int) -> "LabTruth":
+    def for_projector(self, index: int) -> LabTruth:
         """The one-projector truth of projector ``index`` (0 = the first): what its own :class:`LabDevice` renders
         while the other projectors show black. Its seed is the projector's own (:func:`projector_seed`), so two
         projectors' captures do not share their noise."""
@@ -170,7 +170,7 @@ class LabTruth:
         return path
 
     @staticmethod
-    def load(path: str | Path) -> "LabTruth":
+    def load(path: str | Path) -> LabTruth:
         path = Path(path)
         try:
             doc = json.loads(path.read_text())

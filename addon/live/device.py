@@ -100,7 +100,7 @@ class LiveSpec:
         return [(self.display, self.position)]
 
     @staticmethod
-    def parse(text: str, *, camera_required: bool = True) -> "LiveSpec":
+    def parse(text: str, *, camera_required: bool = True) -> LiveSpec:
         """``camera=SOURCE,display=N|position=X:Y[,average=N|noise=σ][,encoding=…][,latency=…][,size=WxH]``;
         several projectors: ``display=N+N…`` or ``position=X:Y+X:Y…``. ``camera_required=False``: a spec without
         a camera is taken (``procam live-show``'s open loop)."""

@@ -57,7 +57,7 @@ class LoopbackRig:
 
     @staticmethod
     def for_plane(camera: Camera, projector: Projector, point: np.ndarray, normal: np.ndarray,
-                  region_origin: tuple[int, int]) -> tuple["LoopbackRig", np.ndarray]:
+                  region_origin: tuple[int, int]) -> tuple[LoopbackRig, np.ndarray]:
         """The homography a plane (``point``, ``normal`` in the rig frame) induces between the camera and the
         projector, and the camera's depth map of it (metres, z; 0 where the ray misses or faces away)."""
         cw, ch = camera.intrinsics.size
@@ -205,7 +205,7 @@ class LoopbackCamera:
         self._server.server_close()
         self._grabber.join(timeout=2.0)
 
-    def __enter__(self) -> "LoopbackCamera":
+    def __enter__(self) -> LoopbackCamera:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -84,7 +84,7 @@ class ScreenWatch:
         self._stop.set()
         self._thread.join(timeout=2.0)
 
-    def __enter__(self) -> "ScreenWatch":
+    def __enter__(self) -> ScreenWatch:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -285,7 +285,7 @@ class FrameSource:
         if cap is not None and (thread is None or not thread.is_alive()):
             cap.release()  # a thread stuck in a blocking read keeps its capture; it is a daemon
 
-    def __enter__(self) -> "FrameSource":
+    def __enter__(self) -> FrameSource:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -93,7 +93,7 @@ class ForwardModel:
         except RuntimeError as exc:  # Mitsuba reports plugin/parameter problems as RuntimeError
             raise RenderError(f"Mitsuba could not build the scene: {exc}") from None
         self.params = mi.traverse(self.scene)
-        self._albedo_key = next((k for k in self.params.keys()
+        self._albedo_key = next((k for k in self.params.keys()  # noqa: SIM118 (Mitsuba's SceneParameters)
                                  if k.startswith(SURFACE_ID) and k.endswith("reflectance.data")), None)
         pw, ph = self.projector_size
         self.set_smoothing(smoothing_eps)

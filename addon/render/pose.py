@@ -17,7 +17,8 @@ than ``|w|³/12``; code that folds a delta back into a pose uses
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 

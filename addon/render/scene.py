@@ -251,7 +251,7 @@ def build_scene(mi: ModuleType, rig: Rig, surface: SurfaceMesh, camera: Intrinsi
     mesh = surface_mesh(mi, surface)
     mesh.set_bsdf(bsdf)
 
-    scene = mi.load_dict({
+    return mi.load_dict({
         "type": "scene",
         "integrator": integrator_dict(bounces, integrator),
         SENSOR_ID: {
@@ -271,4 +271,3 @@ def build_scene(mi: ModuleType, rig: Rig, surface: SurfaceMesh, camera: Intrinsi
         },
         SURFACE_ID: mesh,
     })
-    return scene

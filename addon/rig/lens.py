@@ -81,5 +81,5 @@ class RigLens:
                 "source": self.source}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "RigLens":
+    def from_dict(d: dict[str, Any]) -> RigLens:
         return RigLens(Intrinsics.from_dict(d["camera"]), np.asarray(d["distortion"], np.float64), str(d["source"]))

@@ -119,7 +119,7 @@ class Intrinsics:
         return k
 
     @staticmethod
-    def from_opencv_matrix(width: int, height: int, matrix: np.ndarray) -> "Intrinsics":
+    def from_opencv_matrix(width: int, height: int, matrix: np.ndarray) -> Intrinsics:
         """The inverse of :meth:`opencv_matrix`: a 3×3 K with pixel centres at integers, for this resolution."""
         m = np.asarray(matrix, dtype=np.float64)
         return Intrinsics(int(width), int(height), float(m[0, 0]), float(m[1, 1]), float(m[0, 2]) + 0.5,
@@ -140,7 +140,7 @@ class Intrinsics:
         px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
         return np.stack([(px[:, 0] - self.cx) / self.fx, (px[:, 1] - self.cy) / self.fy, np.ones(len(px))], axis=1)
 
-    def scaled(self, width: int, height: int) -> "Intrinsics":
+    def scaled(self, width: int, height: int) -> Intrinsics:
         """The same lens at another resolution (e.g. a small test render)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(int(width), int(height), self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
@@ -160,7 +160,7 @@ class Intrinsics:
                 "cx": float(self.cx), "cy": float(self.cy), "convention": "pixel corners at integers"}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Intrinsics":
+    def from_dict(d: dict[str, Any]) -> Intrinsics:
         try:
             return Intrinsics(whole_pixels(d["width"], "resolution width"),
                               whole_pixels(d["height"], "resolution height"),
@@ -214,7 +214,7 @@ class Camera:
         return {"intrinsics": self.intrinsics.to_dict()}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Camera":
+    def from_dict(d: dict[str, Any]) -> Camera:
         return Camera(Intrinsics.from_dict(d["intrinsics"]))
 
 
@@ -296,10 +296,10 @@ class Projector:
         p = np.asarray(points_rig, dtype=np.float64).reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]
         return self.intrinsics.project(p)
 
-    def with_pose(self, camera_from_projector: np.ndarray) -> "Projector":
+    def with_pose(self, camera_from_projector: np.ndarray) -> Projector:
         return replace(self, camera_from_projector=np.asarray(camera_from_projector, dtype=np.float64))
 
-    def scaled(self, width: int, height: int) -> "Projector":
+    def scaled(self, width: int, height: int) -> Projector:
         """The same projector at another native resolution; the input keeps its share of the frame."""
         sx, sy = width / self.intrinsics.width, height / self.intrinsics.height
         size = (max(1, round(self.input_size[0] * sx)), max(1, round(self.input_size[1] * sy)))
@@ -315,7 +315,7 @@ class Projector:
                 **({"lens_distortion": list(self.lens_distortion)} if self.lens_distortion else {})}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Projector":
+    def from_dict(d: dict[str, Any]) -> Projector:
         try:
             return Projector(Intrinsics.from_dict(d["intrinsics"]), np.asarray(d["camera_from_projector"], dtype=float),
                              float(d.get("intensity", 1.0)),
@@ -376,7 +376,7 @@ class Rig:
                            f"there is no projector {index!r}")
         return projectors[int(index)]
 
-    def with_projectors(self, projectors: Any) -> "Rig":
+    def with_projectors(self, projectors: Any) -> Rig:
         """The same camera with these projectors (at least one; the first becomes ``projector``)."""
         projectors = tuple(projectors)
         if not projectors:
@@ -390,7 +390,7 @@ class Rig:
                 **({"projectors": [p.to_dict() for p in self.projectors]} if self.others else {})}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Rig":
+    def from_dict(d: dict[str, Any]) -> Rig:
         try:
             camera = Camera.from_dict(d["camera"])
         except KeyError as exc:

@@ -83,7 +83,7 @@ class Calibration:
         """Every projector's warp, the first's first."""
         return (self.warp, *self.other_warps)
 
-    def for_projector(self, k: int) -> "Calibration":
+    def for_projector(self, k: int) -> Calibration:
         """The one-projector calibration of projector ``k`` (0 = the first): the camera and that projector alone,
         its warp, the shared surface, a report of its own pose and warp reports with the shared ones, the same
         ``folder`` and ``capture_dir``. A one-projector calibration is its own ``for_projector(0)``."""
@@ -106,7 +106,7 @@ class Calibration:
     def stages(self) -> dict[str, str]:
         """Each stage's state: ``run`` or ``reused`` (done), or ``not run`` (folders from before stages
         existed ran all three)."""
-        return dict(self.report.get("stages") or {n: "run" for n in STAGES})
+        return dict(self.report.get("stages") or dict.fromkeys(STAGES, "run"))
 
     @property
     def warnings(self) -> list[str]:

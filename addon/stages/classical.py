@@ -63,7 +63,7 @@ class Response:
     values: np.ndarray  # (K, 3) g at the knots (0 at 0, 1 at 1)
 
     @staticmethod
-    def linear() -> "Response":
+    def linear() -> Response:
         k = np.array([0.0, 1.0])
         return Response(np.ones(3), k, np.stack([k] * 3, axis=1))
 

@@ -147,7 +147,7 @@ class NoiseModel:
         return np.interp(np.clip(level, 0.0, 1.0), self.levels, self.variances).astype(np.float32)
 
     @staticmethod
-    def flat(variance: float) -> "NoiseModel":
+    def flat(variance: float) -> NoiseModel:
         return NoiseModel((0.0, 1.0), (float(variance), float(variance)))
 
 

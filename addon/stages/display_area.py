@@ -74,7 +74,7 @@ class DisplayArea:
     def slices(self) -> tuple[slice, slice]:
         return slice(self.y, self.y + self.height), slice(self.x, self.x + self.width)
 
-    def check(self, camera_size: tuple[int, int]) -> "DisplayArea":
+    def check(self, camera_size: tuple[int, int]) -> DisplayArea:
         """This area, if it lies inside a ``camera_size`` image; else a :class:`DisplayAreaError`."""
         cw, ch = camera_size
         if self.width < 2 or self.height < 2:
@@ -111,7 +111,7 @@ class DisplayArea:
         return {"x": self.x, "y": self.y, "width": self.width, "height": self.height, "source": self.source}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "DisplayArea":
+    def from_dict(d: dict[str, Any]) -> DisplayArea:
         try:
             return DisplayArea(int(d["x"]), int(d["y"]), int(d["width"]), int(d["height"]),
                                str(d.get("source", "user")))

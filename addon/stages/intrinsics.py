@@ -247,13 +247,13 @@ class _GrayCodeView:
     bias: float = 0.0
     shift: tuple[float, float] = (0.0, 0.0)
 
-    def perturbed(self, bias: float = 0.0, shift: tuple[float, float] = (0.0, 0.0)) -> "_GrayCodeView":
+    def perturbed(self, bias: float = 0.0, shift: tuple[float, float] = (0.0, 0.0)) -> _GrayCodeView:
         """The same view with a depth sensor wrong by ``bias`` metres and misregistered by ``shift`` pixels."""
         out = object.__new__(_GrayCodeView)
         out.__dict__.update(self.__dict__, bias=float(bias), shift=(float(shift[0]), float(shift[1])))
         return out
 
-    def subset(self, rows: np.ndarray) -> "_GrayCodeView":
+    def subset(self, rows: np.ndarray) -> _GrayCodeView:
         """The view of the correspondences ``rows`` only."""
         out = self.perturbed(self.bias, self.shift)
         out.centres, out.target = self.centres[rows], self.target[rows]

@@ -67,7 +67,8 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -349,7 +350,7 @@ class JointSolve(TransportSolve):
     """The transport solve (its SIRT steps, θ's closed loop) on a :class:`JointRows`, with the blend rows of the
     module doc in its step (``shares`` (K, R) at the rows, None for none)."""
 
-    def __init__(self, owner: "JointCompensator", joint: JointRows, placed: np.ndarray, area: DisplayArea,
+    def __init__(self, owner: JointCompensator, joint: JointRows, placed: np.ndarray, area: DisplayArea,
                  zs: Sequence[np.ndarray], sched: Schedule, mode: str, theta0: np.ndarray,
                  shares: np.ndarray | None, device: Device | None, say: Progress, cancel: Cancel | None,
                  name: str) -> None:

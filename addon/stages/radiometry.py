@@ -73,7 +73,7 @@ class PixelRadiometry:
     white: np.ndarray
     report: dict[str, Any] = field(default_factory=dict)
 
-    def crop(self, area: Any) -> "PixelRadiometry":
+    def crop(self, area: Any) -> PixelRadiometry:
         """The model on a display area's pixels (``area.crop`` of every per-pixel array)."""
         return PixelRadiometry(area.crop(self.black), area.crop(self.mixing), area.crop(self.inverse), self.levels,
                                area.crop(self.curves), area.crop(self.white), self.report)
@@ -187,7 +187,7 @@ class RadiometryPatterns:
         return [self.black, *self.whites, *self.greys.values(), *self.ramps.values()]
 
     @classmethod
-    def of(cls, captures: Any) -> "RadiometryPatterns | str":
+    def of(cls, captures: Any) -> RadiometryPatterns | str:
         """The patterns of ``captures``, or why the model cannot be measured from them."""
         blacks = [e for e in captures.entries_of("black") if e.pattern]
         whites = [e for e in captures.entries_of("white") if e.pattern]

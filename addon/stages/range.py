@@ -125,7 +125,7 @@ class GainField:
                 "per_degree": self.per_degree, "degrees_per_pixel": round(self.degrees_per_pixel, 6)}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "GainField":
+    def from_dict(d: dict[str, Any]) -> GainField:
         cells = np.asarray(d["cells"], np.float64)
         cw, ch = (int(v) for v in d["camera_size"])
         cell = int(d["cell_px"])
@@ -192,7 +192,7 @@ class RangeMap:
                 **({"field": self.field.to_dict()} if self.field is not None else {})}
 
     @staticmethod
-    def from_dict(d: dict[str, Any] | None) -> "RangeMap | None":
+    def from_dict(d: dict[str, Any] | None) -> RangeMap | None:
         if not d:
             return None
         try:

@@ -96,7 +96,7 @@ class ApproximateInverse:
         return int(self.weight.nbytes)
 
     @staticmethod
-    def from_arrays(data: Any, report: dict[str, Any] | None = None) -> "ApproximateInverse":
+    def from_arrays(data: Any, report: dict[str, Any] | None = None) -> ApproximateInverse:
         try:
             inv = ApproximateInverse(tuple(int(v) for v in data["camera_size"]),
                                      tuple(int(v) for v in data["input_size"]),

@@ -98,7 +98,7 @@ class PoseSource:
 
     @staticmethod
     def from_arrays(name: str, gray_code: Sequence[np.ndarray], white: np.ndarray,
-                    black: np.ndarray) -> "PoseSource":
+                    black: np.ndarray) -> PoseSource:
         """A pose whose images are already in memory (tests, synthetic data)."""
         images = list(gray_code)
         return PoseSource(name, lambda: white, lambda: black, lambda: images)
@@ -238,7 +238,7 @@ class RigCalibration:
         }
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "RigCalibration":
+    def from_dict(d: dict[str, Any]) -> RigCalibration:
         """The inverse of :meth:`to_dict` (without the per-corner observations)."""
         cam, proj = d["camera"], d["projector"]
 

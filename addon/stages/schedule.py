@@ -141,7 +141,7 @@ class Schedule:
     #: ``damped`` follows each capture by Eq. 10 (the paper's θ)
     loop: str = "measured"
 
-    def check(self) -> "Schedule":
+    def check(self) -> Schedule:
         """Self, or a CompensationError naming the first bad value."""
         for what in ("iterations_z", "iterations_joint", "iterations_coarse", "plateau", "fixed_point",
                      "fixed_point_joint"):
@@ -248,7 +248,7 @@ def plateaued(losses: list[float], window: int, tol: float) -> bool:
     return float(np.mean(losses[-window:])) > (1.0 - tol) * float(np.mean(losses[-2 * window:-window]))
 
 
-def split_iterations(total: int | None, schedule: "str | Schedule" = DEFAULT_SCHEDULE
+def split_iterations(total: int | None, schedule: str | Schedule = DEFAULT_SCHEDULE
                      ) -> tuple[int | None, int | None]:
     """Split a total iteration count between z alone and z + θ in the schedule's own ratio (the paper's 200 : 300;
     all joint for ``'fast'``, whose z phase is fixed-point steps). None: the schedule's own counts."""

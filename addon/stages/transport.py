@@ -114,7 +114,7 @@ class TransportOperator:
     blocks: tuple[int, int]  # indirect blocks across and down the input
     indirect: np.ndarray  # (blocks, h, w, 3) float32: each block's indirect response at low resolution
     report: dict[str, Any] = field(default_factory=dict)
-    _all: "TransportRows | None" = field(default=None, repr=False, compare=False)
+    _all: TransportRows | None = field(default=None, repr=False, compare=False)
 
     # -- the operator ------------------------------------------------------------------------------------------
 
@@ -160,7 +160,7 @@ class TransportOperator:
         cw, ch = self.camera_size
         return out.reshape(ch, cw, 3)
 
-    def _everywhere(self) -> "TransportRows":
+    def _everywhere(self) -> TransportRows:
         if self._all is None:
             cw, ch = self.camera_size
             self._all = self.rows(np.arange(cw * ch))
@@ -175,7 +175,7 @@ class TransportOperator:
         """``Tᵀ r`` for a camera-size image ``r``: what each input texel's value does to ⟨r, T z⟩."""
         return self._everywhere().adjoint(np.asarray(r, np.float32).reshape(-1, 3))
 
-    def rows(self, rows: np.ndarray, variant: str | None = None) -> "TransportRows":
+    def rows(self, rows: np.ndarray, variant: str | None = None) -> TransportRows:
         """``T`` restricted to some camera pixels (a display area): cheaper, for a solver that looks only there."""
         return TransportRows(self, np.asarray(rows, np.int64), variant)
 
@@ -191,7 +191,7 @@ class TransportOperator:
         return int(self.index.nbytes + self.weight.nbytes + self.indirect.nbytes)
 
     @staticmethod
-    def from_arrays(data: Any, report: dict[str, Any] | None = None) -> "TransportOperator":
+    def from_arrays(data: Any, report: dict[str, Any] | None = None) -> TransportOperator:
         try:
             op = TransportOperator(tuple(int(v) for v in data["camera_size"]),
                                    tuple(int(v) for v in data["input_size"]),

@@ -212,7 +212,7 @@ class Warp:
     __hash__ = None  # type: ignore[assignment]  # holds arrays
 
     @staticmethod
-    def identity(size: tuple[int, int], grid: int = DEFAULT_GRID) -> "Warp":
+    def identity(size: tuple[int, int], grid: int = DEFAULT_GRID) -> Warp:
         """No warp: both maps are the identity."""
         w, h, n = check_lattice(size, grid)
         return Warp(n, (w, h), np.zeros((n, n, 2)), np.zeros((n, n, 2)))
@@ -294,7 +294,7 @@ class Warp:
                 "m_shifts": np.round(self.m_shifts, 6).tolist(), "w_shifts": np.round(self.w_shifts, 6).tolist()}
 
     @staticmethod
-    def from_dict(d: dict[str, Any]) -> "Warp":
+    def from_dict(d: dict[str, Any]) -> Warp:
         if not isinstance(d, dict):
             raise CalibrationError("a warp description must be a JSON object")
         if d.get("format", FORMAT) != FORMAT:

@@ -464,7 +464,7 @@ def _summary(root: Path, doc: dict[str, Any]) -> Summary:
             lines += _projector_lines(entry, entry.get("seconds") or {}, f"Projector {k + 1} ")
     else:
         lines += _projector_lines(doc, sec)
-    stages = doc.get("stages") or {n: "run" for n in STAGES}  # folders from before stages ran all three
+    stages = doc.get("stages") or dict.fromkeys(STAGES, "run")  # folders from before stages ran all three
     lines.append("stages: " + ", ".join(f"{k} {v}" for k, v in stages.items()))
     lines += [f"warning: {w}" for w in doc.get("warnings") or []]
     if sec:

@@ -71,7 +71,7 @@ def target_paths(files: Sequence[str | Path], sequence_dir: str | Path | None = 
 
 
 def run(options: CompensateOptions, progress: Progress | None = None, cancel: Cancel | None = None, *,
-        device: Device | None = None) -> "CompensationView":
+        device: Device | None = None) -> CompensationView:
     """Compensate every target into ``options.out`` (module doc); ``device`` overrides opening
     ``options.stage_c.device`` (the manifest still names the latter)."""
     say = progress or quiet
@@ -90,7 +90,7 @@ def run(options: CompensateOptions, progress: Progress | None = None, cancel: Ca
 
 
 def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, device: Device | None,
-         paths: list[Path]) -> "CompensationView":
+         paths: list[Path]) -> CompensationView:
     options.stage_c.check()
     cal = calibrate_step.read(options.calibration)
     check_device_fits(options.stage_c.device, cal, device=device)  # a device of another rig: refused first

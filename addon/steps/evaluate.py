@@ -41,7 +41,8 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -141,7 +142,7 @@ class CompensationInputs:
     records: dict[str, InputRecord] = field(default_factory=dict)
 
     @staticmethod
-    def load(path: str | Path) -> "CompensationInputs":
+    def load(path: str | Path) -> CompensationInputs:
         root = Path(path)
         if (root / layout.SHOW.manifest).is_file():
             return CompensationInputs._load_show(root)
@@ -175,7 +176,7 @@ class CompensationInputs:
         return CompensationInputs(root, doc, records)
 
     @staticmethod
-    def _load_show(root: Path) -> "CompensationInputs":
+    def _load_show(root: Path) -> CompensationInputs:
         """A show folder's finished frames, named by the stems of their target images; a show of several
         projectors gives each frame's files of every projector (``frames``), in projector order."""
         manifest = root / layout.SHOW.manifest
@@ -235,8 +236,8 @@ class CompensationInputs:
                 raise MismatchError(f"the inputs in {self.path} are for {key.replace('_', ' ')} {have[key]}, but the "
                                     f"calibration has {value}: they come from another rig or capture set")
         self.check_projectors(calibration)
-        if calibration_dir is not None and doc.get("calibration"):
-            if self._resolved(doc["calibration"]) != self._resolved(calibration_dir):
+        if calibration_dir is not None and doc.get("calibration") and \
+                self._resolved(doc["calibration"]) != self._resolved(calibration_dir):
                 notes.append(f"the inputs were computed with the calibration {doc['calibration']}, evaluated here "
                              f"with {calibration_dir} (same capture set)")
         return notes
@@ -278,7 +279,7 @@ class CompensationInputs:
             out.append(img)
         return out
 
-    def check_targets(self, names: list[str], paths: "tuple[Path, ...] | list[Path]") -> list[str]:
+    def check_targets(self, names: list[str], paths: tuple[Path, ...] | list[Path]) -> list[str]:
         """Refuse a target whose contents differ from the file its input was computed from (same name, another
         image); notes naming the targets whose record holds no hash (an older ProCam wrote it) and so are matched
         by name only."""
@@ -378,7 +379,7 @@ def input_seen(frame: np.ndarray, projector: Any, looks_at: np.ndarray) -> np.nd
 
 
 def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
-                    targets: "list[tuple[str, np.ndarray, str]] | VideoTargets", device: Device, out: Path, *,
+                    targets: list[tuple[str, np.ndarray, str]] | VideoTargets, device: Device, out: Path, *,
                     calibration_dir: str | Path | None = None, notes: list[str] | None = None,
                     classical: bool = False, repeat: bool = True, progress: Progress | None = None,
                     cancel: Cancel | None = None) -> EvaluationRun:

@@ -614,7 +614,7 @@ class JointStage:
             self.device.close()
         self.device = None
 
-    def __enter__(self) -> "JointStage":
+    def __enter__(self) -> JointStage:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -674,7 +674,7 @@ def write_target(stage: JointStage, tmp: Path, done: JointTarget, name: str) -> 
             **({"loop": loop} if loop else {})}
 
 
-def one_target(stage: "JointStage", tmp: Path, image: np.ndarray, note: str, name: str, path: Path, i: int, n: int,
+def one_target(stage: JointStage, tmp: Path, image: np.ndarray, note: str, name: str, path: Path, i: int, n: int,
                say: Progress, cancel: Cancel | None) -> dict[str, Any]:
     """Compensate one target on every projector and write its files into ``tmp``; returns its record (the
     compensate step's loop, ``steps/compensate.py``, runs it for several projectors)."""

@@ -134,7 +134,7 @@ class RealtimeSolver:
 
     @classmethod
     def for_stage(cls, stage: StageC | JointStage, *, refine_steps: int = REFINE_STEPS,
-                  progress: Progress | None = None) -> "RealtimeSolver":
+                  progress: Progress | None = None) -> RealtimeSolver:
         """The solver for ``stage`` (open loop, ``transport`` operators loaded): every projector's stored inverse,
         or one built now (saying so; ``procam precompute --live`` stores it)."""
         say = progress or quiet

@@ -201,7 +201,7 @@ def run(options: RigOptions, progress: Progress | None = None, cancel: Cancel | 
 def _run(options: RigOptions, out: Path, say: Progress, cancel: Cancel | None, started: float) -> RigCalibration:
     assert options.projector_size is not None
     size = (int(options.projector_size[0]), int(options.projector_size[1]))
-    if len(set(Path(s).resolve() for s in options.sessions)) != len(options.sessions):
+    if len({Path(s).resolve() for s in options.sessions}) != len(options.sessions):
         raise CaptureError("the same session folder is given twice; give each board pose once")
     # Every folder's listing is checked before any image is read: a missing image fails in a second, not after
     # minutes of decoding.

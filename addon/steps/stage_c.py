@@ -216,7 +216,7 @@ def device_inputs(spec: str | None) -> tuple[Path, ...]:
     return ()
 
 
-def stage_c_inputs(options: "StageCOptions") -> tuple[Path, ...]:
+def stage_c_inputs(options: StageCOptions) -> tuple[Path, ...]:
     """What stage C reads besides the calibration and the targets: its device's files and the diagnosis."""
     return (*device_inputs(options.device), *((options.diagnosis,) if options.diagnosis else ()))
 
@@ -633,7 +633,7 @@ class StageC:
             self.device.close()
         self.device = None
 
-    def __enter__(self) -> "StageC":
+    def __enter__(self) -> StageC:
         return self
 
     def __exit__(self, *exc: object) -> None:
