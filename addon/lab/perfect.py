@@ -73,10 +73,15 @@ def perfect_capture(truth: LabTruth, target: np.ndarray, rng: np.random.Generato
     :func:`sensor_signal`, plus the render's noise ``render`` (:func:`render_noise`) when given, through the
     camera's noise, processing and recording, with ``rng`` drawing the sensor's noise. (The render's noise is
     added at the sensor, where it is measured on a lab without a camera curve.)"""
-    other = OtherForms(truth.other_forms, truth.first_projector)
-    signal = sensor_signal(truth, target)
+    return _recorded(truth, sensor_signal(truth, target), rng, render)
+
+
+def _recorded(truth: LabTruth, signal: np.ndarray, rng: np.random.Generator,
+              render: np.ndarray | None) -> np.ndarray:
+    """The lab camera's capture of the sensor ``signal`` (plus ``render``): :func:`perfect_capture`'s last part."""
     if render is not None:
         signal = np.clip(signal + render, 0.0, None)
+    other = OtherForms(truth.other_forms, truth.first_projector)
     return other.camera_record(record_signal(signal, truth.effects, rng))
 
 
@@ -91,7 +96,8 @@ def perfect_ceiling(truth: LabTruth, shown: np.ndarray, inside: tuple[slice, sli
     rng = np.random.default_rng(seed)
     s = np.asarray(shown, np.float32)
     ref = s[inside] if target is None else np.asarray(target, np.float32)
-    mse = float(np.mean([np.mean((perfect_capture(truth, s, rng, render)[inside] - ref) ** 2) for _ in range(draws)]))
+    signal = sensor_signal(truth, s)  # the same for every draw: only the noise differs
+    mse = float(np.mean([np.mean((_recorded(truth, signal, rng, render)[inside] - ref) ** 2) for _ in range(draws)]))
     return float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
 
 
