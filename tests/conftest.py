@@ -137,23 +137,49 @@ def lab_calibration(lab_set, tmp_path_factory) -> Callable[..., tuple[Path, Path
     return make
 
 
+_STORED_CALIBRATIONS: dict[str, Path] = {}
+
+
+@pytest.fixture(scope="session")
+def stored_calibration(lab_calibration, tmp_path_factory) -> Callable[..., tuple[Path, Path, Path]]:
+    """A ``lab_calibration`` folder with its transport operator stored (``procam precompute``), made once per
+    session and set of arguments (those of ``lab_set``); returns what ``lab_calibration`` does. For tests of what
+    runs on a calibration (shows, resumes, devices) rather than of the operator: without it every run of compensate
+    or show renders the operator again in memory (in the show tests 36 of 46 seconds). Read it only: copy it before
+    writing into it."""
+
+    def make(*args, **kwargs) -> tuple[Path, Path, Path]:
+        cal_dir, captures_dir, truth_path = lab_calibration(*args, **kwargs)
+        key = str(cal_dir)
+        if key not in _STORED_CALIBRATIONS:
+            from procam.addon.cli.app import main
+
+            folder = tmp_path_factory.mktemp("stored-calibration") / "cal"
+            shutil.copytree(cal_dir, folder)
+            assert main(["precompute", str(folder)]) == 0
+            _STORED_CALIBRATIONS[key] = folder
+        return _STORED_CALIBRATIONS[key], captures_dir, truth_path
+
+    return make
+
+
 _LIVE_CALIBRATIONS: dict[str, Path] = {}
 
 
 @pytest.fixture(scope="session")
-def live_calibration(lab_calibration, tmp_path_factory) -> Callable[..., Path]:
+def live_calibration(stored_calibration, tmp_path_factory) -> Callable[..., Path]:
     """A ``lab_calibration`` folder with its transport operator and approximate inverse stored (``procam precompute
     --live``), made once per session and set of arguments; the arguments are those of ``lab_set``. Shared by the
     real-time and live-show modules: copy it before writing into it."""
 
     def make(*args, **kwargs) -> Path:
-        cal_dir, _, _ = lab_calibration(*args, **kwargs)
+        cal_dir, _, _ = stored_calibration(*args, **kwargs)
         key = str(cal_dir)
         if key not in _LIVE_CALIBRATIONS:
             from procam.addon.cli.app import main
 
             folder = tmp_path_factory.mktemp("live-calibration") / "cal"
-            shutil.copytree(cal_dir, folder)
+            shutil.copytree(cal_dir, folder)  # the operator is kept: only the inverse is added
             assert main(["precompute", str(folder), "--live"]) == 0
             _LIVE_CALIBRATIONS[key] = folder
         return _LIVE_CALIBRATIONS[key]

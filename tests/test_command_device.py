@@ -187,7 +187,8 @@ def test_closed_loop_through_the_command_device_matches_the_lab_device(lab_calib
                         "--out", "{out}", "--shot", "{n}"])
     scores = {}
     for label, device in (("lab", f"lab:{truth}"), ("command", f"command:run={shoot},suffix=png")):
-        assert main(["compensate", str(cal), target, "--device", device, "--out", str(tmp_path / label)]) == 0
+        assert main(["compensate", str(cal), target, "--device", device, "--iterations", "16",
+                     "--out", str(tmp_path / label)]) == 0
         assert main(["evaluate", str(cal), "--inputs", str(tmp_path / label), "--targets", target,
                      "--device", f"lab:{truth}", "--out", str(tmp_path / f"eval-{label}")]) == 0
         scores[label] = json.loads((tmp_path / f"eval-{label}" / "metrics.json").read_text())["targets"][0]

@@ -26,20 +26,15 @@ def _target(w: int = 160, h: int = 120, seed: int = 3) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def env(lab_set, tmp_path_factory):
+def env(stored_calibration, tmp_path_factory):
     from procam.addon.imageio import write_image
-    from procam.addon.lab.truth import LabTruth
-    from procam.addon.stages.calibrate import Calibration
-    from procam.addon.stages.warp_model import Warp
     from procam.addon.steps import calibrate as calibrate_step
 
-    captures_dir, truth_path = lab_set()
-    truth = LabTruth.load(truth_path)
-    cal = Calibration(truth.rig, truth.surface, Warp.identity(truth.rig.projector.input_size), str(captures_dir))
+    stored, captures_dir, truth_path = stored_calibration()
     root = tmp_path_factory.mktemp("evaluate")
     cal_dir = root / "cal"
-    cal_dir.mkdir()
-    calibrate_step.write(cal_dir, cal, {})
+    shutil.copytree(stored, cal_dir)  # the truth's calibration with its operator stored: compensate reads it
+    cal = calibrate_step.read(cal_dir)
     targets = root / "targets"
     targets.mkdir()
     write_image(targets / "a.png", _target())

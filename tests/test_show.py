@@ -1,6 +1,6 @@
 """``procam show``: a numbered target sequence → numbered 16-bit projector frames, resumable, at tiny size.
 
-The calibration comes from the lab's truth (``lab_calibration`` fixture), the
+The calibration comes from the lab's truth (``stored_calibration`` fixture), the
 schedule is a few iterations at 1 spp: these tests check the bookkeeping
 (numbering, manifest, resume, failures, refusals), not compensation quality.
 """
@@ -117,8 +117,8 @@ def test_show_folder_refuses_foreign_folders_and_second_writers(tmp_path):
 
 # -- the command end to end ----------------------------------------------------------------------
 
-def test_show_end_to_end_resume_and_refusals(lab_calibration, tmp_path, capsys):
-    cal_dir, _, _ = lab_calibration()
+def test_show_end_to_end_resume_and_refusals(stored_calibration, tmp_path, capsys):
+    cal_dir, _, _ = stored_calibration()
     seq = _frames(tmp_path / "frames", (7, 8, 9))
     out = tmp_path / "show"
     args = ["show", str(cal_dir), str(seq / "shot_####.png"), "--out", str(out), *FAST]
@@ -199,10 +199,10 @@ def test_show_end_to_end_resume_and_refusals(lab_calibration, tmp_path, capsys):
     assert elsewhere.read_bytes() == first["frame_0007.png"] and linked.read_bytes() == first["frame_0009.png"]
 
 
-def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys, monkeypatch):
+def test_show_failure_crash_and_cancel_resume(stored_calibration, tmp_path, capsys, monkeypatch):
     from procam.addon.stages.compensate import Compensator
 
-    cal_dir, _, _ = lab_calibration()
+    cal_dir, _, _ = stored_calibration()
     seq = _frames(tmp_path / "frames", (1, 2, 3))
     (seq / "shot_0002.png").write_bytes(b"this is not a PNG")  # a damaged frame in the middle
     out = tmp_path / "show"
@@ -284,8 +284,8 @@ def test_show_failure_crash_and_cancel_resume(lab_calibration, tmp_path, capsys,
     assert doc["runs"][-1]["status"].startswith("stopped") and doc["frames"] == {} and not doc["failures"]
 
 
-def test_show_refuses_a_foreign_folder_before_any_work(lab_calibration, tmp_path, capsys):
-    cal_dir, _, _ = lab_calibration()
+def test_show_refuses_a_foreign_folder_before_any_work(stored_calibration, tmp_path, capsys):
+    cal_dir, _, _ = stored_calibration()
     seq = _frames(tmp_path / "frames", (1,))
     user = tmp_path / "user"
     user.mkdir()
@@ -300,8 +300,8 @@ def test_show_refuses_a_foreign_folder_before_any_work(lab_calibration, tmp_path
     assert "calibration" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
-def test_show_closed_loop_through_the_lab(lab_calibration, tmp_path, capsys):
-    cal_dir, _, truth = lab_calibration()
+def test_show_closed_loop_through_the_lab(stored_calibration, tmp_path, capsys):
+    cal_dir, _, truth = stored_calibration()
     seq = _frames(tmp_path / "frames", (5,))
     out = tmp_path / "show"
     args = ["show", str(cal_dir), str(seq), "--out", str(out), "--iterations", "4", "--spp", "1",
@@ -317,12 +317,12 @@ def test_show_closed_loop_through_the_lab(lab_calibration, tmp_path, capsys):
     assert "mode: 'closed-loop' → 'open-loop'" in err and "--force" in err
 
 
-def test_show_range_auto_is_one_map_for_the_show(lab_calibration, tmp_path, capsys):
+def test_show_range_auto_is_one_map_for_the_show(stored_calibration, tmp_path, capsys):
     """``--range auto`` fits one gain and offset to the show's frames (never per frame), records it in the settings,
     and a rerun with the same frames resumes under the same map."""
     from procam.addon.capture.patterns import smooth_random
 
-    cal_dir, _, _ = lab_calibration()
+    cal_dir, _, _ = stored_calibration()
     seq = tmp_path / "frames"
     seq.mkdir()
     for n in (1, 2):
@@ -358,8 +358,8 @@ def _bytes(out: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(out.glob("frame_*.png"))}
 
 
-def test_show_from_a_video_warm_starts_and_resumes_exactly(lab_calibration, tmp_path, capsys):
-    cal_dir, _, _ = lab_calibration()
+def test_show_from_a_video_warm_starts_and_resumes_exactly(stored_calibration, tmp_path, capsys):
+    cal_dir, _, _ = stored_calibration()
     video = _video(tmp_path / "clip.avi", 3)
     assert [(f.number, f.index) for f in list_frames([video])] == [(1, 0), (2, 1), (3, 2)]
     out = tmp_path / "show"
@@ -391,13 +391,13 @@ def test_show_from_a_video_warm_starts_and_resumes_exactly(lab_calibration, tmp_
     assert not _leftovers(out) and not _leftovers(cold)
 
 
-def test_show_on_a_local_two_worker_cluster(lab_calibration, tmp_path, capsys):
+def test_show_on_a_local_two_worker_cluster(stored_calibration, tmp_path, capsys):
     """Frames as tasks on a local Dask cluster: byte-identical to one process; a cancelled run resumes without
     redoing finished frames; the closed loop is refused."""
     import procam.addon.steps.show as show_step
     from procam.addon.steps.stage_c import StageCOptions
 
-    cal_dir, _, truth = lab_calibration()
+    cal_dir, _, truth = stored_calibration()
     seq = _frames(tmp_path / "frames", (1, 2, 3))
     single = tmp_path / "single"
     # 2 spp: several samples per pixel, whose sums are ordered by Dr.Jit's thread count, the same on both sides.
@@ -427,8 +427,8 @@ def test_show_on_a_local_two_worker_cluster(lab_calibration, tmp_path, capsys):
     assert [doc["frames"][n]["warm_start"] for n in ("1", "2", "3")] == [None, 1, None]
 
 
-def test_evaluate_reports_the_flicker_of_a_show(lab_calibration, tmp_path):
-    cal_dir, _, truth = lab_calibration()
+def test_evaluate_reports_the_flicker_of_a_show(stored_calibration, tmp_path):
+    cal_dir, _, truth = stored_calibration()
     seq = _frames(tmp_path / "frames", (1, 2, 3))
     show = tmp_path / "show"
     assert main(["show", str(cal_dir), str(seq), "--out", str(show), *FAST, "--no-bias"]) == EXIT_OK
@@ -441,12 +441,12 @@ def test_evaluate_reports_the_flicker_of_a_show(lab_calibration, tmp_path):
     assert f["excess"] == pytest.approx(f["captured"] - f["targets"], abs=2e-5)
 
 
-def test_evaluate_measures_a_show_made_from_a_video_against_that_video(lab_calibration, tmp_path, capsys):
+def test_evaluate_measures_a_show_made_from_a_video_against_that_video(stored_calibration, tmp_path, capsys):
     """Each finished frame is measured against the video frame it was made from; the flicker is taken in frame
     order; another video (by contents) or image targets are refused with what to give instead."""
     from procam.addon.video import VideoReader, load_video_frame
 
-    cal_dir, _, truth = lab_calibration()
+    cal_dir, _, truth = stored_calibration()
     video = _video(tmp_path / "clip.avi", 3)
     show = tmp_path / "show"
     assert main(["show", str(cal_dir), str(video), "--out", str(show), *FAST, "--no-bias"]) == EXIT_OK
@@ -498,7 +498,7 @@ def _silent_server():
     return server, accepted
 
 
-def test_show_cluster_that_never_answers_is_refused_in_time(lab_calibration, tmp_path, capsys):
+def test_show_cluster_that_never_answers_is_refused_in_time(stored_calibration, tmp_path, capsys):
     import time
 
     from procam.addon.errors import Cancelled
@@ -521,7 +521,7 @@ def test_show_cluster_that_never_answers_is_refused_in_time(lab_calibration, tmp
             Cluster(address=address, connect_timeout=60.0, poll=cancelled)
         assert time.monotonic() - t0 < 2
         # The command: exit 2, the address named, the frames not computed.
-        cal_dir, _, _ = lab_calibration()
+        cal_dir, _, _ = stored_calibration()
         seq = _frames(tmp_path / "frames", (1,))
         out = tmp_path / "show"
         assert main(["show", str(cal_dir), str(seq), "--out", str(out), *FAST, "--no-bias", "--cluster", address,
@@ -573,13 +573,13 @@ def _kept_frames_intact(out: Path) -> list[str]:
     return sorted(e["file"] for e in done)
 
 
-def test_ctrl_c_in_a_terminal_cancels_a_two_worker_show_cleanly(lab_calibration, tmp_path):
+def test_ctrl_c_in_a_terminal_cancels_a_two_worker_show_cleanly(stored_calibration, tmp_path):
     """The terminal sends SIGINT to the whole process group, workers included: they ignore it, and the show stops
     with exit 130, no traceback, the finished frames kept."""
     import os
     import signal
 
-    cal_dir, _, _ = lab_calibration()
+    cal_dir, _, _ = stored_calibration()
     seq = _frames(tmp_path / "frames", range(1, 9))
     out = tmp_path / "show"
     child = _procam("show", str(cal_dir), str(seq), "--out", str(out), "--iterations", "30", "--spp", "1",
@@ -598,7 +598,7 @@ def test_ctrl_c_in_a_terminal_cancels_a_two_worker_show_cleanly(lab_calibration,
     assert len(kept) < 8 and _manifest(out)["runs"][-1]["status"] == "cancelled"
 
 
-def test_a_killed_show_reads_as_interrupted_and_resumes(lab_calibration, tmp_path, capsys):
+def test_a_killed_show_reads_as_interrupted_and_resumes(stored_calibration, tmp_path, capsys):
     """SIGKILL leaves the manifest saying "running": the reader, the panel summary and the resume say
     "interrupted" once the recorded process is gone."""
     import os
@@ -607,7 +607,7 @@ def test_a_killed_show_reads_as_interrupted_and_resumes(lab_calibration, tmp_pat
 
     from procam.addon.steps import show as show_step
 
-    cal_dir, _, _ = lab_calibration()
+    cal_dir, _, _ = stored_calibration()
     seq = _frames(tmp_path / "frames", (1, 2, 3, 4))
     out = tmp_path / "show"
     args = ["show", str(cal_dir), str(seq), "--out", str(out), "--iterations", "30", "--spp", "1", "--no-bias"]

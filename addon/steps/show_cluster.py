@@ -234,9 +234,12 @@ class Cluster:
                 # the scheduler's scratch space too (it takes Dask's temporary directory, not local_directory)
                 where = contextlib.nullcontext() if self.scratch is None else \
                     dask.config.set({"temporary-directory": str(self.scratch)})
+                # Only CRITICAL records of Dask's own loggers reach the terminal: a task's error comes back through
+                # its future (and is reported as ProCam's), while a worker whose heartbeat meets the scheduler
+                # already closed by a cancel logs an ERROR with a traceback (seen under load on Ctrl-C).
                 with _sigint_ignored(), where:
                     self.local = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                              dashboard_address=None, silence_logs=logging.ERROR,
+                                              dashboard_address=None, silence_logs=logging.CRITICAL,
                                               local_directory=None if self.scratch is None else str(self.scratch),
                                               preload=[_OWN_GROUP] if hasattr(os, "setpgid") else None)
                 self.client = Client(self.local)
