@@ -208,11 +208,12 @@ def test_an_operator_of_direct_light_alone_reads_back(operator):
 
 
 @pytest.mark.parametrize("device", [False, True])
-def test_compensate_on_the_operator(operator, lab_calibration, tmp_path, device):
-    """Stage C on the operator, open and closed loop, matches what the camera sees and beats the plain target."""
+def test_compensate_on_the_operator(operator, stored_calibration, tmp_path, device):
+    """Stage C on the stored operator, open and closed loop, matches what the camera sees and beats the plain
+    target."""
     from procam.addon.imageio import write_image
 
-    cal_dir, _, truth_path = lab_calibration()
+    cal_dir, _, truth_path = stored_calibration()
     targets = [str(write_image(tmp_path / f"t{i}.png", (0.05 + 0.4 * _smooth_input(operator[0], i)[..., ::-1])))
                for i in (3, 6)]
     out = tmp_path / "comp"
