@@ -176,6 +176,17 @@ def test_truncated_image(good_set):
         CaptureSet.load(good_set)
 
 
+def test_a_file_damaged_after_a_load_is_decoded_again(good_set):
+    """Loading skips images this process already decoded, but only while they are the same file: bytes damaged in
+    place (the same size) are read again and refused."""
+    f = good_set / CaptureSet.load(good_set).entry("checker", phase=0).file
+    data = bytearray(f.read_bytes())
+    data[len(data) // 3:] = bytes(len(data) - len(data) // 3)
+    f.write_bytes(bytes(data))
+    with pytest.raises(CaptureError, match=r"0003_checker_s10_p0\.png is unreadable or truncated"):
+        CaptureSet.load(good_set)
+
+
 def test_wrong_size(good_set):
     e = CaptureSet.load(good_set).entry("black")
     write_image(good_set / e.file, np.zeros((CAM[1] + 2, CAM[0], 3)))
