@@ -335,7 +335,7 @@ def test_cli_writes_set_and_truth_and_reports_progress_on_stderr(cli_set, capsys
     (["--supersample", "0"], "supersampling must be a whole number from 1 to 4"),
     (["--camera-fov-error", "200"], "keep it in 1–170°"),
     (["--projectors", "9"], "--projectors must be a whole number between 1 and 8, got 9"),
-    (["--projectors", "2", "--layout", "ring"], "--layout must be one of side-by-side, stacked, got 'ring'"),
+    (["--projectors", "2", "--layout", "ring"], "--layout must be one of side-by-side, stacked, grid, got 'ring'"),
     (["--projectors", "2", "--overlap", "1"], "--overlap must be between 0 and 0.9, got 1.0"),
 ])
 def test_cli_bad_input_fails_early_and_writes_nothing(tmp_path, capsys, args, message):

@@ -81,7 +81,7 @@ from .display_area import DisplayArea, fit_target
 from .metrics import area_psnr
 from .schedule import CompensationError, Schedule
 from .solve_transport import TransportSolve
-from .transport import BlurredRows, TransportOperator, TransportRows
+from .transport import BlurredRows, TransportOperator, TransportRows, adjoint_together, apply_together
 
 View = TransportRows | BlurredRows
 #: ``blend`` values of :meth:`JointCompensator.run`.
@@ -150,7 +150,7 @@ class JointRows:
                     ) -> list[np.ndarray]:
         """Each projector's (R, 3) ``g_k T_k z_k`` (``T_k z_k`` without ``gained``)."""
         fixed = list(fixed) if fixed is not None else [None] * self.count
-        parts = [v.apply_compact(part, f) for v, part, f in zip(self.views, self.split(zc), fixed)]
+        parts = apply_together(self.views, self.split(zc), fixed)
         return [g * p for g, p in zip(self.gains, parts)] if gained else parts
 
     def apply_compact(self, zc: np.ndarray, fixed: Sequence[Any] | None = None) -> np.ndarray:
@@ -159,7 +159,7 @@ class JointRows:
 
     def adjoint_parts(self, rs: Sequence[np.ndarray]) -> np.ndarray:
         """The concatenated ``T_k^T (g_k r_k)``: each projector its own (R, 3) camera vector ``r_k``."""
-        return np.concatenate([v.adjoint_compact(g * r) for v, g, r in zip(self.views, self.gains, rs)], axis=0)
+        return np.concatenate(adjoint_together(self.views, [g * r for g, r in zip(self.gains, rs)]), axis=0)
 
     def adjoint_compact(self, r: np.ndarray) -> np.ndarray:
         """The adjoint of :meth:`apply_compact`: ``T_k^T (g_k r)`` for every projector, concatenated."""
@@ -314,12 +314,14 @@ def _on_camera(rows: np.ndarray, values: np.ndarray, camera_size: tuple[int, int
 
 def _finish(comps: Sequence[Compensator], joint: JointRows, zs: Sequence[np.ndarray], theta_rows: np.ndarray,
             placed: np.ndarray, area: DisplayArea, overlap: np.ndarray, losses: list[float], mode: str,
-            captures: int, report: dict[str, Any], t_start: float, seconds_device: float) -> JointResult:
+            captures: int, report: dict[str, Any], t_start: float, seconds_device: float,
+            solved: tuple[np.ndarray, Sequence[Any]] | None = None) -> JointResult:
     """The :class:`JointResult` of the inputs ``zs`` as the operators see them, with the figures every joint answer
-    reports (the area's PSNR overall, inside the overlap and outside it, each projector's share of the light)."""
+    reports (the area's PSNR overall, inside the overlap and outside it, each projector's share of the light).
+    ``solved``: the compact vector and held block sums ``zs`` were expanded from (the solve's own), so that they
+    are not gathered again from the whole inputs (a block sum over every texel of every projector's input)."""
     camera = comps[0].camera_size
-    zc = joint.compact(zs)
-    fixed = joint.fixed_sums(zs)
+    zc, fixed = solved if solved is not None else (joint.compact(zs), joint.fixed_sums(zs))
     raw_parts = joint.apply_parts(zc, fixed, gained=False)
     lit_parts = [g * p for g, p in zip(joint.gains, raw_parts)]
     lit = np.sum(lit_parts, axis=0)
@@ -435,7 +437,7 @@ class JointSolve(TransportSolve):
                   **({"loop": self.loop} if self.loop is not None else {})}
         return _finish(self.comps, self.joint, self.joint.expand(zc, self.zs0), theta, self.placed, self.area,
                        self.owner.overlap(), self.losses, self.mode, self.captures, report, t_start,
-                       self.seconds_device)
+                       self.seconds_device, solved=(zc, self.fixed))
 
 
 class JointCompensator:

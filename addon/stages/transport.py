@@ -35,6 +35,7 @@ import os
 import time
 import warnings
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
@@ -380,6 +381,11 @@ class TransportRows:
     def apply_compact(self, zc: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
         """(R, 3) ``T z`` where ``z`` holds ``zc`` on the active texels and block sums ``fixed`` elsewhere
         (None: zero)."""
+        return np.asarray(self.apply_pending(zc, fixed)).reshape(-1, 3)
+
+    def apply_pending(self, zc: np.ndarray, fixed: np.ndarray | None = None) -> Any:
+        """:meth:`apply_compact` as a Dr.Jit array not yet evaluated, so that several views' run in one launch
+        (:func:`apply_together`)."""
         dr = self._dr
         flat = self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel())
         out = dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)
@@ -390,18 +396,35 @@ class TransportRows:
             low = np.einsum("cub,bc->uc", self._responses, means)
             out = out + dr.block_sum(dr.gather(self._float, self._float(np.ascontiguousarray(low).ravel()),
                                                self._low_src) * self._low_w, 4)
-        return np.asarray(out).reshape(-1, 3)
+        return out
 
-    def _adjoint_parts(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``Tᵀ r`` in two parts: (A, 3) direct light on the active texels, and (blocks, 3) what each texel of a
-        block does through interreflection (None without). Both gathers run as one launch."""
+    def adjoint_pending(self, r: np.ndarray) -> tuple[Any, Any]:
+        """The two gathers of ``Tᵀ r`` (direct on the active texels; the upsampling's adjoint, None without an
+        indirect part) as Dr.Jit arrays not yet evaluated (:func:`adjoint_together`)."""
         dr = self._dr
         values = self._float(np.ascontiguousarray(r, dtype=np.float32).ravel())
         cols = dr.block_sum(dr.gather(self._float, values, self._col_src) * self._col_w, self._kc)
         if not self._nb:
+            return cols, None
+        return cols, dr.block_sum(dr.gather(self._float, values, self._up_src) * self._up_w, self._kl)
+
+    def adjoint_finish(self, cols: Any, low: Any) -> np.ndarray:
+        """(A, 3) ``Tᵀ r`` from :meth:`adjoint_pending`'s two arrays (evaluated or not)."""
+        out = np.asarray(cols).reshape(-1, 3)
+        if low is None:
+            return out
+        per_block = np.einsum("cub,uc->bc", self._responses, np.asarray(low).reshape(-1, 3))
+        out += np.repeat((per_block / self._block_sizes[:, None]).astype(np.float32)[self._runs], self._run_counts,
+                         axis=0)
+        return out
+
+    def _adjoint_parts(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``Tᵀ r`` in two parts: (A, 3) direct light on the active texels, and (blocks, 3) what each texel of a
+        block does through interreflection (None without). Both gathers run as one launch."""
+        cols, low = self.adjoint_pending(r)
+        if low is None:
             return np.asarray(cols).reshape(-1, 3), None
-        low = dr.block_sum(dr.gather(self._float, values, self._up_src) * self._up_w, self._kl)
-        dr.eval(cols, low)
+        self._dr.eval(cols, low)
         low = np.asarray(low).reshape(-1, 3)
         per_block = np.einsum("cub,uc->bc", self._responses, low)
         return np.asarray(cols).reshape(-1, 3), per_block / self._block_sizes[:, None]
@@ -438,6 +461,28 @@ def lens_blur(z: np.ndarray, sigma: float) -> np.ndarray:
     """An input-size image after a Gaussian lens blur of ``sigma`` texels, with no light beyond its edges."""
     g = gaussian_taps(sigma)
     return cv2.sepFilter2D(np.asarray(z, np.float32), -1, g, g, borderType=cv2.BORDER_CONSTANT)
+
+
+def apply_together(views: Sequence[Any], zcs: Sequence[np.ndarray], fixed: Sequence[Any]) -> list[np.ndarray]:
+    """Each view's ``apply_compact(zc, fixed)``, those of the :class:`TransportRows` among them evaluated in one
+    Dr.Jit launch: several projectors' operators on the same camera rows then make one kernel instead of one each
+    (the same values; on 2 cores a launch's fixed cost and its threads' start were a share of the joint solve)."""
+    pending = [v.apply_pending(z, f) if isinstance(v, TransportRows) else None for v, z, f in zip(views, zcs, fixed)]
+    ready = [p for p in pending if p is not None]
+    if len(ready) > 1:
+        next(v for v in views if isinstance(v, TransportRows))._dr.eval(*ready)
+    return [np.asarray(p).reshape(-1, 3) if p is not None else v.apply_compact(z, f)
+            for v, z, f, p in zip(views, zcs, fixed, pending)]
+
+
+def adjoint_together(views: Sequence[Any], rs: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Each view's ``adjoint_compact(r)``, the gathers of the :class:`TransportRows` among them evaluated in one
+    Dr.Jit launch (as :func:`apply_together`)."""
+    pending = [v.adjoint_pending(r) if isinstance(v, TransportRows) else None for v, r in zip(views, rs)]
+    ready = [a for p in pending if p is not None for a in p if a is not None]
+    if len(ready) > 1:
+        next(v for v in views if isinstance(v, TransportRows))._dr.eval(*ready)
+    return [v.adjoint_finish(*p) if p is not None else v.adjoint_compact(r) for v, r, p in zip(views, rs, pending)]
 
 
 class BlurredRows:
@@ -645,6 +690,7 @@ def build_transport(calibration: Any, *, bounces: int = 1, spp: int = DIRECT_SPP
     return op
 
 
-__all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "build_transport", "building_bytes",
+__all__ = ["TransportError", "TransportMemoryError", "TransportOperator", "adjoint_together", "apply_together",
+           "build_transport", "building_bytes",
            "camera_to_input", "camera_to_input_of", "check_memory", "free_bytes", "gaussian_taps", "largest_entries",
            "lattice_nodes"]

@@ -138,12 +138,13 @@ class LabOptions:
              "each one's sequence captured while the others show black; depth and the surface photo are taken once")
     projector_layout: str = option(
         "side-by-side", flag="--layout", choices=PROJECTOR_LAYOUTS,
-        help="with --projectors above 1: side-by-side (footprints in a row, overlapping by --overlap) or stacked "
-             "(all on the same area from slightly different positions) (default side-by-side)")
+        help="with --projectors above 1: side-by-side (footprints in a row, overlapping by --overlap), stacked "
+             "(all on the same area from slightly different positions) or grid (footprints in rows and columns, 2×2 "
+             "for 4, overlapping by --overlap both ways) (default side-by-side)")
     overlap: float = option(
         LAB_OVERLAP, min=0.0, max=0.9, metavar="FRACTION",
-        help="side-by-side: how much neighbouring footprints overlap, as a fraction of a footprint's width "
-             "(default 0.2)")
+        help="side-by-side and grid: how much neighbouring footprints overlap, as a fraction of a footprint's width "
+             "(and, in a grid, of its height down) (default 0.2)")
     projector_effects: str = option(
         "", metavar="K:EFFECTS[;K:EFFECTS…]", check=parse_projector_effects,
         help="projectors with effects of their own, numbered from 1, in place of the projector effects of "
@@ -169,8 +170,9 @@ def run_lab(options: LabOptions, progress: Progress | None = None, cancel: Cance
     """Render a calibration capture set in the virtual lab; every argument is checked before the first render."""
     validate(options, LabError)
     if options.projector_layout == "stacked" and options.overlap != LAB_OVERLAP:
-        raise LabError("--overlap sets how far side-by-side footprints overlap; stacked projectors all light the "
-                       "same area, so it has no meaning there: leave --overlap out, or use --layout side-by-side")
+        raise LabError("--overlap sets how far side-by-side or grid footprints overlap; stacked projectors all light "
+                       "the same area, so it has no meaning there: leave --overlap out, or use --layout side-by-side "
+                       "or grid")
     out, truth_path = options.paths()
     # What the truth must not be written into: the mesh read, and any step folder (another set's capture.json…).
     named = isinstance(options.surface, (str, Path)) and Path(options.surface).is_file()
