@@ -192,7 +192,7 @@ def test_live_capture_calibrate_and_closed_loop_compensation(xvfb, tmp_path, cap
     np.save(tmp_path / "depth.npy", depth)
     target = write_image(tmp_path / "city.png", natural_target("city", (160, 160)))
     with LoopbackCamera(loop) as cam:
-        device = f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear,average=4"
+        device = f"live:camera={cam.url},position={ORIGIN[0]}:{ORIGIN[1]},encoding=linear,average=2"
         projector = Projector(truth.intrinsics, input_size=truth.input_size)
         options = LiveCaptureOptions(device, projector, tmp_path / "set", camera_fov=58.0,
                                      depth_path=tmp_path / "depth.npy")
