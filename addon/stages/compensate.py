@@ -135,6 +135,8 @@ class Compensator:
         self._frame_index = self._mi.UInt32(index.astype(np.uint32).ravel())
         self._frame_inside = self._mi.Bool(inside.ravel())
         self._correspondence: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        #: the last display area's :meth:`area_texels` (a solve asks for them at its start, its step and its end)
+        self._area_texels: tuple[DisplayArea, np.ndarray] | None = None
         self._white: np.ndarray | None = None
         self._coarse_models: dict[tuple[int, int], Any] = {}
         self._crop_models: dict[tuple[int, int, int, int], Any] = {}
@@ -235,10 +237,15 @@ class Compensator:
         """(ih, iw) bool: the input texels stage C solves for in ``area``: those whose light lands on the camera
         inside it or within :data:`SURROUND_PAD` pixels of its edge (the texels an edge pixel shares with the
         surround); the others hold the :attr:`surround`."""
+        if self._area_texels is not None and self._area_texels[0] == area:
+            return self._area_texels[1]
         mx, my, visible = self.correspondence()
         pad = SURROUND_PAD
-        return (visible & (mx >= area.x - 0.5 - pad) & (mx <= area.x + area.width - 0.5 + pad)
+        keep = (visible & (mx >= area.x - 0.5 - pad) & (mx <= area.x + area.width - 0.5 + pad)
                 & (my >= area.y - 0.5 - pad) & (my <= area.y + area.height - 0.5 + pad))
+        keep.setflags(write=False)  # shared by every caller of this area
+        self._area_texels = (area, keep)
+        return keep
 
     def hold_surround(self, z: np.ndarray, area: DisplayArea) -> np.ndarray:
         """``z`` (input size) with every texel outside :meth:`area_texels` at the :attr:`surround`."""

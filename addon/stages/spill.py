@@ -71,6 +71,15 @@ def spill(capture: np.ndarray, black: np.ndarray, area: DisplayArea, reach: np.n
             "picture_level": round(level, 5), "outside_pixels": n}
 
 
+def record(row: dict[str, Any], capture: np.ndarray, plain: np.ndarray, black: np.ndarray, area: DisplayArea,
+           reach: np.ndarray, *, again: np.ndarray | None = None) -> None:
+    """An evaluation ``row`` given the :func:`spill` of its ``capture`` (with its repeat ``again``) and, in its
+    ``uncompensated`` record, the mean and percentile of the ``plain`` capture's."""
+    row.update(spill(capture, black, area, reach, again=again))
+    plain_spill = spill(plain, black, area, reach)
+    row["uncompensated"].update(spill_mean=plain_spill["spill_mean"], spill_p995=plain_spill["spill_p995"])
+
+
 def one_projector_reach(calibration: Any, white: np.ndarray, black: np.ndarray) -> np.ndarray:
     """The camera pixels one calibrated projector lights: its model's coverage ∩ its captured white − black."""
     cover = model_coverage(calibration)
@@ -113,5 +122,5 @@ def spill_text(mean: Any, p995: Any, plain_mean: Any = None, plain_p995: Any = N
     return f"spill outside the area: mean {pc(mean)}, 99.5th pixel {pc(p995)} of the picture's level{plain}"
 
 
-__all__ = ["MEASURE", "PERCENTILE", "guard_band", "one_projector_reach", "outside_mask", "spill", "spill_text",
-           "summarise"]
+__all__ = ["MEASURE", "PERCENTILE", "guard_band", "one_projector_reach", "outside_mask", "record", "spill",
+           "spill_text", "summarise"]

@@ -34,8 +34,8 @@ import math
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -408,33 +408,30 @@ class TransportRows:
             return cols, None
         return cols, dr.block_sum(dr.gather(self._float, values, self._up_src) * self._up_w, self._kl)
 
-    def adjoint_finish(self, cols: Any, low: Any) -> np.ndarray:
-        """(A, 3) ``Tᵀ r`` from :meth:`adjoint_pending`'s two arrays (evaluated or not)."""
-        out = np.asarray(cols).reshape(-1, 3)
-        if low is None:
-            return out
-        per_block = np.einsum("cub,uc->bc", self._responses, np.asarray(low).reshape(-1, 3))
-        out += np.repeat((per_block / self._block_sizes[:, None]).astype(np.float32)[self._runs], self._run_counts,
-                         axis=0)
-        return out
-
-    def _adjoint_parts(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """``Tᵀ r`` in two parts: (A, 3) direct light on the active texels, and (blocks, 3) what each texel of a
-        block does through interreflection (None without). Both gathers run as one launch."""
-        cols, low = self.adjoint_pending(r)
+    def _parts_of(self, cols: Any, low: Any) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`adjoint_pending`'s two arrays (evaluated or not) as ``Tᵀ r`` in two parts: (A, 3) direct light on
+        the active texels, and (blocks, 3) what each texel of a block does through interreflection (None without).
+        Both gathers run as one launch where they are still pending."""
         if low is None:
             return np.asarray(cols).reshape(-1, 3), None
         self._dr.eval(cols, low)
-        low = np.asarray(low).reshape(-1, 3)
-        per_block = np.einsum("cub,uc->bc", self._responses, low)
+        per_block = np.einsum("cub,uc->bc", self._responses, np.asarray(low).reshape(-1, 3))
         return np.asarray(cols).reshape(-1, 3), per_block / self._block_sizes[:, None]
+
+    def adjoint_finish(self, cols: Any, low: Any) -> np.ndarray:
+        """(A, 3) ``Tᵀ r`` from :meth:`adjoint_pending`'s two arrays (evaluated or not)."""
+        out, per_block = self._parts_of(cols, low)
+        if per_block is not None:
+            out += np.repeat(per_block.astype(np.float32)[self._runs], self._run_counts, axis=0)
+        return out
+
+    def _adjoint_parts(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``Tᵀ r`` in two parts (:meth:`_parts_of`) for an (R, 3) ``r``."""
+        return self._parts_of(*self.adjoint_pending(r))
 
     def adjoint_compact(self, r: np.ndarray) -> np.ndarray:
         """(A, 3) ``Tᵀ r`` on the active texels, for an (R, 3) ``r``."""
-        cols, per_block = self._adjoint_parts(r)
-        if per_block is not None:
-            cols += np.repeat(per_block.astype(np.float32)[self._runs], self._run_counts, axis=0)
-        return cols
+        return self.adjoint_finish(*self.adjoint_pending(r))
 
     def apply(self, z: np.ndarray) -> np.ndarray:
         """(R, 3) ``T z`` for an input-size ``z``."""

@@ -61,7 +61,7 @@ from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target, 
 from ..stages.metrics import check_capture, mean_scores, measure, psnr, side_by_side, uncompensated_input
 from ..stages.range import RangeMap, capture_noise_mse, ceiling_gap_at_limit, noise_ceiling, range_ceiling
 from ..stages import spill as spill_module
-from ..stages.spill import one_projector_reach, spill
+from ..stages.spill import one_projector_reach
 from ..stages.transport import camera_to_input
 from ..video import VideoReader, is_video, load_video_frame
 from . import calibrate as calibrate_step
@@ -456,9 +456,8 @@ def evaluate_folder(calibration: Calibration, inputs: CompensationInputs,
                     noise = capture_noise_mse(captured, area.crop(again))
                     row["capture_noise_rmse"] = round(noise ** 0.5, 5)
                     row["noise_ceiling"] = round(noise_ceiling(fitted, seen_black, seen_white, noise), 2)
-            row.update(spill(got.capture, black, area, reach, again=None if replayed else again))
-            plain_spill = spill(plain.capture, black, area, reach)
-            row["uncompensated"].update(spill_mean=plain_spill["spill_mean"], spill_p995=plain_spill["spill_p995"])
+            spill_module.record(row, got.capture, plain.capture, black, area, reach,
+                                again=None if replayed else again)
             extra = []
             if model is not None:
                 t0 = time.perf_counter()

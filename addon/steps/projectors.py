@@ -71,7 +71,6 @@ from ..stages.display_area import (DisplayArea, TargetAspectWarning, area_inside
 from ..stages.joint import JointCompensator, JointResult
 from ..stages.metrics import check_capture, psnr, side_by_side, ssim
 from ..stages import spill as spill_module
-from ..stages.spill import spill
 from ..stages.range import (RangeError, RangeMap, capture_noise_mse, fit_rule, noise_ceiling, parse_range,
                             range_ceiling)
 from . import calibrate as calibrate_step
@@ -778,9 +777,7 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
                     row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
                 else:
                     again = None
-            row.update(spill(got, dark, area, reach, again=again))
-            plain_spill = spill(plain, dark, area, reach)
-            row["uncompensated"].update(spill_mean=plain_spill["spill_mean"], spill_p995=plain_spill["spill_p995"])
+            spill_module.record(row, got, plain, dark, area, reach, again=again)
             row["area_shares"] = area_shares(cover, area)
         except ProCamError as exc:
             failure = exc
