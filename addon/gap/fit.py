@@ -42,15 +42,16 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Protocol, TypeVar
 
 import cv2
 import numpy as np
 
-from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .data import GapData
 from .models import Composite, MODELS, NAMES, describe_params
+from .parallel import run_fits
 
 #: An effect is added only if it removes at least this share of the held-out RMSE still left.
 MIN_SHARE = 0.06
@@ -332,6 +333,7 @@ class Selection:
 
 class _Scored(Protocol):
     error: str | None
+    seconds: float
 
     def share_of(self, before: Any) -> float: ...
 
@@ -348,21 +350,26 @@ def greedy_rounds(base: F, candidates: list[C], fit: Callable[[list[C], C, F], F
     candidate, current)``) and adds the one that removes most of the held-out error left, while it removes at least
     ``min_share`` of it. Returns the selected, the last fit, each candidate fitted alone (the first round) and each
     round's record (``record(best, best_fit, current, share, ranking)`` with "candidate", "added" set here);
-    ``say(fraction of max_effects rounds done, candidate, selected)``. One projector's selection and the joint one of
-    several (``gap/shared.py``) run this same loop."""
+    ``say(fraction of max_effects rounds done, candidate, selected)`` as each candidate's fit ends. One projector's
+    selection and the joint one of several (``gap/shared.py``) run this same loop. A round's fits run side by side
+    (:func:`.parallel.run_fits`), the slowest of the last round first; they do not depend on each other, so the
+    answer is the same as one after the other."""
     selected: list[C] = []
     alone: dict[C, F] = {}
     steps: list[dict[str, Any]] = []
     current, remaining = base, list(candidates)
+    took: dict[C, float] = {}
     for step in range(max_effects):
-        fits: dict[C, F] = {}
-        for j, cand in enumerate(remaining):
-            if cancel is not None and cancel():
-                raise Cancelled("diagnosis cancelled")
-            say((step + j / len(remaining)) / max_effects, cand, selected)
-            fits[cand] = fit(selected, cand, current)
-            if step == 0:
-                alone[cand] = fits[cand]
+        def done(i: int, finished: int, count: int = len(remaining), at: int = step) -> None:
+            say((at + finished / count) / max_effects, remaining[i], selected)
+
+        order = sorted(range(len(remaining)), key=lambda i: -took.get(remaining[i], 0.0))
+        results = run_fits([partial(fit, list(selected), c, current) for c in remaining], cancel=cancel,
+                           done=done, order=order)
+        fits = dict(zip(remaining, results))
+        took = {c: f.seconds for c, f in fits.items()}
+        if step == 0:
+            alone.update(fits)
         ranking = sorted((c for c in fits if fits[c].error is None), key=lambda c: -fits[c].share_of(current))
         if not ranking:
             break
@@ -400,7 +407,7 @@ def select_effects(data: GapData, candidates: tuple[str, ...] = NAMES, *, min_sh
         return fit_composite(data, names, start={n: np.array(list(v.values())) for n, v in start.items()}, hold=hold)
 
     def say(fraction: float, name: str, selected: list[str]) -> None:
-        report(f"round {len(selected) + 1}: fitting {'+'.join([*selected, name])}", fraction)
+        report(f"round {len(selected) + 1}: fitted {'+'.join([*selected, name])}", fraction)
 
     def record(name: str, best: Fit, current: Fit, share: float, ranking: list[tuple[str, float]]
                ) -> dict[str, Any]:

@@ -27,11 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .data import GapData
 from .fit import MIN_SHARE, FIT_PIXELS, greedy_rounds, huber_levenberg_marquardt, huber_rms, _huber_scale, scores
 from .models import MODELS, NAMES, Composite, describe_params
+from .parallel import run_fits
 
 #: The camera's effects (its processing and its lens) and the surface's (its gloss, bounce light and shape): every
 #: projector's at once.
@@ -301,21 +301,26 @@ def whose_effects(datas: list[GapData], sel: JointSelection, *, leave_out: tuple
     todo = [n for n in own if n not in leave_out]
     start = {**{Item(n): v for n, v in sel.final.shared.items()},
              **{Item(n, k): v for k in range(count) for n, v in sel.final.own[k].items()}}
-    out = []
-    for j, name in enumerate(todo):
+    jobs, labels = [], []
+    for name in todo:
         base = tuple(Item(n) for n in sel.shared) + tuple(Item(n, k) for k in range(count) for n in own
                                                            if n != name)
-        fits = []
         # on no projector, on each alone, and one vector for all (a projector effect as a shared item)
         for k in [None, *range(count), -1]:
-            if cancel is not None and cancel():
-                raise Cancelled("diagnosis cancelled")
-            report(f"whose {name.replace('_', ' ')}: " + ("on no projector" if k is None else "alike on every one"
-                                                          if k < 0 else f"on projector {k + 1} alone"),
-                   (j + (0 if k is None else k + 1 if k >= 0 else count + 1) / (count + 2)) / len(todo))
             items = base if k is None else base + (Item(name, k if k >= 0 else None),)
-            fits.append(fit_joint(datas, items, start={i: v for i, v in start.items() if i in items}))
-        out.append(WhoseEffect(name, fits[0], fits[1:-1], every, fits[-1]))
+            jobs.append(lambda items=items: fit_joint(datas, items, start={i: v for i, v in start.items()
+                                                                           if i in items}))
+            labels.append(f"whose {name.replace('_', ' ')}: " + ("on no projector" if k is None else
+                                                                  "alike on every one" if k < 0 else
+                                                                  f"on projector {k + 1} alone"))
+
+    def done(i: int, finished: int) -> None:
+        report(labels[i], finished / len(jobs))
+
+    fits = run_fits(jobs, cancel=cancel, done=done)
+    per = count + 2
+    out = [WhoseEffect(name, fits[j * per], fits[j * per + 1:j * per + per - 1], every, fits[j * per + per - 1])
+           for j, name in enumerate(todo)]
     return every, out
 
 
