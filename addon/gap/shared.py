@@ -22,7 +22,9 @@ projector effects its diagnosis selected.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -296,20 +298,20 @@ def whose_effects(datas: list[GapData], sel: JointSelection, *, leave_out: tuple
     start), so no projector's fit starts from a point another fit pushed along a degenerate direction."""
     report = progress or (lambda msg, frac: None)
     count = len(datas)
-    every = attribution_fit(datas, sel)
     own = [n for n in NAMES if any(i.name == n and i.projector is not None for i in sel.selected)]
     todo = [n for n in own if n not in leave_out]
     start = {**{Item(n): v for n, v in sel.final.shared.items()},
              **{Item(n, k): v for k in range(count) for n, v in sel.final.own[k].items()}}
-    jobs, labels = [], []
+    # the attribution fit (the most parameters: first, so both cores stay busy to the end) beside the others
+    jobs: list[Callable[[], JointFit]] = [partial(attribution_fit, datas, sel)]
+    labels = ["every projector effect on every projector"]
     for name in todo:
         base = tuple(Item(n) for n in sel.shared) + tuple(Item(n, k) for k in range(count) for n in own
                                                            if n != name)
         # on no projector, on each alone, and one vector for all (a projector effect as a shared item)
         for k in [None, *range(count), -1]:
             items = base if k is None else base + (Item(name, k if k >= 0 else None),)
-            jobs.append(lambda items=items: fit_joint(datas, items, start={i: v for i, v in start.items()
-                                                                           if i in items}))
+            jobs.append(partial(fit_joint, datas, items, start={i: v for i, v in start.items() if i in items}))
             labels.append(f"whose {name.replace('_', ' ')}: " + ("on no projector" if k is None else
                                                                   "alike on every one" if k < 0 else
                                                                   f"on projector {k + 1} alone"))
@@ -317,7 +319,7 @@ def whose_effects(datas: list[GapData], sel: JointSelection, *, leave_out: tuple
     def done(i: int, finished: int) -> None:
         report(labels[i], finished / len(jobs))
 
-    fits = run_fits(jobs, cancel=cancel, done=done)
+    every, *fits = run_fits(jobs, cancel=cancel, done=done)
     per = count + 2
     out = [WhoseEffect(name, fits[j * per], fits[j * per + 1:j * per + per - 1], every, fits[j * per + per - 1])
            for j, name in enumerate(todo)]
