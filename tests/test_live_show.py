@@ -367,7 +367,7 @@ def test_the_real_time_solver_shows_a_clip_end_to_end(xvfb, stored, tmp_path, ca
     assert any(m.startswith("using the correction learned in") for m in said), said
     capsys.readouterr()
     assert main(["live-show", str(stored), "--source", str(clip), "--device", DEVICE, "--hold", "0",
-                 "--duration", "1"]) == 0
+                 "--duration", "1", "--surround", "0.2,0.2,0.2"]) == 0  # (the surround's frames: test_realtime.py)
     out = capsys.readouterr().out
     assert out.startswith("live show: ") and "frames shown of" in out and "stopped: after 1 s (--duration)" in out
 

@@ -194,7 +194,7 @@ FLAGS = {
            "--other-forms --out --overlap --projector-effects --projector-shift --projector-size --projectors "
            "--samples --scale --seed --supersample --surface --truth",
     "live-show": "--area --correction --device --diagnosis --duration --effects --hold --range --refine-steps --source "
-                 "--target-encoding",
+                 "--surround --target-encoding",
     "live-check": "--device --list-displays --no-exposure-check --projector-height --projector-width --projectors",
     "patterns": "--area --checker --force --input-height --input-width --layout --no-graycode --no-validation --out "
                 "--projector-height --projector-number --projector-width --seed --shift-x --shift-y --throw-ratio",

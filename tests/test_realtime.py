@@ -352,3 +352,42 @@ def test_a_correction_learned_while_following_carries_to_other_pictures(calibrat
             fresh.load_learned(path, "0" * 64)
         assert RealtimeSolver(stage, solver.inverses).save_learned(tmp_path / "none.npz", sha) is None
         assert not (tmp_path / "none.npz").exists()
+
+
+def test_a_surround_is_shown_outside_the_area_and_its_light_counted_inside(calibration):
+    """``--surround`` in a live show: the projector's input outside the display area shows the colour (every frame
+    pixel of its input region that no texel of the picture reaches, and the picture's own texels whose light lands
+    outside the area), and the light that colour spills into the area is taken off what the answer gives there, so
+    the picture the model predicts is as close to the target as without a surround."""
+    cal = calibrate_step.read(calibration)
+    image = natural_target("forest", (192, 144))
+    surround = (0.4, 0.2, 0.0)
+    results = {}
+    for s in (None, surround):
+        stage = StageC(cal, StageCOptions(surround=s))
+        solver = RealtimeSolver.for_stage(stage)
+        out = solver.solve(image)
+        plan = solver._plan(out.area)
+        results[s] = (solver, out, plan, stage)
+    solver, out, plan, stage = results[surround]
+    assert plan.surround_light is not None and plan.surround_light.max() > 0.002  # its bounce and edge light
+    assert results[None][2].surround_light is None
+    proj = cal.rig.projector
+    (x0, y0), (iw, ih) = proj.input_offset, proj.input_size
+    frame = out.frames[0][..., :3]
+    region = frame[y0:y0 + ih, x0:x0 + iw].reshape(-1, 3)
+    level = np.rint(np.asarray(surround) * 255).astype(np.uint8)
+    # far from the area's texels the input is the surround, exactly; the native frame's margin stays black
+    far = ~stage.compensator.area_texels(out.area).reshape(-1)
+    assert (region[far] == level).all(axis=1).mean() > 0.9
+    margin = np.ones(frame.shape[:2], bool)
+    margin[y0:y0 + ih, x0:x0 + iw] = False
+    assert margin.any() and (frame[margin] == 0).all()
+    # the model's picture inside the area: within 0.3 dB of the one without a surround (the surround's light is
+    # counted, not added on top), and the prediction holds that light
+    target = results[None][3].compensate(image, name="forest", what="t", verify=False).result.target
+    ours = _operator_psnr(solver, out, target)
+    plain = _operator_psnr(results[None][0], results[None][1], target)
+    assert ours > plain - 0.3, (ours, plain)
+    assert np.allclose(solver.predicted(out) - plan.surround_light,
+                       sum(rv.light(zc) for rv, zc in zip(plan.views, out.inputs)), atol=1e-5)

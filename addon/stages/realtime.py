@@ -394,6 +394,7 @@ class RealtimeView:
         self.col_sums = dr.maximum(col, 1e-3)
         #: the texels of an answer (:meth:`solve`): the active ones, or with a lens blur the box around them
         self.texels = view.texels if self.blur is None else self.blur.texels
+        self._held: dict[tuple[float, ...], Any] = {}  # :meth:`hold`'s colours over the answer's texels
         self._prev = dr.zeros(fl, len(view.texels) * 3)  # the light on the active texels of the previous answer
         self._warm = False
         self._ind = dr.zeros(fl, n_rows * 3)
@@ -492,14 +493,33 @@ class RealtimeView:
         self._prev = zc if blur is None else light
         return zc
 
+    def hold_mask(self, texels: np.ndarray) -> Any:
+        """A Dr.Jit mask over a compact input (flat, :attr:`texels` × 3) of the texels where ``texels`` (bool, one
+        per answer texel) is set, for :meth:`hold`."""
+        return self.view._bool(np.repeat(np.asarray(texels, bool), 3))
+
+    def hold(self, zc: Any, mask: Any, value: tuple[float, float, float] | None) -> Any:
+        """The compact ``zc`` with the texels of ``mask`` (:meth:`hold_mask`) at ``value`` (RGB; None: black)."""
+        dr, fl = self._dr, self._float
+        key = (0.0, 0.0, 0.0) if value is None else tuple(float(v) for v in value)
+        held = self._held.get(key)
+        if held is None:  # made once a colour: a live show holds the same texels every frame
+            held = self._held[key] = fl(np.tile(np.asarray(key, np.float32), len(self.texels)))
+        out = dr.select(mask, held, zc)
+        dr.eval(out)
+        return out
+
     def compact(self, zc: Any) -> np.ndarray:
         """A compact Dr.Jit input as numpy (:attr:`texels`, 3)."""
         return np.asarray(zc).reshape(-1, 3)
 
-    def expand(self, zc: Any) -> np.ndarray:
-        """The input image (input size, H×W×3) of a compact ``zc``: black beyond :attr:`texels`."""
+    def expand(self, zc: Any, fill: tuple[float, float, float] | None = None) -> np.ndarray:
+        """The input image (input size, H×W×3) of a compact ``zc``: black beyond :attr:`texels` (``fill``: that
+        colour)."""
         iw, ih = self.view.op.input_size
         out = np.zeros((ih * iw, 3), np.float32)
+        if fill is not None:
+            out[:] = np.asarray(fill, np.float32)
         out[self.texels] = self.compact(zc)
         return out.reshape(ih, iw, 3)
 
@@ -522,9 +542,12 @@ class FrameGather:
     Dr.Jit gather, instead of expanding, warping and placing in numpy (11 ms of a 36 ms frame at 800×600). Only
     the frame pixels some lit texel reaches are gathered (half of an 800×600 frame on the lab's curve); the rest
     stay black. ``texels``: the texels of the compact inputs (default: the view's active ones; a solve through a lens
-    blur answers on the box around them, :attr:`RealtimeView.texels`)."""
+    blur answers on the box around them, :attr:`RealtimeView.texels`). ``surround`` (RGB, a share of white): the
+    input everywhere else, instead of black (``--surround``): the frame's input region shows it, and a tap on a
+    texel outside the compact inputs reads it."""
 
-    def __init__(self, view: TransportRows, projector: Any, warp: Any = None, texels: np.ndarray | None = None) -> None:
+    def __init__(self, view: TransportRows, projector: Any, warp: Any = None, texels: np.ndarray | None = None,
+                 surround: tuple[float, float, float] | None = None) -> None:
         self._dr, self._float, self._uint = view._dr, view._float, view._uint
         iw, ih = projector.input_size
         fw, fh = projector.intrinsics.size
@@ -553,17 +576,30 @@ class FrameGather:
         self._src = [view._uint((src * 3 + c).ravel().astype(np.uint32)) for c in range(3)]
         self._live = view._bool(tap_live.ravel())
         self._w = self._float(np.where(tap_live, weight[:, lit].T, 0.0).astype(np.float32).ravel())
+        #: with a surround: its light on each gathered pixel through the taps on texels outside the compact inputs,
+        #: per channel, and the frame pixels of the input region (the rest of the native frame stays black)
+        self._surround = None if surround is None or not any(surround) else np.asarray(surround, np.float32)
+        self._dead: list[Any] = []
+        if self._surround is not None:
+            dead = np.where(tap_live, 0.0, weight[:, lit].T).sum(axis=1).astype(np.float32)
+            self._dead = [self._float(dead * self._surround[c]) for c in range(3)]
+            ry, rx = np.mgrid[y0:y0 + ih, x0:x0 + iw]
+            self._region = (ry * fw + rx).ravel()
 
     def _channels(self, zc: Any) -> list[Any]:
         dr = self._dr
         values = zc if isinstance(zc, self._float) else self._float(np.ascontiguousarray(zc, np.float32).ravel())
-        return [dr.clip(dr.block_sum(dr.gather(self._float, values, src, self._live) * self._w, self._k), 0.0, 1.0)
-                for src in self._src]
+        sums = [dr.block_sum(dr.gather(self._float, values, src, self._live) * self._w, self._k) for src in self._src]
+        if self._dead:
+            sums = [v + d for v, d in zip(sums, self._dead)]
+        return [dr.clip(v, 0.0, 1.0) for v in sums]
 
     def __call__(self, zc: Any) -> np.ndarray:
         """The native frame (H×W×3 floats in [0, 1]) of a compact input (a Dr.Jit array or numpy (texels, 3))."""
         fw, fh = self._size
         out = np.zeros((fh * fw, 3), np.float32)
+        if self._surround is not None:
+            out[self._region] = self._surround
         out[self._pixels] = np.stack([np.asarray(v) for v in self._channels(zc)], axis=1)
         return out.reshape(fh, fw, 3)
 
@@ -576,6 +612,9 @@ class FrameGather:
         packed = r | (g << 8) | (b << 16) | 0xFF000000
         fw, fh = self._size
         out = np.full(fh * fw, 0xFF000000, np.uint32)
+        if self._surround is not None:
+            sr, sg, sb = (int(v) for v in np.rint(np.clip(self._surround, 0.0, 1.0) * 255.0))
+            out[self._region] = sr | (sg << 8) | (sb << 16) | 0xFF000000
         out[self._pixels] = np.asarray(packed)
         return out.view(np.uint8).reshape(fh, fw, 4)
 

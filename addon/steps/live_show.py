@@ -106,6 +106,7 @@ class LiveShowOptions:
     effects: str = same_option(StageCOptions, "effects")
     diagnosis: Path | None = same_option(StageCOptions, "diagnosis")
     area: tuple[int, int, int, int] | None = same_option(StageCOptions, "area")
+    surround: tuple[float, float, float] | None = same_option(StageCOptions, "surround")
     target_encoding: str = same_option(StageCOptions, "target_encoding",
                                        help="auto: 8-bit frames are sRGB and are linearised, 16-bit are linear")
     refine_steps: int = option(REFINE_STEPS, min=0, max=50, metavar="N", label="Refine Steps",
@@ -131,7 +132,7 @@ class LiveShowOptions:
     def stage_options(self) -> StageCOptions:
         """Stage C as ``procam show`` opens it for this show: open loop (the camera, if any, is this step's)."""
         return StageCOptions(range=self.range, effects=self.effects, diagnosis=self.diagnosis, area=self.area,
-                             target_encoding=self.target_encoding)
+                             surround=self.surround, target_encoding=self.target_encoding)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,9 @@ frame becomes every projector's native frame in one call (:meth:`RealtimeSolver.
 defocus`` each projector's lens blur is held as stage C holds it (``T B``): the one-pass answer is deblurred by
 the blur's regularised inverse and the refinement steps run through the blur.
 
+With ``--surround`` the input outside the display area holds that colour, as stage C holds it: the frames show it
+there, and its light on the area (computed once an area) is taken off what the answer gives.
+
 θ: the open loop's model (from the calibration's validation captures) at the
 start; :meth:`RealtimeSolver.follow` moves it towards the residual of a camera
 image of frames that were shown, ``2·FOLLOW_RATE`` of the way at a time (θ
@@ -41,7 +44,7 @@ from ..imageio import read_arrays, write_atomic_bytes
 from ..progress import Progress, quiet
 from ..stages.display_area import DisplayArea, TargetAspectWarning, fit_target
 from ..stages.realtime import ApproximateInverse, FrameGather, InverseError, RealtimeView, build_inverse
-from ..stages.transport import BlurredRows
+from ..stages.transport import BlurredRows, lens_blur
 from .inverse import check_memory, load_inverse
 from .projectors import JointStage
 from .stage_c import StageC
@@ -91,6 +94,11 @@ class _Plan:
     sums: np.ndarray | None = None
     #: a correction learned by following (:meth:`RealtimeSolver.learned`): each row's gain and offset, y = a·f + b
     learned: tuple[np.ndarray, np.ndarray] | None = None
+    #: with a surround (``--surround``): the light every projector's surround puts on the rows (rows × 3, through
+    #: the open loop's gain), and per projector lit in the area which of its answer's texels hold the surround
+    #: (those whose light lands outside the area: :meth:`~..stages.compensate.Compensator.area_texels`)
+    surround_light: np.ndarray | None = None
+    held: list[Any] = field(default_factory=list)
 
     def want(self, fitted: np.ndarray) -> np.ndarray:
         """The light the model is asked for, so that the camera sees ``fitted`` (rows × 3)."""
@@ -193,21 +201,48 @@ class RealtimeSolver:
             gains = [None if bias is None or bias.gain is None else bias.gain]
             theta = np.zeros((*comps[0].camera_size[::-1], 3), np.float32) if bias is None else bias.theta
             share_rows = [None]
-        views, gathers = [], []
+        surround = self.surround
+        views, gathers, held_texels = [], [], []
         for k, gain in zip(keep, gains):
             comp = comps[k]
             view = comp.transport.rows(rows, comp.model.variant)
             inverse = self.inverses[k]
             assert inverse is not None
             # --effects defocus: the lens's blur held as stage C holds it (T B), through its own regularised inverse
-            held = BlurredRows(view, comp.input_blur) if comp.input_blur and self.hold_blur else view
-            rv = RealtimeView(held, inverse, None if gain is None else gain.reshape(-1, 3)[rows])
+            blurred = BlurredRows(view, comp.input_blur) if comp.input_blur and self.hold_blur else view
+            rv = RealtimeView(blurred, inverse, None if gain is None else gain.reshape(-1, 3)[rows])
             views.append(rv)
-            gathers.append(FrameGather(view, comp.rig.projector, comp.warp, rv.texels) if adapters[k] is None
-                           else None)
+            gathers.append(FrameGather(view, comp.rig.projector, comp.warp, rv.texels, surround=surround)
+                           if adapters[k] is None else None)
+            if surround is not None:
+                outside = ~comp.area_texels(area).reshape(-1)[rv.texels]
+                held_texels.append(rv.hold_mask(outside) if outside.any() else None)
         plan = self._plans[key] = _Plan(keep, views, gathers, share_rows,
-                                        np.asarray(theta, np.float32).reshape(-1, 3)[rows].copy())
+                                        np.asarray(theta, np.float32).reshape(-1, 3)[rows].copy(), held=held_texels)
+        if surround is not None:
+            plan.surround_light = self._surround_light(area, rows, dict(zip(keep, gains)))
         return plan
+
+    @property
+    def surround(self) -> tuple[float, float, float] | None:
+        """The input outside the display area (``--surround``, every projector's; None: black)."""
+        s = tuple(float(v) for v in self._compensators(self.stage)[0].surround)
+        return s if any(s) else None  # type: ignore[return-value]
+
+    def _surround_light(self, area: DisplayArea, rows: np.ndarray, gains: dict[int, np.ndarray | None]
+                        ) -> np.ndarray:
+        """(rows × 3) the light on the area's rows of every projector's input held at the surround outside its
+        area texels (a projector that lights nothing of the area: its whole input), through each one's open-loop
+        gain: what the answer inside need not give (stage C's solve holds those texels so, in its model)."""
+        total = np.zeros((len(rows), 3), np.float32)
+        for k, comp in enumerate(self._compensators(self.stage)):
+            z = comp.hold_surround(np.zeros((*comp.transport.input_size[::-1], 3), np.float32), area)
+            if comp.input_blur and self.hold_blur:  # the lens blurs the surround's edge as it does the picture's
+                z = lens_blur(z, comp.input_blur)
+            light = comp.transport.rows(rows, comp.model.variant).apply(z)
+            gain = gains.get(k)
+            total += light if gain is None else gain.reshape(-1, 3)[rows] * light
+        return total
 
     def _fitted(self, image: np.ndarray, area: DisplayArea) -> np.ndarray:
         """The picture as stage C takes a target, on the area's pixels row by row (rows × 3): fitted to the area
@@ -235,26 +270,45 @@ class RealtimeSolver:
         area = stage.area_for(image)
         plan = self._plan(area)
         want = plan.want(self._fitted(image, area))
-        frames = [np.zeros((*comp.rig.projector.intrinsics.size[::-1], 4), np.uint8) for comp in comps]
+        if plan.surround_light is not None:
+            want = want - plan.surround_light
+        surround = self.surround
+        frames = [self._dark_frame(comp, surround) for comp in comps]
         inputs = []
-        for k, rv, gather, share in zip(plan.keep, plan.views, plan.gathers, plan.shares):
+        for j, (k, rv, gather, share) in enumerate(zip(plan.keep, plan.views, plan.gathers, plan.shares)):
             zc = rv.solve(want if share is None else share * want, None, self.refine_steps)
-            inputs.append(zc)
+            mask = plan.held[j] if plan.held else None
+            # the texels held at the surround: shown at it, their light already counted in the surround's
+            inputs.append(zc if mask is None else rv.hold(zc, mask, (0.0, 0.0, 0.0)))
+            if mask is not None:
+                zc = rv.hold(zc, mask, surround)
             if gather is not None:
                 frames[k] = gather.levels(zc)
             else:  # the effect models' projector side works on the input image
                 comp = comps[k]
-                x = comp.warp_w(rv.expand(zc))
+                x = comp.warp_w(rv.expand(zc, surround))
                 levels = np.rint(np.clip(adapters[k].frame_to_send(x), 0.0, 1.0) * 255.0).astype(np.uint8)
                 frames[k][..., :3] = levels
         out = RealtimeFrame(frames, (time.perf_counter() - t0) * 1000.0, self.refine_steps, area, inputs)
         self.last = out
         return out
 
+    @staticmethod
+    def _dark_frame(comp: Any, surround: tuple[float, float, float] | None) -> np.ndarray:
+        """A native frame (RGBX levels) that shows nothing of the picture: black, its input region at the
+        ``surround`` when one is given."""
+        proj = comp.rig.projector
+        frame = np.zeros((*proj.intrinsics.size[::-1], 4), np.uint8)
+        if surround is not None:
+            (x0, y0), (iw, ih) = proj.input_offset, proj.input_size
+            frame[y0:y0 + ih, x0:x0 + iw, :3] = np.rint(np.clip(surround, 0.0, 1.0) * 255.0).astype(np.uint8)
+        return frame
+
     def predicted(self, shown: RealtimeFrame) -> np.ndarray:
         """(rows × 3) the light the model says the camera gets from ``shown``'s frames, before θ."""
         plan = self._plan(shown.area)
-        return sum((rv.light(zc) for rv, zc in zip(plan.views, shown.inputs)), np.zeros_like(plan.theta))
+        start = np.zeros_like(plan.theta) if plan.surround_light is None else plan.surround_light
+        return sum((rv.light(zc) for rv, zc in zip(plan.views, shown.inputs)), start)
 
     def theta(self, area: DisplayArea) -> np.ndarray:
         """(rows × 3) θ of ``area`` now."""
