@@ -13,7 +13,10 @@ import json
 import numpy as np
 import pytest
 
+from procam.addon.capture.targets import natural_target
+from procam.addon.cli.app import main
 from procam.addon.errors import CalibrationError
+from procam.addon.imageio import write_image
 from procam.addon.stages.radiometry import RadiometryPatterns, decision_region, fit_pixel_radiometry
 
 W, H = 64, 48
@@ -134,8 +137,6 @@ def other_forms_calibration(tmp_path_factory):
 
 
 def _target(path):
-    from procam.addon.imageio import write_image
-
     y, x = np.mgrid[0:90, 0:120].astype(np.float32)
     img = np.stack([0.3 + 0.25 * np.sin(x / 9), 0.35 + 0.2 * np.cos(y / 7), 0.3 + 0.002 * (x + y)], axis=2)
     write_image(path, np.clip(img, 0, 1))
@@ -188,15 +189,46 @@ def test_pixel_radiometry_is_refused_clearly_where_the_captures_cannot_give_it(o
     assert model is None and record["used"] == "global" and "ramp" in record["reason"]
 
 
-def test_several_projectors_refuse_the_per_pixel_model_before_any_work():
-    from types import SimpleNamespace
-
+def test_several_projectors_each_get_their_own_per_pixel_model_in_the_open_loop(two_projector_lab):
+    """Two projectors side by side, projector 2 alone with a tone curve no global model holds: each projector's
+    model is measured from its own flats and judged on its own held-out captures, the rig takes them together
+    (pooled), θ is zero, and the picture through the lab is better than through the global models. A closed loop
+    and --effects keep the global models, and refuse --radiometry pixel with the reason."""
     from procam.addon.stages.compensate import CompensationError
+    from procam.addon.steps import calibrate as calibrate_step
     from procam.addon.steps.projectors import JointStage
     from procam.addon.steps.stage_c import StageCOptions
 
-    with pytest.raises(CompensationError, match="--radiometry auto or global"):
-        JointStage(SimpleNamespace(projector_count=2), StageCOptions(radiometry="pixel"))
+    root = two_projector_lab
+    cal = calibrate_step.read(root / "cal")
+    with JointStage(cal, StageCOptions(spp=2)) as stage:
+        record = stage.choose_radiometry()
+        assert record["used"] == "pixel" and len(record["projectors"]) == 2 and stage.pixels is not None
+        per = [r["held_out_rmse"] for r in record["projectors"]]
+        assert per[1]["pixel"] < 0.5 * per[1]["global"]  # the tone curve: the global models miss it
+        assert record["held_out_rmse_pooled"]["pixel"] < record["held_out_rmse_pooled"]["global"]
+        assert stage.estimate_bias() is stage.biases and all(b.kind == "pixel" and not b.theta.any()
+                                                             for b in stage.biases)
+        assert stage.black is None
+    target = root / "city.png"
+    write_image(target, natural_target("city", (96, 72)))
+    psnr = {}
+    for rule in ("global", "auto"):
+        assert main(["compensate", str(root / "cal"), str(target), "--radiometry", rule, "--spp", "2",
+                     "--out", str(root / f"comp-{rule}")]) == 0
+        doc = json.loads((root / f"comp-{rule}" / "compensation.json").read_text())
+        assert doc["radiometry"]["used"] == ("global" if rule == "global" else "pixel")
+        assert main(["evaluate", str(root / "cal"), "--inputs", str(root / f"comp-{rule}"), "--targets", str(target),
+                     "--device", f"lab:{root / 'lab.truth.json'}", "--out", str(root / f"eval-{rule}")]) == 0
+        psnr[rule] = json.loads((root / f"eval-{rule}" / "metrics.json").read_text())["targets"][0]["psnr"]
+    assert psnr["auto"] > psnr["global"], psnr
+    device = f"lab:{root / 'lab.truth.json'}"
+    with JointStage(cal, StageCOptions(device=device, spp=2)) as stage:
+        record = stage.choose_radiometry()
+        assert record["used"] == "global" and "closed loop" in record["reason"] and stage.pixels is None
+    with JointStage(cal, StageCOptions(device=device, spp=2, radiometry="pixel")) as stage, \
+            pytest.raises(CompensationError, match="--radiometry pixel cannot be used here: a closed loop"):
+        stage.choose_radiometry()
 
 
 def test_a_closed_loop_keeps_the_global_models_unless_asked(other_forms_calibration):

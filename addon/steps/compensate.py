@@ -119,7 +119,7 @@ def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, devic
         failure: ProCamError | None = None
         stopped: BaseException | None = None  # Ctrl-C or Cancel: the targets finished so far are kept
         try:
-            if isinstance(stage, StageC) and stage.options.radiometry != "global":
+            if stage.options.radiometry != "global":
                 say("measuring each camera pixel's response and colour mixing, judged on held-out captures", 0.02)
                 stage.choose_radiometry()
             if stage.options.mode == "open-loop":
@@ -294,6 +294,12 @@ def radiometry_text(record: Any) -> str | None:
     rmse = record.get("held_out_rmse") or {}
     judged = (f" (held-out RMS {fmt(rmse.get('pixel'), '.4f')} per pixel, {fmt(rmse.get('global'), '.4f')} global)"
               if rmse else "")
+    each = [p.get("held_out_rmse") or {} for p in record.get("projectors") or [] if isinstance(p, dict)]
+    if each:  # several projectors: each one's own model, judged on its own held-out captures
+        rmse = {"projectors": each}
+        judged = " (held-out RMS per pixel / global: " + ", ".join(
+            f"projector {k + 1} {fmt(r.get('pixel'), '.4f')} / {fmt(r.get('global'), '.4f')}"
+            for k, r in enumerate(each)) + ")"
     if record["used"] == "pixel":
         replaced = record.get("replaces_effects") or []
         return (f"each camera pixel's own response and colour mixing{judged}"

@@ -146,11 +146,10 @@ class RealtimeSolver:
         """The solver for ``stage`` (open loop, ``transport`` operators loaded): every projector's stored inverse,
         or one built now (saying so; ``procam precompute --live`` stores it)."""
         say = progress or quiet
-        if isinstance(stage, StageC):
-            stage.keep_global_radiometry("the real-time solver works through the global models")
-            if stage.pixel is not None:
-                raise ProCamError("the real-time solver cannot work through the per-pixel radiometric model this "
-                                  "stage already chose: run it with --radiometry global")
+        stage.keep_global_radiometry("the real-time solver works through the global models")
+        if (stage.pixel if isinstance(stage, StageC) else stage.pixels) is not None:
+            raise ProCamError("the real-time solver cannot work through the per-pixel radiometric model this "
+                              "stage already chose: run it with --radiometry global")
         comps, adapters = cls._compensators(stage), cls._adapters(stage)
         opts = stage.options
         inverses: list[ApproximateInverse | None] = []
