@@ -193,7 +193,8 @@ def test_several_projectors_each_get_their_own_per_pixel_model_in_the_open_loop(
     """Two projectors side by side, projector 2 alone with a tone curve no global model holds: each projector's
     model is measured from its own flats and judged on its own held-out captures, the rig takes them together
     (pooled), θ is zero, and the picture through the lab is better than through the global models. A closed loop
-    and --effects keep the global models, and refuse --radiometry pixel with the reason."""
+    keeps the global models unless asked (then it starts from the per-pixel answer); --effects keeps them and refuses
+    --radiometry pixel with the reason."""
     from procam.addon.stages.compensate import CompensationError
     from procam.addon.steps import calibrate as calibrate_step
     from procam.addon.steps.projectors import JointStage
@@ -226,8 +227,14 @@ def test_several_projectors_each_get_their_own_per_pixel_model_in_the_open_loop(
     with JointStage(cal, StageCOptions(device=device, spp=2)) as stage:
         record = stage.choose_radiometry()
         assert record["used"] == "global" and "closed loop" in record["reason"] and stage.pixels is None
-    with JointStage(cal, StageCOptions(device=device, spp=2, radiometry="pixel")) as stage, \
-            pytest.raises(CompensationError, match="--radiometry pixel cannot be used here: a closed loop"):
+    with JointStage(cal, StageCOptions(device=device, spp=2, radiometry="pixel")) as stage:
+        record = stage.choose_radiometry()
+        assert record["used"] == "pixel" and "starts from the per-pixel" in record["closed_loop"]
+    diagnosis = root / "diagnosis"
+    assert main(["diagnose", str(root / "cal"), "--out", str(diagnosis), "--scale", "0.3", "--spp", "4",
+                 "--effects", "response"]) == 0
+    with JointStage(cal, StageCOptions(spp=2, radiometry="pixel", effects="auto", diagnosis=diagnosis)) as stage, \
+            pytest.raises(CompensationError, match="--radiometry pixel cannot be used here: with --effects"):
         stage.choose_radiometry()
 
 

@@ -388,17 +388,22 @@ class JointStage:
         captures, as one projector's is; ``auto`` uses them when, pooled over the projectors, they predict those
         captures better than the global models (one answer for the rig: a projector whose global models hold it
         well and one they do not, on the suite's lab 0.0089 against 0.0072 and 0.0122 against 0.0742, take the
-        per-pixel models together). A closed loop, and a run with ``--effects``, keep the global models
-        (``pixel`` is refused there): the closed loop learns each pixel itself, and the effect models' camera
-        curve is shared by every projector, which the per-projector models cannot split."""
+        per-pixel models together). A closed loop keeps the global models with ``auto`` (it learns each pixel
+        itself); with ``pixel`` it starts from the per-pixel models' answer and corrects it in the camera's units,
+        as one projector's does. A run with ``--effects`` keeps them (``pixel`` refused): the effect models'
+        camera curve is shared by every projector, which the per-projector models cannot split."""
         if self.radiometry is not None:
             return self.radiometry
         rule = self.options.radiometry
         if rule == "global":
             self.radiometry = {"used": "global", "rule": rule}
             return self.radiometry
-        why = ("a closed loop of several projectors keeps the global models" if self.options.mode != "open-loop"
-               else "with --effects the rig's shared camera curve and each projector's effect models stay global"
+        closed = self.options.mode != "open-loop"
+        if closed and rule == "auto":
+            self.radiometry = {"used": "global", "rule": rule, "reason": "a closed loop learns each pixel's response "
+                               "from its own captures (--radiometry pixel starts it from the per-pixel models' answer)"}
+            return self.radiometry
+        why = ("with --effects the rig's shared camera curve and each projector's effect models stay global"
                if self.adapters is not None or self.camera is not None
                else "the calibration's capture set cannot be read" if self.capture_views is None else None)
         if why is not None:
@@ -433,6 +438,9 @@ class JointStage:
                                          f"{'better' if better else 'no better'} than the global models (pooled RMS "
                                          f"{pooled['pixel']:.4f} against {pooled['global']:.4f}; {said})")
         if used == "pixel":
+            if closed:
+                self.radiometry["closed_loop"] = ("starts from the per-pixel models' answer, corrects in the "
+                                                  "camera's units")
             self.pixels = models
             cw, ch = self.compensators[0].camera_size
             self.use_biases([BiasModel(np.zeros((ch, cw, 3), np.float32), None, "pixel",
@@ -629,10 +637,22 @@ class JointStage:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = self.fitted(image, area, what)
+            if self.pixels is not None and device is not None:
+                # the closed loop starts from the per-pixel models' open-loop answer, then corrects it in the
+                # camera's units (as one projector's: stage_c.StageC.compensate)
+                assert self.biases is not None
+                first = joint.run(self.pixel_target(fitted, area, joint, keep), area,
+                                  biases=[self.biases[k] for k in keep], blend=blend, cancel=cancel, name=name,
+                                  start=None if start is None else [start[k] for k in keep],
+                                  **{**args, "iterations_z": self.schedule.iterations_z, "iterations_joint": 0})
+                start = [np.zeros((c.ih, c.iw, 3), np.float32) for c in self.compensators]
+                for k, z in zip(keep, first.z):
+                    start[k] = z
+                args["iterations_z"] = 0
             # the joint solve compares its model with light: the target taken through the camera's curve too, or
             # through each projector's per-pixel model
-            model_target = self.pixel_target(fitted, area, joint, keep) if self.pixels is not None else \
-                fitted if self.camera is None else self.camera.to_model(fitted, area)
+            model_target = self.pixel_target(fitted, area, joint, keep) if self.pixels is not None and \
+                device is None else fitted if self.camera is None else self.camera.to_model(fitted, area)
             res = joint.run(model_target, area, device=device, biases=biases if o.mode == "open-loop" else None,
                             black=self.black if o.mode == "open-loop" else None, use_bias=o.use_bias, blend=blend,
                             progress=progress, cancel=cancel, name=name,

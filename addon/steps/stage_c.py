@@ -143,7 +143,8 @@ class StageCOptions:
              "--effects are then left out; a closed loop starts from its answer and corrects it in the camera's "
              "units); 'global' keeps the global models and θ; 'auto' (default) uses the per-pixel model in the open "
              "loop where it predicts the held-out random-texture captures better, and says which it used (a "
-             "closed loop learns each pixel's response itself and keeps the global models)")
+             "closed loop learns each pixel's response itself and keeps the global models); with several "
+             "projectors each projector's own model, in the open loop without --effects")
     range: str = option(
         "none", label="Range", check=parse_range, blank="",
         help="what the targets become before compensation: 'auto' fits one gain and offset to all the targets so "
