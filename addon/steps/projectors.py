@@ -14,7 +14,8 @@ What is shared and what is not:
   the union of the projectors' footprints (model coverage ∩ captured
   white − black of each projector), not inside one projector's;
 * the **range** (``--range auto``) is fitted against what the projectors reach
-  together: black = the surface lit by every projector's black, white = that
+  together: black = the surface lit by every projector's black (the mean of
+  their black captures, each taken while the others showed black), white = that
   plus each projector's own white − black (:func:`combined_black_white`);
 * **θ** in the open loop is the sum of the projectors' open-loop biases (each
   projector's black level and model error add in light); in the closed loop
@@ -133,25 +134,20 @@ def joint_area(views: list[Calibration], aspect: float, *, captures: list[Captur
                        what="the projectors together cover")
 
 
-def ambient(captures: CaptureSet, blacks: list[np.ndarray]) -> np.ndarray:
-    """The room's light on the surface with every projector off: the surface photo when the set has one, else the
-    darkest of the projectors' black captures (each holds the room plus that projector's black level)."""
-    if captures.entries_of("surface"):
-        photo = captures.image("surface")
-        if photo.shape == blacks[0].shape:
-            return np.minimum(photo, np.min(blacks, axis=0))
-    return np.min(blacks, axis=0)
-
-
 def combined_black_white(captures: CaptureSet) -> tuple[np.ndarray, np.ndarray]:
     """What the camera sees with every projector black and every projector white, from each projector's own
-    white and black captures (taken while the others showed black): light adds, the room's light once."""
+    white and black captures, taken while the others showed black: each black holds the whole rig's black (the
+    room and every projector's black level), so the rig's black is their mean (the noise halved), and each
+    projector adds its own white − black to it.
+
+    (Before, the room's light, the darkest black or the surface photo, was added once and each black's excess over
+    it once more: with a surface photo every projector's black level counted K times, and without one the
+    per-pixel maximum of two noisy blacks read the rig's black about 10 % too bright.)"""
     count = len(captures.projectors)
     views = [captures.for_projector(k) for k in range(count)]
     blacks = [v.image("black") for v in views]
     whites = [v.image("white") for v in views]
-    room = ambient(captures, blacks)
-    black = room + sum(b - room for b in blacks)
+    black = np.mean(blacks, axis=0)
     white = black + sum(w - b for w, b in zip(whites, blacks))
     return black.astype(np.float32), white.astype(np.float32)
 
@@ -848,9 +844,6 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
     assert captures is not None
     cover = footprints(views, captures_views(captures, len(views)))
     black, white = combined_black_white(captures)
-    # The spill's black: every projector's black capture was taken while the others showed black too, so each
-    # holds the whole rig's black; their mean halves the noise, where the combined black's min() and sums add it.
-    dark = np.mean([v.image("black") for v in captures_views(captures, len(views)) or []], axis=0)
     reach = cover.any(axis=0)
     range_map = RangeMap.from_dict(inputs.doc.get("range"))
     rows: list[dict[str, Any]] = []
@@ -885,7 +878,7 @@ def evaluate(calibration: Calibration, inputs: Any, targets: list[tuple[str, np.
                     row["noise_ceiling"] = round(noise_ceiling(fitted, area.crop(black), area.crop(white), noise), 2)
                 else:
                     again = None
-            spill_module.record(row, got, plain, dark, area, reach, again=again)
+            spill_module.record(row, got, plain, black, area, reach, again=again)
             row["area_shares"] = area_shares(cover, area)
         except ProCamError as exc:
             failure = exc
