@@ -378,7 +378,7 @@ class JointStage:
 
     def choose_radiometry(self) -> dict[str, Any]:
         """Whether the open loop works through each camera pixel's own model of each projector (``--radiometry``,
-        stages/radiometry.py, module doc "Each pixel's own radiometry"), decided once for the run; the record.
+        stages/radiometry.py; docs/methods.md, "Several projectors"), decided once for the run; the record.
 
         Each projector's model comes from its own flats (the others black) and is judged on its own held-out
         captures, as one projector's is; ``auto`` uses them when, pooled over the projectors, they predict those
@@ -441,7 +441,7 @@ class JointStage:
             cw, ch = self.compensators[0].camera_size
             self.use_biases([BiasModel(np.zeros((ch, cw, 3), np.float32), None, "pixel",
                                        {"radiometry": "each camera pixel's own model; θ = 0"})] * self.count)
-            self.black = None  # each projector's model holds the rig's black (module doc)
+            self.black = None  # each projector's model holds the rig's black (its black capture)
         return self.radiometry
 
     def keep_global_radiometry(self, why: str) -> None:
@@ -451,9 +451,10 @@ class JointStage:
 
     def pixel_target(self, fitted: np.ndarray, area: DisplayArea, joint: JointCompensator, keep: list[int]
                      ) -> np.ndarray:
-        """The light the joint solve is asked for through each projector's per-pixel model (module doc): projector
-        k gives its blend share β_k of the target's light above the rig's black, ``to_light_k(b + β_k (t − b))``,
-        and the solve is asked for their sum (where one projector lights alone, its own model's answer)."""
+        """The light the joint solve is asked for through each projector's per-pixel model: projector k gives its
+        blend share β_k of the target above the rig's black, ``to_light_k(b + β_k (t − b))``, and the solve is asked
+        for their sum (where one projector lights alone, its own model's answer). Split in the camera's values, not
+        in light: on the lab of other forms the light split scored 1.9 dB less in the overlap (docs/methods.md)."""
         assert self.pixels is not None
         shares = joint.shares()
         total = np.zeros_like(np.asarray(fitted, np.float32))
