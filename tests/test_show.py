@@ -168,6 +168,10 @@ def test_show_end_to_end_resume_and_refusals(stored_calibration, tmp_path, capsy
     assert main(args[:-4] + ["--iterations", "3", "--spp", "1"]) == EXIT_USER
     err = capsys.readouterr().err
     assert "other settings" in err and "iterations" in err and "--force" in err and "Traceback" not in err
+    # frames through each camera pixel's own model are other frames (this lab's auto choice kept the global ones)
+    assert main(args + ["--radiometry", "pixel"]) == EXIT_USER
+    err = capsys.readouterr().err
+    assert "other settings" in err and "radiometry" in err
     write_image(seq / "shot_0009.png", _target(99))
     assert main(args) == EXIT_USER
     assert "frame(s) 9 changed" in capsys.readouterr().err

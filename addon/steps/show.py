@@ -317,7 +317,7 @@ def warm_from(frames: Sequence[SourceFrame], options: ShowOptions) -> dict[int, 
 
 def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: str, digits: int,
                 effects: dict[str, Any] | None, range_map: RangeMap | None = None,
-                warm: dict[str, Any] | None = None) -> dict[str, Any]:
+                warm: dict[str, Any] | None = None, radiometry: dict[str, Any] | None = None) -> dict[str, Any]:
     """What decides the frames' pixels: two runs with equal settings write the same frames."""
     schedule = asdict(options.resolved())
     if mode != "closed-loop":  # θ's update rule and the capture interval only act in the closed loop
@@ -328,7 +328,10 @@ def settings_of(options: StageCOptions, *, calibration: dict[str, str], mode: st
             "target_encoding": options.target_encoding, "digits": digits, "effects": effects,
             "range": None if range_map is None else range_map.to_dict(), "warm_start": warm,
             # a surround other than black (the default, which earlier shows held too) changes the frames
-            **({"surround": list(options.surround)} if options.surround and any(options.surround) else {})}
+            **({"surround": list(options.surround)} if options.surround and any(options.surround) else {}),
+            # and so does each camera pixel's own radiometry (``radiometry``, the stage's choice; shows made before
+            # it was recorded worked through the global models, which leave no key, so they still resume)
+            **({"radiometry": "pixel"} if (radiometry or {}).get("used") == "pixel" else {})}
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
@@ -575,15 +578,24 @@ def _prepare(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions,
         with JointStage(cal, sc, device=device, progress=say) as joint:
             _fix_range(joint, frames, say)
             settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=joint.effects(),
-                                   range_map=joint.range_map, warm=options.warm())
+                                   range_map=joint.range_map, warm=options.warm(), radiometry=_radiometry(joint, say))
             settings["blend"] = "derived"  # the joint solve's blend prior (stages/joint.py)
             return _run(options, frames, joint, cal, ident, settings, digits, say, cancel)
     with StageC(cal, sc, device=device, compensator=compensator) as stage:
         effects = stage.adapter.params if stage.adapter is not None else None
         _fix_range(stage, frames, say)
         settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects,
-                               range_map=stage.range_map, warm=options.warm())
+                               range_map=stage.range_map, warm=options.warm(), radiometry=_radiometry(stage, say))
         return _run(options, frames, stage, cal, ident, settings, digits, say, cancel)
+
+
+def _radiometry(stage: StageC | JointStage, say: Progress) -> dict[str, Any] | None:
+    """Whether the show's frames go through each camera pixel's own model (decided once, before the settings that
+    a resumed show must match are made)."""
+    if stage.options.radiometry == "global":
+        return None
+    say("measuring each camera pixel's response and colour mixing, judged on held-out captures", 0.0)
+    return stage.choose_radiometry()
 
 
 def _fix_range(stage: StageC | JointStage, frames: list[SourceFrame], say: Progress) -> None:
