@@ -449,6 +449,16 @@ class JointStage:
         if self.radiometry is None:
             self.radiometry = {"used": "global", "rule": self.options.radiometry, "reason": why}
 
+    def model_target(self, fitted: np.ndarray, area: DisplayArea, joint: JointCompensator, keep: list[int]
+                     ) -> np.ndarray:
+        """A target fitted to the display area in the units the joint solve compares with its model's light: through
+        each projector's per-pixel model (:meth:`pixel_target`), else through the rig's camera curve when
+        ``--effects`` inverts it, else as it is (the same for :meth:`compensate` and a show's warm starts,
+        :meth:`initial_inputs`)."""
+        if self.pixels is not None:
+            return self.pixel_target(fitted, area, joint, keep)
+        return fitted if self.camera is None else self.camera.to_model(fitted, area)
+
     def pixel_target(self, fitted: np.ndarray, area: DisplayArea, joint: JointCompensator, keep: list[int]
                      ) -> np.ndarray:
         """The light the joint solve is asked for through each projector's per-pixel model: projector k gives its
@@ -514,9 +524,7 @@ class JointStage:
         # The joint solve's own start, built by its own steps (no second copy of them to drift): θ is zero in the
         # closed loop's start as in no-bias mode. A projector dark in the area starts (and stays) black.
         _, keep, joint, _, biases = self._solver(area)
-        if self.pixels is not None:
-            fitted = self.pixel_target(fitted, area, joint, keep)
-        area, placed = joint._place(fitted, area, "the target")
+        area, placed = joint._place(self.model_target(fitted, area, joint, keep), area, "the target")
         _, gains, theta = joint._mode(None, open_loop, biases if open_loop else None,
                                       self.black if open_loop else None)
         out = [np.zeros((comp.ih, comp.iw, 3), np.float32) for comp in self.compensators]
@@ -634,22 +642,19 @@ class JointStage:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", TargetAspectWarning)
             fitted = self.fitted(image, area, what)
+            model_target = self.model_target(fitted, area, joint, keep)
             if self.pixels is not None and device is not None:
                 # the closed loop starts from the per-pixel models' open-loop answer, then corrects it in the
-                # camera's units (as one projector's: stage_c.StageC.compensate)
+                # camera's units (as one projector's: stage_c.StageC.compensate; no --effects, so no camera curve)
                 assert self.biases is not None
-                first = joint.run(self.pixel_target(fitted, area, joint, keep), area,
-                                  biases=[self.biases[k] for k in keep], blend=blend, cancel=cancel, name=name,
-                                  start=None if start is None else [start[k] for k in keep],
+                first = joint.run(model_target, area, biases=[self.biases[k] for k in keep], blend=blend,
+                                  cancel=cancel, name=name, start=None if start is None else [start[k] for k in keep],
                                   **{**args, "iterations_z": self.schedule.iterations_z, "iterations_joint": 0})
                 start = [np.zeros((c.ih, c.iw, 3), np.float32) for c in self.compensators]
                 for k, z in zip(keep, first.z):
                     start[k] = z
                 args["iterations_z"] = 0
-            # the joint solve compares its model with light: the target taken through the camera's curve too, or
-            # through each projector's per-pixel model
-            model_target = self.pixel_target(fitted, area, joint, keep) if self.pixels is not None and \
-                device is None else fitted if self.camera is None else self.camera.to_model(fitted, area)
+                model_target = fitted
             res = joint.run(model_target, area, device=device, biases=biases if o.mode == "open-loop" else None,
                             black=self.black if o.mode == "open-loop" else None, use_bias=o.use_bias, blend=blend,
                             progress=progress, cancel=cancel, name=name,
