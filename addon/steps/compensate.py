@@ -36,7 +36,7 @@ from ..stages.closed_loop import OtherRigError
 from ..stages.range import range_line
 from . import calibrate as calibrate_step
 from . import layout, projectors
-from .stage_c import StageC, StageCOptions, check_device_fits, loop_record, stage_c_inputs
+from .stage_c import StageC, StageCOptions, check_device_fits, loop_record, measure_radiometry, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.COMPENSATION
@@ -119,9 +119,7 @@ def _run(options: CompensateOptions, say: Progress, cancel: Cancel | None, devic
         failure: ProCamError | None = None
         stopped: BaseException | None = None  # Ctrl-C or Cancel: the targets finished so far are kept
         try:
-            if stage.options.radiometry != "global":
-                say("measuring each camera pixel's response and colour mixing, judged on held-out captures", 0.02)
-                stage.choose_radiometry()
+            measure_radiometry(stage, say, 0.02)
             if stage.options.mode == "open-loop":
                 say("estimating θ from the validation captures (open loop)", 0.02)
                 stage.estimate_bias()

@@ -202,9 +202,10 @@ class RealtimeSolver:
             share_rows = [None]
         surround = self.surround
         views, gathers, held_texels = [], [], []
+        row_views: dict[int, Any] = {}
         for k, gain in zip(keep, gains):
             comp = comps[k]
-            view = comp.transport.rows(rows, comp.model.variant)
+            view = row_views[k] = comp.transport.rows(rows, comp.model.variant)
             inverse = self.inverses[k]
             assert inverse is not None
             # --effects defocus: the lens's blur held as stage C holds it (T B), through its own regularised inverse
@@ -219,7 +220,7 @@ class RealtimeSolver:
         plan = self._plans[key] = _Plan(keep, views, gathers, share_rows,
                                         np.asarray(theta, np.float32).reshape(-1, 3)[rows].copy(), held=held_texels)
         if surround is not None:
-            plan.surround_light = self._surround_light(area, rows, dict(zip(keep, gains)))
+            plan.surround_light = self._surround_light(area, rows, dict(zip(keep, gains)), row_views)
         return plan
 
     @property
@@ -228,17 +229,19 @@ class RealtimeSolver:
         s = tuple(float(v) for v in self._compensators(self.stage)[0].surround)
         return s if any(s) else None  # type: ignore[return-value]
 
-    def _surround_light(self, area: DisplayArea, rows: np.ndarray, gains: dict[int, np.ndarray | None]
-                        ) -> np.ndarray:
+    def _surround_light(self, area: DisplayArea, rows: np.ndarray, gains: dict[int, np.ndarray | None],
+                        views: dict[int, Any]) -> np.ndarray:
         """(rows × 3) the light on the area's rows of every projector's input held at the surround outside its
         area texels (a projector that lights nothing of the area: its whole input), through each one's open-loop
-        gain: what the answer inside need not give (stage C's solve holds those texels so, in its model)."""
+        gain: what the answer inside need not give (stage C's solve holds those texels so, in its model).
+        ``views``: the operators on these rows the plan already made (a projector dark in the area gets its own)."""
         total = np.zeros((len(rows), 3), np.float32)
         for k, comp in enumerate(self._compensators(self.stage)):
             z = comp.hold_surround(np.zeros((*comp.transport.input_size[::-1], 3), np.float32), area)
             if comp.input_blur and self.hold_blur:  # the lens blurs the surround's edge as it does the picture's
                 z = lens_blur(z, comp.input_blur)
-            light = comp.transport.rows(rows, comp.model.variant).apply(z)
+            view = views.get(k) or comp.transport.rows(rows, comp.model.variant)
+            light = view.apply(z)
             gain = gains.get(k)
             total += light if gain is None else gain.reshape(-1, 3)[rows] * light
         return total

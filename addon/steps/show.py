@@ -99,7 +99,7 @@ from . import layout
 from .show_cluster import CONNECT_TIMEOUT, Cluster, WorkerContext
 from .projectors import JointStage
 from .show_work import FrameJob, FrameOutcome, compute_frame, source_record
-from .stage_c import StageC, StageCOptions, check_device_fits, stage_c_inputs
+from .stage_c import StageC, StageCOptions, check_device_fits, measure_radiometry, stage_c_inputs
 from .summary import Summary, cached, fmt
 
 KIND = layout.SHOW
@@ -578,24 +578,17 @@ def _prepare(options: ShowOptions, frames: list[SourceFrame], sc: StageCOptions,
         with JointStage(cal, sc, device=device, progress=say) as joint:
             _fix_range(joint, frames, say)
             settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=joint.effects(),
-                                   range_map=joint.range_map, warm=options.warm(), radiometry=_radiometry(joint, say))
+                                   range_map=joint.range_map, warm=options.warm(),
+                                   radiometry=measure_radiometry(joint, say))
             settings["blend"] = "derived"  # the joint solve's blend prior (stages/joint.py)
             return _run(options, frames, joint, cal, ident, settings, digits, say, cancel)
     with StageC(cal, sc, device=device, compensator=compensator) as stage:
         effects = stage.adapter.params if stage.adapter is not None else None
         _fix_range(stage, frames, say)
         settings = settings_of(sc, calibration=ident, mode=mode, digits=digits, effects=effects,
-                               range_map=stage.range_map, warm=options.warm(), radiometry=_radiometry(stage, say))
+                               range_map=stage.range_map, warm=options.warm(),
+                               radiometry=measure_radiometry(stage, say))
         return _run(options, frames, stage, cal, ident, settings, digits, say, cancel)
-
-
-def _radiometry(stage: StageC | JointStage, say: Progress) -> dict[str, Any] | None:
-    """Whether the show's frames go through each camera pixel's own model (decided once, before the settings that
-    a resumed show must match are made)."""
-    if stage.options.radiometry == "global":
-        return None
-    say("measuring each camera pixel's response and colour mixing, judged on held-out captures", 0.0)
-    return stage.choose_radiometry()
 
 
 def _fix_range(stage: StageC | JointStage, frames: list[SourceFrame], say: Progress) -> None:

@@ -330,6 +330,17 @@ class TargetResult:
     warnings: list[str]
 
 
+def measure_radiometry(stage: Any, say: Progress, fraction: float = 0.0) -> dict[str, Any] | None:
+    """A stage's (:class:`StageC` or ``projectors.JointStage``) choice of radiometry, said while it measures each
+    camera pixel's own model: once, before the targets (``compensate``) or before a show's settings are made;
+    None with ``--radiometry global``, which measures nothing."""
+    if stage.options.radiometry == "global":
+        return None
+    say("measuring each camera pixel's response and colour mixing, judged on held-out captures", fraction)
+    record: dict[str, Any] = stage.choose_radiometry()
+    return record
+
+
 def loop_record(tmp: Path, name: str, result: Any) -> dict[str, Any] | None:
     """The measured closed loop's record of target ``name`` from its stage-C ``result`` (None for other loops), with
     where it corrected the model written into ``tmp``: |θ| per camera pixel, linear (``layout.correction_file``)."""
