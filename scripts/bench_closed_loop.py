@@ -142,16 +142,19 @@ def joint_at_limit(work: Path, comp: Path, ev: Path, row: dict, black: np.ndarra
 
 
 def primaries(truth: Path, repeats: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """The lab's captures of black and of the three primaries at full on every projector (each the mean of
-    ``repeats``): what :func:`~procam.addon.stages.gamut.gamut_clip` needs."""
+    """The lab's captures of black and of the three primaries at full over every projector's input (each the mean
+    of ``repeats``): what :func:`~procam.addon.stages.gamut.gamut_clip` needs. Only the input lights: texels of the
+    native frame outside it are no answer's to use (a 300×300 input in a 400×300 frame leaves a side band that
+    lights a neighbour's part of the area, which counted, made colours there look reachable that no answer shows)."""
     from procam.addon.lab.cycles_device import LabDevice
     from procam.addon.lab.truth import LabTruth
 
     lab = LabTruth.load(truth)
     with LabDevice(lab, seed=lab.seed + 977) as device:
         def shot(colour: tuple[float, float, float]) -> np.ndarray:
-            frames = [np.broadcast_to(np.asarray(colour, np.float32), (p.intrinsics.height, p.intrinsics.width, 3))
-                      .copy() for p in lab.rig.projectors]
+            frames = [p.frame_from_input(np.broadcast_to(np.asarray(colour, np.float32),
+                                                         (p.input_size[1], p.input_size[0], 3)))
+                      for p in lab.rig.projectors]
             return np.mean([device.project_all(frames) for _ in range(repeats)], axis=0)
         return shot((0.0, 0.0, 0.0)), np.stack([shot(c) for c in ((1, 0, 0), (0, 1, 0), (0, 0, 1))])
 
