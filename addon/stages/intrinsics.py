@@ -250,7 +250,7 @@ class _GrayCodeView:
     def perturbed(self, bias: float = 0.0, shift: tuple[float, float] = (0.0, 0.0)) -> _GrayCodeView:
         """The same view with a depth sensor wrong by ``bias`` metres and misregistered by ``shift`` pixels."""
         out = object.__new__(_GrayCodeView)
-        out.__dict__.update(self.__dict__, bias=float(bias), shift=(float(shift[0]), float(shift[1])))
+        out.__dict__.update(self.__dict__, bias=float(bias), shift=(float(shift[0]), float(shift[1])), _seen={})
         return out
 
     def subset(self, rows: np.ndarray) -> _GrayCodeView:
@@ -261,11 +261,26 @@ class _GrayCodeView:
 
     def points(self, k1: float, k2: float, focal: float = 1.0) -> np.ndarray:
         """N×3 surface points (rig frame) the decoded pixels see through a lens with k1, k2 and the camera's focal
-        length ``focal`` times the given one; NaN where none.
+        length ``focal`` times the given one; NaN where none (read-only: the last few are kept).
 
         The depth is looked up at the undistorted pixel, which does not depend on the focal length: the surface
         was made from the depth with the given K and is seen through the same K, so each pixel keeps its depth.
         """
+        # Nine of a fit's twelve parameters are the projector's: every Jacobian column of those, and every trial
+        # step that keeps the camera's, sees the same points (they were 40 % of a fit's time, recomputed).
+        seen: dict[tuple[float, float, float], np.ndarray] = self.__dict__.setdefault("_seen", {})
+        key = (float(k1), float(k2), float(focal))
+        if key in seen:
+            seen[key] = seen.pop(key)  # the most recent last
+            return seen[key]
+        pts = self._points(k1, k2, focal)
+        pts.flags.writeable = False
+        seen[key] = pts
+        while len(seen) > 4:
+            del seen[next(iter(seen))]
+        return pts
+
+    def _points(self, k1: float, k2: float, focal: float) -> np.ndarray:
         crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-12)
         kc = self.kc.copy()
         kc[0, 0] *= focal
@@ -283,30 +298,54 @@ class _GrayCodeView:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Projector-pixel residuals (2N) for x = f, cx, cy (OpenCV), rvec, tvec, camera k1, k2, camera focal
         factor."""
+        return self._project(x, derivatives=False)[0]
+
+    def _project(self, x: np.ndarray, derivatives: bool) -> tuple[np.ndarray, np.ndarray | None]:
         km = _projector_matrix(x, self.aspect)
         pts = self.points(x[9], x[10], x[11])
         ok = np.isfinite(pts[:, 2])
-        proj, _ = cv2.projectPoints(np.where(ok[:, None], pts, 1.0), x[3:6], x[6:9], km, None)
+        proj, jac = cv2.projectPoints(np.where(ok[:, None], pts, 1.0), x[3:6], x[6:9], km, None)
         r = proj.reshape(-1, 2) - self.target
         r[~ok] = 0.0  # a point that leaves the surface adds nothing (rare: the set is fixed at the start)
-        return r.ravel()
+        if not derivatives:
+            return r.ravel(), None
+        # OpenCV's columns: rvec (3), tvec (3), fx, fy, cx, cy, then the distortion's; ours: f (fy = f · aspect),
+        # cx, cy, rvec, tvec
+        j = np.column_stack([jac[:, 6] + self.aspect * jac[:, 7], jac[:, 8], jac[:, 9], jac[:, 0:6]])
+        j[np.repeat(~ok, 2)] = 0.0
+        return r.ravel(), j
+
+    def jacobian(self, x: np.ndarray, r: np.ndarray, steps: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The residuals' derivatives at ``x`` (whose residuals are ``r``) in the columns ``cols``: the
+        projector's nine from the projection's own derivatives, the camera's (k1, k2, focal factor) by forward
+        differences of ``steps`` (they move the points through the depth image)."""
+        projector = [int(i) for i in cols if i < 9]
+        out = np.empty((r.size, len(cols)))
+        if projector:
+            analytic = self._project(x, derivatives=True)[1]
+            assert analytic is not None
+            for c, i in enumerate(cols):
+                if i < 9:
+                    out[:, c] = analytic[:, i]
+        for c, i in enumerate(cols):
+            if i >= 9:
+                e = np.zeros_like(x)
+                e[i] = steps[i]
+                out[:, c] = (self.residuals(x + e) - r) / steps[i]
+        return out
 
 
-def _levenberg_marquardt(fun, x0: np.ndarray, steps: np.ndarray, free: np.ndarray, iterations: int = 60
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Minimise |fun(x)|² over ``x[free]`` from x0 (forward-difference Jacobian with ``steps``, Marquardt's
-    damping); returns x, the residuals and the Jacobian (free columns) at x."""
+def _levenberg_marquardt(view: _GrayCodeView, x0: np.ndarray, steps: np.ndarray, free: np.ndarray,
+                         iterations: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Minimise the view's |residuals(x)|² over ``x[free]`` from x0 (its Jacobian, Marquardt's damping); returns
+    x, the residuals and the Jacobian (free columns) at x."""
+    fun = view.residuals
     x = np.asarray(x0, np.float64).copy()
     r = fun(x)
     lam = 1e-3
 
     def jacobian(x: np.ndarray, r: np.ndarray) -> np.ndarray:
-        cols = []
-        for i in free:
-            e = np.zeros_like(x)
-            e[i] = steps[i]
-            cols.append((fun(x + e) - r) / steps[i])
-        return np.column_stack(cols)
+        return view.jacobian(x, r, steps, free)
 
     j = jacobian(x, r)
     for _ in range(iterations):
@@ -354,10 +393,6 @@ def _camera_from_projector(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     pose = np.linalg.inv(p_from_c)
     pose[3] = (0.0, 0.0, 0.0, 1.0)
     return pose
-
-
-def _jacobian(fun, x: np.ndarray, r: np.ndarray, steps: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    return np.column_stack([(fun(x + np.eye(len(x))[i] * steps[i]) - r) / steps[i] for i in cols])
 
 
 def _blocks(camera_px: np.ndarray, n: int = BLOCKS) -> list[np.ndarray]:
@@ -415,7 +450,7 @@ def _spread(view: _GrayCodeView, x: np.ndarray, steps: np.ndarray, free: np.ndar
     """The :class:`_Spread` of the fit at ``x`` over ``free``: ``errors`` are the views with the depth sensor
     wrong by one σ, ``held`` the values fixed at their spec (index name → prior σ, see :data:`_INDEX`)."""
     r = view.residuals(x)
-    j = _jacobian(view.residuals, x, r, steps, free)
+    j = view.jacobian(x, r, steps, free)
     normal = j.T @ j
     n = len(x)
 
@@ -520,7 +555,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
         x = x.copy()
         x[_INDEX[hold]] = x_nominal[_INDEX[hold]]
         free = free[free != _INDEX[hold]]
-        x, _, _ = _levenberg_marquardt(view.residuals, x, steps, free)
+        x, _, _ = _levenberg_marquardt(view, x, steps, free)
     fitted = [n for n in judged if n not in held]
     fitted_before = list(fitted)
     held_out: dict[str, Any] = {"rms_nominal_px": None, "rms_fitted_px": None, "improves": None}
@@ -542,7 +577,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
             train = view.subset(np.flatnonzero(part))
             per_block: dict[str, list[float]] = {"fit": [], "spec": []}
             for name, start, cols in (("fit", x, free), ("spec", x_spec, spec_free)):
-                xt, _, _ = _levenberg_marquardt(train.residuals, start, steps, cols)
+                xt, _, _ = _levenberg_marquardt(train, start, steps, cols)
                 for b in np.unique(key[~part]):
                     rt = view.subset(np.flatnonzero(key == b)).residuals(xt)
                     sums[name] += float(rt @ rt)
@@ -560,7 +595,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
             for m in fitted:
                 held[m] = priors[m]
             x, free, fitted = x_spec, spec_free, []
-            x, _, _ = _levenberg_marquardt(view.residuals, x, steps, free)
+            x, _, _ = _levenberg_marquardt(view, x, steps, free)
             spread = _spread(view, x, steps, free, blocks, errors, held)
             sd = dict(zip(free.tolist(), spread.std()))
     pos_std, axis_std = spread.pose_std(x)
@@ -630,7 +665,7 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     # Two rounds of outlier rejection (decoding errors at pattern edges): a wrong spec leaves residuals of several
     # pixels, so the first threshold is loose and set by the data (robust spread), the second tight.
     for _ in range(2):
-        x, _, _ = _levenberg_marquardt(_GrayCodeView(cam_px[keep], img[keep], depth, camera, aspect).residuals,
+        x, _, _ = _levenberg_marquardt(_GrayCodeView(cam_px[keep], img[keep], depth, camera, aspect),
                                        x, steps, _NO_LENS)
         res = np.linalg.norm(everything.residuals(x).reshape(-1, 2), axis=1)
         spread = 1.4826 * np.median(np.abs(res - np.median(res)))
@@ -640,15 +675,15 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
                                    f"({int(keep.sum())}) to fit the projector's intrinsics; keep the spec "
                                    "(--projector-intrinsics spec)")
     gv = _GrayCodeView(cam_px[keep], img[keep], depth, camera, aspect)
-    _, r_nominal, _ = _levenberg_marquardt(gv.residuals, x0, steps, _POSE)  # the spec's K, its best pose
-    x, r, j = _levenberg_marquardt(gv.residuals, x, steps, _NO_LENS)
+    _, r_nominal, _ = _levenberg_marquardt(gv, x0, steps, _POSE)  # the spec's K, its best pose
+    x, r, j = _levenberg_marquardt(gv, x, steps, _NO_LENS)
     sd = _covariance_std(j, r)
     lens: dict[str, Any] = {"k1": 0.0, "k2": 0.0, "std_k1": None, "std_k2": None, "determined": False}
     # Then the camera's radial distortion with them: the photographs' lens bends the decoded pixels' rays, and a
     # projector fitted without it takes the bend into its focal length (measured: -2.6 % on the lab's curve with
     # its realistic k1 = -0.036).
     used = _NO_LENS
-    x_lens, r_lens, j_lens = _levenberg_marquardt(gv.residuals, x, steps, _LENS)
+    x_lens, r_lens, j_lens = _levenberg_marquardt(gv, x, steps, _LENS)
     sd_lens = _covariance_std(j_lens, r_lens)
     lens.update(std_k1=float(sd_lens[9]), std_k2=float(sd_lens[10]))
     if sd_lens[9] < DISTORTION_STD_MAX and np.isfinite(x_lens).all():
@@ -665,7 +700,7 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     # scaled by as much (no data can tell them apart); the more the two axes converge, the more it bends the
     # projector's view of a non-planar surface in ways no pinhole K can take up, which is what pins it here.
     free = _CAMERA_FOCAL if lens["determined"] else np.r_[_NO_LENS, 11]
-    x_cam, r_cam, j_cam = _levenberg_marquardt(gv.residuals, x, steps, free)
+    x_cam, r_cam, j_cam = _levenberg_marquardt(gv, x, steps, free)
     sd_cam = _covariance_std(j_cam, r_cam)
     focal: dict[str, Any] = {"factor": 1.0, "std": float(sd_cam[-1]), "determined": False,
                              "given_fx": camera.fx, **({"held": "shared"} if camera_shared else {})}
@@ -691,7 +726,7 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
         k, pose, r = nominal, None, r_nominal
         lens["determined"] = False
         focal.update(factor=1.0, determined=False, fitted_fx=camera.fx)
-        x_pose, _, _ = _levenberg_marquardt(gv.residuals, x_nom, steps, _POSE)
+        x_pose, _, _ = _levenberg_marquardt(gv, x_nom, steps, _POSE)
         _, _, judged = judge_fit(gv, cam_px[keep], x_pose, x_nom, steps, _POSE, priors, bias_std, shift_std)
         for name, i in list(_INDEX.items())[:3]:
             judged["values"][name] = {"kept": "spec", "reason": "surface", "prior_std": priors[name],
