@@ -8,15 +8,18 @@ a half-written file under the real name.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import struct
 import tempfile
+import threading
 import tokenize
 import zipfile
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
 
@@ -102,6 +105,34 @@ def _to_bgr(img: np.ndarray) -> np.ndarray:
     return img
 
 
+#: Images this process wrote, or decoded whole and found readable, by :func:`file_version`: their size (width,
+#: height). A capture set's check that every file decodes (``CaptureSet.verify``) trusts these.
+_KNOWN: dict[tuple[str, int, int, int, int], tuple[int, int]] = {}
+
+
+def file_version(path: Path) -> tuple[str, int, int, int, int] | None:
+    """What tells one version of a file from another without reading it (path, device, inode, size, modification
+    time in nanoseconds), or None where it cannot be read: a rewritten or replaced file has another."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def known_size(path: Path) -> tuple[int, int] | None:
+    """The size of the image at ``path`` if this process wrote this version of it or decoded it whole, else None."""
+    version = file_version(path)
+    return None if version is None else _KNOWN.get(version)
+
+
+def remember_size(path: Path, size: tuple[int, int]) -> None:
+    """Record that the image now at ``path`` decodes whole to ``size`` (width, height)."""
+    version = file_version(path)
+    if version is not None:
+        _KNOWN[version] = (int(size[0]), int(size[1]))
+
+
 def write_image(path: str | Path, image: np.ndarray) -> Path:
     """Write float [0,1] data as 16-bit PNG (``.png``), float EXR (``.exr``) or ``.npy``."""
     path = Path(path)
@@ -129,6 +160,7 @@ def write_image(path: str | Path, image: np.ndarray) -> Path:
         raise write_failed(final, exc) from None
     finally:
         tmp.unlink(missing_ok=True)
+    remember_size(final, (img.shape[1], img.shape[0]))
     return final
 
 
@@ -429,14 +461,76 @@ def read_arrays(path: str | Path, names: Iterable[str] | None = None, *, error: 
         raise error(f"{path} is damaged ({why}); {remedy}") from None
 
 
-def read_image(path: str | Path, *, channels: int | None = 3) -> np.ndarray:
+class _Kept:
+    """The images :func:`kept_decoded` keeps: file version and channels → image, the least recently read first."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes, self.bytes = max_bytes, 0
+        self.images: dict[tuple[Any, ...], np.ndarray] = {}
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple[Any, ...]) -> np.ndarray | None:
+        with self.lock:
+            img = self.images.pop(key, None)
+            if img is None:
+                return None
+            self.images[key] = img
+            return img.copy()  # a reader may write into what it got
+
+    def put(self, key: tuple[Any, ...], img: np.ndarray) -> None:
+        if img.nbytes > self.max_bytes:
+            return
+        with self.lock:
+            old = self.images.pop(key, None)
+            self.bytes += img.nbytes - (0 if old is None else old.nbytes)
+            self.images[key] = img.copy()
+            while self.bytes > self.max_bytes:
+                self.bytes -= self.images.pop(next(iter(self.images))).nbytes
+
+
+_kept: _Kept | None = None
+
+
+@contextlib.contextmanager
+def kept_decoded(max_bytes: int = 1 << 30) -> Iterator[None]:
+    """Within: each image :func:`read_image` decodes is kept (up to ``max_bytes``, the least recently read dropped
+    first), and a read of the same version of the file (:func:`file_version`) is a copy of it. A step that reads a
+    capture set in several passes (its check, the Gray code's decoding, the diagnosis's data and its session
+    check) decoded each photograph three to five times: a real session's diagnosis spent 13 of its 19 s on it.
+    Nested, the outer one holds."""
+    global _kept
+    if _kept is not None:
+        yield
+        return
+    _kept = _Kept(max_bytes)
+    try:
+        yield
+    finally:
+        _kept = None
+
+
+def read_image(path: str | Path, *, channels: int | None = 3, keep: bool = True) -> np.ndarray:
     """Read an image as float32 linear values; 8/16-bit files are scaled to [0, 1].
 
     ``channels=3`` returns H×W×3 (grey is repeated), ``1`` returns H×W,
     ``None`` returns what the file holds. A JPEG's EXIF orientation is applied
-    (:func:`exif_orientation`), as OpenCV's ``IMREAD_COLOR`` would.
+    (:func:`exif_orientation`), as OpenCV's ``IMREAD_COLOR`` would. Within :func:`kept_decoded` a file read before
+    is not decoded again (``keep`` False: nor is this one kept, a file read once for its size).
     """
     path = Path(path)
+    kept = _kept if keep else None
+    version = file_version(path) if kept is not None else None
+    if kept is not None and version is not None:
+        img = kept.get((version, channels))
+        if img is not None:
+            return img
+    img = _read_image(path, channels)
+    if kept is not None and version is not None:
+        kept.put((version, channels), img)
+    return img
+
+
+def _read_image(path: Path, channels: int | None) -> np.ndarray:
     if not path.is_file():
         raise ImageError(f"image not found: {path}")
     check_image_file(path)  # before decoding: a small file can declare billions of pixels

@@ -57,7 +57,7 @@ import numpy as np
 
 from ..colour import srgb_decode, srgb_encode
 from ..errors import CaptureError, ImageError, RigError
-from ..imageio import read_image, write_atomic_bytes, write_image
+from ..imageio import known_size, read_image, remember_size, write_atomic_bytes, write_image
 from ..outputs import AtomicFolder, holds_manifest, jsonable
 from ..rig.model import Camera, Intrinsics, Projector, projectors_from_dict
 from ..safepaths import inside
@@ -156,22 +156,6 @@ class Entry:
 
 
 _MISSING = object()
-
-#: Images this process decoded whole and found readable, by :func:`_file_version`: their size (``verify``).
-_VERIFIED: dict[tuple[str, int, int, int, int], tuple[int, int]] = {}
-
-
-def _file_version(path: Path) -> tuple[str, int, int, int, int] | None:
-    """What tells one version of a file from another without reading it (path, device, inode, size, modification
-    time in nanoseconds), or None where it cannot be read: a rewritten or replaced file has another."""
-    try:
-        st = path.stat()
-    except OSError:
-        return None
-    return (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
-
-
-
 
 def _check_params(kind: str, params: dict[str, Any], where: str) -> None:
     missing = [p for p in REQUIRED_PARAMS.get(kind, ()) if p not in params]
@@ -415,9 +399,10 @@ class CaptureSet:
     def verify(self) -> None:
         """Decode every file once: exists, readable, complete, right size, sane depth.
 
-        A file this process already decoded and found so, unchanged since (:func:`_file_version`), is not decoded
-        again: one process that runs several steps on one set (the demo: calibrate, compensate, diagnose; a
-        pipeline in Python) read each photograph three times for the same answer (real sessions: 11 of 70 s)."""
+        A file this process wrote or already decoded and found so, unchanged since
+        (:func:`~procam.addon.imageio.file_version`), is not decoded again: one process that runs several steps on
+        one set (the demo: calibrate, compensate, diagnose; a pipeline in Python) read each photograph three times
+        for the same answer (real sessions: 11 of 70 s), and a set it had just written (import, the lab) once more."""
         cam = self.camera.intrinsics.size
         for e in self.entries:
             frame = self.projectors[e.projector].intrinsics.size
@@ -429,32 +414,31 @@ class CaptureSet:
                 raise CaptureError(f"{self.path / e.file}: image is {size[0]}×{size[1]} pixels, "
                                    f"but the camera resolution is {cam[0]}×{cam[1]}")
             if e.pattern:
-                size = self._verified_size(e.pattern)
+                size = self._verified_size(e.pattern, keep=False)
                 if size != frame:
                     whose = f"projector {e.projector + 1}'s" if self.others else "the projector"
                     raise CaptureError(f"{self.path / e.pattern}: projected pattern is {size[0]}×{size[1]}, "
                                        f"but {whose} frame is {frame[0]}×{frame[1]}")
 
-    def _verified_size(self, rel: str) -> tuple[int, int]:
-        """The size of the image ``rel``, decoded whole unless this process decoded this version of it before."""
-        version = _file_version(self._file(rel))
-        size = _VERIFIED.get(version) if version is not None else None
+    def _verified_size(self, rel: str, keep: bool = True) -> tuple[int, int]:
+        """The size of the image ``rel``, decoded whole unless this process wrote or decoded this version of it
+        before (:func:`~procam.addon.imageio.known_size`); ``keep``: see :func:`~procam.addon.imageio.read_image`."""
+        size = known_size(self._file(rel))
         if size is None:
-            size = _size(self._read(rel))
-            if version is not None:
-                _VERIFIED[version] = size
+            size = _size(self._read(rel, keep))
+            remember_size(self._file(rel), size)
         return size
 
     def _file(self, rel: str) -> Path:
         # Checked at load too; resolved again at each read, so a link put in after loading is not followed.
         return inside(self.path, rel, what="capture set file", error=CaptureError)
 
-    def _read(self, rel: str) -> np.ndarray:
+    def _read(self, rel: str, keep: bool = True) -> np.ndarray:
         path = self._file(rel)
         if not path.is_file():
             raise CaptureError(f"capture set {self.path}: file {rel} is missing")
         try:
-            return read_image(path)
+            return read_image(path, keep=keep)
         except ImageError as exc:
             raise CaptureError(f"capture set {self.path}: {rel} is unreadable or truncated ({exc})") from None
 

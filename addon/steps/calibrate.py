@@ -29,7 +29,7 @@ import numpy as np
 
 from ..capture.format import CaptureSet
 from ..errors import MALFORMED, CalibrationError, Cancelled, ProCamError
-from ..imageio import read_arrays, read_image, write_atomic_bytes, write_image
+from ..imageio import kept_decoded, read_arrays, read_image, write_atomic_bytes, write_image
 from ..options import Choice, option, validate
 from ..outputs import AtomicFolder, check_replaceable, file_sha256, write_manifest
 from ..progress import Cancel, Progress, part, quiet
@@ -135,25 +135,28 @@ def run(options: CalibrateOptions, progress: Progress | None = None, cancel: Can
     # A partial run (reused stages) replaces the calibration it continues; anything else needs force.
     check_replaceable(options.out, force=options.force or bool(reused), what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.capture_dir, mesh), error=CalibrationError)
-    captures = CaptureSet.load(options.capture_dir)
-    previous, images = _previous(Path(options.out), options.capture_dir, reused) if reused else (None, {})
-    folder = AtomicFolder(options.out, force=options.force or previous is not None, what=KIND.what,
-                          replaceable=KIND.holds, error=CalibrationError, inputs=(options.capture_dir, mesh))
-    precompute = options.precompute and plan[-1] == STAGES[-1]
-    share = 0.8 if precompute else 0.95
-    try:
-        result = calibrate_captures(captures, plan=plan, previous=previous, previous_images=images,
-                                    init=options.init, initial_pose=options.initial_pose, seed=options.seed,
-                                    depth_offset=options.depth_offset, stage_a=options.stage_a,
-                                    projector_intrinsics=options.projector_intrinsics,
-                                    surface_from=options.surface_from, surface_mesh=options.surface_mesh,
-                                    progress=part(say, 0.0, share), cancel=cancel)
-        say("writing the calibration folder", share)
-        write(folder.tmp, result.calibration, result.images,
-              blend_writer=blend_writer if options.with_blend else None)
-    except BaseException:
-        folder.abort()
-        raise
+    # the captures' photographs decoded once for the check, the Gray code's decodings and the albedo (a real
+    # session's calibration decoded each three times: 6 of its 16 s)
+    with kept_decoded():
+        captures = CaptureSet.load(options.capture_dir)
+        previous, images = _previous(Path(options.out), options.capture_dir, reused) if reused else (None, {})
+        folder = AtomicFolder(options.out, force=options.force or previous is not None, what=KIND.what,
+                              replaceable=KIND.holds, error=CalibrationError, inputs=(options.capture_dir, mesh))
+        precompute = options.precompute and plan[-1] == STAGES[-1]
+        share = 0.8 if precompute else 0.95
+        try:
+            result = calibrate_captures(captures, plan=plan, previous=previous, previous_images=images,
+                                        init=options.init, initial_pose=options.initial_pose, seed=options.seed,
+                                        depth_offset=options.depth_offset, stage_a=options.stage_a,
+                                        projector_intrinsics=options.projector_intrinsics,
+                                        surface_from=options.surface_from, surface_mesh=options.surface_mesh,
+                                        progress=part(say, 0.0, share), cancel=cancel)
+            say("writing the calibration folder", share)
+            write(folder.tmp, result.calibration, result.images,
+                  blend_writer=blend_writer if options.with_blend else None)
+        except BaseException:
+            folder.abort()
+            raise
     stopped: BaseException | None = None
     if precompute:
         try:

@@ -25,7 +25,7 @@ from ..gap.fit import MAX_EFFECTS, MIN_SHARE
 from ..gap.models import MODELS, NAMES, describe_params
 from ..gap import shared
 from ..gap.overlap import overlap_falloffs
-from ..imageio import write_atomic_bytes, write_image
+from ..imageio import kept_decoded, write_atomic_bytes, write_image
 from ..options import option, validate
 from ..outputs import AtomicFolder, check_replaceable, write_manifest, writer_lock
 from ..progress import Cancel, Progress, part, quiet
@@ -78,7 +78,8 @@ def run(options: DiagnoseOptions, progress: Progress | None = None, cancel: Canc
     check_replaceable(options.out, force=options.force, what=KIND.what, replaceable=KIND.holds,
                       inputs=(options.calibration, calibrate_step.capture_set_of(options.calibration)),
                       error=ProCamError)
-    with writer_lock(options.out):  # another run of this output is refused before any work
+    # each photograph decoded once for the check, the model's data, the evidence and the session check
+    with writer_lock(options.out), kept_decoded():  # another run of this output is refused before any work
         return _run(options, say, cancel)
 
 
