@@ -17,7 +17,7 @@ from procam.addon.capture.targets import natural_target
 from procam.addon.cli.app import main
 from procam.addon.errors import CalibrationError
 from procam.addon.imageio import write_image
-from procam.addon.stages.radiometry import RadiometryPatterns, decision_region, fit_pixel_radiometry
+from procam.addon.stages.radiometry import RadiometryPatterns, decision_region, fit_pixel_radiometry, inverse3
 
 W, H = 64, 48
 LEVELS = (0.25, 0.5, 0.75)
@@ -248,3 +248,14 @@ def test_a_closed_loop_keeps_the_global_models_unless_asked(other_forms_calibrat
     with StageC(cal, StageCOptions(device=f"lab:{root / 'truth.json'}", spp=2, radiometry="pixel")) as stage:
         assert stage.choose_radiometry()["used"] == "pixel" and stage.pixel is not None
         assert stage.bias_record() is None  # θ = 0 is the open loop's; the closed loop records its loop instead
+
+
+def test_each_pixels_mixing_is_inverted_as_numpy_does_and_a_singular_one_by_its_diagonal():
+    rng = np.random.default_rng(3)
+    mix = ((np.eye(3) + 0.3 * rng.random((H, W, 3, 3))) * rng.random((H, W, 1, 3))).astype(np.float32)
+    mix[0, 0] = np.diag([2.0, 0.0, 4.0])  # singular: a channel with no light of its own
+    got = inverse3(mix).astype(np.float32)
+    want = np.linalg.inv(mix[1:])
+    assert np.abs(got[1:] - want).max() <= 1e-6 * np.abs(want).max()
+    assert np.allclose(got[0, 0], np.diag([0.5, 1.0, 0.25]))
+
