@@ -15,8 +15,9 @@ For every pose, with the commands a user runs:
 4. ``procam diagnose``: every other Gray-code pattern held out.
 
 Prints, per pose, the calibration's figures and what the diagnosis finds: the held-out residual before and after
-the selected effects, what they explain, the fitted parameters and the first regions. Folders under ``--work`` are
-reused when complete (``--fresh`` starts again).
+the selected effects, what they explain, the fitted parameters and the first regions; then the seconds each step
+took for each pose (each command in this process, as a user's pipeline in Python runs them). Folders under
+``--work`` are reused when complete (``--fresh`` starts again; a reused step prints no seconds).
 """
 
 from __future__ import annotations
@@ -35,12 +36,18 @@ REAL = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "kam
 POSES = ("capture_0", "capture_1", "capture_2", "capture_3")
 
 
-def _cli(argv: list[str]) -> None:
+#: seconds of each step run: (pose, step) → s
+SECONDS: dict[tuple[str, str], float] = {}
+
+
+def _cli(argv: list[str], pose: str = "") -> None:
     from procam.addon.cli.app import main
 
+    t0 = time.perf_counter()
     code = main(argv)
     if code != 0:
         raise SystemExit(f"procam {' '.join(argv)} failed with exit code {code}")
+    SECONDS[pose, argv[0]] = time.perf_counter() - t0
 
 
 def _same_frames(sequence: Path, published: Path) -> None:
@@ -83,12 +90,12 @@ def main(argv: list[str] | None = None) -> int:
         captures, cal, gap = (args.work / f"{pose}_{k}" for k in ("captures", "calibration", "diagnosis"))
         if not (captures / "capture.json").is_file():
             _cli(["import-captures", str(seq), str(args.real / pose), "--rig", str(rig), "--encoding", "linear",
-                  "--out", str(captures), "--force"])
+                  "--out", str(captures), "--force"], pose)
         if not (cal / "calibration.json").is_file():
             _cli(["calibrate", str(captures), "--out", str(cal), "--init", "nominal", "--no-blend-output",
-                  "--no-precompute", "--force"])
+                  "--no-precompute", "--force"], pose)
         if not (gap / "gap.json").is_file():
-            _cli(["diagnose", str(cal), "--out", str(gap), "--scale", str(args.scale), "--force"])
+            _cli(["diagnose", str(cal), "--out", str(gap), "--scale", str(args.scale), "--force"], pose)
         rows.append((pose, json.loads((cal / "calibration.json").read_text()),
                      json.loads((gap / "gap.json").read_text())))
 
@@ -111,6 +118,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{res['rmse']:.4f} ({res['psnr']:.1f} dB) → {after['rmse']:.4f} ({after['psnr']:.1f} dB) | "
               f"{doc['unexplained']['explained_share']:.0%} | {', '.join(doc['selected']) or 'none'} | {params} | "
               f"{regions} |")
+    steps = ("import-captures", "calibrate", "diagnose")
+    if any(key[1] in steps for key in SECONDS):
+        print("\n| pose | " + " | ".join(f"{s} (s)" for s in steps) + " |\n|---|" + "---|" * len(steps))
+        for pose, _, _ in rows:
+            print(f"| {pose} | " + " | ".join(f"{SECONDS[pose, s]:.1f}" if (pose, s) in SECONDS else "reused"
+                                               for s in steps) + " |")
     return 0
 
 
