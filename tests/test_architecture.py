@@ -8,6 +8,7 @@ function still ties two modules together, and a loop through it is still a loop.
 from __future__ import annotations
 
 import ast
+import functools
 from collections import defaultdict
 from pathlib import Path
 
@@ -24,10 +25,17 @@ def _module(path: Path) -> str:
     return ".".join(["procam", *parts])
 
 
-def _imports(path: Path) -> set[str]:
+@functools.cache
+def _tree(path: Path) -> ast.Module:
+    """The syntax tree of ``path``, parsed once for every rule that reads it (read-only)."""
+    return ast.parse(path.read_text(), str(path))
+
+
+@functools.cache
+def _imports(path: Path) -> frozenset[str]:
     """The modules ``path`` imports (absolute names, relative imports resolved; ``from x import y`` gives x.y when
     y is a module of ours, else x)."""
-    tree = ast.parse(path.read_text(), str(path))
+    tree = _tree(path)
     here = _module(path).split(".")
     package = here if path.name == "__init__.py" else here[:-1]
     out: set[str] = set()
@@ -40,7 +48,7 @@ def _imports(path: Path) -> set[str]:
             for alias in node.names:
                 out.add(f"{name}.{alias.name}")
             out.add(name)
-    return out
+    return frozenset(out)
 
 
 def _graph() -> dict[str, set[str]]:
@@ -126,7 +134,7 @@ def test_own_imports_at_module_level():
     offenders = []
     for path in [*ROOT.glob("*.py"), *ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"),
                  *(ROOT / "panels").rglob("*.py")]:
-        tree = ast.parse(path.read_text(), str(path))
+        tree = _tree(path)
         for func in ast.walk(tree):
             if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -190,7 +198,7 @@ def test_paths_read_from_manifests_go_through_safepaths():
     an absolute name, ``..`` or a link leaving the folder is refused in one place."""
     files = [*ADDON.rglob("*.py"), *(ROOT / "operators").rglob("*.py"), *(ROOT / "panels").rglob("*.py")]
     offenders = [f"{p.relative_to(ROOT)}: {ast.unparse(node)}" for p in sorted(files)
-                 for node in _path_joins_of_manifest_values(ast.parse(p.read_text(), str(p)))]
+                 for node in _path_joins_of_manifest_values(_tree(p))]
     assert offenders == []
 
 
@@ -257,7 +265,7 @@ def test_a_cancel_is_not_an_error_the_user_can_fix():
     reraise_first, catch_all = [], []
     for path in _sources():
         rel = path.relative_to(ROOT).as_posix()
-        tree = ast.parse(path.read_text(), str(path))
+        tree = _tree(path)
         funcs = [f for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))]
         for node in ast.walk(tree):
             if not isinstance(node, ast.Try):
@@ -295,7 +303,7 @@ def test_one_definition_of_each_shared_helper():
     assert mesh_readers == ["addon/surface/mesh.py"]
     image_lists = []
     for path in _sources():
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in ast.walk(_tree(path)):
             if isinstance(node, ast.Tuple) and {".jpg", ".png"} <= {getattr(e, "value", None) for e in node.elts}:
                 image_lists.append(path.relative_to(ROOT).as_posix())
     assert image_lists == ["addon/imageio.py"]
