@@ -242,6 +242,8 @@ class _GrayCodeView:
         self.depth = np.ascontiguousarray(depth, dtype=np.float32)
         self.kc = camera.opencv_matrix()
         self.aspect = aspect
+        #: the last few sets of points, by (k1, k2, focal factor): :meth:`points`
+        self._seen: dict[tuple[float, float, float], np.ndarray] = {}
 
     #: a systematic depth error to try (metres added; the depth map read that many camera pixels right, down)
     bias: float = 0.0
@@ -268,8 +270,7 @@ class _GrayCodeView:
         """
         # Nine of a fit's twelve parameters are the projector's: every Jacobian column of those, and every trial
         # step that keeps the camera's, sees the same points (they were 40 % of a fit's time, recomputed).
-        seen: dict[tuple[float, float, float], np.ndarray] = self.__dict__.setdefault("_seen", {})
-        key = (float(k1), float(k2), float(focal))
+        seen, key = self._seen, (float(k1), float(k2), float(focal))
         if key in seen:
             seen[key] = seen.pop(key)  # the most recent last
             return seen[key]
@@ -319,16 +320,12 @@ class _GrayCodeView:
         """The residuals' derivatives at ``x`` (whose residuals are ``r``) in the columns ``cols``: the
         projector's nine from the projection's own derivatives, the camera's (k1, k2, focal factor) by forward
         differences of ``steps`` (they move the points through the depth image)."""
-        projector = [int(i) for i in cols if i < 9]
+        analytic = self._project(x, derivatives=True)[1] if any(i < 9 for i in cols) else None
         out = np.empty((r.size, len(cols)))
-        if projector:
-            analytic = self._project(x, derivatives=True)[1]
-            assert analytic is not None
-            for c, i in enumerate(cols):
-                if i < 9:
-                    out[:, c] = analytic[:, i]
         for c, i in enumerate(cols):
-            if i >= 9:
+            if i < 9 and analytic is not None:
+                out[:, c] = analytic[:, i]
+            else:
                 e = np.zeros_like(x)
                 e[i] = steps[i]
                 out[:, c] = (self.residuals(x + e) - r) / steps[i]
@@ -343,11 +340,7 @@ def _levenberg_marquardt(view: _GrayCodeView, x0: np.ndarray, steps: np.ndarray,
     x = np.asarray(x0, np.float64).copy()
     r = fun(x)
     lam = 1e-3
-
-    def jacobian(x: np.ndarray, r: np.ndarray) -> np.ndarray:
-        return view.jacobian(x, r, steps, free)
-
-    j = jacobian(x, r)
+    j = view.jacobian(x, r, steps, free)
     for _ in range(iterations):
         a, g = j.T @ j, j.T @ r
         improved = False
@@ -361,7 +354,7 @@ def _levenberg_marquardt(view: _GrayCodeView, x0: np.ndarray, steps: np.ndarray,
             lam *= 4.0
         if not improved or np.all(np.abs(dx[free]) < 1e-3 * steps[free]):
             break
-        j = jacobian(x, r)
+        j = view.jacobian(x, r, steps, free)
     return x, r, j
 
 
