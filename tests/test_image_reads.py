@@ -78,3 +78,14 @@ def test_a_set_this_process_wrote_is_checked_without_decoding_it_and_a_replaced_
     (captures / white).write_bytes(data[: len(data) // 2])  # truncated by someone else: decoded, and refused
     with pytest.raises(CaptureError, match="unreadable or truncated"):
         CaptureSet.load(captures)
+
+
+@pytest.mark.parametrize("dtype, full", [(np.uint8, 255.0), (np.uint16, 65535.0)])
+def test_integer_pixels_read_as_their_share_of_full_scale_in_rgb_order(tmp_path, dtype, full):
+    raw = (np.random.default_rng(4).random((5, 7, 4)) * full).astype(dtype)
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), raw)  # OpenCV's order: blue, green, red, alpha
+    img = read_image(path)
+    assert img.dtype == np.float32 and img.flags.c_contiguous and img.shape == (5, 7, 3)
+    assert np.array_equal(img, raw[..., 2::-1].astype(np.float32) / full)
+    assert np.array_equal(read_image(path, channels=1), img.mean(axis=2))
