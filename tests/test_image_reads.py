@@ -35,7 +35,8 @@ def test_a_file_read_again_within_a_step_is_not_decoded_again_and_each_reader_ge
         first[:] = 0.0  # a reader that writes into its image does not change the next reader's
         second = read_image(path)
         assert len(decodes) == 1 and second.mean() == pytest.approx(30000 / 65535, abs=1e-6)
-        cv2.imwrite(str(path), np.full((6, 8, 3), 1000, np.uint16))  # replaced: another version
+        # replaced: another version (another size too, so that a clock coarser than the two writes cannot hide it)
+        cv2.imwrite(str(path), np.full((6, 9, 3), 1000, np.uint16))
         assert read_image(path).mean() == pytest.approx(1000 / 65535, abs=1e-6) and len(decodes) == 2
         read_image(path, keep=False)  # read for its size alone: decoded, not kept
         read_image(path, channels=1)  # another shape of the same file is its own entry

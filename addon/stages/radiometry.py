@@ -118,10 +118,9 @@ def inverse3(m: np.ndarray) -> np.ndarray:
     adjugate = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=-1)
     det = np.einsum("...i,...i->...", r0, adjugate[..., 0])
     ok = np.isfinite(det) & (det != 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = adjugate / np.where(ok, det, 1.0)[..., None, None]
-        diagonal = np.eye(3) / np.where(np.abs(np.diagonal(a, axis1=-2, axis2=-1)) > 0,
-                                        np.diagonal(a, axis1=-2, axis2=-1), 1.0)[..., None, :]
+    d = np.diagonal(a, axis1=-2, axis2=-1)
+    out = adjugate / np.where(ok, det, 1.0)[..., None, None]
+    diagonal = np.eye(3) / np.where(d != 0.0, d, 1.0)[..., None, :]
     return np.where(ok[..., None, None], out, diagonal)
 
 
