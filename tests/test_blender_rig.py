@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import glob
 import math
-import os
 import tempfile
 
 import numpy as np
@@ -162,15 +160,16 @@ def test_projector_light_lands_where_predicted(bpy_scene):
     assert img[~near].max() < 1e-3  # black elsewhere: nothing from the world or the rest of the frame
 
 
-def test_render_cycles_restores_scene_and_leaves_no_files(bpy_scene):
+def test_render_cycles_restores_scene_and_leaves_no_files(bpy_scene, tmp_path, monkeypatch):
+    # A temporary folder of this test's own: other test processes' renders come and go in the shared one.
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     blender_rig.create_rig(bpy_scene, demo_rig((32, 24), (40, 30)), builtin_surface("plane", resolution=2,
                                                                                      texture_size=4))
     engine, samples, path, world = (bpy_scene.render.engine, bpy_scene.cycles.samples, bpy_scene.render.filepath,
                                     bpy_scene.world)
-    before = set(glob.glob(os.path.join(tempfile.gettempdir(), "procam-cycles-*")))
     img = render_cycles(bpy_scene, samples=2, size=(16, 12))
     assert img.shape == (12, 16, 3) and img.max() > 0.05
-    assert set(glob.glob(os.path.join(tempfile.gettempdir(), "procam-cycles-*"))) == before
+    assert not list(tmp_path.iterdir())
     assert (bpy_scene.render.engine, bpy_scene.cycles.samples, bpy_scene.render.filepath, bpy_scene.world) == (
         engine, samples, path, world)
     assert (bpy_scene.render.resolution_x, bpy_scene.render.resolution_y) == (32, 24)
