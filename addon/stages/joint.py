@@ -121,6 +121,7 @@ class JointRows:
             raise CompensationError(f"{len(gains)} gains for {len(views)} projectors")
         self.gains = [np.ones((n, 3), np.float32) if g is None else np.asarray(g, np.float32).reshape(n, 3)
                       for g in gains]
+        self._unit = [g is None for g in gains]  # a gain of 1 is not multiplied in (each solver step, per projector)
         self.bounds = np.cumsum([0] + [len(v.texels) for v in self.views])
         self._row_ones: np.ndarray | None = None
 
@@ -151,7 +152,7 @@ class JointRows:
         """Each projector's (R, 3) ``g_k T_k z_k`` (``T_k z_k`` without ``gained``)."""
         fixed = list(fixed) if fixed is not None else [None] * self.count
         parts = apply_together(self.views, self.split(zc), fixed)
-        return [g * p for g, p in zip(self.gains, parts)] if gained else parts
+        return [self._gained(k, p) for k, p in enumerate(parts)] if gained else parts
 
     def apply_compact(self, zc: np.ndarray, fixed: Sequence[Any] | None = None) -> np.ndarray:
         """(R, 3) ``Σ_k g_k T_k z_k``."""
@@ -159,7 +160,11 @@ class JointRows:
 
     def adjoint_parts(self, rs: Sequence[np.ndarray]) -> np.ndarray:
         """The concatenated ``T_k^T (g_k r_k)``: each projector its own (R, 3) camera vector ``r_k``."""
-        return np.concatenate(adjoint_together(self.views, [g * r for g, r in zip(self.gains, rs)]), axis=0)
+        return adjoint_together(self.views, [self._gained(k, r) for k, r in enumerate(rs)])
+
+    def _gained(self, k: int, values: np.ndarray) -> np.ndarray:
+        """Projector ``k``'s gain times ``values`` (R, 3)."""
+        return values if self._unit[k] else self.gains[k] * values
 
     def adjoint_compact(self, r: np.ndarray) -> np.ndarray:
         """The adjoint of :meth:`apply_compact`: ``T_k^T (g_k r)`` for every projector, concatenated."""
@@ -390,6 +395,7 @@ class JointSolve(TransportSolve):
         self.reach = blend_reach(lights, shares) if owner.cap_reach and self.weight > 0 and shares is not None \
             and joint.count > 1 else None
         self._parts: list[np.ndarray] = []
+        self._total = np.zeros((0, 3), np.float32)  # Σ of the parts, from the last forward
         self.losses: list[float] = []
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
         self.total = sched.iterations_z + sched.iterations_joint
@@ -399,22 +405,33 @@ class JointSolve(TransportSolve):
 
     def forward(self, zc: np.ndarray) -> np.ndarray:
         self._parts = parts = self.joint.apply_parts(zc, self.fixed)
-        return sum(parts[1:], parts[0])
+        self._total = sum(parts[1:], parts[0])
+        return self._total
 
     def update(self, y: np.ndarray, resid: np.ndarray) -> np.ndarray:
         """The SIRT step on the data rows and, with a blend, on the blend rows: each projector back-projects the
         data residual plus ``λ (q_j − Σ_k β_k q_k)``, ``q_k`` blend row k's residual over its row sum; one adjoint
         per projector either way."""
-        u = resid / self.row_sums
         if not self.weight:
-            return y + self.joint.adjoint_parts([u] * self.joint.count) / self.col_sums
-        lam, parts = self.weight, self._parts
-        total = sum(parts[1:], parts[0])
-        if self.reach is not None:  # target + θ above the blend's reach asks for the reach: min(t + θ, r) − f
-            u = np.minimum(resid, self.reach - total) / self.row_sums
-        q = [(b * total - p) * scale for p, b, scale in zip(parts, self.shares, self.blend_scale)]
-        mixed = sum((b * qk for b, qk in zip(self.shares, q)), np.zeros_like(u))
-        return y + self.joint.adjoint_parts([u + lam * (qj - mixed) for qj in q]) / self.col_sums
+            return y + self.joint.adjoint_parts([resid / self.row_sums] * self.joint.count) / self.col_sums
+        lam, parts, total = self.weight, self._parts, self._total
+        # target + θ above the blend's reach asks for the reach: min(t + θ, r) − f
+        u = (resid if self.reach is None else np.minimum(resid, self.reach - total)) / self.row_sums
+        # In place, each a whole camera-row image per projector and solver step: the same values as written out.
+        q = []
+        for p, b, scale in zip(parts, self.shares, self.blend_scale):
+            qk = b * total
+            qk -= p
+            qk *= scale
+            q.append(qk)
+        mixed = self.shares[0] * q[0]
+        for b, qk in zip(self.shares[1:], q[1:]):
+            mixed += b * qk
+        for qj in q:  # u + λ (q_j − mixed)
+            qj -= mixed
+            qj *= lam
+            qj += u
+        return y + self.joint.adjoint_parts(q) / self.col_sums
 
     def capture(self, zc: np.ndarray) -> np.ndarray:
         """Every projector's frame shown at once (the device's ``project_all``), the camera's image on the rows."""

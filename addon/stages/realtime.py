@@ -432,8 +432,7 @@ class RealtimeView:
 
     def _direct(self, zc: Any) -> Any:
         """``D z`` on the rows (flat, rows × 3) for a compact Dr.Jit ``zc``."""
-        v, dr = self.view, self._dr
-        return dr.block_sum(dr.gather(self._float, zc, v._src) * v._w, v._k)
+        return self.view.direct(zc)
 
     def _adjoint_direct(self, r: Any) -> Any:
         """``Dᵀ r`` on the active texels (flat, texels × 3) for a Dr.Jit ``r`` on the rows."""

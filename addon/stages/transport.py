@@ -299,9 +299,22 @@ class TransportRows:
         where = np.zeros(iw * ih, np.int64)
         where[texels] = np.arange(len(texels))
         compact = where[index]  # unused entries: weight 0, any position
+        # Only the rows this projector lights directly are gathered: with several projectors on one display area
+        # each lights a part of the rows, and a row it does not light would sum k zero products. (A NaN weight, a
+        # damaged operator, keeps its row: the solve must see the NaN and stop.)
+        lit = np.flatnonzero((weight != 0).reshape(len(self.rows), -1).any(axis=1))
         # Entries laid out (pixel, channel, entry) so that each output value is a block of k consecutive products.
-        self._src = mi.UInt32((compact[:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
-        self._w = mi.Float(np.ascontiguousarray(np.transpose(weight, (0, 2, 1))).ravel())
+        self._src = mi.UInt32((compact[lit][:, None, :] * 3 + np.arange(3)[None, :, None]).ravel().astype(np.uint32))
+        self._w = mi.Float(np.ascontiguousarray(np.transpose(weight[lit], (0, 2, 1))).ravel())
+        self._spread: tuple[Any, Any] | None = None
+        if len(lit) < len(self.rows):
+            # the lit rows' values put back among all the rows, zero on the others
+            pos = np.zeros(len(self.rows), np.int64)
+            pos[lit] = np.arange(len(lit))
+            on = np.zeros(len(self.rows), bool)
+            on[lit] = True
+            self._spread = (mi.UInt32((pos[:, None] * 3 + np.arange(3)[None, :]).ravel().astype(np.uint32)),
+                            mi.Bool(np.repeat(on, 3)))
         # The adjoint as a gather too (atomic scatter-adds were 3× slower): entries regrouped by active texel,
         # each padded to the most entries any texel has, laid out (texel, channel, entry).
         order, pos, slot, kc = _regroup(where[src], len(texels))
@@ -387,8 +400,7 @@ class TransportRows:
         """:meth:`apply_compact` as a Dr.Jit array not yet evaluated, so that several views' run in one launch
         (:func:`apply_together`)."""
         dr = self._dr
-        flat = self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel())
-        out = dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)
+        out = self.direct(self._float(np.ascontiguousarray(zc, dtype=np.float32).ravel()))
         if self._nb:
             sums = self._active_sums(zc) if fixed is None else self._active_sums(zc) + fixed
             means = (sums / self._block_sizes[:, None]).astype(np.float32)
@@ -397,6 +409,15 @@ class TransportRows:
             out = out + dr.block_sum(dr.gather(self._float, self._float(np.ascontiguousarray(low).ravel()),
                                                self._low_src) * self._low_w, 4)
         return out
+
+    def direct(self, flat: Any) -> Any:
+        """The direct light ``D z`` on the rows (a flat Dr.Jit array, rows × 3, not yet evaluated) for a compact
+        ``flat`` Dr.Jit input (active texels × 3)."""
+        dr = self._dr
+        out = dr.block_sum(dr.gather(self._float, flat, self._src) * self._w, self._k)
+        if self._spread is None:
+            return out
+        return dr.gather(self._float, out, *self._spread)
 
     def adjoint_pending(self, r: np.ndarray) -> tuple[Any, Any]:
         """The two gathers of ``Tᵀ r`` (direct on the active texels; the upsampling's adjoint, None without an
@@ -418,9 +439,14 @@ class TransportRows:
         per_block = np.einsum("cub,uc->bc", self._responses, np.asarray(low).reshape(-1, 3))
         return np.asarray(cols).reshape(-1, 3), per_block / self._block_sizes[:, None]
 
-    def adjoint_finish(self, cols: Any, low: Any) -> np.ndarray:
-        """(A, 3) ``Tᵀ r`` from :meth:`adjoint_pending`'s two arrays (evaluated or not)."""
-        out, per_block = self._parts_of(cols, low)
+    def adjoint_finish(self, cols: Any, low: Any, out: np.ndarray | None = None) -> np.ndarray:
+        """(A, 3) ``Tᵀ r`` from :meth:`adjoint_pending`'s two arrays (evaluated or not), written into ``out``
+        where given (an (A, 3) float32 array: a joint solve's part of its concatenated vector)."""
+        direct, per_block = self._parts_of(cols, low)
+        if out is None:
+            out = direct
+        else:
+            out[...] = direct
         if per_block is not None:
             out += np.repeat(per_block.astype(np.float32)[self._runs], self._run_counts, axis=0)
         return out
@@ -472,14 +498,21 @@ def apply_together(views: Sequence[Any], zcs: Sequence[np.ndarray], fixed: Seque
             for v, z, f, p in zip(views, zcs, fixed, pending)]
 
 
-def adjoint_together(views: Sequence[Any], rs: Sequence[np.ndarray]) -> list[np.ndarray]:
-    """Each view's ``adjoint_compact(r)``, the gathers of the :class:`TransportRows` among them evaluated in one
-    Dr.Jit launch (as :func:`apply_together`)."""
+def adjoint_together(views: Sequence[Any], rs: Sequence[np.ndarray]) -> np.ndarray:
+    """The views' ``adjoint_compact(r)`` concatenated, the gathers of the :class:`TransportRows` among them
+    evaluated in one Dr.Jit launch (as :func:`apply_together`) and each written into its part of the result."""
     pending = [v.adjoint_pending(r) if isinstance(v, TransportRows) else None for v, r in zip(views, rs)]
     ready = [a for p in pending if p is not None for a in p if a is not None]
     if len(ready) > 1:
         next(v for v in views if isinstance(v, TransportRows))._dr.eval(*ready)
-    return [v.adjoint_finish(*p) if p is not None else v.adjoint_compact(r) for v, r, p in zip(views, rs, pending)]
+    bounds = np.cumsum([0] + [len(v.texels) for v in views])
+    out = np.empty((int(bounds[-1]), 3), np.float32)
+    for v, r, p, a, b in zip(views, rs, pending, bounds[:-1], bounds[1:]):
+        if p is not None:
+            v.adjoint_finish(*p, out=out[a:b])
+        else:
+            out[a:b] = v.adjoint_compact(r)
+    return out
 
 
 class BlurredRows:
