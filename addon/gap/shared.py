@@ -130,15 +130,25 @@ def fit_joint(datas: list[GapData], items: tuple[Item, ...], *, start: dict[Item
         caps.append(np.concatenate([d.observations[i].capture.reshape(-1, 3)[flat].ravel() for i in d.fit_index]))
     cap = np.concatenate(caps)
 
+    # Each projector's prediction kept with the parameters it was made for: a finite-difference column of one
+    # projector's own effect changes that projector's prediction alone, and the others' are reused as they are.
+    last: list[tuple[np.ndarray, np.ndarray] | None] = [None] * count
+
+    def predicted(k: int, tk: np.ndarray) -> np.ndarray:
+        kept = last[k]
+        if kept is not None and np.array_equal(kept[0], tk):
+            return kept[1]
+        d, comp, sub, flat = datas[k], comps[k], subs[k], picks[k]
+        if sub is not None:  # every fit pattern of this projector in one prediction
+            pred = sub.predict(tk, sub.data.observations[sub.data.fit_index[0]]).ravel()
+        else:
+            pred = np.concatenate([comp.predict(tk, d.observations[i]).reshape(-1, 3)[flat].ravel()
+                                   for i in d.fit_index])
+        last[k] = (tk, pred)
+        return pred
+
     def plain(t: np.ndarray) -> np.ndarray:
-        preds = []
-        for k, (d, comp, sub, flat) in enumerate(zip(datas, comps, subs, picks)):
-            tk = per_projector(t, k)
-            if sub is not None:  # every fit pattern of this projector in one prediction
-                preds.append(sub.predict(tk, sub.data.observations[sub.data.fit_index[0]]).ravel())
-            else:
-                preds += [comp.predict(tk, d.observations[i]).reshape(-1, 3)[flat].ravel() for i in d.fit_index]
-        return (np.concatenate(preds) - cap).astype(np.float64)
+        return (np.concatenate([predicted(k, per_projector(t, k)) for k in range(count)]) - cap).astype(np.float64)
 
     error = None
     at_theta = plain(theta)
