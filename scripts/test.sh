@@ -8,7 +8,7 @@ bash scripts/setup.sh
 mkdir -p .venv/mypy-path && ln -sfn ../.. .venv/mypy-path/procam
 .venv/bin/ruff check --quiet .
 .venv/bin/mypy
-# Two test processes, each taking whole files (a module's fixtures are made once), the heaviest files first
-# (tests/conftest.py): one process alone leaves a third of 2 cores idle in real-time waits and single-threaded
+# Two test processes, each taking whole files (a module's fixtures are made once; the session's are shared,
+# tests/conftest.py): one process alone leaves a third of 2 cores idle in real-time waits and single-threaded
 # numpy. `-n 0` after the command runs them in this process; the 15 slowest tests at the end of every run.
 exec .venv/bin/python -m pytest -q -p no:cacheprovider --durations=15 -n 2 --dist loadfile "$@"
