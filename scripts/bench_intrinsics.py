@@ -25,10 +25,31 @@ import numpy as np
 
 from procam.addon.capture.targets import natural_target
 from procam.addon.imageio import write_image
+from procam.addon.lab.effects import lens_of
 from procam.addon.lab.truth import LabTruth
 from procam.addon.stages.display_area import choose_area
 from procam.addon.steps import calibrate, capture, compensate, evaluate
 from procam.addon.steps.stage_c import StageCOptions
+
+
+def lens_taken_out(caps: Path, truth: LabTruth, root: Path) -> Path:
+    """``caps`` with the lab's true camera lens taken out (``procam undistort-captures``), through a rig file that
+    holds the true camera K and lens as a board calibration of the camera would (the projector's part is not read)."""
+    from procam.addon.outputs import write_manifest
+    from procam.addon.stages.rig_calibration import RigCalibration
+    from procam.addon.steps.layout import RIG
+
+    cam = truth.rig.camera.intrinsics
+    proj = truth.rig.projectors[0].intrinsics
+    lens = lens_of(truth.effects) or (0.0, 0.0, 0.0, 0.0)
+    dist = np.array([*lens, 0.0])  # OpenCV's k1 k2 p1 p2 k3
+    nan4 = np.full(4, np.nan)
+    rig = RigCalibration((9, 7), 0.03, cam.size, proj.size, cam.opencv_matrix(), dist, proj.opencv_matrix(),
+                         np.zeros(5), np.eye(4), 0.0, 0.0, 0.0, nan4, nan4, ())
+    write_manifest(root / "camera-rig.json", {"format": RIG.format, "version": RIG.version, **rig.to_dict()})
+    out = root / "captures-pinhole"
+    capture.run_undistort(capture.UndistortOptions(caps, rig=root / "camera-rig.json", out=out))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,10 +64,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--targets", default="city")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--projectors", type=int, default=1, help="as procam lab's (side by side)")
+    ap.add_argument("--camera-lens", choices=("fitted", "given"), default="fitted",
+                    help="given: the camera's lens taken out of the set first (procam undistort-captures with a "
+                         "rig file holding the lab's true camera K and lens, as a board calibration of the camera "
+                         "gives it) before calibrating; fitted: the Gray code fits it with the projector's K")
     args = ap.parse_args(argv)
     error = tuple(float(v) / 100 for v in args.nominal_error.split(","))
     print(f"spec wrong by {args.nominal_error} (focal %, shift % of height), "
-          f"camera FoV {args.camera_fov_error:+g}°; scale {args.scale:g}, effects "
+          f"camera FoV {args.camera_fov_error:+g}°, camera lens {args.camera_lens}; scale {args.scale:g}, effects "
           f"{args.effects or 'none'}, {args.samples} spp; targets {args.targets}, closed loop, fast schedule")
     print("| surface | projector | K from | focal err % | principal point err px | determined | camera focal err % | "
           "pose mm | axis ° | PSNR dB |")
@@ -60,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
                                                camera_fov_error=args.camera_fov_error,
                                                supersample=args.supersample, projectors=args.projectors))
             truth = LabTruth.load(truth_path)
+            if args.camera_lens == "given":
+                caps = lens_taken_out(caps, truth, root)
             cals = {m: calibrate.run(calibrate.CalibrateOptions(caps, root / f"cal-{m}", with_blend=False,
                                                                 projector_intrinsics=m)) for m in ("spec", "fit")}
             area = choose_area(cals["fit"], aspect=4 / 3)

@@ -227,13 +227,14 @@ def wrong_spec(tmp_path_factory):
     """Lab sets whose projector spec is 10 % off in focal length and 20 % of the height off in lens shift."""
     root = tmp_path_factory.mktemp("spec")
 
-    def make(surface: str, shift: str = "0,15", camera_fov_error: float = 0.0):
-        name = f"{surface}-{shift.replace(',', '_')}-{camera_fov_error:g}"
+    def make(surface: str, shift: str = "0,15", camera_fov_error: float = 0.0, effects: str = ""):
+        name = f"{surface}-{shift.replace(',', '_')}-{camera_fov_error:g}{'-' + effects if effects else ''}"
         captures, truth = root / name, root / f"{name}.truth.json"
         if not captures.exists():
             assert main(["lab", "--out", str(captures), "--truth", str(truth), "--surface", surface, "--scale", "0.4",
                          "--samples", "4", "--nominal-error", "10,20", "--projector-shift", shift,
-                         "--camera-fov-error", str(camera_fov_error)]) == 0
+                         "--camera-fov-error", str(camera_fov_error), *(["--effects", effects] if effects else [])
+                         ]) == 0
         return captures, LabTruth.load(truth)
     return make
 
@@ -262,6 +263,37 @@ def test_projector_intrinsics_fitted_without_a_board(wrong_spec, tmp_path, shift
                         np.degrees(np.arccos(np.clip(p.direction @ t.direction, -1, 1))))
     assert errors["fit"][0] < 0.01 and errors["fit"][1] < 0.3
     assert errors["spec"][0] > 5 * errors["fit"][0]  # a wrong spec really moves the pose: the fit is what fixes it
+
+
+def test_a_camera_lens_a_rig_calibration_took_out_is_not_fitted_again(wrong_spec, tmp_path):
+    """Photographs whose lens a board calibration of the camera took out (undistort-captures): the fit holds the
+    camera's lens at none instead of freeing it again, where it would trade against the projector's focal length,
+    and says so; the projector's K and pose are still fitted."""
+    from procam.addon.lab.effects import lens_of
+    from procam.addon.outputs import write_manifest
+    from procam.addon.stages.rig_calibration import RigCalibration
+    from procam.addon.steps.layout import RIG
+
+    captures, truth = wrong_spec("curve", effects="distortion=0.5")
+    lens = lens_of(truth.effects)
+    assert lens is not None and lens[0] != 0  # the lab's camera has a lens to take out
+    cam, proj = truth.rig.camera.intrinsics, truth.rig.projector.intrinsics
+    rig = RigCalibration((9, 7), 0.03, cam.size, proj.size, cam.opencv_matrix(), np.array([*lens, 0.0]),
+                         proj.opencv_matrix(), np.zeros(5), np.eye(4), 0.0, 0.0, 0.0, np.full(4, np.nan),
+                         np.full(4, np.nan), ())
+    write_manifest(tmp_path / "rig.json", {"format": RIG.format, "version": RIG.version, **rig.to_dict()})
+    assert main(["undistort-captures", str(captures), "--rig", str(tmp_path / "rig.json"), "--out",
+                 str(tmp_path / "pinhole")]) == 0
+    fit = run_calibration(CalibrateOptions(tmp_path / "pinhole", tmp_path / "fit", with_blend=False,
+                                           projector_intrinsics="fit", stages="surface,pose"))
+    report = fit.report["projector_intrinsics"]
+    held = report["camera_distortion"]
+    assert held["held"] == "taken out of the photographs by a rig calibration" and not held["determined"]
+    assert held["k1"] == held["k2"] == 0.0 and "not fitted again" in report["summary"]
+    assert fit.rig.projector.intrinsics.fx == pytest.approx(proj.fx, rel=0.02)
+    p, t = fit.rig.projector, truth.rig.projector
+    assert np.linalg.norm(p.position - t.position) < 0.01
+    assert np.degrees(np.arccos(np.clip(p.direction @ t.direction, -1, 1))) < 0.3
 
 
 def test_a_wrong_camera_field_of_view_is_fitted_with_the_projector(wrong_spec, tmp_path):

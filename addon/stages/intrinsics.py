@@ -188,8 +188,8 @@ class IntrinsicsFit:
                      "with a board)")
         camera = (f"; camera lens distortion fitted with them: {lens['edge_displacement_px']:+.2f} px at "
                   f"{lens['edge_radius_px']:.0f} px from the centre (k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f})"
-                  if lens.get("determined") else
-                  "; camera lens distortion not determined by this surface (assumed none)")
+                  if lens.get("determined") else f"; camera lens {lens['held']}, not fitted again" if lens.get("held")
+                  else "; camera lens distortion not determined by this surface (assumed none)")
         return (f"focal {n.fx:.1f} → {f.fx:.1f} px ({100 * (f.fx / n.fx - 1):+.2f} %), principal point "
                 f"({n.cx:.1f}, {n.cy:.1f}) → ({f.cx:.1f}, {f.cy:.1f}) px ({spread}){camera}; reprojection RMS "
                 f"{self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px{focal}")
@@ -203,7 +203,8 @@ class IntrinsicsFit:
         lens = self.camera_distortion
         camera = (f"; camera lens distortion fitted with them: {lens['edge_displacement_px']:+.2f} px at "
                   f"{lens['edge_radius_px']:.0f} px from the centre (k1 {lens['k1']:+.4f}, k2 {lens['k2']:+.4f})"
-                  if lens.get("determined") else "")
+                  if lens.get("determined") else f"; camera lens {lens['held']}, not fitted again" if lens.get("held")
+                  else "")
         return f"{text}{camera}; reprojection RMS {self.rms_nominal_px:.2f} → {self.rms_fitted_px:.2f} px"
 
     def to_dict(self) -> dict[str, Any]:
@@ -676,18 +677,24 @@ def estimate_projector_intrinsics(captures: CaptureSet, view: SurfaceView, mask:
     # projector fitted without it takes the bend into its focal length (measured: -2.6 % on the lab's curve with
     # its realistic k1 = -0.036).
     used = _NO_LENS
-    x_lens, r_lens, j_lens = _levenberg_marquardt(gv, x, steps, _LENS)
-    sd_lens = _covariance_std(j_lens, r_lens)
-    lens.update(std_k1=float(sd_lens[9]), std_k2=float(sd_lens[10]))
-    if sd_lens[9] < DISTORTION_STD_MAX and np.isfinite(x_lens).all():
-        x, r, sd, used = x_lens, r_lens, sd_lens, _LENS
-        # k1 and k2 trade against each other over the lit part of the image; the displacement they give at its
-        # edge is what the data pin down, so that is what the report leads with.
-        xn = (cam_px[keep] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
-        r_max = float(np.sqrt(np.max(np.sum(xn ** 2, axis=1))))
-        shift = r_max * (x[9] * r_max ** 2 + x[10] * r_max ** 4) * camera.fx
-        lens.update(k1=float(x[9]), k2=float(x[10]), determined=True, edge_radius_px=r_max * camera.fx,
-                    edge_displacement_px=float(shift))
+    # A lens a rig calibration took out of the photographs (procam undistort-captures, import-captures --rig) is not
+    # fitted again: the board measured it, and freed here it would trade against the projector's focal length and
+    # distance as an uncalibrated one does.
+    if getattr(captures, "camera_lens", None) is not None:
+        lens["held"] = "taken out of the photographs by a rig calibration"
+    else:
+        x_lens, r_lens, j_lens = _levenberg_marquardt(gv, x, steps, _LENS)
+        sd_lens = _covariance_std(j_lens, r_lens)
+        lens.update(std_k1=float(sd_lens[9]), std_k2=float(sd_lens[10]))
+        if sd_lens[9] < DISTORTION_STD_MAX and np.isfinite(x_lens).all():
+            x, r, sd, used = x_lens, r_lens, sd_lens, _LENS
+            # k1 and k2 trade against each other over the lit part of the image; the displacement they give at its
+            # edge is what the data pin down, so that is what the report leads with.
+            xn = (cam_px[keep] - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
+            r_max = float(np.sqrt(np.max(np.sum(xn ** 2, axis=1))))
+            shift = r_max * (x[9] * r_max ** 2 + x[10] * r_max ** 4) * camera.fx
+            lens.update(k1=float(x[9]), k2=float(x[10]), determined=True, edge_radius_px=r_max * camera.fx,
+                        edge_displacement_px=float(shift))
     # Then the camera's focal length. A wrong one scales the depth's points across the view (X, Y, not Z). For a
     # projector looking the same way as the camera that is the same as a projector focal length and baseline
     # scaled by as much (no data can tell them apart); the more the two axes converge, the more it bends the
