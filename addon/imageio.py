@@ -238,13 +238,14 @@ def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
 
 
 def unit_float(pixels: np.ndarray) -> np.ndarray:
-    """float32 in [0, 1] from 8- or 16-bit integer pixels (their full range); float pixels as they are."""
+    """float32 in [0, 1] from 8- or 16-bit integer pixels (their full range); float pixels as they are. A new
+    array, converted in one pass (converted, then divided, a 1280×1024 photograph took two; the same values), also
+    from a strided view such as OpenCV's pixels put in RGB order."""
     a = np.asarray(pixels)
-    if a.dtype == np.uint8:
-        return a.astype(np.float32) / 255.0
-    if a.dtype == np.uint16:
-        return a.astype(np.float32) / 65535.0
-    return a.astype(np.float32)
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(a.dtype)
+    if scale is None:
+        return a.astype(np.float32)
+    return np.divide(a, np.float32(scale), out=np.empty(a.shape, np.float32))
 
 
 #: The files :func:`read_image` reads, and so what a folder of images (targets, a show's frames, board photographs,
@@ -547,7 +548,7 @@ def _read_image(path: Path, channels: int | None) -> np.ndarray:
         # IMREAD_UNCHANGED ignores a JPEG's EXIF orientation (IMREAD_COLOR applies it): apply it here, so that a
         # photograph reads as every viewer shows it, whichever flags read it.
         raw = apply_orientation(raw, exif_orientation(path))
-        img, whole_numbers = _unit_rgb(raw), raw.dtype.kind in "ui"
+        img, whole_numbers = unit_float(_to_bgr(raw)), raw.dtype.kind in "ui"
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]
     if channels == 3:
@@ -561,14 +562,3 @@ def _read_image(path: Path, channels: int | None) -> np.ndarray:
         raise ImageError(f"{path} holds NaN or infinite values")
     return np.ascontiguousarray(img, dtype=np.float32)
 
-
-def _unit_rgb(raw: np.ndarray) -> np.ndarray:
-    """``unit_float`` of OpenCV's pixels in RGB order, in one pass into a new array (the same values): converted,
-    then reordered and copied, a 1280×1024 photograph took three passes over its float values."""
-    rgb = _to_bgr(raw)
-    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(raw.dtype)
-    if scale is None:
-        return rgb.astype(np.float32)
-    out = np.empty(rgb.shape, np.float32)
-    np.divide(rgb, np.float32(scale), out=out)
-    return out
