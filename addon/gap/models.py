@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from ..colour import srgb_encode
+from ..memo import recent
 from ..rig.lens import undistort_normalised
 from ..stages.calibrate import SATURATED
 from .data import GLOSSY_ROUGHNESS, GapData, Observation, column, sample_pattern
@@ -121,17 +122,6 @@ def inverse_projector_tone(y: np.ndarray, gammas: np.ndarray, contrast: float = 
 
 def _logistic(v: np.ndarray | float, contrast: float, p: float) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-10.0 * np.sqrt(contrast) * (np.asarray(v, np.float64) - p)))
-
-
-def _recent(cache: dict, key: Any, make: Any, keep: int = 3) -> Any:
-    """``cache[key]``, made by ``make()`` when missing; the ``keep`` most recently used keys stay."""
-    value = cache.pop(key, None)
-    if value is None:
-        value = make()
-    cache[key] = value  # reinserted: dicts keep insertion order, so the first key is the least recent
-    while len(cache) > keep:
-        cache.pop(next(iter(cache)))
-    return value
 
 
 def crosstalk_matrix(p: np.ndarray) -> np.ndarray:
@@ -244,7 +234,7 @@ class Composite:
         ``keep`` most recent keys."""
         if key is None:
             return make()
-        per = _recent(cache, key, dict, keep)
+        per = recent(cache, key, dict, keep)
         out = per.get(id(obs))
         if out is None:
             out = per[id(obs)] = make()
@@ -292,7 +282,7 @@ class Composite:
             rows = len(self.data.gain) // self._repeat
             return np.concatenate([light_scale(self.data.gain[:rows], curve)] * self._repeat)
 
-        return _recent(self._scales, curve, make)
+        return recent(self._scales, curve, make)
 
     @staticmethod
     def _key(p: dict[str, np.ndarray], names: tuple[str, ...]) -> tuple[float, ...]:

@@ -48,6 +48,7 @@ import numpy as np
 
 from ..capture.format import CaptureSet
 from ..errors import CalibrationError
+from ..memo import recent
 from ..rig.model import Intrinsics
 from .pose import MIN_CORRESPONDENCES, SurfaceView, graycode_correspondences, pnp_ransac
 
@@ -271,16 +272,12 @@ class _GrayCodeView:
         """
         # Nine of a fit's twelve parameters are the projector's: every Jacobian column of those, and every trial
         # step that keeps the camera's, sees the same points (they were 40 % of a fit's time, recomputed).
-        seen, key = self._seen, (float(k1), float(k2), float(focal))
-        if key in seen:
-            seen[key] = seen.pop(key)  # the most recent last
-            return seen[key]
-        pts = self._points(k1, k2, focal)
-        pts.flags.writeable = False
-        seen[key] = pts
-        while len(seen) > 4:
-            del seen[next(iter(seen))]
-        return pts
+        def make() -> np.ndarray:
+            pts = self._points(k1, k2, focal)
+            pts.flags.writeable = False
+            return pts
+
+        return recent(self._seen, (float(k1), float(k2), float(focal)), make, keep=4)
 
     def _points(self, k1: float, k2: float, focal: float) -> np.ndarray:
         crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 30, 1e-12)
