@@ -13,7 +13,8 @@ camera tone curve with a knee and JPEG photographs), forms no model of the calib
 case: the projector's position (cm) and axis (°) error against the sealed truth,
 with ``--projector-intrinsics spec``, the old fit rule (all of the covariance-determined values fitted), and the
 judged rule; and whether each reported uncertainty covers the true error (within COVER_SIGMAS of its σ): the
-judged values (projector focal length, principal point, camera focal length where judged) and the pose.
+judged values (projector focal length, principal point, camera focal length where judged) and the pose, the judged
+rule's and the one the calibration with the nominal intrinsics states (``pose_uncertainty``).
 
 A second table gives, for the same calibrations, where the projector's pixels land, which is what a show sees and
 what the axis alone does not say (a principal point moved and the axis turned with it can leave every pixel where it
@@ -96,9 +97,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{f', other forms {args.other_forms:g}' if args.other_forms else ''}, no wall depth image; "
           f"spec focal -1.2 %, shift +2 % of the height, camera focal -1.6 %; 'covered': true error ≤ {k:g} σ reported")
     print("| surface | bias mm | shift px | nominal cm / ° | old fit cm / ° | judged cm / ° | judged kept | "
-          "values covered (judged) | pose covered (judged) | values covered (old σ) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    totals = {"values": [0, 0], "pose": [0, 0], "old": [0, 0]}
+          "values covered (judged) | pose covered (judged) | values covered (old σ) | nominal pose ± cm / ° | "
+          "nominal pose covered |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    totals = {"values": [0, 0], "pose": [0, 0], "old": [0, 0], "nominal pose": [0, 0]}
     worst = [-np.inf, -np.inf]
     lands = []
     t0 = time.perf_counter()
@@ -136,18 +138,26 @@ def main(argv: list[str] | None = None) -> int:
             totals["pose"][1] += 1
             totals["old"][0] += sum(old_covered)
             totals["old"][1] += len(old_covered)
+            nu = cals["nominal"].report["pose_uncertainty"]
+            nominal_ok = (errs["nominal"][0] / 100 <= k * nu["position_std_m"] and
+                          errs["nominal"][1] <= k * nu["axis_std_deg"])
+            totals["nominal pose"][0] += int(nominal_ok)
+            totals["nominal pose"][1] += 1
             kept = ", ".join(n.replace("projector_", "") for n, v in u["values"].items() if v["kept"] == "fit")
             print(f"| {surface} | {case[0]:g} | {np.hypot(case[1], case[2]):.1f} | {errs['nominal'][0]:.2f} / "
                   f"{errs['nominal'][1]:.3f} | {errs['old'][0]:.2f} / {errs['old'][1]:.3f} | "
                   f"{errs['judged'][0]:.2f} / {errs['judged'][1]:.3f} | {kept or 'spec'} | "
                   f"{sum(covered)}/{len(covered)} | {'yes' if pose_ok else 'no'} | "
-                  f"{sum(old_covered)}/{len(old_covered)} |", flush=True)
+                  f"{sum(old_covered)}/{len(old_covered)} | {100 * nu['position_std_m']:.2f} / "
+                  f"{nu['axis_std_deg']:.3f} | {'yes' if nominal_ok else 'no'} |", flush=True)
             lands.append(f"| {surface} | {case[0]:g} | {np.hypot(case[1], case[2]):.1f} | " + " | ".join(
                 f"{land[m][0]:.3f} / {land[m][1]:.3f} | {land[m][2]:.1f} / {land[m][3]:.1f}"
                 for m in ("nominal", "old", "judged")) + " |")
     share = {n: a / max(b, 1) for n, (a, b) in totals.items()}
     print(f"\nreported uncertainty covers the true error: values {totals['values'][0]}/{totals['values'][1]} "
-          f"({share['values']:.0%}), pose {totals['pose'][0]}/{totals['pose'][1]} ({share['pose']:.0%}); the old "
+          f"({share['values']:.0%}), pose {totals['pose'][0]}/{totals['pose'][1]} ({share['pose']:.0%}), the pose "
+          f"with the nominal intrinsics {totals['nominal pose'][0]}/{totals['nominal pose'][1]} "
+          f"({share['nominal pose']:.0%}); the old "
           f"covariance σ of the values it fitted: {totals['old'][0]}/{totals['old'][1]} ({share['old']:.0%})")
     print(f"judged rule's error minus nominal's, worst case: position {worst[0]:+.2f} cm, axis {worst[1]:+.3f}°")
     print("\nwhere the projector's pixels land: angle between fitted and true pixel rays over the projector image "

@@ -199,6 +199,24 @@ def slope_fixed() -> Iterator[None]:
         closed_loop.PRIOR_WEIGHT = before
 
 
+def poses_against(cal_folder: Path, truth: Any) -> str:
+    """Each calibrated projector's position (mm) and axis (°) error against the lab's truth, and the one-σ
+    uncertainty the calibration states for it (``pose_uncertainty``)."""
+    from procam.addon.steps import calibrate as calibrate_step
+
+    cal = calibrate_step.read(cal_folder)
+    out = []
+    for k in range(cal.projector_count):
+        one, true = cal.for_projector(k), truth.rig.projectors[k]
+        p = one.rig.projector
+        u = one.report.get("pose_uncertainty") or {}
+        stated = (f" (stated ±{100 * u['position_std_m']:.1f} cm, ±{u['axis_std_deg']:.2f}°)"
+                  if u.get("position_std_m") else "")
+        out.append(f"projector {k + 1}: {1000 * float(np.linalg.norm(p.position - true.position)):.1f} mm, "
+                   f"{float(np.degrees(np.arccos(np.clip(p.direction @ true.direction, -1, 1)))):.3f}°{stated}")
+    return "poses against the lab's truth: " + "; ".join(out)
+
+
 def slug(label: str) -> str:
     """A run's folder name (``comp-SLUG``, ``eval-SLUG``): a run through the global models keeps its older name."""
     return label.replace(", ", "-").replace(" ", "_").replace("/global", "").replace("/", "-")
@@ -351,6 +369,7 @@ def main() -> None:
               + " | ".join(mean(r) for r in rules) + " | |")
         print("\nBelow the perfect answer within the gamut (the best any answer can score): "
               + ", ".join(f"{r} {mean_shown - rows[r]['mean']['psnr']:.2f} dB" for r in rules))
+        print("\n" + poses_against(work / "cal", lab_truth))
         extra = [label for label in rows if label not in rules]
         if extra:
             base = rows[last]["mean"]["psnr"]

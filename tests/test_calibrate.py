@@ -138,6 +138,28 @@ def test_a_session_without_a_checkerboard_gets_its_warp_from_the_gray_code(calib
     assert report["corners_after_px"]["median"] < 0.6  # the decoded texel is whole: ±0.5 in each axis
 
 
+def test_a_pose_from_the_spec_states_its_uncertainty_and_it_covers_the_error(calibrated):
+    """A pose fitted with the intrinsics as given came with no ± at all: it now states one σ of position and axis
+    (the Gray code's spread, the depth sensor's errors, each spec value wrong by its prior), which covers its true
+    error, names what makes most of it, and says the camera's lens is not in it when none was calibrated."""
+    from procam.addon.stages.intrinsics import COVER_SIGMAS
+    from procam.addon.steps.calibrate import summary
+
+    _, truth_path, out, cal = calibrated
+    u = json.loads((out / "calibration.json").read_text())["pose_uncertainty"]
+    assert u["intrinsics"] == "held as given" and u["given_by"] == "spec" and u["camera_lens"] == "none calibrated"
+    truth, est = LabTruth.load(truth_path).rig.projector, cal.rig.projector
+    error_m = float(np.linalg.norm(est.position - truth.position))
+    error_deg = float(np.degrees(np.arccos(np.clip(est.direction @ truth.direction, -1, 1))))
+    assert 0 < error_m <= COVER_SIGMAS * u["position_std_m"] and error_deg <= COVER_SIGMAS * u["axis_std_deg"]
+    assert {"data", "depth bias", "projector_focal at its spec", "camera_focal at its spec"} <= set(u["parts"])
+    whole = np.sqrt(sum(p["position_m"] ** 2 for p in u["parts"].values()))
+    assert whole == pytest.approx(u["position_std_m"], rel=1e-9)  # the parts make the whole
+    line = next(t for t in summary(out).lines if t.startswith("Pose uncertainty"))
+    assert f"±{100 * u['position_std_m']:.1f} cm" in line and "most of the position from" in line
+    assert "taken as distortion-free" in line
+
+
 def test_metrics():
     rng = np.random.default_rng(0)
     a = rng.random((40, 50, 3)).astype(np.float32)

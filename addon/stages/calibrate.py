@@ -30,7 +30,7 @@ from ..render.forward import ForwardModel
 from ..rig.model import Camera, Intrinsics, Rig
 from ..surface.mesh import SurfaceMesh
 from .graycode_warp import warp_from_graycode
-from .intrinsics import estimate_projector_intrinsics
+from .intrinsics import estimate_projector_intrinsics, pose_uncertainty
 from .pose import estimate_pose, surface_view, target_mask
 from .surface import surface_from_captures, surface_photo
 from .warp import estimate_warp
@@ -44,9 +44,10 @@ PROJECTOR_INTRINSICS = ("spec", "fit")
 
 #: The report's keys each projector has its own of (the rest, the surface's and the run's, all share); with
 #: several projectors they are listed per projector in ``report["projectors"]``, projector 1's also at the top.
-PER_PROJECTOR = ("init", "pose", "projector_intrinsics", "white_saturated_share", "warp_report", "losses")
+PER_PROJECTOR = ("init", "pose", "projector_intrinsics", "pose_uncertainty", "white_saturated_share",
+                 "warp_report", "losses")
 #: The seconds each projector spends on its own (the surface and the albedo are shared).
-PER_PROJECTOR_SECONDS = ("intrinsics", "pose", "warp")
+PER_PROJECTOR_SECONDS = ("intrinsics", "pose", "pose_uncertainty", "warp")
 
 
 @dataclass
@@ -341,7 +342,7 @@ def calibrate_captures(captures: CaptureSet, *, plan: tuple[str, ...] = STAGES, 
         for k, view in enumerate(views):
             with _naming(k, many):
                 target_mask(view)
-    own_keys = ("init", "pose", "projector_intrinsics")
+    own_keys = ("init", "pose", "projector_intrinsics", "pose_uncertainty")
     seconds: dict[str, float] = dict(prev.report.get("seconds", {})) if prev else {}
     report: dict[str, Any] = {k: v for k, v in (prev.report if prev else {}).items()
                               if k in ("surface_report", *own_keys) and not (many and k in own_keys)}
@@ -505,15 +506,41 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
         seconds["pose"] = time.perf_counter() - t0
         run.rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
         own.update(init=start_label or pose.init, pose=pose.to_dict())
+        t0 = time.perf_counter()
+        own["pose_uncertainty"] = _pose_uncertainty(captures, mesh, report.get("surface_report") or {},
+                                                    pose.camera_from_projector, own.get("projector_intrinsics"),
+                                                    seed=seed, depth_bias_known=depth_offset is not None)
+        seconds["pose_uncertainty"] = time.perf_counter() - t0
         images.update({f"{image_prefix(run.index)}pose_{n}": im for n, im in pose.diagnostics.items()})
     elif state["pose"] == "reused":
         assert previous is not None
         run.rig = previous.rig
     else:
-        for k in ("init", "pose"):
+        for k in ("init", "pose", "pose_uncertainty"):
             own.pop(k, None)
         seconds.pop("pose", None)
+        seconds.pop("pose_uncertainty", None)
     return mesh
+
+
+def _pose_uncertainty(captures: CaptureSet, mesh: SurfaceMesh, surface_report: dict[str, Any],
+                      camera_from_projector: np.ndarray, intrinsics_fit: dict[str, Any] | None, *, seed: int,
+                      depth_bias_known: bool) -> dict[str, Any]:
+    """The pose's one-σ uncertainty (:func:`.intrinsics.pose_uncertainty`): what ``--projector-intrinsics fit``
+    judged with the intrinsics, else judged here with them held as given; or why it is not measured."""
+    judged = (intrinsics_fit or {}).get("uncertainty") or {}
+    if judged.get("pose"):
+        return {**judged["pose"], "parts": judged.get("pose_parts") or {}, "given_by": judged.get("given_by"),
+                "intrinsics": "fitted and judged"}
+    if surface_report.get("source") == "graycode":
+        return {"why": "the surface was triangulated from this Gray code with these intrinsics, so it shares "
+                       "their errors and cannot judge the pose; a depth image or a mesh of the surface can"}
+    try:
+        return {**pose_uncertainty(captures, surface_view(mesh, captures.camera.intrinsics),
+                                   target_mask(captures)[0], camera_from_projector, seed=seed,
+                                   depth_bias_known=depth_bias_known), "intrinsics": "held as given"}
+    except CalibrationError as exc:
+        return {"why": str(exc)}
 
 
 def _warp_stage(run: _ProjectorRun, mesh: SurfaceMesh, plan: tuple[str, ...], *, seed: int, say: Progress,

@@ -36,6 +36,7 @@ from ..progress import Cancel, Progress, part, quiet
 from ..rig.model import Rig
 from ..safepaths import inside, within
 from ..stages.calibrate import STAGES, Calibration, calibrate_captures, stage_plan
+from ..stages.intrinsics import pose_summary
 from ..stages.transport import TransportError, build_transport
 from ..stages.warp_model import Warp, grid_image
 from ..surface.mesh import SurfaceMesh
@@ -446,6 +447,9 @@ def _projector_lines(doc: dict[str, Any], sec: dict[str, Any], name: str = "") -
     intrinsics = doc.get("projector_intrinsics")
     if isinstance(intrinsics, dict) and intrinsics.get("summary"):
         lines.append(f"projector intrinsics (fitted to the Gray code): {intrinsics['summary']}")
+    elif isinstance(doc.get("pose_uncertainty"), dict):  # (a fit's summary states the pose's ± itself)
+        lines.append(f"{name + 'pose' if name else 'Pose'} uncertainty, intrinsics as given: "
+                     f"{pose_summary(doc['pose_uncertainty'])}")
     source = " (from the Gray code)" if warp.get("source") == "graycode" else ""
     lines.append(f"{name + 'warp' if name else 'Warp'}{source}: "
                  f"corners {fmt(before.get('median'), '.2f')} → {fmt(after.get('median'), '.2f')} px median, "

@@ -23,6 +23,7 @@ from ..imageio import read_arrays, read_image
 from ..report import figures
 from ..safepaths import inside
 from ..steps.summary import fmt
+from ..stages.intrinsics import pose_summary
 from . import compensate as compensate_step
 from . import layout
 
@@ -129,6 +130,8 @@ class Reader:
                       (f"{name} position", "x {:.3f}, y {:.3f}, z {:.3f} m from the camera".format(*pose[:3, 3])),
                       (f"{name} looks along", "({:.3f}, {:.3f}, {:.3f}) (camera frame: x right, y down, z forward)"
                        .format(*pose[:3, 2]))]
+            if isinstance(steps[k].get("pose_uncertainty"), dict):
+                items.append((f"{name} pose uncertainty", pose_summary(steps[k]["pose_uncertainty"])))
             wr = steps[k].get("warp_report") or {}
             if wr.get("corners_before_px") and wr.get("corners_after_px"):
                 before, after = wr["corners_before_px"]["median"], wr["corners_after_px"]["median"]
