@@ -532,6 +532,8 @@ def _pose_uncertainty(captures: CaptureSet, mesh: SurfaceMesh, surface_report: d
     if judged.get("pose"):
         return {**judged["pose"], "parts": judged.get("pose_parts") or {}, "given_by": judged.get("given_by"),
                 "intrinsics": "fitted and judged"}
+    if not captures.entries_of("graycode"):
+        return {"why": "the capture set holds no Gray code to judge the pose by"}
     if surface_report.get("source") == "graycode":
         return {"why": "the surface was triangulated from this Gray code with these intrinsics, so it shares "
                        "their errors and cannot judge the pose; a depth image or a mesh of the surface can"}
@@ -539,7 +541,7 @@ def _pose_uncertainty(captures: CaptureSet, mesh: SurfaceMesh, surface_report: d
         return {**pose_uncertainty(captures, surface_view(mesh, captures.camera.intrinsics),
                                    target_mask(captures)[0], camera_from_projector, seed=seed,
                                    depth_bias_known=depth_bias_known), "intrinsics": "held as given"}
-    except CalibrationError as exc:
+    except (CalibrationError, np.linalg.LinAlgError) as exc:  # the pose stands; only its ± is not known
         return {"why": str(exc)}
 
 

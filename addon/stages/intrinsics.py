@@ -379,10 +379,10 @@ def _start_pose(obj: np.ndarray, img: np.ndarray, k: Intrinsics, seed: int) -> t
 
 
 def _camera_from_projector(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    p_from_c = np.eye(4)
-    p_from_c[:3, :3], p_from_c[:3, 3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0], np.ravel(tvec)
-    pose = np.linalg.inv(p_from_c)
-    pose[3] = (0.0, 0.0, 0.0, 1.0)
+    # the rigid inverse of [R | t] is [Rᵀ | −Rᵀt] (a general 4×4 inverse was most of the pose σ's time)
+    r = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = r.T, -r.T @ np.ravel(tvec)
     return pose
 
 
@@ -483,12 +483,12 @@ class _Spread:
         parts = {"data": np.sqrt(np.maximum(jack2, cov2)), **{n: moved(d) for n, d in self.systematic.items()}}
         return {n: (float(v[0]), float(np.degrees(v[1]))) for n, v in parts.items()}
 
-    def pose_std(self, x: np.ndarray) -> tuple[float, float]:
-        """The projector's position (metres, root of the expected squared error) and axis (degrees) σ: every part
-        of :meth:`pose_parts` together."""
-        parts = np.array(list(self.pose_parts(x).values()))
-        total = np.sqrt(np.sum(parts ** 2, axis=0))
-        return float(total[0]), float(total[1])
+
+def _pose_std(parts: dict[str, tuple[float, float]]) -> tuple[float, float]:
+    """The projector's position (metres, root of the expected squared error) and axis (degrees) σ: every part of
+    :meth:`_Spread.pose_parts` together."""
+    total = np.sqrt(np.sum(np.square(list(parts.values())), axis=0))
+    return float(total[0]), float(total[1])
 
 
 def _spread(view: _GrayCodeView, x: np.ndarray, steps: np.ndarray, free: np.ndarray, blocks: list[np.ndarray],
@@ -644,7 +644,8 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
             x, _, _ = _levenberg_marquardt(view, x, steps, free)
             spread = _spread(view, x, steps, free, blocks, errors, held)
             sd = dict(zip(free.tolist(), spread.std()))
-    pos_std, axis_std = spread.pose_std(x)
+    pose_parts = spread.pose_parts(x)
+    pos_std, axis_std = _pose_std(pose_parts)
     values = {}
     for name in judged:
         i = _INDEX[name]
@@ -659,8 +660,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
            "held_out": held_out, "blocks": len(blocks),
            "depth_errors_tried": {"bias_m": depth_bias_std, "misregistration_px": shift_std_px},
            "parts_std": {name: {m: float(d[_INDEX[m]]) for m in fitted} for name, d in spread.systematic.items()},
-           "pose_parts": {name: {"position_m": pos, "axis_deg": axis}
-                          for name, (pos, axis) in spread.pose_parts(x).items()},
+           "pose_parts": {name: {"position_m": pos, "axis_deg": axis} for name, (pos, axis) in pose_parts.items()},
            "cover_sigmas": COVER_SIGMAS}
     return x, free, doc
 
