@@ -60,6 +60,10 @@ CENTRE_STD_MAX_PX = 2.0
 DISTORTION_STD_MAX = 0.005
 #: Points used in the fit (a random subset of the decoded pixels): enough for sub-pixel statistics, fast to fit.
 FIT_POINTS = 20000
+#: Points the pose's uncertainty is judged on with the intrinsics held (:func:`pose_uncertainty`): its σ is the
+#: blocks' spread and the systematic errors', which fewer points do not change; the covariance's, the smallest
+#: part, grows as 1/√N. Every calibration runs it, so it is kept quick (0.3 → 0.1 s at 320×240).
+POSE_POINTS = 8000
 
 #: Largest standard deviation of the camera's focal-length factor for it to count as determined.
 CAMERA_FOCAL_STD_MAX = 0.005
@@ -401,12 +405,13 @@ class _Consistent:
 
 
 def _consistent(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, *, seed: int, free: np.ndarray,
-                too_few: str, camera_from_projector: np.ndarray | None = None) -> _Consistent:
+                too_few: str, camera_from_projector: np.ndarray | None = None,
+                points: int = FIT_POINTS) -> _Consistent:
     """Gray-code correspondences with 3-D points from the surface, the outliers dropped while fitting ``free``
     (from the spec's K and ``camera_from_projector``, or a pose found here); ``too_few`` ends the error's sentence
-    when too few agree."""
+    when too few agree; ``points``: at most this many, drawn at random."""
     nominal = captures.projector.intrinsics
-    obj, img, cam_px, _ = graycode_correspondences(captures, view, mask, max_points=FIT_POINTS, seed=seed)
+    obj, img, cam_px, _ = graycode_correspondences(captures, view, mask, max_points=points, seed=seed)
     depth, camera, aspect = view.points[..., 2], captures.camera.intrinsics, nominal.fy / nominal.fx
     if camera_from_projector is None:
         rvec, tvec = _start_pose(obj, img, nominal, seed)
@@ -529,6 +534,12 @@ def _spread(view: _GrayCodeView, x: np.ndarray, steps: np.ndarray, free: np.ndar
 _INDEX = {"projector_focal": 0, "projector_cx": 1, "projector_cy": 2, "camera_focal": 11}
 
 
+def _depth_wrong(view: _GrayCodeView, bias: float, shift: float) -> dict[str, _GrayCodeView]:
+    """The view with the depth sensor wrong by one σ of each of its errors: its bias, its registration across, down."""
+    return {"depth bias": view.perturbed(bias=bias), "misregistration across": view.perturbed(shift=(shift, 0.0)),
+            "misregistration down": view.perturbed(shift=(0.0, shift))}
+
+
 def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_nominal: np.ndarray,
               steps: np.ndarray, free: np.ndarray, priors: dict[str, float], depth_bias_std: float,
               shift_std_px: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
@@ -548,9 +559,7 @@ def judge_fit(view: _GrayCodeView, camera_px: np.ndarray, x_fit: np.ndarray, x_n
     checkerboard of blocks fitted, the other measured); else the spec stays whole.
     Returns the x and free set kept and the record."""
     blocks = _blocks(camera_px)
-    errors = {"depth bias": view.perturbed(bias=depth_bias_std),
-              "misregistration across": view.perturbed(shift=(shift_std_px, 0.0)),
-              "misregistration down": view.perturbed(shift=(0.0, shift_std_px))}
+    errors = _depth_wrong(view, depth_bias_std, shift_std_px)
     judged = [name for name, i in _INDEX.items() if i in free]
     record: dict[str, dict[str, Any]] = {}
     first = _spread(view, x_fit, steps, free, blocks, errors, {})  # the covariance's σ as the fit had it
@@ -675,16 +684,21 @@ def pose_uncertainty(captures: CaptureSet, view: SurfaceView, mask: np.ndarray, 
     projectors it was 0.9 cm and 0.34° off with nothing to say so."""
     nominal = captures.projector.intrinsics
     c = _consistent(captures, view, mask, seed=seed, free=_POSE, camera_from_projector=camera_from_projector,
-                    too_few="to judge the projector's pose by")
+                    too_few="to judge the projector's pose by", points=POSE_POINTS)
     x, _, _ = _levenberg_marquardt(c.view, c.x, c.steps, _POSE)
     bias, shift = depth_errors(captures, bias_known=depth_bias_known)
-    _, _, judged = judge_fit(c.view, c.camera_px, x, x, c.steps, _POSE,
-                             intrinsic_priors(captures, nominal.fx, nominal.height), bias, shift)
-    return {"position_std_m": judged["pose"]["position_std_m"], "axis_std_deg": judged["pose"]["axis_std_deg"],
-            "parts": judged["pose_parts"], "depth_errors_tried": judged["depth_errors_tried"],
+    # judge_fit's spread with every judged value held at its prior (nothing of the intrinsics is free)
+    blocks = _blocks(c.camera_px)
+    spread = _spread(c.view, x, c.steps, _POSE, blocks, _depth_wrong(c.view, bias, shift),
+                     intrinsic_priors(captures, nominal.fx, nominal.height))
+    parts = spread.pose_parts(x)
+    position, axis = _pose_std(parts)
+    return {"position_std_m": position, "axis_std_deg": axis,
+            "parts": {n: {"position_m": p, "axis_deg": a} for n, (p, a) in parts.items()},
+            "depth_errors_tried": {"bias_m": bias, "misregistration_px": shift},
             "given_by": "rig calibration" if captures.projector_status == "calibrated" else "spec",
             "camera_lens": "none calibrated" if getattr(captures, "camera_lens", None) is None else "taken out",
-            "points": len(c.camera_px), "blocks": judged["blocks"]}
+            "points": len(c.camera_px), "blocks": len(blocks)}
 
 
 #: What each part of a pose's uncertainty is in words, and what narrows it.
