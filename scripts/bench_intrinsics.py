@@ -35,20 +35,16 @@ from procam.addon.steps.stage_c import StageCOptions
 def lens_taken_out(caps: Path, truth: LabTruth, root: Path) -> Path:
     """``caps`` with the lab's true camera lens taken out (``procam undistort-captures``), through a rig file that
     holds the true camera K and lens as a board calibration of the camera would (the projector's part is not read)."""
-    from procam.addon.outputs import write_manifest
     from procam.addon.stages.rig_calibration import RigCalibration
-    from procam.addon.steps.layout import RIG
+    from procam.addon.steps.rig import write
 
     cam = truth.rig.camera.intrinsics
     proj = truth.rig.projectors[0].intrinsics
     lens = lens_of(truth.effects) or (0.0, 0.0, 0.0, 0.0)
-    dist = np.array([*lens, 0.0])  # OpenCV's k1 k2 p1 p2 k3
-    nan4 = np.full(4, np.nan)
-    rig = RigCalibration((9, 7), 0.03, cam.size, proj.size, cam.opencv_matrix(), dist, proj.opencv_matrix(),
-                         np.zeros(5), np.eye(4), 0.0, 0.0, 0.0, nan4, nan4, ())
-    write_manifest(root / "camera-rig.json", {"format": RIG.format, "version": RIG.version, **rig.to_dict()})
+    rig = write(root / "camera-rig.json", RigCalibration.known(cam.size, proj.size, cam.opencv_matrix(),
+                                                               [*lens, 0.0], proj.opencv_matrix()))  # k1 k2 p1 p2 k3
     out = root / "captures-pinhole"
-    capture.run_undistort(capture.UndistortOptions(caps, rig=root / "camera-rig.json", out=out))
+    capture.run_undistort(capture.UndistortOptions(caps, rig=rig, out=out))
     return out
 
 

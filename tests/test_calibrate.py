@@ -292,18 +292,15 @@ def test_a_camera_lens_a_rig_calibration_took_out_is_not_fitted_again(wrong_spec
     camera's lens at none instead of freeing it again, where it would trade against the projector's focal length,
     and says so; the projector's K and pose are still fitted."""
     from procam.addon.lab.effects import lens_of
-    from procam.addon.outputs import write_manifest
     from procam.addon.stages.rig_calibration import RigCalibration
-    from procam.addon.steps.layout import RIG
+    from procam.addon.steps.rig import write
 
     captures, truth = wrong_spec("curve", effects="distortion=0.5")
     lens = lens_of(truth.effects)
     assert lens is not None and lens[0] != 0  # the lab's camera has a lens to take out
     cam, proj = truth.rig.camera.intrinsics, truth.rig.projector.intrinsics
-    rig = RigCalibration((9, 7), 0.03, cam.size, proj.size, cam.opencv_matrix(), np.array([*lens, 0.0]),
-                         proj.opencv_matrix(), np.zeros(5), np.eye(4), 0.0, 0.0, 0.0, np.full(4, np.nan),
-                         np.full(4, np.nan), ())
-    write_manifest(tmp_path / "rig.json", {"format": RIG.format, "version": RIG.version, **rig.to_dict()})
+    write(tmp_path / "rig.json", RigCalibration.known(cam.size, proj.size, cam.opencv_matrix(), [*lens, 0.0],
+                                                      proj.opencv_matrix()))
     assert main(["undistort-captures", str(captures), "--rig", str(tmp_path / "rig.json"), "--out",
                  str(tmp_path / "pinhole")]) == 0
     fit = run_calibration(CalibrateOptions(tmp_path / "pinhole", tmp_path / "fit", with_blend=False,

@@ -697,18 +697,14 @@ def test_cli_lists_commands(capsys):
 
 def _rig_file(path: Path, camera_size, projector_size, distortion, metric=True) -> Path:
     """A rig.json as `procam calibrate-rig` writes it, for known lenses and pose."""
-    from procam.addon.outputs import write_manifest
     from procam.addon.stages.rig_calibration import RigCalibration
-    from procam.addon.steps.layout import RIG
+    from procam.addon.steps.rig import write
 
     pose = look_at_pose(np.array([0.2, 0.1, 0.0]), np.array([0.0, 0.0, 1.5]))
     cam_k = np.array([[70.0, 0, 31.5], [0, 70.0, 23.5], [0, 0, 1]])
     proj_k = np.array([[100.0, 0, 39.5], [0, 100.0, 80.0], [0, 0, 1]])  # principal point below the frame
-    nan4 = np.full(4, np.nan)
-    cal = RigCalibration((9, 7), 0.03, tuple(camera_size), tuple(projector_size), cam_k, np.asarray(distortion, float),
-                         proj_k, np.zeros(5), pose, 0.2, 0.2, 0.3, nan4, nan4, (), metric=metric)
-    write_manifest(path, {"format": RIG.format, "version": RIG.version, **cal.to_dict()})
-    return path
+    return write(path, RigCalibration.known(camera_size, projector_size, cam_k, distortion, proj_k,
+                                            camera_from_projector=pose, metric=metric))
 
 
 def test_rig_lens_puts_a_point_where_a_pinhole_would(tmp_path):

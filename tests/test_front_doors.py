@@ -155,13 +155,9 @@ def test_every_step_writes_the_same_folder_from_the_command_line_and_from_blende
 def _rig_file(path: Path, captures: CaptureSet, distortion) -> Path:
     """A rig.json as `procam calibrate-rig` writes it for the lab set's camera and projector, with ``distortion``
     as the camera's lens (board squares: the set keeps its own projector pose)."""
-    from procam.addon.outputs import write_manifest
     from procam.addon.stages.rig_calibration import RigCalibration
-    from procam.addon.steps.layout import RIG
+    from procam.addon.steps.rig import write
 
     cam, proj = captures.camera.intrinsics, captures.projector.intrinsics
-    nan4 = np.full(4, np.nan)
-    rig = RigCalibration((9, 7), 0.03, cam.size, proj.size, cam.opencv_matrix(), np.asarray(distortion, float),
-                         proj.opencv_matrix(), np.zeros(5), np.eye(4), 0.2, 0.2, 0.3, nan4, nan4, ())
-    write_manifest(path, {"format": RIG.format, "version": RIG.version, **rig.to_dict()})
-    return path
+    return write(path, RigCalibration.known(cam.size, proj.size, cam.opencv_matrix(), distortion,
+                                            proj.opencv_matrix()))

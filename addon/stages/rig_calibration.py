@@ -238,6 +238,21 @@ class RigCalibration:
         }
 
     @staticmethod
+    def known(camera_size: Size, projector_size: Size, camera_matrix: np.ndarray, camera_distortion: Any,
+              projector_matrix: np.ndarray, *, camera_from_projector: np.ndarray | None = None,
+              metric: bool = False) -> RigCalibration:
+        """A rig whose lenses (and pose) come from elsewhere, not from board photographs: a camera calibrated with
+        another tool, or the lab's truth. It keeps no board residuals (0) or σ (NaN); ``rig.json`` holds it as
+        ``procam calibrate-rig`` writes one (:func:`..steps.rig.write`), for ``import-captures --rig`` and
+        ``undistort-captures``. ``camera_from_projector`` in metres when ``metric``, else in board squares."""
+        nan4 = np.full(4, np.nan)
+        pose = np.eye(4) if camera_from_projector is None else np.asarray(camera_from_projector, float)
+        return RigCalibration((9, 7), 1.0, (int(camera_size[0]), int(camera_size[1])),
+                              (int(projector_size[0]), int(projector_size[1])), np.asarray(camera_matrix, float),
+                              np.asarray(camera_distortion, float), np.asarray(projector_matrix, float), np.zeros(5),
+                              pose, 0.0, 0.0, 0.0, nan4, nan4.copy(), (), metric=metric)
+
+    @staticmethod
     def from_dict(d: dict[str, Any]) -> RigCalibration:
         """The inverse of :meth:`to_dict` (without the per-corner observations)."""
         cam, proj = d["camera"], d["projector"]

@@ -212,15 +212,21 @@ def _run(options: RigOptions, out: Path, say: Progress, cancel: Cancel | None, s
     cal = calibrate_rig(sources, options.board, options.square or 1.0, size, say, cancel, window=options.window,
                         camera_model=options.camera_model, projector_model=options.projector_model)
     cal = dataclasses.replace(cal, metric=options.square is not None)
-    doc = {"format": KIND.format, "version": KIND.version,
-           "sessions": [str(Path(s).absolute()) for s in options.sessions],
-           **cal.to_dict(), "seconds": round(time.monotonic() - started, 2)}
+    write(out, cal, sessions=[str(Path(s).absolute()) for s in options.sessions],
+          seconds=round(time.monotonic() - started, 2))
+    return cal
+
+
+def write(path: str | Path, cal: RigCalibration, **extra: Any) -> Path:
+    """``cal`` as a ``rig.json`` at ``path`` (``extra``: more top-level fields), written to a temporary name and
+    renamed into place; the path."""
+    out = Path(path)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        write_manifest(out, doc)  # a temporary name in the same folder, renamed into place
+        write_manifest(out, {"format": KIND.format, "version": KIND.version, **extra, **cal.to_dict()})
     except OSError as exc:
         raise CalibrationError(f"cannot write {out}: {exc.strerror or exc}") from None
-    return cal
+    return out
 
 
 def _path(path: str | Path) -> Path:
