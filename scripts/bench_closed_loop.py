@@ -202,18 +202,19 @@ def slope_fixed() -> Iterator[None]:
 def poses_against(cal_folder: Path, truth: Any) -> str:
     """Each calibrated projector's position (mm) and axis (°) error against the lab's truth, and the one-σ
     uncertainty the calibration states for it (``pose_uncertainty``)."""
+    from procam.addon.stages.pose import pose_error
     from procam.addon.steps import calibrate as calibrate_step
 
     cal = calibrate_step.read(cal_folder)
     out = []
     for k in range(cal.projector_count):
-        one, true = cal.for_projector(k), truth.rig.projectors[k]
-        p = one.rig.projector
+        one = cal.for_projector(k)
+        metres, degrees = pose_error(one.rig.projector.camera_from_projector,
+                                     truth.rig.projectors[k].camera_from_projector)
         u = one.report.get("pose_uncertainty") or {}
         stated = (f" (stated ±{100 * u['position_std_m']:.1f} cm, ±{u['axis_std_deg']:.2f}°)"
                   if u.get("position_std_m") else "")
-        out.append(f"projector {k + 1}: {1000 * float(np.linalg.norm(p.position - true.position)):.1f} mm, "
-                   f"{float(np.degrees(np.arccos(np.clip(p.direction @ true.direction, -1, 1)))):.3f}°{stated}")
+        out.append(f"projector {k + 1}: {1000 * metres:.1f} mm, {degrees:.3f}°{stated}")
     return "poses against the lab's truth: " + "; ".join(out)
 
 
