@@ -102,7 +102,8 @@ def test_the_papers_stage_a_runs_its_own_schedule_on_the_binary_mask(lab):
 def test_the_soft_rendered_mask_is_one_inside_the_footprint_and_zero_outside(lab):
     """Render ÷ E_ref is the projector texel value: the normalisation has no free constant."""
     captures, _, pose, truth = lab
-    soft = stage._soft_render_at(captures, truth.surface, pose, seed=1, spp=4)
+    view = stage.surface_view(truth.surface, captures.camera.intrinsics)
+    soft = stage._soft_render_at(captures, truth.surface, pose, view, seed=1, spp=4)
     mask, diff = stage.target_mask(captures)
     inner = stage.cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     outer = stage.cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) == 0

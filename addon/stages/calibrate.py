@@ -31,7 +31,7 @@ from ..rig.model import Camera, Intrinsics, Rig
 from ..surface.mesh import SurfaceMesh
 from .graycode_warp import warp_from_graycode
 from .intrinsics import estimate_projector_intrinsics, pose_uncertainty
-from .pose import estimate_pose, surface_view, target_mask
+from .pose import PoseResult, estimate_pose, surface_view, target_mask
 from .surface import surface_from_captures, surface_photo
 from .warp import estimate_warp
 from .warp_model import Warp, grid_image
@@ -507,9 +507,9 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
         run.rig = Rig(captures.camera, captures.projector.with_pose(pose.camera_from_projector))
         own.update(init=start_label or pose.init, pose=pose.to_dict())
         t0 = time.perf_counter()
-        own["pose_uncertainty"] = _pose_uncertainty(captures, mesh, report.get("surface_report") or {},
-                                                    pose.camera_from_projector, own.get("projector_intrinsics"),
-                                                    seed=seed, depth_bias_known=depth_offset is not None)
+        own["pose_uncertainty"] = _pose_uncertainty(captures, pose, report.get("surface_report") or {},
+                                                    own.get("projector_intrinsics"), seed=seed,
+                                                    depth_bias_known=depth_offset is not None)
         seconds["pose_uncertainty"] = time.perf_counter() - t0
         images.update({f"{image_prefix(run.index)}pose_{n}": im for n, im in pose.diagnostics.items()})
     elif state["pose"] == "reused":
@@ -523,11 +523,11 @@ def _pose_stage(run: _ProjectorRun, mesh: SurfaceMesh, report: dict[str, Any], p
     return mesh
 
 
-def _pose_uncertainty(captures: CaptureSet, mesh: SurfaceMesh, surface_report: dict[str, Any],
-                      camera_from_projector: np.ndarray, intrinsics_fit: dict[str, Any] | None, *, seed: int,
-                      depth_bias_known: bool) -> dict[str, Any]:
+def _pose_uncertainty(captures: CaptureSet, pose: PoseResult, surface_report: dict[str, Any],
+                      intrinsics_fit: dict[str, Any] | None, *, seed: int, depth_bias_known: bool) -> dict[str, Any]:
     """The pose's one-σ uncertainty (:func:`.intrinsics.pose_uncertainty`): what ``--projector-intrinsics fit``
-    judged with the intrinsics, else judged here with them held as given; or why it is not measured."""
+    judged with the intrinsics, else judged here with them held as given, on the surface view and mask stage A
+    made; or why it is not measured."""
     judged = (intrinsics_fit or {}).get("uncertainty") or {}
     if judged.get("pose"):
         return {**judged["pose"], "parts": judged.get("pose_parts") or {}, "given_by": judged.get("given_by"),
@@ -538,8 +538,8 @@ def _pose_uncertainty(captures: CaptureSet, mesh: SurfaceMesh, surface_report: d
         return {"why": "the surface was triangulated from this Gray code with these intrinsics, so it shares "
                        "their errors and cannot judge the pose; a depth image or a mesh of the surface can"}
     try:
-        return {**pose_uncertainty(captures, surface_view(mesh, captures.camera.intrinsics),
-                                   target_mask(captures)[0], camera_from_projector, seed=seed,
+        assert pose.view is not None and pose.mask is not None  # estimate_pose returns both
+        return {**pose_uncertainty(captures, pose.view, pose.mask, pose.camera_from_projector, seed=seed,
                                    depth_bias_known=depth_bias_known), "intrinsics": "held as given"}
     except (CalibrationError, np.linalg.LinAlgError) as exc:  # the pose stands; only its ± is not known
         return {"why": str(exc)}

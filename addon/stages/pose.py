@@ -151,6 +151,10 @@ class PoseResult:
     seconds: float
     diagnostics: dict[str, np.ndarray] = field(default_factory=dict)  # 'mask', 'rendered_mask', ... (H×W float32)
     info: dict[str, Any] = field(default_factory=dict)  # PnP inliers, reprojection error, phase timings
+    #: the camera's rays cast at the surface and the lit mask stage A worked on, for what judges the pose after it
+    #: (not saved)
+    view: SurfaceView | None = field(default=None, repr=False)
+    mask: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def position(self) -> np.ndarray:
@@ -496,15 +500,15 @@ def _frame_tensor(frame: np.ndarray) -> Any:
     return mitsuba().TensorXf(np.repeat(frame[..., None], 3, axis=2))
 
 
-def _soft_render_at(captures: CaptureSet, surface: SurfaceMesh, pose: np.ndarray, *, seed: int,
+def _soft_render_at(captures: CaptureSet, surface: SurfaceMesh, pose: np.ndarray, view: SurfaceView, *, seed: int,
                     spp: int = 16) -> np.ndarray:
-    """The soft rendered mask at full camera resolution with sharp edges (ε = 0): the final check's image."""
+    """The soft rendered mask at full camera resolution with sharp edges (ε = 0): the final check's image
+    (``view``: :func:`surface_view` of the surface at that resolution)."""
 
     proj = captures.projector
     white_surface = replace(surface, albedo=np.ones((2, 2, 3), np.float32))
     model = ForwardModel(Rig(captures.camera, proj.with_pose(pose)), white_surface, bounces=0, spp=spp,
                          smoothing_eps=0.0, clamp=False, seed=seed)
-    view = surface_view(surface, captures.camera.intrinsics)
     frame_t = _frame_tensor(white_frame(captures, proj, 0.0))
     return _soft_render(model, frame_t, view, proj, pose, np.zeros(6), seed).astype(np.float32)
 
@@ -688,9 +692,9 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
     info: dict[str, Any] = {"mask_fraction": float(mask.mean()), "method": method}
     cam = captures.camera.intrinsics
     known = init == "nominal" and captures.projector_pose_known
+    view = surface_view(surface, cam)  # for the Gray code's PnP and the final check alike
     if init == "graycode":
         report("stage A: decoding Gray code and solving PnP", 0.0)
-        view = surface_view(surface, cam)
         steps["initial"] = captures.projector.camera_from_projector.copy()
         pose, pnp = graycode_pnp(captures, view, mask, seed=seed)
         info["pnp"] = pnp
@@ -726,7 +730,7 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
                                 seed=seed, progress=report, progress_span=(0.05, 0.95), cancel=cancel,
                                 steps=steps, losses=losses, info=info, precondition=precondition)
     report("stage A: rendering the footprint at the final pose", 0.98)
-    rendered = _soft_render_at(captures, surface, pose, seed=seed)
+    rendered = _soft_render_at(captures, surface, pose, view, seed=seed)
     inter = float(np.sum(mask & (rendered > 0.5)))
     union = float(np.sum(mask | (rendered > 0.5)))
     iou = inter / max(union, 1.0)
@@ -739,4 +743,4 @@ def estimate_pose(captures: CaptureSet, surface: SurfaceMesh, *, init: str = "gr
             "lens shift) and the starting pose, or capture Gray code and use --init graycode")
     diagnostics = {"mask": mask.astype(np.float32), "soft_target": soft, "rendered_mask": rendered}
     report("stage A: done", 1.0)
-    return PoseResult(pose, init, steps, losses, time.perf_counter() - t0, diagnostics, info)
+    return PoseResult(pose, init, steps, losses, time.perf_counter() - t0, diagnostics, info, view, mask)
