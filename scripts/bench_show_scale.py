@@ -3,7 +3,7 @@
 
 Usage: ``.venv/bin/python scripts/bench_show_scale.py [--work DIR] [--layouts 4x1,2x2] [--input-size 1920x1080]
 [--camera-size 640x480] [--scale 1] [--targets city,forest,interior] [--repeat 3] [--surface curve]
-[--overlap 0.2] [--spp 64]``.
+[--overlap 0.2] [--spp 64] [--engine auto]``.
 
 The rig is the lab's truth, not a calibration: ``--layouts`` lays out four copies of the demo projector
 (``4x1``: ``procam lab --projectors 4 --layout side-by-side``; ``2x2``: ``--layout grid``) on the lab's
@@ -25,7 +25,9 @@ own area (the largest inside its own footprint: a show of one projector). Times 
 after one warm-up (which builds the area's views of the operators), wall and CPU seconds (every thread's); the solves
 compared run in turn in one process, because on shared cores the wall time of runs minutes apart differed by 2×.
 Memory: the operators' arrays, and the peak RSS of the joint process against that of a process that loads the one
-projector alone and runs the same solves.
+projector alone and runs the same solves. ``--engine``: where the joint solve's steps run (``numpy`` around the
+operators' gathers, ``drjit`` all on the operators' backend, ``auto`` Dr.Jit on a GPU: stages/joint_jit.py); the
+variant is Mitsuba's default here (``cuda_ad_rgb`` where a GPU is found, ``PROCAM_VARIANT`` overrides).
 """
 
 from __future__ import annotations
@@ -52,7 +54,8 @@ from procam.addon.rig.model import Rig
 from procam.addon.stages.calibrate import Calibration
 from procam.addon.stages.compensate import Compensator
 from procam.addon.stages.display_area import DisplayArea, DisplayAreaError, fit_target
-from procam.addon.stages.joint import JointCompensator
+from procam.addon.render import backend
+from procam.addon.stages.joint import ENGINES, JointCompensator, JointRows
 from procam.addon.stages.transport import DIRECT_SPP, TransportOperator, build_transport
 from procam.addon.steps.projectors import MIN_LIT, footprints, joint_area
 
@@ -117,6 +120,10 @@ def timed(fns: dict[str, Callable[[], Any]], repeat: int) -> dict[str, tuple[flo
     return {name: (float(np.median(walls[name])), float(np.median(cpus[name])), out[name]) for name in fns}
 
 
+def joint_views(joint: JointCompensator, area: DisplayArea) -> JointRows:
+    return JointRows([comp.transport_view(area) for comp in joint.compensators])
+
+
 def lit_in(cover: np.ndarray, area: DisplayArea) -> list[int]:
     """How many pixels of ``area`` each projector lights (``cover``: (N, H, W) footprints)."""
     return [int(c[area.y:area.y + area.height, area.x:area.x + area.width].sum()) for c in cover]
@@ -150,7 +157,7 @@ def child_build(args: argparse.Namespace, folder: Path, rig: Rig, surface: Any) 
     seconds = time.perf_counter() - t0
     np.savez(op_path(folder, k), **op.arrays())
     doc = {"seconds": seconds, "operator_mb": op.nbytes / 2 ** 20, "peak_rss_mb": peak_rss_mb(),
-           "report": op.report}
+           "variant": backend.default_variant(), "report": op.report}
     (folder / f"build_p{k + 1}.json").write_text(json.dumps(doc, indent=1))
 
 
@@ -171,7 +178,7 @@ def child_solve(args: argparse.Namespace, folder: Path, rig: Rig, surface: Any) 
         comps[k] = Compensator(views[k])
         comps[k].transport = load_op(folder, k)
     out["operator_mb"] = sum(c.transport.nbytes for c in comps.values()) / 2 ** 20
-    joint = JointCompensator(list(comps.values())) if args.child == "joint" else None
+    joint = JointCompensator(list(comps.values()), engine=args.engine) if args.child == "joint" else None
     alone = comps[one]
     for name in args.targets:
         fitted = fit_target(natural_target(name, area.size), area)
@@ -187,6 +194,8 @@ def child_solve(args: argparse.Namespace, folder: Path, rig: Rig, surface: Any) 
             row.update({f"{prefix}seconds": wall, f"{prefix}cpu": cpu, f"{prefix}psnr": res.report["psnr_simulated"]})
         out["targets"][name] = row
     out["peak_rss_mb"] = peak_rss_mb()
+    out["variant"] = backend.default_variant()
+    out["engine"] = joint.engine_for(joint_views(joint, area)) if joint is not None else None
     solve_file(args, folder, args.child).write_text(json.dumps(out, indent=1))
 
 
@@ -197,7 +206,7 @@ def run_child(args: argparse.Namespace, layout: str, child: str, projector: int 
            "--work", str(args.work), "--input-size", "x".join(map(str, args.input_size)),
            "--camera-size", "x".join(map(str, args.camera_size)), "--scale", str(args.scale),
            "--targets", ",".join(args.targets), "--repeat", str(args.repeat), "--surface", args.surface,
-           "--overlap", str(args.overlap), "--spp", str(args.spp)]
+           "--overlap", str(args.overlap), "--spp", str(args.spp), "--engine", args.engine]
     # The child finds this very procam package (the parent may have it from a path of its own, not PYTHONPATH).
     home = str(Path(sys.modules["procam"].__file__ or "").parent.parent)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (home, os.environ.get("PYTHONPATH")) if p)}
@@ -212,7 +221,8 @@ def folder_of(args: argparse.Namespace, layout: str) -> Path:
 
 def solve_file(args: argparse.Namespace, folder: Path, child: str) -> Path:
     """Where a solve's figures are kept: per targets and repeats (the operators are the folder's)."""
-    return folder / f"solve_{child}-{'_'.join(args.targets)}-r{args.repeat}.json"
+    engine = f"-{args.engine}" if child == "joint" and args.engine != "auto" else ""
+    return folder / f"solve_{child}-{'_'.join(args.targets)}-r{args.repeat}{engine}-{backend.default_variant()}.json"
 
 
 def measure(args: argparse.Namespace, layout: str) -> dict[str, Any]:
@@ -236,7 +246,9 @@ def measure(args: argparse.Namespace, layout: str) -> dict[str, Any]:
 
 def table(args: argparse.Namespace, results: dict[str, dict[str, Any]]) -> str:
     cam, frame = scaled(args.camera_size, args.scale), scaled(args.input_size, args.scale)
-    lines = [f"Camera {cam[0]}×{cam[1]}, 4 projectors with {frame[0]}×{frame[1]} inputs, `{args.surface}`, overlap "
+    first = next(iter(results.values()))["joint"]
+    lines = [f"Variant `{first.get('variant')}`, the joint solve's steps in {first.get('engine')}. "
+             f"Camera {cam[0]}×{cam[1]}, 4 projectors with {frame[0]}×{frame[1]} inputs, `{args.surface}`, overlap "
              f"{args.overlap:g}; calibration: the lab's truth (true poses and surface, no Gray code rendered); "
              f"open loop, transport schedule, no θ; median of {args.repeat} after a warm-up, the joint solve and the "
              "projector alone timed in turn in one process (wall seconds, CPU seconds of every thread in brackets); "
@@ -288,6 +300,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--overlap", type=float, default=0.2)
     ap.add_argument("--spp", type=int, default=DIRECT_SPP, help="samples per pixel of the operator's direct renders "
                     f"(default {DIRECT_SPP}, as procam precompute; a test's tiny run takes fewer)")
+    ap.add_argument("--engine", choices=ENGINES, default="auto",
+                    help="where the joint solve's steps run (default auto: Dr.Jit on a GPU, numpy on a CPU)")
     ap.add_argument("--child", choices=("build", "one", "joint"), help=argparse.SUPPRESS)
     ap.add_argument("--projector", type=int, default=0, help=argparse.SUPPRESS)
     return ap

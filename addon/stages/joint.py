@@ -74,10 +74,13 @@ import cv2
 import numpy as np
 
 from ..capture.devices import Device, OneProjector
+from ..errors import Cancelled
 from ..progress import Cancel, Progress
+from ..render import backend
 from .bias import BiasModel
 from .compensate import CompensationResult, Compensator
 from .display_area import DisplayArea, fit_target
+from .joint_jit import JitSteps
 from .metrics import area_psnr
 from .schedule import CompensationError, Schedule
 from .solve_transport import TransportSolve
@@ -86,6 +89,9 @@ from .transport import BlurredRows, TransportOperator, TransportRows, adjoint_to
 View = TransportRows | BlurredRows
 #: ``blend`` values of :meth:`JointCompensator.run`.
 BLENDS = ("derived", "none")
+#: Where the solver's steps run (:meth:`JointCompensator.engine_for`): ``numpy`` around the operators' gathers,
+#: ``drjit`` all on the operators' Dr.Jit backend (stages/joint_jit.py), ``auto`` Dr.Jit on a GPU.
+ENGINES = ("auto", "numpy", "drjit")
 #: λ of the blend rows (module doc). On the lab (curve, two projectors side by side, 30 % overlap, a bright target
 #: partly out of reach) 0.1–0.3 gave the best overlap with one projector moved by a camera pixel (26.2–26.3 dB); 1
 #: gave 25.5, 3 gave 23.8: a stronger prior costs the data fit.
@@ -373,8 +379,8 @@ class JointSolve(TransportSolve):
         self.fixed = joint.fixed_sums(zs)
         self.zc0 = joint.compact(zs)
         #: the unknowns held at each projector's surround (TransportSolve.held)
-        self.held = np.concatenate([~comp.area_texels(area).reshape(-1)[v.texels]
-                                    for comp, v in zip(self.comps, joint.views)])
+        self.held = ~np.concatenate([np.take(comp.area_texels(area).reshape(-1), v.texels)
+                                     for comp, v in zip(self.comps, joint.views)])
         self.row_sums = np.maximum(joint.row_ones, 1e-3)
         self.weight = owner.blend_weight if shares is not None else 0.0
         lights = joint.light_parts()
@@ -389,8 +395,7 @@ class JointSolve(TransportSolve):
             self.blend_scale = [np.where(r > 1e-6, lam / np.maximum(r, 1e-6), 0.0).astype(np.float32) for r in rows]
             col_weights = [1.0 + lam * sum(np.abs(float(j == k) - b) for k, b in enumerate(self.shares))
                            for j in range(joint.count)]
-        self.col_sums = np.maximum(joint.adjoint_parts([np.broadcast_to(w, self.target.shape) for w in col_weights]),
-                                   1e-3)
+        col_weights = [np.broadcast_to(w, self.target.shape) for w in col_weights]
         # the most light the data rows ask for, the blend's reach (module doc, "The reach"): None without a blend
         self.reach = blend_reach(lights, shares) if owner.cap_reach and self.weight > 0 and shares is not None \
             and joint.count > 1 else None
@@ -399,9 +404,46 @@ class JointSolve(TransportSolve):
         self.losses: list[float] = []
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
         self.total = sched.iterations_z + sched.iterations_joint
-        start = np.clip(np.sum(joint.apply_parts(self.zc0, self.fixed), axis=0) - theta0, 0.0, 1.0)
-        self.psnr_start = area_psnr(self.on_camera(start), placed, area)
         self.alpha = sched.theta_rate
+        #: the steps on the device (stages/joint_jit.py), None: in numpy
+        self.jit = JitSteps(self, col_weights) if owner.engine_for(joint) == "drjit" else None
+        if self.jit is None:
+            self.col_sums = np.maximum(joint.adjoint_parts(col_weights), 1e-3)
+            light = np.sum(joint.apply_parts(self.zc0, self.fixed), axis=0)
+        else:
+            light = self.jit.back(self.jit.forward(self.jit.split_to_device(self.zc0))[1])
+        self.psnr_start = area_psnr(self.on_camera(np.clip(light - theta0, 0.0, 1.0)), placed, area)
+
+    def solve(self, zc: np.ndarray, theta: np.ndarray, steps: int, residual: np.ndarray | None = None,
+              f_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`~.solve_transport.TransportSolve.solve` (the same steps), on the device when :attr:`jit` is set:
+        the states go there once and come back after the last step."""
+        jit = self.jit
+        if jit is None:
+            return super().solve(zc, theta, steps, residual, f_start)
+        dr = jit.dr
+        prev = ys = jit.split_to_device(zc)
+        th, res = jit.put(theta), None if residual is None else jit.put(residual)
+        for k in range(steps):
+            if self.cancel is not None and self.cancel():
+                raise Cancelled(f"compensation of {self.name!r} cancelled at solver step {self.done}")
+            parts, total = jit.forward(ys)
+            if res is not None:
+                th = dr.clip(th + 2.0 * self.alpha * (res - th), total - 1.0, total)
+            resid = jit.target + th - total
+            z_new = jit.update(ys, parts, total, resid)
+            momentum = dr.opaque(jit.Float, k / (k + 3.0))  # opaque: one kernel for every step, not one each
+            ys = [z + momentum * (z - p) for z, p in zip(z_new, prev)]
+            prev = z_new
+            if k % 10 == 0 or k == steps - 1:
+                loss = dr.mean(resid * resid)
+                dr.eval(*ys, *prev, th, loss)
+                self.done += 1
+                self.report_loss(float(loss[0]))
+            else:
+                dr.eval(*ys, *prev, th)
+                self.done += 1
+        return np.concatenate([jit.back(z) for z in prev]), jit.back(th)
 
     def forward(self, zc: np.ndarray) -> np.ndarray:
         self._parts = parts = self.joint.apply_parts(zc, self.fixed)
@@ -464,7 +506,7 @@ class JointCompensator:
     :func:`calibration_certainty` of each calibration)."""
 
     def __init__(self, compensators: Sequence[Compensator], *, certainties: Sequence[float] | None = None,
-                 blend_weight: float = BLEND_WEIGHT, cap_reach: bool = True) -> None:
+                 blend_weight: float = BLEND_WEIGHT, cap_reach: bool = True, engine: str = "auto") -> None:
         comps = list(compensators)
         if not comps:
             raise CompensationError("a joint compensation needs at least one projector's compensator")
@@ -478,6 +520,9 @@ class JointCompensator:
         self.camera_size = first
         self.blend_weight = float(blend_weight)
         self.cap_reach = bool(cap_reach)
+        if engine not in ENGINES:
+            raise CompensationError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+        self.engine = engine
         self.certainties = [calibration_certainty(c.calibration) for c in comps] if certainties is None else \
             [float(v) for v in certainties]
         if len(self.certainties) != len(comps) or not all(math.isfinite(v) and v > 0 for v in self.certainties):
@@ -487,6 +532,17 @@ class JointCompensator:
         self._shares: np.ndarray | None = None
         self.last_blend: str | None = None
         self.last_bias: Any = None
+
+    def engine_for(self, joint: JointRows) -> str:
+        """Where the solver's steps run on these views (:data:`ENGINES`): numpy where a view holds a lens blur
+        (its blur is OpenCV's), else as :attr:`engine` says, ``auto`` being Dr.Jit on a GPU."""
+        views = [v for v in joint.views if isinstance(v, TransportRows)]
+        if len(views) < len(joint.views):
+            return "numpy"
+        if self.engine != "auto":
+            return self.engine
+        variant = views[0].variant or backend.default_variant()
+        return "drjit" if variant.startswith("cuda") else "numpy"
 
     @property
     def operators(self) -> list[TransportOperator]:
@@ -693,6 +749,6 @@ def ramp_baseline(joint: JointCompensator, target: np.ndarray, area: DisplayArea
                    mode, captures, report, t_start, seconds_device)
 
 
-__all__ = ["BLENDS", "BLEND_WEIGHT", "JointCompensator", "JointResult", "JointRows", "JointSolve",
+__all__ = ["BLENDS", "BLEND_WEIGHT", "ENGINES", "JointCompensator", "JointResult", "JointRows", "JointSolve",
            "blend_reach", "blend_shares", "calibration_certainty", "combined_reach", "distance_shares", "footprints",
            "masked_psnr", "overlap_mask", "ramp_baseline", "white_of"]

