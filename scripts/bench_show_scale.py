@@ -26,8 +26,9 @@ after one warm-up (which builds the area's views of the operators), wall and CPU
 compared run in turn in one process, because on shared cores the wall time of runs minutes apart differed by 2×.
 Memory: the operators' arrays, and the peak RSS of the joint process against that of a process that loads the one
 projector alone and runs the same solves. ``--engine``: where the joint solve's steps run (``numpy`` around the
-operators' gathers, ``drjit`` all on the operators' backend, ``auto`` Dr.Jit on a GPU: stages/joint_jit.py); the
-variant is Mitsuba's default here (``cuda_ad_rgb`` where a GPU is found, ``PROCAM_VARIANT`` overrides).
+operators' gathers, ``drjit`` all on the operators' backend, ``auto`` as ``compensate``: Dr.Jit;
+stages/joint_jit.py); the variant is Mitsuba's default here (``cuda_ad_rgb`` where a GPU is found,
+``PROCAM_VARIANT`` overrides).
 """
 
 from __future__ import annotations
@@ -301,7 +302,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--spp", type=int, default=DIRECT_SPP, help="samples per pixel of the operator's direct renders "
                     f"(default {DIRECT_SPP}, as procam precompute; a test's tiny run takes fewer)")
     ap.add_argument("--engine", choices=ENGINES, default="auto",
-                    help="where the joint solve's steps run (default auto: Dr.Jit on a GPU, numpy on a CPU)")
+                    help="where the joint solve's steps run (default auto, as compensate: Dr.Jit)")
     ap.add_argument("--child", choices=("build", "one", "joint"), help=argparse.SUPPRESS)
     ap.add_argument("--projector", type=int, default=0, help=argparse.SUPPRESS)
     return ap

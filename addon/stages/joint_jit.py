@@ -1,12 +1,13 @@
 """The joint solve's steps on the device: every SIRT step of stages/joint.py in Dr.Jit, nothing back in numpy.
 
-:class:`~.joint.JointSolve` steps in numpy around the operators' Dr.Jit gathers: each step takes every
-projector's gathered light back to the host for the indirect part's block sums and its small matrix product, the
-blend rows, the reach cap, the box and the momentum. On 2 cores that costs little; on a GPU the round trips and
-numpy's single thread are all of it (two projectors at 640×480: 1.07 s a target on an H200 against 1.02 s on 2
-cores). Here every step stays on the Dr.Jit backend the operators are on (``cuda_ad_rgb`` on a GPU, the LLVM one on
-a CPU): each projector's state and each camera-row image are Dr.Jit arrays from a solve's first step to its last,
-and a step's only trip to the host is the loss every tenth step (a mean).
+Stepped in numpy around the operators' Dr.Jit gathers (``engine='numpy'``), each step takes every projector's
+gathered light back to the host for the indirect part's block sums and its small matrix product, the blend rows,
+the reach cap, the box and the momentum. On a GPU the round trips and numpy's single thread were all of it (two
+projectors at 640×480: 1.07 s a target on an H200 against 1.02 s on 2 cores). Here every step stays on the Dr.Jit
+backend the operators are on (``cuda_ad_rgb`` on a GPU, the LLVM one on a CPU, the same code, so the suite runs
+what a GPU runs): each projector's state and each camera-row image are Dr.Jit arrays from a solve's first step to
+its last, and a step's only trip to the host is the loss every tenth step (a mean). Four 1920×1080 projectors in a
+2×2 grid: the 40 steps 47 ms on an H200; on 2 cores the whole target 26 % faster than stepping in numpy.
 
 The indirect part of ``T_k z_k`` is each block's mean of the input times its low-resolution response, upsampled
 to the rows. Its pieces as gathers summed in fixed-size blocks, as the direct part's are (stages/transport.py):
@@ -117,7 +118,6 @@ class JitSteps:
 
     def __init__(self, solve: Any, col_weights: Sequence[np.ndarray]) -> None:
         joint = solve.joint
-        self.solve = solve
         self.views = [jit_view(v) for v in joint.views]
         first = self.views[0]
         dr = self.dr = first.dr
