@@ -329,3 +329,44 @@ def test_the_solve_steps_on_the_dr_jit_backend_give_numpys_answer(side):
     assert jit.engine_for(JointRows(views)) == "drjit"
     assert jit.engine_for(JointRows([BlurredRows(v, 1.0) for v in views])) == "numpy"
     assert JointCompensator(comps).engine_for(JointRows(views)) == "drjit"  # the default, on a CPU too
+
+
+class _OneShown(Device):
+    """One projector through its own operator plus an offset."""
+
+    def __init__(self, comp: Compensator, offset: np.ndarray) -> None:
+        self.comp, self.offset, self.projector = comp, offset, comp.rig.projector
+
+    def project(self, frame: np.ndarray) -> np.ndarray:
+        x0, y0 = self.projector.input_offset
+        x = frame[y0:y0 + self.comp.ih, x0:x0 + self.comp.iw]
+        return (self.offset + self.comp.transport.apply(self.comp.warp_m(x))).astype(np.float32)
+
+
+def test_one_projectors_solve_steps_on_the_dr_jit_backend_too(side):
+    """A projector alone (stages/solve_transport.py) steps on the same device code: numpy's answer to float32
+    rounding in the open loop with a gain, without θ and in both closed loops."""
+    comp = side.compensators[0]
+    area = _area(side)
+    target = _target(area, 6)
+    rng = np.random.default_rng(5)
+    shape = (CAMERA[1], CAMERA[0], 3)
+    bias = BiasModel(rng.uniform(0.0, 0.02, shape).astype(np.float32), rng.uniform(0.8, 1.2, shape).astype(np.float32),
+                     "test")
+    offset = np.full(shape, 0.02, np.float32)
+    runs = {"open loop, gain": dict(open_loop_theta=bias), "no θ": dict(use_bias=False),
+            "closed loop, damped": dict(loop="damped"), "closed loop, measured": dict(loop="measured")}
+    try:
+        for name, kwargs in runs.items():
+            answers = {}
+            for engine in ("numpy", "auto"):
+                comp.engine = engine
+                device = _OneShown(comp, offset) if "closed" in name else None
+                answers[engine] = comp.run(target, area, device=device, verify=False, **kwargs)
+            a, b = answers["numpy"], answers["auto"]
+            np.testing.assert_allclose(b.z, a.z, atol=2e-4, err_msg=name)
+            assert min(b.report["psnr_simulated"], 60) == pytest.approx(min(a.report["psnr_simulated"], 60), abs=0.01)
+            assert b.captures == a.captures and len(b.losses) == len(a.losses), name
+            np.testing.assert_allclose(b.losses, a.losses, rtol=1e-3, atol=1e-9, err_msg=name)
+    finally:
+        comp.engine = "auto"

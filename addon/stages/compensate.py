@@ -119,6 +119,8 @@ class Compensator:
         self.rig = calibration.rig
         self.warp = calibration.warp
         self.bounces, self.spp, self.seed = int(bounces), int(spp), int(seed)
+        #: where the transport solve's steps run (stages/joint.py's ENGINES): ``auto``, Dr.Jit; ``numpy`` the old steps
+        self.engine = "auto"
         # No border smoothing Γ: it only helps the pose search (stage A) and would dim the input's outer rows.
         self.model = ForwardModel(self.rig, calibration.surface, bounces=bounces, spp=spp, smoothing_eps=0.0,
                                   clamp=True, seed=seed, variant=variant)

@@ -74,7 +74,6 @@ import cv2
 import numpy as np
 
 from ..capture.devices import Device, OneProjector
-from ..errors import Cancelled
 from ..progress import Cancel, Progress
 from .bias import BiasModel
 from .compensate import CompensationResult, Compensator
@@ -405,45 +404,16 @@ class JointSolve(TransportSolve):
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
         self.total = sched.iterations_z + sched.iterations_joint
         self.alpha = sched.theta_rate
-        #: the steps on the device (stages/joint_jit.py), None: in numpy
-        self.jit = JitSteps(self, col_weights) if owner.engine_for(joint) == "drjit" else None
+        #: the steps on the device (stages/joint_jit.py), None: in numpy; θ's clip is to the gained light in both
+        self.device_theta = True
+        self.jit = JitSteps(self, joint.views, [None if unit else g for g, unit in zip(joint.gains, joint._unit)],
+                            self.fixed, col_weights) if owner.engine_for(joint) == "drjit" else None
         if self.jit is None:
             self.col_sums = np.maximum(joint.adjoint_parts(col_weights), 1e-3)
             light = np.sum(joint.apply_parts(self.zc0, self.fixed), axis=0)
         else:
             light = self.jit.back(self.jit.forward(self.jit.split_to_device(self.zc0))[1])
         self.psnr_start = area_psnr(self.on_camera(np.clip(light - theta0, 0.0, 1.0)), placed, area)
-
-    def solve(self, zc: np.ndarray, theta: np.ndarray, steps: int, residual: np.ndarray | None = None,
-              f_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`~.solve_transport.TransportSolve.solve` (the same steps), on the device when :attr:`jit` is set:
-        the states go there once and come back after the last step."""
-        jit = self.jit
-        if jit is None:
-            return super().solve(zc, theta, steps, residual, f_start)
-        dr = jit.dr
-        prev = ys = jit.split_to_device(zc)
-        th, res = jit.put(theta), None if residual is None else jit.put(residual)
-        for k in range(steps):
-            if self.cancel is not None and self.cancel():
-                raise Cancelled(f"compensation of {self.name!r} cancelled at solver step {self.done}")
-            parts, total = jit.forward(ys)
-            if res is not None:
-                th = dr.clip(th + 2.0 * self.alpha * (res - th), total - 1.0, total)
-            resid = jit.target + th - total
-            z_new = jit.update(ys, parts, total, resid)
-            momentum = dr.opaque(jit.Float, k / (k + 3.0))  # opaque: one kernel for every step, not one each
-            ys = [z + momentum * (z - p) for z, p in zip(z_new, prev)]
-            prev = z_new
-            if k % 10 == 0 or k == steps - 1:
-                loss = dr.mean(resid * resid)
-                dr.eval(*ys, *prev, th, loss)
-                self.done += 1
-                self.report_loss(float(loss[0]))
-            else:
-                dr.eval(*ys, *prev, th)
-                self.done += 1
-        return np.concatenate([jit.back(z) for z in prev]), jit.back(th)
 
     def forward(self, zc: np.ndarray) -> np.ndarray:
         self._parts = parts = self.joint.apply_parts(zc, self.fixed)

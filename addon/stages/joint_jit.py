@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import Cancelled
 from .transport import TransportRows
 
 
@@ -113,31 +114,64 @@ def jit_view(view: TransportRows) -> JitView:
 
 
 class JitSteps:
-    """:meth:`~.joint.JointSolve.solve`'s steps on Dr.Jit arrays: built once per solve from its arrays (numpy),
-    run for any number of steps from numpy states, answering numpy."""
+    """A transport solve's SIRT steps (:meth:`~.solve_transport.TransportSolve.solve`, with the blend rows of
+    :class:`~.joint.JointSolve` when it has them) on Dr.Jit arrays: built once per solve from its numpy arrays,
+    run for any number of steps from numpy states, answering numpy. ``views``, ``gains`` (None: 1), ``fixed`` (the
+    held block sums) and ``col_weights`` (each projector's columns' weights at the rows) per projector; the rest is
+    read from ``solve`` (its target, row sums, held texels and start, and a joint solve's blend)."""
 
-    def __init__(self, solve: Any, col_weights: Sequence[np.ndarray]) -> None:
-        joint = solve.joint
-        self.views = [jit_view(v) for v in joint.views]
+    def __init__(self, solve: Any, views: Sequence[TransportRows], gains: Sequence[np.ndarray | None],
+                 fixed: Sequence[np.ndarray], col_weights: Sequence[np.ndarray]) -> None:
+        self.views = [jit_view(v) for v in views]
         first = self.views[0]
         dr = self.dr = first.dr
         self.Float, self.Bool = first.Float, first.view._bool
         self.put = put = first.to_device
-        self.gains = [None if unit else put(g) for g, unit in zip(joint.gains, joint._unit)]
-        self.bounds = joint.bounds
-        self.fixed = [jv.fixed(f) for jv, f in zip(self.views, solve.fixed)]
+        self.gains = [None if g is None else put(g) for g in gains]
+        self.bounds = np.cumsum([0] + [len(v.texels) for v in views])
+        self.fixed = [jv.fixed(f) for jv, f in zip(self.views, fixed)]
         self.target = put(solve.target)
         self.row_sums = put(solve.row_sums)
         # SIRT's column sums, each projector's Tᵀ (g w) for its columns' weights w (the blend rows' share in it)
         self.col_sums = [dr.maximum(jv.adjoint(put(w), g), 1e-3)
                          for jv, w, g in zip(self.views, col_weights, self.gains)]
-        self.held = [self.Bool(np.repeat(h, 3)) for h in np.split(solve.held, self.bounds[1:-1])]
-        self.start = [put(z) for z in joint.split(solve.zc0)]
-        self.weight = float(solve.weight)
+        cuts = self.bounds[1:-1]
+        self.held = [self.Bool(np.repeat(h, 3)) for h in np.split(solve.held, cuts)]
+        self.start = [put(z) for z in np.split(solve.zc0, cuts)]
+        self.weight = float(getattr(solve, "weight", 0.0))
         if self.weight:
             self.shares = [put(np.broadcast_to(s, solve.target.shape)) for s in solve.shares]
             self.scales = [put(s) for s in solve.blend_scale]
-        self.reach = None if solve.reach is None else put(solve.reach)
+        reach = getattr(solve, "reach", None)
+        self.reach = None if reach is None else put(reach)
+
+    def steps(self, solve: Any, zc: np.ndarray, theta: np.ndarray, steps: int,
+              residual: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``solve``'s :meth:`~.solve_transport.TransportSolve.solve` (the same steps, its cancel, progress and
+        losses): the states go to the device once and come back after the last step. θ's update clips to the
+        light (gains included), so with a gain other than 1 a solve following captures steps in numpy."""
+        dr = self.dr
+        prev = ys = self.split_to_device(zc)
+        th, res = self.put(theta), None if residual is None else self.put(residual)
+        for k in range(steps):
+            if solve.cancel is not None and solve.cancel():
+                raise Cancelled(f"compensation of {solve.name!r} cancelled at solver step {solve.done}")
+            parts, total = self.forward(ys)
+            if res is not None:
+                th = dr.clip(th + 2.0 * solve.alpha * (res - th), total - 1.0, total)
+            resid = self.target + th - total
+            z_new = self.update(ys, parts, total, resid)
+            momentum = dr.opaque(self.Float, k / (k + 3.0))  # opaque: one kernel for every step, not one each
+            ys = [z + momentum * (z - p) for z, p in zip(z_new, prev)]
+            prev = z_new
+            solve.done += 1
+            if k % 10 == 0 or k == steps - 1:
+                loss = dr.mean(resid * resid)
+                dr.eval(*ys, *prev, th, loss)
+                solve.report_loss(float(loss[0]))
+            else:
+                dr.eval(*ys, *prev, th)
+        return np.concatenate([self.back(z) for z in prev]), self.back(th)
 
     def split_to_device(self, zc: np.ndarray) -> list[Any]:
         return [self.put(zc[a:b]) for a, b in zip(self.bounds[:-1], self.bounds[1:])]

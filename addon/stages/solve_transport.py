@@ -37,7 +37,8 @@ from .closed_loop import MeasuredCorrection, RowGrid, check_first_capture, noise
 from .display_area import DisplayArea
 from .metrics import area_psnr, psnr
 from .schedule import CompensationError, Schedule
-from .transport import BlurredRows
+from .joint_jit import JitSteps
+from .transport import BlurredRows, TransportRows
 
 
 class TransportSolve:
@@ -65,7 +66,15 @@ class TransportSolve:
         #: the unknowns held at the surround (their light lands outside the area: Compensator.area_texels)
         self.held = ~comp.area_texels(area).reshape(-1)[view.texels]
         self.row_sums = np.maximum(self.gain * view.row_ones, 1e-3)
-        self.col_sums = np.maximum(view.adjoint_compact(self.gain), 1e-3)
+        unit = bias is None or bias.gain is None
+        #: the steps on the device (stages/joint_jit.py; the compensator's ``engine``, as the joint solve's), None:
+        #: in numpy (a lens blur held: its blur is OpenCV's)
+        self.jit = JitSteps(self, [view], [None if unit else self.gain], [self.fixed], [np.ones_like(self.target)]) \
+            if isinstance(view, TransportRows) and comp.engine != "numpy" else None
+        #: θ's update may step on the device: its clip to the light is the same there (a gain of 1)
+        self.device_theta = unit
+        if self.jit is None or not unit:
+            self.col_sums = np.maximum(view.adjoint_compact(self.gain), 1e-3)
         self.losses: list[float] = []
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
         self.total = sched.iterations_z + sched.iterations_joint
@@ -88,7 +97,9 @@ class TransportSolve:
               f_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``steps`` solver steps from ``zc``; with the last capture's ``residual``, θ follows Eq. 10 towards
         it on every step, then Eq. 14 against the current prediction (as ``fast`` does between captures).
-        ``f_start``: ``T zc`` when the caller has it already."""
+        ``f_start``: ``T zc`` when the caller has it already. On the device when :attr:`jit` is set."""
+        if self.jit is not None and (residual is None or self.device_theta):
+            return self.jit.steps(self, zc, theta, steps, residual)
         prev, y = zc, zc
         for k in range(steps):
             if self.cancel is not None and self.cancel():
