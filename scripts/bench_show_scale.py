@@ -25,7 +25,7 @@ own area (the largest inside its own footprint: a show of one projector). Times 
 after one warm-up (which builds the area's views of the operators), wall and CPU seconds (every thread's); the solves
 compared run in turn in one process, because on shared cores the wall time of runs minutes apart differed by 2×.
 Memory: the operators' arrays, and the peak RSS of the joint process against that of a process that loads the one
-projector alone and runs the same solves. ``--engine``: where the joint solve's steps run (``numpy`` around the
+projector alone and runs the same solves. ``--engine``: where the solves' steps run (``numpy`` around the
 operators' gathers, ``drjit`` all on the operators' backend, ``auto`` as ``compensate``: Dr.Jit;
 stages/joint_jit.py); the variant is Mitsuba's default here (``cuda_ad_rgb`` where a GPU is found,
 ``PROCAM_VARIANT`` overrides).
@@ -178,6 +178,7 @@ def child_solve(args: argparse.Namespace, folder: Path, rig: Rig, surface: Any) 
     for k in range(count) if args.child == "joint" else [one]:
         comps[k] = Compensator(views[k])
         comps[k].transport = load_op(folder, k)
+        comps[k].engine = args.engine  # one projector alone steps where the joint solve does
     out["operator_mb"] = sum(c.transport.nbytes for c in comps.values()) / 2 ** 20
     joint = JointCompensator(list(comps.values()), engine=args.engine) if args.child == "joint" else None
     alone = comps[one]
@@ -222,7 +223,7 @@ def folder_of(args: argparse.Namespace, layout: str) -> Path:
 
 def solve_file(args: argparse.Namespace, folder: Path, child: str) -> Path:
     """Where a solve's figures are kept: per targets and repeats (the operators are the folder's)."""
-    engine = f"-{args.engine}" if child == "joint" and args.engine != "auto" else ""
+    engine = f"-{args.engine}" if args.engine != "auto" else ""
     return folder / f"solve_{child}-{'_'.join(args.targets)}-r{args.repeat}{engine}-{backend.default_variant()}.json"
 
 
@@ -302,7 +303,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--spp", type=int, default=DIRECT_SPP, help="samples per pixel of the operator's direct renders "
                     f"(default {DIRECT_SPP}, as procam precompute; a test's tiny run takes fewer)")
     ap.add_argument("--engine", choices=ENGINES, default="auto",
-                    help="where the joint solve's steps run (default auto, as compensate: Dr.Jit)")
+                    help="where the solves' steps run (default auto, as compensate: Dr.Jit)")
     ap.add_argument("--child", choices=("build", "one", "joint"), help=argparse.SUPPRESS)
     ap.add_argument("--projector", type=int, default=0, help=argparse.SUPPRESS)
     return ap
