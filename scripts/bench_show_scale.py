@@ -27,7 +27,7 @@ compared run in turn in one process, because on shared cores the wall time of ru
 Memory: the operators' arrays, and the peak RSS of the joint process against that of a process that loads the one
 projector alone and runs the same solves. ``--engine``: where the solves' steps run (``numpy`` around the
 operators' gathers, ``drjit`` all on the operators' backend, ``auto`` as ``compensate``: Dr.Jit;
-stages/joint_jit.py); the variant is Mitsuba's default here (``cuda_ad_rgb`` where a GPU is found,
+stages/solve_jit.py); the variant is Mitsuba's default here (``cuda_ad_rgb`` where a GPU is found,
 ``PROCAM_VARIANT`` overrides).
 """
 

@@ -195,6 +195,17 @@ def test_the_closed_loop_finds_the_offset_the_camera_sees(side):
     assert masked_psnr(seen, res.target, inside) > 30
 
 
+def _broken(comps: list[Compensator]) -> list[Compensator]:
+    """The projectors with damaged operators: some camera pixels' light is NaN."""
+    out = [Compensator(c.calibration, bounces=0) for c in comps]
+    for comp, good in zip(out, comps):
+        op = good.transport
+        weight = op.weight.copy()
+        weight[::7] = np.nan
+        comp.transport = TransportOperator(op.camera_size, op.input_size, op.index, weight, op.blocks, op.indirect)
+    return out
+
+
 def test_bad_input(side):
     area = _area(side)
     target = _target(area, 1)
@@ -218,14 +229,8 @@ def test_bad_input(side):
     with pytest.raises(CompensationError, match="drives 1 projector"):
         side.run(target, area, device=OneProjector())
     # a diverging solve: an operator holding NaN
-    broken = [Compensator(c.calibration, bounces=0) for c in side.compensators]
-    for comp, good in zip(broken, side.compensators):
-        op = good.transport
-        weight = op.weight.copy()
-        weight[::7] = np.nan  # a damaged operator: some camera pixels' light is NaN
-        comp.transport = TransportOperator(op.camera_size, op.input_size, op.index, weight, op.blocks, op.indirect)
     with pytest.raises(CompensationError, match="diverged"):
-        JointCompensator(broken).run(target, area, use_bias=False, blend="none")
+        JointCompensator(_broken(side.compensators)).run(target, area, use_bias=False, blend="none")
     # projectors calibrated with cameras of different sizes
     cal = side.compensators[1].calibration
     small = Calibration(Rig(Camera(cal.rig.camera.intrinsics.scaled(32, 24)), cal.rig.projector), cal.surface, None, "")
@@ -314,14 +319,8 @@ def test_the_solve_steps_on_the_dr_jit_backend_give_numpys_answer(side):
     jit = JointCompensator(comps, engine="drjit")
     with pytest.raises(Cancelled):
         jit.run(target, area, use_bias=False, cancel=lambda: True)
-    broken = [Compensator(c.calibration, bounces=0) for c in comps]
-    for comp, good in zip(broken, comps):
-        op = good.transport
-        weight = op.weight.copy()
-        weight[::7] = np.nan
-        comp.transport = TransportOperator(op.camera_size, op.input_size, op.index, weight, op.blocks, op.indirect)
     with pytest.raises(CompensationError, match="diverged"):
-        JointCompensator(broken, engine="drjit").run(target, area, use_bias=False, blend="none")
+        JointCompensator(_broken(comps), engine="drjit").run(target, area, use_bias=False, blend="none")
     with pytest.raises(CompensationError, match="engine"):
         JointCompensator(comps, engine="cuda")
     # a lens blur held in the solve is OpenCV's: those views step in numpy whatever the engine

@@ -78,9 +78,9 @@ from ..progress import Cancel, Progress
 from .bias import BiasModel
 from .compensate import CompensationResult, Compensator
 from .display_area import DisplayArea, fit_target
-from .joint_jit import JitSteps
 from .metrics import area_psnr
 from .schedule import CompensationError, Schedule
+from .solve_jit import JitSteps
 from .solve_transport import TransportSolve
 from .transport import BlurredRows, TransportOperator, TransportRows, adjoint_together, apply_together
 
@@ -88,8 +88,8 @@ View = TransportRows | BlurredRows
 #: ``blend`` values of :meth:`JointCompensator.run`.
 BLENDS = ("derived", "none")
 #: Where the solver's steps run (:meth:`JointCompensator.engine_for`): ``drjit`` all on the operators' Dr.Jit
-#: backend (stages/joint_jit.py; ``auto``, the default, unless a view holds a lens blur), ``numpy`` around their
-#: gathers (the same answers to float32 rounding; on a GPU 4.3× slower, on 2 cores 1.3× slower at show scale).
+#: backend (stages/solve_jit.py; ``auto``, the default, unless a view holds a lens blur), ``numpy`` around their
+#: gathers (the same answers to float32 rounding; at show scale 4.3× slower on a GPU, 1.2× on 2 cores).
 ENGINES = ("auto", "numpy", "drjit")
 #: λ of the blend rows (module doc). On the lab (curve, two projectors side by side, 30 % overlap, a bright target
 #: partly out of reach) 0.1–0.3 gave the best overlap with one projector moved by a camera pixel (26.2–26.3 dB); 1
@@ -404,7 +404,7 @@ class JointSolve(TransportSolve):
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
         self.total = sched.iterations_z + sched.iterations_joint
         self.alpha = sched.theta_rate
-        #: the steps on the device (stages/joint_jit.py), None: in numpy; θ's clip is to the gained light in both
+        #: the steps on the device (stages/solve_jit.py), None: in numpy; θ's clip is to the gained light in both
         self.device_theta = True
         self.jit = JitSteps(self, joint.views, [None if unit else g for g, unit in zip(joint.gains, joint._unit)],
                             self.fixed, col_weights) if owner.engine_for(joint) == "drjit" else None

@@ -37,7 +37,7 @@ from .closed_loop import MeasuredCorrection, RowGrid, check_first_capture, noise
 from .display_area import DisplayArea
 from .metrics import area_psnr, psnr
 from .schedule import CompensationError, Schedule
-from .joint_jit import JitSteps
+from .solve_jit import JitSteps
 from .transport import BlurredRows, TransportRows
 
 
@@ -64,10 +64,10 @@ class TransportSolve:
         self.fixed = view.fixed_sums(z)
         self.zc0 = view.compact(z)
         #: the unknowns held at the surround (their light lands outside the area: Compensator.area_texels)
-        self.held = ~comp.area_texels(area).reshape(-1)[view.texels]
+        self.held = ~np.take(comp.area_texels(area).reshape(-1), view.texels)
         self.row_sums = np.maximum(self.gain * view.row_ones, 1e-3)
         unit = bias is None or bias.gain is None
-        #: the steps on the device (stages/joint_jit.py; the compensator's ``engine``, as the joint solve's), None:
+        #: the steps on the device (stages/solve_jit.py; the compensator's ``engine``, as the joint solve's), None:
         #: in numpy (a lens blur held: its blur is OpenCV's)
         self.jit = JitSteps(self, [view], [None if unit else self.gain], [self.fixed], [np.ones_like(self.target)]) \
             if isinstance(view, TransportRows) and comp.engine != "numpy" else None

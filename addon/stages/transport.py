@@ -279,7 +279,7 @@ class TransportRows:
         index, weight = self.op.index[self.rows], self.op.weight[self.rows]
         self._k = k
         self._row_ones: np.ndarray | None = None
-        self._jit: Any = None  # its steps on the device (stages/joint_jit.py), made on first use
+        self._jit: Any = None  # its steps on the device (stages/solve_jit.py), made on first use
         flat_w = weight.reshape(-1, 3)
         live = np.flatnonzero(flat_w.max(axis=1) > 0)  # unused entries point at texel 0 with weight 0
         src = index.ravel().astype(np.int64)[live]

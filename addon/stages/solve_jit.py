@@ -1,4 +1,4 @@
-"""The joint solve's steps on the device: every SIRT step of stages/joint.py in Dr.Jit, nothing back in numpy.
+"""Stage C's transport solve stepped on the device: every SIRT step, one projector's or several's, in Dr.Jit.
 
 Stepped in numpy around the operators' Dr.Jit gathers (``engine='numpy'``), each step takes every projector's
 gathered light back to the host for the indirect part's block sums and its small matrix product, the blend rows,
@@ -7,15 +7,16 @@ projectors at 640×480: 1.07 s a target on an H200 against 1.02 s on 2 cores). H
 backend the operators are on (``cuda_ad_rgb`` on a GPU, the LLVM one on a CPU, the same code, so the suite runs
 what a GPU runs): each projector's state and each camera-row image are Dr.Jit arrays from a solve's first step to
 its last, and a step's only trip to the host is the loss every tenth step (a mean). Four 1920×1080 projectors in a
-2×2 grid: the 40 steps 47 ms on an H200; on 2 cores the whole target 26 % faster than stepping in numpy.
+2×2 grid: the 40 steps 47 ms on an H200; on 2 cores a whole target 2.61 → 2.20 s, one projector alone on the same
+area 0.59 → 0.49 s (stages/solve_transport.py and stages/joint.py build a :class:`JitSteps`).
 
 The indirect part of ``T_k z_k`` is each block's mean of the input times its low-resolution response, upsampled
 to the rows. Its pieces as gathers summed in fixed-size blocks, as the direct part's are (stages/transport.py):
 the active texels' sum per block is a gather padded to the largest block's run (the compact vector is ordered by
 block), the blocks × responses product a gather of the means laid out (low pixel, channel, block), and its
-adjoint one laid out (block, channel, low pixel). The operators, the blend rows and the reach are those of
-:class:`~.joint.JointSolve`; only where the arithmetic runs differs (float32 sums where numpy summed some in
-float64: the answers agree to about 1e-5).
+adjoint one laid out (block, channel, low pixel). The operators, the blend rows and the reach are those of the
+numpy steps; only where the arithmetic runs differs (float32 sums where numpy summed some in float64: the inputs
+agree to about 1e-5).
 """
 
 from __future__ import annotations
