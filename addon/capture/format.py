@@ -423,10 +423,11 @@ class CaptureSet:
     def _verified_size(self, rel: str, keep: bool = True) -> tuple[int, int]:
         """The size of the image ``rel``, decoded whole unless this process wrote or decoded this version of it
         before (:func:`~procam.addon.imageio.known_size`); ``keep``: see :func:`~procam.addon.imageio.read_image`."""
-        size = known_size(self._file(rel))
+        path = self._file(rel)
+        size = known_size(path)
         if size is None:
             size = _size(self._read(rel, keep))
-            remember_size(self._file(rel), size)
+            remember_size(path, size)
         return size
 
     def _file(self, rel: str) -> Path:

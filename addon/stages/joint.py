@@ -184,7 +184,7 @@ class JointRows:
 
     def light_parts(self) -> list[np.ndarray]:
         """Each projector's (R, 3) ``g_k T_k 1``: its white as the camera sees it."""
-        return [g * v.row_ones for g, v in zip(self.gains, self.views)]
+        return [self._gained(k, v.row_ones) for k, v in enumerate(self.views)]
 
 
 def _camera_mismatch(k: int, size: Any, first: Any) -> str:
@@ -333,7 +333,7 @@ def _finish(comps: Sequence[Compensator], joint: JointRows, zs: Sequence[np.ndar
     camera = comps[0].camera_size
     zc, fixed = solved if solved is not None else (joint.compact(zs), joint.fixed_sums(zs))
     raw_parts = joint.apply_parts(zc, fixed, gained=False)
-    lit_parts = [g * p for g, p in zip(joint.gains, raw_parts)]
+    lit_parts = [joint._gained(k, p) for k, p in enumerate(raw_parts)]
     lit = np.sum(lit_parts, axis=0)
     raw = _on_camera(joint.rows, np.sum(raw_parts, axis=0), camera)
     simulated = _on_camera(joint.rows, np.clip(lit - theta_rows, 0.0, 1.0), camera)
