@@ -15,15 +15,16 @@ neither the operator's size nor the solve's work). ``--scale`` scales both sizes
 
 For each layout: every projector's light-transport operator built (``build_transport``, the defaults ``procam
 precompute`` uses: one bounce, ``--spp`` 64) in a process of its own, timed, with its arrays' size (index, weights,
-indirect responses) and that process's peak RSS; the operators are kept in ``--work`` and reused by a later run
-(their build figures read back, as are the solves' for the same targets and repeats). Then, in a fresh process that
-loads the four operators, on each target (a photograph cropped to the area's aspect): the joint open-loop solve of
-the four (transport schedule, derived blend, no θ, as ``bench_joint_time.py``) over the largest area every projector
-lights part of (a wide one for 4×1), and in turn with it one projector alone (the one lighting most of that area,
-its own operator, the same input size, ``verify=False``) on the same area (the joint solve's camera rows) and on its
-own area (the largest inside its own footprint: a show of one projector). Times are medians of ``--repeat`` runs
-after one warm-up (which builds the area's views of the operators), wall and CPU seconds (every thread's); the solves
-compared run in turn in one process, because on shared cores the wall time of runs minutes apart differed by 2×.
+indirect responses) and that process's peak RSS; the operators are kept in ``--work`` and reused by a later run (their
+build figures read back, as are the solves' for the same targets and repeats). Then, in a fresh process that loads the
+four operators, on each target (a photograph cropped to the area's aspect): the joint open-loop solve of the four
+(transport schedule, derived blend, no θ, as ``bench_joint_time.py``; with the time its solver steps took, the rest
+being the per-target work on whole inputs) over the largest area every projector lights part of (a wide one for 4×1),
+and in turn with it one projector alone (the one lighting most of that area, its own operator, the same input size,
+``verify=False``) on the same area (the joint solve's camera rows) and on its own area (the largest inside its own
+footprint: a show of one projector). Times are medians of ``--repeat`` runs after one warm-up (which builds the area's
+views of the operators), wall and CPU seconds (every thread's); the solves compared run in turn in one process,
+because on shared cores the wall time of runs minutes apart differed by 2×.
 Memory: the operators' arrays, and the peak RSS of the joint process against that of a process that loads the one
 projector alone and runs the same solves. ``--engine``: where the solves' steps run (``numpy`` around the
 operators' gathers, ``drjit`` all on the operators' backend, ``auto`` as ``compensate``: Dr.Jit;
@@ -193,7 +194,8 @@ def child_solve(args: argparse.Namespace, folder: Path, rig: Rig, surface: Any) 
         row: dict[str, Any] = {"area": [area.width, area.height], "own_area": [own.width, own.height]}
         for key, (wall, cpu, res) in timed(fns, args.repeat).items():
             prefix = "" if key in ("joint", "alone") and key == next(iter(fns)) else f"{key}_"
-            row.update({f"{prefix}seconds": wall, f"{prefix}cpu": cpu, f"{prefix}psnr": res.report["psnr_simulated"]})
+            row.update({f"{prefix}seconds": wall, f"{prefix}cpu": cpu, f"{prefix}psnr": res.report["psnr_simulated"],
+                        f"{prefix}steps": res.report.get("seconds_steps")})  # the last run's solver steps
         out["targets"][name] = row
     out["peak_rss_mb"] = peak_rss_mb()
     out["variant"] = backend.default_variant()
@@ -246,6 +248,11 @@ def measure(args: argparse.Namespace, layout: str) -> dict[str, Any]:
     return {"builds": builds, **solves}
 
 
+def steps_text(seconds: float | None) -> str:
+    """The joint solve's steps (its last timed run), or a dash for figures kept before they were recorded."""
+    return "–" if seconds is None else f"{seconds:.3f}"
+
+
 def table(args: argparse.Namespace, results: dict[str, dict[str, Any]]) -> str:
     cam, frame = scaled(args.camera_size, args.scale), scaled(args.input_size, args.scale)
     first = next(iter(results.values()))["joint"]
@@ -265,7 +272,7 @@ def table(args: argparse.Namespace, results: dict[str, dict[str, Any]]) -> str:
                          f"{b['peak_rss_mb']:.0f} | {rep['spacing']} | {wide:.1f} % |")
     lines += ["", "| layout | target | area | joint s (CPU s) | alone: projector | alone s, same area (CPU s) | "
               "joint ÷ alone (CPU) | own area | alone s, own area (CPU s) | joint ÷ alone own (CPU) | "
-              "prediction dB, joint / alone own |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "prediction dB, joint / alone own | joint's steps s |", "|" + "---|" * 12]
     for layout, res in results.items():
         for name, j in res["joint"]["targets"].items():
             lines.append(f"| {layout} | {name} | {j['area'][0]}×{j['area'][1]} | {j['seconds']:.3f} ({j['cpu']:.3f}) | "
@@ -273,7 +280,7 @@ def table(args: argparse.Namespace, results: dict[str, dict[str, Any]]) -> str:
                          f"{j['seconds'] / j['alone_seconds']:.2f}× ({j['cpu'] / j['alone_cpu']:.2f}×) | "
                          f"{j['own_area'][0]}×{j['own_area'][1]} | {j['own_seconds']:.3f} ({j['own_cpu']:.3f}) | "
                          f"{j['seconds'] / j['own_seconds']:.2f}× ({j['cpu'] / j['own_cpu']:.2f}×) | "
-                         f"{j['psnr']:.2f} / {j['own_psnr']:.2f} |")
+                         f"{j['psnr']:.2f} / {j['own_psnr']:.2f} | {steps_text(j.get('steps'))} |")
     lines += ["", "| layout | operators MB, 4 / 1 | ratio | peak RSS MB, joint / alone (own processes) | ratio | "
               "time per target s, joint / alone same area, mean | ratio (CPU) |", "|---|---|---|---|---|---|---|"]
     for layout, res in results.items():

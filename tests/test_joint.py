@@ -315,6 +315,7 @@ def test_the_solve_steps_on_the_dr_jit_backend_give_numpys_answer(side):
         # (an exact fit reads 160 dB, where float32 rounding moves the last digits)
         assert min(b.report["psnr_simulated"], 60) == pytest.approx(min(a.report["psnr_simulated"], 60), abs=0.01)
         assert len(b.losses) == len(a.losses) and b.captures == a.captures, name
+        assert (a.report["steps_on"], b.report["steps_on"]) == ("numpy", "drjit") and b.report["seconds_steps"] > 0
         np.testing.assert_allclose(b.losses, a.losses, rtol=1e-3, atol=1e-9, err_msg=name)
     jit = JointCompensator(comps, engine="drjit")
     with pytest.raises(Cancelled):
@@ -366,6 +367,7 @@ def test_one_projectors_solve_steps_on_the_dr_jit_backend_too(side):
             np.testing.assert_allclose(b.z, a.z, atol=2e-4, err_msg=name)
             assert min(b.report["psnr_simulated"], 60) == pytest.approx(min(a.report["psnr_simulated"], 60), abs=0.01)
             assert b.captures == a.captures and len(b.losses) == len(a.losses), name
+            assert (a.report["steps_on"], b.report["steps_on"]) == ("numpy", "drjit"), name
             np.testing.assert_allclose(b.losses, a.losses, rtol=1e-3, atol=1e-9, err_msg=name)
     finally:
         comp.engine = "auto"

@@ -402,6 +402,7 @@ class JointSolve(TransportSolve):
         self._total = np.zeros((0, 3), np.float32)  # Σ of the parts, from the last forward
         self.losses: list[float] = []
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
+        self.seconds_steps = 0.0
         self.total = sched.iterations_z + sched.iterations_joint
         self.alpha = sched.theta_rate
         #: the steps on the device (stages/solve_jit.py), None: in numpy; θ's clip is to the gained light in both
@@ -463,6 +464,7 @@ class JointSolve(TransportSolve):
                                             "total": self.done},
                   "texels_solved": [int(len(v.texels)) for v in self.joint.views],
                   "psnr_simulated_start": self.psnr_start, "bias": self.owner.last_bias,
+                  "steps_on": "numpy" if self.jit is None else "drjit", "seconds_steps": round(self.seconds_steps, 3),
                   **({"loop": self.loop} if self.loop is not None else {})}
         return _finish(self.comps, self.joint, self.joint.expand(zc, self.zs0), theta, self.placed, self.area,
                        self.owner.overlap(), self.losses, self.mode, self.captures, report, t_start,

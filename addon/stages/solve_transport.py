@@ -77,6 +77,7 @@ class TransportSolve:
             self.col_sums = np.maximum(view.adjoint_compact(self.gain), 1e-3)
         self.losses: list[float] = []
         self.captures, self.seconds_device, self.done = 0, 0.0, 0
+        self.seconds_steps = 0.0
         self.total = sched.iterations_z + sched.iterations_joint
         self.psnr_start = area_psnr(self.predicted(view.apply_compact(self.zc0, self.fixed), self.theta0), placed,
                                     area)
@@ -97,9 +98,19 @@ class TransportSolve:
               f_start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``steps`` solver steps from ``zc``; with the last capture's ``residual``, θ follows Eq. 10 towards
         it on every step, then Eq. 14 against the current prediction (as ``fast`` does between captures).
-        ``f_start``: ``T zc`` when the caller has it already. On the device when :attr:`jit` is set."""
-        if self.jit is not None and (residual is None or self.device_theta):
-            return self.jit.steps(self, zc, theta, steps, residual)
+        ``f_start``: ``T zc`` when the caller has it already. On the device when :attr:`jit` is set; the time
+        they take is kept (:attr:`seconds_steps`, the report's ``seconds_steps``)."""
+        t0 = time.perf_counter()
+        try:
+            if self.jit is not None and (residual is None or self.device_theta):
+                return self.jit.steps(self, zc, theta, steps, residual)
+            return self.numpy_steps(zc, theta, steps, residual, f_start)
+        finally:
+            self.seconds_steps += time.perf_counter() - t0
+
+    def numpy_steps(self, zc: np.ndarray, theta: np.ndarray, steps: int, residual: np.ndarray | None,
+                    f_start: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`solve`'s steps in numpy around the operator's gathers."""
         prev, y = zc, zc
         for k in range(steps):
             if self.cancel is not None and self.cancel():
@@ -262,6 +273,7 @@ class TransportSolve:
                   "simulated_by": "mitsuba" if verify else "operator",
                   "operator_vs_mitsuba_psnr": agreement, "bounces": comp.bounces, "seed": comp.seed,
                   "seconds_device": round(self.seconds_device, 2), "seconds_verify": round(seconds_verify, 2),
+                  "steps_on": "numpy" if self.jit is None else "drjit", "seconds_steps": round(self.seconds_steps, 3),
                   **({"loop": self.loop} if self.loop is not None else {})}
         return comp.result(z, th, simulated, raw, placed, area, self.losses, mode, self.captures, report,
                            t_start=t_start, seconds_device=self.seconds_device, name=self.name, say=self.say)
