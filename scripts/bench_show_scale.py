@@ -57,7 +57,7 @@ from procam.addon.stages.calibrate import Calibration
 from procam.addon.stages.compensate import Compensator
 from procam.addon.stages.display_area import DisplayArea, DisplayAreaError, fit_target
 from procam.addon.render import backend
-from procam.addon.stages.joint import ENGINES, JointCompensator, JointRows
+from procam.addon.stages.joint import ENGINES, JointCompensator
 from procam.addon.stages.transport import DIRECT_SPP, TransportOperator, build_transport
 from procam.addon.steps.projectors import MIN_LIT, footprints, joint_area
 
@@ -120,10 +120,6 @@ def timed(fns: dict[str, Callable[[], Any]], repeat: int) -> dict[str, tuple[flo
             walls[name].append(time.perf_counter() - t0)
             cpus[name].append(time.process_time() - c0)
     return {name: (float(np.median(walls[name])), float(np.median(cpus[name])), out[name]) for name in fns}
-
-
-def joint_views(joint: JointCompensator, area: DisplayArea) -> JointRows:
-    return JointRows([comp.transport_view(area) for comp in joint.compensators])
 
 
 def lit_in(cover: np.ndarray, area: DisplayArea) -> list[int]:
@@ -193,13 +189,14 @@ def child_solve(args: argparse.Namespace, folder: Path, rig: Rig, surface: Any) 
             fns = {"joint": lambda f=fitted: joint.run(f, area, use_bias=False), **fns}
         row: dict[str, Any] = {"area": [area.width, area.height], "own_area": [own.width, own.height]}
         for key, (wall, cpu, res) in timed(fns, args.repeat).items():
+            if key == "joint":
+                out["engine"] = res.report["steps_on"]
             prefix = "" if key in ("joint", "alone") and key == next(iter(fns)) else f"{key}_"
             row.update({f"{prefix}seconds": wall, f"{prefix}cpu": cpu, f"{prefix}psnr": res.report["psnr_simulated"],
                         f"{prefix}steps": res.report.get("seconds_steps")})  # the last run's solver steps
         out["targets"][name] = row
     out["peak_rss_mb"] = peak_rss_mb()
     out["variant"] = backend.default_variant()
-    out["engine"] = joint.engine_for(joint_views(joint, area)) if joint is not None else None
     solve_file(args, folder, args.child).write_text(json.dumps(out, indent=1))
 
 

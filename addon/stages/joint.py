@@ -413,7 +413,7 @@ class JointSolve(TransportSolve):
             self.col_sums = np.maximum(joint.adjoint_parts(col_weights), 1e-3)
             light = np.sum(joint.apply_parts(self.zc0, self.fixed), axis=0)
         else:
-            light = self.jit.back(self.jit.forward(self.jit.split_to_device(self.zc0))[1])
+            light = self.jit.back(self.jit.forward(self.jit.start)[1])
         self.psnr_start = area_psnr(self.on_camera(np.clip(light - theta0, 0.0, 1.0)), placed, area)
 
     def forward(self, zc: np.ndarray) -> np.ndarray:
